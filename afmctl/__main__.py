@@ -1,0 +1,3 @@
+from afmctl.cli import main
+
+main()

@@ -1,0 +1,1 @@
+"""Device I/O for afmctl (placeholder; see issue 3)."""
