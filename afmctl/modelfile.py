@@ -12,7 +12,7 @@ table uses the same schema. Every key carries its unit in its name. Example::
     [polarization]
     eta_MVm_per_Cm2 = 3.0
     p_r_C_per_m2 = 0.3
-    n_coercive = 256
+    n_coercive = 128
     n_interaction = 64
     kernel = "auto"
 
@@ -109,7 +109,7 @@ def from_table(t: Table) -> Transducer:
         eta=p.number("eta_MVm_per_Cm2", positive=True), p_r=p.number("p_r_C_per_m2", positive=True),
         coercive=coercive,  # type: ignore[arg-type]
         interaction=_density(p.table("interaction"), ("normal", "discrete")),  # type: ignore[arg-type,union-attr]
-        n_coercive=p.integer("n_coercive", 256, minimum=1),
+        n_coercive=p.integer("n_coercive", 128, minimum=1),
         n_interaction=p.integer("n_interaction", 64, minimum=1),
         kernel=p.string("kernel", "auto", choices=("auto", "normal", "grid")),  # type: ignore[arg-type]
         thermal=thermal)

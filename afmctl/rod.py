@@ -86,6 +86,23 @@ class Discrete:
         return row, gain
 
 
+def smooth_horizon(disc: Discrete, d_max: int = 64) -> int:
+    """Smallest inversion horizon ``d`` whose inverse has no alternating (chattering) mode.
+
+    Inverting the rod ``d`` samples ahead with the force held (Algorithm 3, :mod:`afmctl.inverse`)
+    leaves the state to evolve with ``M_d = Phi - Gamma C Phi^d / g_d``. For ``d = 1`` one eigenvalue
+    of ``M_d`` is the sampling zero of the discretized rod, near -1 at high sample rates: the field
+    chatters between samples. Returns the first ``d`` whose eigenvalues all have positive real part
+    and lie inside the unit circle.
+    """
+    for d in range(1, d_max + 1):
+        row, gain = disc.horizon(d)
+        ev = np.linalg.eigvals(disc.phi - np.outer(disc.gamma, row) / gain)
+        if np.all(ev.real > 0) and np.all(np.abs(ev) < 1):
+            return d
+    return d_max
+
+
 def discretize(rod: Rod, dt: float) -> Discrete:
     """Exact discretization (18) of the rod at sample period ``dt`` (s)."""
     a = np.array([[0.0, 1.0], [-rod.k / rod.m, -rod.c / rod.m]])
