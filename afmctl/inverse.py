@@ -47,8 +47,8 @@ def _predict(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec
 
 @nb.njit(cache=True)
 def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: float,
-           e_max: float, dt: float, st: np.ndarray, sc: np.ndarray, ec: np.ndarray, wc: np.ndarray, ei: np.ndarray,
-           cw: np.ndarray, scal: np.ndarray, c0: float, g1: float, g2: float,
+           e_max: float, dt: float, st: np.ndarray, sc: np.ndarray, ec: np.ndarray,
+           wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray, c0: float, g1: float, g2: float,
            tol: float) -> tuple[float, float, float, float]:
     """Field ``E`` with prediction ``c0 + g1 P(E) + g2 P(E)^2`` within ``tol`` of ``target``.
 
@@ -260,7 +260,7 @@ def algorithm2_literal(params: hy.Polarization, p_target: FloatArray,
     e_prev, out = 0.0, []
     p_prev = hy.run(params, [e_prev], state)[0][0]
     for p_star in p_target:
-        e = _march(lambda x: hy.run(params, [x], state)[0][0], e_prev, p_prev, p_star, e_step)
+        e = _march(lambda x, s=state: hy.run(params, [x], s)[0][0], e_prev, p_prev, p_star, e_step)
         (p_prev,), state = hy.run(params, [e], state)
         e_prev = e
         out.append(e)

@@ -1,0 +1,51 @@
+"""Model files round-trip with units and a version; malformed ones fail naming the key."""
+
+from __future__ import annotations
+
+import dataclasses as dc
+from pathlib import Path
+
+import pytest
+
+from afmctl import hysteresis as hy
+from afmctl import modelfile
+from afmctl.transducer import Transducer
+
+
+def test_round_trip(nominal: Transducer, tmp_path: Path) -> None:
+    thermal = dc.replace(nominal, polarization=dc.replace(
+        nominal.polarization, thermal=hy.Thermal(0.05, 100.0),
+        coercive=hy.Discrete((0.5, 1.0, 1.5), (0.2, 0.6, 0.2))))
+    for m in (nominal, thermal):
+        modelfile.write(m, tmp_path / "m.toml", header="test")
+        assert modelfile.read(tmp_path / "m.toml") == m
+    assert not list(tmp_path.glob("*.partial"))
+
+
+@pytest.mark.parametrize(("old", "new", "key"), [
+    ("eta_MVm_per_Cm2 = 1.2", "eta_MVm_per_Cm2 = nan", "eta_MVm_per_Cm2"),
+    ("k_N_per_m = 123370.0", "k_N_per_m = inf", "k_N_per_m"),
+    ("m_kg = 0.05", "m_kg = -0.05", "m_kg"),
+    ("m_kg = 0.05", "", "m_kg"),
+    ("sigma_ln = 0.4", 'sigma_ln = "wide"', "sigma_ln"),
+    ('type = "lognormal"', 'type = "cauchy"', "type"),
+    ("format_version = 1", "format_version = 9", "format_version"),
+    ("[rod]", "[rodd]", "rod"),
+])
+def test_malformed_files_name_the_key(nominal: Transducer, tmp_path: Path, old: str, new: str,
+                                      key: str) -> None:
+    path = tmp_path / "m.toml"
+    modelfile.write(nominal, path)
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+    with pytest.raises(modelfile.FileFormatError, match=key):
+        modelfile.read(path)
+
+
+def test_not_toml_or_missing(tmp_path: Path) -> None:
+    (tmp_path / "bin.toml").write_bytes(b"\xff\xfe\x00junk")
+    with pytest.raises(modelfile.FileFormatError, match="UTF-8"):
+        modelfile.read(tmp_path / "bin.toml")
+    with pytest.raises(modelfile.FileFormatError, match="no such file"):
+        modelfile.read(tmp_path / "absent.toml")
