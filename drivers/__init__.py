@@ -162,12 +162,14 @@ class StageBase(abc.ABC):
     def wait(self, timeout_s: float | None = None, poll_s: float = 0.02) -> Status:
         """Poll until the generator stops; TimeoutError after ``timeout_s`` (default: the run's
         duration + 5 s)."""
-        if timeout_s is None:
-            timeout_s = self._last_run_samples / self.status().sample_rate_hz + 5.0
-        deadline = time.monotonic() + timeout_s
+        deadline: float | None = None
         while (st := self.status()).running:
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"stage still running after {timeout_s:.3g} s")
+            if deadline is None:
+                limit = timeout_s if timeout_s is not None else (
+                    self._last_run_samples / st.sample_rate_hz + 5.0)
+                deadline = time.monotonic() + limit
+            elif time.monotonic() > deadline:
+                raise TimeoutError(f"stage still running after {limit:.3g} s")
             time.sleep(poll_s)
         return st
 

@@ -1,0 +1,42 @@
+"""Shared fixtures: the shipped emulated profile, a slew-safe test waveform, and servers on
+127.0.0.1 / ptys that start and stop cleanly."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from afmctl.profile import Profile, default_profile
+
+
+@pytest.fixture(autouse=True)
+def _quiet_pymodbus() -> None:
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+
+@pytest.fixture(scope="session")
+def profile() -> Profile:
+    return default_profile()
+
+
+def sine(n: int, amplitude_v: float = 100.0, freq_hz: float = 5.0,
+         rate_hz: float = 10_000.0) -> np.ndarray:
+    """A sine from 0 V, well inside +-150 V and 50 V/ms at 10 kHz."""
+    return amplitude_v * np.sin(2 * np.pi * freq_hz * np.arange(n) / rate_hz)
+
+
+@pytest.fixture(scope="session")
+def waveform() -> np.ndarray:
+    """20,000 samples (2 s at 10 kHz) with a decaying envelope, so hysteresis minor loops show."""
+    n = 20_000
+    return sine(n) * np.linspace(1.0, 0.3, n)
+
+
+@pytest.fixture
+def device(profile: Profile) -> Iterator[object]:
+    from drivers.servers import EmulatedDevice
+    with EmulatedDevice(profile) as dev:
+        yield dev
