@@ -18,11 +18,12 @@ Physics of one run (:func:`respond`), sample by sample at the device's sample ra
 Each run ``r`` draws its noise and gain from ``numpy.random.default_rng((seed, r, stream))``, so
 :func:`expected_readback` reproduces a run exactly. The model state (hysteresis memory, rod, filter
 states) persists across runs and DC sets, like a real stage. While idle the state advances only by
-what is commanded (a DC set holds its voltage for :data:`SETTLE_S`); idle relaxation is not modelled.
+what is commanded (a DC set holds its voltage for :data:`SETTLE_S`); idle relaxation is not
+modelled.
 
 Safety (designed for issue 7): every commanded sample that reached the stack is logged
-(:meth:`Emulator.applied_log`); waveforms and DC sets outside the voltage range or the slew limit are
-refused with an error code and nothing applied; a watchdog, armed by the first heartbeat after a
+(:meth:`Emulator.applied_log`); waveforms and DC sets outside the voltage range or the slew limit
+are refused with an error code and nothing applied; a watchdog, armed by the first heartbeat after a
 period is set, ramps to 0 V if heartbeats stop; a read-only device refuses every output change.
 """
 
@@ -202,7 +203,9 @@ def check_waveform(v: FloatArray, limits: Limits, sample_rate_hz: float,
     ``previous_v`` is the output before the first sample (the step into the waveform counts).
     """
     v = np.asarray(v, dtype=float)
-    if v.size and (np.min(v) < limits.v_min or np.max(v) > limits.v_max or not np.all(np.isfinite(v))):
+    bad = not np.all(np.isfinite(v)) or (v.size > 0 and (v.min() < limits.v_min
+                                                        or v.max() > limits.v_max))
+    if bad:
         raise DeviceError(3, f"range [{limits.v_min:g}, {limits.v_max:g}] V")
     seq = v if previous_v is None else np.concatenate(([previous_v], v))
     step = limits.max_step_v(sample_rate_hz)

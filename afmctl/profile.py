@@ -1,15 +1,16 @@
 """Stage profiles: TOML files that describe one stage, read into frozen dataclasses.
 
 A profile says how to reach the stage (``[transport]``), what the amplifier may do
-(``[amplifier]``: gain, voltage limits, slew limit, current and stack capacitance), how the sensor's
-raw reading maps to displacement (``[sensor]``), the layer thickness (``[stack]``) and the sample
-rate. An emulated stage also carries ``[emulator]``: its true model (``[emulator.model]``, exactly the
-model-file schema of :mod:`afmctl.modelfile`), noise, seed, watchdog and optional effects that the
-base model lacks (``[emulator.effects.*]``, each off unless present). Every key carries its unit.
+(``[amplifier]``: gain, voltage limits, slew limit, current and stack capacitance), how the
+sensor's raw reading maps to displacement (``[sensor]``), the layer thickness (``[stack]``) and the
+sample rate. An emulated stage also carries ``[emulator]``: its true model (``[emulator.model]``,
+exactly the model-file schema of :mod:`afmctl.modelfile`), noise, seed, watchdog and optional
+effects that the base model lacks (``[emulator.effects.*]``, each off unless present). Every key
+carries its unit.
 
-Every problem raises :class:`~afmctl.tomlfile.FileFormatError` naming the file and key, which the CLI
-prints as one line with exit status 2. Shipped profiles live in ``afmctl/profiles/`` (package data;
-``profiles/`` at the top of the repository links to them).
+Every problem raises :class:`~afmctl.tomlfile.FileFormatError` naming the file and key, which the
+CLI prints as one line with exit status 2. Shipped profiles live in ``afmctl/profiles/`` (package
+data; ``profiles/`` at the top of the repository links to them).
 """
 
 from __future__ import annotations
@@ -93,7 +94,10 @@ class Limits:
 
 @dataclass(frozen=True)
 class SecondMode:
-    """A second mechanical mode driven by the main displacement: ``x'' + 2 z w x' + w^2 x = w^2 g u``."""
+    """A second mechanical mode driven by the main displacement.
+
+    ``x'' + 2 zeta w x' + w^2 x = w^2 gain u`` with ``w = 2 pi frequency_hz``; ``x`` (um) is added.
+    """
 
     frequency_hz: float
     damping_ratio: float

@@ -29,7 +29,6 @@ seconds. Every blocking call has a timeout; none can hang.
 from __future__ import annotations
 
 import abc
-
 import time
 from dataclasses import dataclass
 from typing import Any

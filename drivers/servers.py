@@ -263,7 +263,8 @@ class ModbusTcpServer(_ModbusServerBase):
         self.device, self.host, self.port, self.unit = device, host, port, unit
 
     def _make(self) -> Any:
-        return _PymodbusTcpServer(sim_device(self.device, self.unit), address=(self.host, self.port))
+        return _PymodbusTcpServer(sim_device(self.device, self.unit),
+                                  address=(self.host, self.port))
 
     def __enter__(self) -> ModbusTcpServer:
         super().__enter__()

@@ -211,7 +211,8 @@ def test_open_stage_defaults_to_the_in_process_emulator(profile: Profile) -> Non
 
 def test_afmctl_imports_no_device_library() -> None:
     code = ("import sys, afmctl, afmctl.emulator, afmctl.profile, afmctl.cli\n"
-            "bad = [m for m in sys.modules if m.split('.')[0] in ('serial', 'pymodbus', 'drivers')]\n"
+            "bad = [m for m in sys.modules\n"
+            "       if m.split('.')[0] in ('serial', 'pymodbus', 'drivers')]\n"
             "assert not bad, bad\n")
     subprocess.run([sys.executable, "-c", code], check=True)
 
