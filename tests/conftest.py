@@ -22,17 +22,11 @@ def profile() -> Profile:
     return default_profile()
 
 
-def sine(n: int, amplitude_v: float = 100.0, freq_hz: float = 5.0,
-         rate_hz: float = 10_000.0) -> np.ndarray:
-    """A sine from 0 V, well inside +-150 V and 50 V/ms at 10 kHz."""
-    return amplitude_v * np.sin(2 * np.pi * freq_hz * np.arange(n) / rate_hz)
-
-
 @pytest.fixture(scope="session")
 def waveform() -> np.ndarray:
     """20,000 samples (2 s at 10 kHz) with a decaying envelope, so hysteresis minor loops show."""
     n = 20_000
-    return sine(n) * np.linspace(1.0, 0.3, n)
+    return 100.0 * np.sin(2 * np.pi * 5.0 * np.arange(n) / 10_000.0) * np.linspace(1.0, 0.3, n)
 
 
 @pytest.fixture

@@ -10,9 +10,13 @@ import pytest
 from afmctl import emulator as em
 from afmctl import hysteresis as hy
 from afmctl.profile import Effects, Profile, SecondMode
-from tests.conftest import sine
 
 RATE = 10_000.0
+
+
+def sine(n: int, amplitude_v: float = 100.0, freq_hz: float = 5.0) -> np.ndarray:
+    """A sine from 0 V at 10 kHz, inside +-150 V and 50 V/ms for the defaults."""
+    return amplitude_v * np.sin(2 * np.pi * freq_hz * np.arange(n) / RATE)
 
 
 def quiet(profile: Profile, **effects: object) -> Profile:
