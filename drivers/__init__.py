@@ -45,7 +45,7 @@ from afmctl.profile import (
     SerialTransport,
 )
 
-__all__ = ["StageError", "Recording", "Status", "StageBase", "open_stage"]
+__all__ = ["StageError", "Recording", "Status", "Stage", "StageBase", "open_stage"]
 
 
 class StageError(RuntimeError):
@@ -104,6 +104,14 @@ class StageBase(abc.ABC):
 
     @abc.abstractmethod
     def status(self) -> Status: ...
+
+    @abc.abstractmethod
+    def limits(self) -> tuple[float, float, float]:
+        """The device's own limits: v_min (V), v_max (V), slew (V/ms)."""
+
+    def voltage(self) -> float:
+        """Output voltage now, V."""
+        return self.status().output_v
 
     @abc.abstractmethod
     def set_voltage(self, v: float) -> None:
@@ -189,6 +197,10 @@ class StageBase(abc.ABC):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+#: The stage interface (an abstract base class: implementations inherit the composed operations).
+Stage = StageBase
 
 
 def open_stage(profile: Profile, **options: Any) -> StageBase:

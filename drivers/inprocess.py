@@ -58,6 +58,10 @@ class InProcessStage(StageBase):
     def status(self) -> Status:
         return self._call(self.emulator.status)  # type: ignore[return-value]
 
+    def limits(self) -> tuple[float, float, float]:
+        lim = self.emulator.limits
+        return lim.v_min, lim.v_max, lim.slew_v_per_ms
+
     def set_voltage(self, v: float) -> None:
         self._call(self.emulator.set_voltage, float(v))
 

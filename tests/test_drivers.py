@@ -245,3 +245,10 @@ def test_mbpoll_reads_map_and_writes_dc_voltage(profile: Profile, device: sv.Emu
         assert float(_mbpoll_values(out)[0]) == 2.5
     assert device.emulator.output_v == 2.5
     assert device.emulator.applied_log(0.0).tolist() == [2.5]
+
+
+@pytest.mark.parametrize("kind", ["modbus-tcp", "serial-pty", "inprocess"])
+def test_every_stage_reports_the_same_limits(kind: str, profile: Profile) -> None:
+    with stage_on(kind, profile) as (stage, _):
+        assert stage.limits() == (-150.0, 150.0, 50.0)
+        assert stage.voltage() == 0.0
