@@ -48,6 +48,10 @@ class Limits:
         if min(self.slew_v_per_ms, self.current_ma, self.capacitance_uf) <= 0:
             raise ValueError("slew, current and capacitance limits must be > 0")
 
+    def max_step_v(self, sample_rate_hz: float) -> float:
+        """Largest change between consecutive samples that the slew limit allows, V."""
+        return self.slew_v_per_ms * 1e3 / sample_rate_hz
+
     @property
     def max_rate_v_per_ms(self) -> float:
         """Usable slew rate: min(slew limit, I_max / C), V/ms (mA / uF = V/ms)."""

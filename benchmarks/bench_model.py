@@ -11,7 +11,6 @@ import dataclasses as dc
 import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 from scipy.signal import sawtooth
@@ -20,8 +19,8 @@ from afmctl import hysteresis as hy
 from afmctl import inverse as inv
 from afmctl import modelfile, rod
 from afmctl import transducer as tr
+from afmctl.profile import default_profile
 
-ROOT = Path(__file__).resolve().parents[1]
 DT_S = 1e-4  # 10 kHz, the emulated stage's sample rate
 
 
@@ -116,19 +115,27 @@ def convergence(model: tr.Transducer, n_ref: int = 16_384) -> float:
         mm = dc.replace(model, polarization=dc.replace(model.polarization, n_coercive=n))
         return tr.simulate(tr.compile_model(mm, dt), v, tr.initial(mm))[0]
 
-    default = sim(model.polarization.n_coercive)
+    n_default = dc.fields(hy.Polarization)[4].default  # the package's default n_coercive
+    assert dc.fields(hy.Polarization)[4].name == "n_coercive"
+    default = sim(n_default)
     fine = sim(n_ref)
-    log(f"convergence: N_c = {model.polarization.n_coercive} vs {n_ref}, range "
+    log(f"convergence: N_c = {n_default} vs {n_ref}, range "
         f"{np.ptp(fine):.1f} um")
     return float(np.sqrt(np.mean((default - fine) ** 2)))
+
+
+def _nominal() -> tr.Transducer:
+    emu = default_profile().emulator
+    assert emu is not None
+    return emu.model
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--json", action="store_true", help="print the JSON object last")
-    ap.add_argument("--model", default=str(ROOT / "profiles" / "nominal-model.toml"))
+    ap.add_argument("--model", help="model file (default: the emulated stage's true model)")
     args = ap.parse_args()
-    model = modelfile.read(args.model)
+    model = modelfile.read(args.model) if args.model else _nominal()
     out: dict[str, float | int] = {"n_i": 64, "n_j": 64}
     out.update(speed(model))
     d = rod.smooth_horizon(rod.discretize(model.rod, DT_S))

@@ -1,0 +1,491 @@
+"""The emulated stage: afmctl's model running in device time behind the wire protocols.
+
+This module is the device's logic only. It does no I/O, reads no clock and imports no device
+library: every method that depends on time takes ``now`` (s, any monotonic origin) explicitly, so
+tests step the clock by hand and ``drivers.servers`` passes ``time.monotonic()``.
+
+Physics of one run (:func:`respond`), sample by sample at the device's sample rate:
+
+1. commanded voltage ``v_cmd`` (the waveform table, tiled over the cycles), float32 as on the wire;
+2. applied-voltage gain ``1 + N(0, sigma)`` drawn once per run (effect ``voltage_gain_drift``);
+3. first-order amplifier lag (``amplifier_lag``) -> the voltage actually on the stack, recorded;
+4. the true model: polarization (13) and rod (16) via :func:`afmctl.transducer.simulate`, with the
+   thermal kernel (10) if ``thermal_relaxation`` is on;
+5. a second mechanical mode driven by that displacement (``second_mode``), added;
+6. gauge nonlinearity ``u + c u^2`` (``sensor_nonlinearity``), pure latency (``sensor_delay``);
+7. Gaussian sensor noise; the recorder stores ``raw = (u - offset) / scale`` (sensor units).
+
+Each run ``r`` draws its noise and gain from ``numpy.random.default_rng((seed, r, stream))``, so
+:func:`expected_readback` reproduces a run exactly. The model state (hysteresis memory, rod, filter
+states) persists across runs and DC sets, like a real stage. While idle the state advances only by
+what is commanded (a DC set holds its voltage for :data:`SETTLE_S`); idle relaxation is not
+modelled.
+
+Safety (designed for issue 7): every commanded sample that reached the stack is logged
+(:meth:`Emulator.applied_log`); waveforms and DC sets outside the voltage range or the slew limit
+are refused with an error code and nothing applied; a watchdog, armed by the first heartbeat after a
+period is set, ramps to 0 V if heartbeats stop; a read-only device refuses every output change.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import signal
+
+from afmctl import transducer as td
+from afmctl.profile import EmulatorConfig, Limits, Profile
+
+FloatArray = NDArray[np.float64]
+
+IDENTITY = "afmctl,emulated-stage,0,protocol-1"
+SETTLE_S = 0.005
+MIN_RATE_HZ, MAX_RATE_HZ = 100.0, 100_000.0
+
+#: Error codes shared by both wire protocols (sticky until queried or cleared).
+ERRORS: dict[int, str] = {
+    0: "no error",
+    1: "unknown command",
+    2: "bad argument",
+    3: "voltage outside limits",
+    4: "slew limit exceeded",
+    5: "busy: generator running",
+    6: "index outside table or recorder",
+    7: "read-only device",
+    8: "watchdog expired: ramped to 0 V",
+    9: "waveform table incomplete",
+}
+
+
+class DeviceError(Exception):
+    """A refused command; ``code`` is a key of :data:`ERRORS`."""
+
+    def __init__(self, code: int, detail: str = "") -> None:
+        super().__init__(f"error {code}: {ERRORS[code]}" + (f" ({detail})" if detail else ""))
+        self.code = code
+
+
+@dataclass(frozen=True)
+class PhysicsState:
+    """Everything the device remembers between samples: model, amplifier, second mode, sensor."""
+
+    stage: td.StageState
+    amp_v: float
+    mode_zi: FloatArray
+    delay_um: FloatArray
+
+
+class Physics:
+    """The true model and effects, compiled for one sample rate (immutable after construction)."""
+
+    def __init__(self, config: EmulatorConfig, sample_rate_hz: float) -> None:
+        self.config = config
+        self.dt = 1.0 / sample_rate_hz
+        self.compiled = td.compile_model(config.model, self.dt)
+        eff = config.effects
+        bw = eff.amplifier_bandwidth_hz
+        self.lag_a = 0.0 if bw is None else math.exp(-2 * math.pi * bw * self.dt)
+        self.mode_ba: tuple[FloatArray, FloatArray] | None = None
+        if eff.second_mode is not None:
+            w = 2 * math.pi * eff.second_mode.frequency_hz
+            num, den = [eff.second_mode.gain * w * w], [1.0, 2 * eff.second_mode.damping_ratio * w,
+                                                        w * w]
+            bd, ad, _ = signal.cont2discrete((num, den), self.dt, method="zoh")
+            self.mode_ba = (np.ravel(bd), np.asarray(ad, dtype=float))
+
+    def initial(self) -> PhysicsState:
+        """Power-on state: depoled, 0 V, at rest."""
+        stage = td.initial(self.config.model)
+        u0, _, _ = td.simulate(self.compiled, np.zeros(1), stage)
+        d = self.config.effects.sensor_delay_samples
+        return PhysicsState(stage, 0.0, np.zeros(2), np.full(d, u0[0]))
+
+    def draws(self, run_index: int, n: int) -> tuple[float, FloatArray]:
+        """Applied-voltage gain and sensor noise (um, shape (n,)) of run ``run_index``."""
+        cfg = self.config
+        gain = 1.0
+        if cfg.effects.voltage_gain_sigma > 0:
+            gain += cfg.effects.voltage_gain_sigma * np.random.default_rng(
+                (cfg.seed, run_index, 1)).standard_normal()
+        noise = cfg.noise_um * np.random.default_rng((cfg.seed, run_index, 0)).standard_normal(n)
+        return gain, noise
+
+    def _amplifier(self, v: FloatArray, amp_v: float) -> tuple[FloatArray, float]:
+        if self.lag_a == 0.0:
+            return v, float(v[-1]) if v.size else amp_v
+        a = self.lag_a
+        y, _ = signal.lfilter([1 - a], [1.0, -a], v, zi=[a * amp_v])
+        return y, float(y[-1]) if y.size else amp_v
+
+    def _mode(self, u: FloatArray, zi: FloatArray) -> tuple[FloatArray, FloatArray]:
+        if self.mode_ba is None:
+            return u, zi
+        x, zf = signal.lfilter(*self.mode_ba, u, zi=zi)
+        return u + x, zf
+
+    def _sensor(self, u: FloatArray, delay: FloatArray) -> tuple[FloatArray, FloatArray]:
+        u = u + self.config.effects.sensor_quadratic_per_um * u * u
+        if delay.size == 0:
+            return u, delay
+        full = np.concatenate((delay, u))
+        return full[:u.size], full[full.size - delay.size:]
+
+    def respond(self, v_cmd: FloatArray, state: PhysicsState, gain: float = 1.0,
+                noise_um: FloatArray | None = None
+                ) -> tuple[FloatArray, FloatArray, PhysicsState]:
+        """Run commanded samples through amplifier, model, mode and sensor.
+
+        Parameters
+        ----------
+        v_cmd : ndarray, shape (N,)
+            Commanded voltage held over each sample, V.
+        state : PhysicsState
+        gain : float
+            Applied-voltage gain of this run.
+        noise_um : ndarray, shape (N,), optional
+            Sensor noise to add, um.
+
+        Returns
+        -------
+        u_um : ndarray, shape (N,)
+            Measured displacement at each sample instant (before that sample acts), um.
+        v_applied : ndarray, shape (N,)
+            Voltage on the stack during each sample, V.
+        state : PhysicsState
+        """
+        v_app, amp_v = self._amplifier(gain * np.asarray(v_cmd, dtype=float), state.amp_v)
+        u, _, stage = td.simulate(self.compiled, v_app, state.stage)
+        u, zi = self._mode(u, state.mode_zi)
+        u, delay = self._sensor(u, state.delay_um)
+        if noise_um is not None:
+            u = u + noise_um
+        return u, v_app, PhysicsState(stage, amp_v, zi, delay)
+
+
+def expected_readback(config: EmulatorConfig, sample_rate_hz: float, waveform_v: FloatArray,
+                      cycles: int = 1, run_index: int = 0,
+                      state: PhysicsState | None = None) -> tuple[FloatArray, FloatArray]:
+    """The model's own simulation of one run: what the recorder should hold.
+
+    Parameters
+    ----------
+    config : EmulatorConfig
+    sample_rate_hz : float
+    waveform_v : ndarray, shape (N,)
+        The waveform table, V (rounded to float32, as on the wire).
+    cycles : int
+    run_index : int
+        Index of the run since power-on (selects noise and gain draws).
+    state : PhysicsState, optional
+        Device state before the run; the power-on state if omitted.
+
+    Returns
+    -------
+    u_um : ndarray, shape (N * cycles,)
+        Displacement as the sensor reports it, um.
+    v_applied : ndarray, shape (N * cycles,)
+        Voltage on the stack, V.
+    """
+    ph = Physics(config, sample_rate_hz)
+    v = np.tile(np.asarray(waveform_v, dtype=np.float32).astype(float), cycles)
+    gain, noise = ph.draws(run_index, v.size)
+    u, va, _ = ph.respond(v, ph.initial() if state is None else state, gain, noise)
+    return u, va
+
+
+def check_waveform(v: FloatArray, limits: Limits, sample_rate_hz: float,
+                   previous_v: float | None = None) -> None:
+    """Raise :class:`DeviceError` 3 or 4 if ``v`` leaves the voltage range or the slew limit.
+
+    ``previous_v`` is the output before the first sample (the step into the waveform counts).
+    """
+    v = np.asarray(v, dtype=float)
+    bad = not np.all(np.isfinite(v)) or (v.size > 0 and (v.min() < limits.v_min
+                                                        or v.max() > limits.v_max))
+    if bad:
+        raise DeviceError(3, f"range [{limits.v_min:g}, {limits.v_max:g}] V")
+    seq = v if previous_v is None else np.concatenate(([previous_v], v))
+    step = limits.max_step_v(sample_rate_hz)
+    if seq.size > 1 and np.max(np.abs(np.diff(seq))) > step * (1 + 1e-6):
+        i = int(np.argmax(np.abs(np.diff(seq))))
+        raise DeviceError(4, f"step {abs(seq[i + 1] - seq[i]):.4g} V > {step:.4g} V at {i}")
+
+
+def ramp_to_zero(v0: float, limits: Limits, sample_rate_hz: float) -> FloatArray:
+    """Samples from ``v0`` to 0 V at 90 % of the slew limit (empty if already at 0)."""
+    step = 0.9 * limits.max_step_v(sample_rate_hz)
+    n = math.ceil(abs(v0) / step)
+    return np.linspace(v0, 0.0, n + 1)[1:] if n else np.zeros(0)
+
+
+@dataclass(frozen=True)
+class Status:
+    """What the device reports about itself."""
+
+    running: bool
+    recorder_fill: int
+    last_error: int
+    output_v: float
+    run_count: int
+    table_length: int
+    table_complete: bool
+    watchdog_armed: bool
+    watchdog_expired: bool
+    read_only: bool
+    sample_rate_hz: float
+
+
+@dataclass(frozen=True)
+class _Run:
+    start: float
+    v_cmd: FloatArray
+    gain: float
+    before: PhysicsState
+    after: PhysicsState
+
+
+class Emulator:
+    """The emulated device: waveform table, generator, recorder, DC output, limits and watchdog.
+
+    Parameters
+    ----------
+    profile : Profile
+        Must carry an ``emulator`` section (the device's truth).
+    read_only : bool, optional
+        Override the profile: refuse every output change.
+
+    Every public method takes ``now`` (s, monotonic), first advances the device to ``now`` and
+    raises :class:`DeviceError` (also remembered as the sticky last error) when it refuses.
+    """
+
+    def __init__(self, profile: Profile, read_only: bool | None = None) -> None:
+        if profile.emulator is None:
+            raise ValueError(f"profile {profile.name!r} has no [emulator] section")
+        self.profile = profile
+        self.config = profile.emulator
+        self.limits = profile.limits
+        self.read_only = self.config.read_only if read_only is None else read_only
+        self.sample_rate_hz = profile.sample_rate_hz
+        self.physics = Physics(self.config, self.sample_rate_hz)
+        self.state = self.physics.initial()
+        self.table = np.zeros(self.config.table_capacity, dtype=np.float32)
+        self.written = np.zeros(self.config.table_capacity, dtype=bool)
+        self.table_length = 0
+        self.rec_u = np.full(self.config.recorder_capacity, np.nan, dtype=np.float32)
+        self.rec_v = np.full(self.config.recorder_capacity, np.nan, dtype=np.float32)
+        self.fill = 0
+        self.output_v = 0.0
+        self.run_count = 0
+        self.last_error = 0
+        self.watchdog_s = self.config.watchdog_s
+        self.armed = False
+        self.expired = False
+        self.last_heartbeat = 0.0
+        self._run: _Run | None = None
+        self._applied: list[FloatArray] = []
+
+    # -- bookkeeping ---------------------------------------------------------------------------
+    def _fail(self, code: int, detail: str = "") -> DeviceError:
+        self.last_error = code
+        return DeviceError(code, detail)
+
+    def _writable(self) -> None:
+        if self.read_only:
+            raise self._fail(7)
+
+    def _idle(self) -> None:
+        if self._run is not None:
+            raise self._fail(5)
+
+    def _apply(self, v: FloatArray) -> None:
+        """Log commanded samples that reached the stack."""
+        if v.size:
+            self._applied.append(np.asarray(v, dtype=float))
+            self.output_v = float(v[-1])
+
+    def _hold(self, v: FloatArray) -> None:
+        """Apply samples outside a run (DC set, ramp): the state advances, nothing is recorded."""
+        _, _, self.state = self.physics.respond(v, self.state)
+        self._apply(v)
+
+    def _elapsed_samples(self, now: float) -> int:
+        assert self._run is not None
+        k = math.floor((now - self._run.start) * self.sample_rate_hz + 1e-9)
+        return max(0, min(self._run.v_cmd.size, k))
+
+    def tick(self, now: float) -> None:
+        """Advance to ``now``: finish a run that has ended, expire the watchdog."""
+        if self.armed and now - self.last_heartbeat > self.watchdog_s:
+            self._expire(self.last_heartbeat + self.watchdog_s)
+        if self._run is not None and self._elapsed_samples(now) == self._run.v_cmd.size:
+            run, self._run = self._run, None
+            self.state = run.after
+            self._apply(run.v_cmd)
+            self.fill = run.v_cmd.size
+
+    def _expire(self, when: float) -> None:
+        self.armed = False
+        self.expired = True
+        self.tick(when)
+        self._halt(when)
+        self._hold(ramp_to_zero(self.output_v, self.limits, self.sample_rate_hz))
+        self.last_error = 8
+
+    def _halt(self, now: float) -> None:
+        """Stop the generator after the samples applied by ``now`` (output holds the last one)."""
+        if self._run is None:
+            return
+        run, k = self._run, self._elapsed_samples(now)
+        self._run = None
+        _, _, self.state = self.physics.respond(run.v_cmd[:k], run.before, run.gain)
+        self._apply(run.v_cmd[:k])
+        self.fill = k
+
+    # -- commands ------------------------------------------------------------------------------
+    def status(self, now: float) -> Status:
+        self.tick(now)
+        running = self._run is not None
+        return Status(
+            running=running, recorder_fill=self._elapsed_samples(now) if running else self.fill,
+            last_error=self.last_error, output_v=self._live_output(now),
+            run_count=self.run_count, table_length=self.table_length,
+            table_complete=self.table_length > 0 and bool(self.written[:self.table_length].all()),
+            watchdog_armed=self.armed, watchdog_expired=self.expired, read_only=self.read_only,
+            sample_rate_hz=self.sample_rate_hz)
+
+    def _live_output(self, now: float) -> float:
+        if self._run is None:
+            return self.output_v
+        k = self._elapsed_samples(now)
+        return float(self._run.v_cmd[k - 1]) if k else self.output_v
+
+    def pop_error(self, now: float) -> int:
+        """The last error code, cleared by reading (GCS ``ERR?``)."""
+        self.tick(now)
+        code, self.last_error = self.last_error, 0
+        return code
+
+    def set_voltage(self, v: float, now: float) -> None:
+        """DC output ``v`` (V): refused outside the range or if the step exceeds the slew limit."""
+        self.tick(now)
+        self._writable()
+        self._idle()
+        try:
+            check_waveform(np.array([v]), self.limits, self.sample_rate_hz, self.output_v)
+        except DeviceError as exc:
+            raise self._fail(exc.code, str(exc)) from None
+        settle = np.full(max(1, round(SETTLE_S * self.sample_rate_hz)), float(v))
+        _, _, self.state = self.physics.respond(settle, self.state)
+        self._apply(settle[:1])
+
+    def set_sample_rate(self, hz: float, now: float) -> None:
+        self.tick(now)
+        self._writable()
+        self._idle()
+        if not MIN_RATE_HZ <= hz <= MAX_RATE_HZ:
+            raise self._fail(2, f"sample rate must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz")
+        self.sample_rate_hz = float(hz)
+        self.physics = Physics(self.config, self.sample_rate_hz)
+
+    def set_table_length(self, n: int, now: float) -> None:
+        """Declare the waveform length; every index in [0, n) must then be written once."""
+        self.tick(now)
+        self._writable()
+        self._idle()
+        if not 1 <= n <= self.table.size:
+            raise self._fail(6, f"table length must be in [1, {self.table.size}]")
+        self.table_length = int(n)
+        self.written[:] = False
+
+    def write_table(self, first: int, values: FloatArray, now: float) -> None:
+        """Store samples ``first .. first+len-1`` (V); idempotent, refused as a whole if any is
+        outside the voltage range."""
+        self.tick(now)
+        self._writable()
+        self._idle()
+        vals = np.asarray(values, dtype=np.float32)
+        if first < 0 or first + vals.size > self.table_length:
+            raise self._fail(6, f"samples {first}..{first + vals.size - 1} outside the table "
+                                f"of {self.table_length}")
+        try:
+            check_waveform(vals, self.limits, self.sample_rate_hz)
+        except DeviceError as exc:
+            raise self._fail(exc.code, str(exc)) from None
+        self.table[first:first + vals.size] = vals
+        self.written[first:first + vals.size] = True
+
+    def start(self, cycles: int, now: float) -> None:
+        """Clock out the table ``cycles`` times from ``now``, recording every sample."""
+        self.tick(now)
+        self._writable()
+        self._idle()
+        n = self.table_length
+        if n == 0 or not self.written[:n].all():
+            raise self._fail(9)
+        if not 1 <= cycles or n * cycles > self.rec_u.size:
+            raise self._fail(6, f"cycles x length must be in [1, {self.rec_u.size}]")
+        v = np.tile(self.table[:n].astype(float), cycles)
+        try:
+            check_waveform(v[:min(v.size, n + 1)], self.limits, self.sample_rate_hz, self.output_v)
+        except DeviceError as exc:
+            raise self._fail(exc.code, str(exc)) from None
+        gain, noise = self.physics.draws(self.run_count, v.size)
+        u, va, after = self.physics.respond(v, self.state, gain, noise)
+        self.rec_u[:] = np.nan
+        self.rec_v[:] = np.nan
+        self.rec_u[:v.size] = (u - self.profile.sensor_offset_um) / self.profile.sensor_scale_um
+        self.rec_v[:v.size] = va
+        self.fill = 0
+        self.run_count += 1
+        self.expired = False
+        self._run = _Run(now, v, gain, self.state, after)
+
+    def stop(self, now: float) -> None:
+        """Stop the generator; the output holds its last sample."""
+        self.tick(now)
+        self._halt(now)
+
+    def safe_state(self, now: float) -> None:
+        """Stop the generator and ramp to 0 V within the slew limit."""
+        self.tick(now)
+        self._halt(now)
+        self._hold(ramp_to_zero(self.output_v, self.limits, self.sample_rate_hz))
+
+    def heartbeat(self, now: float) -> None:
+        """Refresh (and, if a period is set, arm) the watchdog."""
+        self.tick(now)
+        self.last_heartbeat = now
+        self.armed = self.watchdog_s > 0
+
+    def set_watchdog(self, period_s: float, now: float) -> None:
+        """Set the watchdog period (s); 0 disarms. Armed by the next heartbeat."""
+        self.tick(now)
+        if not 0 <= period_s <= 3600:
+            raise self._fail(2, "watchdog period must be in [0, 3600] s")
+        self.watchdog_s = float(period_s)
+        self.armed = False
+        self.expired = False
+
+    def read_recorder(self, first: int, n: int, now: float) -> tuple[NDArray[np.float32],
+                                                                      NDArray[np.float32]]:
+        """Raw sensor reading and stack voltage (float32) of samples ``first .. first+n-1``;
+        samples not yet recorded are NaN."""
+        fill = self.status(now).recorder_fill
+        if first < 0 or n < 0 or first + n > self.rec_u.size:
+            raise self._fail(6, f"recorder holds {self.rec_u.size} samples")
+        u, v = self.rec_u[first:first + n].copy(), self.rec_v[first:first + n].copy()
+        cut = max(0, fill - first)
+        u[cut:] = np.nan
+        v[cut:] = np.nan
+        return u, v
+
+    def applied_log(self, now: float) -> FloatArray:
+        """Every commanded sample that has reached the stack since power-on, V."""
+        self.tick(now)
+        done = np.concatenate(self._applied) if self._applied else np.zeros(0)
+        if self._run is None:
+            return done
+        return np.concatenate((done, self._run.v_cmd[:self._elapsed_samples(now)]))

@@ -1,0 +1,253 @@
+"""Stage profiles: TOML files that describe one stage, read into frozen dataclasses.
+
+A profile says how to reach the stage (``[transport]``), what the amplifier may do
+(``[amplifier]``: gain, voltage limits, slew limit, current and stack capacitance), how the
+sensor's raw reading maps to displacement (``[sensor]``), the layer thickness (``[stack]``) and the
+sample rate. An emulated stage also carries ``[emulator]``: its true model (``[emulator.model]``,
+exactly the model-file schema of :mod:`afmctl.modelfile`), noise, seed, watchdog and optional
+effects that the base model lacks (``[emulator.effects.*]``, each off unless present). Every key
+carries its unit.
+
+Every problem raises :class:`~afmctl.tomlfile.FileFormatError` naming the file and key, which the
+CLI prints as one line with exit status 2. Shipped profiles live in ``afmctl/profiles/`` (package
+data; ``profiles/`` at the top of the repository links to them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from importlib import resources
+from pathlib import Path
+
+from afmctl import hysteresis as hy
+from afmctl import modelfile
+from afmctl.guard import Limits
+from afmctl.tomlfile import FileFormatError, Table, load
+from afmctl.transducer import Transducer
+
+FORMAT = "afmctl-profile"
+FORMAT_VERSION = 1
+
+__all__ = ["FileFormatError", "Profile", "load_profile", "default_profile", "shipped_profile"]
+
+
+@dataclass(frozen=True)
+class EmulatedTransport:
+    """The emulated device, run in-process (no wire)."""
+
+
+@dataclass(frozen=True)
+class SerialTransport:
+    """ASCII protocol over any pyserial URL (a port, ``socket://host:port``, a pty path)."""
+
+    url: str
+    baudrate: int = 115200
+    timeout_s: float = 2.0
+
+
+@dataclass(frozen=True)
+class ModbusTcpTransport:
+    host: str
+    port: int = 502
+    unit: int = 1
+    timeout_s: float = 2.0
+
+
+@dataclass(frozen=True)
+class ModbusRtuTransport:
+    """Modbus RTU over a serial port (or ``socket://host:port`` for RTU framing over TCP)."""
+
+    port: str
+    baudrate: int = 115200
+    unit: int = 1
+    timeout_s: float = 2.0
+
+
+Transport = EmulatedTransport | SerialTransport | ModbusTcpTransport | ModbusRtuTransport
+
+
+@dataclass(frozen=True)
+class SecondMode:
+    """A second mechanical mode driven by the main displacement.
+
+    ``x'' + 2 zeta w x' + w^2 x = w^2 gain u`` with ``w = 2 pi frequency_hz``; ``x`` (um) is added.
+    """
+
+    frequency_hz: float
+    damping_ratio: float
+    gain: float
+
+
+@dataclass(frozen=True)
+class Effects:
+    """Effects the base model lacks; each is off at its default.
+
+    Parameters
+    ----------
+    amplifier_bandwidth_hz : float or None
+        First-order amplifier lag, -3 dB frequency, Hz.
+    sensor_delay_samples : int
+        Pure latency of the sensor readback, samples.
+    sensor_quadratic_per_um : float
+        Gauge nonlinearity: measured = u + c u^2, 1/um.
+    second_mode : SecondMode or None
+    voltage_gain_sigma : float
+        Applied-voltage gain is ``1 + N(0, sigma)``, drawn once per run.
+
+    Thermal relaxation is not here: it is ``polarization.thermal`` of the true model.
+    """
+
+    amplifier_bandwidth_hz: float | None = None
+    sensor_delay_samples: int = 0
+    sensor_quadratic_per_um: float = 0.0
+    second_mode: SecondMode | None = None
+    voltage_gain_sigma: float = 0.0
+
+
+@dataclass(frozen=True)
+class EmulatorConfig:
+    """The emulated device's truth: model, effects, noise (um, 1 sigma), seed, watchdog (s)."""
+
+    model: Transducer
+    effects: Effects = field(default_factory=Effects)
+    noise_um: float = 0.0
+    seed: int = 0
+    watchdog_s: float = 0.0
+    read_only: bool = False
+    recorder_capacity: int = 262144
+    table_capacity: int = 65536
+
+
+@dataclass(frozen=True)
+class Profile:
+    """One stage. ``displacement_um = sensor_scale_um * raw + sensor_offset_um``."""
+
+    name: str
+    transport: Transport
+    sample_rate_hz: float
+    limits: Limits
+    amplifier_gain: float
+    sensor_scale_um: float
+    sensor_offset_um: float
+    thickness_um: float
+    emulator: EmulatorConfig | None = None
+
+
+def _transport(t: Table) -> Transport:
+    kind = t.string("kind", choices=("emulated", "serial", "modbus-tcp", "modbus-rtu"))
+    if kind == "emulated":
+        return EmulatedTransport()
+    timeout = t.number("timeout_s", 2.0, positive=True)
+    if kind == "serial":
+        return SerialTransport(t.string("url"), t.integer("baudrate", 115200, minimum=1), timeout)
+    unit = t.integer("unit", 1, minimum=1)
+    if unit > 247:
+        raise t.fail("unit", f"must be <= 247, got {unit}")
+    if kind == "modbus-tcp":
+        port = t.integer("port", 502, minimum=1)
+        if port > 65535:
+            raise t.fail("port", f"must be <= 65535, got {port}")
+        return ModbusTcpTransport(t.string("host"), port, unit, timeout)
+    return ModbusRtuTransport(t.string("port"), t.integer("baudrate", 115200, minimum=1), unit,
+                              timeout)
+
+
+def _limits(t: Table, sample_rate_hz: float) -> Limits:
+    v_min, v_max = t.number("v_min_V"), t.number("v_max_V")
+    slew = t.number("slew_V_per_ms", positive=True)
+    current, cap = t.number("current_mA", positive=True), t.number("capacitance_uF", positive=True)
+    if v_min >= v_max:
+        raise t.fail("v_max_V", f"must exceed v_min_V ({v_min})")
+    if not v_min <= 0.0 <= v_max:
+        raise t.fail("v_min_V", "the range must contain 0 V (the safe state)")
+    if slew > current / cap * (1 + 1e-12):
+        raise t.fail("slew_V_per_ms", f"exceeds current / capacitance = {current / cap:g} V/ms")
+    return Limits(v_min, v_max, slew, current, cap)
+
+
+def _effects(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
+    if t is None:
+        return Effects(), None
+    known = {"thermal_relaxation", "amplifier_lag", "sensor_delay", "sensor_nonlinearity",
+             "second_mode", "voltage_gain_drift"}
+    for key in t.data:
+        if key not in known:
+            raise t.fail(key, f"unknown effect (known: {', '.join(sorted(known))})")
+    th = t.table("thermal_relaxation", required=False)
+    thermal = None if th is None else hy.Thermal(th.number("field_scale_MV_per_m", positive=True),
+                                                 th.number("attempt_rate_per_s", positive=True))
+    lag, dly, nl = (t.table(k, required=False) for k in
+                    ("amplifier_lag", "sensor_delay", "sensor_nonlinearity"))
+    sm, gd = t.table("second_mode", required=False), t.table("voltage_gain_drift", required=False)
+    mode = None if sm is None else SecondMode(sm.number("frequency_Hz", positive=True),
+                                              sm.number("damping_ratio", positive=True),
+                                              sm.number("gain"))
+    return Effects(
+        amplifier_bandwidth_hz=None if lag is None else lag.number("bandwidth_Hz", positive=True),
+        sensor_delay_samples=0 if dly is None else dly.integer("samples", minimum=0),
+        sensor_quadratic_per_um=0.0 if nl is None else nl.number("quadratic_per_um"),
+        second_mode=mode,
+        voltage_gain_sigma=0.0 if gd is None else gd.number("sigma", nonnegative=True)), thermal
+
+
+def _emulator(t: Table) -> EmulatorConfig:
+    mt = t.table("model")
+    assert mt is not None
+    model = modelfile.from_table(mt)
+    effects, thermal = _effects(t.table("effects", required=False))
+    if thermal is not None:
+        model = replace(model, polarization=replace(model.polarization, thermal=thermal))
+    return EmulatorConfig(
+        model=model, effects=effects, noise_um=t.number("noise_um", 0.0, nonnegative=True),
+        seed=t.integer("seed", 0), watchdog_s=t.number("watchdog_s", 0.0, nonnegative=True),
+        read_only=_boolean(t, "read_only"),
+        recorder_capacity=t.integer("recorder_capacity", 262144, minimum=1),
+        table_capacity=t.integer("table_capacity", 65536, minimum=1))
+
+
+def _boolean(t: Table, key: str) -> bool:
+    val = t.data.get(key, False)
+    if not isinstance(val, bool):
+        raise t.fail(key, f"expected true or false, got {val!r}")
+    return val
+
+
+def from_table(t: Table) -> Profile:
+    """Build a profile from its parsed TOML (see the module docstring for the schema)."""
+    fmt = t.string("format")
+    if fmt != FORMAT:
+        raise t.fail("format", f"expected {FORMAT!r}, got {fmt!r}")
+    ver = t.integer("format_version")
+    if ver != FORMAT_VERSION:
+        raise t.fail("format_version", f"this afmctl reads version {FORMAT_VERSION}, got {ver}")
+    rate = t.number("sample_rate_Hz", positive=True)
+    amp, sensor, stack = t.table("amplifier"), t.table("sensor"), t.table("stack")
+    assert amp is not None and sensor is not None and stack is not None
+    em = t.table("emulator", required=False)
+    transport = _transport(t.table("transport"))  # type: ignore[arg-type]
+    if isinstance(transport, EmulatedTransport) and em is None:
+        raise t.fail("emulator", "missing table (transport kind 'emulated' needs it)")
+    return Profile(
+        name=t.string("name"), transport=transport, sample_rate_hz=rate,
+        limits=_limits(amp, rate), amplifier_gain=amp.number("gain_V_per_V", 1.0, positive=True),
+        sensor_scale_um=sensor.number("scale_um_per_unit"),
+        sensor_offset_um=sensor.number("offset_um", 0.0),
+        thickness_um=stack.number("thickness_um", positive=True),
+        emulator=None if em is None else _emulator(em))
+
+
+def load_profile(path: str | Path) -> Profile:
+    """Read and validate a profile; FileFormatError (naming file and key) on anything wrong."""
+    return from_table(load(path))
+
+
+def shipped_profile(name: str) -> Profile:
+    """A profile shipped with afmctl, by name (``emulated``, ``lab-serial``, ``lab-modbus``)."""
+    ref = resources.files("afmctl.profiles").joinpath(f"{name}.toml")
+    with resources.as_file(ref) as path:
+        return load_profile(path)
+
+
+def default_profile() -> Profile:
+    """The no-hardware default: the shipped ``emulated`` profile."""
+    return shipped_profile("emulated")

@@ -1,0 +1,96 @@
+"""The emulated stage in-process: the :class:`~drivers.StageBase` interface on an
+:class:`~afmctl.emulator.Emulator`, with no wire (tests, and ``afmctl track`` without hardware)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl.emulator import DeviceError, Emulator, Status
+from afmctl.profile import Profile
+from drivers import StageBase, StageError
+
+
+@contextmanager
+def _refusals() -> Iterator[None]:
+    try:
+        yield
+    except DeviceError as exc:
+        raise StageError(exc.code, str(exc)) from None
+
+
+class InProcessStage(StageBase):
+    """Drive an emulated device by direct calls.
+
+    Parameters
+    ----------
+    profile : Profile
+        With an ``[emulator]`` section.
+    emulator : Emulator, optional
+        An existing device (e.g. to inspect its applied-sample log); built from the profile if
+        omitted.
+    clock : callable, optional
+        Device time, s; ``time.monotonic`` by default.
+    """
+
+    upload_chunk = 1 << 20
+    read_chunk = 1 << 20
+
+    def __init__(self, profile: Profile, emulator: Emulator | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(profile)
+        self.emulator = Emulator(profile) if emulator is None else emulator
+        self.clock = clock
+        self._lock = threading.Lock()
+
+    def _call(self, fn: Callable[..., object], *args: object) -> object:
+        with self._lock, _refusals():
+            return fn(*args, self.clock())
+
+    def identify(self) -> str:
+        return "afmctl,emulated-stage,0,protocol-1 (in-process)"
+
+    def status(self) -> Status:
+        return self._call(self.emulator.status)  # type: ignore[return-value]
+
+    def limits(self) -> tuple[float, float, float]:
+        lim = self.emulator.limits
+        return lim.v_min, lim.v_max, lim.slew_v_per_ms
+
+    def set_voltage(self, v: float) -> None:
+        self._call(self.emulator.set_voltage, float(v))
+
+    def stop(self) -> None:
+        self._call(self.emulator.stop)
+
+    def safe_state(self) -> None:
+        self._call(self.emulator.safe_state)
+
+    def heartbeat(self) -> None:
+        self._call(self.emulator.heartbeat)
+
+    def set_watchdog(self, period_s: float) -> None:
+        self._call(self.emulator.set_watchdog, float(period_s))
+
+    def set_sample_rate(self, hz: float) -> None:
+        self._call(self.emulator.set_sample_rate, float(hz))
+
+    def close(self) -> None:
+        pass
+
+    def _set_table_length(self, n: int) -> None:
+        self._call(self.emulator.set_table_length, n)
+
+    def _write_chunk(self, first: int, values: NDArray[np.float32]) -> None:
+        self._call(self.emulator.write_table, first, values)
+
+    def _start(self, cycles: int) -> None:
+        self._call(self.emulator.start, cycles)
+
+    def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        return self._call(self.emulator.read_recorder, first, n)  # type: ignore[return-value]

@@ -1,0 +1,149 @@
+"""Host side of the Modbus register map (``drivers.register_map``) on pymodbus (TCP and RTU).
+
+Every pymodbus client call of afmctl lives in this module (servers: ``drivers.servers``). One
+request is in flight at a time; the client has a timeout; a refused request (Modbus exception
+response) is turned into :class:`~drivers.StageError` carrying the device's own error code, read
+from ``IR.LAST_ERROR``; a transport failure becomes ``StageError(-1)``.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pymodbus import FramerType
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ModbusException
+
+from afmctl.emulator import Status
+from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile
+from drivers import StageBase, StageError
+from drivers import register_map as rm
+from drivers.register_map import HR, IR
+
+
+def make_client(transport: ModbusTcpTransport | ModbusRtuTransport) -> Any:
+    """A pymodbus sync client for the transport (not yet connected)."""
+    if isinstance(transport, ModbusTcpTransport):
+        return ModbusTcpClient(transport.host, port=transport.port, timeout=transport.timeout_s,
+                               retries=1)
+    return ModbusSerialClient(transport.port, framer=FramerType.RTU, baudrate=transport.baudrate,
+                              timeout=transport.timeout_s, retries=1)
+
+
+class ModbusStage(StageBase):
+    """A stage on the register map.
+
+    Parameters
+    ----------
+    profile : Profile
+        Transport ``modbus-tcp`` or ``modbus-rtu``.
+    transport : ModbusTcpTransport or ModbusRtuTransport, optional
+        Overrides the profile's transport (e.g. a server on an ephemeral port).
+    """
+
+    upload_chunk = rm.UPLOAD_BLOCK_SAMPLES
+    read_chunk = rm.READ_SAMPLES
+
+    def __init__(self, profile: Profile,
+                 transport: ModbusTcpTransport | ModbusRtuTransport | None = None) -> None:
+        super().__init__(profile)
+        t = transport or profile.transport
+        if not isinstance(t, ModbusTcpTransport | ModbusRtuTransport):
+            raise TypeError(f"not a Modbus transport: {t!r}")
+        self.unit = t.unit
+        self._client = make_client(t)
+        self._lock = threading.Lock()  # sync pymodbus clients are not thread-safe
+        self._page = -1
+        if not self._client.connect():
+            self._client.close()
+            raise StageError(-1, f"cannot connect to {t}")
+        version = self._request("read_input_registers", IR.MAP_VERSION, count=1)[0]
+        if version != rm.MAP_VERSION:
+            self.close()
+            raise StageError(-1, f"register map version {version}, afmctl speaks {rm.MAP_VERSION}")
+
+    def _request(self, name: str, *args: Any, **kwargs: Any) -> list[int]:
+        with self._lock:
+            try:
+                res = getattr(self._client, name)(*args, device_id=self.unit, **kwargs)
+            except ModbusException as exc:
+                raise StageError(-1, f"{name}: {exc}") from None
+        if res.isError():
+            raise StageError(self._device_error(), f"{name} at {args[0]}: Modbus exception "
+                                                   f"{getattr(res, 'exception_code', '?')}")
+        return list(getattr(res, "registers", []) or [])
+
+    def _device_error(self) -> int:
+        with self._lock:
+            try:
+                res = self._client.read_input_registers(IR.LAST_ERROR, count=1,
+                                                        device_id=self.unit)
+            except ModbusException:
+                return -1
+        return -1 if res.isError() else int(res.registers[0])
+
+    def _write(self, address: int, regs: list[int]) -> None:
+        self._request("write_registers", address, regs)
+
+    # -- Stage primitives ----------------------------------------------------------------------
+    def identify(self) -> str:
+        return f"afmctl register map {rm.MAP_VERSION}, unit {self.unit}"
+
+    def status(self) -> Status:
+        return rm.decode_status(self._request("read_input_registers", 0, count=IR.STATUS_END))
+
+    def limits(self) -> tuple[float, float, float]:
+        """Device limits: v_min (V), v_max (V), slew (V/ms)."""
+        a, b, c = rm.regs_f32(self._request("read_input_registers", IR.V_MIN, count=6))
+        return float(a), float(b), float(c)
+
+    def set_voltage(self, v: float) -> None:
+        self._write(HR.DC_VOLTAGE, rm.f32_regs([v]))
+
+    def stop(self) -> None:
+        self._write(HR.COMMAND, [rm.Cmd.STOP])
+
+    def safe_state(self) -> None:
+        self._write(HR.COMMAND, [rm.Cmd.SAFE])
+
+    def heartbeat(self) -> None:
+        self._write(HR.HEARTBEAT, [1])
+
+    def set_watchdog(self, period_s: float) -> None:
+        self._write(HR.WATCHDOG_S, rm.f32_regs([period_s]))
+
+    def set_sample_rate(self, hz: float) -> None:
+        self._write(HR.SAMPLE_RATE, rm.f32_regs([hz]))
+
+    def close(self) -> None:
+        self._client.close()
+
+    def _set_table_length(self, n: int) -> None:
+        self._write(HR.TABLE_LENGTH, rm.u32_regs(n))
+
+    def _write_chunk(self, first: int, values: NDArray[np.float32]) -> None:
+        if first % self.upload_chunk:
+            raise ValueError(f"upload chunks start at multiples of {self.upload_chunk}")
+        self._write(HR.UPLOAD_BLOCK, [first // self.upload_chunk] + rm.f32_regs(values))
+
+    def _start(self, cycles: int) -> None:
+        self._write(HR.COMMAND, [rm.Cmd.START] + rm.u32_regs(cycles))
+
+    def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        out_u = np.empty(n, dtype=np.float32)
+        out_v = np.empty(n, dtype=np.float32)
+        done = 0
+        while done < n:
+            page, off = divmod(first + done, rm.PAGE_SAMPLES)
+            m = min(n - done, rm.PAGE_SAMPLES - off)
+            if page != self._page:
+                self._write(HR.RECORDER_PAGE, [page])
+                self._page = page
+            for base, out in ((IR.DISPLACEMENT, out_u), (IR.VOLTAGE, out_v)):
+                regs = self._request("read_input_registers", base + 2 * off, count=2 * m)
+                out[done:done + m] = rm.regs_f32(regs)
+            done += m
+        return out_u, out_v

@@ -1,0 +1,144 @@
+"""Host side of the ASCII protocol (``drivers.ascii_protocol``) on pyserial.
+
+Works on any pyserial URL: a real port, a pty path, ``socket://host:port``. Each command waits for
+its one reply line; a read that times out, a reply without terminator or a malformed reply raises
+:class:`~drivers.StageError` (code -1) instead of hanging.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import serial
+from numpy.typing import NDArray
+
+from afmctl.emulator import Status
+from afmctl.profile import Profile, SerialTransport
+from drivers import StageBase, StageError
+from drivers import ascii_protocol as ap
+
+
+class SerialStage(StageBase):
+    """A stage on the ASCII protocol.
+
+    Parameters
+    ----------
+    profile : Profile
+    url : str, optional
+        Overrides the profile's serial URL.
+    port : object, optional
+        An already open pyserial-like port (tests); ``url`` is then ignored.
+    timeout_s : float, optional
+        Per-reply timeout (also pyserial's ``write_timeout``); the profile's by default.
+    """
+
+    upload_chunk = 200
+    read_chunk = 200
+
+    def __init__(self, profile: Profile, url: str | None = None, *, port: Any = None,
+                 timeout_s: float | None = None) -> None:
+        super().__init__(profile)
+        t = profile.transport
+        cfg = t if isinstance(t, SerialTransport) else SerialTransport(url or "")
+        self.timeout_s = cfg.timeout_s if timeout_s is None else timeout_s
+        self._buf = bytearray()
+        if port is None:
+            port = serial.serial_for_url(url or cfg.url, baudrate=cfg.baudrate,
+                                         timeout=self.timeout_s, write_timeout=self.timeout_s)
+        self._port = port
+        version = self.query("VER?")
+        if version != str(ap.PROTOCOL_VERSION):
+            self.close()
+            raise StageError(-1, f"device speaks protocol {version!r}, afmctl speaks "
+                                 f"{ap.PROTOCOL_VERSION}")
+
+    # -- line I/O ------------------------------------------------------------------------------
+    def _readline(self) -> str:
+        deadline = time.monotonic() + self.timeout_s
+        while (end := self._buf.find(b"\n")) < 0:
+            if len(self._buf) > ap.MAX_LINE * 8:
+                raise StageError(-1, "reply line too long")
+            chunk = self._port.read(max(1, self._port.in_waiting))
+            if not chunk and time.monotonic() > deadline:
+                raise StageError(-1, f"no complete reply within {self.timeout_s:g} s")
+            self._buf += chunk
+        line = bytes(self._buf[:end])
+        del self._buf[:end + 1]
+        return line.decode("ascii", errors="replace").rstrip("\r")
+
+    def query(self, line: str) -> str:
+        """Send one command line, return its reply; StageError for an ``ERR`` reply."""
+        try:
+            self._port.write(line.encode("ascii") + b"\n")
+        except serial.SerialTimeoutException:
+            raise StageError(-1, f"write timed out after {self.timeout_s:g} s") from None
+        reply = self._readline()
+        if reply.startswith("ERR "):
+            parts = reply.split(maxsplit=2)
+            raise StageError(int(parts[1]) if parts[1].isdigit() else -1, f"{line[:40]!r}")
+        return reply
+
+    def _command(self, line: str) -> None:
+        reply = self.query(line)
+        if reply != "OK":
+            raise StageError(-1, f"expected OK to {line[:40]!r}, got {reply[:40]!r}")
+
+    # -- Stage primitives ----------------------------------------------------------------------
+    def identify(self) -> str:
+        return self.query("*IDN?")
+
+    def status(self) -> Status:
+        try:
+            return ap.parse_status(self.query("STA?"))
+        except ValueError as exc:
+            raise StageError(-1, str(exc)) from None
+
+    def voltage(self) -> float:
+        return float(self.query("VOL?"))
+
+    def limits(self) -> tuple[float, float, float]:
+        """Device limits: v_min (V), v_max (V), slew (V/ms)."""
+        a, b, c = (float(x) for x in self.query("LIM?").split())
+        return a, b, c
+
+    def last_error(self) -> int:
+        """The sticky last error code (cleared by reading)."""
+        return int(self.query("ERR?"))
+
+    def set_voltage(self, v: float) -> None:
+        self._command(f"SVA {ap.fmt(v)}")
+
+    def stop(self) -> None:
+        self._command("WGO 0")
+
+    def safe_state(self) -> None:
+        self._command("SAFE")
+
+    def heartbeat(self) -> None:
+        self._command("HB")
+
+    def set_watchdog(self, period_s: float) -> None:
+        self._command(f"WDT {period_s!r}")
+
+    def set_sample_rate(self, hz: float) -> None:
+        self._command(f"WTR {hz!r}")
+
+    def close(self) -> None:
+        self._port.close()
+
+    def _set_table_length(self, n: int) -> None:
+        self._command(f"WTL {n}")
+
+    def _write_chunk(self, first: int, values: NDArray[np.float32]) -> None:
+        self._command(ap.wav_line(first, values))
+
+    def _start(self, cycles: int) -> None:
+        self._command(f"WGO {cycles}")
+
+    def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        try:
+            return ap.parse_recorder(self.query(f"DRR? {first} {n}"), first, n)
+        except ValueError as exc:
+            raise StageError(-1, str(exc)) from None

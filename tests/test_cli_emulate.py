@@ -1,0 +1,36 @@
+"""``afmctl emulate`` in a subprocess: prints where it serves, answers there, stops on Ctrl-C."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from afmctl.profile import ModbusTcpTransport, Profile
+from drivers.modbus_link import ModbusStage
+from drivers.serial_link import SerialStage
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_emulate_serves_until_interrupted(profile: Profile) -> None:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "afmctl", "emulate", "--modbus-port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert proc.stdout is not None
+        where = dict(proc.stdout.readline().strip().split(": ", 1) for _ in range(3))
+        host, port = where["modbus-tcp"].rsplit(":", 1)
+        assert host == "127.0.0.1"
+        with ModbusStage(profile, ModbusTcpTransport(host, int(port), timeout_s=5.0)) as stage:
+            stage.set_voltage(2.0)
+        with SerialStage(profile, where["serial"], timeout_s=5.0) as stage:
+            assert stage.voltage() == 2.0  # one device behind both wires
+        assert where["modbus-rtu"].startswith("/dev/")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert "stopped" in err

@@ -1,0 +1,254 @@
+"""The stage over every real wire, against the model's own simulation; protocol details; safety."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+
+import numpy as np
+import pytest
+
+from afmctl import emulator as em
+from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile
+from drivers import StageBase, StageError, open_stage
+from drivers import ascii_protocol as ap
+from drivers import register_map as rm
+from drivers import servers as sv
+from drivers.inprocess import InProcessStage
+from drivers.modbus_link import ModbusStage
+from drivers.serial_link import SerialStage
+
+TRANSPORTS = ["modbus-tcp", "modbus-rtu", "serial-pty", "serial-socket", "inprocess"]
+
+
+@contextmanager
+def stage_on(kind: str, profile: Profile, read_only: bool | None = None
+             ) -> Iterator[tuple[StageBase, em.Emulator]]:
+    """A host stage talking to a fresh emulated device over ``kind``."""
+    with ExitStack() as stack:
+        dev = stack.enter_context(sv.EmulatedDevice(profile, read_only=read_only))
+        if kind == "modbus-tcp":
+            srv = stack.enter_context(sv.ModbusTcpServer(dev))
+            stage: StageBase = ModbusStage(profile, ModbusTcpTransport("127.0.0.1", srv.port))
+        elif kind == "modbus-rtu":
+            rtu = stack.enter_context(sv.ModbusRtuServer(dev))
+            stage = ModbusStage(profile, ModbusRtuTransport(rtu.url))
+        elif kind.startswith("serial"):
+            where = "pty" if kind == "serial-pty" else "socket://127.0.0.1:0"
+            ser = stack.enter_context(sv.SerialServer(dev, where))
+            stage = SerialStage(profile, ser.url)
+        else:
+            stage = InProcessStage(profile, emulator=dev.emulator)
+        with stage:
+            yield stage, dev.emulator
+
+
+@pytest.mark.parametrize("kind", TRANSPORTS)
+def test_readback_equals_model_over_each_transport(kind: str, profile: Profile,
+                                                   waveform: np.ndarray) -> None:
+    assert profile.emulator is not None
+    u_exp, v_exp = em.expected_readback(profile.emulator, profile.sample_rate_hz, waveform)
+    with stage_on(kind, profile) as (stage, _):
+        stage.upload(waveform)
+        stage.run(1)
+        status = stage.wait()
+        rec = stage.read_recorder()
+        stage.safe_state()
+        assert stage.status().output_v == 0.0
+    assert status.recorder_fill == waveform.size and not status.running
+    assert rec.complete and rec.displacement_um.size == waveform.size
+    np.testing.assert_array_equal(rec.displacement_um.astype(np.float32), u_exp.astype(np.float32))
+    np.testing.assert_array_equal(rec.voltage_v.astype(np.float32), v_exp.astype(np.float32))
+    assert np.ptp(rec.displacement_um) > 10.0  # a real response, not zeros
+
+
+@pytest.mark.parametrize("kind", ["modbus-tcp", "serial-pty"])
+def test_refusals_carry_device_codes_and_apply_nothing(kind: str, profile: Profile) -> None:
+    with stage_on(kind, profile) as (stage, emu):
+        with pytest.raises(StageError) as info:
+            stage.set_voltage(200.0)
+        assert info.value.code == 3
+        with pytest.raises(StageError) as info:
+            stage.set_voltage(20.0)  # in range, but a 20 V step in one sample: 200 V/ms
+        assert info.value.code == 4
+        with pytest.raises(StageError) as info:
+            stage.upload(np.full(10, 151.0))
+        assert info.value.code == 3
+        with pytest.raises(StageError) as info:
+            stage.upload(np.array([0.0, 20.0, 0.0]))  # 20 V steps at 10 kHz: 200 V/ms
+        assert info.value.code == 4
+        stage.upload(np.full(10, 20.0))  # smooth, but the step in from 0 V is 20 V
+        with pytest.raises(StageError) as info:
+            stage.run(1)
+        assert info.value.code == 4
+        assert emu.applied_log(0.0).size == 0 and stage.status().run_count == 0
+
+
+@pytest.mark.parametrize("kind", ["modbus-tcp", "serial-pty"])
+def test_read_only_device_refuses_output_changes(kind: str, profile: Profile) -> None:
+    with stage_on(kind, profile, read_only=True) as (stage, emu):
+        assert stage.status().read_only
+        for action in (lambda: stage.set_voltage(1.0), lambda: stage.upload(np.zeros(5))):
+            with pytest.raises(StageError) as info:
+                action()
+            assert info.value.code == 7
+        assert emu.applied_log(0.0).size == 0
+
+
+def test_watchdog_over_modbus_ramps_to_zero(profile: Profile) -> None:
+    import time
+    with stage_on("modbus-tcp", profile) as (stage, emu):
+        stage.set_voltage(4.0)
+        stage.set_watchdog(0.1)
+        stage.heartbeat()
+        assert stage.status().watchdog_armed
+        time.sleep(0.3)
+        st = stage.status()
+    assert st.watchdog_expired and st.output_v == 0.0 and st.last_error == 8
+    assert emu.applied_log(0.0)[-1] == 0.0
+
+
+def test_repeated_upload_block_is_harmless(profile: Profile) -> None:
+    with stage_on("modbus-tcp", profile) as (stage, emu):
+        assert isinstance(stage, ModbusStage)
+        v = np.linspace(0, 10, 100).astype(np.float32)
+        stage.upload(v)
+        stage._write_chunk(61, v[61:])  # the same block again
+        assert stage.status().table_complete
+        np.testing.assert_array_equal(emu.table[:100], v)
+
+
+def test_register_map_rejects_partial_fields(profile: Profile) -> None:
+    emu = em.Emulator(profile)
+    dev = rm.RegisterDevice(emu, lambda: 0.0)
+    assert dev.write(rm.HR.DC_VOLTAGE, [0x4020]) == rm.ILLEGAL_ADDRESS  # half a float32
+    assert dev.write(rm.HR.DC_VOLTAGE + 1, [0, 0]) == rm.ILLEGAL_ADDRESS
+    assert dev.read_input(rm.IR.DISPLACEMENT + 1, 2) == rm.ILLEGAL_ADDRESS
+    assert dev.write(rm.HR.DC_VOLTAGE, rm.f32_regs([2.5])) is None and emu.output_v == 2.5
+    assert rm.decode_status(dev.read_input(0, rm.IR.STATUS_END)).output_v == 2.5
+
+
+class ScriptedPort:
+    """A pyserial stand-in that checks each line sent against a script and answers from it."""
+
+    def __init__(self, script: list[tuple[str, str]]) -> None:
+        self.script = list(script)
+        self.pending = b""
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self.pending)
+
+    def write(self, data: bytes) -> int:
+        sent, answer = self.script.pop(0)
+        assert data == sent.encode() + b"\n", (data, sent)
+        self.pending += answer.encode() + b"\n"
+        return len(data)
+
+    def read(self, n: int) -> bytes:
+        out, self.pending = self.pending[:n], self.pending[n:]
+        return out
+
+    def close(self) -> None:
+        pass
+
+
+def test_serial_codec_against_a_script(profile: Profile) -> None:
+    status = "running=0 fill=3 error=0 out=5 runs=1 len=3 complete=1 wd=0 expired=0 ro=0 rate=10000"
+    script = [
+        ("VER?", "1"),
+        ("WTL 3", "OK"),
+        ("WAV 0 3 0 2.5 5", "OK"),
+        ("STA?", status.replace("fill=3", "fill=0").replace("runs=1", "runs=0")),
+        ("WGO 1", "OK"),
+        ("STA?", status),
+        ("DRR? 0 3", "0 3 0 0 0.125 2.5 0.25 5"),
+        ("SVA 20", "ERR 4 slew limit exceeded"),
+        ("SAFE", "OK"),
+    ]
+    port = ScriptedPort(script)
+    stage = SerialStage(profile, port=port, timeout_s=0.1)
+    stage.upload([0.0, 2.5, 5.0])
+    stage.run(1)
+    assert not stage.wait(poll_s=0).running
+    rec = stage.read_recorder()
+    np.testing.assert_array_equal(rec.displacement_um, [0.0, 0.125, 0.25])
+    np.testing.assert_array_equal(rec.voltage_v, [0.0, 2.5, 5.0])
+    with pytest.raises(StageError, match="slew"):
+        stage.set_voltage(20.0)
+    stage.safe_state()
+    assert port.script == []
+
+
+def test_serial_host_times_out_instead_of_hanging(profile: Profile) -> None:
+    import os
+    master, _slave, path = sv.open_pty()
+    try:
+        with pytest.raises(StageError, match="no complete reply"):
+            SerialStage(profile, path, timeout_s=0.2)
+    finally:
+        os.close(master)
+        os.close(_slave)
+
+
+def test_ascii_device_reports_unknown_and_malformed_commands(profile: Profile) -> None:
+    dev = ap.AsciiDevice(em.Emulator(profile), lambda: 0.0)
+    assert dev.handle("FOO").startswith("ERR 1")
+    assert dev.handle("WAV 0 2 1.0").startswith("ERR 2")
+    assert dev.handle("SVA x").startswith("ERR 2")
+    assert dev.handle("ERR?") == "2" and dev.handle("ERR?") == "0"
+
+
+def test_open_stage_defaults_to_the_in_process_emulator(profile: Profile) -> None:
+    with open_stage(profile) as stage:
+        assert isinstance(stage, InProcessStage)
+        stage.set_voltage(3.0)
+        assert stage.status().output_v == 3.0
+
+
+def test_afmctl_imports_no_device_library() -> None:
+    code = ("import sys, afmctl, afmctl.emulator, afmctl.profile, afmctl.cli\n"
+            "bad = [m for m in sys.modules\n"
+            "       if m.split('.')[0] in ('serial', 'pymodbus', 'drivers')]\n"
+            "assert not bad, bad\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def _mbpoll(*args: str) -> str:
+    out = subprocess.run(["mbpoll", "-1", "-0", *args], capture_output=True, text=True,
+                         timeout=20)
+    assert out.returncode == 0, out.stdout + out.stderr
+    return out.stdout
+
+
+def _mbpoll_values(text: str) -> list[str]:
+    """The values of mbpoll's ``[address]: value`` lines."""
+    return [line.split(":", 1)[1].strip() for line in text.splitlines() if line.startswith("[")]
+
+
+@pytest.mark.skipif(shutil.which("mbpoll") is None,
+                    reason="mbpoll (Debian package) could not be installed")
+def test_mbpoll_reads_map_and_writes_dc_voltage(profile: Profile, device: sv.EmulatedDevice
+                                                ) -> None:
+    with sv.ModbusTcpServer(device) as srv:
+        base = ["-m", "tcp", "-p", str(srv.port), "-a", "1"]
+        version = _mbpoll(*base, "-t", "3", "-r", str(rm.IR.MAP_VERSION), "-c", "1", "127.0.0.1")
+        assert _mbpoll_values(version) == [str(rm.MAP_VERSION)]
+        status = _mbpoll(*base, "-t", "3", "-r", str(rm.IR.STATUS), "-c", "2", "127.0.0.1")
+        assert _mbpoll_values(status) == ["0", "0"]  # idle, table empty; no error
+        _mbpoll(*base, "-t", "4:float", "-B", "-r", str(rm.HR.DC_VOLTAGE), "127.0.0.1", "2.5")
+        out = _mbpoll(*base, "-t", "3:float", "-B", "-r", str(rm.IR.OUTPUT_V), "-c", "1",
+                      "127.0.0.1")
+        assert float(_mbpoll_values(out)[0]) == 2.5
+    assert device.emulator.output_v == 2.5
+    assert device.emulator.applied_log(0.0).tolist() == [2.5]
+
+
+@pytest.mark.parametrize("kind", ["modbus-tcp", "serial-pty", "inprocess"])
+def test_every_stage_reports_the_same_limits(kind: str, profile: Profile) -> None:
+    with stage_on(kind, profile) as (stage, _):
+        assert stage.limits() == (-150.0, 150.0, 50.0)
+        assert stage.voltage() == 0.0
