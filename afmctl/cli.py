@@ -1,30 +1,76 @@
-"""Command line: ``afmctl``. Composes the library; holds no numerics and no device I/O."""
+"""Command line: ``afmctl``. Composes the library; holds no numerics and no device I/O.
+
+Exit codes: 0 success; 1 the stage failed or a fit did not converge; 2 bad input (one line on
+stderr, nothing written); 130 interrupted (the stage was put in its safe state).
+"""
 
 from __future__ import annotations
 
+import json
 import sys
 import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NoReturn
 
 import click
 
 from afmctl import __version__
+from afmctl.guard import LimitError
 from afmctl.tomlfile import FileFormatError
 
+BAD_INPUT: tuple[type[Exception], ...] = (FileFormatError, LimitError)
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+
+def fail(message: str, code: int = 2) -> NoReturn:
+    click.echo(f"afmctl: error: {message}", err=True)
+    sys.exit(code)
+
+
+class Group(click.Group):
+    """Turns known failures into one line and an exit code instead of a traceback."""
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except BAD_INPUT as exc:
+            fail(str(exc))
+        except KeyboardInterrupt:
+            fail("interrupted; the stage was sent to its safe state", 130)
+        except Exception as exc:
+            if type(exc).__name__ == "StageError" or isinstance(exc, TimeoutError | OSError):
+                fail(f"stage: {exc}", 1)
+            raise
+
+
+@click.group(cls=Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="afmctl")
 def main() -> None:
     """Make a hysteretic piezo stage track what it is told (Hatch, Smith et al. inverse filter)."""
 
 
-def load_profile_or_exit(path: str | None):  # noqa: ANN201 (Profile; imported lazily)
+def load_profile_or_exit(path: str | None):  # noqa: ANN201 (Profile)
     """The profile at ``path`` (the shipped emulated one if None); one line and exit 2 if bad."""
     from afmctl.profile import default_profile, load_profile
     try:
         return default_profile() if path is None else load_profile(path)
     except FileFormatError as exc:
-        click.echo(f"afmctl: bad profile: {exc}", err=True)
-        sys.exit(2)
+        fail(f"bad profile: {exc}")
+
+
+def progress_printer(quiet: bool) -> Callable[[str, int, int], None]:
+    """Progress on stderr: a line per 10 % (and the last sample) of each run."""
+    last: dict[str, int] = {}
+
+    def show(what: str, done: int, total: int) -> None:
+        step = 10 * done // max(total, 1)
+        if quiet or last.get(what) == step:
+            return
+        last[what] = step
+        click.echo(f"  {what}: {done}/{total} samples ({100 * done // max(total, 1)} %)",
+                   err=True)
+
+    return show
 
 
 @main.command()
@@ -43,8 +89,7 @@ def emulate(profile_path: str | None, modbus_port: int, serial_where: str, no_rt
     """Serve an emulated stage (Modbus TCP, Modbus RTU on a pty, serial protocol) until Ctrl-C."""
     prof = load_profile_or_exit(profile_path)
     if prof.emulator is None:
-        click.echo(f"afmctl: bad profile: {prof.name}: missing table [emulator]", err=True)
-        sys.exit(2)
+        fail(f"bad profile: {prof.name}: missing table [emulator]")
     if bind_any and host is not None:
         raise click.UsageError("give --host or --bind-any, not both")
     bind = "0.0.0.0" if bind_any else (host or "127.0.0.1")
@@ -63,5 +108,133 @@ def emulate(profile_path: str | None, modbus_port: int, serial_where: str, no_rt
     except KeyboardInterrupt:
         click.echo("stopped", err=True)
     except (OSError, ValueError) as exc:
-        click.echo(f"afmctl: cannot serve: {exc}", err=True)
-        sys.exit(1)
+        fail(f"cannot serve: {exc}", 1)
+
+
+# ----------------------------------------------------------------------------------------------
+# track
+# ----------------------------------------------------------------------------------------------
+
+
+@main.group(cls=Group)
+def track() -> None:
+    """Open-loop tracking with the model-based inverse filter (and the linear one to compare)."""
+
+
+def track_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    opts = [
+        click.option("--profile", "profile_path", type=click.Path(dir_okay=False),
+                     help="Stage profile (default: the embedded emulated stage)."),
+        click.option("--model", "model_path", type=click.Path(dir_okay=False),
+                     help="Model file (default: identified from the stage's own sweeps, cached)."),
+        click.option("--filter", "filters", type=click.Choice(["inverse", "linear", "both"]),
+                     default="both", show_default=True),
+        click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
+                     help="Output folder (default: ./afmctl-track-<time>)."),
+        click.option("--dry-run", is_flag=True,
+                     help="Send nothing; write DIR/waveform_<filter>.csv."),
+        click.option("--json", "as_json", is_flag=True, help="Print the summary JSON on stdout."),
+    ]
+    for opt in reversed(opts):
+        fn = opt(fn)
+    return fn
+
+
+def periodic_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    opts = [
+        click.option("--freq", type=click.FloatRange(min=0, min_open=True), required=True,
+                     help="Frequency, Hz."),
+        click.option("--amplitude", type=click.FloatRange(min=0, min_open=True), required=True,
+                     help="Peak-to-peak amplitude, um."),
+        click.option("--offset", type=float, default=0.0, show_default=True,
+                     help="Centre of the trajectory, um."),
+        click.option("--periods", type=click.FloatRange(min=0, min_open=True), default=3.0,
+                     show_default=True),
+    ]
+    for opt in reversed(opts):
+        fn = opt(fn)
+    return fn
+
+
+@track.command("triangle")
+@periodic_options
+@track_options
+def track_triangle(freq: float, amplitude: float, offset: float, periods: float,
+                   **kw: Any) -> None:
+    """Track a triangle wave (the paper's Figs. 9-11)."""
+    from afmctl import track as trk
+    _track(lambda dt: trk.triangle(freq, amplitude, offset, periods, dt), **kw)
+
+
+@track.command("sine")
+@periodic_options
+@track_options
+def track_sine(freq: float, amplitude: float, offset: float, periods: float, **kw: Any) -> None:
+    """Track a sine wave."""
+    from afmctl import track as trk
+    _track(lambda dt: trk.sine(freq, amplitude, offset, periods, dt), **kw)
+
+
+@track.command("file")
+@click.argument("wave", type=click.Path(dir_okay=False))
+@track_options
+def track_file(wave: str, **kw: Any) -> None:
+    """Track any trajectory: a CSV with columns time_s,desired_um."""
+    from afmctl import sweeps
+    from afmctl import track as trk
+    t, u = sweeps.read_trajectory(wave)
+    _track(lambda dt: trk.from_samples(t, u, dt, f"file {Path(wave).name}"), **kw)
+
+
+def _out_dir(out_dir: str | None) -> Path:
+    path = Path(out_dir) if out_dir else Path(f"afmctl-track-{time.strftime('%Y%m%d-%H%M%S')}")
+    if path.exists() and any(path.glob("run_*.csv")):
+        fail(f"{path} already holds run data; choose another --out (measured data is never "
+             f"overwritten)")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _track(make_desired: Callable[[float], Any], profile_path: str | None,
+           model_path: str | None, filters: str, out_dir: str | None, dry_run: bool,
+           as_json: bool) -> None:
+    from afmctl import calibration, experiment, modelfile
+    from afmctl import track as trk
+    prof = load_profile_or_exit(profile_path)
+    desired = make_desired(1.0 / prof.sample_rate_hz)
+    wanted = ("inverse", "linear") if filters == "both" else (filters,)
+    say = progress_printer(False)
+    if dry_run:
+        model = (modelfile.read(model_path) if model_path
+                 else calibration.cached_model(prof, None, say))
+        plans = trk.plan(model, desired, prof.limits, 0.0, wanted)
+        out = _out_dir(out_dir)
+        for name in wanted:
+            experiment.write_waveform_csv(plans[name], out / f"waveform_{name}.csv")
+            click.echo(f"wrote {out / f'waveform_{name}.csv'}", err=True)
+        return
+    from drivers import open_stage
+    with open_stage(prof) as stage:
+        model = (modelfile.read(model_path) if model_path
+                 else calibration.cached_model(prof, stage, say))
+        start_v = stage.voltage()
+        click.echo(f"planning {desired.label} from {start_v:.3f} V ...", err=True)
+        plans = trk.plan(model, desired, prof.limits, start_v, wanted)
+        out = _out_dir(out_dir)
+        meta = {"profile": prof.name, "model": model_path or "identified (cached)",
+                "trajectory": desired.label, "sample_rate_Hz": prof.sample_rate_hz}
+        truth = prof.emulator.model if prof.emulator is not None else model
+        outcomes = experiment.run_all(stage, {k: plans[k] for k in wanted}, desired, out, meta,
+                                      truth, say)
+    data = experiment.summary(outcomes, desired, {
+        **meta, "between_samples_model": "emulator truth" if prof.emulator else "model estimate"})
+    experiment.write_combined_csv(outcomes, desired, out / "run.csv")
+    experiment.write_summary(data, out / "summary.json")
+    experiment.plot(outcomes, desired, model.thickness_um, out / "track.png")
+    for name, o in outcomes.items():
+        click.echo(f"{name:8s} RMS {o.score.rms_um:.4f} um ({o.score.rms_pct:.3f} %), max "
+                   f"{o.score.max_um:.4f} um; between samples {o.score.rms_between_um:.4f} um; "
+                   f"max slew {o.waveform.max_slew_v_per_ms:.1f} V/ms", err=True)
+    click.echo(f"wrote {out}/run.csv, summary.json, track.png", err=True)
+    if as_json:
+        click.echo(json.dumps(data))

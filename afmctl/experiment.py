@@ -1,0 +1,167 @@
+"""Run planned waveforms on a stage and keep every measured sample.
+
+This module talks to a stage only through the interface of :mod:`drivers` (an object passed in),
+so it imports no device library. Each filter's run streams into its own run file as samples arrive
+(:mod:`afmctl.runfile`); afterwards the runs are scored, and a combined CSV, ``summary.json`` and a
+plot like the paper's Figs. 9-11 are written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl import runfile, track
+from afmctl import transducer as tr
+
+FloatArray = NDArray[np.float64]
+Progress = Callable[[str, int, int], None]
+
+
+class PlayingStage(Protocol):
+    """What an experiment needs of a stage (see ``drivers.StageBase``)."""
+
+    def play(self, waveform_v: FloatArray, on_block: Callable[..., None] | None = None,
+             **kw: Any) -> Any: ...
+
+    def voltage(self) -> float: ...
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One filter's run: measured displacement (NaN where missing) and its score."""
+
+    waveform: track.Waveform
+    displacement_um: FloatArray
+    voltage_v: FloatArray
+    score: track.Score
+    complete: bool
+    run_file: Path
+
+    def as_dict(self) -> dict[str, Any]:
+        missing = int(np.isnan(self.displacement_um).sum())
+        return {**self.score.as_dict(), "max_slew_V_per_ms": self.waveform.max_slew_v_per_ms,
+                "horizon": self.waveform.horizon, "samples": int(self.waveform.voltage_v.size),
+                "missing_samples": missing, "complete": self.complete,
+                "run_file": self.run_file.name}
+
+
+def stream(stage: PlayingStage, wf: track.Waveform, path: Path, meta: Mapping[str, object],
+           progress: Progress | None = None) -> tuple[FloatArray, FloatArray, bool]:
+    """Play ``wf`` on ``stage``, appending each block to the run file ``path`` as it arrives.
+
+    Returns (displacement_um, voltage_v, complete); samples never received are NaN. Any exception
+    (including KeyboardInterrupt) leaves the run file readable and marked interrupted, and is
+    re-raised (the stage's ``play`` has already put it in its safe state).
+    """
+    n = wf.voltage_v.size
+    u = np.full(n, np.nan)
+    v = np.full(n, np.nan)
+    t = wf.time_s
+    with runfile.RunWriter(path, {**meta, "filter": wf.filter, "samples": n}) as writer:
+
+        def on_block(first: int, volt: FloatArray, disp: FloatArray, valid: Any) -> None:
+            sl = slice(first, first + len(disp))
+            u[sl] = np.where(valid, disp, np.nan)
+            v[sl] = volt
+            writer.write(np.arange(sl.start, sl.stop), t[sl], wf.desired_um[sl],
+                         wf.voltage_v[sl], u[sl])
+            if progress is not None:
+                progress(wf.filter, sl.stop, n)
+
+        stage.play(wf.voltage_v, on_block)
+    return u, v, bool(np.isfinite(u).all())
+
+
+def run_all(stage: PlayingStage, plans: Mapping[str, track.Waveform], desired: track.Desired,
+            out: Path, meta: Mapping[str, object], between_model: tr.Transducer | None,
+            progress: Progress | None = None) -> dict[str, Outcome]:
+    """Run each plan in turn (inverse first) and score it."""
+    outcomes = {}
+    for name, wf in plans.items():
+        path = out / f"run_{name}.csv"
+        u, v, complete = stream(stage, wf, path, meta, progress)
+        between = None
+        if between_model is not None:
+            between = track.between_samples(between_model, wf, desired, tr.initial(between_model))
+        outcomes[name] = Outcome(wf, u, v, track.score(wf, desired, u, between), complete, path)
+    return outcomes
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def write_waveform_csv(wf: track.Waveform, path: Path) -> None:
+    """``time_s,desired_um,voltage_V`` (desired empty on the ramps), for ``--dry-run``."""
+    rows = [f"{t:.7f},{'' if np.isnan(d) else f'{d:.6f}'},{v:.6f}"
+            for t, d, v in zip(wf.time_s, wf.desired_um, wf.voltage_v, strict=True)]
+    _atomic_write(path, "time_s,desired_um,voltage_V\n" + "\n".join(rows) + "\n")
+
+
+def write_combined_csv(outcomes: Mapping[str, Outcome], desired: track.Desired,
+                       path: Path) -> None:
+    """The tracking part of every filter side by side on one time axis (s from tracking start)."""
+    cols = {"time_s": np.arange(desired.u_um.size) * desired.dt_s, "desired_um": desired.u_um}
+    for name, o in outcomes.items():
+        cols[f"voltage_V_{name}"] = o.waveform.voltage_v[o.waveform.tracking]
+        cols[f"displacement_um_{name}"] = o.displacement_um[o.waveform.tracking]
+    lines = [",".join(cols)]
+    for row in zip(*cols.values(), strict=True):
+        lines.append(",".join("" if np.isnan(x) else f"{x:.7g}" for x in row))
+    _atomic_write(path, "\n".join(lines) + "\n")
+
+
+def summary(outcomes: Mapping[str, Outcome], desired: track.Desired,
+            meta: Mapping[str, object]) -> dict[str, Any]:
+    """The ``--json`` object: per-filter errors and the linear/inverse RMS ratio."""
+    out: dict[str, Any] = {**meta, "trajectory": desired.label,
+                           "amplitude_um": desired.amplitude_um,
+                           "filters": {k: o.as_dict() for k, o in outcomes.items()}}
+    if {"inverse", "linear"} <= outcomes.keys():
+        out["ratio_linear_over_inverse"] = (outcomes["linear"].score.rms_um
+                                            / outcomes["inverse"].score.rms_um)
+    return out
+
+
+def write_summary(data: Mapping[str, Any], path: Path) -> None:
+    _atomic_write(path, json.dumps(data, indent=2) + "\n")
+
+
+def plot(outcomes: Mapping[str, Outcome], desired: track.Desired, thickness_um: float,
+         path: Path) -> None:
+    """Desired and achieved trajectories, errors, and the field-displacement loop (Figs. 9-11)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.arange(desired.u_um.size) * desired.dt_s
+    fig, ax = plt.subplots(3, 1, figsize=(8, 9.5), constrained_layout=True)
+    ax[0].plot(t, desired.u_um, "k-", lw=1.5, label="desired")
+    colors = {"inverse": "tab:blue", "linear": "tab:red"}
+    for name, o in outcomes.items():
+        u = o.displacement_um[o.waveform.tracking]
+        v = o.waveform.voltage_v[o.waveform.tracking]
+        c = colors.get(name, None)
+        ax[0].plot(t, u, color=c, lw=0.9, label=f"{name} filter")
+        ax[1].plot(t, u - desired.u_um, color=c, lw=0.9,
+                   label=f"{name}: RMS {o.score.rms_um:.3g} um ({o.score.rms_pct:.2g} %)")
+        ax[2].plot(v / thickness_um, u, color=c, lw=0.8, label=name)
+    ax[0].set(xlabel="time (s)", ylabel="displacement (um)", title=f"Tracking: {desired.label}")
+    ax[1].set(xlabel="time (s)", ylabel="error (um)")
+    ax[2].set(xlabel="field (MV/m)", ylabel="displacement (um)", title="field-displacement")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(loc="best", fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
