@@ -30,6 +30,7 @@ are always those of the final model at the default node counts and the full rate
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -43,6 +44,7 @@ from afmctl import hysteresis as hy
 from afmctl import rod as rd
 from afmctl import transducer as td
 from afmctl.sweeps import Sweep
+from afmctl.tomlfile import Table
 
 FloatArray = NDArray[np.float64]
 THETA_NAMES = ("median_MV_per_m", "sigma_ln", "std_MV_per_m", "r_MV_per_m", "natural_hz",
@@ -67,8 +69,10 @@ class Settings:
         Only samples with ``t0 <= t < t1`` enter the residual; the model still runs from t = 0.
     n_coercive_fit : int
         Coercive nodes used during the fit (the result uses ``Polarization``'s default 256).
-    decimate : int
-        Keep every ``decimate``-th sample (and every turning point) for the hysteresis in the fit.
+    field_step : float
+        During the fit the hysteresis is evaluated only where the field has moved by more than
+        ``field_step`` times its peak magnitude since the last evaluated sample, and at every
+        turning point; linear interpolation in between (0 evaluates every sample).
     max_nfev : int
         Budget of residual evaluations of the solver.
     """
@@ -77,9 +81,24 @@ class Settings:
     p_r: float = 0.3
     thickness_um: float | None = None
     window_s: Window = None
-    n_coercive_fit: int = 48
-    decimate: int = 8
+    n_coercive_fit: int = 64
+    field_step: float = 0.004
     max_nfev: int = 300
+
+
+def settings_from_table(t: Table | None, base: Settings = Settings()) -> Settings:
+    """Settings from a profile's ``[identify]`` table (keys ``mass_kg``, ``p_r_C_per_m2``,
+    ``thickness_um``, ``n_coercive_fit``, ``field_step``, ``max_nfev``); missing keys keep ``base``."""
+    if t is None:
+        return base
+    thick = t.number("thickness_um", positive=True) if t.has("thickness_um") else base.thickness_um
+    return Settings(
+        mass_kg=t.number("mass_kg", base.mass_kg, positive=True),
+        p_r=t.number("p_r_C_per_m2", base.p_r, positive=True), thickness_um=thick,
+        window_s=base.window_s, n_coercive_fit=t.integer("n_coercive_fit", base.n_coercive_fit,
+                                                         minimum=4),
+        field_step=t.number("field_step", base.field_step, nonnegative=True),
+        max_nfev=t.integer("max_nfev", base.max_nfev, minimum=1))
 
 
 @dataclass(frozen=True)
@@ -209,11 +228,24 @@ def turning_points(x: FloatArray) -> NDArray[np.intp]:
     return np.unique(np.concatenate(([0, x.size - 1], flips)))
 
 
+def decimation(field: FloatArray, step: float) -> NDArray[np.intp]:
+    """Samples on which to evaluate the hysteresis: every turning point, and one whenever the
+    accumulated field variation has grown by ``step`` (same units as ``field``).
+
+    Model (13) depends only on the turning points; in between the output is a smooth function of
+    the field, so linear interpolation over steps ``step`` errs by O(step^2).
+    """
+    if step <= 0:
+        return np.arange(field.size)
+    travel = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(field)))))
+    bins = np.floor(travel / step)
+    new = np.flatnonzero(np.diff(bins) > 0) + 1
+    return np.unique(np.concatenate((new, turning_points(field))))
+
+
 def _prepare(sweep: Sweep, thickness_um: float, settings: Settings) -> _Prepared:
     e = sweep.voltage_v / thickness_um
-    n = e.size
-    keep = np.unique(np.concatenate((np.arange(0, n, max(1, settings.decimate)),
-                                     turning_points(e))))
+    keep = decimation(e, settings.field_step * float(np.max(np.abs(e))))
     mask = sweep.mask(settings.window_s)
     if not mask.any():
         raise ValueError(f"{sweep.name}: no samples in the fit window {settings.window_s}")
@@ -231,12 +263,18 @@ def _hysteresis(theta: FloatArray, prep: _Prepared, n_coercive: int) -> FloatArr
     return np.interp(np.arange(prep.field.size), prep.keep, q)
 
 
-def _unit_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
-    """Rod (16) normalized to unit DC gain, at rest in equilibrium with ``x[0]``."""
+@functools.lru_cache(maxsize=64)
+def _unit_rod(fn: float, zeta: float, dt: float) -> tuple[rd.Rod, rd.Discrete]:
+    """Rod (16) with m = 1 and unit DC gain per unit force/k, and its exact discretization (18)."""
     w = 2 * np.pi * fn
     rod = rd.Rod(m=1.0, c=2 * zeta * w, k=w * w, a1=1.0)
-    u, _ = rd.simulate(rod, rd.discretize(rod, dt), x * (w * w * 1e-6),
-                       np.array([x[0] * 1e-6, 0.0]))
+    return rod, rd.discretize(rod, dt)
+
+
+def _unit_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
+    """``L[x]``: the rod normalized to unit DC gain, at rest in equilibrium with ``x[0]``."""
+    rod, disc = _unit_rod(float(fn), float(zeta), float(dt))
+    u, _ = rd.simulate(rod, disc, x * (rod.k * 1e-6), np.array([x[0] * 1e-6, 0.0]))
     return u
 
 
@@ -253,7 +291,7 @@ def _design(theta: FloatArray, preps: Sequence[_Prepared], n_coercive: int) -> F
 
 def _project(a: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Linear least-squares gains and the residual ``y - A beta``."""
-    beta, *_ = np.linalg.lstsq(a, y, rcond=None)
+    beta, *_ = np.linalg.lstsq(a.T @ a, a.T @ y, rcond=None)  # normal equations: 3 columns
     return beta, y - a @ beta
 
 
