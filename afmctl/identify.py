@@ -31,6 +31,7 @@ are always those of the final model at the default node counts and the full rate
 from __future__ import annotations
 
 import functools
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -181,8 +182,8 @@ def to_model(theta: FloatArray, gains: FloatArray, settings: Settings,
     g1, g2, off = (float(x) for x in gains)
     eta = r / settings.p_r
     m = settings.mass_kg
-    k = m * (2 * np.pi * fn) ** 2
-    rod = rd.Rod(m=m, c=2 * zeta * np.sqrt(k * m), k=k, a1=g1 * k * eta / 1e6,
+    k = m * (2 * math.pi * fn) ** 2
+    rod = rd.Rod(m=m, c=2 * zeta * math.sqrt(k * m), k=k, a1=g1 * k * eta / 1e6,
                  a2=g2 * k * eta ** 2 / 1e6, offset_um=off)
     pol = hy.Polarization(eta=eta, p_r=settings.p_r, coercive=hy.Lognormal(median, sig),
                           interaction=hy.Normal(std), n_coercive=n_coercive)
