@@ -437,7 +437,8 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     preps = [_prepare(s, thickness, settings) for s in sweeps]
     n_c = settings.n_coercive_fit
     theta0 = initial_guess(preps)
-    say(f"starting guess {dict(zip(THETA_NAMES, np.round(theta0, 4), strict=True))}")
+    say("starting guess " + ", ".join(f"{n}={v:.4g}" for n, v in zip(THETA_NAMES, theta0,
+                                                                        strict=True)))
     lo, hi = _bounds(theta0, preps)
     x0 = np.clip(np.log(theta0), lo + 1e-9, hi - 1e-9)
     sol = optimize.least_squares(_residual_fn(preps, n_c), x0, bounds=(lo, hi), x_scale=1.0,
