@@ -89,7 +89,8 @@ class Settings:
 
 def settings_from_table(t: Table | None, base: Settings = Settings()) -> Settings:
     """Settings from a profile's ``[identify]`` table (keys ``mass_kg``, ``p_r_C_per_m2``,
-    ``thickness_um``, ``n_coercive_fit``, ``field_step``, ``max_nfev``); missing keys keep ``base``."""
+    ``thickness_um``, ``n_coercive_fit``, ``field_step``, ``max_nfev``); missing keys keep
+    ``base``."""
     if t is None:
         return base
     thick = t.number("thickness_um", positive=True) if t.has("thickness_um") else base.thickness_um

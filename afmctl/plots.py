@@ -44,7 +44,8 @@ def fit_figure(sweep: Sweep, fitted_um: FloatArray, path: str | Path) -> Path:
     return out
 
 
-def fit_figures(sweeps: list[Sweep], fitted_um: list[FloatArray], out_dir: str | Path) -> list[Path]:
+def fit_figures(sweeps: list[Sweep], fitted_um: list[FloatArray],
+                out_dir: str | Path) -> list[Path]:
     """One :func:`fit_figure` per sweep into ``out_dir`` (created if needed)."""
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)

@@ -1,9 +1,10 @@
 """Benchmark for issue 4 (identify): real held-out accuracy and identification speed.
 
 Real data: the measured actuator of ``../shared/data/smarthysteresis_1hz.csv`` (relative to the repo
-root; ``--data PATH`` overrides). Fit on t in [4, 7) s, judge on [7, 10) s, the state carried through
-the whole file from t = 0, for the homogenized-energy model (in volts: the layer thickness is not
-documented), a linear fit and a classical Prandtl-Ishlinskii operator (24 plays, NNLS).
+root; ``--data PATH`` overrides). Fit on t in [4, 7) s, judge on [7, 10) s, the state carried
+through the whole file from t = 0, for the homogenized-energy model (in volts: the layer
+thickness is not documented), a linear fit and a classical Prandtl-Ishlinskii operator
+(24 plays, NNLS).
 
 Emulated: the three standard triangle sweeps (0.279, 5.58, 27.9 Hz, 150 V, 10 kHz) of the nominal
 stage with 0.03 um sensor noise; ``identify_seconds`` is the wall time of ``identify.fit`` on them.

@@ -2,12 +2,11 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+from conftest import NOISE_UM, SAMPLE_RATE_HZ
 
 from afmctl import identify as idf
 from afmctl import sweeps as sw
 from afmctl.transducer import Transducer
-
-from conftest import NOISE_UM, SAMPLE_RATE_HZ
 
 
 def test_fit_rms_within_noise_on_every_standard_sweep(standard_fit: idf.FitResult) -> None:
