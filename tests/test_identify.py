@@ -47,34 +47,6 @@ def test_window_limits_residual_but_state_runs_from_start(emulate: Callable[...,
     assert idf.sweep_error(res.model, s, (0.12, 1.0)).rms_um <= 2.0 * NOISE_UM
 
 
-def test_fit_approximations_are_well_below_noise(true_model: Transducer) -> None:
-    """Decimated hysteresis (turning points kept) and 64 coercive nodes vs the exact model."""
-    v = sw.triangle(0.279, 150.0, 1, SAMPLE_RATE_HZ)
-    theta = np.array([1.0, 0.4, 0.3, 0.36])
-    s = sw.from_arrays(v, np.zeros_like(v), SAMPLE_RATE_HZ)
-    coarse = idf._prepare(s, 100.0, idf.Settings())
-    exact = idf._prepare(s, 100.0, idf.Settings(field_step=0.0))
-    q_fit = idf._hysteresis(theta, coarse, idf.Settings().n_coercive_fit)
-    q_ref = idf._hysteresis(theta, exact, 256)
-    g1 = 1e6 * true_model.rod.a1 / (true_model.rod.k * true_model.polarization.eta)
-    assert g1 * np.max(np.abs(q_fit - q_ref)) < NOISE_UM / 3
-
-
-def test_turning_points() -> None:
-    x = np.array([0.0, 1, 2, 2, 1, 0, 1, 1])
-    assert idf.turning_points(x).tolist() == [0, 3, 5, 7]  # a plateau counts at its end
-
-
-def test_to_model_static_gain() -> None:
-    theta = np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25])
-    m = idf.to_model(theta, np.array([10.0, 0.5, 1.0]), idf.Settings(), 100.0)
-    q = 2.0
-    p = q / m.polarization.eta
-    u = 1e6 * (m.rod.a1 * p + m.rod.a2 * p * p) / m.rod.k
-    assert u == pytest.approx(10.0 * q + 0.5 * q * q)
-    assert m.rod.natural_hz == pytest.approx(250.0) and m.rod.damping_ratio == pytest.approx(0.25)
-
-
 def test_thickness_conflict_is_an_error(emulate: Callable[..., sw.Sweep]) -> None:
     a = emulate(sw.triangle(27.9, 150.0, 1, SAMPLE_RATE_HZ), 27.9, seed=1)
     b = sw.Sweep(a.time_s, a.voltage_v, a.displacement_um, {"layer_thickness_um": "50"})
