@@ -5,10 +5,15 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from afmctl import __version__
+
+if TYPE_CHECKING:
+    from afmctl import identify as identify_mod
+    from afmctl.sweeps import Sweep
 
 
 class InputError(Exception):
@@ -26,10 +31,7 @@ def main() -> None:
     """Make a hysteretic piezo stage track what it is told (Hatch, Smith et al. inverse filter)."""
 
 
-def _report(result: object) -> str:
-    from afmctl.identify import FitResult
-
-    assert isinstance(result, FitResult)
+def _report(result: identify_mod.FitResult) -> str:
     state = "converged" if result.success else "NOT CONVERGED (fit failed)"
     lines = [f"fit {state}: {result.message} (status {result.status}, {result.nfev} evaluations, "
              f"{result.seconds:.2f} s)"]
@@ -46,7 +48,8 @@ def _report(result: object) -> str:
     return "\n".join(lines)
 
 
-def _load_inputs(files: tuple[str, ...], profile: str | None) -> tuple[list, object]:
+def _load_inputs(files: tuple[str, ...],
+                 profile: str | None) -> tuple[list[Sweep], identify_mod.Settings]:
     from afmctl import identify, sweeps, tomlfile
 
     table = None
@@ -79,7 +82,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
             raise InputError(f"{output}: directory does not exist")
         click.echo(f"fitting {len(sweeps)} sweep(s) ...", err=True)
         result = idf.fit(sweeps, settings, progress=lambda m: click.echo(m, err=True))
-    except (FileFormatError, InputError, ValueError) as exc:
+    except (FileFormatError, InputError, idf.FitInputError) as exc:
         _fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         return
     if plots_dir is not None:

@@ -37,6 +37,10 @@ FloatArray = NDArray[np.float64]
 Window = tuple[float, float] | None
 
 
+class FitInputError(ValueError):
+    """The sweeps cannot be fitted as given (conflicting metadata, empty fit window)."""
+
+
 @dataclass(frozen=True)
 class Settings:
     """Options of :func:`fit`.
@@ -77,7 +81,7 @@ class Settings:
     max_nfev: int = 300
     density: Literal["parametric", "discrete"] = "parametric"
     n_density_nodes: int = 24
-    smoothing: float = 1e-4
+    smoothing: float = 1e-6
 
     @property
     def scales(self) -> pz.Scales:
@@ -158,12 +162,17 @@ class FitResult:
             "success": self.success, "status": self.status, "message": self.message,
             "nfev": self.nfev, "seconds": round(self.seconds, 3),
             "thickness_known": self.thickness_known,
-            "parameters": {p.name: {"value": p.value, "stderr": p.stderr, "unit": p.unit,
-                                    "fixed": p.fixed} for p in self.parameters},
+            "parameters": {p.name: {"value": _finite(p.value), "stderr": _finite(p.stderr),
+                                    "unit": p.unit, "fixed": p.fixed} for p in self.parameters},
             "sweeps": [{"file": s.file, "rms_um": s.rms_um, "max_um": s.max_um,
                         "range_um": s.range_um, "rms_pct": s.rms_pct, "max_pct": s.max_pct,
                         "n_samples": s.n_samples} for s in self.sweeps],
         }
+
+
+def _finite(v: float) -> float | None:
+    """JSON has no NaN/inf: non-finite values become null."""
+    return v if np.isfinite(v) else None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -234,7 +243,7 @@ def resolve_thickness(sweeps: Sequence[Sweep], settings: Settings) -> tuple[floa
         return settings.thickness_um, True
     known = {s.thickness_um for s in sweeps if s.thickness_um is not None}
     if len(known) > 1:
-        raise ValueError(f"sweeps disagree on layer_thickness_um: {sorted(known)}")
+        raise FitInputError(f"sweeps disagree on layer_thickness_um: {sorted(known)}")
     return (known.pop(), True) if known else (1.0, False)
 
 
@@ -299,7 +308,10 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     say = progress or (lambda _msg: None)
     t0 = time.perf_counter()
     thickness, known = resolve_thickness(sweeps, settings)
-    preps = [pz.prepare(s, thickness, settings.field_step, settings.window_s) for s in sweeps]
+    try:
+        preps = [pz.prepare(s, thickness, settings.field_step, settings.window_s) for s in sweeps]
+    except ValueError as exc:
+        raise FitInputError(str(exc)) from None
     y = np.concatenate([p.y for p in preps])
     space: Space = pz.LognormalSpace(preps, settings.scales, settings.n_coercive_fit)
     coarse = pz.LognormalSpace(preps, settings.scales, 24)

@@ -85,3 +85,15 @@ def test_non_converged_fit_is_reported_as_failure(tmp_path: Path, good_file: Pat
     assert res.exit_code == 1
     assert json.loads(res.stdout)["success"] is False
     assert not out.exists()
+
+
+def test_conflicting_thickness_exits_2(tmp_path: Path, emulate: Callable[..., sw.Sweep]) -> None:
+    a = emulate(sw.triangle(27.9, 150.0, 1, SAMPLE_RATE_HZ), 27.9, seed=3)
+    b = sw.Sweep(a.time_s, a.voltage_v, a.displacement_um, {"layer_thickness_um": "50"})
+    sw.write(a, tmp_path / "a.csv")
+    sw.write(b, tmp_path / "b.csv")
+    out = tmp_path / "m.toml"
+    res = CliRunner().invoke(main, ["identify", str(tmp_path / "a.csv"), str(tmp_path / "b.csv"),
+                                    "-o", str(out)])
+    assert res.exit_code == 2 and "disagree" in res.stderr and len(res.stderr.splitlines()) == 1
+    assert not out.exists()
