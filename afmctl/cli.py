@@ -80,6 +80,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
         sweeps, settings = _load_inputs(sweep_files, profile)
         if not Path(output).resolve().parent.is_dir():
             raise InputError(f"{output}: directory does not exist")
+        idf.resolve_thickness(sweeps, settings)  # validate before any progress output
         click.echo(f"fitting {len(sweeps)} sweep(s) ...", err=True)
         result = idf.fit(sweeps, settings, progress=lambda m: click.echo(m, err=True))
     except (FileFormatError, InputError, idf.FitInputError) as exc:
