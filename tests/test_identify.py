@@ -52,3 +52,12 @@ def test_thickness_conflict_is_an_error(emulate: Callable[..., sw.Sweep]) -> Non
     b = sw.Sweep(a.time_s, a.voltage_v, a.displacement_um, {"layer_thickness_um": "50"})
     with pytest.raises(ValueError, match="disagree"):
         idf.resolve_thickness([a, b], idf.Settings())
+
+
+def test_discrete_density_fit(emulate: Callable[..., sw.Sweep]) -> None:
+    s = emulate(sw.triangle(27.9, 150.0, 4, SAMPLE_RATE_HZ), 27.9, seed=8)
+    res = idf.fit([s], idf.Settings(density="discrete", n_density_nodes=12))
+    assert res.success and res.sweeps[0].rms_um <= 1.5 * NOISE_UM
+    dens = res.model.polarization.coercive
+    assert all(v >= 0 for v in dens.values)  # type: ignore[union-attr]
+    assert sum(1 for p in res.parameters if p.name.startswith("coercive_density@")) == 12
