@@ -126,7 +126,7 @@ def _split(where: str, text: str) -> tuple[dict[str, str], list[str], list[str]]
         i += 1
     if i == len(lines):
         raise SweepFormatError(f"{where}: empty (no header line {','.join(COLUMNS)})")
-    header = [h.strip() for h in lines[i].split(",")]
+    header = [h.strip().strip('"').strip() for h in lines[i].split(",")]
     body = [ln for ln in lines[i + 1:] if ln.strip() and not ln.startswith("#")]
     return meta, header, body
 
@@ -185,7 +185,7 @@ def read(path: str | Path) -> Sweep:
     if b"\x00" in raw:
         raise SweepFormatError(f"{p}: not a text file")
     try:
-        text = raw.decode("utf-8")
+        text = raw.decode("utf-8-sig")  # tolerate a byte-order mark from spreadsheet tools
     except UnicodeDecodeError:
         raise SweepFormatError(f"{p}: not UTF-8 text") from None
     return parse(text, str(p))

@@ -1,10 +1,13 @@
+import json
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import NOISE_UM, SAMPLE_RATE_HZ
 
 from afmctl import identify as idf
+from afmctl import modelfile
 from afmctl import sweeps as sw
 from afmctl.transducer import Transducer
 
@@ -61,3 +64,18 @@ def test_discrete_density_fit(emulate: Callable[..., sw.Sweep]) -> None:
     dens = res.model.polarization.coercive
     assert all(v >= 0 for v in dens.values)  # type: ignore[union-attr]
     assert sum(1 for p in res.parameters if p.name.startswith("coercive_density@")) == 12
+
+
+def test_model_file_round_trip_predicts_the_same(standard_fit: idf.FitResult,
+                                                 standard_sweeps: list[sw.Sweep],
+                                                 tmp_path: Path) -> None:
+    modelfile.write(standard_fit.model, tmp_path / "m.toml")
+    back = modelfile.read(tmp_path / "m.toml")
+    s = standard_sweeps[2]
+    np.testing.assert_allclose(idf.predict(back, s.voltage_v, s.dt),
+                               idf.predict(standard_fit.model, s.voltage_v, s.dt), atol=1e-9)
+
+
+def test_result_json_is_strict(standard_fit: idf.FitResult) -> None:
+    doc = json.loads(json.dumps(standard_fit.to_dict(), allow_nan=False))
+    assert doc["success"] is True and len(doc["sweeps"]) == 3

@@ -35,6 +35,13 @@ def test_foreign_file_without_metadata_and_extra_columns_loads() -> None:
     np.testing.assert_allclose(s.displacement_um, [0.5, 0.6])
 
 
+def test_bom_crlf_and_quoted_header_load(tmp_path: Path) -> None:
+    p = tmp_path / "excel.csv"
+    p.write_bytes(b'\xef\xbb\xbf"time_s","voltage_V","displacement_um"\r\n0,1,2\r\n0.5,3,4\r\n')
+    s = sw.read(p)
+    np.testing.assert_allclose(s.voltage_v, [1, 3])
+
+
 def test_round_trip(tmp_path: Path) -> None:
     s = sw.from_arrays(sw.triangle(5.0, 10.0, 1, 1000.0), np.linspace(0, 1, 201), 1000.0,
                        {"frequency_hz": "5"})
