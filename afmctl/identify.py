@@ -193,8 +193,8 @@ def _residual_fn(space: Space, y: FloatArray) -> Callable[[FloatArray], FloatArr
 def _solve(space: Space, x0: FloatArray, y: FloatArray, max_nfev: int) -> optimize.OptimizeResult:
     lo, hi = space.bounds()
     x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
-    return optimize.least_squares(_residual_fn(space, y), x0, bounds=(lo, hi), x_scale=1.0,
-                                  diff_step=1e-6, max_nfev=max_nfev)
+    return optimize.least_squares(_residual_fn(space, y), x0, bounds=(lo, hi),
+                                  x_scale=space.x_scale, diff_step=1e-6, max_nfev=max_nfev)
 
 
 def _covariance(space: Space, x: FloatArray, beta: FloatArray, y: FloatArray) -> FloatArray:

@@ -216,6 +216,7 @@ class LognormalSpace:
 
     def __init__(self, preps: Sequence[Prepared], scales: Scales, n_coercive: int) -> None:
         self.preps, self.scales, self.n_coercive = list(preps), scales, n_coercive
+        self.x_scale: str | float = 1.0  # logs: unit steps are natural
         self.names = tuple(f"log_{n}" for n in THETA_NAMES)
 
     def hysteresis(self, theta: FloatArray, n_coercive: int) -> list[FloatArray]:
@@ -255,6 +256,14 @@ class LognormalSpace:
         return to_model(np.exp(x), beta, self.scales, thickness_um)
 
 
+@dataclass(frozen=True)
+class _Basis:
+    field: FloatArray  # full rate (interpolated like Q), MV/m
+    h: FloatArray      # (N, K) per-node hysteresis columns, full rate
+    le: FloatArray     # L[field] on the mask
+    lh: FloatArray     # (M, K) L[h] on the mask
+
+
 class DiscreteSpace:
     """``x = (c_1 ... c_K, log sigma_I, log f_n, log zeta)`` with ``c_i = r v_i >= 0`` the
     weights (MV/m) of a general coercive density on fixed nodes ``E_c,i`` (Section 2.2: the
@@ -269,6 +278,8 @@ class DiscreteSpace:
         n_obs = sum(int(p.mask.sum()) for p in self.preps)
         self.weight = math.sqrt(smoothing * n_obs) * abs(g1)
         self._h: dict[float, list[FloatArray]] = {}
+        self._b: dict[tuple[float, float, float], list[_Basis]] = {}
+        self.x_scale: str | float = "jac"  # weights (MV/m) and logs mixed
 
     @classmethod
     def around(cls, theta: FloatArray, preps: Sequence[Prepared], scales: Scales, n_nodes: int,
@@ -286,9 +297,9 @@ class DiscreteSpace:
         return space, np.concatenate((c, np.log([std, fn, zeta])))
 
     def _columns_h(self, std: float) -> list[FloatArray]:
-        """``erf(y_i / (sqrt(2) sigma_I))`` per node, on the kept samples (cached per sigma_I)."""
+        """``erf(y_i / (sqrt(2) sigma_I))`` per node at the full rate (cached per sigma_I)."""
         if std not in self._h:
-            if len(self._h) > 8:
+            if len(self._h) > 4:
                 self._h.clear()
             out = []
             for p in self.preps:
@@ -296,16 +307,36 @@ class DiscreteSpace:
                 cols = [hy.run(pol, e, hy.initial_state(pol))[0] - e
                         for pol in (hy.Polarization(1.0, 1.0, hy.Discrete((float(n),), (1.0,)),
                                                     hy.Normal(std)) for n in self.nodes)]
-                out.append(np.column_stack(cols))
+                out.append(np.column_stack([_full_rate(p, c) for c in cols]))
             self._h[std] = out
         return self._h[std]
 
+    def _basis(self, std: float, fn: float, zeta: float) -> list[_Basis]:
+        """Per sweep: field, ``H`` and their filtered ``L[E]``, ``L[H]`` on the mask. ``Q`` and
+        ``L[Q]`` are linear in the weights ``c``, so only ``L[Q^2]`` is filtered per evaluation."""
+        key = (std, fn, zeta)
+        if key not in self._b:
+            if len(self._b) > 4:
+                self._b.clear()
+            out = []
+            for p, h in zip(self.preps, self._columns_h(std), strict=True):
+                e = _full_rate(p, p.field[p.keep])
+                le = unit_filter(e, fn, zeta, p.dt)[p.mask]
+                lh = np.column_stack([unit_filter(col, fn, zeta, p.dt)[p.mask] for col in h.T])
+                out.append(_Basis(e, h, le, lh))
+            self._b[key] = out
+        return self._b[key]
+
     def design(self, x: FloatArray) -> FloatArray:
         k = self.nodes.size
-        std, fn, zeta = np.exp(x[k:])
-        q = [p.field[p.keep] + h @ x[:k] for p, h in zip(self.preps, self._columns_h(std),
-                                                            strict=True)]
-        return columns(q, fn, zeta, self.preps)
+        c = x[:k]
+        std, fn, zeta = (float(v) for v in np.exp(x[k:]))
+        blocks = []
+        for p, b in zip(self.preps, self._basis(std, fn, zeta), strict=True):
+            q = b.field + b.h @ c
+            lq2 = unit_filter(q * q, fn, zeta, p.dt)[p.mask]
+            blocks.append(np.column_stack((b.le + b.lh @ c, lq2, np.ones(lq2.size))))
+        return np.vstack(blocks)
 
     def penalty(self, x: FloatArray) -> FloatArray:
         return self.weight * np.diff(x[:self.nodes.size], 2)
