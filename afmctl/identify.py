@@ -48,7 +48,8 @@ class Settings:
     Parameters
     ----------
     mass_kg : float
-        Fixed effective mass ``m`` of (16), kg (a scale convention, see the module docstring).
+        Fixed effective mass ``m`` of (16), kg (a scale convention, see
+        :mod:`afmctl.parametrization`).
     p_r : float
         Fixed remanence ``P_R``, C/m^2 (a scale convention).
     thickness_um : float or None
