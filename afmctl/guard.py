@@ -12,8 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl.tomlfile import InputError
 
-class LimitError(ValueError):
+
+class LimitError(InputError):
     """A waveform or set point violates the stage's limits; the message says where and how."""
 
 

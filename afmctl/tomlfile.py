@@ -13,8 +13,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 
-class FileFormatError(ValueError):
+
+class InputError(ValueError):
+    """Bad input from the user (file, option, trajectory): one line, exit code 2 at the CLI."""
+
+
+class FileFormatError(InputError):
     """A file afmctl reads is malformed; the message names the file and key."""
 
 
@@ -116,12 +122,12 @@ def load(path: str | Path) -> Table:
 
 
 def _value(v: Any) -> str:
-    if isinstance(v, bool):
+    if isinstance(v, bool | np.bool_):
         return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        return repr(v)
+    if isinstance(v, int | np.integer):
+        return str(int(v))
+    if isinstance(v, float | np.floating):
+        return repr(float(v))
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(v, (list, tuple)):

@@ -1,16 +1,27 @@
-"""Shared fixtures: the shipped emulated profile and its true model, a slew-safe test waveform, and
+"""Shared fixtures: the shipped emulated profile and its true model, emulated sweeps recorded by the
+emulated device's own physics (true parameters hidden from fits), a slew-safe test waveform, and
 servers on 127.0.0.1 / ptys that start and stop cleanly."""
 
 from __future__ import annotations
 
+import dataclasses as dc
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
 
+from afmctl import emulator
+from afmctl import identify as idf
+from afmctl import sweeps as sw
 from afmctl.profile import Profile, default_profile
 from afmctl.transducer import Transducer
+
+PROFILE = default_profile()
+assert PROFILE.emulator is not None
+SAMPLE_RATE_HZ = PROFILE.sample_rate_hz
+NOISE_UM = PROFILE.emulator.noise_um
+SENSOR_ZERO_UM = 2.0  # an arbitrary sensor zero the fits must find
 
 
 @pytest.fixture(autouse=True)
@@ -20,7 +31,7 @@ def _quiet_pymodbus() -> None:
 
 @pytest.fixture(scope="session")
 def profile() -> Profile:
-    return default_profile()
+    return PROFILE
 
 
 @pytest.fixture(scope="session")
@@ -28,6 +39,41 @@ def nominal(profile: Profile) -> Transducer:
     """The emulated stage's true model (the nominal AFM stage)."""
     assert profile.emulator is not None
     return profile.emulator.model
+
+
+@pytest.fixture(scope="session")
+def true_model(nominal: Transducer) -> Transducer:
+    """The truth as a sweep sees it: the nominal stage with the sensor zero added."""
+    return dc.replace(nominal, rod=dc.replace(nominal.rod, offset_um=SENSOR_ZERO_UM))
+
+
+@pytest.fixture(scope="session")
+def emulate() -> Callable[..., sw.Sweep]:
+    """``emulate(voltage, frequency_hz, seed, meta=True)``: a sweep recorded by the emulated device
+    (its physics and seeded sensor noise), with the sensor zero shifted by SENSOR_ZERO_UM."""
+    assert PROFILE.emulator is not None
+    cfg = PROFILE.emulator
+
+    def make(voltage_v: np.ndarray, frequency_hz: float, seed: int,
+             meta: bool = True) -> sw.Sweep:
+        u, _ = emulator.expected_readback(dc.replace(cfg, seed=seed), SAMPLE_RATE_HZ, voltage_v)
+        md = {"frequency_hz": f"{frequency_hz:g}", "layer_thickness_um": "100.0",
+              "profile": "emulated"} if meta else {}
+        return sw.from_arrays(voltage_v, u + SENSOR_ZERO_UM, SAMPLE_RATE_HZ, md,
+                              f"triangle_{frequency_hz:g}hz")
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def standard_sweeps(emulate: Callable[..., sw.Sweep]) -> list[sw.Sweep]:
+    return [emulate(v, f, seed) for seed, (_, f, v) in
+            enumerate(sw.standard_set(150.0, SAMPLE_RATE_HZ)[:3])]
+
+
+@pytest.fixture(scope="session")
+def standard_fit(standard_sweeps: list[sw.Sweep]) -> idf.FitResult:
+    return idf.fit(standard_sweeps)
 
 
 @pytest.fixture(scope="session")

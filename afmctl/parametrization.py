@@ -1,0 +1,359 @@
+"""Well-scaled internal parametrizations of the transducer, used by :mod:`afmctl.identify`.
+
+The physical parameters of the model (eqs. (13) and (16)) are not all identifiable from
+displacement alone:
+
+* ``(m, c, k, a1~, a2~)`` enter (16) only through ``c/m``, ``k/m``, ``a1~/m``, ``a2~/m``;
+* ``P -> s P`` (``eta -> eta/s``, ``P_R -> s P_R``) with ``a1~ -> a1~/s``, ``a2~ -> a2~/s^2``
+  leaves the force unchanged.
+
+So ``m`` and ``P_R`` are fixed by convention (:class:`Scales`) and the fit works with
+``Q = eta P = E + r H(E)``, ``r = eta P_R`` (MV/m), ``H = sum_i v_i erf(y_i / (sqrt(2) sigma_I))``
+in [-1, 1] (the closed-form ``normal`` kernel of :mod:`afmctl.hysteresis`, ``y_i`` the play output
+of half-width ``E_c,i``). The rod (16) then reads
+
+``u = g1 L[Q] + g2 L[Q^2] + offset``
+
+with ``L`` the unit-DC-gain second-order filter of natural frequency ``f_n`` and damping ratio
+``zeta``, ``g1 = 1e6 a1~ / (k eta)`` (um per MV/m) and ``g2 = 1e6 a2~ / (k eta^2)``. The gains
+``beta = (g1, g2, offset)`` enter linearly; a *space* maps the remaining vector ``x`` to the
+design matrix ``[L[Q], L[Q^2], 1]`` and, with ``beta``, to a :class:`~afmctl.transducer.Transducer`.
+
+Two spaces: :class:`LognormalSpace` (``nu_1`` lognormal, ``nu_2`` normal: six parameters) and
+:class:`DiscreteSpace` (``nu_1`` a general nonnegative density on fixed nodes, smoothed by a
+Tikhonov penalty on its second differences; ``nu_2`` normal), as in Section 2.2 of the paper.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl import hysteresis as hy
+from afmctl import rod as rd
+from afmctl import transducer as td
+from afmctl.sweeps import Sweep
+
+FloatArray = NDArray[np.float64]
+THETA_NAMES = ("median_MV_per_m", "sigma_ln", "std_MV_per_m", "r_MV_per_m", "natural_hz",
+               "damping_ratio")
+
+
+@dataclass(frozen=True)
+class Scales:
+    """The fixed scale conventions: effective mass ``m`` (kg) and remanence ``P_R`` (C/m^2)."""
+
+    mass_kg: float = 0.05
+    p_r: float = 0.3
+
+
+# ----------------------------------------------------------------------------------------------
+# data preparation
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """One sweep ready for the residual: field (MV/m, full rate), the samples on which the
+    hysteresis is evaluated, the residual mask, the measured displacement there (um), dt (s)."""
+
+    field: FloatArray
+    keep: NDArray[np.intp]
+    mask: NDArray[np.bool_]
+    y: FloatArray
+    dt: float
+
+
+def turning_points(x: FloatArray) -> NDArray[np.intp]:
+    """Indices of the local extrema of ``x`` (a plateau counts at its end), plus both ends."""
+    d = np.sign(np.diff(x))
+    nz = np.flatnonzero(d)
+    if nz.size < 2:
+        return np.array([0, x.size - 1])
+    flips = nz[1:][d[nz[1:]] != d[nz[:-1]]]
+    return np.unique(np.concatenate(([0, x.size - 1], flips)))
+
+
+def decimation(field: FloatArray, step: float) -> NDArray[np.intp]:
+    """Samples on which to evaluate the hysteresis: every turning point, and one whenever the
+    accumulated field variation has grown by ``step`` (same units as ``field``).
+
+    Model (13) depends only on the turning points; in between the output is a smooth function of
+    the field, so linear interpolation over steps ``step`` errs by O(step^2).
+    """
+    if step <= 0:
+        return np.arange(field.size)
+    travel = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(field)))))
+    new = np.flatnonzero(np.diff(np.floor(travel / step)) > 0) + 1
+    return np.unique(np.concatenate((new, turning_points(field))))
+
+
+def prepare(sweep: Sweep, thickness_um: float, field_step: float,
+            window_s: tuple[float, float] | None) -> Prepared:
+    """:class:`Prepared` for ``sweep``; ``field_step`` is relative to the peak field."""
+    e = sweep.voltage_v / thickness_um
+    keep = decimation(e, field_step * float(np.max(np.abs(e))))
+    mask = sweep.mask(window_s)
+    if not mask.any():
+        raise ValueError(f"{sweep.name}: no samples in the fit window {window_s}")
+    return Prepared(e, keep, mask, sweep.displacement_um[mask], sweep.dt)
+
+
+def _full_rate(prep: Prepared, q_keep: FloatArray) -> FloatArray:
+    if prep.keep.size == prep.field.size:
+        return q_keep
+    return np.interp(np.arange(prep.field.size), prep.keep, q_keep)
+
+
+def unit_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
+    """``L[x]``: rod (16) normalized to unit DC gain (exact ZOH, (18)), at rest with ``x[0]``."""
+    w = 2 * math.pi * fn
+    rod = rd.Rod(m=1.0, c=2 * zeta * w, k=w * w, a1=1.0)
+    disc = _discretize(float(fn), float(zeta), float(dt))
+    u, _ = rd.simulate(rod, disc, x * (rod.k * 1e-6), np.array([x[0] * 1e-6, 0.0]))
+    return u
+
+
+_DISC_CACHE: dict[tuple[float, float, float], rd.Discrete] = {}
+
+
+def _discretize(fn: float, zeta: float, dt: float) -> rd.Discrete:
+    key = (fn, zeta, dt)
+    if key not in _DISC_CACHE:
+        if len(_DISC_CACHE) > 256:
+            _DISC_CACHE.clear()
+        w = 2 * math.pi * fn
+        _DISC_CACHE[key] = rd.discretize(rd.Rod(1.0, 2 * zeta * w, w * w, 1.0), dt)
+    return _DISC_CACHE[key]
+
+
+def columns(q_keep: Sequence[FloatArray], fn: float, zeta: float,
+            preps: Sequence[Prepared]) -> FloatArray:
+    """Design matrix ``[L[Q], L[Q^2], 1]`` on the residual samples of all sweeps, stacked."""
+    blocks = []
+    for q_k, prep in zip(q_keep, preps, strict=True):
+        q = _full_rate(prep, q_k)
+        lq, lq2 = unit_filter(q, fn, zeta, prep.dt), unit_filter(q * q, fn, zeta, prep.dt)
+        blocks.append(np.column_stack((lq[prep.mask], lq2[prep.mask],
+                                       np.ones(int(prep.mask.sum())))))
+    return np.vstack(blocks)
+
+
+def project(a: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Linear least-squares gains ``beta`` and the residual ``y - A beta``."""
+    beta, *_ = np.linalg.lstsq(a.T @ a, a.T @ y, rcond=None)  # normal equations: 3 columns
+    return beta, y - a @ beta
+
+
+def _extent(preps: Sequence[Prepared]) -> tuple[float, float]:
+    """Peak field (MV/m) and Nyquist frequency (Hz) over the sweeps."""
+    e_max = max(float(np.max(np.abs(p.field))) for p in preps) or 1.0
+    return e_max, 0.5 / min(p.dt for p in preps)
+
+
+# ----------------------------------------------------------------------------------------------
+# internal parameters -> physical model
+# ----------------------------------------------------------------------------------------------
+
+
+def build_model(polarization: hy.Polarization, r: float, fn: float, zeta: float,
+                beta: FloatArray, scales: Scales, thickness_um: float) -> td.Transducer:
+    """Physical transducer from the shape of ``polarization`` (its eta and P_R are replaced),
+    ``r`` (MV/m), rod ``f_n`` (Hz) and ``zeta``, and ``beta = (g1, g2, offset)``.
+
+    ``eta = r / P_R``, ``k = m (2 pi f_n)^2``, ``c = 2 zeta sqrt(k m)``, ``a1~ = g1 k eta / 1e6``,
+    ``a2~ = g2 k eta^2 / 1e6`` (eq. (16) with u in um).
+    """
+    g1, g2, off = (float(b) for b in beta)
+    eta, m = float(r) / scales.p_r, scales.mass_kg
+    k = m * (2 * math.pi * float(fn)) ** 2
+    rod = rd.Rod(m=m, c=2 * float(zeta) * math.sqrt(k * m), k=k, a1=g1 * k * eta / 1e6,
+                 a2=g2 * k * eta ** 2 / 1e6, offset_um=off)
+    pol = hy.Polarization(eta=eta, p_r=scales.p_r, coercive=polarization.coercive,
+                          interaction=polarization.interaction,
+                          n_coercive=polarization.n_coercive)
+    return td.Transducer(pol, rod, thickness_um)
+
+
+def to_model(theta: FloatArray, beta: FloatArray, scales: Scales, thickness_um: float,
+             n_coercive: int = 256) -> td.Transducer:
+    """Model for the lognormal/normal ``theta`` (values, order of :data:`THETA_NAMES`)."""
+    median, sig, std, r, fn, zeta = (float(v) for v in theta)
+    pol = hy.Polarization(1.0, 1.0, hy.Lognormal(median, sig), hy.Normal(std),
+                          n_coercive=n_coercive)
+    return build_model(pol, r, fn, zeta, beta, scales, thickness_um)
+
+
+def describe(model: td.Transducer) -> list[tuple[str, float, str]]:
+    """The free physical parameters of ``model`` as (name, value, unit)."""
+    pol, rod = model.polarization, model.rod
+    out = [("eta", pol.eta, "(MV/m)/(C/m^2)")]
+    if isinstance(pol.coercive, hy.Lognormal):
+        out += [("coercive_median", pol.coercive.median, "MV/m"),
+                ("coercive_sigma_ln", pol.coercive.sigma, "1")]
+    elif isinstance(pol.coercive, hy.Discrete):
+        out += [(f"coercive_density@{x:.4g}", v, "1/(MV/m)")
+                for x, v in zip(pol.coercive.nodes, pol.coercive.values, strict=True)]
+    std = pol.interaction.std if isinstance(pol.interaction, hy.Normal) else float("nan")
+    return out + [("interaction_std", std, "MV/m"), ("c", rod.c, "N s/m"), ("k", rod.k, "N/m"),
+                  ("a1", rod.a1, "N/(C/m^2)"), ("a2", rod.a2, "N/(C/m^2)^2"),
+                  ("offset", rod.offset_um, "um"), ("natural_frequency", rod.natural_hz, "Hz"),
+                  ("damping_ratio", rod.damping_ratio, "1")]
+
+
+# ----------------------------------------------------------------------------------------------
+# the spaces
+# ----------------------------------------------------------------------------------------------
+
+
+class LognormalSpace:
+    """``x = log(theta)``, theta = (median E_c, sigma_ln, sigma_I, r, f_n, zeta): criteria (12)
+    with a lognormal ``nu_1`` and a normal ``nu_2``."""
+
+    def __init__(self, preps: Sequence[Prepared], scales: Scales, n_coercive: int) -> None:
+        self.preps, self.scales, self.n_coercive = list(preps), scales, n_coercive
+        self.x_scale: str | float = 1.0  # logs: unit steps are natural
+        self.names = tuple(f"log_{n}" for n in THETA_NAMES)
+
+    def hysteresis(self, theta: FloatArray, n_coercive: int) -> list[FloatArray]:
+        """``Q = E + r H(E)`` (MV/m) on the kept samples of each sweep, eq. (13)."""
+        median, sig, std, r = (float(v) for v in theta[:4])
+        pol = hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
+                              interaction=hy.Normal(std), n_coercive=n_coercive)
+        kern = hy.build_kernel(pol)
+        return [hy.run(kern, p.field[p.keep], hy.initial_state(pol))[0] for p in self.preps]
+
+    def design(self, x: FloatArray, n_coercive: int | None = None) -> FloatArray:
+        theta = np.exp(x)
+        q = self.hysteresis(theta, n_coercive or self.n_coercive)
+        return columns(q, theta[4], theta[5], self.preps)
+
+    def penalty(self, x: FloatArray) -> FloatArray:
+        return np.empty(0)
+
+    def bounds(self) -> tuple[FloatArray, FloatArray]:
+        e_max, nyq = _extent(self.preps)
+        lo = np.log([1e-3 * e_max, 0.02, 1e-3 * e_max, 1e-4 * e_max, 0.5, 0.003])
+        hi = np.log([10 * e_max, 3.0, 10 * e_max, 100 * e_max, 20 * nyq, 5.0])
+        return lo, hi
+
+    def start(self, cost: Callable[[FloatArray], float]) -> FloatArray:
+        """Starting ``x`` from the data alone: the peak field scales a grid over coercive median
+        and hysteretic weight (rod static), then a grid over the natural frequency."""
+        e_max, nyq = _extent(self.preps)
+        grid = [np.log([mf * e_max, 0.5, 0.3 * mf * e_max, rf * e_max, 0.45 * nyq, 0.5])
+                for mf in (0.2, 0.5, 0.9) for rf in (0.05, 0.2, 0.6)]
+        best = min(grid, key=cost)
+        freqs = [f for f in (30.0, 100.0, 300.0, 1000.0, 3000.0) if f < 0.45 * nyq]
+        cands = [best] + [np.concatenate((best[:4], np.log([f, 0.3]))) for f in freqs]
+        return min(cands, key=cost)
+
+    def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
+        return to_model(np.exp(x), beta, self.scales, thickness_um)
+
+
+@dataclass(frozen=True)
+class _Basis:
+    field: FloatArray  # full rate (interpolated like Q), MV/m
+    h: FloatArray      # (N, K) per-node hysteresis columns, full rate
+    le: FloatArray     # L[field] on the mask
+    lh: FloatArray     # (M, K) L[h] on the mask
+
+
+class DiscreteSpace:
+    """``x = (c_1 ... c_K, log sigma_I, log f_n, log zeta)`` with ``c_i = r v_i >= 0`` the
+    weights (MV/m) of a general coercive density on fixed nodes ``E_c,i`` (Section 2.2: the
+    ``N_i`` discretized density values estimated by least squares), smoothed by the penalty
+    ``sqrt(lambda N) g1 D2 c`` (second differences, um) appended to the residual."""
+
+    def __init__(self, preps: Sequence[Prepared], scales: Scales, nodes: FloatArray,
+                 smoothing: float, g1: float) -> None:
+        self.preps, self.scales, self.nodes = list(preps), scales, np.asarray(nodes, float)
+        self.names = tuple(f"c@{e:.4g}" for e in self.nodes) + (
+            "log_std_MV_per_m", "log_natural_hz", "log_damping_ratio")
+        n_obs = sum(int(p.mask.sum()) for p in self.preps)
+        self.weight = math.sqrt(smoothing * n_obs) * abs(g1)
+        self._h: dict[float, list[FloatArray]] = {}
+        self._b: dict[tuple[float, float, float], list[_Basis]] = {}
+        self.x_scale: str | float = "jac"  # weights (MV/m) and logs mixed
+
+    @classmethod
+    def around(cls, theta: FloatArray, preps: Sequence[Prepared], scales: Scales, n_nodes: int,
+               smoothing: float, g1: float) -> tuple[DiscreteSpace, FloatArray]:
+        """Nodes spanning +-3 sigma_ln of a lognormal fit ``theta`` (capped at twice the peak
+        field) and the starting ``x`` that reproduces it."""
+        median, sig, std, r, fn, zeta = theta
+        e_max, _ = _extent(preps)
+        lo, hi = median * math.exp(-3 * sig), min(median * math.exp(3 * sig), 2 * e_max)
+        nodes = np.geomspace(lo, max(hi, 1.5 * lo), n_nodes)
+        dens = np.exp(-0.5 * (np.log(nodes / median) / sig) ** 2) / nodes
+        cells = hy.Discrete(tuple(nodes), tuple(np.ones(n_nodes))).nodes_weights()[1]
+        c = r * dens * cells / float(np.sum(dens * cells))
+        space = cls(preps, scales, nodes, smoothing, g1)
+        return space, np.concatenate((c, np.log([std, fn, zeta])))
+
+    def _columns_h(self, std: float) -> list[FloatArray]:
+        """``erf(y_i / (sqrt(2) sigma_I))`` per node at the full rate (cached per sigma_I)."""
+        if std not in self._h:
+            if len(self._h) > 4:
+                self._h.clear()
+            out = []
+            for p in self.preps:
+                e = p.field[p.keep]
+                cols = [hy.run(pol, e, hy.initial_state(pol))[0] - e
+                        for pol in (hy.Polarization(1.0, 1.0, hy.Discrete((float(n),), (1.0,)),
+                                                    hy.Normal(std)) for n in self.nodes)]
+                out.append(np.column_stack([_full_rate(p, c) for c in cols]))
+            self._h[std] = out
+        return self._h[std]
+
+    def _basis(self, std: float, fn: float, zeta: float) -> list[_Basis]:
+        """Per sweep: field, ``H`` and their filtered ``L[E]``, ``L[H]`` on the mask. ``Q`` and
+        ``L[Q]`` are linear in the weights ``c``, so only ``L[Q^2]`` is filtered per evaluation."""
+        key = (std, fn, zeta)
+        if key not in self._b:
+            if len(self._b) > 4:
+                self._b.clear()
+            out = []
+            for p, h in zip(self.preps, self._columns_h(std), strict=True):
+                e = _full_rate(p, p.field[p.keep])
+                le = unit_filter(e, fn, zeta, p.dt)[p.mask]
+                lh = np.column_stack([unit_filter(col, fn, zeta, p.dt)[p.mask] for col in h.T])
+                out.append(_Basis(e, h, le, lh))
+            self._b[key] = out
+        return self._b[key]
+
+    def design(self, x: FloatArray) -> FloatArray:
+        k = self.nodes.size
+        c = x[:k]
+        std, fn, zeta = (float(v) for v in np.exp(x[k:]))
+        blocks = []
+        for p, b in zip(self.preps, self._basis(std, fn, zeta), strict=True):
+            q = b.field + b.h @ c
+            lq2 = unit_filter(q * q, fn, zeta, p.dt)[p.mask]
+            blocks.append(np.column_stack((b.le + b.lh @ c, lq2, np.ones(lq2.size))))
+        return np.vstack(blocks)
+
+    def penalty(self, x: FloatArray) -> FloatArray:
+        return self.weight * np.diff(x[:self.nodes.size], 2)
+
+    def bounds(self) -> tuple[FloatArray, FloatArray]:
+        e_max, nyq = _extent(self.preps)
+        k = self.nodes.size
+        lo = np.concatenate((np.zeros(k), np.log([1e-3 * e_max, 0.5, 0.003])))
+        hi = np.concatenate((np.full(k, 100 * e_max), np.log([10 * e_max, 20 * nyq, 5.0])))
+        return lo, hi
+
+    def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
+        k = self.nodes.size
+        c = np.maximum(x[:k], 0.0)
+        r = float(c.sum()) or 1e-12
+        cells = hy.Discrete(tuple(self.nodes), tuple(np.ones(k))).nodes_weights()[1]
+        dens = hy.Discrete(tuple(self.nodes), tuple(float(v) for v in c / r / cells))
+        std, fn, zeta = np.exp(x[k:])
+        pol = hy.Polarization(1.0, 1.0, dens, hy.Normal(float(std)))
+        return build_model(pol, r, fn, zeta, beta, self.scales, thickness_um)

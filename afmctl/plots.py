@@ -1,0 +1,53 @@
+"""Figures for identification: measured vs fitted loops and the residual over time, per sweep.
+
+Matplotlib with the Agg backend (no display); every figure is closed after saving.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from numpy.typing import NDArray  # noqa: E402
+
+from afmctl.sweeps import Sweep  # noqa: E402
+
+FloatArray = NDArray[np.float64]
+
+
+def _stem(sweep: Sweep, index: int) -> str:
+    base = Path(sweep.path).stem if sweep.path else sweep.name
+    return f"{index:02d}_" + re.sub(r"[^A-Za-z0-9_.-]+", "_", base)
+
+
+def fit_figure(sweep: Sweep, fitted_um: FloatArray, path: str | Path) -> Path:
+    """Save a two-panel PNG: displacement (um) vs voltage (V), measured and fitted, and the
+    residual measured - fitted (um) vs time (s). Returns the path written."""
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
+    try:
+        ax1.plot(sweep.voltage_v, sweep.displacement_um, ".", ms=1.5, alpha=0.4, label="measured")
+        ax1.plot(sweep.voltage_v, fitted_um, "-", lw=1.0, label="model")
+        ax1.set(xlabel="voltage (V)", ylabel="displacement (um)", title=sweep.name)
+        ax1.legend(loc="upper left")
+        ax2.plot(sweep.time_s, sweep.displacement_um - fitted_um, lw=0.6)
+        ax2.set(xlabel="time (s)", ylabel="residual (um)", title="measured - model")
+        fig.tight_layout()
+        out = Path(path)
+        fig.savefig(out, dpi=110)
+    finally:
+        plt.close(fig)
+    return out
+
+
+def fit_figures(sweeps: list[Sweep], fitted_um: list[FloatArray],
+                out_dir: str | Path) -> list[Path]:
+    """One :func:`fit_figure` per sweep into ``out_dir`` (created if needed)."""
+    d = Path(out_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    return [fit_figure(s, u, d / f"{_stem(s, i)}.png")
+            for i, (s, u) in enumerate(zip(sweeps, fitted_um, strict=True))]

@@ -1,0 +1,81 @@
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from afmctl import sweeps as sw
+from afmctl.tomlfile import FileFormatError
+
+GOOD = "# frequency_hz: 5.58\n# layer_thickness_um: 100\ntime_s,voltage_V,displacement_um\n" \
+       "0.0,0.0,0.1\n0.001,1.0,0.2\n0.002,2.0,0.3\n"
+
+MALFORMED = {
+    "missing_column": "time_s,voltage_V\n0,0\n0.001,1\n",
+    "nan": "time_s,voltage_V,displacement_um\n0,0,0\n0.001,nan,1\n0.002,1,1\n",
+    "non_increasing_time": "time_s,voltage_V,displacement_um\n0,0,0\n0.001,1,1\n0.001,2,1\n",
+    "empty": "",
+    "comments_only": "# frequency_hz: 1\n",
+    "header_only": "time_s,voltage_V,displacement_um\n",
+    "not_a_number": "time_s,voltage_V,displacement_um\n0,0,0\n0.001,abc,1\n",
+    "non_uniform": "time_s,voltage_V,displacement_um\n0,0,0\n0.001,1,1\n0.003,1,1\n",
+}
+
+
+def test_parse_reads_columns_and_metadata() -> None:
+    s = sw.parse(GOOD)
+    assert s.thickness_um == 100.0 and s.frequency_hz == 5.58
+    np.testing.assert_allclose(s.voltage_v, [0, 1, 2])
+    assert s.dt == pytest.approx(0.001)
+
+
+def test_foreign_file_without_metadata_and_extra_columns_loads() -> None:
+    s = sw.parse("displacement_um,time_s,note,voltage_V\n0.5,0,1,10\n0.6,0.5,2,20\n")
+    assert s.thickness_um is None and s.meta == {}
+    np.testing.assert_allclose(s.voltage_v, [10, 20])
+    np.testing.assert_allclose(s.displacement_um, [0.5, 0.6])
+
+
+def test_bom_crlf_and_quoted_header_load(tmp_path: Path) -> None:
+    p = tmp_path / "excel.csv"
+    p.write_bytes(b'\xef\xbb\xbf"time_s","voltage_V","displacement_um"\r\n0,1,2\r\n0.5,3,4\r\n')
+    s = sw.read(p)
+    np.testing.assert_allclose(s.voltage_v, [1, 3])
+
+
+def test_round_trip(tmp_path: Path) -> None:
+    s = sw.from_arrays(sw.triangle(5.0, 10.0, 1, 1000.0), np.linspace(0, 1, 201), 1000.0,
+                       {"frequency_hz": "5"})
+    sw.write(s, tmp_path / "a.csv")
+    back = sw.read(tmp_path / "a.csv")
+    np.testing.assert_allclose(back.voltage_v, s.voltage_v, atol=1e-6)
+    np.testing.assert_allclose(back.time_s, s.time_s, atol=1e-7)
+    assert back.meta == {"frequency_hz": "5"}
+
+
+@pytest.mark.parametrize("case", sorted(MALFORMED))
+def test_malformed_text_raises_one_line(case: str, tmp_path: Path) -> None:
+    p = tmp_path / f"{case}.csv"
+    p.write_text(MALFORMED[case])
+    with pytest.raises(sw.SweepFormatError) as info:
+        sw.read(p)
+    assert str(p) in str(info.value) and "\n" not in str(info.value)
+    assert isinstance(info.value, FileFormatError)
+
+
+def test_binary_and_missing_files_raise(tmp_path: Path) -> None:
+    p = tmp_path / "b.csv"
+    p.write_bytes(b"\x89PNG\x00\x01\xff")
+    with pytest.raises(sw.SweepFormatError, match="not a text file"):
+        sw.read(p)
+    with pytest.raises(sw.SweepFormatError, match="no such file"):
+        sw.read(tmp_path / "absent.csv")
+
+
+def test_triangle_and_standard_set() -> None:
+    v = sw.triangle(27.9, 150.0, 10, 10_000.0)
+    assert v[0] == 0 and v.max() == pytest.approx(150.0, rel=1e-3)
+    assert v.min() == pytest.approx(-150.0, rel=1e-3)
+    sets = sw.standard_set(150.0, 1000.0)
+    assert [f for _, f, _ in sets] == [0.279, 5.58, 27.9, 0.1]
+    loops = sets[3][2]
+    assert loops.max() == pytest.approx(150.0) and loops[-1] == 0.0
