@@ -165,3 +165,25 @@ def plot(outcomes: Mapping[str, Outcome], desired: track.Desired, thickness_um: 
         a.legend(loc="best", fontsize=8)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v: FloatArray,
+                 sample_rate_hz: float, meta: Mapping[str, str],
+                 progress: Progress | None = None) -> Any:
+    """Play one identification waveform and return it as a :class:`afmctl.sweeps.Sweep`.
+
+    The sweep's ``voltage_V`` is the commanded voltage (what a filter controls); a sweep that lost
+    samples is refused rather than patched.
+    """
+    from afmctl import sweeps
+
+    def on_block(first: int, volt: FloatArray, disp: FloatArray, valid: Any) -> None:
+        if progress is not None:
+            progress(name, first + len(disp), len(voltage_v))
+
+    rec = stage.play(voltage_v, on_block)
+    lost = int((~np.asarray(rec.valid)).sum())
+    if lost:
+        raise RuntimeError(f"sweep {name}: {lost} samples were not received; record it again")
+    return sweeps.from_arrays(voltage_v, rec.displacement_um, sample_rate_hz,
+                              {**meta, "frequency_hz": f"{frequency_hz:g}"}, name)

@@ -131,14 +131,15 @@ def _split(where: str, text: str) -> tuple[dict[str, str], list[str], list[str]]
     return meta, header, body
 
 
-def _parse_rows(where: str, header: list[str], body: list[str]) -> FloatArray:
-    missing = [c for c in COLUMNS if c not in header]
+def _parse_rows(where: str, header: list[str], body: list[str],
+                columns: tuple[str, ...] = COLUMNS) -> FloatArray:
+    missing = [c for c in columns if c not in header]
     if missing:
         raise SweepFormatError(f"{where}: missing column {', '.join(missing)} "
                                f"(header is {','.join(header)})")
     if not body:
         raise SweepFormatError(f"{where}: no data rows")
-    cols = [header.index(c) for c in COLUMNS]
+    cols = [header.index(c) for c in columns]
     try:
         data = np.loadtxt(io.StringIO("\n".join(body)), delimiter=",", usecols=cols, ndmin=2,
                           comments="#")
@@ -150,13 +151,17 @@ def _parse_rows(where: str, header: list[str], body: list[str]) -> FloatArray:
     return data
 
 
-def _check_time(where: str, t: FloatArray) -> None:
+def _check_increasing(where: str, t: FloatArray) -> None:
     if t.size < 2:
         raise SweepFormatError(f"{where}: need at least 2 samples, got {t.size}")
-    d = np.diff(t)
-    bad = np.flatnonzero(d <= 0)
+    bad = np.flatnonzero(np.diff(t) <= 0)
     if bad.size:
         raise SweepFormatError(f"{where}: time not strictly increasing at data row {bad[0] + 2}")
+
+
+def _check_time(where: str, t: FloatArray) -> None:
+    _check_increasing(where, t)
+    d = np.diff(t)
     dt = (t[-1] - t[0]) / (t.size - 1)
     if np.max(np.abs(d - dt)) > UNIFORM_RTOL * dt:
         raise SweepFormatError(f"{where}: time is not uniformly sampled (period {dt:g} s)")
@@ -173,8 +178,8 @@ def parse(text: str, where: str = "<sweep>") -> Sweep:
     return Sweep(data[:, 0].copy(), data[:, 1].copy(), data[:, 2].copy(), meta, where)
 
 
-def read(path: str | Path) -> Sweep:
-    """Read and validate a sweep file; :class:`SweepFormatError` (one line) on anything wrong."""
+def _read_text(path: str | Path) -> str:
+    """The UTF-8 text of a data file; :class:`SweepFormatError` if absent, binary or not UTF-8."""
     p = Path(path)
     try:
         raw = p.read_bytes()
@@ -188,7 +193,22 @@ def read(path: str | Path) -> Sweep:
         text = raw.decode("utf-8-sig")  # tolerate a byte-order mark from spreadsheet tools
     except UnicodeDecodeError:
         raise SweepFormatError(f"{p}: not UTF-8 text") from None
-    return parse(text, str(p))
+    return text
+
+
+def read(path: str | Path) -> Sweep:
+    """Read and validate a sweep file; :class:`SweepFormatError` (one line) on anything wrong."""
+    return parse(_read_text(path), str(path))
+
+
+def read_trajectory(path: str | Path) -> tuple[FloatArray, FloatArray]:
+    """A desired trajectory for ``afmctl track file``: columns ``time_s,desired_um`` (any other
+    columns and ``#`` metadata allowed; time strictly increasing, not necessarily uniform)."""
+    where = str(path)
+    _, header, body = _split(where, _read_text(path))
+    data = _parse_rows(where, header, body, ("time_s", "desired_um"))
+    _check_increasing(where, data[:, 0])
+    return data[:, 0].copy(), data[:, 1].copy()
 
 
 def format_text(sweep: Sweep) -> str:
