@@ -125,7 +125,7 @@ def sweep(profile_path: str | None, out_dir: str, amplitude: float) -> None:
     nested minor loops at 0.1 Hz (Fig. 1(b))."""
     from afmctl import experiment, sweeps
     prof = load_profile_or_exit(profile_path)
-    if not prof.limits.v_min <= -amplitude and amplitude <= prof.limits.v_max:
+    if not (prof.limits.v_min <= -amplitude and amplitude <= prof.limits.v_max):
         raise InputError(f"--amplitude {amplitude} V exceeds the profile's limits "
                          f"[{prof.limits.v_min}, {prof.limits.v_max}] V")
     out = Path(out_dir)
