@@ -1,0 +1,77 @@
+"""Issue 5 figures: the paper's three open-loop experiments on the emulated stage.
+
+The model is identified from sweeps recorded on the emulated stage itself (never its true
+parameters); each experiment is planned (Algorithm 3 and the linear filter), played on the stage
+through the same driver interface a lab uses, and scored at the samples and, by simulating the
+stage's true plant on a grid 8 times finer, between them.
+
+Run: ``python benchmarks/bench_track.py --json`` (last line: one JSON object).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from afmctl import calibration, experiment, identify, track
+from afmctl.profile import default_profile
+from drivers import open_stage
+
+EXPERIMENTS = ((0.279, 40.56), (0.279, 27.04), (27.9, 27.04))  # (Hz, um peak-to-peak), Figs 9-11
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--json", action="store_true", help="print the JSON object last")
+    ap.add_argument("--periods", type=float, default=2.0, help="periods per experiment")
+    args = ap.parse_args()
+    prof = default_profile()
+    assert prof.emulator is not None
+    truth = prof.emulator.model
+    out: dict[str, object] = {}
+    with tempfile.TemporaryDirectory() as tmp, open_stage(prof) as stage:
+        t0 = time.perf_counter()
+        recorded = calibration.record_standard(stage, prof, Path(tmp) / "sweeps")
+        fit = identify.fit(recorded)
+        log(f"identified from {len(recorded)} recorded sweeps in {time.perf_counter() - t0:.1f} s "
+            f"(fit {'converged' if fit.success else 'FAILED'})")
+        out["identify_success"] = fit.success
+        for freq, amp in EXPERIMENTS:
+            key = f"{freq:g}hz_{amp:g}um"
+            desired = track.triangle(freq, amp, 0.0, args.periods, 1 / prof.sample_rate_hz)
+            plans = track.plan(fit.model, desired, prof.limits, stage.voltage())
+            runs = experiment.run_all(stage, plans, desired, Path(tmp) / key, {"bench": key},
+                                      truth)
+            res = {}
+            for name, o in runs.items():
+                res[f"{name}_rms_um"] = o.score.rms_um
+                res[f"{name}_rms_pct"] = o.score.rms_pct
+                res[f"{name}_max_um"] = o.score.max_um
+                res[f"{name}_between_rms_um"] = o.score.rms_between_um
+                res[f"{name}_max_slew_V_per_ms"] = o.waveform.max_slew_v_per_ms
+                res[f"{name}_complete"] = o.complete
+            res["inverse_horizon"] = runs["inverse"].waveform.horizon
+            res["ratio"] = runs["linear"].score.rms_um / runs["inverse"].score.rms_um
+            res["ratio_between"] = (runs["linear"].score.rms_between_um
+                                    / runs["inverse"].score.rms_between_um)
+            out[key] = res
+            log(f"{key:16s} inverse {res['inverse_rms_um']:.4f} um (between "
+                f"{res['inverse_between_rms_um']:.4f}), linear {res['linear_rms_um']:.4f} um, "
+                f"ratio {res['ratio']:.1f}; slew {res['inverse_max_slew_V_per_ms']:.1f} / "
+                f"{res['linear_max_slew_V_per_ms']:.1f} V/ms")
+    out["ratio_27.9hz"] = out["27.9hz_27.04um"]["ratio"]  # type: ignore[index]
+    out["limit_slew_V_per_ms"] = prof.limits.max_rate_v_per_ms
+    if args.json:
+        print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
