@@ -1,0 +1,98 @@
+"""afmctl track at the command line: dry runs, and bad input refused with exit 2 and no files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from afmctl import modelfile
+from afmctl.cli import main
+from afmctl.transducer import Transducer
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory: pytest.TempPathFactory, nominal: Transducer) -> Path:
+    path = tmp_path_factory.mktemp("model") / "model.toml"
+    modelfile.write(nominal, path)
+    return path
+
+
+def read_waveform(path: Path) -> tuple[list[str], np.ndarray]:
+    lines = path.read_text().splitlines()
+    rows = [[float(c) if c else np.nan for c in ln.split(",")] for ln in lines[1:]]
+    return lines[0].split(","), np.array(rows)
+
+
+def test_dry_run_writes_guarded_waveforms_and_sends_nothing(model_file: Path,
+                                                            tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["track", "triangle", "--freq", "27.9", "--amplitude", "27.04",
+                                    "--periods", "2", "--model", str(model_file), "--dry-run",
+                                    "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    for name in ("inverse", "linear"):
+        header, data = read_waveform(out / f"waveform_{name}.csv")
+        assert header == ["time_s", "desired_um", "voltage_V"]
+        t, d, v = data.T
+        assert np.isnan(d[0]) and np.isnan(d[-1]) and np.isfinite(d).sum() == round(2 / 27.9 * 1e4) + 1
+        assert abs(v[0]) < 1.0 and v[-1] == 0.0  # ramps from and to the output (0 V)
+        assert np.abs(v).max() <= 150 and np.abs(np.diff(v)).max() / 0.1 <= 50  # V/ms
+    assert not list(out.glob("run*.csv"))
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--amplitude", "400"], "out of the stage's reach"),
+    (["--amplitude", "-3"], "Invalid value for '--amplitude'"),
+    (["--freq", "0"], "Invalid value for '--freq'"),
+])
+def test_bad_trajectory_is_refused(model_file: Path, tmp_path: Path, args: list[str],
+                                   message: str) -> None:
+    base = {"--freq": "27.9", "--amplitude": "27.04"}
+    base.update(dict(zip(args[::2], args[1::2], strict=True)))
+    argv = ["track", "triangle", *sum(([k, v] for k, v in base.items()), []), "--model",
+            str(model_file), "--dry-run", "--out", str(tmp_path / "out")]
+    res = CliRunner().invoke(main, argv)
+    assert res.exit_code == 2, res.output
+    assert message in res.output
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())
+
+
+def test_bad_model_file_is_one_line_exit_2(model_file: Path, tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(model_file.read_text().replace("k_N_per_m = 123370.0", "k_N_per_m = nan"))
+    res = CliRunner().invoke(main, ["track", "sine", "--freq", "5", "--amplitude", "10",
+                                    "--model", str(bad), "--dry-run", "--out",
+                                    str(tmp_path / "o")])
+    assert res.exit_code == 2
+    assert res.stderr.strip().count("\n") == 0 and "k_N_per_m: must be finite" in res.stderr
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    ("time_s,voltage_V\n0,1\n1,2\n", "missing column desired_um"),
+    ("time_s,desired_um\n0,1\n0,2\n", "time not strictly increasing"),
+    ("time_s,desired_um\n0,1\n1,nan\n", "non-finite value"),
+])
+def test_bad_trajectory_file(model_file: Path, tmp_path: Path, content: str,
+                             message: str) -> None:
+    wave = tmp_path / "wave.csv"
+    wave.write_text(content)
+    res = CliRunner().invoke(main, ["track", "file", str(wave), "--model", str(model_file),
+                                    "--dry-run", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and message in res.stderr, res.output
+
+
+def test_file_trajectory_dry_run(model_file: Path, tmp_path: Path) -> None:
+    wave = tmp_path / "wave.csv"
+    t = np.linspace(0, 0.5, 51)
+    wave.write_text("# any metadata: ok\ntime_s,desired_um\n"
+                    + "".join(f"{a},{10 * np.sin(2 * np.pi * 4 * a)}\n" for a in t))
+    res = CliRunner().invoke(main, ["track", "file", str(wave), "--model", str(model_file),
+                                    "--filter", "inverse", "--dry-run", "--out",
+                                    str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "o" / "waveform_inverse.csv").exists()
+    assert not (tmp_path / "o" / "waveform_linear.csv").exists()
