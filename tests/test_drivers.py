@@ -41,7 +41,7 @@ def stage_on(kind: str, profile: Profile, read_only: bool | None = None
             ser = stack.enter_context(sv.SerialServer(dev, where))
             stage = SerialStage(profile, ser.url)
         else:
-            stage = InProcessStage(profile, emulator=dev.emulator)
+            stage = InProcessStage(profile, emulator=dev.emulator, lock=dev.lock)
         with stage:
             yield stage, dev.emulator
 
@@ -157,12 +157,13 @@ class ScriptedPort:
 
 
 def test_serial_codec_against_a_script(profile: Profile) -> None:
-    status = "running=0 fill=3 error=0 out=5 runs=1 len=3 complete=1 wd=0 expired=0 ro=0 rate=10000"
+    status = ("running=0 fill=3 error=0 out=5 runs=1 len=3 complete=1 wd=0 expired=0 ro=0 rate=10000 "
+              "pos=3 total=3 wdt=0")
     script = [
-        ("VER?", "1"),
+        ("VER?", "2"),
         ("WTL 3", "OK"),
         ("WAV 0 3 0 2.5 5", "OK"),
-        ("STA?", status.replace("fill=3", "fill=0").replace("runs=1", "runs=0")),
+        ("STA?", status.replace("fill=3", "fill=0").replace("runs=1", "runs=0").replace("pos=3", "pos=0")),
         ("WGO 1", "OK"),
         ("STA?", status),
         ("DRR? 0 3", "0 3 0 0 0.125 2.5 0.25 5"),
