@@ -308,12 +308,12 @@ class _Player:
             st = stage.status()
             self._heartbeat(st)
             busy = self._refill(st.play_position) if st.running else False
-            busy |= self._deliver(st.play_position)
+            busy |= self._deliver(st.play_position, st.running)
             if not st.running and self.delivered >= st.play_position:
                 break
             if time.monotonic() > deadline:
-                raise TimeoutError(f"stage still running after {limit:.3g} s "
-                                   f"({st.play_position} of {n} samples played)")
+                raise TimeoutError(f"run not done after {limit:.3g} s ({st.play_position} of {n} "
+                                   f"samples played, {self.delivered} read back)")
             if not busy:
                 time.sleep(self.poll_s)
         if st.play_position < n:
@@ -340,10 +340,13 @@ class _Player:
         self.written = end
         return True
 
-    def _deliver(self, position: int) -> bool:
-        """Read back the recorded samples not yet delivered (at most a half-table) and hand them
-        to ``on_block``; samples already overwritten in the recorder ring are NaN, invalid."""
-        end = min(position, self.delivered + self.half)
+    def _deliver(self, position: int, running: bool) -> bool:
+        """Read back recorded samples not yet delivered and hand them to ``on_block``; samples
+        already overwritten in the recorder ring are NaN, invalid. While running, at most four read
+        requests (or a quarter table) per call, so that refilling the table, which cannot wait,
+        comes round again soon; once stopped, everything left."""
+        most = max(1, min(self.half // 2, 4 * self.stage.read_chunk)) if running else position
+        end = min(position, self.delivered + most)
         if end <= self.delivered:
             return False
         first, lost = self.delivered, max(self.delivered, position - self.recorder_capacity)
