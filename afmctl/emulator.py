@@ -6,7 +6,8 @@ tests step the clock by hand and ``drivers.servers`` passes ``time.monotonic()``
 
 Physics of one run (:func:`respond`), sample by sample at the device's sample rate:
 
-1. commanded voltage ``v_cmd`` (the waveform table, tiled over the cycles), float32 as on the wire;
+1. commanded voltage ``v_cmd`` (global sample ``k`` is table slot ``k mod L``: the table tiled over
+   the cycles, or in a stream the ring the host refills while it plays), float32 as on the wire;
 2. applied-voltage gain ``1 + N(0, sigma)`` drawn once per run (effect ``voltage_gain_drift``);
 3. first-order amplifier lag (``amplifier_lag``) -> the voltage actually on the stack, recorded;
 4. the true model: polarization (13) and rod (16) via :func:`afmctl.transducer.simulate`, with the
@@ -15,16 +16,20 @@ Physics of one run (:func:`respond`), sample by sample at the device's sample ra
 6. gauge nonlinearity ``u + c u^2`` (``sensor_nonlinearity``), pure latency (``sensor_delay``);
 7. Gaussian sensor noise; the recorder stores ``raw = (u - offset) / scale`` (sensor units).
 
-Each run ``r`` draws its noise and gain from ``numpy.random.default_rng((seed, r, stream))``, so
-:func:`expected_readback` reproduces a run exactly. The model state (hysteresis memory, rod, filter
-states) persists across runs and DC sets, like a real stage. While idle the state advances only by
-what is commanded (a DC set holds its voltage for :data:`SETTLE_S`); idle relaxation is not
-modelled.
+Each run ``r`` draws its gain from ``numpy.random.default_rng((seed, r, 1))`` and its noise by global
+sample index (blocks keyed ``(seed, r, 0, block)``), so :func:`expected_readback` reproduces a run
+exactly, whether it was played from the table or streamed. The generator plays lazily: advancing to
+``now`` runs the model over the samples due since the last call, in device time (so calls must be
+serialized: one lock per device). The model state (hysteresis memory, rod, filter states) persists
+across runs and DC sets, like a real stage. While idle the state advances only by what is commanded
+(a DC set holds its voltage for :data:`SETTLE_S`); idle relaxation is not modelled.
 
 Safety (designed for issue 7): every commanded sample that reached the stack is logged
 (:meth:`Emulator.applied_log`); waveforms and DC sets outside the voltage range or the slew limit
 are refused with an error code and nothing applied; a watchdog, armed by the first heartbeat after a
 period is set, ramps to 0 V if heartbeats stop; a read-only device refuses every output change.
+A stream whose next sample is not in the table when its time comes (the host fell behind) stops,
+sets error 10 and ramps to 0 V: it never plays stale table content.
 """
 
 from __future__ import annotations
@@ -41,9 +46,13 @@ from afmctl.profile import EmulatorConfig, Limits, Profile
 
 FloatArray = NDArray[np.float64]
 
-IDENTITY = "afmctl,emulated-stage,0,protocol-1"
+IDENTITY = "afmctl,emulated-stage,0,protocol-2"
 SETTLE_S = 0.005
 MIN_RATE_HZ, MAX_RATE_HZ = 100.0, 100_000.0
+#: Longest stream, samples (2**29: what the 16-bit Modbus recorder page addresses; 14.9 h at 10 kHz).
+MAX_STREAM_SAMPLES = 1 << 29
+#: Sensor noise is drawn in blocks of this many samples, keyed by (seed, run, 0, block).
+NOISE_BLOCK = 4096
 
 #: Error codes shared by both wire protocols (sticky until queried or cleared).
 ERRORS: dict[int, str] = {
@@ -57,6 +66,7 @@ ERRORS: dict[int, str] = {
     7: "read-only device",
     8: "watchdog expired: ramped to 0 V",
     9: "waveform table incomplete",
+    10: "stream underrun: ramped to 0 V",
 }
 
 
@@ -103,15 +113,32 @@ class Physics:
         d = self.config.effects.sensor_delay_samples
         return PhysicsState(stage, 0.0, np.zeros(2), np.full(d, u0[0]))
 
+    def gain(self, run_index: int) -> float:
+        """Applied-voltage gain of run ``run_index`` (1 unless ``voltage_gain_drift``)."""
+        sigma = self.config.effects.voltage_gain_sigma
+        if sigma <= 0:
+            return 1.0
+        return 1.0 + sigma * float(np.random.default_rng((self.config.seed, run_index, 1))
+                                    .standard_normal())
+
+    def noise(self, run_index: int, first: int, n: int) -> FloatArray:
+        """Sensor noise of samples ``first .. first+n-1`` of run ``run_index``, um, shape (n,).
+
+        A function of the global sample index only (blocks of :data:`NOISE_BLOCK` keyed by
+        ``(seed, run, 0, block)``), so a run played in pieces draws what one long run draws.
+        """
+        if n <= 0:
+            return np.zeros(0)
+        b0, b1 = first // NOISE_BLOCK, (first + n - 1) // NOISE_BLOCK
+        z = np.concatenate([np.random.default_rng((self.config.seed, run_index, 0, b))
+                            .standard_normal(NOISE_BLOCK) for b in range(b0, b1 + 1)])
+        off = first - b0 * NOISE_BLOCK
+        return self.config.noise_um * z[off:off + n]
+
     def draws(self, run_index: int, n: int) -> tuple[float, FloatArray]:
-        """Applied-voltage gain and sensor noise (um, shape (n,)) of run ``run_index``."""
-        cfg = self.config
-        gain = 1.0
-        if cfg.effects.voltage_gain_sigma > 0:
-            gain += cfg.effects.voltage_gain_sigma * np.random.default_rng(
-                (cfg.seed, run_index, 1)).standard_normal()
-        noise = cfg.noise_um * np.random.default_rng((cfg.seed, run_index, 0)).standard_normal(n)
-        return gain, noise
+        """Applied-voltage gain and sensor noise (um, shape (n,)) of the first ``n`` samples of run
+        ``run_index``."""
+        return self.gain(run_index), self.noise(run_index, 0, n)
 
     def _amplifier(self, v: FloatArray, amp_v: float) -> tuple[FloatArray, float]:
         if self.lag_a == 0.0:
@@ -223,7 +250,12 @@ def ramp_to_zero(v0: float, limits: Limits, sample_rate_hz: float) -> FloatArray
 
 @dataclass(frozen=True)
 class Status:
-    """What the device reports about itself."""
+    """What the device reports about itself.
+
+    ``recorder_fill`` is the number of samples the recorder holds (at most its capacity);
+    ``play_position`` the number of samples the generator has clocked out in the current or last run
+    (global index of the next one); ``run_samples`` that run's length (``N_total`` of a stream).
+    """
 
     running: bool
     recorder_fill: int
@@ -236,15 +268,31 @@ class Status:
     watchdog_expired: bool
     read_only: bool
     sample_rate_hz: float
+    play_position: int
+    run_samples: int
+    watchdog_s: float
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Run:
+    """A run in progress: global samples ``[0, total)`` clocked from device time ``start``, the first
+    ``pos`` of them played. Global sample ``k`` is table slot ``k mod table_length``; a stream run
+    also requires that slot to hold global sample ``k`` (else: underrun)."""
+
     start: float
-    v_cmd: FloatArray
+    total: int
+    index: int
     gain: float
-    before: PhysicsState
-    after: PhysicsState
+    stream: bool
+    pos: int = 0
+
+
+def first_steep(v: FloatArray, previous_v: float, limits: Limits, sample_rate_hz: float) -> int:
+    """Index of the first sample of ``v`` whose step from its predecessor (``previous_v`` before
+    sample 0) exceeds the slew limit; ``v.size`` if none does."""
+    step = limits.max_step_v(sample_rate_hz) * (1 + 1e-6)
+    bad = np.flatnonzero(np.abs(np.diff(v, prepend=previous_v)) > step)
+    return int(bad[0]) if bad.size else v.size
 
 
 class Emulator:
@@ -259,6 +307,11 @@ class Emulator:
 
     Every public method takes ``now`` (s, monotonic), first advances the device to ``now`` and
     raises :class:`DeviceError` (also remembered as the sticky last error) when it refuses.
+
+    The generator plays lazily: advancing to ``now`` runs the model over the samples due since the
+    last advance, so a stream's table may change while it runs. The table is a ring: slot ``s``
+    remembers which global sample it holds (``slot_global``, -1 if none). The recorder is a ring of
+    ``recorder_capacity`` entries addressed by global sample index (``rec_global``).
     """
 
     def __init__(self, profile: Profile, read_only: bool | None = None) -> None:
@@ -272,11 +325,13 @@ class Emulator:
         self.physics = Physics(self.config, self.sample_rate_hz)
         self.state = self.physics.initial()
         self.table = np.zeros(self.config.table_capacity, dtype=np.float32)
-        self.written = np.zeros(self.config.table_capacity, dtype=bool)
+        self.slot_global = np.full(self.config.table_capacity, -1, dtype=np.int64)
         self.table_length = 0
         self.rec_u = np.full(self.config.recorder_capacity, np.nan, dtype=np.float32)
         self.rec_v = np.full(self.config.recorder_capacity, np.nan, dtype=np.float32)
-        self.fill = 0
+        self.rec_global = np.full(self.config.recorder_capacity, -1, dtype=np.int64)
+        self.position = 0
+        self.run_samples = 0
         self.output_v = 0.0
         self.run_count = 0
         self.last_error = 0
@@ -286,6 +341,11 @@ class Emulator:
         self.last_heartbeat = 0.0
         self._run: _Run | None = None
         self._applied: list[FloatArray] = []
+
+    @property
+    def written(self) -> NDArray[np.bool_]:
+        """Which table slots hold a sample."""
+        return self.slot_global >= 0
 
     # -- bookkeeping ---------------------------------------------------------------------------
     def _fail(self, code: int, detail: str = "") -> DeviceError:
@@ -300,6 +360,12 @@ class Emulator:
         if self._run is not None:
             raise self._fail(5)
 
+    def _check(self, v: FloatArray, previous_v: float | None = None) -> None:
+        try:
+            check_waveform(v, self.limits, self.sample_rate_hz, previous_v)
+        except DeviceError as exc:
+            raise self._fail(exc.code, str(exc)) from None
+
     def _apply(self, v: FloatArray) -> None:
         """Log commanded samples that reached the stack."""
         if v.size:
@@ -311,56 +377,94 @@ class Emulator:
         _, _, self.state = self.physics.respond(v, self.state)
         self._apply(v)
 
-    def _elapsed_samples(self, now: float) -> int:
-        assert self._run is not None
-        k = math.floor((now - self._run.start) * self.sample_rate_hz + 1e-9)
-        return max(0, min(self._run.v_cmd.size, k))
+    def _due(self, run: _Run, now: float) -> int:
+        """Samples of ``run`` whose start time has come by ``now``."""
+        k = math.floor((now - run.start) * self.sample_rate_hz + 1e-9)
+        return max(run.pos, min(run.total, k))
+
+    def _advance(self, now: float) -> None:
+        """Play the samples due by ``now``; stop at the first one that is stale (underrun, error 10)
+        or too steep (error 4), and ramp to 0 V: a wrong sample is never played."""
+        run = self._run
+        if run is None:
+            return
+        g = np.arange(run.pos, self._due(run, now))
+        slots = g % self.table_length
+        fault, n = 0, g.size
+        if run.stream:
+            stale = np.flatnonzero(self.slot_global[slots] != g)
+            if stale.size:
+                fault, n = 10, int(stale[0])
+        v = self.table[slots[:n]].astype(float)
+        steep = first_steep(v, self.output_v, self.limits, self.sample_rate_hz)
+        if steep < n:
+            fault, n = 4, steep
+        self._play(run, v[:n])
+        if fault:
+            self._run = None
+            self._hold(ramp_to_zero(self.output_v, self.limits, self.sample_rate_hz))
+            self.last_error = fault
+        elif run.pos == run.total:
+            self._run = None
+
+    def _play(self, run: _Run, v: FloatArray) -> None:
+        """Clock out ``v`` (the run's next samples) through the model into the recorder ring."""
+        if v.size == 0:
+            return
+        noise = self.physics.noise(run.index, run.pos, v.size)
+        u, va, self.state = self.physics.respond(v, self.state, run.gain, noise)
+        cap = self.rec_u.size
+        g = np.arange(run.pos, run.pos + v.size)[-cap:]
+        slots = g % cap
+        self.rec_u[slots] = ((u - self.profile.sensor_offset_um)
+                             / self.profile.sensor_scale_um)[-cap:]
+        self.rec_v[slots] = va[-cap:]
+        self.rec_global[slots] = g
+        self._apply(v)
+        run.pos += v.size
+        self.position = run.pos
 
     def tick(self, now: float) -> None:
-        """Advance to ``now``: finish a run that has ended, expire the watchdog."""
+        """Advance to ``now``: play what is due, expire the watchdog."""
         if self.armed and now - self.last_heartbeat > self.watchdog_s:
             self._expire(self.last_heartbeat + self.watchdog_s)
-        if self._run is not None and self._elapsed_samples(now) == self._run.v_cmd.size:
-            run, self._run = self._run, None
-            self.state = run.after
-            self._apply(run.v_cmd)
-            self.fill = run.v_cmd.size
+        self._advance(now)
 
     def _expire(self, when: float) -> None:
         self.armed = False
         self.expired = True
-        self.tick(when)
         self._halt(when)
         self._hold(ramp_to_zero(self.output_v, self.limits, self.sample_rate_hz))
         self.last_error = 8
 
     def _halt(self, now: float) -> None:
-        """Stop the generator after the samples applied by ``now`` (output holds the last one)."""
-        if self._run is None:
-            return
-        run, k = self._run, self._elapsed_samples(now)
+        """Stop the generator after the samples due by ``now`` (output holds the last one)."""
+        self._advance(now)
         self._run = None
-        _, _, self.state = self.physics.respond(run.v_cmd[:k], run.before, run.gain)
-        self._apply(run.v_cmd[:k])
-        self.fill = k
+
+    def _begin(self, total: int, stream: bool, now: float) -> None:
+        """Start a run of ``total`` samples from ``now``, with an empty recorder."""
+        self.rec_u[:] = np.nan
+        self.rec_v[:] = np.nan
+        self.rec_global[:] = -1
+        self.position = 0
+        self.run_samples = total
+        self._run = _Run(now, total, self.run_count, self.physics.gain(self.run_count), stream)
+        self.run_count += 1
+        self.expired = False
 
     # -- commands ------------------------------------------------------------------------------
     def status(self, now: float) -> Status:
         self.tick(now)
-        running = self._run is not None
+        n = self.table_length
         return Status(
-            running=running, recorder_fill=self._elapsed_samples(now) if running else self.fill,
-            last_error=self.last_error, output_v=self._live_output(now),
-            run_count=self.run_count, table_length=self.table_length,
-            table_complete=self.table_length > 0 and bool(self.written[:self.table_length].all()),
+            running=self._run is not None, recorder_fill=min(self.position, self.rec_u.size),
+            last_error=self.last_error, output_v=self.output_v,
+            run_count=self.run_count, table_length=n,
+            table_complete=n > 0 and bool(self.written[:n].all()),
             watchdog_armed=self.armed, watchdog_expired=self.expired, read_only=self.read_only,
-            sample_rate_hz=self.sample_rate_hz)
-
-    def _live_output(self, now: float) -> float:
-        if self._run is None:
-            return self.output_v
-        k = self._elapsed_samples(now)
-        return float(self._run.v_cmd[k - 1]) if k else self.output_v
+            sample_rate_hz=self.sample_rate_hz, play_position=self.position,
+            run_samples=self.run_samples, watchdog_s=self.watchdog_s)
 
     def pop_error(self, now: float) -> int:
         """The last error code, cleared by reading (GCS ``ERR?``)."""
@@ -373,10 +477,7 @@ class Emulator:
         self.tick(now)
         self._writable()
         self._idle()
-        try:
-            check_waveform(np.array([v]), self.limits, self.sample_rate_hz, self.output_v)
-        except DeviceError as exc:
-            raise self._fail(exc.code, str(exc)) from None
+        self._check(np.array([v]), self.output_v)
         settle = np.full(max(1, round(SETTLE_S * self.sample_rate_hz)), float(v))
         _, _, self.state = self.physics.respond(settle, self.state)
         self._apply(settle[:1])
@@ -398,24 +499,33 @@ class Emulator:
         if not 1 <= n <= self.table.size:
             raise self._fail(6, f"table length must be in [1, {self.table.size}]")
         self.table_length = int(n)
-        self.written[:] = False
+        self.slot_global[:] = -1
 
     def write_table(self, first: int, values: FloatArray, now: float) -> None:
-        """Store samples ``first .. first+len-1`` (V); idempotent, refused as a whole if any is
-        outside the voltage range."""
+        """Store samples ``first .. first+len-1`` (V, global indices); idempotent, refused as a
+        whole if any is outside the voltage range.
+
+        Idle, global index = table slot and the block must lie in the table. While a stream runs,
+        the block must lie in ``[0, N_total)`` and no sample may be a table length or more ahead of
+        the play position (its slot's previous sample must have been played); samples already
+        played are ignored (a repeated write is harmless).
+        """
         self.tick(now)
         self._writable()
-        self._idle()
+        run = self._run
+        if run is not None and not run.stream:
+            raise self._fail(5)
         vals = np.asarray(values, dtype=np.float32)
-        if first < 0 or first + vals.size > self.table_length:
-            raise self._fail(6, f"samples {first}..{first + vals.size - 1} outside the table "
-                                f"of {self.table_length}")
-        try:
-            check_waveform(vals, self.limits, self.sample_rate_hz)
-        except DeviceError as exc:
-            raise self._fail(exc.code, str(exc)) from None
-        self.table[first:first + vals.size] = vals
-        self.written[first:first + vals.size] = True
+        end = first + vals.size
+        total, pos = (run.total, run.pos) if run is not None else (self.table_length, 0)
+        if first < 0 or end > total or end > pos + self.table_length:
+            raise self._fail(6, f"samples {first}..{end - 1} outside [{pos}, "
+                                f"{min(total, pos + self.table_length)})")
+        self._check(vals)
+        g = np.arange(max(first, pos), end)
+        slots = g % self.table_length
+        self.table[slots] = vals[g - first]
+        self.slot_global[slots] = g
 
     def start(self, cycles: int, now: float) -> None:
         """Clock out the table ``cycles`` times from ``now``, recording every sample."""
@@ -427,21 +537,26 @@ class Emulator:
             raise self._fail(9)
         if not 1 <= cycles or n * cycles > self.rec_u.size:
             raise self._fail(6, f"cycles x length must be in [1, {self.rec_u.size}]")
-        v = np.tile(self.table[:n].astype(float), cycles)
-        try:
-            check_waveform(v[:min(v.size, n + 1)], self.limits, self.sample_rate_hz, self.output_v)
-        except DeviceError as exc:
-            raise self._fail(exc.code, str(exc)) from None
-        gain, noise = self.physics.draws(self.run_count, v.size)
-        u, va, after = self.physics.respond(v, self.state, gain, noise)
-        self.rec_u[:] = np.nan
-        self.rec_v[:] = np.nan
-        self.rec_u[:v.size] = (u - self.profile.sensor_offset_um) / self.profile.sensor_scale_um
-        self.rec_v[:v.size] = va
-        self.fill = 0
-        self.run_count += 1
-        self.expired = False
-        self._run = _Run(now, v, gain, self.state, after)
+        self._check(np.tile(self.table[:n].astype(float), min(cycles, 2))[:n + 1], self.output_v)
+        self._begin(n * cycles, False, now)
+
+    def start_stream(self, n_total: int, now: float) -> None:
+        """Play ``n_total`` samples from ``now`` through the table used as a ring (one cycle).
+
+        The table must hold global samples ``0 .. min(L, n_total)-1`` (error 9); the host writes
+        the rest while it runs (:meth:`write_table`). A sample whose slot does not hold it when its
+        time comes stops the stream: error 10, ramp to 0 V.
+        """
+        self.tick(now)
+        self._writable()
+        self._idle()
+        if not 1 <= n_total <= MAX_STREAM_SAMPLES:
+            raise self._fail(6, f"stream length must be in [1, {MAX_STREAM_SAMPLES}]")
+        m = min(self.table_length, n_total)
+        if m == 0 or not np.array_equal(self.slot_global[:m], np.arange(m)):
+            raise self._fail(9)
+        self._check(self.table[:m].astype(float), self.output_v)
+        self._begin(n_total, True, now)
 
     def stop(self, now: float) -> None:
         """Stop the generator; the output holds its last sample."""
@@ -471,21 +586,19 @@ class Emulator:
 
     def read_recorder(self, first: int, n: int, now: float) -> tuple[NDArray[np.float32],
                                                                       NDArray[np.float32]]:
-        """Raw sensor reading and stack voltage (float32) of samples ``first .. first+n-1``;
-        samples not yet recorded are NaN."""
-        fill = self.status(now).recorder_fill
-        if first < 0 or n < 0 or first + n > self.rec_u.size:
-            raise self._fail(6, f"recorder holds {self.rec_u.size} samples")
-        u, v = self.rec_u[first:first + n].copy(), self.rec_v[first:first + n].copy()
-        cut = max(0, fill - first)
-        u[cut:] = np.nan
-        v[cut:] = np.nan
+        """Raw sensor reading and stack voltage (float32) of global samples ``first ..
+        first+n-1``; NaN for samples not yet recorded or already overwritten in the ring."""
+        self.tick(now)
+        if first < 0 or n < 0:
+            raise self._fail(6, "negative recorder index or count")
+        g = np.arange(first, first + n)
+        slots = g % self.rec_u.size
+        held = self.rec_global[slots] == g
+        u = np.where(held, self.rec_u[slots], np.float32(np.nan)).astype(np.float32)
+        v = np.where(held, self.rec_v[slots], np.float32(np.nan)).astype(np.float32)
         return u, v
 
     def applied_log(self, now: float) -> FloatArray:
         """Every commanded sample that has reached the stack since power-on, V."""
         self.tick(now)
-        done = np.concatenate(self._applied) if self._applied else np.zeros(0)
-        if self._run is None:
-            return done
-        return np.concatenate((done, self._run.v_cmd[:self._elapsed_samples(now)]))
+        return np.concatenate(self._applied) if self._applied else np.zeros(0)

@@ -6,16 +6,19 @@ at import time. The layers, from the application down to the wire and back up to
 ``Stage`` (this module)
     One small interface for a stage: :meth:`~StageBase.upload` a waveform, :meth:`~StageBase.run`
     it, :meth:`~StageBase.wait` until done, :meth:`~StageBase.read_recorder`, ``set_voltage``,
-    ``status``, ``safe_state`` (stop and ramp to 0 V), ``heartbeat``, ``close``.
-    :class:`StageBase` composes chunked upload and readback from a few primitives that each
-    implementation supplies; :func:`open_stage` picks the implementation from a profile.
+    ``status``, ``safe_state`` (stop and ramp to 0 V), ``heartbeat``, ``close``; and
+    :meth:`~StageBase.play`, which does all of it for a waveform of any length: streamed through
+    the device's table (double-buffered) when longer, read back progressively, handed to a callback
+    block by block, and left in the safe state on any error or interrupt.
+    :class:`StageBase` composes chunked upload, streaming and readback from a few primitives that
+    each implementation supplies; :func:`open_stage` picks the implementation from a profile.
 Implementations (host side)
     :mod:`drivers.serial_link` speaks the ASCII protocol over any pyserial URL (a port, a pty path,
     ``socket://host:port``); :mod:`drivers.modbus_link` speaks the register map over Modbus TCP or
     RTU (every pymodbus client call lives there); :mod:`drivers.inprocess` calls an emulated device
     directly (the no-hardware default; same interface, no wire).
 Protocols (pure, no I/O)
-    :mod:`drivers.ascii_protocol` and :mod:`drivers.register_map` define protocol version 1
+    :mod:`drivers.ascii_protocol` and :mod:`drivers.register_map` define protocol version 2
     (``docs/protocol.md``): the codecs the host uses and the interpreters the emulated device runs.
 Device side
     :mod:`afmctl.emulator` is the device's logic (model in device time, limits, watchdog; no I/O).
@@ -30,6 +33,7 @@ from __future__ import annotations
 
 import abc
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,7 +49,12 @@ from afmctl.profile import (
     SerialTransport,
 )
 
-__all__ = ["StageError", "Recording", "Status", "Stage", "StageBase", "open_stage"]
+__all__ = ["StageError", "Recording", "Status", "Stage", "StageBase", "BlockCallback", "open_stage"]
+
+#: ``on_block(first_index, voltage_v, displacement_um, valid)`` of :meth:`StageBase.play`.
+BlockCallback = Callable[[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]], None]
+#: Seconds a run may overrun its nominal duration before :meth:`StageBase.play` gives up.
+PLAY_MARGIN_S = 5.0
 
 
 class StageError(RuntimeError):
@@ -150,6 +159,15 @@ class StageBase(abc.ABC):
     def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Raw sensor and voltage of samples ``first .. first+n-1``, float32, NaN if missing."""
 
+    @abc.abstractmethod
+    def _start_stream(self, n_total: int) -> None:
+        """Play ``n_total`` samples through the table as a ring (``_write_chunk`` then takes
+        global sample indices)."""
+
+    @abc.abstractmethod
+    def _capacities(self) -> tuple[int, int]:
+        """The device's table and recorder capacities, samples."""
+
     # -- composed operations -------------------------------------------------------------------
     def upload(self, waveform_v: ArrayLike) -> None:
         """Load the waveform table, V, shape (N,) (sent as float32, in chunks)."""
@@ -181,7 +199,7 @@ class StageBase(abc.ABC):
         return st
 
     def read_recorder(self, n: int | None = None, first: int = 0) -> Recording:
-        """Read ``n`` recorder samples from ``first`` (default: all of the last run)."""
+        """Read ``n`` recorder samples from global index ``first`` (default: all of the last run)."""
         n = self._last_run_samples - first if n is None else n
         raw = np.full(n, np.nan, dtype=np.float32)
         volt = np.full(n, np.nan, dtype=np.float32)
@@ -192,11 +210,156 @@ class StageBase(abc.ABC):
         v = volt.astype(float)
         return Recording(v, u, np.isfinite(u) & np.isfinite(v))
 
+    def play(self, waveform_v: ArrayLike, on_block: BlockCallback | None = None, *,
+             poll_s: float = 0.01, timeout_s: float | None = None) -> Recording:
+        """Play a waveform of any length and read back what the stage did, block by block.
+
+        A waveform that fits the device's table is uploaded and run once; a longer one is
+        streamed: the first table-full is uploaded, the stream started, and each half of the table
+        is refilled as soon as the generator has played it (double buffering). The recorder is
+        read while the stage runs and every new contiguous block is handed to ``on_block`` in
+        order, so the caller can write it to disk as it arrives. Heartbeats are sent while running
+        if the device's watchdog is set.
+
+        Parameters
+        ----------
+        waveform_v : array_like, shape (N,)
+            Voltage per sample, V (sent as float32).
+        on_block : callable, optional
+            ``on_block(first_index, voltage_v, displacement_um, valid)`` with arrays of shape (m,)
+            (V, um, bool) for samples ``first_index .. first_index+m-1``; the blocks are in order,
+            contiguous and cover ``[0, N)`` (up to where the run stopped, if it failed).
+        poll_s : float
+            Pause between polls when there is nothing to do, s.
+        timeout_s : float, optional
+            Longest time the run may take from its start, s (default: N / sample rate + 5 s).
+
+        Returns
+        -------
+        Recording
+            All N samples; samples the recorder no longer (or never) held are NaN with
+            ``valid=False``.
+
+        Raises
+        ------
+        StageError
+            The device refused a command or stopped early (e.g. code 10: underrun, the host fell
+            behind; the device has ramped to 0 V).
+        TimeoutError
+            The run did not finish by its deadline.
+
+        On any exception or KeyboardInterrupt the stage is put in the safe state (best effort: a
+        failure of that is attached as a note) and the exception propagates.
+        """
+        v = np.asarray(waveform_v, dtype=np.float32).ravel()
+        try:
+            return _Player(self, v, on_block, poll_s).run(timeout_s)
+        except BaseException as exc:
+            self._safe_state_quietly(exc)
+            raise
+
+    def _safe_state_quietly(self, cause: BaseException) -> None:
+        """Best-effort safe state after ``cause``; never replaces it (a failure becomes a note)."""
+        try:
+            self.safe_state()
+        except BaseException as exc:  # noqa: BLE001 - the original exception is what matters
+            cause.add_note(f"safe_state() after this failed too: {exc!r}")
+
     def __enter__(self) -> StageBase:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class _Player:
+    """One :meth:`StageBase.play`: the host's side of a (possibly streamed) run.
+
+    ``written`` is the next global sample to send, ``delivered`` the next one to read back.
+    """
+
+    def __init__(self, stage: StageBase, v: NDArray[np.float32], on_block: BlockCallback | None,
+                 poll_s: float) -> None:
+        if v.size == 0:
+            raise ValueError("empty waveform")
+        self.stage, self.v, self.on_block, self.poll_s = stage, v, on_block, poll_s
+        table, self.recorder_capacity = stage._capacities()
+        self.table = min(table, v.size)
+        self.half = max(1, self.table // 2)
+        self.written = self.delivered = 0
+        self.last_heartbeat = -np.inf
+        n = v.size
+        self.u = np.full(n, np.nan)
+        self.volt = np.full(n, np.nan)
+        self.valid = np.zeros(n, dtype=bool)
+
+    def run(self, timeout_s: float | None) -> Recording:
+        stage, n = self.stage, self.v.size
+        stage.upload(self.v[:self.table])
+        self.written = self.table
+        if n > self.table or n > self.recorder_capacity:
+            stage._start_stream(n)
+        else:
+            stage._start(1)
+        stage._last_run_samples = n
+        limit = n / stage.profile.sample_rate_hz + PLAY_MARGIN_S if timeout_s is None else timeout_s
+        deadline = time.monotonic() + limit
+        while True:
+            st = stage.status()
+            self._heartbeat(st)
+            busy = self._refill(st.play_position) if st.running else False
+            busy |= self._deliver(st.play_position, st.running)
+            if not st.running and self.delivered >= st.play_position:
+                break
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"run not done after {limit:.3g} s ({st.play_position} of {n} "
+                                   f"samples played, {self.delivered} read back)")
+            if not busy:
+                time.sleep(self.poll_s)
+        if st.play_position < n:
+            raise StageError(st.last_error if st.last_error else -1,
+                             f"the run stopped after {st.play_position} of {n} samples")
+        return Recording(self.volt, self.u, self.valid)
+
+    def _heartbeat(self, st: Status) -> None:
+        """Keep the device's watchdog fed (four heartbeats per period) while it runs."""
+        now = time.monotonic()
+        if st.running and st.watchdog_s > 0 and now - self.last_heartbeat >= st.watchdog_s / 4:
+            self.stage.heartbeat()
+            self.last_heartbeat = now
+
+    def _refill(self, position: int) -> bool:
+        """Send the next half-table if the generator has played the samples its slots held."""
+        n = self.v.size
+        if self.written >= n or self.written + self.half > position + self.table:
+            return False
+        end = min(n, self.written + self.half)
+        chunk = self.stage.upload_chunk
+        for first in range(self.written, end, chunk):
+            self.stage._write_chunk(first, self.v[first:min(end, first + chunk)])
+        self.written = end
+        return True
+
+    def _deliver(self, position: int, running: bool) -> bool:
+        """Read back recorded samples not yet delivered and hand them to ``on_block``; samples
+        already overwritten in the recorder ring are NaN, invalid. While running, at most four read
+        requests (or a quarter table) per call, so that refilling the table, which cannot wait,
+        comes round again soon; once stopped, everything left."""
+        most = max(1, min(self.half // 2, 4 * self.stage.read_chunk)) if running else position
+        end = min(position, self.delivered + most)
+        if end <= self.delivered:
+            return False
+        first, lost = self.delivered, max(self.delivered, position - self.recorder_capacity)
+        rec = self.stage.read_recorder(end - lost, lost) if end > lost else None
+        if rec is not None:
+            sl = slice(lost, end)
+            self.volt[sl], self.u[sl], self.valid[sl] = (rec.voltage_v, rec.displacement_um,
+                                                          rec.valid)
+        self.delivered = end
+        if self.on_block is not None:
+            sl = slice(first, end)
+            self.on_block(first, self.volt[sl].copy(), self.u[sl].copy(), self.valid[sl].copy())
+        return True
 
 
 #: The stage interface (an abstract base class: implementations inherit the composed operations).

@@ -1,10 +1,12 @@
-"""The serial (ASCII) protocol, version 1: codec and the device-side interpreter. No I/O.
+"""The serial (ASCII) protocol, version 2: codec and the device-side interpreter. No I/O.
 
 Lines are ASCII, terminated by LF (a trailing CR is ignored). Every command line gets exactly one
 reply line: ``OK`` for a set command, the value(s) for a query, or ``ERR <code> <text>`` when the
 device refuses (codes in :data:`afmctl.emulator.ERRORS`; the last one also stays readable with
 ``ERR?``). Numbers are decimal; float32 values are written with 9 significant digits, which
-round-trips float32 exactly; a sample not yet recorded is ``nan``. See ``docs/protocol.md``.
+round-trips float32 exactly; a sample not yet recorded (or overwritten) is ``nan``. Version 2 adds
+streaming: ``WGS <n>`` plays ``n`` samples through the table as a ring while the host keeps writing
+``WAV`` blocks at global indices; ``DRR?`` and ``POS?`` use global indices. See ``docs/protocol.md``.
 """
 
 from __future__ import annotations
@@ -14,15 +16,15 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.emulator import ERRORS, DeviceError, Emulator, Status
+from afmctl.emulator import ERRORS, IDENTITY, DeviceError, Emulator, Status
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 MAX_LINE = 8192
 #: Largest chunk per WAV or DRR? line, samples.
 MAX_CHUNK = 256
 
 STATUS_KEYS = ("running", "fill", "error", "out", "runs", "len", "complete", "wd", "expired", "ro",
-               "rate")
+               "rate", "pos", "total", "wdt")
 
 
 def fmt(x: float) -> str:
@@ -33,7 +35,8 @@ def fmt(x: float) -> str:
 def status_line(s: Status) -> str:
     vals = (int(s.running), s.recorder_fill, s.last_error, fmt(s.output_v), s.run_count,
             s.table_length, int(s.table_complete), int(s.watchdog_armed),
-            int(s.watchdog_expired), int(s.read_only), fmt(s.sample_rate_hz))
+            int(s.watchdog_expired), int(s.read_only), fmt(s.sample_rate_hz), s.play_position,
+            s.run_samples, fmt(s.watchdog_s))
     return " ".join(f"{k}={v}" for k, v in zip(STATUS_KEYS, vals, strict=True))
 
 
@@ -48,7 +51,8 @@ def parse_status(line: str) -> Status:
                   run_count=int(kv["runs"]), table_length=int(kv["len"]),
                   table_complete=kv["complete"] == "1", watchdog_armed=kv["wd"] == "1",
                   watchdog_expired=kv["expired"] == "1", read_only=kv["ro"] == "1",
-                  sample_rate_hz=float(kv["rate"]))
+                  sample_rate_hz=float(kv["rate"]), play_position=int(kv["pos"]),
+                  run_samples=int(kv["total"]), watchdog_s=float(kv["wdt"]))
 
 
 def wav_line(first: int, values: NDArray[np.float32]) -> str:
@@ -79,7 +83,7 @@ class AsciiDevice:
         self.em = emulator
         self.clock = clock
         self._commands: dict[str, Callable[[list[str], float], str]] = {
-            "*IDN?": lambda a, t: self._noargs(a, "afmctl,emulated-stage,0,protocol-1"),
+            "*IDN?": lambda a, t: self._noargs(a, IDENTITY),
             "VER?": lambda a, t: self._noargs(a, str(PROTOCOL_VERSION)),
             "SVA": lambda a, t: self._ok(self.em.set_voltage(_float(a, 0, 1), t)),
             "VOL?": lambda a, t: self._noargs(a, fmt(self.em.status(t).output_v)),
@@ -89,6 +93,9 @@ class AsciiDevice:
             "WTL?": lambda a, t: self._noargs(a, str(self.em.status(t).table_length)),
             "WAV": self._wav,
             "WGO": self._wgo,
+            "WGS": lambda a, t: self._ok(self.em.start_stream(_int(a, 0, 1), t)),
+            "POS?": lambda a, t: self._noargs(a, str(self.em.status(t).play_position)),
+            "CAP?": lambda a, t: self._noargs(a, f"{self.em.table.size} {self.em.rec_u.size}"),
             "DRL?": lambda a, t: self._noargs(a, str(self.em.status(t).recorder_fill)),
             "DRR?": self._drr,
             "STA?": lambda a, t: self._noargs(a, status_line(self.em.status(t))),

@@ -11,7 +11,7 @@ from contextlib import contextmanager
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.emulator import DeviceError, Emulator, Status
+from afmctl.emulator import IDENTITY, DeviceError, Emulator, Status
 from afmctl.profile import Profile
 from drivers import StageBase, StageError
 
@@ -36,24 +36,28 @@ class InProcessStage(StageBase):
         omitted.
     clock : callable, optional
         Device time, s; ``time.monotonic`` by default.
+    lock : threading.Lock, optional
+        Serializes calls into the device; pass the lock of whoever else drives the same emulator
+        (e.g. ``EmulatedDevice.lock``, whose ticker advances it).
     """
 
     upload_chunk = 1 << 20
     read_chunk = 1 << 20
 
     def __init__(self, profile: Profile, emulator: Emulator | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 lock: threading.Lock | None = None) -> None:
         super().__init__(profile)
         self.emulator = Emulator(profile) if emulator is None else emulator
         self.clock = clock
-        self._lock = threading.Lock()
+        self._lock = threading.Lock() if lock is None else lock
 
     def _call(self, fn: Callable[..., object], *args: object) -> object:
         with self._lock, _refusals():
             return fn(*args, self.clock())
 
     def identify(self) -> str:
-        return "afmctl,emulated-stage,0,protocol-1 (in-process)"
+        return f"{IDENTITY} (in-process)"
 
     def status(self) -> Status:
         return self._call(self.emulator.status)  # type: ignore[return-value]
@@ -94,3 +98,9 @@ class InProcessStage(StageBase):
 
     def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         return self._call(self.emulator.read_recorder, first, n)  # type: ignore[return-value]
+
+    def _start_stream(self, n_total: int) -> None:
+        self._call(self.emulator.start_stream, n_total)
+
+    def _capacities(self) -> tuple[int, int]:
+        return self.emulator.table.size, self.emulator.rec_u.size

@@ -44,7 +44,7 @@ class ModbusStage(StageBase):
         Overrides the profile's transport (e.g. a server on an ephemeral port).
     """
 
-    upload_chunk = rm.UPLOAD_BLOCK_SAMPLES
+    upload_chunk = rm.STREAM_BLOCK_SAMPLES
     read_chunk = rm.READ_SAMPLES
 
     def __init__(self, profile: Profile,
@@ -125,9 +125,7 @@ class ModbusStage(StageBase):
         self._write(HR.TABLE_LENGTH, rm.u32_regs(n))
 
     def _write_chunk(self, first: int, values: NDArray[np.float32]) -> None:
-        if first % self.upload_chunk:
-            raise ValueError(f"upload chunks start at multiples of {self.upload_chunk}")
-        self._write(HR.UPLOAD_BLOCK, [first // self.upload_chunk] + rm.f32_regs(values))
+        self._write(HR.STREAM_FIRST, rm.u32_regs(first) + rm.f32_regs(values))
 
     def _start(self, cycles: int) -> None:
         self._write(HR.COMMAND, [rm.Cmd.START] + rm.u32_regs(cycles))
@@ -147,3 +145,11 @@ class ModbusStage(StageBase):
                 out[done:done + m] = rm.regs_f32(regs)
             done += m
         return out_u, out_v
+
+    def _start_stream(self, n_total: int) -> None:
+        self._write(HR.STREAM_TOTAL, rm.u32_regs(n_total))
+        self._write(HR.COMMAND, [rm.Cmd.START_STREAM])
+
+    def _capacities(self) -> tuple[int, int]:
+        regs = self._request("read_input_registers", IR.RECORDER_CAPACITY, count=4)
+        return rm.regs_u32(regs[2:]), rm.regs_u32(regs[:2])

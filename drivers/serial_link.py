@@ -142,3 +142,13 @@ class SerialStage(StageBase):
             return ap.parse_recorder(self.query(f"DRR? {first} {n}"), first, n)
         except ValueError as exc:
             raise StageError(-1, str(exc)) from None
+
+    def _start_stream(self, n_total: int) -> None:
+        self._command(f"WGS {n_total}")
+
+    def _capacities(self) -> tuple[int, int]:
+        try:
+            table, recorder = (int(x) for x in self.query("CAP?").split())
+        except ValueError as exc:
+            raise StageError(-1, f"CAP? reply: {exc}") from None
+        return table, recorder

@@ -5,8 +5,10 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -33,15 +35,15 @@ def stage_on(kind: str, profile: Profile, read_only: bool | None = None
         if kind == "modbus-tcp":
             srv = stack.enter_context(sv.ModbusTcpServer(dev))
             stage: StageBase = ModbusStage(profile, ModbusTcpTransport("127.0.0.1", srv.port))
-        elif kind == "modbus-rtu":
-            rtu = stack.enter_context(sv.ModbusRtuServer(dev))
-            stage = ModbusStage(profile, ModbusRtuTransport(rtu.url))
+        elif kind == "modbus-rtu":  # 921,600 baud: 115,200 cannot carry 10 kHz both ways
+            rtu = stack.enter_context(sv.ModbusRtuServer(dev, baudrate=921_600))
+            stage = ModbusStage(profile, ModbusRtuTransport(rtu.url, baudrate=921_600))
         elif kind.startswith("serial"):
             where = "pty" if kind == "serial-pty" else "socket://127.0.0.1:0"
             ser = stack.enter_context(sv.SerialServer(dev, where))
             stage = SerialStage(profile, ser.url)
         else:
-            stage = InProcessStage(profile, emulator=dev.emulator)
+            stage = InProcessStage(profile, emulator=dev.emulator, lock=dev.lock)
         with stage:
             yield stage, dev.emulator
 
@@ -157,12 +159,13 @@ class ScriptedPort:
 
 
 def test_serial_codec_against_a_script(profile: Profile) -> None:
-    status = "running=0 fill=3 error=0 out=5 runs=1 len=3 complete=1 wd=0 expired=0 ro=0 rate=10000"
+    status = ("running=0 fill=3 error=0 out=5 runs=1 len=3 complete=1 wd=0 expired=0 ro=0 rate=10000 "
+              "pos=3 total=3 wdt=0")
     script = [
-        ("VER?", "1"),
+        ("VER?", "2"),
         ("WTL 3", "OK"),
         ("WAV 0 3 0 2.5 5", "OK"),
-        ("STA?", status.replace("fill=3", "fill=0").replace("runs=1", "runs=0")),
+        ("STA?", status.replace("fill=3", "fill=0").replace("runs=1", "runs=0").replace("pos=3", "pos=0")),
         ("WGO 1", "OK"),
         ("STA?", status),
         ("DRR? 0 3", "0 3 0 0 0.125 2.5 0.25 5"),
@@ -252,3 +255,135 @@ def test_every_stage_reports_the_same_limits(kind: str, profile: Profile) -> Non
     with stage_on(kind, profile) as (stage, _):
         assert stage.limits() == (-150.0, 150.0, 50.0)
         assert stage.voltage() == 0.0
+
+
+# -- streaming (protocol v2) ----------------------------------------------------------------------
+STREAM_KINDS = ["inprocess", "modbus-tcp", "modbus-rtu", "serial-pty"]
+
+
+def small_buffers(profile: Profile) -> Profile:
+    """The profile with a 4,096-sample table and an 8,192-sample recorder."""
+    assert profile.emulator is not None
+    cfg = replace(profile.emulator, table_capacity=4096, recorder_capacity=8192)
+    return replace(profile, emulator=cfg)
+
+
+def long_waveform(n: int) -> np.ndarray:
+    """``n`` samples of a slew-safe sine with a decaying envelope, V."""
+    return 100.0 * np.sin(2 * np.pi * 5.0 * np.arange(n) / 10_000.0) * np.linspace(1.0, 0.3, n)
+
+
+class Blocks:
+    """An ``on_block`` that keeps every block (a stand-in for writing each to disk)."""
+
+    def __init__(self, sleep_s: float = 0.0) -> None:
+        self.blocks: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.sleep_s = sleep_s
+
+    def __call__(self, first: int, v: np.ndarray, u: np.ndarray, ok: np.ndarray) -> None:
+        self.blocks.append((first, v, u, ok))
+        time.sleep(self.sleep_s)
+
+    def joined(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        starts = [b[0] for b in self.blocks]
+        ends = np.cumsum([b[1].size for b in self.blocks])
+        assert starts == [0, *ends[:-1].tolist()]  # in order and contiguous
+        return tuple(np.concatenate([b[i] for b in self.blocks]) for i in (1, 2, 3))  # type: ignore
+
+
+@pytest.mark.parametrize("kind", STREAM_KINDS)
+def test_play_streams_three_tables_and_matches_the_model(kind: str, profile: Profile) -> None:
+    small = small_buffers(profile)
+    if kind == "modbus-rtu":  # pymodbus RTU on a pty reads back ~8,600 samples/s: not 10 kHz
+        small = replace(small, sample_rate_hz=5000.0)
+    v = long_waveform(3 * 4096)
+    assert small.emulator is not None
+    u_exp, v_exp = em.expected_readback(small.emulator, small.sample_rate_hz, v)
+    blocks = Blocks()
+    with stage_on(kind, small) as (stage, emu):
+        rec = stage.play(v, blocks)
+        st = stage.status()
+        log = emu.applied_log(0.0)
+    assert not st.running and st.play_position == v.size and st.last_error == 0
+    assert len(blocks.blocks) > 3  # delivered progressively, not at the end
+    volt, disp, ok = blocks.joined()
+    assert ok.all() and disp.size == v.size and rec.complete
+    np.testing.assert_array_equal(disp.astype(np.float32), u_exp.astype(np.float32))
+    np.testing.assert_array_equal(volt.astype(np.float32), v_exp.astype(np.float32))
+    np.testing.assert_array_equal(rec.displacement_um, disp)
+    np.testing.assert_array_equal(log, v.astype(np.float32))  # every sample played, once, in order
+
+
+def test_play_of_a_short_waveform_is_a_normal_run(profile: Profile, waveform: np.ndarray) -> None:
+    blocks = Blocks()
+    with stage_on("inprocess", profile) as (stage, _):
+        rec = stage.play(waveform[:3000], blocks)
+        assert stage.status().run_samples == 3000 and stage.status().table_length == 3000
+    assert rec.complete and blocks.joined()[2].all()
+
+
+@pytest.mark.parametrize("kind", ["inprocess", "modbus-tcp"])
+def test_slow_host_underruns_safely(kind: str, profile: Profile) -> None:
+    small = small_buffers(profile)
+    v = long_waveform(3 * 4096)
+    blocks = Blocks(sleep_s=0.6)  # the table holds 0.41 s: the host falls behind
+    with stage_on(kind, small) as (stage, emu):
+        with pytest.raises(StageError) as info:
+            stage.play(v, blocks)
+        st = stage.status()
+        log = emu.applied_log(0.0)
+    assert info.value.code == 10 and "stopped after" in str(info.value)
+    assert not st.running and st.output_v == 0.0 and 4096 <= st.play_position < v.size
+    played, ramp = log[:st.play_position], log[st.play_position:]
+    np.testing.assert_array_equal(played, v[:st.play_position].astype(np.float32))  # nothing stale
+    assert ramp[-1] == 0.0 and np.all(np.diff(np.abs(ramp)) <= 0)
+    volt, _, ok = blocks.joined()
+    assert volt.size == st.play_position  # what was played was delivered, then the error
+    assert ok[-100:].all()
+
+
+@pytest.mark.parametrize("kind", ["inprocess", "serial-pty"])
+def test_interrupt_in_on_block_leaves_the_stage_safe(kind: str, profile: Profile) -> None:
+    small = small_buffers(profile)
+    v = long_waveform(3 * 4096)
+
+    def interrupt(first: int, *_: object) -> None:
+        if first > 2000:
+            raise KeyboardInterrupt
+
+    with stage_on(kind, small) as (stage, emu):
+        with pytest.raises(KeyboardInterrupt):
+            stage.play(v, interrupt)
+        st = stage.status()
+        log = emu.applied_log(0.0)
+    assert not st.running and st.output_v == 0.0 and st.play_position < v.size
+    assert log[-1] == 0.0
+
+
+def test_play_never_hangs(profile: Profile) -> None:
+    with stage_on("inprocess", small_buffers(profile)) as (stage, emu):
+        with pytest.raises(TimeoutError):
+            stage.play(long_waveform(3 * 4096), timeout_s=0.2)
+        assert not stage.status().running and emu.output_v == 0.0
+
+
+def test_play_feeds_the_watchdog(profile: Profile) -> None:
+    with stage_on("modbus-tcp", small_buffers(profile)) as (stage, _):
+        stage.set_watchdog(0.2)
+        rec = stage.play(long_waveform(2 * 4096 + 100))
+        st = stage.status()
+    assert rec.complete and st.watchdog_armed and not st.watchdog_expired
+
+
+def test_register_map_streams_at_global_indices(profile: Profile) -> None:
+    emu = em.Emulator(small_buffers(profile))
+    dev = rm.RegisterDevice(emu, lambda: 0.0)
+    v = np.linspace(0.0, 1.0, 60).astype(np.float32)
+    assert dev.write(rm.HR.TABLE_LENGTH, rm.u32_regs(100)) is None
+    assert dev.write(rm.HR.STREAM_FIRST, rm.u32_regs(40) + rm.f32_regs(v)) is None
+    assert dev.write(rm.HR.STREAM_FIRST, rm.u32_regs(41) + rm.f32_regs(v)) == rm.ILLEGAL_VALUE
+    assert dev.write(rm.HR.STREAM_TOTAL, rm.u32_regs(10_000)) is None
+    assert dev.write(rm.HR.COMMAND, [rm.Cmd.START_STREAM]) == rm.ILLEGAL_VALUE  # 0..39 missing
+    assert emu.last_error == 9
+    st = rm.decode_status(dev.read_input(0, rm.IR.STATUS_END))
+    assert st.play_position == 0 and st.run_samples == 0 and not st.running

@@ -213,3 +213,52 @@ def test_thermal_relaxation_creeps_at_constant_voltage(profile: Profile) -> None
     v = np.concatenate((np.linspace(0, 100, 400), np.full(1600, 100.0)))
     u, _ = run(em.Emulator(hot), v, 0.0)
     assert u[-1] - u[600] > 1e-3  # still moving long after the rod has settled
+
+
+def small(profile: Profile) -> Profile:
+    assert profile.emulator is not None
+    return replace(profile, emulator=replace(profile.emulator, table_capacity=1000,
+                                             recorder_capacity=1500))
+
+
+def test_stream_equals_one_long_run_and_recorder_is_a_ring(profile: Profile) -> None:
+    emu = em.Emulator(small(profile))
+    v = sine(3000).astype(np.float32)
+    emu.set_table_length(1000, 0.0)
+    emu.write_table(0, v[:1000], 0.0)
+    emu.start_stream(3000, 0.0)
+    with pytest.raises(em.DeviceError) as info:
+        emu.write_table(1000, v[1000:1600], 0.05)  # slots of samples 500..599 not yet played
+    assert info.value.code == 6 and emu.pop_error(0.05) == 6
+    emu.write_table(1000, v[1000:1500], 0.05)
+    emu.write_table(1000, v[1000:1500], 0.06)  # a repeated block is harmless
+    emu.write_table(1500, v[1500:2000], 0.1)
+    emu.write_table(2000, v[2000:2500], 0.15)
+    emu.write_table(2500, v[2500:], 0.2)
+    st = emu.status(0.4)
+    assert not st.running and st.play_position == 3000 and st.last_error == 0
+    assert st.recorder_fill == 1500
+    exp_u, _ = em.expected_readback(profile.emulator, RATE, v)  # type: ignore[arg-type]
+    u, _ = emu.read_recorder(0, 3000, 0.4)
+    assert np.isnan(u[:1500]).all()  # overwritten in the ring: missing, never wrong
+    np.testing.assert_array_equal(u[1500:], exp_u[1500:].astype(np.float32))
+    np.testing.assert_array_equal(emu.applied_log(0.4), v)
+
+
+def test_stream_underrun_stops_and_ramps_to_zero(profile: Profile) -> None:
+    emu = em.Emulator(small(profile))
+    v = (100.0 * np.ones(3000)).astype(np.float32)
+    v[:40] = np.linspace(0, 100, 40)
+    emu.set_table_length(1000, 0.0)
+    emu.write_table(0, v[:1000], 0.0)
+    emu.start_stream(3000, 0.0)
+    st = emu.status(0.15)  # sample 1000 was due at 0.1 s and never written
+    assert not st.running and st.last_error == 10 and st.play_position == 1000
+    assert st.output_v == 0.0
+    log = emu.applied_log(0.15)
+    np.testing.assert_array_equal(log[:1000], v[:1000])
+    assert np.all(np.abs(np.diff(log[999:])) <= profile.limits.max_step_v(RATE))
+    with pytest.raises(em.DeviceError):
+        emu.write_table(1000, v[1000:1500], 0.2)  # no stream any more: outside the table
+    u, _ = emu.read_recorder(999, 2, 0.2)
+    assert np.isfinite(u[0]) and np.isnan(u[1])
