@@ -2,9 +2,13 @@
 
 Planning turns a desired displacement trajectory into a voltage waveform per filter:
 
-* ``inverse``: Algorithm 3 through the model. The waveform starts with a ramp, in displacement, from
-  the stage's present output to the trajectory's first point (so the inverse carries the hysteresis
-  state through it), tracks, then ramps the voltage back to the present output (raised cosine).
+* Every waveform starts by **conditioning** the stage: one slow excursion from the present output to
+  the upper and lower voltage limits and back. By the wiping-out property of the model (and of the
+  material) this erases the memory of whatever the stage did before, so the model's state at the
+  start of tracking is known rather than assumed.
+* ``inverse``: Algorithm 3 through the model. After conditioning, a ramp in displacement from the
+  stage's output to the trajectory's first point (so the inverse carries the hysteresis state
+  through it), the tracking part, then a raised-cosine ramp of the voltage back to the output.
   The inversion horizon ``d`` is searched upward from the smallest non-chattering one until the
   waveform passes the guard: a larger horizon rounds the triangle's corners instead of asking the
   amplifier for an impulse.
@@ -90,14 +94,13 @@ def from_samples(time_s: FloatArray, u_um: FloatArray, dt_s: float, label: str) 
 class Waveform:
     """A precomputed, guard-checked voltage waveform for one filter.
 
-    ``desired_um`` is NaN on the ramps; ``tracking`` selects the tracking part.
+    ``desired_um`` is NaN on the conditioning and the ramps; ``tracking`` selects the tracking part.
     """
 
     filter: str
     dt_s: float
     voltage_v: FloatArray
     desired_um: FloatArray
-    predicted_um: FloatArray
     horizon: int | None
     tracking: slice = field(repr=False)
 
@@ -121,18 +124,29 @@ def ramp_samples(delta: float, rate_per_s: float, dt_s: float, minimum_s: float 
     return int(np.ceil(max(minimum_s, np.pi / 2 * abs(delta) / rate_per_s) / dt_s))
 
 
+def conditioning(limits: guard.Limits, start_v: float, dt_s: float) -> FloatArray:
+    """Slow raised-cosine excursion start -> v_max -> v_min -> start (V), at a quarter of the
+    usable slew rate and at least 0.2 s a leg: it wipes out the hysteresis memory."""
+    rate = 0.25 * limits.max_rate_v_per_ms * 1e3
+    legs = ((start_v, limits.v_max), (limits.v_max, limits.v_min), (limits.v_min, start_v))
+    return np.concatenate([raised_cosine(a, b, ramp_samples(b - a, rate, dt_s, 0.2))
+                           for a, b in legs])
+
+
 def _assemble(name: str, desired: Desired, ramp_in: FloatArray, v_track: FloatArray,
-              ramp_out: FloatArray, predicted: FloatArray, horizon: int | None) -> Waveform:
+              ramp_out: FloatArray, horizon: int | None) -> Waveform:
     n_in, n_tr = ramp_in.size, v_track.size
     v = np.concatenate([ramp_in, v_track, ramp_out])
     d = np.full(v.size, np.nan)
     d[n_in:n_in + n_tr] = desired.u_um
-    return Waveform(name, desired.dt_s, v, d, predicted, horizon, slice(n_in, n_in + n_tr))
+    return Waveform(name, desired.dt_s, v, d, horizon, slice(n_in, n_in + n_tr))
 
 
 def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v: float,
-                 state: tr.StageState) -> Waveform:
+                 state: tr.StageState, prefix_v: FloatArray) -> Waveform:
     """Algorithm 3 waveform with the smallest horizon that passes the guard.
+
+    ``prefix_v`` (the conditioning) is played first; ``state`` is the model state after it.
 
     Raises
     ------
@@ -158,9 +172,9 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
                 f"the trajectory is out of the stage's reach: at sample {short} the model falls "
                 f"{res.error[short]:.3f} um short at the voltage limit; reduce amplitude or offset")
         v = res.voltage(cm.model.thickness_um)
-        v_in, v_tr = v[:n_in], v[n_in:]
+        v_in, v_tr = np.concatenate([prefix_v, v[:n_in]]), v[n_in:]
         out = raised_cosine(v_tr[-1], start_v, ramp_samples(v_tr[-1] - start_v, rate, dt))
-        wf = _assemble("inverse", desired, v_in, v_tr, out, res.predicted, d)
+        wf = _assemble("inverse", desired, v_in, v_tr, out, d)
         try:
             guard.check(wf.voltage_v, dt, limits, start_v, "inverse waveform")
         except guard.LimitError as exc:
@@ -186,16 +200,15 @@ def _linear_from_model(cm: tr.Compiled, state: tr.StageState, limits: guard.Limi
 
 
 def plan_linear(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v: float,
-                state: tr.StageState, v_range: tuple[float, float]) -> Waveform:
+                state: tr.StageState, v_range: tuple[float, float],
+                prefix_v: FloatArray) -> Waveform:
     """The paper's linear filter over the voltage range ``v_range`` the inverse filter needs."""
     lin = _linear_from_model(cm, state, limits, *v_range)
     v_tr = lin.voltage(desired.u_um)
     dt, rate = desired.dt_s, 0.25 * limits.max_rate_v_per_ms * 1e3
     ramp_in = raised_cosine(start_v, v_tr[0], ramp_samples(v_tr[0] - start_v, rate, dt))
     ramp_out = raised_cosine(v_tr[-1], start_v, ramp_samples(v_tr[-1] - start_v, rate, dt))
-    v = np.concatenate([ramp_in, v_tr, ramp_out])
-    predicted, _, _ = tr.simulate(cm, v, state)
-    wf = _assemble("linear", desired, ramp_in, v_tr, ramp_out, predicted, None)
+    wf = _assemble("linear", desired, np.concatenate([prefix_v, ramp_in]), v_tr, ramp_out, None)
     guard.check(wf.voltage_v, dt, limits, start_v, "linear waveform")
     return wf
 
@@ -203,15 +216,22 @@ def plan_linear(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v
 def plan(model: tr.Transducer, desired: Desired, limits: guard.Limits, start_v: float = 0.0,
          filters: tuple[str, ...] = ("inverse", "linear"),
          state: tr.StageState | None = None) -> dict[str, Waveform]:
-    """Guard-checked waveforms for each filter (the inverse one first: it sets the voltage range)."""
+    """Guard-checked waveforms for each filter (the inverse one first: it sets the voltage range).
+
+    ``state`` is the model state at the stage's present output ``start_v`` (default: depoled, then
+    ``start_v`` applied); the conditioning that starts every waveform makes the result insensitive
+    to it for every hysteron the voltage limits can switch.
+    """
     cm = tr.compile_model(model, desired.dt_s)
-    st = state if state is not None else tr.initial(model, voltage_v=start_v)
-    wf = plan_inverse(cm, desired, limits, start_v, st)
+    st0 = state if state is not None else tr.initial(model, voltage_v=start_v)
+    pre = conditioning(limits, start_v, desired.dt_s)
+    _, _, st = tr.simulate(cm, pre, st0)
+    wf = plan_inverse(cm, desired, limits, start_v, st, pre)
     out = {"inverse": wf} if "inverse" in filters else {}
     if "linear" in filters:
         track_v = wf.voltage_v[wf.tracking]
         out["linear"] = plan_linear(cm, desired, limits, start_v, st,
-                                    (float(track_v.min()), float(track_v.max())))
+                                    (float(track_v.min()), float(track_v.max())), pre)
     return out
 
 
