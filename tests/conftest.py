@@ -7,6 +7,8 @@ from __future__ import annotations
 import dataclasses as dc
 import logging
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -14,14 +16,18 @@ import pytest
 from afmctl import emulator
 from afmctl import identify as idf
 from afmctl import sweeps as sw
-from afmctl.profile import Profile, default_profile
+from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile, default_profile
 from afmctl.transducer import Transducer
+
+if TYPE_CHECKING:
+    from drivers import StageBase
 
 PROFILE = default_profile()
 assert PROFILE.emulator is not None
 SAMPLE_RATE_HZ = PROFILE.sample_rate_hz
 NOISE_UM = PROFILE.emulator.noise_um
 SENSOR_ZERO_UM = 2.0  # an arbitrary sensor zero the fits must find
+TRANSPORTS = ["modbus-tcp", "modbus-rtu", "serial-pty", "serial-socket", "inprocess"]
 
 
 @pytest.fixture(autouse=True)
@@ -88,3 +94,30 @@ def device(profile: Profile) -> Iterator[object]:
     from drivers.servers import EmulatedDevice
     with EmulatedDevice(profile) as dev:
         yield dev
+
+
+@contextmanager
+def stage_on(kind: str, profile: Profile, read_only: bool | None = None
+             ) -> Iterator[tuple[StageBase, emulator.Emulator]]:
+    """A host stage talking to a fresh emulated device over ``kind`` (see TRANSPORTS)."""
+    from drivers import servers as sv
+    from drivers.inprocess import InProcessStage
+    from drivers.modbus_link import ModbusStage
+    from drivers.serial_link import SerialStage
+
+    with ExitStack() as stack:
+        dev = stack.enter_context(sv.EmulatedDevice(profile, read_only=read_only))
+        if kind == "modbus-tcp":
+            srv = stack.enter_context(sv.ModbusTcpServer(dev))
+            stage: StageBase = ModbusStage(profile, ModbusTcpTransport("127.0.0.1", srv.port))
+        elif kind == "modbus-rtu":  # 921,600 baud: 115,200 cannot carry 10 kHz both ways
+            rtu = stack.enter_context(sv.ModbusRtuServer(dev, baudrate=921_600))
+            stage = ModbusStage(profile, ModbusRtuTransport(rtu.url, baudrate=921_600))
+        elif kind.startswith("serial"):
+            where = "pty" if kind == "serial-pty" else "socket://127.0.0.1:0"
+            ser = stack.enter_context(sv.SerialServer(dev, where))
+            stage = SerialStage(profile, ser.url)
+        else:
+            stage = InProcessStage(profile, emulator=dev.emulator, lock=dev.lock)
+        with stage:
+            yield stage, dev.emulator

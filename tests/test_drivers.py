@@ -6,46 +6,21 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
 from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import TRANSPORTS, stage_on
 
 from afmctl import emulator as em
-from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile
-from drivers import StageBase, StageError, open_stage
+from afmctl.profile import Profile
+from drivers import StageError, open_stage
 from drivers import ascii_protocol as ap
 from drivers import register_map as rm
 from drivers import servers as sv
 from drivers.inprocess import InProcessStage
 from drivers.modbus_link import ModbusStage
 from drivers.serial_link import SerialStage
-
-TRANSPORTS = ["modbus-tcp", "modbus-rtu", "serial-pty", "serial-socket", "inprocess"]
-
-
-@contextmanager
-def stage_on(kind: str, profile: Profile, read_only: bool | None = None
-             ) -> Iterator[tuple[StageBase, em.Emulator]]:
-    """A host stage talking to a fresh emulated device over ``kind``."""
-    with ExitStack() as stack:
-        dev = stack.enter_context(sv.EmulatedDevice(profile, read_only=read_only))
-        if kind == "modbus-tcp":
-            srv = stack.enter_context(sv.ModbusTcpServer(dev))
-            stage: StageBase = ModbusStage(profile, ModbusTcpTransport("127.0.0.1", srv.port))
-        elif kind == "modbus-rtu":  # 921,600 baud: 115,200 cannot carry 10 kHz both ways
-            rtu = stack.enter_context(sv.ModbusRtuServer(dev, baudrate=921_600))
-            stage = ModbusStage(profile, ModbusRtuTransport(rtu.url, baudrate=921_600))
-        elif kind.startswith("serial"):
-            where = "pty" if kind == "serial-pty" else "socket://127.0.0.1:0"
-            ser = stack.enter_context(sv.SerialServer(dev, where))
-            stage = SerialStage(profile, ser.url)
-        else:
-            stage = InProcessStage(profile, emulator=dev.emulator, lock=dev.lock)
-        with stage:
-            yield stage, dev.emulator
 
 
 @pytest.mark.parametrize("kind", TRANSPORTS)

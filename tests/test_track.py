@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+from conftest import stage_on
 
-from afmctl import guard, track
+from afmctl import experiment, guard, track
 from afmctl import transducer as tr
+from afmctl.profile import Profile
 
 LIM = guard.Limits(v_min=-150, v_max=150, slew_v_per_ms=50, current_ma=100, capacitance_uf=2)
 DT = 1e-4
@@ -59,3 +63,19 @@ def test_score_leaves_missing_samples_out(nominal: tr.Transducer) -> None:
 def test_file_trajectory_is_resampled_on_the_stage_clock() -> None:
     d = track.from_samples(np.array([0.0, 0.5, 1.0]), np.array([0.0, 5.0, 0.0]), 1e-3, "file")
     assert d.u_um.size == 1001 and d.u_um[250] == pytest.approx(2.5)
+
+
+@pytest.mark.parametrize("kind", ["modbus-tcp", "serial-pty"])
+def test_track_over_the_wire_equals_in_process(kind: str, profile: Profile,
+                                               nominal: tr.Transducer, tmp_path: Path) -> None:
+    """The same plan on fresh devices with the same seed: identical errors on every transport."""
+    desired = track.triangle(27.9, 27.04, 0.0, 2, 1 / profile.sample_rate_hz)
+    plans = track.plan(nominal, desired, profile.limits)
+    scores = {}
+    for where in ("inprocess", kind):
+        (tmp_path / where).mkdir()
+        with stage_on(where, profile) as (stage, _):
+            runs = experiment.run_all(stage, plans, desired, tmp_path / where, {}, None)
+        scores[where] = {k: (o.score.rms_um, o.score.max_um, o.complete) for k, o in runs.items()}
+    assert scores["inprocess"] == scores[kind]
+    assert scores[kind]["inverse"][0] < 0.1 < scores[kind]["linear"][0]
