@@ -83,7 +83,8 @@ def stream(stage: PlayingStage, wf: track.Waveform, path: Path, meta: Mapping[st
 def run_all(stage: PlayingStage, plans: Mapping[str, track.Waveform], desired: track.Desired,
             out: Path, meta: Mapping[str, object], between_model: tr.Transducer | None,
             progress: Progress | None = None) -> dict[str, Outcome]:
-    """Run each plan in turn (inverse first) and score it."""
+    """Run each plan in turn (inverse first) and score it; run files go to ``out`` (created)."""
+    out.mkdir(parents=True, exist_ok=True)
     outcomes = {}
     for name, wf in plans.items():
         path = out / f"run_{name}.csv"

@@ -73,7 +73,6 @@ def test_track_over_the_wire_equals_in_process(kind: str, profile: Profile,
     plans = track.plan(nominal, desired, profile.limits)
     scores = {}
     for where in ("inprocess", kind):
-        (tmp_path / where).mkdir()
         with stage_on(where, profile) as (stage, _):
             runs = experiment.run_all(stage, plans, desired, tmp_path / where, {}, None)
         scores[where] = {k: (o.score.rms_um, o.score.max_um, o.complete) for k, o in runs.items()}
