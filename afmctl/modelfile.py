@@ -126,12 +126,7 @@ def from_table(t: Table) -> Transducer:
 def read(path: str | Path) -> Transducer:
     """Read a model file; FileFormatError (naming file and key) on anything malformed."""
     t = load(path)
-    fmt = t.string("format")
-    if fmt != FORMAT:
-        raise t.fail("format", f"expected {FORMAT!r}, got {fmt!r}")
-    ver = t.integer("format_version")
-    if ver != FORMAT_VERSION:
-        raise t.fail("format_version", f"this afmctl reads version {FORMAT_VERSION}, got {ver}")
+    t.check_format(FORMAT, FORMAT_VERSION)
     return from_table(t)
 
 

@@ -214,12 +214,7 @@ def _boolean(t: Table, key: str) -> bool:
 
 def from_table(t: Table) -> Profile:
     """Build a profile from its parsed TOML (see the module docstring for the schema)."""
-    fmt = t.string("format")
-    if fmt != FORMAT:
-        raise t.fail("format", f"expected {FORMAT!r}, got {fmt!r}")
-    ver = t.integer("format_version")
-    if ver != FORMAT_VERSION:
-        raise t.fail("format_version", f"this afmctl reads version {FORMAT_VERSION}, got {ver}")
+    t.check_format(FORMAT, FORMAT_VERSION)
     rate = t.number("sample_rate_Hz", positive=True)
     amp, sensor, stack = t.table("amplifier"), t.table("sensor"), t.table("stack")
     assert amp is not None and sensor is not None and stack is not None

@@ -37,6 +37,15 @@ class Table:
     def fail(self, key: str, what: str) -> FileFormatError:
         return FileFormatError(f"{self._key(key)}: {what}")
 
+    def check_format(self, name: str, version: int) -> None:
+        """Require ``format = name`` and ``format_version = version`` (the file-type header)."""
+        fmt = self.string("format")
+        if fmt != name:
+            raise self.fail("format", f"expected {name!r}, got {fmt!r}")
+        ver = self.integer("format_version")
+        if ver != version:
+            raise self.fail("format_version", f"this afmctl reads version {version}, got {ver}")
+
     def has(self, key: str) -> bool:
         return key in self.data
 
