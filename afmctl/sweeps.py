@@ -91,11 +91,24 @@ class Sweep:
     def name(self) -> str:
         return Path(self.path).name if self.path else self.meta.get("name", "sweep")
 
+    @property
+    def memory_index(self) -> int:
+        """First sample at which the stage's state no longer depends on its unknown history.
+
+        A sweep starts wherever earlier work left the stage. By the wiping-out property of the
+        relay kernel (4), the first monotone excursion to the sweep's largest ``|V|`` erases the
+        memory of every smaller one, so from that sample on a model started depoled and the stage
+        agree (up to hysterons that no field of the sweep can switch: a constant offset).
+        """
+        return int(np.argmax(np.abs(self.voltage_v)))
+
     def mask(self, window_s: tuple[float, float] | None) -> NDArray[np.bool_]:
-        """Samples with ``t0 <= t < t1`` (all samples if ``window_s`` is None)."""
-        if window_s is None:
-            return np.ones(self.time_s.size, dtype=bool)
-        return (self.time_s >= window_s[0]) & (self.time_s < window_s[1])
+        """Samples with ``t0 <= t < t1`` (all if ``window_s`` is None) from :attr:`memory_index`
+        on: the samples on which a model run from the sweep's start can be judged."""
+        m = np.ones(self.time_s.size, dtype=bool) if window_s is None else (
+            (self.time_s >= window_s[0]) & (self.time_s < window_s[1]))
+        m[:self.memory_index] = False
+        return m
 
 
 def _meta_line(line: str) -> tuple[str, str] | None:

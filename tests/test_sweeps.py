@@ -79,3 +79,11 @@ def test_triangle_and_standard_set() -> None:
     assert [f for _, f, _ in sets] == [0.279, 5.58, 27.9, 0.1]
     loops = sets[3][2]
     assert loops.max() == pytest.approx(150.0) and loops[-1] == 0.0
+
+
+def test_memory_index_is_the_first_full_excursion() -> None:
+    v = sw.triangle(1.0, 2.0, 2, 8.0)  # 0 1 2 1 0 -1 -2 -1 0 1 2 ...
+    s = sw.from_arrays(v, np.zeros(v.size), 8.0)
+    assert s.memory_index == 2
+    assert not s.mask(None)[:2].any() and s.mask(None)[2:].all()
+    assert s.mask((0.5, 1.0)).sum() == 4  # the window and the memory both apply
