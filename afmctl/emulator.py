@@ -39,8 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import signal
 
+from afmctl import effects as fx
 from afmctl import transducer as td
 from afmctl.profile import EmulatorConfig, Limits, Profile
 
@@ -95,23 +95,16 @@ class Physics:
         self.config = config
         self.dt = 1.0 / sample_rate_hz
         self.compiled = td.compile_model(config.model, self.dt)
-        eff = config.effects
-        bw = eff.amplifier_bandwidth_hz
-        self.lag_a = 0.0 if bw is None else math.exp(-2 * math.pi * bw * self.dt)
-        self.mode_ba: tuple[FloatArray, FloatArray] | None = None
-        if eff.second_mode is not None:
-            w = 2 * math.pi * eff.second_mode.frequency_hz
-            num, den = [eff.second_mode.gain * w * w], [1.0, 2 * eff.second_mode.damping_ratio * w,
-                                                        w * w]
-            bd, ad, _ = signal.cont2discrete((num, den), self.dt, method="zoh")
-            self.mode_ba = (np.ravel(bd), np.asarray(ad, dtype=float))
+        self.chain = fx.compile_chain(config.effects, self.dt)
 
     def initial(self) -> PhysicsState:
         """Power-on state: depoled, 0 V, at rest."""
         stage = td.initial(self.config.model)
         u0, _, _ = td.simulate(self.compiled, np.zeros(1), stage)
-        d = self.config.effects.sensor_delay_samples
-        return PhysicsState(stage, 0.0, np.zeros(2), np.full(d, u0[0]))
+        zi = fx.mode_rest(self.chain, float(u0[0]))
+        w0, _ = fx.add_mode(self.chain, u0, zi)
+        reading = float(fx.gauge(self.config.effects, w0)[0])
+        return PhysicsState(stage, 0.0, zi, np.full(self.chain.history, reading))
 
     def gain(self, run_index: int) -> float:
         """Applied-voltage gain of run ``run_index`` (1 unless ``voltage_gain_drift``)."""
@@ -140,26 +133,6 @@ class Physics:
         ``run_index``."""
         return self.gain(run_index), self.noise(run_index, 0, n)
 
-    def _amplifier(self, v: FloatArray, amp_v: float) -> tuple[FloatArray, float]:
-        if self.lag_a == 0.0:
-            return v, float(v[-1]) if v.size else amp_v
-        a = self.lag_a
-        y, _ = signal.lfilter([1 - a], [1.0, -a], v, zi=[a * amp_v])
-        return y, float(y[-1]) if y.size else amp_v
-
-    def _mode(self, u: FloatArray, zi: FloatArray) -> tuple[FloatArray, FloatArray]:
-        if self.mode_ba is None:
-            return u, zi
-        x, zf = signal.lfilter(*self.mode_ba, u, zi=zi)
-        return u + x, zf
-
-    def _sensor(self, u: FloatArray, delay: FloatArray) -> tuple[FloatArray, FloatArray]:
-        u = u + self.config.effects.sensor_quadratic_per_um * u * u
-        if delay.size == 0:
-            return u, delay
-        full = np.concatenate((delay, u))
-        return full[:u.size], full[full.size - delay.size:]
-
     def respond(self, v_cmd: FloatArray, state: PhysicsState, gain: float = 1.0,
                 noise_um: FloatArray | None = None
                 ) -> tuple[FloatArray, FloatArray, PhysicsState]:
@@ -183,10 +156,9 @@ class Physics:
             Voltage on the stack during each sample, V.
         state : PhysicsState
         """
-        v_app, amp_v = self._amplifier(gain * np.asarray(v_cmd, dtype=float), state.amp_v)
+        v_app, amp_v = fx.lag(self.chain, gain * np.asarray(v_cmd, dtype=float), state.amp_v)
         u, _, stage = td.simulate(self.compiled, v_app, state.stage)
-        u, zi = self._mode(u, state.mode_zi)
-        u, delay = self._sensor(u, state.delay_um)
+        u, zi, delay = fx.measure(self.chain, u, state.mode_zi, state.delay_um)
         if noise_um is not None:
             u = u + noise_um
         return u, v_app, PhysicsState(stage, amp_v, zi, delay)

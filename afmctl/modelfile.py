@@ -32,6 +32,12 @@ table uses the same schema. Every key carries its unit in its name. Example::
     a1_N_per_C_m2 = 12.0
     a2_N_per_C2_m4 = 0.0
     offset_um = 0.0
+
+Optional ``[effects.*]`` tables (one per effect, as ``afmctl diagnose`` writes them; schema of
+:mod:`afmctl.effects`, the same as a profile's ``[emulator.effects.*]``)::
+
+    [effects.amplifier_lag]
+    bandwidth_Hz = 800.0
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ from pathlib import Path
 from typing import Any
 
 from afmctl import hysteresis as hy
+from afmctl.effects import Effects, SecondMode
 from afmctl.rod import Rod
 from afmctl.tomlfile import FileFormatError, Table, dumps, load
 from afmctl.transducer import Transducer
@@ -70,13 +77,64 @@ def to_dict(model: Transducer) -> dict[str, Any]:
         pd["thermal"] = {"field_scale_MV_per_m": pol.thermal.field_scale,
                          "attempt_rate_per_s": pol.thermal.attempt_rate}
     r = model.rod
-    return {
+    out = {
         "format": FORMAT, "format_version": FORMAT_VERSION,
         "transducer": {"thickness_um": model.thickness_um},
         "polarization": pd,
         "rod": {"m_kg": r.m, "c_Ns_per_m": r.c, "k_N_per_m": r.k, "a1_N_per_C_m2": r.a1,
                 "a2_N_per_C2_m4": r.a2, "offset_um": r.offset_um},
     }
+    fx = effects_dict(model.effects)
+    return {**out, "effects": fx} if fx else out
+
+
+def effects_dict(e: Effects) -> dict[str, Any]:
+    """The ``[effects.*]`` tables of the effects that are on (empty if none)."""
+    out: dict[str, Any] = {}
+    if e.amplifier_bandwidth_hz is not None:
+        out["amplifier_lag"] = {"bandwidth_Hz": e.amplifier_bandwidth_hz}
+    if e.sensor_delay_samples:
+        out["sensor_delay"] = {"samples": e.sensor_delay_samples}
+    if e.sensor_quadratic_per_um:
+        out["sensor_nonlinearity"] = {"quadratic_per_um": e.sensor_quadratic_per_um}
+    if e.second_mode is not None:
+        m = e.second_mode
+        out["second_mode"] = {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio,
+                              "gain": m.gain}
+    if e.voltage_gain_sigma:
+        out["voltage_gain_drift"] = {"sigma": e.voltage_gain_sigma}
+    return out
+
+
+EFFECT_TABLES = ("thermal_relaxation", "amplifier_lag", "sensor_delay", "sensor_nonlinearity",
+                 "second_mode", "voltage_gain_drift")
+
+
+def _thermal(t: Table) -> hy.Thermal:
+    return hy.Thermal(t.number("field_scale_MV_per_m", positive=True),
+                      t.number("attempt_rate_per_s", positive=True))
+
+
+def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
+    """Effects (and thermal relaxation, which belongs to the polarization kernel) from an
+    ``effects`` table: one sub-table per effect that is on, keys with units (see
+    :mod:`afmctl.effects`)."""
+    if t is None:
+        return Effects(), None
+    for key in t.data:
+        if key not in EFFECT_TABLES:
+            raise t.fail(key, f"unknown effect (known: {', '.join(sorted(EFFECT_TABLES))})")
+    th, lag, dly, nl, sm, gd = (t.table(k, required=False) for k in EFFECT_TABLES)
+    mode = None if sm is None else SecondMode(sm.number("frequency_Hz", positive=True),
+                                              sm.number("damping_ratio", positive=True),
+                                              sm.number("gain"))
+    return Effects(
+        amplifier_bandwidth_hz=None if lag is None else lag.number("bandwidth_Hz", positive=True),
+        sensor_delay_samples=0.0 if dly is None else dly.number("samples", nonnegative=True),
+        sensor_quadratic_per_um=0.0 if nl is None else nl.number("quadratic_per_um"),
+        second_mode=mode,
+        voltage_gain_sigma=0.0 if gd is None else gd.number("sigma", nonnegative=True),
+    ), None if th is None else _thermal(th)
 
 
 def _density(t: Table, allowed: tuple[str, ...]) -> hy.Lognormal | hy.Normal | hy.Discrete:
@@ -100,11 +158,12 @@ def from_table(t: Table) -> Transducer:
     coercive = _density(p.table("coercive"), ("lognormal", "discrete"))  # type: ignore[arg-type]
     if isinstance(coercive, hy.Discrete) and min(coercive.nodes) <= 0:
         raise p.fail("coercive.nodes_MV_per_m", "coercive-field nodes must be > 0")
-    thermal = None
     th = p.table("thermal", required=False)
-    if th is not None:
-        thermal = hy.Thermal(th.number("field_scale_MV_per_m", positive=True),
-                             th.number("attempt_rate_per_s", positive=True))
+    effects, thermal = effects_from_table(t.table("effects", required=False))
+    if thermal is not None and th is not None:
+        raise t.fail("effects.thermal_relaxation", "thermal relaxation given twice (also as "
+                     "[polarization.thermal])")
+    thermal = thermal if th is None else _thermal(th)
     pol = hy.Polarization(
         eta=p.number("eta_MVm_per_Cm2", positive=True), p_r=p.number("p_r_C_per_m2", positive=True),
         coercive=coercive,  # type: ignore[arg-type]
@@ -120,7 +179,7 @@ def from_table(t: Table) -> Transducer:
               a2=r.number("a2_N_per_C2_m4", 0.0), offset_um=r.number("offset_um", 0.0))
     tt = t.table("transducer")
     assert tt is not None
-    return Transducer(pol, rod, tt.number("thickness_um", positive=True))
+    return Transducer(pol, rod, tt.number("thickness_um", positive=True), effects)
 
 
 def read(path: str | Path) -> Transducer:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from afmctl import hysteresis as hy
 from afmctl import modelfile
+from afmctl.effects import Effects, SecondMode
 from afmctl.guard import Limits
 from afmctl.tomlfile import FileFormatError, Table, load
 from afmctl.transducer import Transducer
@@ -28,7 +29,7 @@ from afmctl.transducer import Transducer
 FORMAT = "afmctl-profile"
 FORMAT_VERSION = 1
 
-__all__ = ["FileFormatError", "Profile", "load_profile", "default_profile", "shipped_profile"]
+__all__ = ["Effects", "SecondMode", "FileFormatError", "Profile", "load_profile", "default_profile", "shipped_profile"]
 
 
 @dataclass(frozen=True)
@@ -64,44 +65,6 @@ class ModbusRtuTransport:
 
 
 Transport = EmulatedTransport | SerialTransport | ModbusTcpTransport | ModbusRtuTransport
-
-
-@dataclass(frozen=True)
-class SecondMode:
-    """A second mechanical mode driven by the main displacement.
-
-    ``x'' + 2 zeta w x' + w^2 x = w^2 gain u`` with ``w = 2 pi frequency_hz``; ``x`` (um) is added.
-    """
-
-    frequency_hz: float
-    damping_ratio: float
-    gain: float
-
-
-@dataclass(frozen=True)
-class Effects:
-    """Effects the base model lacks; each is off at its default.
-
-    Parameters
-    ----------
-    amplifier_bandwidth_hz : float or None
-        First-order amplifier lag, -3 dB frequency, Hz.
-    sensor_delay_samples : int
-        Pure latency of the sensor readback, samples.
-    sensor_quadratic_per_um : float
-        Gauge nonlinearity: measured = u + c u^2, 1/um.
-    second_mode : SecondMode or None
-    voltage_gain_sigma : float
-        Applied-voltage gain is ``1 + N(0, sigma)``, drawn once per run.
-
-    Thermal relaxation is not here: it is ``polarization.thermal`` of the true model.
-    """
-
-    amplifier_bandwidth_hz: float | None = None
-    sensor_delay_samples: int = 0
-    sensor_quadratic_per_um: float = 0.0
-    second_mode: SecondMode | None = None
-    voltage_gain_sigma: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -165,36 +128,13 @@ def _limits(t: Table, sample_rate_hz: float) -> Limits:
     return Limits(v_min, v_max, slew, current, cap)
 
 
-def _effects(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
-    if t is None:
-        return Effects(), None
-    known = {"thermal_relaxation", "amplifier_lag", "sensor_delay", "sensor_nonlinearity",
-             "second_mode", "voltage_gain_drift"}
-    for key in t.data:
-        if key not in known:
-            raise t.fail(key, f"unknown effect (known: {', '.join(sorted(known))})")
-    th = t.table("thermal_relaxation", required=False)
-    thermal = None if th is None else hy.Thermal(th.number("field_scale_MV_per_m", positive=True),
-                                                 th.number("attempt_rate_per_s", positive=True))
-    lag, dly, nl = (t.table(k, required=False) for k in
-                    ("amplifier_lag", "sensor_delay", "sensor_nonlinearity"))
-    sm, gd = t.table("second_mode", required=False), t.table("voltage_gain_drift", required=False)
-    mode = None if sm is None else SecondMode(sm.number("frequency_Hz", positive=True),
-                                              sm.number("damping_ratio", positive=True),
-                                              sm.number("gain"))
-    return Effects(
-        amplifier_bandwidth_hz=None if lag is None else lag.number("bandwidth_Hz", positive=True),
-        sensor_delay_samples=0 if dly is None else dly.integer("samples", minimum=0),
-        sensor_quadratic_per_um=0.0 if nl is None else nl.number("quadratic_per_um"),
-        second_mode=mode,
-        voltage_gain_sigma=0.0 if gd is None else gd.number("sigma", nonnegative=True)), thermal
-
-
 def _emulator(t: Table) -> EmulatorConfig:
     mt = t.table("model")
     assert mt is not None
     model = modelfile.from_table(mt)
-    effects, thermal = _effects(t.table("effects", required=False))
+    if mt.has("effects"):
+        raise mt.fail("effects", "put the emulator's effects in [emulator.effects]")
+    effects, thermal = modelfile.effects_from_table(t.table("effects", required=False))
     if thermal is not None:
         model = replace(model, polarization=replace(model.polarization, thermal=thermal))
     return EmulatorConfig(

@@ -7,13 +7,14 @@ that every call takes and returns, so hysteresis cannot be silently dropped betw
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from afmctl import hysteresis as hy
 from afmctl import rod as rd
+from afmctl.effects import Effects
 
 FloatArray = NDArray[np.float64]
 
@@ -28,11 +29,16 @@ class Transducer:
     rod : rod.Rod
     thickness_um : float
         Layer thickness, um; field (MV/m) = voltage (V) / thickness_um.
+    effects : Effects
+        What the stage adds around this model (amplifier, sensor, second mode; see
+        :mod:`afmctl.effects`); none by default. :func:`simulate` is the paper's model alone;
+        ``afmctl diagnose`` fits effects and ``afmctl track`` inverts them.
     """
 
     polarization: hy.Polarization
     rod: rd.Rod
     thickness_um: float
+    effects: Effects = field(default_factory=Effects)
 
     def field(self, voltage_v: FloatArray) -> FloatArray:
         return np.asarray(voltage_v, dtype=float) / self.thickness_um

@@ -1,0 +1,209 @@
+"""Effects a real stage adds to the paper's model: amplifier, sensor, structure, run-to-run gain.
+
+The paper's model (13)+(16) maps the voltage on the stack to the displacement of the rod. Between
+the DAQ's commanded sample and the recorded displacement a lab stage adds more, and the paper itself
+names some of it (dynamics at high frequency, variation of the true applied voltage between
+experiments). One signal chain serves three users: the emulated stage carries these effects as its
+hidden truth (profile ``[emulator.effects.*]``), ``afmctl diagnose`` fits them as model extensions
+and writes them into a model file (``[effects.*]``), and ``afmctl track`` inverts the ones it can.
+
+Chain of one run, sample period ``dt`` (all units: V, um, s, Hz):
+
+1. ``voltage_gain``: the stack sees ``g v_cmd`` with ``g = 1 + N(0, sigma)`` drawn once per run;
+2. ``amplifier_lag``: first order, exact ZOH, ``v[k] = a v[k-1] + (1 - a) g v_cmd[k]``,
+   ``a = exp(-2 pi f_a dt)``;
+3. the transducer (the paper's model) gives the rod displacement ``u``;
+4. ``second_mode``: ``x'' + 2 zeta w x' + w^2 x = w^2 gain u``, ``w = 2 pi f_2``; ``w = u + x``;
+5. ``sensor_nonlinearity``: the gauge reads ``w + c w^2``;
+6. ``sensor_delay``: the recorder holds the reading of ``d`` samples earlier (fractional ``d`` by
+   linear interpolation).
+
+Everything here is a pure function of its arguments; the emulator carries the filter states.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import signal
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SecondMode:
+    """A second mechanical mode driven by the main displacement.
+
+    ``x'' + 2 zeta w x' + w^2 x = w^2 gain u`` with ``w = 2 pi frequency_hz``; ``x`` (um) is added.
+    """
+
+    frequency_hz: float
+    damping_ratio: float
+    gain: float
+
+
+@dataclass(frozen=True)
+class Effects:
+    """Effects the base model lacks; each is off at its default.
+
+    Parameters
+    ----------
+    amplifier_bandwidth_hz : float or None
+        First-order amplifier lag, -3 dB frequency, Hz.
+    sensor_delay_samples : float
+        Pure latency of the sensor readback, samples (fractional: linear interpolation).
+    sensor_quadratic_per_um : float
+        Gauge nonlinearity: measured = u + c u^2, 1/um.
+    second_mode : SecondMode or None
+    voltage_gain_sigma : float
+        Applied-voltage gain is ``1 + N(0, sigma)``, drawn once per run. A model cannot know the
+        gain of a future run: for a fitted model this is the spread seen between sweeps.
+
+    Thermal relaxation is not here: it is the polarization kernel (``Polarization.thermal``).
+    """
+
+    amplifier_bandwidth_hz: float | None = None
+    sensor_delay_samples: float = 0.0
+    sensor_quadratic_per_um: float = 0.0
+    second_mode: SecondMode | None = None
+    voltage_gain_sigma: float = 0.0
+
+
+@dataclass(frozen=True)
+class Chain:
+    """:class:`Effects` prepared for one sample period: filter coefficients."""
+
+    effects: Effects
+    dt: float
+    lag_a: float
+    mode_b: FloatArray
+    mode_a: FloatArray
+
+    @property
+    def has_mode(self) -> bool:
+        return self.mode_b.size > 0
+
+    @property
+    def history(self) -> int:
+        """Samples of sensor history the delay line keeps."""
+        d = self.effects.sensor_delay_samples
+        return math.ceil(d) + 1 if d > 0 else 0
+
+
+def compile_chain(effects: Effects, dt: float) -> Chain:
+    """Coefficients of the amplifier lag and the second mode (exact ZOH) at period ``dt`` (s)."""
+    bw = effects.amplifier_bandwidth_hz
+    lag_a = 0.0 if bw is None else math.exp(-2 * math.pi * bw * dt)
+    b, a = np.zeros(0), np.zeros(0)
+    if effects.second_mode is not None:
+        m = effects.second_mode
+        w = 2 * math.pi * m.frequency_hz
+        bd, ad, _ = signal.cont2discrete(([m.gain * w * w], [1.0, 2 * m.damping_ratio * w, w * w]),
+                                         dt, method="zoh")
+        b, a = np.ravel(bd), np.asarray(ad, dtype=float)
+    return Chain(effects, dt, lag_a, b, a)
+
+
+def lag(chain: Chain, v: FloatArray, v_prev: float) -> tuple[FloatArray, float]:
+    """Amplifier output for commanded ``v`` (V) after output ``v_prev``; returns (v, last)."""
+    v = np.asarray(v, dtype=float)
+    if chain.lag_a == 0.0 or v.size == 0:
+        return v, float(v[-1]) if v.size else v_prev
+    a = chain.lag_a
+    y, _ = signal.lfilter([1 - a], [1.0, -a], v, zi=[a * v_prev])
+    return y, float(y[-1])
+
+
+def unlag(chain: Chain, v_app: FloatArray, v_prev: float) -> FloatArray:
+    """The commands that make the amplifier output ``v_app`` (V) from ``v_prev``: exact inverse of
+    :func:`lag`."""
+    v_app = np.asarray(v_app, dtype=float)
+    if chain.lag_a == 0.0:
+        return v_app
+    a = chain.lag_a
+    return (v_app - a * np.concatenate(([v_prev], v_app[:-1]))) / (1 - a)
+
+
+def mode_rest(chain: Chain, u0: float) -> FloatArray:
+    """Second-mode filter state at rest under a constant displacement ``u0`` (um)."""
+    if not chain.has_mode:
+        return np.zeros(2)
+    return signal.lfilter_zi(chain.mode_b, chain.mode_a) * u0
+
+
+def add_mode(chain: Chain, u: FloatArray, zi: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``u`` plus the second mode's displacement, and the filter state after it."""
+    if not chain.has_mode:
+        return u, zi
+    x, zf = signal.lfilter(chain.mode_b, chain.mode_a, u, zi=zi)
+    return u + x, zf
+
+
+def remove_mode(chain: Chain, w: FloatArray) -> FloatArray:
+    """The rod displacement whose sum with its second mode is ``w`` (um), from rest: the inverse
+    filter ``a / (a + b)`` (stable: its poles are the zeros of ``1 + mode``)."""
+    if not chain.has_mode:
+        return w
+    b = np.concatenate((np.zeros(chain.mode_a.size - chain.mode_b.size), chain.mode_b))
+    num, den = chain.mode_a, chain.mode_a + b
+    zi = signal.lfilter_zi(num, den) * w[0]
+    return signal.lfilter(num, den, w, zi=zi)[0]
+
+
+def gauge(effects: Effects, w: FloatArray) -> FloatArray:
+    """Sensor reading of displacement ``w`` (um)."""
+    c = effects.sensor_quadratic_per_um
+    return w + c * w * w if c else w
+
+
+def ungauge(effects: Effects, y: FloatArray) -> FloatArray:
+    """Displacement (um) whose reading is ``y``: the root of ``w + c w^2 = y`` nearest ``y``."""
+    c = effects.sensor_quadratic_per_um
+    if not c:
+        return y
+    disc = np.maximum(1.0 + 4.0 * c * y, 0.0)
+    return 2.0 * y / (1.0 + np.sqrt(disc))
+
+
+def delay(x: FloatArray, d: float, history: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``x`` seen ``d`` samples late; ``history`` holds the samples before ``x[0]`` (oldest first,
+    length :attr:`Chain.history`). Returns the delayed signal and the new history."""
+    if d <= 0:
+        return x, history
+    n = history.size
+    full = np.concatenate((history, x))
+    k = np.arange(n, full.size) - d
+    lo = np.floor(k).astype(int)
+    f = k - lo
+    out = (1 - f) * full[lo] + f * full[np.minimum(lo + 1, full.size - 1)]
+    return out, full[full.size - n:]
+
+
+def advance(y: FloatArray, d: float) -> FloatArray:
+    """``y`` seen ``d`` samples early (the last sample held): the inverse of :func:`delay` for
+    a trajectory known in advance."""
+    if d <= 0:
+        return y
+    k = np.arange(y.size) + d
+    return np.interp(k, np.arange(y.size), y)
+
+
+def measure(chain: Chain, u: FloatArray, mode_zi: FloatArray,
+            history: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Steps 4-6 of the chain: rod displacement ``u`` (um) to the recorded reading (um).
+
+    Returns the reading, the second-mode state and the delay history after the last sample.
+    """
+    w, zf = add_mode(chain, u, mode_zi)
+    y, hist = delay(gauge(chain.effects, w), chain.effects.sensor_delay_samples, history)
+    return y, zf, hist
+
+
+def plant_target(chain: Chain, reading_um: FloatArray) -> FloatArray:
+    """The rod displacement (um) that makes the recorder read ``reading_um``: steps 6, 5, 4
+    inverted for a trajectory known in advance."""
+    w = ungauge(chain.effects, advance(reading_um, chain.effects.sensor_delay_samples))
+    return remove_mode(chain, w)
