@@ -191,6 +191,13 @@ def advance(y: FloatArray, d: float) -> FloatArray:
     return np.interp(k, np.arange(y.size), y)
 
 
+def rest(chain: Chain, u0: float) -> tuple[FloatArray, FloatArray]:
+    """Second-mode state and delay history of a stage at rest at rod displacement ``u0`` (um)."""
+    zi = mode_rest(chain, u0)
+    w0, _ = add_mode(chain, np.array([u0]), zi)
+    return zi, np.full(chain.history, float(gauge(chain.effects, w0)[0]))
+
+
 def measure(chain: Chain, u: FloatArray, mode_zi: FloatArray,
             history: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Steps 4-6 of the chain: rod displacement ``u`` (um) to the recorded reading (um).

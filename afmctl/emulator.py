@@ -101,10 +101,7 @@ class Physics:
         """Power-on state: depoled, 0 V, at rest."""
         stage = td.initial(self.config.model)
         u0, _, _ = td.simulate(self.compiled, np.zeros(1), stage)
-        zi = fx.mode_rest(self.chain, float(u0[0]))
-        w0, _ = fx.add_mode(self.chain, u0, zi)
-        reading = float(fx.gauge(self.config.effects, w0)[0])
-        return PhysicsState(stage, 0.0, zi, np.full(self.chain.history, reading))
+        return PhysicsState(stage, 0.0, *fx.rest(self.chain, float(u0[0])))
 
     def gain(self, run_index: int) -> float:
         """Applied-voltage gain of run ``run_index`` (1 unless ``voltage_gain_drift``)."""

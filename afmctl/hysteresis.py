@@ -411,7 +411,7 @@ def _quiet_band(kind: int, st: np.ndarray, ec: np.ndarray, ei: np.ndarray) -> tu
 
 
 @nb.njit(cache=True)
-def _run(kind: int, e: np.ndarray, dt: float, st: np.ndarray, ec: np.ndarray, wc: np.ndarray,
+def _run(kind: int, e: np.ndarray, dt: np.ndarray, st: np.ndarray, ec: np.ndarray, wc: np.ndarray,
          ei: np.ndarray, cw: np.ndarray, scal: np.ndarray) -> np.ndarray:
     p = np.empty(e.size)
     lin = scal[5] / scal[0]
@@ -421,7 +421,7 @@ def _run(kind: int, e: np.ndarray, dt: float, st: np.ndarray, ec: np.ndarray, wc
         if lo < e[k] < hi:  # no relay can switch: only the reversible part E/eta changes
             p[k] = e[k] * lin + off + p_switch
             continue
-        p[k] = _step(kind, e[k], dt, st, st, ec, wc, ei, cw, scal)
+        p[k] = _step(kind, e[k], dt[k], st, st, ec, wc, ei, cw, scal)
         if kind != 2:
             p_switch = p[k] - (e[k] * lin + off)
             lo, hi = _quiet_band(kind, st, ec, ei)
@@ -429,7 +429,7 @@ def _run(kind: int, e: np.ndarray, dt: float, st: np.ndarray, ec: np.ndarray, wc
 
 
 def run(params: Polarization | Kernel, field_mv_m: ArrayLike, state: PolarizationState,
-        dt: float = 1e-4) -> tuple[FloatArray, PolarizationState]:
+        dt: float | FloatArray = 1e-4) -> tuple[FloatArray, PolarizationState]:
     """Polarization response to a field history (eq. (13), fast exact kernels).
 
     Parameters
@@ -439,8 +439,8 @@ def run(params: Polarization | Kernel, field_mv_m: ArrayLike, state: Polarizatio
         Field samples, MV/m; each is held for ``dt`` (only the thermal kernel depends on ``dt``).
     state : PolarizationState
         Memory before the first sample (see :func:`initial_state`).
-    dt : float
-        Sample period, s.
+    dt : float or ndarray, shape (N,)
+        Sample period, s, or how long each sample is held (a non-uniform record).
 
     Returns
     -------
@@ -461,7 +461,8 @@ def run(params: Polarization | Kernel, field_mv_m: ArrayLike, state: Polarizatio
         raise ValueError("state does not belong to this model (kernel or grid size differs)")
     e = np.ascontiguousarray(field_mv_m, dtype=float)
     st = state.copy_values()
-    p = _run(k.kind, e, float(dt), st, k.ec, k.wc, k.ei, k.cw, k.scal)
+    holds = np.ascontiguousarray(np.broadcast_to(np.asarray(dt, dtype=float), e.shape))
+    p = _run(k.kind, e, holds, st, k.ec, k.wc, k.ei, k.cw, k.scal)
     return p, PolarizationState(k.kind, st)
 
 

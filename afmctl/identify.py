@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize
 
+from afmctl import effects as fx
 from afmctl import parametrization as pz
 from afmctl import transducer as td
 from afmctl.sweeps import Sweep
@@ -253,12 +254,19 @@ def resolve_thickness(sweeps: Sequence[Sweep], settings: Settings) -> tuple[floa
 # ----------------------------------------------------------------------------------------------
 
 
-def predict(model: td.Transducer, voltage_v: FloatArray, dt: float) -> FloatArray:
-    """Displacement (um) the model predicts for a voltage history, from the depoled state with the
-    first voltage applied quasi-statically (as every sweep is assumed to start)."""
-    v = np.asarray(voltage_v, dtype=float)
+def predict(model: td.Transducer, voltage_v: FloatArray, dt: float,
+            gain: float = 1.0) -> FloatArray:
+    """Displacement (um) the model predicts for a voltage history, as the sensor reads it.
+
+    From the depoled state with the first voltage applied quasi-statically (as every sweep is
+    assumed to start), through the model's effects (:mod:`afmctl.effects`, none for a model of
+    the paper's form) with applied-voltage gain ``gain``.
+    """
+    chain = fx.compile_chain(model.effects, dt)
+    v = gain * np.asarray(voltage_v, dtype=float)
+    v, _ = fx.lag(chain, v, float(v[0]))
     u, _, _ = td.simulate(td.compile_model(model, dt), v, td.initial(model, "depoled", v[0]))
-    return u
+    return fx.measure(chain, u, *fx.rest(chain, float(u[0])))[0]
 
 
 def sweep_error(model: td.Transducer, sweep: Sweep, window_s: Window = None) -> SweepError:

@@ -131,16 +131,35 @@ def _discretize(fn: float, zeta: float, dt: float) -> rd.Discrete:
     return _DISC_CACHE[key]
 
 
+def sweep_columns(q: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
+    """``[L[Q], L[Q^2], 1]`` of one sweep at the full rate, shape (N, 3)."""
+    return np.column_stack((unit_filter(q, fn, zeta, dt), unit_filter(q * q, fn, zeta, dt),
+                            np.ones(q.size)))
+
+
 def columns(q_keep: Sequence[FloatArray], fn: float, zeta: float,
             preps: Sequence[Prepared]) -> FloatArray:
     """Design matrix ``[L[Q], L[Q^2], 1]`` on the residual samples of all sweeps, stacked."""
-    blocks = []
-    for q_k, prep in zip(q_keep, preps, strict=True):
-        q = _full_rate(prep, q_k)
-        lq, lq2 = unit_filter(q, fn, zeta, prep.dt), unit_filter(q * q, fn, zeta, prep.dt)
-        blocks.append(np.column_stack((lq[prep.mask], lq2[prep.mask],
-                                       np.ones(int(prep.mask.sum())))))
-    return np.vstack(blocks)
+    return np.vstack([sweep_columns(_full_rate(prep, q_k), fn, zeta, prep.dt)[prep.mask]
+                      for q_k, prep in zip(q_keep, preps, strict=True)])
+
+
+def hysteresis(theta: FloatArray, fields: Sequence[FloatArray], n_coercive: int,
+               thermal: hy.Thermal | None = None, n_interaction: int = 16,
+               holds: Sequence[FloatArray] | None = None) -> list[FloatArray]:
+    """``Q = E + r H(E)`` (MV/m) of (13) for each field history (MV/m), from the depoled state.
+
+    ``theta[:4]`` = (median E_c, sigma_ln, sigma_I, r). With ``thermal`` the kernel (10) runs on
+    an ``n_coercive`` x ``n_interaction`` grid, each sample held for ``holds`` (s).
+    """
+    median, sig, std, r = (float(v) for v in theta[:4])
+    pol = hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
+                          interaction=hy.Normal(std), n_coercive=n_coercive,
+                          n_interaction=n_interaction, thermal=thermal)
+    kern = hy.build_kernel(pol)
+    dts: Sequence[FloatArray | float] = holds if holds is not None else [1e-4] * len(fields)
+    return [hy.run(kern, e, hy.initial_state(pol), dt)[0] for e, dt in zip(fields, dts,
+                                                                            strict=True)]
 
 
 def project(a: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -149,7 +168,7 @@ def project(a: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
     return beta, y - a @ beta
 
 
-def _extent(preps: Sequence[Prepared]) -> tuple[float, float]:
+def extent(preps: Sequence[Prepared]) -> tuple[float, float]:
     """Peak field (MV/m) and Nyquist frequency (Hz) over the sweeps."""
     e_max = max(float(np.max(np.abs(p.field))) for p in preps) or 1.0
     return e_max, 0.5 / min(p.dt for p in preps)
@@ -188,6 +207,16 @@ def to_model(theta: FloatArray, beta: FloatArray, scales: Scales, thickness_um: 
     return build_model(pol, r, fn, zeta, beta, scales, thickness_um)
 
 
+def internal(model: td.Transducer) -> FloatArray:
+    """``log(theta)`` (order of :data:`THETA_NAMES`) of a lognormal/normal model: the inverse of
+    :func:`to_model` for the nonlinear parameters. ValueError for other densities."""
+    pol = model.polarization
+    if not isinstance(pol.coercive, hy.Lognormal) or not isinstance(pol.interaction, hy.Normal):
+        raise ValueError("needs a lognormal coercive-field and a normal interaction-field density")
+    return np.log([pol.coercive.median, pol.coercive.sigma, pol.interaction.std,
+                   pol.eta * pol.p_r, model.rod.natural_hz, model.rod.damping_ratio])
+
+
 def describe(model: td.Transducer) -> list[tuple[str, float, str]]:
     """The free physical parameters of ``model`` as (name, value, unit)."""
     pol, rod = model.polarization, model.rod
@@ -219,24 +248,16 @@ class LognormalSpace:
         self.x_scale: str | float = 1.0  # logs: unit steps are natural
         self.names = tuple(f"log_{n}" for n in THETA_NAMES)
 
-    def hysteresis(self, theta: FloatArray, n_coercive: int) -> list[FloatArray]:
-        """``Q = E + r H(E)`` (MV/m) on the kept samples of each sweep, eq. (13)."""
-        median, sig, std, r = (float(v) for v in theta[:4])
-        pol = hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
-                              interaction=hy.Normal(std), n_coercive=n_coercive)
-        kern = hy.build_kernel(pol)
-        return [hy.run(kern, p.field[p.keep], hy.initial_state(pol))[0] for p in self.preps]
-
     def design(self, x: FloatArray, n_coercive: int | None = None) -> FloatArray:
         theta = np.exp(x)
-        q = self.hysteresis(theta, n_coercive or self.n_coercive)
+        q = hysteresis(theta, [p.field[p.keep] for p in self.preps], n_coercive or self.n_coercive)
         return columns(q, theta[4], theta[5], self.preps)
 
     def penalty(self, x: FloatArray) -> FloatArray:
         return np.empty(0)
 
     def bounds(self) -> tuple[FloatArray, FloatArray]:
-        e_max, nyq = _extent(self.preps)
+        e_max, nyq = extent(self.preps)
         lo = np.log([1e-3 * e_max, 0.02, 1e-3 * e_max, 1e-4 * e_max, 0.5, 0.003])
         hi = np.log([10 * e_max, 3.0, 10 * e_max, 100 * e_max, 20 * nyq, 5.0])
         return lo, hi
@@ -244,7 +265,7 @@ class LognormalSpace:
     def start(self, cost: Callable[[FloatArray], float]) -> FloatArray:
         """Starting ``x`` from the data alone: the peak field scales a grid over coercive median
         and hysteretic weight (rod static), then a grid over the natural frequency."""
-        e_max, nyq = _extent(self.preps)
+        e_max, nyq = extent(self.preps)
         grid = [np.log([mf * e_max, 0.5, 0.3 * mf * e_max, rf * e_max, 0.45 * nyq, 0.5])
                 for mf in (0.2, 0.5, 0.9) for rf in (0.05, 0.2, 0.6)]
         best = min(grid, key=cost)
@@ -287,7 +308,7 @@ class DiscreteSpace:
         """Nodes spanning +-3 sigma_ln of a lognormal fit ``theta`` (capped at twice the peak
         field) and the starting ``x`` that reproduces it."""
         median, sig, std, r, fn, zeta = theta
-        e_max, _ = _extent(preps)
+        e_max, _ = extent(preps)
         lo, hi = median * math.exp(-3 * sig), min(median * math.exp(3 * sig), 2 * e_max)
         nodes = np.geomspace(lo, max(hi, 1.5 * lo), n_nodes)
         dens = np.exp(-0.5 * (np.log(nodes / median) / sig) ** 2) / nodes
@@ -342,7 +363,7 @@ class DiscreteSpace:
         return self.weight * np.diff(x[:self.nodes.size], 2)
 
     def bounds(self) -> tuple[FloatArray, FloatArray]:
-        e_max, nyq = _extent(self.preps)
+        e_max, nyq = extent(self.preps)
         k = self.nodes.size
         lo = np.concatenate((np.zeros(k), np.log([1e-3 * e_max, 0.5, 0.003])))
         hi = np.concatenate((np.full(k, 100 * e_max), np.log([10 * e_max, 20 * nyq, 5.0])))

@@ -1,0 +1,290 @@
+"""What the model gets wrong, why, and what an extended model gains on data the fit did not see.
+
+Given measured sweeps, :func:`diagnose`
+
+1. splits every sweep in time: the first half is fitted, the second half judged (the model state
+   is carried from the sweep's start through both: held-out periods, not held-out samples);
+2. fits the paper's model (``none``) and every candidate extension of :mod:`afmctl.extension`
+   on the first halves, each sweep weighing the same;
+3. measures each one's RMS error on the second halves (the root mean of the per-sweep mean squares)
+   and its *gain* = base / extended held-out RMS;
+4. names the candidate with the smallest held-out RMS whose gain clears the bar for the parameters
+   it adds (:func:`required_gain`), or ``none``;
+5. analyses the base model's residuals against time, field, field rate, frequency, amplitude,
+   turning points and between sweeps (:func:`residual_signature`), and refits the winner on all the
+   data for the model file.
+
+Pure numerics and data: files and plots are written by the CLI (:mod:`afmctl.cli`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl import extension as ext
+from afmctl import identify as idf
+from afmctl import parametrization as pz
+from afmctl import transducer as td
+from afmctl.sweeps import Sweep
+
+FloatArray = NDArray[np.float64]
+
+#: Physical reading of each cause, for the report.
+CAUSES = {
+    "none": "the paper's model explains the data to within what extensions can add",
+    "thermal-relaxation": "thermally activated switching (kernel (10)): dipoles switch before the "
+                          "coercive field and keep switching at constant field, so loops depend "
+                          "on the sweep rate",
+    "amplifier-lag": "the voltage amplifier's bandwidth: the stack voltage lags the command, "
+                     "more at higher frequency",
+    "sensor-delay": "latency of the displacement readback: the recorded displacement is late by a "
+                    "fixed time, an error proportional to the velocity",
+    "sensor-nonlinearity": "a quadratic gauge error of the displacement sensor: an error that "
+                           "depends on position only, the same at every frequency",
+    "second-mode": "a second mechanical mode of the stage, rung by the triangle's corners",
+    "voltage-gain-drift": "the true applied voltage differs between experiments (the paper's "
+                          "Section 6 hypothesis): each sweep has its own gain",
+}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Options of :func:`diagnose`: identification settings of the fits and the solver budget."""
+
+    identify: idf.Settings = idf.Settings()
+    max_nfev: int = 60
+    candidates: tuple[str, ...] = ext.NAMES
+
+
+def required_gain(n_params: int) -> float:
+    """Held-out gain an extension with ``n_params`` parameters must reach to be named: 1.1 for one
+    parameter and 0.05 more per further parameter (a parameter must buy at least 5 %)."""
+    return 1.1 + 0.05 * max(n_params - 1, 0) if n_params else 1.0
+
+
+@dataclass(frozen=True)
+class Judged:
+    """One candidate's fit and its error on the held-out halves, um."""
+
+    fitted: ext.Extended
+    n_params: int
+    heldout_rms_um: float
+    heldout_per_sweep_um: tuple[float, ...]
+    fit_seconds: float
+
+    def as_dict(self, base_rms: float) -> dict[str, Any]:
+        gain = base_rms / self.heldout_rms_um if self.heldout_rms_um > 0 else float("inf")
+        return {"heldout_rms_um": self.heldout_rms_um, "gain": gain,
+                "required_gain": required_gain(self.n_params), "parameters_added": self.n_params,
+                "heldout_rms_per_sweep_um": list(self.heldout_per_sweep_um),
+                "fitted": self.fitted.parameters, "fit_success": self.fitted.success,
+                "fit_seconds": round(self.fit_seconds, 2)}
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """Outcome of :func:`diagnose`."""
+
+    cause: str
+    base_rms_um: float
+    extended_rms_um: float
+    table: dict[str, Judged]
+    base_model: td.Transducer
+    extended_model: td.Transducer
+    signature: dict[str, Any]
+    seconds: float
+    files: tuple[str, ...]
+
+    @property
+    def gain(self) -> float:
+        return self.base_rms_um / self.extended_rms_um
+
+    def as_dict(self) -> dict[str, Any]:
+        """The ``diagnosis.json`` object (and ``--json`` output)."""
+        return {"cause": self.cause, "explanation": CAUSES[self.cause],
+                "base_rms_um": self.base_rms_um, "extended_rms_um": self.extended_rms_um,
+                "gain": self.gain, "evidence": self.evidence(),
+                "candidates": {k: j.as_dict(self.base_rms_um) for k, j in self.table.items()},
+                "residuals": self.signature, "sweeps": list(self.files),
+                "seconds": round(self.seconds, 2),
+                "method": "fit on the first half of every sweep, judged on the second half "
+                          "(state carried through); each sweep weighs the same"}
+
+    def evidence(self) -> str:
+        """One paragraph: why this cause (or none)."""
+        ranked = sorted(self.table.values(), key=lambda j: j.heldout_rms_um)
+        lines = [f"{j.fitted.name}: held-out {j.heldout_rms_um:.4f} um, gain "
+                 f"{self.base_rms_um / j.heldout_rms_um:.2f} (needs "
+                 f"{required_gain(j.n_params):.2f})" for j in ranked[:3]]
+        win = self.table[self.cause]
+        fitted = ", ".join(f"{k} = {v:.4g}" for k, v in win.fitted.parameters.items())
+        head = (f"{self.cause}: held-out RMS {self.base_rms_um:.4f} -> {self.extended_rms_um:.4f} "
+                f"um (gain {self.gain:.2f})" + (f" with {fitted}" if fitted else ""))
+        return head + "; best candidates: " + "; ".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------
+# held-out split and scoring
+# ----------------------------------------------------------------------------------------------
+
+
+def first_half(s: Sweep) -> Sweep:
+    """The fitted part of a sweep: its first half in time."""
+    h = s.time_s.size // 2
+    return Sweep(s.time_s[:h], s.voltage_v[:h], s.displacement_um[:h], s.meta, s.path)
+
+
+def heldout(model: td.Transducer, gains: Sequence[float],
+            sweeps: Sequence[Sweep]) -> tuple[float, tuple[float, ...]]:
+    """RMS error (um) on the second halves: overall (root mean of the per-sweep mean squares) and
+    per sweep. The model runs from each sweep's start with that sweep's gain."""
+    mse = []
+    for s, g in zip(sweeps, gains, strict=True):
+        h = s.time_s.size // 2
+        err = s.displacement_um - idf.predict(model, s.voltage_v, s.dt, g)
+        judged = s.mask(None)
+        judged[:h] = False
+        mse.append(float(np.mean(err[judged] ** 2)))
+    return math.sqrt(float(np.mean(mse))), tuple(math.sqrt(m) for m in mse)
+
+
+# ----------------------------------------------------------------------------------------------
+# residual analysis
+# ----------------------------------------------------------------------------------------------
+
+
+def _corr(a: FloatArray, b: FloatArray) -> float:
+    if a.size < 3 or np.std(a) == 0 or np.std(b) == 0:
+        return 0.0
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def _after_turns(v: FloatArray, dt: float, window_s: float) -> NDArray[np.bool_]:
+    """Samples within ``window_s`` after a turning point of the voltage."""
+    near = np.zeros(v.size, dtype=bool)
+    width = max(1, int(window_s / dt))
+    for k in pz.turning_points(v)[1:-1]:
+        near[k:k + width] = True
+    return near
+
+
+def residual_signature(model: td.Transducer, sweeps: Sequence[Sweep]) -> dict[str, Any]:
+    """How the model's residual (measured - predicted, um) depends on time, field, field rate,
+    frequency, amplitude, turning points, and how it differs between sweeps."""
+    per, r_all, e_all, rate_all = [], [], [], []
+    for s in sweeps:
+        m = s.mask(None)
+        r = (s.displacement_um - idf.predict(model, s.voltage_v, s.dt))[m]
+        e = (s.voltage_v / model.thickness_um)[m]
+        rate = np.gradient(s.voltage_v / model.thickness_um, s.dt)[m]
+        period = 1.0 / s.frequency_hz if s.frequency_hz else s.time_s[-1] - s.time_s[0]
+        turns = _after_turns(s.voltage_v, s.dt, 0.05 * period)[m]
+        rms_turn = float(np.sqrt(np.mean(r[turns] ** 2))) if turns.any() else float("nan")
+        per.append({
+            "file": s.path or s.name, "frequency_hz": s.frequency_hz,
+            "amplitude_V": float(np.ptp(s.voltage_v)), "rms_um": float(np.sqrt(np.mean(r ** 2))),
+            "mean_um": float(np.mean(r)), "corr_time": _corr(r, s.time_s[m]),
+            "corr_field": _corr(r, e), "corr_field_squared": _corr(r, e * e),
+            "corr_field_rate": _corr(r, rate),
+            "rms_after_turning_points_um": rms_turn,
+            "rms_elsewhere_um": float(np.sqrt(np.mean(r[~turns] ** 2))) if (~turns).any()
+            else float("nan")})
+        r_all.append(r)
+        e_all.append(e)
+        rate_all.append(rate)
+    r, e, rate = (np.concatenate(a) for a in (r_all, e_all, rate_all))
+    means = [p["mean_um"] for p in per]
+    freq = [(p["frequency_hz"], p["rms_um"]) for p in per if p["frequency_hz"]]
+    return {"sweeps": per, "corr_field": _corr(r, e), "corr_field_squared": _corr(r, e * e),
+            "corr_field_rate": _corr(r, rate),
+            "between_sweeps_mean_spread_um": float(np.ptp(means)) if len(means) > 1 else 0.0,
+            "rms_vs_frequency": sorted(freq, key=lambda t: t[0])}
+
+
+# ----------------------------------------------------------------------------------------------
+# the diagnosis
+# ----------------------------------------------------------------------------------------------
+
+
+def _spaces(sweeps: Sequence[Sweep], thickness: float,
+            settings: idf.Settings) -> tuple[list[pz.Prepared], pz.LognormalSpace, float]:
+    preps = [pz.prepare(s, thickness, settings.field_step, None) for s in sweeps]
+    base = pz.LognormalSpace(preps, settings.scales, settings.n_coercive_fit)
+    range_um = max(float(np.ptp(p.y)) for p in preps)
+    return preps, base, range_um
+
+
+def _fit(name: str, sweeps: Sequence[Sweep], x_start: FloatArray, thickness: float,
+         settings: Settings, z_start: FloatArray | None = None) -> tuple[ext.Extended, int]:
+    preps, base, range_um = _spaces(sweeps, thickness, settings.identify)
+    e_max, nyq = pz.extent(preps)
+    rod_hz = float(np.exp(x_start[4]))
+    cand = ext.catalogue(len(sweeps), e_max, nyq, rod_hz)[name]
+    if z_start is not None:
+        cand = ext.Candidate(cand.name, cand.labels, (tuple(z_start[6:]),), cand.lower,
+                             cand.upper)
+    space = ext.ExtendedSpace(cand, preps, base, settings.identify.field_step, range_um)
+    return ext.fit(space, x_start, thickness, settings.max_nfev), cand.n_params
+
+
+def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:
+    """The candidates tried on ``n_sweeps`` sweeps (gain drift needs two or more)."""
+    return [n for n in settings.candidates if n != "voltage-gain-drift" or n_sweeps >= 2]
+
+
+def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
+             start: td.Transducer | None = None,
+             progress: Callable[[str], None] | None = None) -> Diagnosis:
+    """Find what the model gets wrong on ``sweeps``, fit each candidate cause, name the winner.
+
+    Parameters
+    ----------
+    sweeps : sequence of Sweep
+        Measured sweeps (at least one; ``voltage-gain-drift`` needs two).
+    settings : Settings
+    start : Transducer, optional
+        A model (lognormal/normal densities) to start the fits from instead of identifying one.
+    progress : callable, optional
+        One-line progress messages.
+
+    Returns
+    -------
+    Diagnosis
+        Cause, base and extended held-out RMS (um), the per-candidate table, the base model and
+        the winner refitted on all the data.
+    """
+    say = progress or (lambda _m: None)
+    t0 = time.perf_counter()
+    thickness, _ = idf.resolve_thickness(sweeps, settings.identify)
+    halves = [first_half(s) for s in sweeps]
+    if start is None:
+        say("identifying the base model on the first halves ...")
+        x0 = idf.fit(halves, settings.identify).x
+    else:
+        x0 = pz.internal(start)
+    table: dict[str, Judged] = {}
+    for name in candidate_names(len(sweeps), settings):
+        t1 = time.perf_counter()
+        fitted, n_params = _fit(name, halves, x0, thickness, settings)
+        rms, per = heldout(fitted.model, fitted.gains, sweeps)
+        table[name] = Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
+        say(f"  {name:20s} held-out RMS {rms:.4f} um ({time.perf_counter() - t1:.1f} s)")
+    judged = table
+    base_rms = judged["none"].heldout_rms_um
+    cause = min((j for j in judged.values()
+                 if base_rms / j.heldout_rms_um >= required_gain(j.n_params)),
+                key=lambda j: j.heldout_rms_um, default=judged["none"]).fitted.name
+    win = judged[cause]
+    say(f"cause: {cause}; refitting it on all the data ...")
+    final, _ = _fit(cause, sweeps, win.fitted.x[:6], thickness, settings, win.fitted.x)
+    signature = residual_signature(judged["none"].fitted.model, sweeps)
+    return Diagnosis(cause, base_rms, win.heldout_rms_um, judged, judged["none"].fitted.model,
+                     final.model, signature, time.perf_counter() - t0,
+                     tuple(s.path or s.name for s in sweeps))
