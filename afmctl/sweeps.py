@@ -41,6 +41,8 @@ FloatArray = NDArray[np.float64]
 COLUMNS = ("time_s", "voltage_V", "displacement_um")
 STANDARD_FREQUENCIES_HZ = (0.279, 5.58, 27.9)
 UNIFORM_RTOL = 1e-3
+#: Fraction of a sweep's largest |V| whose first reach wipes out the memory of earlier history.
+MEMORY_REACH = 0.995
 
 
 class SweepFormatError(FileFormatError):
@@ -98,9 +100,12 @@ class Sweep:
         A sweep starts wherever earlier work left the stage. By the wiping-out property of the
         relay kernel (4), the first monotone excursion to the sweep's largest ``|V|`` erases the
         memory of every smaller one, so from that sample on a model started depoled and the stage
-        agree (up to hysterons that no field of the sweep can switch: a constant offset).
+        agree (up to hysterons that no field of the sweep can switch: a constant offset). The
+        excursion counts from :data:`MEMORY_REACH` of the largest ``|V|`` (peaks that differ in
+        their last digits must not push it to the last one).
         """
-        return int(np.argmax(np.abs(self.voltage_v)))
+        a = np.abs(self.voltage_v)
+        return int(np.argmax(a >= MEMORY_REACH * a.max()))
 
     def mask(self, window_s: tuple[float, float] | None) -> NDArray[np.bool_]:
         """Samples with ``t0 <= t < t1`` (all if ``window_s`` is None) from :attr:`memory_index`
