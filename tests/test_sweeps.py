@@ -87,5 +87,5 @@ def test_memory_index_is_the_first_full_excursion() -> None:
     assert s.memory_index == 2
     assert not s.mask(None)[:2].any() and s.mask(None)[2:].all()
     assert s.mask((0.5, 1.0)).sum() == 4  # the window and the memory both apply
-    v[-3] += 1e-6  # a later peak larger in its last digits does not move it
+    v[-3] -= 1e-6  # a later peak larger in its last digits does not move it
     assert sw.from_arrays(v, np.zeros(v.size), 8.0).memory_index == 2
