@@ -98,6 +98,7 @@ class Diagnosis:
     table: dict[str, Judged]
     base_model: td.Transducer
     extended_model: td.Transducer
+    extended_gains: tuple[float, ...]
     signature: dict[str, Any]
     seconds: float
     files: tuple[str, ...]
@@ -286,5 +287,32 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     final, _ = _fit(cause, sweeps, win.fitted.x[:6], thickness, settings, win.fitted.x)
     signature = residual_signature(judged["none"].fitted.model, sweeps)
     return Diagnosis(cause, base_rms, win.heldout_rms_um, judged, judged["none"].fitted.model,
-                     final.model, signature, time.perf_counter() - t0,
+                     final.model, final.gains, signature, time.perf_counter() - t0,
                      tuple(s.path or s.name for s in sweeps))
+
+
+def report(d: Diagnosis, figure: str) -> str:
+    """A short Markdown report: the cause, its evidence, the candidate table, the residuals."""
+    lines = [f"# afmctl diagnose: {d.cause}", "", CAUSES[d.cause] + ".", "", d.evidence() + ".",
+             "", "Held-out RMS: each candidate fitted on the first half of every sweep and judged "
+             "on the second half.", "",
+             "| candidate | parameters added | held-out RMS (um) | gain | needed | fitted |",
+             "|---|---:|---:|---:|---:|---|"]
+    for name, j in sorted(d.table.items(), key=lambda kv: kv[1].heldout_rms_um):
+        fitted = ", ".join(f"{k} = {v:.4g}" for k, v in j.fitted.parameters.items())
+        lines.append(f"| {name} | {j.n_params} | {j.heldout_rms_um:.4f} | "
+                     f"{d.base_rms_um / j.heldout_rms_um:.2f} | {required_gain(j.n_params):.2f} | "
+                     f"{fitted} |")
+    sig = d.signature
+    lines += ["", "## Residuals of the paper's model", "",
+              "| sweep | frequency (Hz) | RMS (um) | mean (um) | corr. field | corr. field rate "
+              "| RMS after turning points (um) | elsewhere (um) |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for p in sig["sweeps"]:
+        lines.append(f"| {p['file']} | {p['frequency_hz'] or ''} | {p['rms_um']:.4f} | "
+                     f"{p['mean_um']:.4f} | {p['corr_field']:.2f} | {p['corr_field_rate']:.2f} | "
+                     f"{p['rms_after_turning_points_um']:.4f} | {p['rms_elsewhere_um']:.4f} |")
+    lines += ["", f"All sweeps: correlation with field {sig['corr_field']:.2f}, with field squared "
+              f"{sig['corr_field_squared']:.2f}, with field rate {sig['corr_field_rate']:.2f}; "
+              f"spread of the per-sweep mean residual {sig['between_sweeps_mean_spread_um']:.4f} um.",
+              "", f"![residuals before and after]({figure})", ""]
+    return "\n".join(lines)

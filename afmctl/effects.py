@@ -127,6 +127,17 @@ def unlag(chain: Chain, v_app: FloatArray, v_prev: float) -> FloatArray:
     return (v_app - a * np.concatenate(([v_prev], v_app[:-1]))) / (1 - a)
 
 
+def commands(chain: Chain, v_app: FloatArray, v_prev: float) -> tuple[FloatArray, ...]:
+    """Candidate commands for the amplifier output ``v_app`` (V), best first: the exact
+    :func:`unlag` (its lead at a corner can exceed the slew limit), then a pure time advance by
+    the lag's time constant (its low-frequency phase, no slew amplification). One candidate
+    without a lag."""
+    if chain.lag_a == 0.0:
+        return (np.asarray(v_app, dtype=float),)
+    tau = -1.0 / math.log(chain.lag_a)  # samples
+    return unlag(chain, v_app, v_prev), advance(np.asarray(v_app, dtype=float), tau)
+
+
 def mode_rest(chain: Chain, u0: float) -> FloatArray:
     """Second-mode filter state at rest under a constant displacement ``u0`` (um)."""
     if not chain.has_mode:

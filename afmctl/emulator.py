@@ -35,12 +35,13 @@ sets error 10 and ramps to 0 V: it never plays stale table content.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from afmctl import effects as fx
+from afmctl import hysteresis as hy
 from afmctl import transducer as td
 from afmctl.profile import EmulatorConfig, Limits, Profile
 
@@ -159,6 +160,44 @@ class Physics:
         if noise_um is not None:
             u = u + noise_um
         return u, v_app, PhysicsState(stage, amp_v, zi, delay)
+
+
+#: Strength ranges of the effects :func:`hidden_effect` draws: each clearly above 20 nm of sensor
+#: noise on the standard triangle sweeps, yet physical (a 200-600 Hz amplifier, 0.2-0.8 ms latency,
+#: a 0.1-0.3 %/um gauge error, a 400-800 Hz mode, 1.5-3 % gain spread between runs).
+HIDDEN_RANGES = {
+    "thermal-relaxation": "field_scale 0.02-0.05 MV/m, attempt rate 30-300 /s (48 x 16 grid)",
+    "amplifier-lag": "bandwidth 200-600 Hz (log-uniform)",
+    "sensor-delay": "2-8 samples",
+    "sensor-nonlinearity": "|c| 1e-3 - 3e-3 /um, either sign",
+    "second-mode": "400-800 Hz, damping ratio 0.02-0.04, gain 0.3-0.5",
+    "voltage-gain-drift": "sigma 0.015-0.03",
+}
+
+
+def hidden_effect(cause: str, rng: np.random.Generator, config: EmulatorConfig) -> EmulatorConfig:
+    """``config`` carrying one effect of ``afmctl diagnose``'s catalogue (``none``: unchanged) with
+    a strength drawn from :data:`HIDDEN_RANGES`, to test that diagnose finds it."""
+    u = rng.uniform
+    if cause == "none":
+        return config
+    if cause == "thermal-relaxation":
+        pol = replace(config.model.polarization, n_coercive=48, n_interaction=16,
+                      thermal=hy.Thermal(u(0.02, 0.05), math.exp(u(math.log(30), math.log(300)))))
+        return replace(config, model=replace(config.model, polarization=pol))
+    effects = {
+        "amplifier-lag": lambda: fx.Effects(amplifier_bandwidth_hz=math.exp(
+            u(math.log(200), math.log(600)))),
+        "sensor-delay": lambda: fx.Effects(sensor_delay_samples=int(rng.integers(2, 9))),
+        "sensor-nonlinearity": lambda: fx.Effects(
+            sensor_quadratic_per_um=float(rng.choice([-1, 1])) * u(1e-3, 3e-3)),
+        "second-mode": lambda: fx.Effects(second_mode=fx.SecondMode(u(400, 800), u(0.02, 0.04),
+                                                                    u(0.3, 0.5))),
+        "voltage-gain-drift": lambda: fx.Effects(voltage_gain_sigma=u(0.015, 0.03)),
+    }
+    if cause not in effects:
+        raise ValueError(f"unknown cause {cause!r}")
+    return replace(config, effects=effects[cause]())
 
 
 def expected_readback(config: EmulatorConfig, sample_rate_hz: float, waveform_v: FloatArray,

@@ -51,3 +51,30 @@ def fit_figures(sweeps: list[Sweep], fitted_um: list[FloatArray],
     d.mkdir(parents=True, exist_ok=True)
     return [fit_figure(s, u, d / f"{_stem(s, i)}.png")
             for i, (s, u) in enumerate(zip(sweeps, fitted_um, strict=True))]
+
+
+def diagnosis_figure(sweeps: list[Sweep], before_um: list[FloatArray], after_um: list[FloatArray],
+                     thickness_um: float, labels: tuple[str, str], path: str | Path) -> Path:
+    """Residuals (measured - model, um) before and after the extension: per sweep against time
+    (left column) and against field (MV/m, right column); the judged second half is shaded."""
+    n = len(sweeps)
+    fig, ax = plt.subplots(n, 2, figsize=(12, 2.6 * n + 0.6), squeeze=False)
+    try:
+        for i, (s, b, a) in enumerate(zip(sweeps, before_um, after_um, strict=True)):
+            m = s.mask(None)
+            for u, lab, c in ((b, labels[0], "tab:red"), (a, labels[1], "tab:blue")):
+                r = np.where(m, s.displacement_um - u, np.nan)
+                ax[i, 0].plot(s.time_s, r, lw=0.6, color=c, label=lab)
+                ax[i, 1].plot(s.voltage_v / thickness_um, r, ".", ms=1, alpha=0.4, color=c)
+            ax[i, 0].axvspan(s.time_s[s.time_s.size // 2], s.time_s[-1], color="0.9", zorder=0)
+            ax[i, 0].set(ylabel="residual (um)", title=f"{s.name}: held-out half shaded")
+            ax[i, 1].set(ylabel="residual (um)", title=f"{s.name} against field")
+        ax[-1, 0].set(xlabel="time (s)")
+        ax[-1, 1].set(xlabel="field (MV/m)")
+        ax[0, 0].legend(loc="upper right", fontsize=8)
+        fig.tight_layout()
+        out = Path(path)
+        fig.savefig(out, dpi=100)
+    finally:
+        plt.close(fig)
+    return out

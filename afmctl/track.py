@@ -11,7 +11,9 @@ Planning turns a desired displacement trajectory into a voltage waveform per fil
   through it), the tracking part, then a raised-cosine ramp of the voltage back to the output.
   The inversion horizon ``d`` is searched upward from the smallest non-chattering one until the
   waveform passes the guard: a larger horizon rounds the triangle's corners instead of asking the
-  amplifier for an impulse.
+  amplifier for an impulse. A model with effects (:mod:`afmctl.effects`, from ``afmctl
+  diagnose``) has them inverted around Algorithm 3: the sensor's delay, gauge error and second
+  mode on the target, the amplifier's lag on the voltage.
 * ``linear``: the paper's baseline, a straight line fitted to the model's quasi-static
   voltage-displacement response over the same voltage range, with the same kind of ramps.
 
@@ -27,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import sawtooth
 
+from afmctl import effects as fx
 from afmctl import guard
 from afmctl import inverse as inv
 from afmctl import rod as rd
@@ -160,6 +163,8 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
     n_in = ramp_samples(desired.u_um[0] - u0, rate * abs(gain), dt)
     target = np.concatenate([raised_cosine(u0, desired.u_um[0], n_in), desired.u_um[1:],
                              desired.u_um[-1:]])
+    chain = fx.compile_chain(cm.model.effects, dt)
+    target = fx.plant_target(chain, target)  # what the rod must do for the sensor to read that
     e_max = max(abs(limits.v_min), abs(limits.v_max)) / cm.model.thickness_um
     d0 = rd.smooth_horizon(cm.disc)
     last: guard.LimitError | None = None
@@ -171,16 +176,16 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
             raise guard.LimitError(
                 f"the trajectory is out of the stage's reach: at sample {short} the model falls "
                 f"{res.error[short]:.3f} um short at the voltage limit; reduce amplitude or offset")
-        v = res.voltage(cm.model.thickness_um)
-        v_in, v_tr = np.concatenate([prefix_v, v[:n_in]]), v[n_in:]
-        out = raised_cosine(v_tr[-1], start_v, ramp_samples(v_tr[-1] - start_v, rate, dt))
-        wf = _assemble("inverse", desired, v_in, v_tr, out, d)
-        try:
-            guard.check(wf.voltage_v, dt, limits, start_v, "inverse waveform")
-        except guard.LimitError as exc:
-            last = exc
-            continue
-        return wf
+        for v in fx.commands(chain, res.voltage(cm.model.thickness_um), start_v):
+            v_in, v_tr = np.concatenate([prefix_v, v[:n_in]]), v[n_in:]
+            out = raised_cosine(v_tr[-1], start_v, ramp_samples(v_tr[-1] - start_v, rate, dt))
+            wf = _assemble("inverse", desired, v_in, v_tr, out, d)
+            try:
+                guard.check(wf.voltage_v, dt, limits, start_v, "inverse waveform")
+            except guard.LimitError as exc:
+                last = exc
+                continue
+            return wf
     raise guard.LimitError(f"no inversion horizon up to {HORIZONS[-1]} samples keeps the "
                            f"waveform within limits; last: {last}")
 

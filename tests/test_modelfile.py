@@ -9,6 +9,7 @@ import pytest
 
 from afmctl import hysteresis as hy
 from afmctl import modelfile
+from afmctl.effects import Effects, SecondMode
 from afmctl.transducer import Transducer
 
 
@@ -16,7 +17,10 @@ def test_round_trip(nominal: Transducer, tmp_path: Path) -> None:
     thermal = dc.replace(nominal, polarization=dc.replace(
         nominal.polarization, thermal=hy.Thermal(0.05, 100.0),
         coercive=hy.Discrete((0.5, 1.0, 1.5), (0.2, 0.6, 0.2))))
-    for m in (nominal, thermal):
+    effects = dc.replace(nominal, effects=Effects(
+        amplifier_bandwidth_hz=400.0, sensor_delay_samples=2.5, sensor_quadratic_per_um=-1e-3,
+        second_mode=SecondMode(600.0, 0.03, 0.4), voltage_gain_sigma=0.02))
+    for m in (nominal, thermal, effects):
         modelfile.write(m, tmp_path / "m.toml", header="test")
         assert modelfile.read(tmp_path / "m.toml") == m
     assert not list(tmp_path.glob("*.partial"))

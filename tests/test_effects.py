@@ -1,0 +1,99 @@
+"""The effects chain (afmctl.effects): each operator against its inverse, its analytic limit, and
+the emulator that runs it."""
+
+import math
+
+import numpy as np
+import pytest
+
+from afmctl import effects as fx
+
+DT = 1e-4
+
+
+def _signal(n: int = 3000) -> np.ndarray:
+    t = np.arange(n) * DT
+    return 20 * np.sin(2 * np.pi * 27.9 * t) + 5 * np.sin(2 * np.pi * 130 * t) + 3.0
+
+
+def test_unlag_inverts_lag_exactly() -> None:
+    chain = fx.compile_chain(fx.Effects(amplifier_bandwidth_hz=400.0), DT)
+    v = _signal()
+    out, last = fx.lag(chain, fx.unlag(chain, v, 1.0), 1.0)
+    np.testing.assert_allclose(out, v, atol=1e-9)
+    assert last == pytest.approx(v[-1])
+
+
+def test_lag_step_response_is_first_order() -> None:
+    bw = 250.0
+    chain = fx.compile_chain(fx.Effects(amplifier_bandwidth_hz=bw), DT)
+    y, _ = fx.lag(chain, np.ones(400), 0.0)
+    k = np.arange(1, 401)
+    np.testing.assert_allclose(y, 1 - np.exp(-2 * np.pi * bw * DT * k), atol=1e-12)
+
+
+def test_lag_advance_candidate_is_the_time_constant() -> None:
+    chain = fx.compile_chain(fx.Effects(amplifier_bandwidth_hz=500.0), DT)
+    exact, lead = fx.commands(chain, _signal(), 0.0)
+    tau = 1 / (2 * np.pi * 500.0) / DT  # samples
+    assert -1 / math.log(chain.lag_a) == pytest.approx(tau, rel=1e-3)
+    np.testing.assert_allclose(lead[100:-100], np.interp(np.arange(100, 2900) + tau,
+                                                         np.arange(3000), _signal()))
+    assert fx.commands(fx.compile_chain(fx.Effects(), DT), _signal(), 0.0)[0] is not None
+
+
+def test_remove_mode_inverts_add_mode() -> None:
+    chain = fx.compile_chain(fx.Effects(second_mode=fx.SecondMode(600.0, 0.03, 0.4)), DT)
+    u = _signal()
+    w, _ = fx.add_mode(chain, u, fx.mode_rest(chain, u[0]))
+    np.testing.assert_allclose(fx.remove_mode(chain, w), u, atol=1e-9)
+
+
+def test_second_mode_static_gain_and_resonance() -> None:
+    f, zeta, g = 700.0, 0.02, 0.3
+    chain = fx.compile_chain(fx.Effects(second_mode=fx.SecondMode(f, zeta, g)), DT)
+    w, _ = fx.add_mode(chain, np.ones(20000), fx.mode_rest(chain, 0.0))
+    assert w[-1] == pytest.approx(1 + g, rel=1e-9)  # x'' + ... = w^2 g u: static gain g
+    ring = w[:4000] - (1 + g)
+    peaks = np.flatnonzero((ring[1:-1] > ring[:-2]) & (ring[1:-1] > ring[2:])) + 1
+    period = np.mean(np.diff(peaks[:6])) * DT
+    assert 1 / period == pytest.approx(f * math.sqrt(1 - zeta ** 2), rel=0.01)
+
+
+def test_ungauge_inverts_gauge() -> None:
+    e = fx.Effects(sensor_quadratic_per_um=-2.5e-3)
+    w = np.linspace(-45, 50, 101)
+    np.testing.assert_allclose(fx.ungauge(e, fx.gauge(e, w)), w, atol=1e-10)
+
+
+@pytest.mark.parametrize(("d", "tol"), [(0.0, 1e-12), (3.0, 1e-12), (2.4, 0.02)])
+def test_delay_is_a_shift_and_advance_undoes_it(d: float, tol: float) -> None:
+    """Whole samples shift exactly; a fractional delay interpolates linearly (twice, there and
+    back: error <= f (1 - f) max|x''| / 2 per pass, 0.01 um for this signal)."""
+    chain = fx.compile_chain(fx.Effects(sensor_delay_samples=d), DT)
+    x = _signal()
+    _, hist = fx.rest(chain, float(x[0]))
+    late, _ = fx.delay(x, d, hist)
+    k = np.arange(x.size) - d
+    np.testing.assert_allclose(late[5:], np.interp(k, np.arange(x.size), x)[5:], atol=1e-12)
+    np.testing.assert_allclose(fx.advance(late, d)[5:-5], x[5:-5], atol=tol)
+
+
+def test_delay_in_pieces_equals_delay_at_once() -> None:
+    chain = fx.compile_chain(fx.Effects(sensor_delay_samples=2.5), DT)
+    x = _signal()
+    _, hist = fx.rest(chain, float(x[0]))
+    whole, _ = fx.delay(x, 2.5, hist)
+    a, h = fx.delay(x[:1234], 2.5, hist)
+    b, _ = fx.delay(x[1234:], 2.5, h)
+    np.testing.assert_allclose(np.concatenate((a, b)), whole, atol=1e-12)
+
+
+def test_plant_target_then_measure_reads_the_target() -> None:
+    e = fx.Effects(sensor_delay_samples=3.0, sensor_quadratic_per_um=1e-3,
+                   second_mode=fx.SecondMode(800.0, 0.03, 0.2))
+    chain = fx.compile_chain(e, DT)
+    want = _signal()
+    u = fx.plant_target(chain, want)
+    read, _, _ = fx.measure(chain, u, *fx.rest(chain, float(u[0])))
+    np.testing.assert_allclose(read[10:-10], want[10:-10], atol=1e-6)
