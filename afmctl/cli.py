@@ -37,6 +37,8 @@ class Group(click.Group):
         except Exception as exc:
             if type(exc).__name__ == "StageError" or isinstance(exc, TimeoutError | OSError):
                 fail(f"stage: {exc}", 1)
+            if isinstance(exc, RuntimeError):  # a failed calibration fit, a sweep that lost data
+                fail(str(exc), 1)
             raise
 
 

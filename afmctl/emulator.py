@@ -200,6 +200,23 @@ def hidden_effect(cause: str, rng: np.random.Generator, config: EmulatorConfig) 
     return replace(config, effects=effects[cause]())
 
 
+#: Seed of the batch of hidden-effect stages (tests and ``benchmarks/bench_diagnose.py``).
+HIDDEN_SEED = 20261122
+
+
+def hidden_cases(causes: tuple[str, ...], per_cause: int = 2) -> list[tuple[str, int]]:
+    """The batch: ``per_cause`` cases of each cause as (cause, case index)."""
+    return [(c, per_cause * i + k) for i, c in enumerate(causes) for k in range(per_cause)]
+
+
+def with_hidden_effect(profile: Profile, cause: str, index: int) -> Profile:
+    """``profile``'s emulated stage carrying ``cause`` at the strength drawn for case ``index``."""
+    if profile.emulator is None:
+        raise ValueError(f"profile {profile.name!r} has no [emulator] section")
+    rng = np.random.default_rng((HIDDEN_SEED, index))
+    return replace(profile, emulator=hidden_effect(cause, rng, profile.emulator))
+
+
 def expected_readback(config: EmulatorConfig, sample_rate_hz: float, waveform_v: FloatArray,
                       cycles: int = 1, run_index: int = 0,
                       state: PhysicsState | None = None) -> tuple[FloatArray, FloatArray]:

@@ -59,7 +59,7 @@ class Settings:
     window_s : (float, float) or None
         Only samples with ``t0 <= t < t1`` enter the residual; the model still runs from t = 0.
     n_coercive_fit : int
-        Coercive nodes used during the fit (the result uses ``Polarization``'s default 256).
+        Coercive nodes used during the fit (the identified model has 256).
     field_step : float
         During the fit the hysteresis is evaluated only where the field has moved by more than
         ``field_step`` times its peak magnitude since the last evaluated sample, and at every
@@ -97,7 +97,7 @@ def settings_from_table(t: Table | None, base: Settings = Settings()) -> Setting
     if t is None:
         return base
     thick = t.number("thickness_um", positive=True) if t.has("thickness_um") else base.thickness_um
-    return Settings(
+    settings = Settings(
         mass_kg=t.number("mass_kg", base.mass_kg, positive=True),
         p_r=t.number("p_r_C_per_m2", base.p_r, positive=True), thickness_um=thick,
         window_s=base.window_s, n_coercive_fit=t.integer("n_coercive_fit", base.n_coercive_fit,
@@ -107,6 +107,8 @@ def settings_from_table(t: Table | None, base: Settings = Settings()) -> Setting
         density=t.string("density", base.density, choices=("parametric", "discrete")),  # type: ignore[arg-type]
         n_density_nodes=t.integer("n_density_nodes", base.n_density_nodes, minimum=3),
         smoothing=t.number("smoothing", base.smoothing, nonnegative=True))
+    t.reject_unknown()
+    return settings
 
 
 @dataclass(frozen=True)

@@ -186,7 +186,9 @@ def read(path: str | Path) -> Transducer:
     """Read a model file; FileFormatError (naming file and key) on anything malformed."""
     t = load(path)
     t.check_format(FORMAT, FORMAT_VERSION)
-    return from_table(t)
+    model = from_table(t)
+    t.reject_unknown()
+    return model
 
 
 def write(model: Transducer, path: str | Path, header: str = "") -> None:

@@ -140,16 +140,9 @@ def _emulator(t: Table) -> EmulatorConfig:
     return EmulatorConfig(
         model=model, effects=effects, noise_um=t.number("noise_um", 0.0, nonnegative=True),
         seed=t.integer("seed", 0), watchdog_s=t.number("watchdog_s", 0.0, nonnegative=True),
-        read_only=_boolean(t, "read_only"),
+        read_only=t.boolean("read_only"),
         recorder_capacity=t.integer("recorder_capacity", 262144, minimum=1),
         table_capacity=t.integer("table_capacity", 65536, minimum=1))
-
-
-def _boolean(t: Table, key: str) -> bool:
-    val = t.data.get(key, False)
-    if not isinstance(val, bool):
-        raise t.fail(key, f"expected true or false, got {val!r}")
-    return val
 
 
 def from_table(t: Table) -> Profile:
@@ -172,8 +165,12 @@ def from_table(t: Table) -> Profile:
 
 
 def load_profile(path: str | Path) -> Profile:
-    """Read and validate a profile; FileFormatError (naming file and key) on anything wrong."""
-    return from_table(load(path))
+    """Read and validate a profile; FileFormatError (naming file and key) on anything wrong,
+    including a key no reader knows (``[identify]`` is :mod:`afmctl.identify`'s)."""
+    t = load(path)
+    profile = from_table(t)
+    t.reject_unknown(ignore=("identify",))
+    return profile
 
 
 def shipped_profile(name: str) -> Profile:

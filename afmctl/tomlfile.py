@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,17 @@ class Table:
 
     data: Mapping[str, Any]
     where: str
+    _read: set[str] = field(default_factory=set, repr=False, compare=False)
+    _children: list[Table] = field(default_factory=list, repr=False, compare=False)
+
+    def reject_unknown(self, ignore: tuple[str, ...] = ()) -> None:
+        """FileFormatError naming the first key that no reader asked for (a misspelt key must
+        not silently become its default), in this table and every sub-table read."""
+        for key in self.data:
+            if key not in self._read and key not in ignore:
+                raise self.fail(key, "unknown key (misspelt?)")
+        for child in self._children:
+            child.reject_unknown()
 
     def _key(self, key: str) -> str:
         return f"{self.where}.{key}" if not self.where.endswith(":") else f"{self.where} {key}"
@@ -47,6 +58,7 @@ class Table:
             raise self.fail("format_version", f"this afmctl reads version {version}, got {ver}")
 
     def has(self, key: str) -> bool:
+        self._read.add(key)
         return key in self.data
 
     def table(self, key: str, required: bool = True) -> Table | None:
@@ -57,10 +69,14 @@ class Table:
         val = self.data[key]
         if not isinstance(val, Mapping):
             raise self.fail(key, f"expected a table, got {type(val).__name__}")
-        return Table(val, self._key(key))
+        self._read.add(key)
+        child = Table(val, self._key(key))
+        self._children.append(child)
+        return child
 
     def number(self, key: str, default: float | None = None, *, positive: bool = False,
                nonnegative: bool = False) -> float:
+        self._read.add(key)
         if key not in self.data:
             if default is None:
                 raise self.fail(key, "missing key")
@@ -78,6 +94,7 @@ class Table:
         return val
 
     def integer(self, key: str, default: int | None = None, *, minimum: int = 0) -> int:
+        self._read.add(key)
         if key not in self.data:
             if default is None:
                 raise self.fail(key, "missing key")
@@ -91,6 +108,7 @@ class Table:
 
     def string(self, key: str, default: str | None = None,
                choices: tuple[str, ...] | None = None) -> str:
+        self._read.add(key)
         if key not in self.data:
             if default is None:
                 raise self.fail(key, "missing key")
@@ -102,7 +120,15 @@ class Table:
             raise self.fail(key, f"must be one of {', '.join(choices)}, got {val!r}")
         return val
 
+    def boolean(self, key: str, default: bool = False) -> bool:
+        self._read.add(key)
+        val = self.data.get(key, default)
+        if not isinstance(val, bool):
+            raise self.fail(key, f"expected true or false, got {val!r}")
+        return val
+
     def numbers(self, key: str) -> tuple[float, ...]:
+        self._read.add(key)
         val = self.data.get(key)
         if not isinstance(val, list) or not val:
             raise self.fail(key, "expected a non-empty array of numbers")

@@ -35,6 +35,9 @@ def test_round_trip(nominal: Transducer, tmp_path: Path) -> None:
     ('type = "lognormal"', 'type = "cauchy"', "type"),
     ("format_version = 1", "format_version = 9", "format_version"),
     ("[rod]", "[rodd]", "rod"),
+    ("sigma_ln = 0.4", "sigma_ln = 0.4\nsigma = 0.9", "coercive.sigma"),  # misspelt, not ignored
+    ("[rod]", "[effects.amplifier_lag]\nbandwidth_Hz = 4e2\nbandwith_Hz = 3e2\n[rod]",
+     "amplifier_lag.bandwith_Hz"),
 ])
 def test_malformed_files_name_the_key(nominal: Transducer, tmp_path: Path, old: str, new: str,
                                       key: str) -> None:

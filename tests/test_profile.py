@@ -72,6 +72,9 @@ BAD = [
     ("scale_um_per_unit = 1.0", "", "sensor.scale_um_per_unit"),
     ("# [emulator.effects.sensor_delay]", "[emulator.effects.sensor_dealy]",
      "emulator.effects.sensor_dealy"),
+    ("noise_um = 0.02", "noise = 0.02", "emulator.noise"),  # misspelt: not silently 0
+    ("offset_um = 0.0", "ofset_um = 5.0", "sensor.ofset_um"),
+    ("m_kg = 0.05", "m_kg = 0.05\nmass_kg = 0.05", "emulator.model.rod.mass_kg"),
 ]
 
 
