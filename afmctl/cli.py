@@ -305,6 +305,10 @@ def track_options(fn: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--dry-run", is_flag=True,
                      help="Send nothing; write DIR/waveform_<filter>.csv."),
         click.option("--json", "as_json", is_flag=True, help="Print the summary JSON on stdout."),
+        click.option("--condition/--no-condition", default=True, show_default=True,
+                     help="Start with one slow full-range excursion (to the profile's voltage "
+                          "limits) that wipes out the stage's hysteresis memory; --no-condition "
+                          "skips it and assumes a depoled stage (less accurate)."),
     ]
     for opt in reversed(opts):
         fn = opt(fn)
@@ -368,7 +372,7 @@ def _out_dir(out_dir: str | None) -> Path:
 
 def _track(make_desired: Callable[[float], Any], profile_path: str | None,
            model_path: str | None, filters: str, out_dir: str | None, dry_run: bool,
-           as_json: bool) -> None:
+           as_json: bool, condition: bool) -> None:
     from afmctl import calibration, experiment, modelfile
     from afmctl import track as trk
     prof = load_profile_or_exit(profile_path)
@@ -378,7 +382,7 @@ def _track(make_desired: Callable[[float], Any], profile_path: str | None,
     if dry_run:
         model = (modelfile.read(model_path) if model_path
                  else calibration.cached_model(prof, None, say))
-        plans = trk.plan(model, desired, prof.limits, 0.0, wanted)
+        plans = trk.plan(model, desired, prof.limits, 0.0, wanted, condition=condition)
         out = _out_dir(out_dir)
         for name in wanted:
             experiment.write_waveform_csv(plans[name], out / f"waveform_{name}.csv")
@@ -390,7 +394,7 @@ def _track(make_desired: Callable[[float], Any], profile_path: str | None,
                  else calibration.cached_model(prof, stage, say))
         start_v = stage.voltage()
         click.echo(f"planning {desired.label} from {start_v:.3f} V ...", err=True)
-        plans = trk.plan(model, desired, prof.limits, start_v, wanted)
+        plans = trk.plan(model, desired, prof.limits, start_v, wanted, condition=condition)
         out = _out_dir(out_dir)
         meta = {"profile": prof.name, "model": model_path or "identified (cached)",
                 "trajectory": desired.label, "sample_rate_Hz": prof.sample_rate_hz}

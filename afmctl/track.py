@@ -220,16 +220,17 @@ def plan_linear(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v
 
 def plan(model: tr.Transducer, desired: Desired, limits: guard.Limits, start_v: float = 0.0,
          filters: tuple[str, ...] = ("inverse", "linear"),
-         state: tr.StageState | None = None) -> dict[str, Waveform]:
+         state: tr.StageState | None = None, condition: bool = True) -> dict[str, Waveform]:
     """Guard-checked waveforms for each filter (the inverse one first: it sets the voltage range).
 
     ``state`` is the model state at the stage's present output ``start_v`` (default: depoled, then
     ``start_v`` applied); the conditioning that starts every waveform makes the result insensitive
-    to it for every hysteron the voltage limits can switch.
+    to it for every hysteron the voltage limits can switch. ``condition=False`` leaves it out (no
+    full-stroke excursion, e.g. with a tip near the sample): the model then assumes ``state``.
     """
     cm = tr.compile_model(model, desired.dt_s)
     st0 = state if state is not None else tr.initial(model, voltage_v=start_v)
-    pre = conditioning(limits, start_v, desired.dt_s)
+    pre = conditioning(limits, start_v, desired.dt_s) if condition else np.zeros(0)
     _, _, st = tr.simulate(cm, pre, st0)
     wf = plan_inverse(cm, desired, limits, start_v, st, pre)
     out = {"inverse": wf} if "inverse" in filters else {}

@@ -96,3 +96,39 @@ def test_file_trajectory_dry_run(model_file: Path, tmp_path: Path) -> None:
     assert res.exit_code == 0, res.output
     assert (tmp_path / "o" / "waveform_inverse.csv").exists()
     assert not (tmp_path / "o" / "waveform_linear.csv").exists()
+
+
+def test_no_condition_skips_the_full_range_excursion(model_file: Path, tmp_path: Path) -> None:
+    peaks = {}
+    for flag in ("--condition", "--no-condition"):
+        out = tmp_path / flag
+        res = CliRunner().invoke(main, ["track", "triangle", "--freq", "27.9", "--amplitude",
+                                        "27.04", "--periods", "1", "--model", str(model_file),
+                                        "--filter", "inverse", "--dry-run", "--out", str(out),
+                                        flag])
+        assert res.exit_code == 0, res.output
+        peaks[flag] = np.nanmax(np.abs(read_waveform(out / "waveform_inverse.csv")[1][:, 2]))
+    assert peaks["--condition"] == pytest.approx(150.0)
+    assert peaks["--no-condition"] < 100.0
+
+
+def test_track_run_writes_files_and_json(model_file: Path, tmp_path: Path) -> None:
+    """A full run on the embedded emulated stage (real time): run files, run.csv, summary.json,
+    track.png and the --json summary agree."""
+    import json
+    out = tmp_path / "run"
+    res = CliRunner().invoke(main, ["track", "triangle", "--freq", "27.9", "--amplitude", "27.04",
+                                    "--periods", "2", "--model", str(model_file), "--out",
+                                    str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout.strip().splitlines()[-1])
+    assert json.loads((out / "summary.json").read_text()) == doc
+    assert set(doc["filters"]) == {"inverse", "linear"} and doc["ratio_linear_over_inverse"] > 10
+    for name in ("inverse", "linear"):
+        f = doc["filters"][name]
+        assert f["complete"] and f["missing_samples"] == 0 and f["rms_um"] > 0
+    header = (out / "run.csv").read_text().splitlines()[0].split(",")
+    assert header == ["time_s", "desired_um", "voltage_V_inverse", "displacement_um_inverse",
+                      "voltage_V_linear", "displacement_um_linear"]
+    assert (out / "track.png").stat().st_size > 10_000
+    assert (out / "run_inverse.csv").exists() and (out / "run_linear.csv").exists()
