@@ -6,7 +6,10 @@ Matplotlib with the Agg backend (no display); every figure is closed after savin
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -25,23 +28,30 @@ def _stem(sweep: Sweep, index: int) -> str:
     return f"{index:02d}_" + re.sub(r"[^A-Za-z0-9_.-]+", "_", base)
 
 
+@contextmanager
+def _saved(path: str | Path, dpi: int, *grid: int, **kw: Any) -> Iterator[Any]:
+    """``plt.subplots(*grid, **kw)``'s axes; the figure is saved to ``path`` when the block ends
+    without error, and closed in any case."""
+    fig, ax = plt.subplots(*grid, **kw)
+    try:
+        yield ax
+        fig.tight_layout()
+        fig.savefig(Path(path), dpi=dpi)
+    finally:
+        plt.close(fig)
+
+
 def fit_figure(sweep: Sweep, fitted_um: FloatArray, path: str | Path) -> Path:
     """Save a two-panel PNG: displacement (um) vs voltage (V), measured and fitted, and the
     residual measured - fitted (um) vs time (s). Returns the path written."""
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
-    try:
+    with _saved(path, 110, 1, 2, figsize=(11, 4.2)) as (ax1, ax2):
         ax1.plot(sweep.voltage_v, sweep.displacement_um, ".", ms=1.5, alpha=0.4, label="measured")
         ax1.plot(sweep.voltage_v, fitted_um, "-", lw=1.0, label="model")
         ax1.set(xlabel="voltage (V)", ylabel="displacement (um)", title=sweep.name)
         ax1.legend(loc="upper left")
         ax2.plot(sweep.time_s, sweep.displacement_um - fitted_um, lw=0.6)
         ax2.set(xlabel="time (s)", ylabel="residual (um)", title="measured - model")
-        fig.tight_layout()
-        out = Path(path)
-        fig.savefig(out, dpi=110)
-    finally:
-        plt.close(fig)
-    return out
+    return Path(path)
 
 
 def fit_figures(sweeps: list[Sweep], fitted_um: list[FloatArray],
@@ -58,8 +68,7 @@ def diagnosis_figure(sweeps: list[Sweep], before_um: list[FloatArray], after_um:
     """Residuals (measured - model, um) before and after the extension: per sweep against time
     (left column) and against field (MV/m, right column); the judged second half is shaded."""
     n = len(sweeps)
-    fig, ax = plt.subplots(n, 2, figsize=(12, 2.6 * n + 0.6), squeeze=False)
-    try:
+    with _saved(path, 100, n, 2, figsize=(12, 2.6 * n + 0.6), squeeze=False) as ax:
         for i, (s, b, a) in enumerate(zip(sweeps, before_um, after_um, strict=True)):
             m = s.mask(None)
             for u, lab, c in ((b, labels[0], "tab:red"), (a, labels[1], "tab:blue")):
@@ -72,9 +81,4 @@ def diagnosis_figure(sweeps: list[Sweep], before_um: list[FloatArray], after_um:
         ax[-1, 0].set(xlabel="time (s)")
         ax[-1, 1].set(xlabel="field (MV/m)")
         ax[0, 0].legend(loc="upper right", fontsize=8)
-        fig.tight_layout()
-        out = Path(path)
-        fig.savefig(out, dpi=100)
-    finally:
-        plt.close(fig)
-    return out
+    return Path(path)
