@@ -56,6 +56,18 @@ def triangle(freq: float, amp_um: float, periods: float) -> np.ndarray:
     return 0.5 * amp_um * sawtooth(2 * np.pi * freq * t + np.pi / 2, 0.5)
 
 
+@pytest.mark.parametrize("freq", [0.279, 27.9])
+def test_algorithm2_round_trip_on_triangles(nominal: tr.Transducer, freq: float) -> None:
+    """P triangles over 80 % of the polarization the stage's +-150 V reach, 2 periods at 10 kHz."""
+    pol = nominal.polarization
+    p_max, _ = hy.saturation(pol, 150.0 / nominal.thickness_um)
+    p_in = triangle(freq, 1.6 * p_max, 2)
+    res = inv.algorithm2(pol, p_in, hy.initial_state(pol), tol=1e-9)
+    p_out, _ = hy.run(pol, res.field_mv_m, hy.initial_state(pol))
+    assert np.max(np.abs(p_in - p_out)) <= 1e-9
+    assert np.max(np.abs(res.field_mv_m)) < 1.5  # inside the stage's field range
+
+
 def tracking_error(model: tr.Transducer, ud: np.ndarray, res: inv.Inversion,
                    skip: int) -> np.ndarray:
     cm = tr.compile_model(model, DT)
