@@ -66,6 +66,9 @@ __all__ = ["StageError", "Recording", "Status", "Stage", "StageBase", "BlockCall
 BlockCallback = Callable[[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]], None]
 #: Seconds a run may overrun its nominal duration before :meth:`StageBase.play` gives up.
 PLAY_MARGIN_S = 5.0
+#: Upload rate, samples/s, that :meth:`StageBase.play`'s default timeout allows for the first table
+#: (below every transport's measured rate).
+UPLOAD_FLOOR = 2000.0
 T = TypeVar("T")
 
 
@@ -295,7 +298,9 @@ class StageBase(abc.ABC):
         poll_s : float
             Pause between polls when there is nothing to do, s.
         timeout_s : float, optional
-            Longest time the run may take from its start, s (default: N / sample rate + 5 s).
+            Longest time the call may take, s (default: N / sample rate + 5 s + the first table
+            at :data:`UPLOAD_FLOOR`). No request is attempted after it; the call then ends within
+            one request's timeout, plus the safe state's retries.
 
         Returns
         -------
@@ -376,6 +381,9 @@ class _Player:
 
     def run(self, timeout_s: float | None) -> Recording:
         stage, n = self.stage, self.v.size
+        limit = (n / stage.profile.sample_rate_hz + PLAY_MARGIN_S + self.table / UPLOAD_FLOOR
+                 if timeout_s is None else timeout_s)
+        deadline = stage._deadline = time.monotonic() + limit
         stage.upload(self.v[:self.table])
         self.written = self.table
         if n > self.table or n > self.recorder_capacity:
@@ -383,8 +391,6 @@ class _Player:
         else:
             stage._start_checked(lambda: stage._start(1))
         stage._last_run_samples = n
-        limit = n / stage.profile.sample_rate_hz + PLAY_MARGIN_S if timeout_s is None else timeout_s
-        deadline = stage._deadline = time.monotonic() + limit
         while True:
             st = stage.status()
             self._heartbeat(st)
