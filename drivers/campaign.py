@@ -143,7 +143,7 @@ def applied_violations(log: NDArray[np.float64], limits: guard.Limits, rate_hz: 
     """Samples of an applied log (from power-on at 0 V) outside the range or over the slew."""
     v = np.concatenate([[0.0], log])
     outside = ~np.isfinite(v) | (v < limits.v_min) | (v > limits.v_max)
-    steep = np.abs(np.diff(v)) > limits.max_step_v(rate_hz) * (1 + 1e-6)
+    steep = ~(np.abs(np.diff(v)) <= limits.max_step_v(rate_hz) * (1 + 1e-6))  # NaN counts
     return int(outside.sum() + steep.sum())
 
 

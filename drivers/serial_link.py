@@ -37,8 +37,8 @@ class SerialStage(StageBase):
 
     Every command is framed with a tag and a CRC (protocol v3); a reply with a bad CRC or another
     tag is discarded (counted in ``discarded``) and the host keeps waiting for its own until the
-    timeout. A failed idempotent command is retried after a resync: the input is flushed and a
-    port this stage opened is reopened.
+    timeout. A failed idempotent command is retried after a resync: the input is flushed, and a
+    port this stage opened is reopened if the link itself failed (e.g. a socket closed).
     """
 
     upload_chunk = 200
@@ -52,6 +52,7 @@ class SerialStage(StageBase):
         self.timeout_s = cfg.timeout_s if timeout_s is None else timeout_s
         self._buf = bytearray()
         self._tag = 0
+        self._broken = False
         #: Reply lines thrown away (bad CRC, another request's tag).
         self.discarded = 0
         self._open = None if port is not None else (
@@ -72,6 +73,7 @@ class SerialStage(StageBase):
             try:
                 chunk = self._port.read(max(1, self._port.in_waiting))
             except (serial.SerialException, OSError) as exc:
+                self._broken = True
                 raise StageError(-1, f"link failed: {exc}") from None
             if not chunk and time.monotonic() > deadline:
                 raise StageError(-1, f"no complete reply within {self.timeout_s:g} s")
@@ -88,6 +90,7 @@ class SerialStage(StageBase):
         except serial.SerialTimeoutException:
             raise StageError(-1, f"write timed out after {self.timeout_s:g} s") from None
         except (serial.SerialException, OSError) as exc:
+            self._broken = True
             raise StageError(-1, f"link failed: {exc}") from None
         deadline = time.monotonic() + self.timeout_s
         while True:
@@ -101,11 +104,13 @@ class SerialStage(StageBase):
             self.discarded += 1
 
     def _resync(self) -> None:
+        """Forget buffered input; reopen a port this stage opened if the link itself failed."""
         self._buf.clear()
-        if self._open is None:
-            if hasattr(self._port, "reset_input_buffer"):
+        if self._open is None or not self._broken:
+            with contextlib.suppress(serial.SerialException, OSError, AttributeError):
                 self._port.reset_input_buffer()
             return
+        self._broken = False
         with contextlib.suppress(serial.SerialException, OSError):
             self._port.close()
         try:

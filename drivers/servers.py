@@ -67,11 +67,17 @@ class FaultInjector:
     """
 
     def __init__(self, faults: WireFaults) -> None:
-        self.faults = faults
         self.counts: Counter[str] = Counter()
-        self._cumulative = np.cumsum(faults.probabilities())
-        self._rng = np.random.default_rng(faults.seed)
         self._lock = threading.Lock()
+        self.reconfigure(faults)
+
+    def reconfigure(self, faults: WireFaults) -> None:
+        """Inject ``faults`` from now on (a new generator from its seed). The Modbus relays exist
+        only if faults were active when their server started."""
+        with self._lock:
+            self.faults = faults
+            self._cumulative = np.cumsum(faults.probabilities())
+            self._rng = np.random.default_rng(faults.seed)
 
     @property
     def active(self) -> bool:
