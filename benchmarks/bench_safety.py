@@ -28,8 +28,8 @@ from drivers import campaign  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print only the JSON line on stdout")
-    ap.add_argument("--inprocess", type=int, default=9000, help="trials without a wire")
-    ap.add_argument("--per-wire", type=int, default=250, help="trials over each faulty wire")
+    ap.add_argument("--inprocess", type=int, default=8400, help="trials without a wire")
+    ap.add_argument("--per-wire", type=int, default=400, help="trials over each faulty wire")
     ap.add_argument("--watchdog", type=int, default=100, help="watchdog trials")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()

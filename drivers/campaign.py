@@ -57,10 +57,10 @@ WIRE_TIMEOUT_S = 0.15
 #: Faults per reply on each wire. RTU has no transaction id, so its delays stay below the timeout
 #: (a reply later than that could be taken for the next one: see docs/protocol.md).
 WIRE_FAULTS = {
-    "serial-socket": WireFaults(0.01, 0.01, 0.01, 0.005, 0.01, delay_s=0.2, seed=1),
-    "serial-pty": WireFaults(0.01, 0.01, 0.01, 0.005, 0.01, delay_s=0.2, seed=2),
-    "modbus-tcp": WireFaults(0.01, 0.01, 0.01, 0.005, 0.01, delay_s=0.2, seed=3),
-    "modbus-rtu": WireFaults(0.01, 0.01, 0.01, 0.005, 0.01, delay_s=0.05, seed=4),
+    "serial-socket": WireFaults(0.02, 0.02, 0.02, 0.01, 0.02, delay_s=0.2, seed=1),
+    "serial-pty": WireFaults(0.02, 0.02, 0.02, 0.01, 0.02, delay_s=0.2, seed=2),
+    "modbus-tcp": WireFaults(0.02, 0.02, 0.02, 0.01, 0.02, delay_s=0.2, seed=3),
+    "modbus-rtu": WireFaults(0.02, 0.02, 0.02, 0.01, 0.02, delay_s=0.05, seed=4),
 }
 
 Progress = Callable[[str], None]
