@@ -155,6 +155,34 @@ class EmulatedDevice:
         self._ticker.join()
 
 
+class _SelectLoop:
+    """A select loop (``_serve``) in a background thread, started on entry and stopped on exit
+    through a wake-up pipe (``_wake_r`` is among the descriptors it watches)."""
+
+    def __init__(self, name: str) -> None:
+        self._wake_r, self._wake_w = os.pipe()
+        self._thread = threading.Thread(target=self._serve, name=name, daemon=True)
+
+    def _serve(self) -> None:
+        raise NotImplementedError
+
+    def _select(self, watch: list[Any]) -> list[Any] | None:
+        """The ready ones of ``watch``; None when asked to stop."""
+        ready, _, _ = select.select([self._wake_r, *watch], [], [])
+        return None if self._wake_r in ready else ready
+
+    def __enter__(self) -> Any:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        os.write(self._wake_w, b"x")
+        self._thread.join()
+        for fd in (self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
 # -- ASCII protocol on a pty or a socket ----------------------------------------------------------
 def open_pty() -> tuple[int, int, str]:
     """A raw pty pair: (master fd, slave fd, slave path)."""
@@ -163,7 +191,7 @@ def open_pty() -> tuple[int, int, str]:
     return master, slave, os.ttyname(slave)
 
 
-class SerialServer:
+class SerialServer(_SelectLoop):
     """The ASCII protocol on a pty (``where="pty"``) or ``socket://host:port``.
 
     Attributes
@@ -173,8 +201,8 @@ class SerialServer:
     """
 
     def __init__(self, device: EmulatedDevice, where: str = "pty") -> None:
+        super().__init__("ascii-server")
         self.device = device
-        self._wake_r, self._wake_w = os.pipe()
         self._listener: socket.socket | None = None
         self._fds: dict[int, bytearray] = {}
         self._owned: list[int] = []
@@ -190,16 +218,13 @@ class SerialServer:
         else:
             raise ValueError(f"serve the serial protocol on 'pty' or 'socket://host:port', "
                              f"not {where!r}")
-        self._thread = threading.Thread(target=self._serve, name="ascii-server", daemon=True)
 
     def __enter__(self) -> SerialServer:
-        self._thread.start()
-        return self
+        return super().__enter__()  # type: ignore[no-any-return]
 
     def __exit__(self, *exc: object) -> None:
-        os.write(self._wake_w, b"x")
-        self._thread.join()
-        for fd in [*self._fds, *self._owned, self._wake_r, self._wake_w]:
+        super().__exit__(*exc)
+        for fd in [*self._fds, *self._owned]:
             with contextlib.suppress(OSError):
                 os.close(fd)
         if self._listener is not None:
@@ -207,9 +232,8 @@ class SerialServer:
 
     def _serve(self) -> None:
         while True:
-            watch = [self._wake_r, *self._fds] + ([self._listener] if self._listener else [])
-            ready, _, _ = select.select(watch, [], [])
-            if self._wake_r in ready:
+            ready = self._select([*self._fds] + ([self._listener] if self._listener else []))
+            if ready is None:
                 return
             for r in ready:
                 if r is self._listener:
@@ -424,7 +448,7 @@ def _relay(data: bytes, to_fd: int, faults: FaultInjector | None,
     return True
 
 
-class PtyBridge:
+class PtyBridge(_SelectLoop):
     """Two raw ptys joined master to master: a null-modem cable with a path at each end.
 
     With ``faults``, what the device end sends is relayed through them (a "disconnect" loses
@@ -432,18 +456,17 @@ class PtyBridge:
     """
 
     def __init__(self, faults: FaultInjector | None = None) -> None:
+        super().__init__("pty-bridge")
         self._a = open_pty()
         self._b = open_pty()
         self.device_path, self.host_path = self._a[2], self._b[2]
         self.faults = faults
-        self._wake_r, self._wake_w = os.pipe()
-        self._thread = threading.Thread(target=self._pump, name="pty-bridge", daemon=True)
 
-    def _pump(self) -> None:
+    def _serve(self) -> None:
         peer = {self._a[0]: self._b[0], self._b[0]: self._a[0]}
         while True:
-            ready, _, _ = select.select([self._wake_r, *peer], [], [])
-            if self._wake_r in ready:
+            ready = self._select(list(peer))
+            if ready is None:
                 return
             for fd in ready:
                 try:
@@ -459,13 +482,11 @@ class PtyBridge:
                         termios.tcflush(self._b[1], termios.TCIFLUSH)
 
     def __enter__(self) -> PtyBridge:
-        self._thread.start()
-        return self
+        return super().__enter__()  # type: ignore[no-any-return]
 
     def __exit__(self, *exc: object) -> None:
-        os.write(self._wake_w, b"x")
-        self._thread.join()
-        for fd in (*self._a[:2], *self._b[:2], self._wake_r, self._wake_w):
+        super().__exit__(*exc)
+        for fd in (*self._a[:2], *self._b[:2]):
             with contextlib.suppress(OSError):
                 os.close(fd)
 
@@ -474,7 +495,7 @@ class PtyBridge:
 MBAP_BYTES = 7
 
 
-class FaultyTcpProxy:
+class FaultyTcpProxy(_SelectLoop):
     """A TCP relay on ``host:port`` in front of a server at 127.0.0.1:``backend_port``, injecting
     ``faults`` into what the server sends (a "disconnect" closes both connections).
 
@@ -485,18 +506,17 @@ class FaultyTcpProxy:
 
     def __init__(self, backend_port: int, faults: FaultInjector, host: str = LOOPBACK,
                  port: int = 0) -> None:
+        super().__init__("tcp-fault-proxy")
         self.backend_port, self.faults = backend_port, faults
         self._listener = socket.create_server((host, port))
         self.port: int = self._listener.getsockname()[1]
         self._peer: dict[socket.socket, socket.socket] = {}
         self._toward_host: set[socket.socket] = set()
-        self._wake_r, self._wake_w = os.pipe()
-        self._thread = threading.Thread(target=self._pump, name="tcp-fault-proxy", daemon=True)
 
-    def _pump(self) -> None:
+    def _serve(self) -> None:
         while True:
-            ready, _, _ = select.select([self._wake_r, self._listener, *self._peer], [], [])
-            if self._wake_r in ready:
+            ready = self._select([self._listener, *self._peer])
+            if ready is None:
                 return
             for r in ready:
                 if r is self._listener:
@@ -536,18 +556,14 @@ class FaultyTcpProxy:
             s.close()
 
     def __enter__(self) -> FaultyTcpProxy:
-        self._thread.start()
-        return self
+        return super().__enter__()  # type: ignore[no-any-return]
 
     def __exit__(self, *exc: object) -> None:
-        os.write(self._wake_w, b"x")
-        self._thread.join()
+        super().__exit__(*exc)
         for sock in list(self._peer):
             if sock in self._peer:
                 self._hang_up(sock)
         self._listener.close()
-        for fd in (self._wake_r, self._wake_w):
-            os.close(fd)
 
 
 @contextlib.contextmanager
