@@ -23,7 +23,9 @@ Protocols (pure, no I/O)
 Device side
     :mod:`afmctl.emulator` is the device's logic (model in device time, limits, watchdog; no I/O).
     :mod:`drivers.servers` serves it over a pty or socket (ASCII), Modbus TCP and Modbus RTU, on
-    127.0.0.1 unless told otherwise.
+    127.0.0.1 unless told otherwise, optionally injecting wire faults into its replies.
+    :mod:`drivers.campaign` is the safety campaign run against it (random waveforms, faults,
+    watchdog trials; ``benchmarks/bench_safety.py`` and the tests).
 
 Units on this interface: volts, micrometres (sensor scale and offset from the profile applied),
 seconds. Every blocking call has a timeout; none can hang.
@@ -145,8 +147,15 @@ class StageBase(abc.ABC):
                 if exc.code != -1 or i == tries - 1:
                     raise
             self.retries += 1
-            self._resync()
+            self._resync_quietly()
         raise AssertionError("unreachable")
+
+    def _resync_quietly(self) -> None:
+        """:meth:`_resync`; if that fails too, the next attempt will find out."""
+        try:
+            self._resync()
+        except StageError:
+            pass
 
     def _start_checked(self, start: Callable[[], None]) -> None:
         """Start a run (not idempotent): on a transport failure, read the run counter to learn
@@ -159,7 +168,7 @@ class StageBase(abc.ABC):
                 if exc.code != -1 or i == self.attempts - 1:
                     raise
             self.retries += 1
-            self._resync()
+            self._resync_quietly()
             if self.status().run_count > before:
                 return None
         return None

@@ -202,3 +202,24 @@ def test_sigint_to_track_leaves_the_stage_safe_and_a_valid_partial_file(
     assert run.seq.tolist() == list(range(n))  # every sample: measured, or marked missing
     played = np.isfinite(run.displacement_um)
     assert 2000 < played.sum() < n and not played[played.argmin():].any()
+
+
+def test_servers_bind_loopback_by_default(profile: Profile) -> None:
+    faulty = WireFaults(drop=1e-12)
+    with sv.EmulatedDevice(profile, faults=faulty) as dev, sv.ModbusTcpServer(dev) as tcp, \
+            sv.SerialServer(dev, "socket://:0") as ser:
+        assert tcp._proxy is not None
+        assert tcp._proxy._listener.getsockname()[0] == "127.0.0.1"
+        assert tcp._server.transport.sockets[0].getsockname()[0] == "127.0.0.1"
+        assert ser.url.startswith("socket://127.0.0.1:")
+
+
+def test_profile_faults_table(tmp_path: Path) -> None:
+    from afmctl.profile import load_profile
+    path = tmp_path / "p.toml"
+    path.write_text((ROOT / "afmctl/profiles/emulated.toml").read_text()
+                    + "\n[emulator.faults]\ndrop = 0.1\ngarbage = 0.05\ndelay_s = 0.3\nseed = 4\n")
+    cfg = load_profile(path).emulator
+    assert cfg is not None
+    assert cfg.faults == WireFaults(drop=0.1, garbage=0.05, delay_s=0.3, seed=4)
+    assert cfg.faults.active and not WireFaults().active
