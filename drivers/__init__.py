@@ -133,6 +133,7 @@ class StageBase(abc.ABC):
     def _resync(self) -> None:
         """Bring the link back to a known state after a failed request (discard anything in
         flight, reconnect). The default does nothing (no wire)."""
+        return None
 
     def _retrying(self, attempt: Callable[[], T], idempotent: bool = True) -> T:
         """``attempt()``, repeated after a resync on transport failure (``StageError`` -1) up to

@@ -1,17 +1,18 @@
 """The serial (ASCII) protocol, version 3: codec and the device-side interpreter. No I/O.
 
-Lines are ASCII, terminated by LF (a trailing CR is ignored). Version 3 frames every line: the
-host ends a command with `` #<tag> *<crc>`` and the device ends its reply with the same tag and
-its own CRC (:func:`frame`, :func:`unframe`; CRC-32 of everything before `` *``, 8 hex digits).
-The device discards a command whose CRC is wrong (unanswered: the host times out and retries);
-the host discards a reply whose CRC is wrong or whose tag is not the one it is waiting for (a
-corrupted line, line noise, or a late reply to an earlier request). Commands without a CRC
-(typed by hand) are still accepted. Every command line gets exactly one reply line: ``OK`` for a set command, the value(s) for a query, or ``ERR <code> <text>`` when the
-device refuses (codes in :data:`afmctl.emulator.ERRORS`; the last one also stays readable with
-``ERR?``). Numbers are decimal; float32 values are written with 9 significant digits, which
-round-trips float32 exactly; a sample not yet recorded (or overwritten) is ``nan``. Version 2 adds
-streaming: ``WGS <n>`` plays ``n`` samples through the table as a ring while the host keeps writing
-``WAV`` blocks at global indices; ``DRR?`` and ``POS?`` use global indices. See ``docs/protocol.md``.
+Lines are ASCII, terminated by LF (a trailing CR is ignored). Version 3 frames every line: the host
+ends a command with `` #<tag> *<crc>`` and the device ends its reply with the same tag and its own
+CRC (:func:`frame`, :func:`unframe`; CRC-32 of everything before `` *``, 8 hex digits). The device
+discards a command whose CRC is wrong (unanswered: the host times out and retries); the host
+discards a reply whose CRC is wrong or whose tag is not the one it is waiting for (a corrupted
+line, line noise, or a late reply to an earlier request). Commands without a CRC (typed by hand)
+are still accepted. Every command line gets exactly one reply line: ``OK`` for a set command, the
+value(s) for a query, or ``ERR <code> <text>`` when the device refuses (codes in
+:data:`afmctl.emulator.ERRORS`; the last one also stays readable with ``ERR?``). Numbers are
+decimal; float32 values are written with 9 significant digits, which round-trips float32 exactly; a
+sample not yet recorded (or overwritten) is ``nan``. Version 2 adds streaming: ``WGS <n>`` plays
+``n`` samples through the table as a ring while the host keeps writing ``WAV`` blocks at global
+indices; ``DRR?`` and ``POS?`` use global indices. See ``docs/protocol.md``.
 """
 
 from __future__ import annotations

@@ -36,7 +36,6 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
-
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer

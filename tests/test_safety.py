@@ -13,14 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import stage_on
-from test_drivers import Blocks, ScriptedPort, long_waveform, small_buffers
+from test_drivers import ScriptedPort, long_waveform, small_buffers
 
 from afmctl import experiment, guard, modelfile, runfile, track
-from afmctl.profile import ModbusTcpTransport, Profile, WireFaults
+from afmctl.profile import Profile, WireFaults
 from drivers import StageError, campaign
 from drivers import ascii_protocol as ap
 from drivers import servers as sv
-from drivers.modbus_link import ModbusStage
 from drivers.serial_link import SerialStage
 
 ROOT = Path(__file__).resolve().parents[1]
