@@ -47,7 +47,7 @@ from afmctl.profile import EmulatorConfig, Limits, Profile
 
 FloatArray = NDArray[np.float64]
 
-IDENTITY = "afmctl,emulated-stage,0,protocol-2"
+IDENTITY = "afmctl,emulated-stage,0,protocol-3"
 SETTLE_S = 0.005
 MIN_RATE_HZ, MAX_RATE_HZ = 100.0, 100_000.0
 #: Longest stream, samples (2**29: what the 16-bit Modbus recorder page addresses; 14.9 h at 10 kHz).

@@ -5,8 +5,8 @@ A profile says how to reach the stage (``[transport]``), what the amplifier may 
 sensor's raw reading maps to displacement (``[sensor]``), the layer thickness (``[stack]``) and the
 sample rate. An emulated stage also carries ``[emulator]``: its true model (``[emulator.model]``,
 exactly the model-file schema of :mod:`afmctl.modelfile`), noise, seed, watchdog and optional
-effects that the base model lacks (``[emulator.effects.*]``, each off unless present). Every key
-carries its unit.
+effects that the base model lacks (``[emulator.effects.*]``, each off unless present) and wire
+faults its servers inject (``[emulator.faults]``, off unless present). Every key carries its unit.
 
 Every problem raises :class:`~afmctl.tomlfile.FileFormatError` naming the file and key, which the
 CLI prints as one line with exit status 2. Shipped profiles live in ``afmctl/profiles/`` (package
@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
+from typing import ClassVar
 
 from afmctl import hysteresis as hy
 from afmctl import modelfile
@@ -68,8 +69,46 @@ Transport = EmulatedTransport | SerialTransport | ModbusTcpTransport | ModbusRtu
 
 
 @dataclass(frozen=True)
+class WireFaults:
+    """Faults the emulated device's servers inject into their replies (all off by default).
+
+    Each reply (a line of the serial protocol, or a chunk of bytes the device sends on Modbus TCP
+    or RTU) suffers at most one fault, drawn from a generator seeded with ``seed``.
+
+    Parameters
+    ----------
+    drop, corrupt, delay, disconnect, garbage : float
+        Probability per reply of: never sending it; flipping one of its bytes (on RTU: a bad CRC);
+        sending it ``delay_s`` late; dropping the connection instead (a socket is closed, a pty
+        loses what it had buffered); sending random bytes before it. Their sum must be <= 1.
+    delay_s : float
+        How late a delayed reply is, s.
+    seed : int
+    """
+
+    drop: float = 0.0
+    corrupt: float = 0.0
+    delay: float = 0.0
+    disconnect: float = 0.0
+    garbage: float = 0.0
+    delay_s: float = 0.05
+    seed: int = 0
+
+    KINDS: ClassVar[tuple[str, ...]] = ("drop", "corrupt", "delay", "disconnect", "garbage")
+
+    def probabilities(self) -> tuple[float, ...]:
+        """Probabilities of :attr:`KINDS`, in that order."""
+        return tuple(getattr(self, k) for k in self.KINDS)
+
+    @property
+    def active(self) -> bool:
+        return any(p > 0 for p in self.probabilities())
+
+
+@dataclass(frozen=True)
 class EmulatorConfig:
-    """The emulated device's truth: model, effects, noise (um, 1 sigma), seed, watchdog (s)."""
+    """The emulated device's truth: model, effects, noise (um, 1 sigma), seed, watchdog (s), and
+    the wire faults its servers inject."""
 
     model: Transducer
     effects: Effects = field(default_factory=Effects)
@@ -79,6 +118,7 @@ class EmulatorConfig:
     read_only: bool = False
     recorder_capacity: int = 262144
     table_capacity: int = 65536
+    faults: WireFaults = field(default_factory=WireFaults)
 
 
 @dataclass(frozen=True)
@@ -128,6 +168,23 @@ def _limits(t: Table, sample_rate_hz: float) -> Limits:
     return Limits(v_min, v_max, slew, current, cap)
 
 
+def _faults(t: Table | None) -> WireFaults:
+    if t is None:
+        return WireFaults()
+    known = {*WireFaults.KINDS, "delay_s", "seed"}
+    for key in t.data:
+        if key not in known:
+            raise t.fail(key, f"unknown key (known: {', '.join(sorted(known))})")
+    probs = {k: t.number(k, 0.0, nonnegative=True) for k in WireFaults.KINDS}
+    for k, p in probs.items():
+        if p > 1:
+            raise t.fail(k, f"a probability must be <= 1, got {p}")
+    if sum(probs.values()) > 1:
+        raise t.fail("drop", "the fault probabilities must sum to <= 1")
+    return WireFaults(**probs, delay_s=t.number("delay_s", 0.05, nonnegative=True),
+                      seed=t.integer("seed", 0))
+
+
 def _emulator(t: Table) -> EmulatorConfig:
     mt = t.table("model")
     assert mt is not None
@@ -142,7 +199,8 @@ def _emulator(t: Table) -> EmulatorConfig:
         seed=t.integer("seed", 0), watchdog_s=t.number("watchdog_s", 0.0, nonnegative=True),
         read_only=t.boolean("read_only"),
         recorder_capacity=t.integer("recorder_capacity", 262144, minimum=1),
-        table_capacity=t.integer("table_capacity", 65536, minimum=1))
+        table_capacity=t.integer("table_capacity", 65536, minimum=1),
+        faults=_faults(t.table("faults", required=False)))
 
 
 def from_table(t: Table) -> Profile:

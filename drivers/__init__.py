@@ -23,10 +23,22 @@ Protocols (pure, no I/O)
 Device side
     :mod:`afmctl.emulator` is the device's logic (model in device time, limits, watchdog; no I/O).
     :mod:`drivers.servers` serves it over a pty or socket (ASCII), Modbus TCP and Modbus RTU, on
-    127.0.0.1 unless told otherwise.
+    127.0.0.1 unless told otherwise, optionally injecting wire faults into its replies.
+    :mod:`drivers.campaign` is the safety campaign run against it (random waveforms, faults,
+    watchdog trials; ``benchmarks/bench_safety.py`` and the tests).
 
 Units on this interface: volts, micrometres (sensor scale and offset from the profile applied),
 seconds. Every blocking call has a timeout; none can hang.
+
+Reliability: a request that fails on the wire (no reply within the timeout, a corrupted or stale
+reply, a dropped connection: :class:`StageError` code -1) is retried up to :attr:`StageBase.attempts`
+times, after a resync of the link, when repeating it is harmless: queries, absolute set points,
+heartbeats, stop, safe state, and table blocks (they carry their sample index). A start is never
+repeated blindly: the host reads the run counter to see whether it took effect. A refusal by the
+device (code >= 1) is never retried. During :meth:`~StageBase.play` no attempt starts after the
+run's deadline, and recorder reads that still fail leave their samples missing (NaN,
+``valid=False``) instead of failing the run; every sample of the waveform is handed to ``on_block``
+exactly once, measured or missing, whatever happens.
 """
 
 from __future__ import annotations
@@ -35,11 +47,12 @@ import abc
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from afmctl import guard
 from afmctl.emulator import ERRORS, Status
 from afmctl.profile import (
     EmulatedTransport,
@@ -55,6 +68,10 @@ __all__ = ["StageError", "Recording", "Status", "Stage", "StageBase", "BlockCall
 BlockCallback = Callable[[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]], None]
 #: Seconds a run may overrun its nominal duration before :meth:`StageBase.play` gives up.
 PLAY_MARGIN_S = 5.0
+#: Upload rate, samples/s, that :meth:`StageBase.play`'s default timeout allows for the first table
+#: (below every transport's measured rate).
+UPLOAD_FLOOR = 2000.0
+T = TypeVar("T")
 
 
 class StageError(RuntimeError):
@@ -102,10 +119,60 @@ class StageBase(abc.ABC):
     #: Samples per upload and readback request of this transport.
     upload_chunk: int = 61
     read_chunk: int = 62
+    #: Attempts per idempotent request (the first one included).
+    attempts: int = 4
 
     def __init__(self, profile: Profile) -> None:
         self.profile = profile
         self._last_run_samples = 0
+        #: Requests repeated after a transport failure, since the stage was opened.
+        self.retries = 0
+        self._deadline: float | None = None
+
+    # -- reliability -----------------------------------------------------------------------------
+    def _resync(self) -> None:
+        """Bring the link back to a known state after a failed request (discard anything in
+        flight, reconnect). The default does nothing (no wire)."""
+        return None
+
+    def _retrying(self, attempt: Callable[[], T], idempotent: bool = True) -> T:
+        """``attempt()``, repeated after a resync on transport failure (``StageError`` -1) up to
+        :attr:`attempts` times if ``idempotent``; no attempt starts after a run's deadline."""
+        tries = self.attempts if idempotent else 1
+        for i in range(tries):
+            if self._deadline is not None and time.monotonic() > self._deadline:
+                raise TimeoutError("the run's deadline passed while the link was failing")
+            try:
+                return attempt()
+            except StageError as exc:
+                if exc.code != -1 or i == tries - 1:
+                    raise
+            self.retries += 1
+            self._resync_quietly()
+        raise AssertionError("unreachable")
+
+    def _resync_quietly(self) -> None:
+        """:meth:`_resync`; if that fails too, the next attempt will find out."""
+        try:
+            self._resync()
+        except StageError:
+            pass
+
+    def _start_checked(self, start: Callable[[], None]) -> None:
+        """Start a run (not idempotent): on a transport failure, read the run counter to learn
+        whether the start took effect before trying again."""
+        before = self.status().run_count
+        for i in range(self.attempts):
+            try:
+                return start()
+            except StageError as exc:
+                if exc.code != -1 or i == self.attempts - 1:
+                    raise
+            self.retries += 1
+            self._resync_quietly()
+            if self.status().run_count > before:
+                return None
+        return None
 
     # -- primitives ----------------------------------------------------------------------------
     @abc.abstractmethod
@@ -181,7 +248,7 @@ class StageBase(abc.ABC):
     def run(self, cycles: int = 1) -> None:
         """Start clocking out the table ``cycles`` times, recording every sample."""
         n = self.status().table_length
-        self._start(cycles)
+        self._start_checked(lambda: self._start(cycles))
         self._last_run_samples = n * cycles
 
     def wait(self, timeout_s: float | None = None, poll_s: float = 0.02) -> Status:
@@ -198,14 +265,22 @@ class StageBase(abc.ABC):
             time.sleep(poll_s)
         return st
 
-    def read_recorder(self, n: int | None = None, first: int = 0) -> Recording:
-        """Read ``n`` recorder samples from global index ``first`` (default: all of the last run)."""
+    def read_recorder(self, n: int | None = None, first: int = 0, *,
+                      missing_ok: bool = False) -> Recording:
+        """Read ``n`` recorder samples from global index ``first`` (default: all of the last run).
+
+        With ``missing_ok``, a request that still fails on the wire after its retries leaves its
+        samples missing (NaN, ``valid=False``) instead of raising."""
         n = self._last_run_samples - first if n is None else n
         raw = np.full(n, np.nan, dtype=np.float32)
         volt = np.full(n, np.nan, dtype=np.float32)
         for off in range(0, n, self.read_chunk):
             m = min(self.read_chunk, n - off)
-            raw[off:off + m], volt[off:off + m] = self._read_chunk(first + off, m)
+            try:
+                raw[off:off + m], volt[off:off + m] = self._read_chunk(first + off, m)
+            except StageError as exc:
+                if not (missing_ok and exc.code == -1):
+                    raise
         u = self.profile.sensor_scale_um * raw.astype(float) + self.profile.sensor_offset_um
         v = volt.astype(float)
         return Recording(v, u, np.isfinite(u) & np.isfinite(v))
@@ -228,11 +303,14 @@ class StageBase(abc.ABC):
         on_block : callable, optional
             ``on_block(first_index, voltage_v, displacement_um, valid)`` with arrays of shape (m,)
             (V, um, bool) for samples ``first_index .. first_index+m-1``; the blocks are in order,
-            contiguous and cover ``[0, N)`` (up to where the run stopped, if it failed).
+            contiguous and cover ``[0, N)`` even when the run fails (samples never measured are
+            NaN with ``valid=False``), unless on_block itself raised.
         poll_s : float
             Pause between polls when there is nothing to do, s.
         timeout_s : float, optional
-            Longest time the run may take from its start, s (default: N / sample rate + 5 s).
+            Longest time the call may take, s (default: N / sample rate + 5 s + the first table
+            at :data:`UPLOAD_FLOOR`). No request is attempted after it; the call then ends within
+            one request's timeout, plus the safe state's retries.
 
         Returns
         -------
@@ -248,15 +326,32 @@ class StageBase(abc.ABC):
         TimeoutError
             The run did not finish by its deadline.
 
-        On any exception or KeyboardInterrupt the stage is put in the safe state (best effort: a
-        failure of that is attached as a note) and the exception propagates.
+        afmctl.guard.LimitError
+            The waveform (as float32, from the stage's present output) violates the profile's
+            voltage, slew or current limits; nothing was sent.
+
+        Before anything is sent the waveform is checked against the profile's limits (the device
+        checks again). Recorder reads that fail after their retries leave those samples missing
+        (``valid=False``) and the run goes on. On any exception or KeyboardInterrupt the stage is
+        put in the safe state (best effort: a failure of that is attached as a note), the samples
+        not yet delivered are handed to ``on_block`` (read back if the link still works, else
+        missing), and the exception propagates.
         """
         v = np.asarray(waveform_v, dtype=np.float32).ravel()
+        if v.size == 0:
+            raise ValueError("empty waveform")
+        guard.check(v.astype(float), 1.0 / self.profile.sample_rate_hz, self.profile.limits,
+                    self.voltage(), "waveform")
+        player = _Player(self, v, on_block, poll_s)
         try:
-            return _Player(self, v, on_block, poll_s).run(timeout_s)
+            return player.run(timeout_s)
         except BaseException as exc:
+            self._deadline = None
             self._safe_state_quietly(exc)
+            player.abandon(exc)
             raise
+        finally:
+            self._deadline = None
 
     def _safe_state_quietly(self, cause: BaseException) -> None:
         """Best-effort safe state after ``cause``; never replaces it (a failure becomes a note)."""
@@ -287,6 +382,7 @@ class _Player:
         self.table = min(table, v.size)
         self.half = max(1, self.table // 2)
         self.written = self.delivered = 0
+        self.in_callback = False
         self.last_heartbeat = -np.inf
         n = v.size
         self.u = np.full(n, np.nan)
@@ -295,15 +391,16 @@ class _Player:
 
     def run(self, timeout_s: float | None) -> Recording:
         stage, n = self.stage, self.v.size
+        limit = (n / stage.profile.sample_rate_hz + PLAY_MARGIN_S + self.table / UPLOAD_FLOOR
+                 if timeout_s is None else timeout_s)
+        deadline = stage._deadline = time.monotonic() + limit
         stage.upload(self.v[:self.table])
         self.written = self.table
         if n > self.table or n > self.recorder_capacity:
-            stage._start_stream(n)
+            stage._start_checked(lambda: stage._start_stream(n))
         else:
-            stage._start(1)
+            stage._start_checked(lambda: stage._start(1))
         stage._last_run_samples = n
-        limit = n / stage.profile.sample_rate_hz + PLAY_MARGIN_S if timeout_s is None else timeout_s
-        deadline = time.monotonic() + limit
         while True:
             st = stage.status()
             self._heartbeat(st)
@@ -350,16 +447,39 @@ class _Player:
         if end <= self.delivered:
             return False
         first, lost = self.delivered, max(self.delivered, position - self.recorder_capacity)
-        rec = self.stage.read_recorder(end - lost, lost) if end > lost else None
+        rec = self.stage.read_recorder(end - lost, lost, missing_ok=True) if end > lost else None
         if rec is not None:
             sl = slice(lost, end)
             self.volt[sl], self.u[sl], self.valid[sl] = (rec.voltage_v, rec.displacement_um,
                                                           rec.valid)
-        self.delivered = end
-        if self.on_block is not None:
-            sl = slice(first, end)
-            self.on_block(first, self.volt[sl].copy(), self.u[sl].copy(), self.valid[sl].copy())
+        self._hand_over(first, end)
         return True
+
+    def _hand_over(self, first: int, end: int) -> None:
+        """Samples ``first .. end-1`` are final: count them delivered, pass them to on_block."""
+        self.delivered = end
+        if self.on_block is not None and end > first:
+            sl = slice(first, end)
+            self.in_callback = True
+            self.on_block(first, self.volt[sl].copy(), self.u[sl].copy(), self.valid[sl].copy())
+            self.in_callback = False
+
+    def abandon(self, cause: BaseException) -> None:
+        """After a failed run (the stage already safe): hand every sample not yet delivered to
+        on_block, read back if the cause was not the link and the link still answers, else
+        missing. Nothing is done if on_block itself raised ``cause``; a failure here becomes a
+        note on ``cause``."""
+        if self.in_callback:
+            return
+        try:
+            if not isinstance(cause, StageError | TimeoutError):
+                self._deliver(self.stage.status().play_position, running=False)
+        except (StageError, TimeoutError) as exc:
+            cause.add_note(f"reading back the rest after this failed too: {exc!r}")
+        try:
+            self._hand_over(self.delivered, self.v.size)
+        except Exception as exc:  # noqa: BLE001 - the original exception is what matters
+            cause.add_note(f"handing over the missing samples failed: {exc!r}")
 
 
 #: The stage interface (an abstract base class: implementations inherit the composed operations).

@@ -1,16 +1,23 @@
-"""The serial (ASCII) protocol, version 2: codec and the device-side interpreter. No I/O.
+"""The serial (ASCII) protocol, version 3: codec and the device-side interpreter. No I/O.
 
-Lines are ASCII, terminated by LF (a trailing CR is ignored). Every command line gets exactly one
-reply line: ``OK`` for a set command, the value(s) for a query, or ``ERR <code> <text>`` when the
-device refuses (codes in :data:`afmctl.emulator.ERRORS`; the last one also stays readable with
-``ERR?``). Numbers are decimal; float32 values are written with 9 significant digits, which
-round-trips float32 exactly; a sample not yet recorded (or overwritten) is ``nan``. Version 2 adds
-streaming: ``WGS <n>`` plays ``n`` samples through the table as a ring while the host keeps writing
-``WAV`` blocks at global indices; ``DRR?`` and ``POS?`` use global indices. See ``docs/protocol.md``.
+Lines are ASCII, terminated by LF (a trailing CR is ignored). Version 3 frames every line: the host
+ends a command with `` #<tag> *<crc>`` and the device ends its reply with the same tag and its own
+CRC (:func:`frame`, :func:`unframe`; CRC-32 of everything before `` *``, 8 hex digits). The device
+discards a command whose CRC is wrong (unanswered: the host times out and retries); the host
+discards a reply whose CRC is wrong or whose tag is not the one it is waiting for (a corrupted
+line, line noise, or a late reply to an earlier request). Commands without a CRC (typed by hand)
+are still accepted. Every command line gets exactly one reply line: ``OK`` for a set command, the
+value(s) for a query, or ``ERR <code> <text>`` when the device refuses (codes in
+:data:`afmctl.emulator.ERRORS`; the last one also stays readable with ``ERR?``). Numbers are
+decimal; float32 values are written with 9 significant digits, which round-trips float32 exactly; a
+sample not yet recorded (or overwritten) is ``nan``. Version 2 adds streaming: ``WGS <n>`` plays
+``n`` samples through the table as a ring while the host keeps writing ``WAV`` blocks at global
+indices; ``DRR?`` and ``POS?`` use global indices. See ``docs/protocol.md``.
 """
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Callable
 
 import numpy as np
@@ -18,13 +25,44 @@ from numpy.typing import NDArray
 
 from afmctl.emulator import ERRORS, IDENTITY, DeviceError, Emulator, Status
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 MAX_LINE = 8192
 #: Largest chunk per WAV or DRR? line, samples.
 MAX_CHUNK = 256
 
 STATUS_KEYS = ("running", "fill", "error", "out", "runs", "len", "complete", "wd", "expired", "ro",
                "rate", "pos", "total", "wdt")
+
+
+class FrameError(ValueError):
+    """A line whose CRC does not match (or that has none where one is required)."""
+
+
+def crc(text: str) -> str:
+    """CRC-32 of ``text`` (ASCII), 8 lower-case hex digits."""
+    return f"{zlib.crc32(text.encode('ascii', errors='replace')):08x}"
+
+
+def frame(payload: str, tag: int | None) -> str:
+    """``payload [#tag] *crc`` (no terminator)."""
+    body = payload if tag is None else f"{payload} #{tag}"
+    return f"{body} *{crc(body)}"
+
+
+def unframe(line: str, required: bool = True) -> tuple[str, int | None]:
+    """Inverse of :func:`frame`: (payload, tag or None); FrameError if the CRC is wrong, or
+    missing when ``required``."""
+    body, sep, check = line.rpartition(" *")
+    if not sep or len(check) != 8:
+        if required:
+            raise FrameError(f"no CRC: {line[:40]!r}")
+        body = line
+    elif crc(body) != check:
+        raise FrameError(f"CRC mismatch: {line[:40]!r}")
+    payload, sep, tag = body.rpartition(" #")
+    if sep and tag.isdigit():
+        return payload, int(tag)
+    return body, None
 
 
 def fmt(x: float) -> str:
@@ -107,8 +145,17 @@ class AsciiDevice:
             "WDT": lambda a, t: self._ok(self.em.set_watchdog(_float(a, 0, 1), t)),
         }
 
+    def handle_framed(self, line: str) -> str | None:
+        """One received line (framed or typed by hand) -> the framed reply, or None for a line
+        whose CRC is wrong (discarded unanswered) or that is blank."""
+        try:
+            payload, tag = unframe(line.strip(), required=False)
+        except FrameError:
+            return None
+        return frame(self.handle(payload), tag) if payload.strip() else None
+
     def handle(self, line: str) -> str:
-        """One command line (without terminator) -> one reply line (without terminator)."""
+        """One command (without terminator or framing) -> one reply (without either)."""
         words = line.strip().split()
         now = self.clock()
         try:

@@ -3,12 +3,16 @@
 Every pymodbus client call of afmctl lives in this module (servers: ``drivers.servers``). One
 request is in flight at a time; the client has a timeout; a refused request (Modbus exception
 response) is turned into :class:`~drivers.StageError` carrying the device's own error code, read
-from ``IR.LAST_ERROR``; a transport failure becomes ``StageError(-1)``.
+from ``IR.LAST_ERROR``; a transport failure (no reply, a bad CRC on RTU, a stale transaction id on
+TCP, a dropped connection) becomes ``StageError(-1)``. pymodbus's own retries are off: afmctl
+retries idempotent requests itself (see :mod:`drivers`), after a resync that closes and reopens
+the connection, so that nothing of a failed exchange can be taken for a later reply.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -28,9 +32,9 @@ def make_client(transport: ModbusTcpTransport | ModbusRtuTransport) -> Any:
     """A pymodbus sync client for the transport (not yet connected)."""
     if isinstance(transport, ModbusTcpTransport):
         return ModbusTcpClient(transport.host, port=transport.port, timeout=transport.timeout_s,
-                               retries=1)
+                               retries=0)
     return ModbusSerialClient(transport.port, framer=FramerType.RTU, baudrate=transport.baudrate,
-                              timeout=transport.timeout_s, retries=1)
+                              timeout=transport.timeout_s, retries=0)
 
 
 class ModbusStage(StageBase):
@@ -54,6 +58,7 @@ class ModbusStage(StageBase):
         if not isinstance(t, ModbusTcpTransport | ModbusRtuTransport):
             raise TypeError(f"not a Modbus transport: {t!r}")
         self.unit = t.unit
+        self.timeout_s = t.timeout_s
         self._client = make_client(t)
         self._lock = threading.Lock()  # sync pymodbus clients are not thread-safe
         self._page = -1
@@ -65,28 +70,37 @@ class ModbusStage(StageBase):
             self.close()
             raise StageError(-1, f"register map version {version}, afmctl speaks {rm.MAP_VERSION}")
 
-    def _request(self, name: str, *args: Any, **kwargs: Any) -> list[int]:
-        with self._lock:
-            try:
-                res = getattr(self._client, name)(*args, device_id=self.unit, **kwargs)
-            except ModbusException as exc:
-                raise StageError(-1, f"{name}: {exc}") from None
+    def _request(self, name: str, *args: Any, idempotent: bool = True, **kwargs: Any
+                 ) -> list[int]:
+        """One client call (retried on transport failure if ``idempotent``) -> its registers."""
+        res = self._retrying(lambda: self._call(name, *args, **kwargs), idempotent)
         if res.isError():
-            raise StageError(self._device_error(), f"{name} at {args[0]}: Modbus exception "
-                                                   f"{getattr(res, 'exception_code', '?')}")
+            code = self._retrying(self._device_error)
+            raise StageError(code, f"{name} at {args[0]}: Modbus exception "
+                                   f"{getattr(res, 'exception_code', '?')}")
         return list(getattr(res, "registers", []) or [])
 
-    def _device_error(self) -> int:
+    def _call(self, name: str, *args: Any, **kwargs: Any) -> Any:
         with self._lock:
             try:
-                res = self._client.read_input_registers(IR.LAST_ERROR, count=1,
-                                                        device_id=self.unit)
-            except ModbusException:
-                return -1
+                return getattr(self._client, name)(*args, device_id=self.unit, **kwargs)
+            except (ModbusException, OSError) as exc:
+                raise StageError(-1, f"{name}: {exc}") from None
+
+    def _device_error(self) -> int:
+        """The device's own code for the refusal just answered (``IR.LAST_ERROR``)."""
+        res = self._call("read_input_registers", IR.LAST_ERROR, count=1)
         return -1 if res.isError() else int(res.registers[0])
 
-    def _write(self, address: int, regs: list[int]) -> None:
-        self._request("write_registers", address, regs)
+    def _resync(self) -> None:
+        with self._lock:
+            self._client.close()
+            time.sleep(min(0.05, self.timeout_s))
+            if not self._client.connect():
+                raise StageError(-1, "cannot reconnect")
+
+    def _write(self, address: int, regs: list[int], idempotent: bool = True) -> None:
+        self._request("write_registers", address, regs, idempotent=idempotent)
 
     # -- Stage primitives ----------------------------------------------------------------------
     def identify(self) -> str:
@@ -128,7 +142,7 @@ class ModbusStage(StageBase):
         self._write(HR.STREAM_FIRST, rm.u32_regs(first) + rm.f32_regs(values))
 
     def _start(self, cycles: int) -> None:
-        self._write(HR.COMMAND, [rm.Cmd.START] + rm.u32_regs(cycles))
+        self._write(HR.COMMAND, [rm.Cmd.START] + rm.u32_regs(cycles), idempotent=False)
 
     def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         out_u = np.empty(n, dtype=np.float32)
@@ -148,7 +162,7 @@ class ModbusStage(StageBase):
 
     def _start_stream(self, n_total: int) -> None:
         self._write(HR.STREAM_TOTAL, rm.u32_regs(n_total))
-        self._write(HR.COMMAND, [rm.Cmd.START_STREAM])
+        self._write(HR.COMMAND, [rm.Cmd.START_STREAM], idempotent=False)
 
     def _capacities(self) -> tuple[int, int]:
         regs = self._request("read_input_registers", IR.RECORDER_CAPACITY, count=4)

@@ -1,12 +1,14 @@
 """Host side of the ASCII protocol (``drivers.ascii_protocol``) on pyserial.
 
 Works on any pyserial URL: a real port, a pty path, ``socket://host:port``. Each command waits for
-its one reply line; a read that times out, a reply without terminator or a malformed reply raises
-:class:`~drivers.StageError` (code -1) instead of hanging.
+its one reply line (protocol v3: matched by tag, checked by CRC); a read that times out, a reply
+without terminator or a malformed reply raises :class:`~drivers.StageError` (code -1) instead of
+hanging, after the retries that are safe (see :mod:`drivers`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Any
 
@@ -14,7 +16,7 @@ import numpy as np
 import serial
 from numpy.typing import NDArray
 
-from afmctl.emulator import Status
+from afmctl.emulator import ERRORS, Status
 from afmctl.profile import Profile, SerialTransport
 from drivers import StageBase, StageError
 from drivers import ascii_protocol as ap
@@ -32,6 +34,11 @@ class SerialStage(StageBase):
         An already open pyserial-like port (tests); ``url`` is then ignored.
     timeout_s : float, optional
         Per-reply timeout (also pyserial's ``write_timeout``); the profile's by default.
+
+    Every command is framed with a tag and a CRC (protocol v3); a reply with a bad CRC or another
+    tag is discarded (counted in ``discarded``) and the host keeps waiting for its own until the
+    timeout. A failed idempotent command is retried after a resync: the input is flushed, and a
+    port this stage opened is reopened if the link itself failed (e.g. a socket closed).
     """
 
     upload_chunk = 200
@@ -44,10 +51,14 @@ class SerialStage(StageBase):
         cfg = t if isinstance(t, SerialTransport) else SerialTransport(url or "")
         self.timeout_s = cfg.timeout_s if timeout_s is None else timeout_s
         self._buf = bytearray()
-        if port is None:
-            port = serial.serial_for_url(url or cfg.url, baudrate=cfg.baudrate,
-                                         timeout=self.timeout_s, write_timeout=self.timeout_s)
-        self._port = port
+        self._tag = 0
+        self._broken = False
+        #: Reply lines thrown away (bad CRC, another request's tag).
+        self.discarded = 0
+        self._open = None if port is not None else (
+            lambda: serial.serial_for_url(url or cfg.url, baudrate=cfg.baudrate,
+                                          timeout=self.timeout_s, write_timeout=self.timeout_s))
+        self._port = port if self._open is None else self._open()
         version = self.query("VER?")
         if version != str(ap.PROTOCOL_VERSION):
             self.close()
@@ -55,12 +66,15 @@ class SerialStage(StageBase):
                                  f"{ap.PROTOCOL_VERSION}")
 
     # -- line I/O ------------------------------------------------------------------------------
-    def _readline(self) -> str:
-        deadline = time.monotonic() + self.timeout_s
+    def _readline(self, deadline: float) -> str:
         while (end := self._buf.find(b"\n")) < 0:
             if len(self._buf) > ap.MAX_LINE * 8:
                 raise StageError(-1, "reply line too long")
-            chunk = self._port.read(max(1, self._port.in_waiting))
+            try:
+                chunk = self._port.read(max(1, self._port.in_waiting))
+            except (serial.SerialException, OSError) as exc:
+                self._broken = True
+                raise StageError(-1, f"link failed: {exc}") from None
             if not chunk and time.monotonic() > deadline:
                 raise StageError(-1, f"no complete reply within {self.timeout_s:g} s")
             self._buf += chunk
@@ -68,20 +82,54 @@ class SerialStage(StageBase):
         del self._buf[:end + 1]
         return line.decode("ascii", errors="replace").rstrip("\r")
 
-    def query(self, line: str) -> str:
-        """Send one command line, return its reply; StageError for an ``ERR`` reply."""
+    def _exchange(self, line: str) -> str:
+        """One attempt: send ``line`` framed with a new tag, return the payload of its reply."""
+        self._tag = (self._tag + 1) % 100_000
         try:
-            self._port.write(line.encode("ascii") + b"\n")
+            self._port.write(ap.frame(line, self._tag).encode("ascii") + b"\n")
         except serial.SerialTimeoutException:
             raise StageError(-1, f"write timed out after {self.timeout_s:g} s") from None
-        reply = self._readline()
+        except (serial.SerialException, OSError) as exc:
+            self._broken = True
+            raise StageError(-1, f"link failed: {exc}") from None
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            try:
+                payload, tag = ap.unframe(self._readline(deadline))
+            except ap.FrameError:
+                self.discarded += 1
+                continue
+            if tag == self._tag:
+                return payload
+            self.discarded += 1
+
+    def _resync(self) -> None:
+        """Forget buffered input; reopen a port this stage opened if the link itself failed."""
+        self._buf.clear()
+        if self._open is None or not self._broken:
+            with contextlib.suppress(serial.SerialException, OSError, AttributeError):
+                self._port.reset_input_buffer()
+            return
+        self._broken = False
+        with contextlib.suppress(serial.SerialException, OSError):
+            self._port.close()
+        try:
+            self._port = self._open()
+        except (serial.SerialException, OSError) as exc:
+            raise StageError(-1, f"cannot reopen the link: {exc}") from None
+
+    def query(self, line: str, idempotent: bool = True) -> str:
+        """Send one command line, return its reply; StageError for an ``ERR`` reply. A transport
+        failure is retried (see :class:`SerialStage`) if ``idempotent``."""
+        reply = self._retrying(lambda: self._exchange(line), idempotent)
         if reply.startswith("ERR "):
             parts = reply.split(maxsplit=2)
-            raise StageError(int(parts[1]) if parts[1].isdigit() else -1, f"{line[:40]!r}")
+            code = int(parts[1]) if len(parts) > 1 and parts[1].isdigit() else -1
+            raise StageError(code if code in ERRORS else -1, f"{line[:40]!r}")
         return reply
 
-    def _command(self, line: str) -> None:
-        reply = self.query(line)
+    def _command(self, line: str, idempotent: bool = True) -> None:
+        reply = self.query(line, idempotent)
         if reply != "OK":
             raise StageError(-1, f"expected OK to {line[:40]!r}, got {reply[:40]!r}")
 
@@ -104,8 +152,8 @@ class SerialStage(StageBase):
         return a, b, c
 
     def last_error(self) -> int:
-        """The sticky last error code (cleared by reading)."""
-        return int(self.query("ERR?"))
+        """The sticky last error code (cleared by reading, so never retried)."""
+        return int(self.query("ERR?", idempotent=False))
 
     def set_voltage(self, v: float) -> None:
         self._command(f"SVA {ap.fmt(v)}")
@@ -135,7 +183,7 @@ class SerialStage(StageBase):
         self._command(ap.wav_line(first, values))
 
     def _start(self, cycles: int) -> None:
-        self._command(f"WGO {cycles}")
+        self._command(f"WGO {cycles}", idempotent=False)
 
     def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         try:
@@ -144,7 +192,7 @@ class SerialStage(StageBase):
             raise StageError(-1, str(exc)) from None
 
     def _start_stream(self, n_total: int) -> None:
-        self._command(f"WGS {n_total}")
+        self._command(f"WGS {n_total}", idempotent=False)
 
     def _capacities(self) -> tuple[int, int]:
         try:

@@ -12,6 +12,12 @@ watchdog expire while nobody talks. The servers are context managers that start 
   pymodbus opens one end, the host the other, ``url``).
 
 Every server binds 127.0.0.1 unless given another host explicitly.
+
+Wire faults (:class:`FaultInjector`, configured by a profile's ``[emulator.faults]``) hit what the
+device sends: the serial server applies them to each reply line; Modbus replies pass through a
+faulty relay (:class:`FaultyTcpProxy` in front of the TCP server, the :class:`PtyBridge` of the RTU
+server), which applies them to each chunk of bytes on the way to the host. Faults are off unless
+configured; the relays are not used then.
 """
 
 from __future__ import annotations
@@ -21,12 +27,15 @@ import contextlib
 import os
 import select
 import socket
+import termios
 import threading
 import time
 import tty
+from collections import Counter
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import numpy as np
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer
@@ -34,12 +43,72 @@ from pymodbus.server import ModbusTcpServer as _PymodbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from afmctl.emulator import Emulator
-from afmctl.profile import Profile
+from afmctl.profile import Profile, WireFaults
 from drivers import ascii_protocol as ap
 from drivers import register_map as rm
 
 LOOPBACK = "127.0.0.1"
 TICK_S = 0.01
+
+
+class FaultInjector:
+    """Draws at most one fault per reply, from a seeded generator (thread-safe).
+
+    Parameters
+    ----------
+    faults : WireFaults
+        Probabilities per reply and the delay, s.
+
+    Attributes
+    ----------
+    counts : Counter
+        Faults injected so far, by kind.
+    """
+
+    def __init__(self, faults: WireFaults) -> None:
+        self.counts: Counter[str] = Counter()
+        self._lock = threading.Lock()
+        self.reconfigure(faults)
+
+    def reconfigure(self, faults: WireFaults) -> None:
+        """Inject ``faults`` from now on (a new generator from its seed). The Modbus relays exist
+        only if faults were active when their server started."""
+        with self._lock:
+            self.faults = faults
+            self._cumulative = np.cumsum(faults.probabilities())
+            self._rng = np.random.default_rng(faults.seed)
+
+    @property
+    def active(self) -> bool:
+        return self.faults.active
+
+    def draw(self) -> str | None:
+        """The fault for the next reply (a kind of :attr:`WireFaults.KINDS`), or None."""
+        if not self.active:
+            return None
+        with self._lock:
+            k = int(np.searchsorted(self._cumulative, self._rng.random(), side="right"))
+            if k >= len(WireFaults.KINDS):
+                return None
+            kind = WireFaults.KINDS[k]
+            self.counts[kind] += 1
+            return kind
+
+    def corrupt(self, data: bytes, within: int | None = None) -> bytes:
+        """``data`` with one byte (of the first ``within``, if given) changed (XOR with a random
+        non-zero value)."""
+        with self._lock:
+            i = int(self._rng.integers(min(len(data), within or len(data))))
+            flip = int(self._rng.integers(1, 256))
+        out = bytearray(data)
+        out[i] ^= flip
+        return bytes(out)
+
+    def garbage(self) -> bytes:
+        """1-32 random bytes."""
+        with self._lock:
+            return self._rng.integers(0, 256, int(self._rng.integers(1, 33))).astype(
+                np.uint8).tobytes()
 
 
 class EmulatedDevice:
@@ -50,11 +119,15 @@ class EmulatedDevice:
     profile : Profile
     read_only : bool, optional
         Override the profile's ``emulator.read_only``.
+    faults : WireFaults, optional
+        Override the profile's ``emulator.faults`` (what the servers inject).
     """
 
     def __init__(self, profile: Profile, read_only: bool | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 faults: WireFaults | None = None) -> None:
         self.emulator = Emulator(profile, read_only=read_only)
+        self.faults = FaultInjector(self.emulator.config.faults if faults is None else faults)
         self.clock = clock
         self.lock = threading.Lock()
         self.ascii = ap.AsciiDevice(self.emulator, clock)
@@ -67,9 +140,10 @@ class EmulatedDevice:
             with self.lock:
                 self.emulator.tick(self.clock())
 
-    def handle_line(self, line: str) -> str:
+    def handle_line(self, line: str) -> str | None:
+        """A received line -> the framed reply (None: nothing to answer)."""
         with self.lock:
-            return self.ascii.handle(line)
+            return self.ascii.handle_framed(line)
 
     def __enter__(self) -> EmulatedDevice:
         self._ticker.start()
@@ -80,6 +154,34 @@ class EmulatedDevice:
         self._ticker.join()
 
 
+class _SelectLoop:
+    """A select loop (``_serve``) in a background thread, started on entry and stopped on exit
+    through a wake-up pipe (``_wake_r`` is among the descriptors it watches)."""
+
+    def __init__(self, name: str) -> None:
+        self._wake_r, self._wake_w = os.pipe()
+        self._thread = threading.Thread(target=self._serve, name=name, daemon=True)
+
+    def _serve(self) -> None:
+        raise NotImplementedError
+
+    def _select(self, watch: list[Any]) -> list[Any] | None:
+        """The ready ones of ``watch``; None when asked to stop."""
+        ready, _, _ = select.select([self._wake_r, *watch], [], [])
+        return None if self._wake_r in ready else ready
+
+    def __enter__(self) -> Any:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        os.write(self._wake_w, b"x")
+        self._thread.join()
+        for fd in (self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
 # -- ASCII protocol on a pty or a socket ----------------------------------------------------------
 def open_pty() -> tuple[int, int, str]:
     """A raw pty pair: (master fd, slave fd, slave path)."""
@@ -88,7 +190,7 @@ def open_pty() -> tuple[int, int, str]:
     return master, slave, os.ttyname(slave)
 
 
-class SerialServer:
+class SerialServer(_SelectLoop):
     """The ASCII protocol on a pty (``where="pty"``) or ``socket://host:port``.
 
     Attributes
@@ -98,8 +200,8 @@ class SerialServer:
     """
 
     def __init__(self, device: EmulatedDevice, where: str = "pty") -> None:
+        super().__init__("ascii-server")
         self.device = device
-        self._wake_r, self._wake_w = os.pipe()
         self._listener: socket.socket | None = None
         self._fds: dict[int, bytearray] = {}
         self._owned: list[int] = []
@@ -115,16 +217,13 @@ class SerialServer:
         else:
             raise ValueError(f"serve the serial protocol on 'pty' or 'socket://host:port', "
                              f"not {where!r}")
-        self._thread = threading.Thread(target=self._serve, name="ascii-server", daemon=True)
 
     def __enter__(self) -> SerialServer:
-        self._thread.start()
-        return self
+        return super().__enter__()  # type: ignore[no-any-return]
 
     def __exit__(self, *exc: object) -> None:
-        os.write(self._wake_w, b"x")
-        self._thread.join()
-        for fd in [*self._fds, *self._owned, self._wake_r, self._wake_w]:
+        super().__exit__(*exc)
+        for fd in [*self._fds, *self._owned]:
             with contextlib.suppress(OSError):
                 os.close(fd)
         if self._listener is not None:
@@ -132,9 +231,8 @@ class SerialServer:
 
     def _serve(self) -> None:
         while True:
-            watch = [self._wake_r, *self._fds] + ([self._listener] if self._listener else [])
-            ready, _, _ = select.select(watch, [], [])
-            if self._wake_r in ready:
+            ready = self._select([*self._fds] + ([self._listener] if self._listener else []))
+            if ready is None:
                 return
             for r in ready:
                 if r is self._listener:
@@ -157,15 +255,35 @@ class SerialServer:
             return
         buf = self._fds[fd]
         buf += data
-        while (end := buf.find(b"\n")) >= 0:
+        while fd in self._fds and (end := buf.find(b"\n")) >= 0:
             line = buf[:end].decode("ascii", errors="replace").rstrip("\r")
             del buf[:end + 1]
-            reply = self.device.handle_line(line) if line.strip() else None
+            reply = self.device.handle_line(line)
             if reply is not None:
-                _write_all(fd, reply.encode("ascii") + b"\n")
+                self._send(fd, reply.encode("ascii") + b"\n")
         if len(buf) > ap.MAX_LINE * 8:
             buf.clear()
-            _write_all(fd, b"ERR 2 bad argument\n")
+            self._send(fd, ap.frame("ERR 2 bad argument", None).encode("ascii") + b"\n")
+
+    def _send(self, fd: int, reply: bytes) -> None:
+        """Send one reply line, through the device's fault injector."""
+        faults = self.device.faults
+        kind = faults.draw()
+        if kind == "drop":
+            return
+        if kind == "disconnect":
+            self._fds[fd].clear()
+            if fd not in self._owned:  # a socket: hang up on the host
+                del self._fds[fd]
+                os.close(fd)
+            return
+        if kind == "delay":
+            time.sleep(faults.faults.delay_s)
+        elif kind == "corrupt":
+            reply = faults.corrupt(reply)
+        elif kind == "garbage":
+            reply = faults.garbage() + b"\n" + reply
+        _write_all(fd, reply)
 
 
 def _write_all(fd: int, data: bytes) -> None:
@@ -255,21 +373,36 @@ class _ModbusServerBase:
 
 
 class ModbusTcpServer(_ModbusServerBase):
-    """The register map on Modbus TCP at ``host:port`` (port 0: a free one, see ``.port``)."""
+    """The register map on Modbus TCP at ``host:port`` (port 0: a free one, see ``.port``).
+
+    With wire faults configured, ``host:port`` is a :class:`FaultyTcpProxy` and pymodbus listens
+    on a free loopback port behind it.
+    """
 
     def __init__(self, device: EmulatedDevice, host: str = LOOPBACK, port: int = 0,
                  unit: int = 1) -> None:
         super().__init__()
         self.device, self.host, self.port, self.unit = device, host, port, unit
+        self._proxy: FaultyTcpProxy | None = None
 
     def _make(self) -> Any:
-        return _PymodbusTcpServer(sim_device(self.device, self.unit),
-                                  address=(self.host, self.port))
+        where = (LOOPBACK, 0) if self.device.faults.active else (self.host, self.port)
+        return _PymodbusTcpServer(sim_device(self.device, self.unit), address=where)
 
     def __enter__(self) -> ModbusTcpServer:
         super().__enter__()
-        self.port = self._server.transport.sockets[0].getsockname()[1]
+        backend = self._server.transport.sockets[0].getsockname()[1]
+        if self.device.faults.active:
+            self._proxy = FaultyTcpProxy(backend, self.device.faults, self.host, self.port)
+            self._proxy.__enter__()
+            backend = self._proxy.port
+        self.port = backend
         return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._proxy is not None:
+            self._proxy.__exit__(*exc)
+        super().__exit__(*exc)
 
 
 class ModbusRtuServer(_ModbusServerBase):
@@ -278,7 +411,7 @@ class ModbusRtuServer(_ModbusServerBase):
     def __init__(self, device: EmulatedDevice, unit: int = 1, baudrate: int = 115200) -> None:
         super().__init__()
         self.device, self.unit, self.baudrate = device, unit, baudrate
-        self._bridge = PtyBridge()
+        self._bridge = PtyBridge(device.faults if device.faults.active else None)
         self.url = self._bridge.host_path
 
     def _make(self) -> Any:
@@ -295,51 +428,151 @@ class ModbusRtuServer(_ModbusServerBase):
         self._bridge.__exit__(*exc)
 
 
-class PtyBridge:
-    """Two raw ptys joined master to master: a null-modem cable with a path at each end."""
+def _relay(data: bytes, to_fd: int, faults: FaultInjector | None,
+           corrupt_within: int | None = None) -> bool:
+    """Forward bytes the device sent toward the host through ``faults``; False: hang up.
+    ``corrupt_within``: a corruption hits one of the first that many bytes."""
+    kind = faults.draw() if faults is not None else None
+    if kind == "drop":
+        return True
+    if kind == "disconnect":
+        return False
+    if kind == "delay":
+        time.sleep(faults.faults.delay_s)  # type: ignore[union-attr]
+    elif kind == "corrupt":
+        data = faults.corrupt(data, corrupt_within)  # type: ignore[union-attr]
+    elif kind == "garbage":
+        data = faults.garbage() + data  # type: ignore[union-attr]
+    _write_all(to_fd, data)
+    return True
 
-    def __init__(self) -> None:
+
+class PtyBridge(_SelectLoop):
+    """Two raw ptys joined master to master: a null-modem cable with a path at each end.
+
+    With ``faults``, what the device end sends is relayed through them (a "disconnect" loses
+    whatever the device sent and what is buffered toward the host: a pulled cable).
+    """
+
+    def __init__(self, faults: FaultInjector | None = None) -> None:
+        super().__init__("pty-bridge")
         self._a = open_pty()
         self._b = open_pty()
         self.device_path, self.host_path = self._a[2], self._b[2]
-        self._wake_r, self._wake_w = os.pipe()
-        self._thread = threading.Thread(target=self._pump, name="pty-bridge", daemon=True)
+        self.faults = faults
 
-    def _pump(self) -> None:
+    def _serve(self) -> None:
         peer = {self._a[0]: self._b[0], self._b[0]: self._a[0]}
         while True:
-            ready, _, _ = select.select([self._wake_r, *peer], [], [])
-            if self._wake_r in ready:
+            ready = self._select(list(peer))
+            if ready is None:
                 return
             for fd in ready:
                 try:
                     data = os.read(fd, 65536)
                 except OSError:
                     data = b""
-                if data:
-                    _write_all(peer[fd], data)
-                else:
+                if not data:
                     time.sleep(0.005)
+                elif fd != self._a[0]:
+                    _write_all(peer[fd], data)
+                elif not _relay(data, peer[fd], self.faults):
+                    with contextlib.suppress(termios.error):
+                        termios.tcflush(self._b[1], termios.TCIFLUSH)
 
     def __enter__(self) -> PtyBridge:
-        self._thread.start()
-        return self
+        return super().__enter__()  # type: ignore[no-any-return]
 
     def __exit__(self, *exc: object) -> None:
-        os.write(self._wake_w, b"x")
-        self._thread.join()
-        for fd in (*self._a[:2], *self._b[:2], self._wake_r, self._wake_w):
+        super().__exit__(*exc)
+        for fd in (*self._a[:2], *self._b[:2]):
             with contextlib.suppress(OSError):
                 os.close(fd)
 
 
+#: Bytes of the Modbus TCP header (MBAP: transaction id, protocol id, length, unit id).
+MBAP_BYTES = 7
+
+
+class FaultyTcpProxy(_SelectLoop):
+    """A TCP relay on ``host:port`` in front of a server at 127.0.0.1:``backend_port``, injecting
+    ``faults`` into what the server sends (a "disconnect" closes both connections).
+
+    TCP checksums its segments, so a byte corrupted on the wire never reaches a Modbus TCP host
+    (the segment is resent: a delay); what can reach it is a wrong header from a confused device,
+    so a corruption here hits the MBAP header (transaction id, length, unit id).
+    """
+
+    def __init__(self, backend_port: int, faults: FaultInjector, host: str = LOOPBACK,
+                 port: int = 0) -> None:
+        super().__init__("tcp-fault-proxy")
+        self.backend_port, self.faults = backend_port, faults
+        self._listener = socket.create_server((host, port))
+        self.port: int = self._listener.getsockname()[1]
+        self._peer: dict[socket.socket, socket.socket] = {}
+        self._toward_host: set[socket.socket] = set()
+
+    def _serve(self) -> None:
+        while True:
+            ready = self._select([self._listener, *self._peer])
+            if ready is None:
+                return
+            for r in ready:
+                if r is self._listener:
+                    self._accept()
+                elif r in self._peer:
+                    self._forward(r)
+
+    def _accept(self) -> None:
+        host_side, _ = self._listener.accept()
+        try:
+            server_side = socket.create_connection((LOOPBACK, self.backend_port), timeout=5.0)
+        except OSError:
+            host_side.close()
+            return
+        self._peer[host_side], self._peer[server_side] = server_side, host_side
+        self._toward_host.add(server_side)
+
+    def _forward(self, src: socket.socket) -> None:
+        try:
+            data = src.recv(65536)
+        except OSError:
+            data = b""
+        dst = self._peer[src]
+        if src in self._toward_host:
+            keep = bool(data) and _relay(data, dst.fileno(), self.faults, MBAP_BYTES)
+        else:
+            keep = bool(data)
+            if keep:
+                _write_all(dst.fileno(), data)
+        if not keep:
+            self._hang_up(src)
+
+    def _hang_up(self, sock: socket.socket) -> None:
+        for s in (sock, self._peer[sock]):
+            self._peer.pop(s, None)
+            self._toward_host.discard(s)
+            s.close()
+
+    def __enter__(self) -> FaultyTcpProxy:
+        return super().__enter__()  # type: ignore[no-any-return]
+
+    def __exit__(self, *exc: object) -> None:
+        super().__exit__(*exc)
+        for sock in list(self._peer):
+            if sock in self._peer:
+                self._hang_up(sock)
+        self._listener.close()
+
+
 @contextlib.contextmanager
 def serve_all(profile: Profile, *, host: str = LOOPBACK, modbus_port: int = 0,
-              serial: str = "pty", rtu: bool = True, read_only: bool | None = None
-              ) -> Iterator[dict[str, str]]:
-    """Serve one emulated device on every wire; yields ``{name: address}`` for the hosts."""
+              serial: str = "pty", rtu: bool = True, read_only: bool | None = None,
+              faults: WireFaults | None = None) -> Iterator[dict[str, str]]:
+    """Serve one emulated device on every wire; yields ``{name: address}`` for the hosts.
+    ``faults`` overrides the profile's ``[emulator.faults]``."""
     with contextlib.ExitStack() as stack:
-        dev = stack.enter_context(EmulatedDevice(profile, read_only=read_only))
+        dev = stack.enter_context(EmulatedDevice(profile, read_only=read_only, faults=faults))
         tcp = stack.enter_context(ModbusTcpServer(dev, host, modbus_port))
         where = {"modbus-tcp": f"{host}:{tcp.port}"}
         if rtu:

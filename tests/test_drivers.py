@@ -109,7 +109,8 @@ def test_register_map_rejects_partial_fields(profile: Profile) -> None:
 
 
 class ScriptedPort:
-    """A pyserial stand-in that checks each line sent against a script and answers from it."""
+    """A pyserial stand-in that checks each line sent against a script and answers from it
+    (protocol v3: the command's payload is checked, the answer framed with the command's tag)."""
 
     def __init__(self, script: list[tuple[str, str]]) -> None:
         self.script = list(script)
@@ -121,8 +122,10 @@ class ScriptedPort:
 
     def write(self, data: bytes) -> int:
         sent, answer = self.script.pop(0)
-        assert data == sent.encode() + b"\n", (data, sent)
-        self.pending += answer.encode() + b"\n"
+        assert data.endswith(b"\n"), data
+        payload, tag = ap.unframe(data[:-1].decode())
+        assert payload == sent and tag is not None, (data, sent)
+        self.pending += ap.frame(answer, tag).encode() + b"\n"
         return len(data)
 
     def read(self, n: int) -> bytes:
@@ -137,9 +140,10 @@ def test_serial_codec_against_a_script(profile: Profile) -> None:
     status = ("running=0 fill=3 error=0 out=5 runs=1 len=3 complete=1 wd=0 expired=0 ro=0 rate=10000 "
               "pos=3 total=3 wdt=0")
     script = [
-        ("VER?", "2"),
+        ("VER?", "3"),
         ("WTL 3", "OK"),
         ("WAV 0 3 0 2.5 5", "OK"),
+        ("STA?", status.replace("fill=3", "fill=0").replace("runs=1", "runs=0").replace("pos=3", "pos=0")),
         ("STA?", status.replace("fill=3", "fill=0").replace("runs=1", "runs=0").replace("pos=3", "pos=0")),
         ("WGO 1", "OK"),
         ("STA?", status),
@@ -312,9 +316,10 @@ def test_slow_host_underruns_safely(kind: str, profile: Profile) -> None:
     played, ramp = log[:st.play_position], log[st.play_position:]
     np.testing.assert_array_equal(played, v[:st.play_position].astype(np.float32))  # nothing stale
     assert ramp[-1] == 0.0 and np.all(np.diff(np.abs(ramp)) <= 0)
-    volt, _, ok = blocks.joined()
-    assert volt.size == st.play_position  # what was played was delivered, then the error
-    assert ok[-100:].all()
+    volt, disp, ok = blocks.joined()
+    assert volt.size == v.size  # every sample handed over: what was played measured, then the error
+    assert ok[:st.play_position].all() and not ok[st.play_position:].any()
+    assert np.isnan(disp[st.play_position:]).all()  # the rest flagged missing, never invented
 
 
 @pytest.mark.parametrize("kind", ["inprocess", "serial-pty"])
