@@ -91,12 +91,15 @@ def test_stale_and_corrupted_replies_are_discarded(profile: Profile) -> None:
     assert stage.discarded == 2 and stage.retries == 0
 
 
-@pytest.mark.parametrize("kind", ["drop", "corrupt", "garbage", "disconnect", "delay"])
-@pytest.mark.parametrize("wire", ["serial-socket", "modbus-tcp", "modbus-rtu"])
+# RTU replies delayed past the timeout are not in the matrix: RTU has no transaction id, so a late
+# reply could be taken for the next request's (docs/protocol.md); the campaign keeps RTU delays
+# below the timeout.
+@pytest.mark.parametrize(("wire", "kind"), [
+    (w, k) for w in ("serial-socket", "modbus-tcp", "modbus-rtu")
+    for k in ("drop", "corrupt", "garbage", "disconnect", "delay")
+    if (w, k) != ("modbus-rtu", "delay")])
 def test_each_fault_is_survived_by_retries(wire: str, kind: str, profile: Profile) -> None:
     """Three replies in ten faulty: every query still gets the device's true answer."""
-    if wire == "modbus-rtu" and kind == "delay":
-        pytest.skip("RTU delays stay below the timeout (no transaction id): see docs/protocol.md")
     faults = WireFaults(**{kind: 0.3}, delay_s=0.3, seed=11)
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     with campaign.bench_on(wire, profile, faults=faults, timeout_s=0.15) as (bench, dev):
