@@ -44,6 +44,7 @@ exactly once, measured or missing, whatever happens.
 from __future__ import annotations
 
 import abc
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -340,6 +341,7 @@ class StageBase(abc.ABC):
         v = np.asarray(waveform_v, dtype=np.float32).ravel()
         if v.size == 0:
             raise ValueError("empty waveform")
+        self._ensure_rate()
         guard.check(v.astype(float), 1.0 / self.profile.sample_rate_hz, self.profile.limits,
                     self.voltage(), "waveform")
         player = _Player(self, v, on_block, poll_s)
@@ -352,6 +354,17 @@ class StageBase(abc.ABC):
             raise
         finally:
             self._deadline = None
+
+    def _ensure_rate(self) -> None:
+        """Clock the device at the profile's sample rate: timestamps, the model's discretization
+        and the slew check all assume it. StageError if the device will not take it."""
+        want = self.profile.sample_rate_hz
+        if math.isclose(self.status().sample_rate_hz, want, rel_tol=1e-6):
+            return
+        self.set_sample_rate(want)
+        got = self.status().sample_rate_hz
+        if not math.isclose(got, want, rel_tol=1e-6):
+            raise StageError(-1, f"the device clocks {got:g} Hz; the profile says {want:g} Hz")
 
     def _safe_state_quietly(self, cause: BaseException) -> None:
         """Best-effort safe state after ``cause``; never replaces it (a failure becomes a note)."""

@@ -301,6 +301,19 @@ def test_play_of_a_short_waveform_is_a_normal_run(profile: Profile, waveform: np
     assert rec.complete and blocks.joined()[2].all()
 
 
+@pytest.mark.parametrize("kind", ["inprocess", "serial-pty", "modbus-tcp"])
+def test_play_clocks_the_device_at_the_profile_rate(kind: str, profile: Profile,
+                                                    waveform: np.ndarray) -> None:
+    """A device left at another sample rate is set back to the profile's before anything plays
+    (timestamps, the model and the slew check all assume the profile's rate)."""
+    with stage_on(kind, profile) as (stage, emu):
+        stage.set_sample_rate(5000.0)
+        assert stage.status().sample_rate_hz == 5000.0
+        stage.play(waveform[:1000])
+        assert stage.status().sample_rate_hz == profile.sample_rate_hz
+        assert emu.sample_rate_hz == profile.sample_rate_hz
+
+
 @pytest.mark.parametrize("kind", ["inprocess", "modbus-tcp"])
 def test_slow_host_underruns_safely(kind: str, profile: Profile) -> None:
     small = small_buffers(profile)
