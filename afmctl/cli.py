@@ -245,6 +245,7 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     from afmctl import diagnose as dg
     from afmctl import identify as idf
     from afmctl import modelfile, parametrization, plots, sweeps, tomlfile
+    from afmctl.experiment import atomic_write
 
     table = None if profile is None else tomlfile.load(profile).table("identify", required=False)
     settings = dg.Settings(identify=idf.settings_from_table(table))
@@ -256,12 +257,17 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
         except ValueError as exc:
             raise InputError(f"--model {model_path}: {exc}") from None
     idf.resolve_thickness(data, settings.identify)
+    dg.check(data)
     out = Path(out_dir) if out_dir else Path(f"afmctl-diagnose-{time.strftime('%Y%m%d-%H%M%S')}")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: exists and is not a folder")
     if (out / "diagnosis.json").exists():
         fail(f"{out} already holds a diagnosis; choose another --out")
     click.echo(f"diagnosing {len(data)} sweep(s): "
                f"{len(dg.candidate_names(len(data), settings))} candidates ...", err=True)
     d = dg.diagnose(data, settings, start, progress=lambda m: click.echo(m, err=True))
+    doc = d.as_dict()
+    text = json.dumps(doc, indent=2, allow_nan=False) + "\n"  # before anything is written
     out.mkdir(parents=True, exist_ok=True)
     header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
     modelfile.write(d.base_model, out / "base.toml", header=header + "\nthe paper's model")
@@ -270,16 +276,17 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     before = [idf.predict(d.base_model, s.voltage_v, s.dt) for s in data]
     after = [idf.predict(d.extended_model, s.voltage_v, s.dt, g)
              for s, g in zip(data, d.extended_gains, strict=True)]
+    partial = out / "residuals.partial.png"
     plots.diagnosis_figure(data, before, after, d.base_model.thickness_um,
-                           ("paper's model", f"extended: {d.cause}"), out / "residuals.png")
-    (out / "report.md").write_text(dg.report(d, "residuals.png"), encoding="utf-8")
-    doc = json.dumps(d.as_dict(), indent=2, allow_nan=False)
-    (out / "diagnosis.json").write_text(doc + "\n", encoding="utf-8")
+                           ("paper's model", f"extended: {d.cause}"), partial)
+    partial.replace(out / "residuals.png")
+    atomic_write(out / "report.md", dg.report(d, "residuals.png"))
+    atomic_write(out / "diagnosis.json", text)  # last: marks the folder complete
     click.echo(f"cause: {d.cause} (held-out RMS {d.base_rms_um:.4f} -> {d.extended_rms_um:.4f} um, "
                f"gain {d.gain:.2f}); wrote {out}/diagnosis.json, extended.toml, report.md, "
                f"residuals.png", err=True)
     if as_json:
-        click.echo(json.dumps(d.as_dict()))
+        click.echo(json.dumps(doc, allow_nan=False))
 
 
 # ----------------------------------------------------------------------------------------------

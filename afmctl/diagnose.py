@@ -33,6 +33,7 @@ from afmctl import identify as idf
 from afmctl import parametrization as pz
 from afmctl import transducer as td
 from afmctl.sweeps import Sweep
+from afmctl.tomlfile import InputError
 
 FloatArray = NDArray[np.float64]
 
@@ -69,9 +70,19 @@ def required_gain(n_params: int) -> float:
     return 1.1 + 0.05 * max(n_params - 1, 0) if n_params else 1.0
 
 
+def ratio(base_um: float, other_um: float) -> float:
+    """Gain of a model over the base: base / its held-out RMS (inf for a perfect one)."""
+    return base_um / other_um if other_um > 0 else math.inf
+
+
+def fitted_text(parameters: dict[str, float]) -> str:
+    return ", ".join(f"{k} = {v:.4g}" for k, v in parameters.items())
+
+
 @dataclass(frozen=True)
 class Judged:
-    """One candidate's fit and its error on the held-out halves, um."""
+    """One candidate: its fit on the first halves, its RMS error (um) on the second halves
+    (overall and per sweep) and the fit's wall time (s)."""
 
     fitted: ext.Extended
     n_params: int
@@ -80,17 +91,18 @@ class Judged:
     fit_seconds: float
 
     def as_dict(self, base_rms: float) -> dict[str, Any]:
-        gain = base_rms / self.heldout_rms_um if self.heldout_rms_um > 0 else float("inf")
-        return {"heldout_rms_um": self.heldout_rms_um, "gain": gain,
+        return {"heldout_rms_um": self.heldout_rms_um, "gain": ratio(base_rms, self.heldout_rms_um),
                 "required_gain": required_gain(self.n_params), "parameters_added": self.n_params,
                 "heldout_rms_per_sweep_um": list(self.heldout_per_sweep_um),
                 "fitted": self.fitted.parameters, "fit_success": self.fitted.success,
-                "fit_seconds": round(self.fit_seconds, 2)}
+                "fit_evaluations": self.fitted.nfev, "fit_seconds": round(self.fit_seconds, 2)}
 
 
 @dataclass(frozen=True)
 class Diagnosis:
-    """Outcome of :func:`diagnose`."""
+    """Outcome of :func:`diagnose`: the cause, held-out RMS (um) of the base and the extended
+    model, the candidate table, both models refitted on all the data (the extended one with
+    its per-sweep applied-voltage gains), the residual signature and the wall time (s)."""
 
     cause: str
     base_rms_um: float
@@ -105,30 +117,43 @@ class Diagnosis:
 
     @property
     def gain(self) -> float:
-        return self.base_rms_um / self.extended_rms_um
+        return ratio(self.base_rms_um, self.extended_rms_um)
 
     def as_dict(self) -> dict[str, Any]:
-        """The ``diagnosis.json`` object (and ``--json`` output)."""
-        return {"cause": self.cause, "explanation": CAUSES[self.cause],
-                "base_rms_um": self.base_rms_um, "extended_rms_um": self.extended_rms_um,
-                "gain": self.gain, "evidence": self.evidence(),
-                "candidates": {k: j.as_dict(self.base_rms_um) for k, j in self.table.items()},
-                "residuals": self.signature, "sweeps": list(self.files),
-                "seconds": round(self.seconds, 2),
-                "method": "fit on the first half of every sweep, judged on the second half "
-                          "(state carried through); each sweep weighs the same"}
+        """The ``diagnosis.json`` object (and ``--json`` output); non-finite numbers are null."""
+        return json_safe({
+            "cause": self.cause, "explanation": CAUSES[self.cause],
+            "base_rms_um": self.base_rms_um, "extended_rms_um": self.extended_rms_um,
+            "gain": self.gain, "evidence": self.evidence(),
+            "candidates": {k: j.as_dict(self.base_rms_um) for k, j in self.table.items()},
+            "extended_gains": list(self.extended_gains),
+            "residuals": self.signature, "sweeps": list(self.files),
+            "seconds": round(self.seconds, 2),
+            "method": "fit on the first half of every sweep, judged on the second half (state "
+                      "carried through); each sweep weighs the same; base and extended models "
+                      "then refitted on all the data"})
 
     def evidence(self) -> str:
         """One paragraph: why this cause (or none)."""
         ranked = sorted(self.table.values(), key=lambda j: j.heldout_rms_um)
         lines = [f"{j.fitted.name}: held-out {j.heldout_rms_um:.4f} um, gain "
-                 f"{self.base_rms_um / j.heldout_rms_um:.2f} (needs "
+                 f"{ratio(self.base_rms_um, j.heldout_rms_um):.2f} (needs "
                  f"{required_gain(j.n_params):.2f})" for j in ranked[:3]]
-        win = self.table[self.cause]
-        fitted = ", ".join(f"{k} = {v:.4g}" for k, v in win.fitted.parameters.items())
+        fitted = fitted_text(self.table[self.cause].fitted.parameters)
         head = (f"{self.cause}: held-out RMS {self.base_rms_um:.4f} -> {self.extended_rms_um:.4f} "
                 f"um (gain {self.gain:.2f})" + (f" with {fitted}" if fitted else ""))
         return head + "; best candidates: " + "; ".join(lines)
+
+
+def json_safe(obj: Any) -> Any:
+    """``obj`` with every non-finite float replaced by None (JSON has no NaN or inf)."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
 
 
 # ----------------------------------------------------------------------------------------------
@@ -190,7 +215,7 @@ def residual_signature(model: td.Transducer, sweeps: Sequence[Sweep]) -> dict[st
         rms_turn = float(np.sqrt(np.mean(r[turns] ** 2))) if turns.any() else float("nan")
         per.append({
             "file": s.path or s.name, "frequency_hz": s.frequency_hz,
-            "amplitude_V": float(np.ptp(s.voltage_v)), "rms_um": float(np.sqrt(np.mean(r ** 2))),
+            "amplitude_pp_V": float(np.ptp(s.voltage_v)), "rms_um": float(np.sqrt(np.mean(r ** 2))),
             "mean_um": float(np.mean(r)), "corr_time": _corr(r, s.time_s[m]),
             "corr_field": _corr(r, e), "corr_field_squared": _corr(r, e * e),
             "corr_field_rate": _corr(r, rate),
@@ -214,30 +239,69 @@ def residual_signature(model: td.Transducer, sweeps: Sequence[Sweep]) -> dict[st
 # ----------------------------------------------------------------------------------------------
 
 
-def _spaces(sweeps: Sequence[Sweep], thickness: float,
-            settings: idf.Settings) -> tuple[list[pz.Prepared], pz.LognormalSpace, float]:
+class DiagnoseInputError(InputError):
+    """Sweeps that cannot be diagnosed (too short, no voltage excursion): exit 2 at the CLI."""
+
+
+#: Fewest judged samples a sweep needs in each half (after its memory index).
+MIN_SAMPLES = 50
+
+
+def check(sweeps: Sequence[Sweep]) -> None:
+    """DiagnoseInputError naming the first sweep that cannot be split into a fitted and a judged
+    half with a voltage excursion in each."""
+    if not sweeps:
+        raise DiagnoseInputError("no sweeps given")
+    for s in sweeps:
+        m, h = s.mask(None), s.time_s.size // 2
+        if np.ptp(s.voltage_v) == 0:
+            raise DiagnoseInputError(f"{s.path or s.name}: the voltage never changes")
+        if min(int(m[:h].sum()), int(m[h:].sum())) < MIN_SAMPLES:
+            raise DiagnoseInputError(
+                f"{s.path or s.name}: fewer than {MIN_SAMPLES} samples in a half after the first "
+                f"full excursion (sample {s.memory_index}); record a longer sweep")
+
+
+@dataclass(frozen=True)
+class _Data:
+    """Sweeps prepared once for every candidate's fit."""
+
+    preps: list[pz.Prepared]
+    base: pz.LognormalSpace
+    e_max: float
+    nyquist_hz: float
+
+
+def _prepare(sweeps: Sequence[Sweep], thickness: float, settings: idf.Settings) -> _Data:
     preps = [pz.prepare(s, thickness, settings.field_step, None) for s in sweeps]
-    base = pz.LognormalSpace(preps, settings.scales, settings.n_coercive_fit)
-    range_um = max(float(np.ptp(p.y)) for p in preps)
-    return preps, base, range_um
+    return _Data(preps, pz.LognormalSpace(preps, settings.scales, settings.n_coercive_fit),
+                 *pz.extent(preps))
 
 
-def _fit(name: str, sweeps: Sequence[Sweep], x_start: FloatArray, thickness: float,
+def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um: float,
          settings: Settings, z_start: FloatArray | None = None) -> tuple[ext.Extended, int]:
-    preps, base, range_um = _spaces(sweeps, thickness, settings.identify)
-    e_max, nyq = pz.extent(preps)
-    rod_hz = float(np.exp(x_start[4]))
-    cand = ext.catalogue(len(sweeps), e_max, nyq, rod_hz)[name]
+    """Fit candidate ``name`` from the base parameters ``x_start`` (and its own ``z_start``)."""
+    cand = ext.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
+                         float(np.exp(x_start[4])))[name]
     if z_start is not None:
         cand = ext.Candidate(cand.name, cand.labels, (tuple(z_start[6:]),), cand.lower,
                              cand.upper)
-    space = ext.ExtendedSpace(cand, preps, base, settings.identify.field_step, range_um)
+    space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um)
     return ext.fit(space, x_start, thickness, settings.max_nfev), cand.n_params
 
 
 def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:
     """The candidates tried on ``n_sweeps`` sweeps (gain drift needs two or more)."""
     return [n for n in settings.candidates if n != "voltage-gain-drift" or n_sweeps >= 2]
+
+
+def choose(table: dict[str, Judged]) -> str:
+    """The candidate with the smallest held-out RMS among those whose gain clears
+    :func:`required_gain`; ``none`` if no extension does."""
+    base = table["none"].heldout_rms_um
+    able = [j for j in table.values()
+            if ratio(base, j.heldout_rms_um) >= required_gain(j.n_params)]
+    return min(able, key=lambda j: j.heldout_rms_um, default=table["none"]).fitted.name
 
 
 def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
@@ -258,37 +322,43 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     Returns
     -------
     Diagnosis
-        Cause, base and extended held-out RMS (um), the per-candidate table, the base model and
-        the winner refitted on all the data.
+        Cause, base and extended held-out RMS (um), the per-candidate table, and the base model
+        and the winner refitted on all the data.
+
+    Raises
+    ------
+    DiagnoseInputError
+        Sweeps too short to split, or without a voltage excursion.
     """
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
+    check(sweeps)
     thickness, _ = idf.resolve_thickness(sweeps, settings.identify)
     halves = [first_half(s) for s in sweeps]
+    range_um = max(float(np.ptp(s.displacement_um[s.mask(None)])) for s in sweeps)
     if start is None:
         say("identifying the base model on the first halves ...")
         x0 = idf.fit(halves, settings.identify).x
     else:
         x0 = pz.internal(start)
+    data = _prepare(halves, thickness, settings.identify)
     table: dict[str, Judged] = {}
     for name in candidate_names(len(sweeps), settings):
         t1 = time.perf_counter()
-        fitted, n_params = _fit(name, halves, x0, thickness, settings)
+        fitted, n_params = _fit(name, data, x0, thickness, range_um, settings)
         rms, per = heldout(fitted.model, fitted.gains, sweeps)
         table[name] = Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
         say(f"  {name:20s} held-out RMS {rms:.4f} um ({time.perf_counter() - t1:.1f} s)")
-    judged = table
-    base_rms = judged["none"].heldout_rms_um
-    cause = min((j for j in judged.values()
-                 if base_rms / j.heldout_rms_um >= required_gain(j.n_params)),
-                key=lambda j: j.heldout_rms_um, default=judged["none"]).fitted.name
-    win = judged[cause]
-    say(f"cause: {cause}; refitting it on all the data ...")
-    final, _ = _fit(cause, sweeps, win.fitted.x[:6], thickness, settings, win.fitted.x)
-    signature = residual_signature(judged["none"].fitted.model, sweeps)
-    return Diagnosis(cause, base_rms, win.heldout_rms_um, judged, judged["none"].fitted.model,
-                     final.model, final.gains, signature, time.perf_counter() - t0,
-                     tuple(s.path or s.name for s in sweeps))
+    cause = choose(table)
+    say(f"cause: {cause}; refitting the base model and the winner on all the data ...")
+    everything = _prepare(sweeps, thickness, settings.identify)
+    base, _ = _fit("none", everything, table["none"].fitted.x, thickness, range_um, settings)
+    final = base if cause == "none" else _fit(cause, everything, table[cause].fitted.x[:6],
+                                              thickness, range_um, settings,
+                                              table[cause].fitted.x)[0]
+    return Diagnosis(cause, table["none"].heldout_rms_um, table[cause].heldout_rms_um, table,
+                     base.model, final.model, final.gains, residual_signature(base.model, sweeps),
+                     time.perf_counter() - t0, tuple(s.path or s.name for s in sweeps))
 
 
 def report(d: Diagnosis, figure: str) -> str:
@@ -299,10 +369,10 @@ def report(d: Diagnosis, figure: str) -> str:
              "| candidate | parameters added | held-out RMS (um) | gain | needed | fitted |",
              "|---|---:|---:|---:|---:|---|"]
     for name, j in sorted(d.table.items(), key=lambda kv: kv[1].heldout_rms_um):
-        fitted = ", ".join(f"{k} = {v:.4g}" for k, v in j.fitted.parameters.items())
+        fitted = fitted_text(j.fitted.parameters)
         lines.append(f"| {name} | {j.n_params} | {j.heldout_rms_um:.4f} | "
-                     f"{d.base_rms_um / j.heldout_rms_um:.2f} | {required_gain(j.n_params):.2f} | "
-                     f"{fitted} |")
+                     f"{ratio(d.base_rms_um, j.heldout_rms_um):.2f} | "
+                     f"{required_gain(j.n_params):.2f} | {fitted} |")
     sig = d.signature
     lines += ["", "## Residuals of the paper's model", "",
               "| sweep | frequency (Hz) | RMS (um) | mean (um) | corr. field | corr. field rate "

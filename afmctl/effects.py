@@ -127,15 +127,23 @@ def unlag(chain: Chain, v_app: FloatArray, v_prev: float) -> FloatArray:
     return (v_app - a * np.concatenate(([v_prev], v_app[:-1]))) / (1 - a)
 
 
-def commands(chain: Chain, v_app: FloatArray, v_prev: float) -> tuple[FloatArray, ...]:
-    """Candidate commands for the amplifier output ``v_app`` (V), best first: the exact
-    :func:`unlag` (its lead at a corner can exceed the slew limit), then a pure time advance by
-    the lag's time constant (its low-frequency phase, no slew amplification). One candidate
-    without a lag."""
+def unlag_limited(chain: Chain, v_app: FloatArray, v_prev: float, max_step: float) -> FloatArray:
+    """Commands (V) whose amplifier output follows ``v_app`` as closely as steps of at most
+    ``max_step`` (V per sample) allow: the exact :func:`unlag` sample by sample, each step clamped,
+    the amplifier state following the clamped command (so it catches up after a corner). Equal
+    to :func:`unlag` wherever that stays within the step limit."""
+    v_app = np.asarray(v_app, dtype=float)
     if chain.lag_a == 0.0:
-        return (np.asarray(v_app, dtype=float),)
-    tau = -1.0 / math.log(chain.lag_a)  # samples
-    return unlag(chain, v_app, v_prev), advance(np.asarray(v_app, dtype=float), tau)
+        return v_app
+    a = chain.lag_a
+    out = np.empty_like(v_app)
+    cmd = out_prev = v_prev
+    for k, target in enumerate(v_app):
+        ideal = (target - a * out_prev) / (1 - a)
+        cmd = min(max(ideal, cmd - max_step), cmd + max_step)
+        out_prev = a * out_prev + (1 - a) * cmd
+        out[k] = cmd
+    return out
 
 
 def mode_rest(chain: Chain, u0: float) -> FloatArray:

@@ -96,7 +96,7 @@ def run_all(stage: PlayingStage, plans: Mapping[str, track.Waveform], desired: t
     return outcomes
 
 
-def _atomic_write(path: Path, text: str) -> None:
+def atomic_write(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".partial")
     tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, path)
@@ -106,7 +106,7 @@ def write_waveform_csv(wf: track.Waveform, path: Path) -> None:
     """``time_s,desired_um,voltage_V`` (desired empty on the ramps), for ``--dry-run``."""
     rows = [f"{t:.7f},{'' if np.isnan(d) else f'{d:.6f}'},{v:.6f}"
             for t, d, v in zip(wf.time_s, wf.desired_um, wf.voltage_v, strict=True)]
-    _atomic_write(path, "time_s,desired_um,voltage_V\n" + "\n".join(rows) + "\n")
+    atomic_write(path, "time_s,desired_um,voltage_V\n" + "\n".join(rows) + "\n")
 
 
 def write_combined_csv(outcomes: Mapping[str, Outcome], desired: track.Desired,
@@ -119,7 +119,7 @@ def write_combined_csv(outcomes: Mapping[str, Outcome], desired: track.Desired,
     lines = [",".join(cols)]
     for row in zip(*cols.values(), strict=True):
         lines.append(",".join("" if np.isnan(x) else f"{x:.7g}" for x in row))
-    _atomic_write(path, "\n".join(lines) + "\n")
+    atomic_write(path, "\n".join(lines) + "\n")
 
 
 def summary(outcomes: Mapping[str, Outcome], desired: track.Desired,
@@ -135,7 +135,7 @@ def summary(outcomes: Mapping[str, Outcome], desired: track.Desired,
 
 
 def write_summary(data: Mapping[str, Any], path: Path) -> None:
-    _atomic_write(path, json.dumps(data, indent=2) + "\n")
+    atomic_write(path, json.dumps(data, indent=2) + "\n")
 
 
 def plot(outcomes: Mapping[str, Outcome], desired: track.Desired, thickness_um: float,

@@ -13,7 +13,7 @@ name                     phi (internal)                                   acts o
 ``sensor-delay``         d (samples)                                      design columns
 ``sensor-nonlinearity``  c R (c in 1/um, R the data's range in um)        measured displacement
 ``second-mode``          log f_2 (Hz), log zeta_2, gain                   design columns
-``voltage-gain-drift``   log g_s of every sweep but the first             field, per sweep
+``voltage-gain-drift``   log g_s of every sweep but the last (mean 0)     field, per sweep
 =======================  ===============================================  =======================
 
 Every sweep weighs the same in the cost (rows scaled by ``sqrt(n_mean / n_s)``), so an effect seen
@@ -76,11 +76,12 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float,
         Candidate("second-mode", ("log_frequency_Hz", "log_damping_ratio", "gain"),
                   tuple((lf(f * rod_hz), lf(0.03), g) for f in (1.5, 3.0, 6.0) for g in (0.1,)
                         if f * rod_hz < 0.8 * nyquist_hz) or ((ln - 1, lf(0.03), 0.1),),
-                  (lf(1.05 * rod_hz), lf(0.002), -0.9), (ln, lf(0.5), 3.0)),
+                  (lf(min(1.05 * rod_hz, 0.3 * nyquist_hz)), lf(0.002), -0.9),
+                  (ln, lf(0.5), 3.0)),
     ]
     if n_sweeps >= 2:
         k = n_sweeps - 1
-        cands.append(Candidate("voltage-gain-drift", tuple(f"log_gain_{i + 2}" for i in range(k)),
+        cands.append(Candidate("voltage-gain-drift", tuple(f"log_gain_{i + 1}" for i in range(k)),
                                (tuple([0.0] * k),), tuple([-0.3] * k), tuple([0.3] * k)))
     return {c.name: c for c in cands}
 
@@ -93,10 +94,15 @@ class Extended:
     model: td.Transducer
     gains: tuple[float, ...]
     parameters: dict[str, float]
-    cost: float
     success: bool
     nfev: int
     x: FloatArray
+
+
+def _log_gains(phi: FloatArray) -> FloatArray:
+    """Per-sweep log gains from the free ones: the last makes their mean 0, so the model keeps
+    the sweeps' average gain (a model for ``track``, which cannot know a future run's gain)."""
+    return np.concatenate((phi, [-float(np.sum(phi))]))
 
 
 class ExtendedSpace:
@@ -120,8 +126,8 @@ class ExtendedSpace:
         name, out = self.candidate.name, []
         for s, (p, step) in enumerate(zip(self.preps, self.step, strict=True)):
             e, keep = p.field, p.keep
-            if name == "voltage-gain-drift" and s > 0:
-                e = e * math.exp(phi[s - 1])
+            if name == "voltage-gain-drift":
+                e = e * math.exp(_log_gains(phi)[s])
             elif name == "amplifier-lag":
                 chain = fx.compile_chain(fx.Effects(amplifier_bandwidth_hz=math.exp(phi[0])), p.dt)
                 e = fx.lag(chain, e, float(e[0]))[0]
@@ -188,7 +194,7 @@ class ExtendedSpace:
             model = replace(model, effects=fx.Effects(
                 sensor_quadratic_per_um=float(phi[0]) / self.range_um))
         elif name == "voltage-gain-drift":
-            gains = (1.0, *(math.exp(v) for v in phi))
+            gains = tuple(math.exp(v) for v in _log_gains(phi))
             model = replace(model, effects=fx.Effects(voltage_gain_sigma=float(np.std(gains,
                                                                                      ddof=1))))
         else:
@@ -230,5 +236,4 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
                                  max_nfev=max_nfev)
     model, gains = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
-                    float(2 * sol.cost), bool(sol.success and sol.status > 0), int(sol.nfev),
-                    sol.x)
+                    bool(sol.success and sol.status > 0), int(sol.nfev), sol.x)

@@ -41,7 +41,7 @@ FloatArray = NDArray[np.float64]
 COLUMNS = ("time_s", "voltage_V", "displacement_um")
 STANDARD_FREQUENCIES_HZ = (0.279, 5.58, 27.9)
 UNIFORM_RTOL = 1e-3
-#: Fraction of a sweep's largest |V| whose first reach wipes out the memory of earlier history.
+#: Fraction of a sweep's voltage range within which an extreme counts as reached (memory_index).
 MEMORY_REACH = 0.995
 
 
@@ -98,14 +98,16 @@ class Sweep:
         """First sample at which the stage's state no longer depends on its unknown history.
 
         A sweep starts wherever earlier work left the stage. By the wiping-out property of the
-        relay kernel (4), the first monotone excursion to the sweep's largest ``|V|`` erases the
-        memory of every smaller one, so from that sample on a model started depoled and the stage
-        agree (up to hysterons that no field of the sweep can switch: a constant offset). The
-        excursion counts from :data:`MEMORY_REACH` of the largest ``|V|`` (peaks that differ in
-        their last digits must not push it to the last one).
+        relay kernel (4), a monotone excursion to the sweep's largest voltage sets every hysteron
+        that it can switch up, and one to its smallest voltage every hysteron it can switch down;
+        from the later of the two first reaches on, a model started depoled and the stage agree
+        (up to hysterons that no voltage of the sweep can switch: a constant offset). A voltage
+        within ``1 - MEMORY_REACH`` of the range from an extreme counts as reaching it (peaks that
+        differ in their last digits must not push the index to the last one).
         """
-        a = np.abs(self.voltage_v)
-        return int(np.argmax(a >= MEMORY_REACH * a.max()))
+        v = self.voltage_v
+        tol = (1 - MEMORY_REACH) * float(np.ptp(v))
+        return max(int(np.argmax(v >= v.max() - tol)), int(np.argmax(v <= v.min() + tol)))
 
     def mask(self, window_s: tuple[float, float] | None) -> NDArray[np.bool_]:
         """Samples with ``t0 <= t < t1`` (all if ``window_s`` is None) from :attr:`memory_index`

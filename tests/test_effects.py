@@ -32,14 +32,17 @@ def test_lag_step_response_is_first_order() -> None:
     np.testing.assert_allclose(y, 1 - np.exp(-2 * np.pi * bw * DT * k), atol=1e-12)
 
 
-def test_lag_advance_candidate_is_the_time_constant() -> None:
+def test_slew_limited_unlag() -> None:
+    """Within the step limit it is the exact inverse; at a step it ramps at the limit, then the
+    amplifier output catches up with the target and follows it exactly again."""
     chain = fx.compile_chain(fx.Effects(amplifier_bandwidth_hz=500.0), DT)
-    exact, lead = fx.commands(chain, _signal(), 0.0)
-    tau = 1 / (2 * np.pi * 500.0) / DT  # samples
-    assert -1 / math.log(chain.lag_a) == pytest.approx(tau, rel=1e-3)
-    np.testing.assert_allclose(lead[100:-100], np.interp(np.arange(100, 2900) + tau,
-                                                         np.arange(3000), _signal()))
-    assert fx.commands(fx.compile_chain(fx.Effects(), DT), _signal(), 0.0)[0] is not None
+    v = _signal()
+    np.testing.assert_allclose(fx.unlag_limited(chain, v, 1.0, 1e9), fx.unlag(chain, v, 1.0))
+    step = np.concatenate((np.zeros(50), np.full(400, 10.0)))
+    cmd = fx.unlag_limited(chain, step, 0.0, 2.0)
+    assert np.max(np.abs(np.diff(cmd, prepend=0.0))) <= 2.0 + 1e-12
+    out, _ = fx.lag(chain, cmd, 0.0)
+    np.testing.assert_allclose(out[200:], 10.0, atol=1e-9)
 
 
 def test_remove_mode_inverts_add_mode() -> None:

@@ -84,8 +84,10 @@ def test_triangle_and_standard_set() -> None:
 def test_memory_index_is_the_first_full_excursion() -> None:
     v = sw.triangle(1.0, 2.0, 2, 8.0)  # 0 1 2 1 0 -1 -2 -1 0 1 2 ...
     s = sw.from_arrays(v, np.zeros(v.size), 8.0)
-    assert s.memory_index == 2
-    assert not s.mask(None)[:2].any() and s.mask(None)[2:].all()
-    assert s.mask((0.5, 1.0)).sum() == 4  # the window and the memory both apply
+    assert s.memory_index == 6  # both extremes reached: +2 at sample 2, -2 at sample 6
+    assert not s.mask(None)[:6].any() and s.mask(None)[6:].all()
+    assert s.mask((0.5, 1.0)).sum() == 2  # the window and the memory both apply
     v[-3] -= 1e-6  # a later peak larger in its last digits does not move it
-    assert sw.from_arrays(v, np.zeros(v.size), 8.0).memory_index == 2
+    assert sw.from_arrays(v, np.zeros(v.size), 8.0).memory_index == 6
+    ramp = sw.from_arrays(np.arange(10.0), np.zeros(10), 8.0)  # one-sided: the top counts
+    assert ramp.memory_index == 9
