@@ -162,42 +162,53 @@ class Physics:
         return u, v_app, PhysicsState(stage, amp_v, zi, delay)
 
 
-#: Strength ranges of the effects :func:`hidden_effect` draws: each clearly above 20 nm of sensor
-#: noise on the standard triangle sweeps, yet physical (a 200-600 Hz amplifier, 0.2-0.8 ms latency,
-#: a 0.1-0.3 %/um gauge error, a 400-800 Hz mode, 1.5-3 % gain spread between runs).
-HIDDEN_RANGES = {
-    "thermal-relaxation": "field_scale 0.02-0.05 MV/m, attempt rate 30-300 /s (48 x 16 grid)",
-    "amplifier-lag": "bandwidth 200-600 Hz (log-uniform)",
-    "sensor-delay": "2-8 samples",
-    "sensor-nonlinearity": "|c| 1e-3 - 3e-3 /um, either sign",
-    "second-mode": "400-800 Hz, damping ratio 0.02-0.04, gain 0.3-0.5",
-    "voltage-gain-drift": "sigma 0.015-0.03",
+#: Strength ranges (low, high) of the effects :func:`hidden_effect` draws: each clearly above
+#: 20 nm of sensor noise on the standard triangle sweeps, yet physical (a 200-600 Hz amplifier,
+#: 0.2-0.8 ms latency, a 0.1-0.3 %/um gauge error, a 400-800 Hz mode, 1.5-3 % gain spread).
+HIDDEN_RANGES: dict[str, dict[str, tuple[float, float]]] = {
+    "thermal-relaxation": {"field_scale_MV_per_m": (0.02, 0.05), "attempt_rate_per_s": (30, 300)},
+    "amplifier-lag": {"bandwidth_Hz": (200.0, 600.0)},
+    "sensor-delay": {"samples": (2, 8)},
+    "sensor-nonlinearity": {"abs_quadratic_per_um": (1e-3, 3e-3)},
+    "second-mode": {"frequency_Hz": (400.0, 800.0), "damping_ratio": (0.02, 0.04),
+                    "gain": (0.3, 0.5)},
+    "voltage-gain-drift": {"sigma": (0.015, 0.03)},
 }
 
 
 def hidden_effect(cause: str, rng: np.random.Generator, config: EmulatorConfig) -> EmulatorConfig:
     """``config`` carrying one effect of ``afmctl diagnose``'s catalogue (``none``: unchanged) with
-    a strength drawn from :data:`HIDDEN_RANGES`, to test that diagnose finds it."""
-    u = rng.uniform
+    a strength drawn from :data:`HIDDEN_RANGES`: uniform, except log-uniform rates and bandwidths,
+    whole delays and either sign of the gauge error. The thermal stage runs on a 48 x 16 grid."""
     if cause == "none":
         return config
-    if cause == "thermal-relaxation":
-        pol = replace(config.model.polarization, n_coercive=48, n_interaction=16,
-                      thermal=hy.Thermal(u(0.02, 0.05), math.exp(u(math.log(30), math.log(300)))))
-        return replace(config, model=replace(config.model, polarization=pol))
-    effects = {
-        "amplifier-lag": lambda: fx.Effects(amplifier_bandwidth_hz=math.exp(
-            u(math.log(200), math.log(600)))),
-        "sensor-delay": lambda: fx.Effects(sensor_delay_samples=int(rng.integers(2, 9))),
-        "sensor-nonlinearity": lambda: fx.Effects(
-            sensor_quadratic_per_um=float(rng.choice([-1, 1])) * u(1e-3, 3e-3)),
-        "second-mode": lambda: fx.Effects(second_mode=fx.SecondMode(u(400, 800), u(0.02, 0.04),
-                                                                    u(0.3, 0.5))),
-        "voltage-gain-drift": lambda: fx.Effects(voltage_gain_sigma=u(0.015, 0.03)),
-    }
-    if cause not in effects:
+    if cause not in HIDDEN_RANGES:
         raise ValueError(f"unknown cause {cause!r}")
-    return replace(config, effects=effects[cause]())
+    r = HIDDEN_RANGES[cause]
+
+    def log_uniform(lo: float, hi: float) -> float:
+        return math.exp(rng.uniform(math.log(lo), math.log(hi)))
+
+    if cause == "thermal-relaxation":
+        th = hy.Thermal(rng.uniform(*r["field_scale_MV_per_m"]),
+                        log_uniform(*r["attempt_rate_per_s"]))
+        pol = replace(config.model.polarization, n_coercive=48, n_interaction=16, thermal=th)
+        return replace(config, model=replace(config.model, polarization=pol))
+    if cause == "amplifier-lag":
+        e = fx.Effects(amplifier_bandwidth_hz=log_uniform(*r["bandwidth_Hz"]))
+    elif cause == "sensor-delay":
+        lo, hi = r["samples"]
+        e = fx.Effects(sensor_delay_samples=int(rng.integers(lo, hi + 1)))
+    elif cause == "sensor-nonlinearity":
+        sign = float(rng.choice([-1, 1]))
+        e = fx.Effects(sensor_quadratic_per_um=sign * rng.uniform(*r["abs_quadratic_per_um"]))
+    elif cause == "second-mode":
+        e = fx.Effects(second_mode=fx.SecondMode(rng.uniform(*r["frequency_Hz"]),
+                                                 rng.uniform(*r["damping_ratio"]),
+                                                 rng.uniform(*r["gain"])))
+    else:
+        e = fx.Effects(voltage_gain_sigma=rng.uniform(*r["sigma"]))
+    return replace(config, effects=e)
 
 
 #: Seed of the batch of hidden-effect stages (tests and ``benchmarks/bench_diagnose.py``).
@@ -214,7 +225,8 @@ def with_hidden_effect(profile: Profile, cause: str, index: int) -> Profile:
     if profile.emulator is None:
         raise ValueError(f"profile {profile.name!r} has no [emulator] section")
     rng = np.random.default_rng((HIDDEN_SEED, index))
-    return replace(profile, emulator=hidden_effect(cause, rng, profile.emulator))
+    config = replace(profile.emulator, seed=profile.emulator.seed + index)  # own noise and gains
+    return replace(profile, emulator=hidden_effect(cause, rng, config))
 
 
 def expected_readback(config: EmulatorConfig, sample_rate_hz: float, waveform_v: FloatArray,

@@ -33,7 +33,7 @@ def record(profile: Profile, out: Path) -> list[sw.Sweep]:
 
 
 CI_CASES = [c for c in em.hidden_cases(extension.NAMES) if c in {("thermal-relaxation", 2), ("second-mode", 11),
-                                         ("voltage-gain-drift", 12), ("sensor-delay", 6)}]
+                                         ("voltage-gain-drift", 12), ("amplifier-lag", 4)}]
 
 
 @pytest.mark.slow
