@@ -376,7 +376,8 @@ def report(d: Diagnosis, figure: str) -> str:
     sig = d.signature
     lines += ["", "## Residuals of the paper's model", "",
               "| sweep | frequency (Hz) | RMS (um) | mean (um) | corr. field | corr. field rate "
-              "| RMS after turning points (um) | elsewhere (um) |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+              "| RMS after turning points (um) | elsewhere (um) |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for p in sig["sweeps"]:
         lines.append(f"| {p['file']} | {p['frequency_hz'] or ''} | {p['rms_um']:.4f} | "
                      f"{p['mean_um']:.4f} | {p['corr_field']:.2f} | {p['corr_field_rate']:.2f} | "

@@ -20,7 +20,6 @@ from importlib import resources
 from pathlib import Path
 from typing import ClassVar
 
-from afmctl import hysteresis as hy
 from afmctl import modelfile
 from afmctl.effects import Effects, SecondMode
 from afmctl.guard import Limits
@@ -30,7 +29,8 @@ from afmctl.transducer import Transducer
 FORMAT = "afmctl-profile"
 FORMAT_VERSION = 1
 
-__all__ = ["Effects", "SecondMode", "FileFormatError", "Profile", "load_profile", "default_profile", "shipped_profile"]
+__all__ = ["Effects", "SecondMode", "FileFormatError", "Profile", "load_profile", "default_profile",
+           "shipped_profile"]
 
 
 @dataclass(frozen=True)

@@ -18,11 +18,12 @@ from conftest import PROFILE
 
 from afmctl import calibration, experiment, extension, track
 from afmctl import diagnose as dg
-from afmctl import emulator as em
 from afmctl import effects as fx
+from afmctl import emulator as em
 from afmctl import sweeps as sw
 from afmctl.cli import main
 from afmctl.profile import Profile
+
 
 def record(profile: Profile, out: Path) -> list[sw.Sweep]:
     """The standard triangles recorded on the stage through the driver interface (device clock
@@ -32,8 +33,9 @@ def record(profile: Profile, out: Path) -> list[sw.Sweep]:
         return calibration.record_standard(stage, profile, out)
 
 
-CI_CASES = [c for c in em.hidden_cases(extension.NAMES) if c in {("thermal-relaxation", 2), ("second-mode", 11),
-                                         ("voltage-gain-drift", 12), ("amplifier-lag", 4)}]
+CI_CASES = [c for c in em.hidden_cases(extension.NAMES)
+            if c in {("thermal-relaxation", 2), ("amplifier-lag", 4), ("second-mode", 11),
+                     ("voltage-gain-drift", 12)}]
 
 
 @pytest.mark.slow

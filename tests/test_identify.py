@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 from conftest import NOISE_UM, PROFILE, SAMPLE_RATE_HZ
 
-from afmctl import emulator
+from afmctl import emulator, modelfile
 from afmctl import identify as idf
-from afmctl import modelfile
 from afmctl import sweeps as sw
 from afmctl.transducer import Transducer
 
