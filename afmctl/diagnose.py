@@ -169,8 +169,23 @@ def first_half(s: Sweep) -> Sweep:
 
 def heldout(model: td.Transducer, gains: Sequence[float],
             sweeps: Sequence[Sweep]) -> tuple[float, tuple[float, ...]]:
-    """RMS error (um) on the second halves: overall (root mean of the per-sweep mean squares) and
-    per sweep. The model runs from each sweep's start with that sweep's gain."""
+    """Error of ``model`` on the second half of every sweep, the part no fit saw.
+
+    Parameters
+    ----------
+    model : Transducer
+        With its effects (:func:`afmctl.identify.predict` runs it from each sweep's start).
+    gains : sequence of float
+        Applied-voltage gain of each sweep (1 unless ``voltage-gain-drift``).
+    sweeps : sequence of Sweep
+
+    Returns
+    -------
+    rms_um : float
+        Root mean of the per-sweep mean squares, um (every sweep weighs the same).
+    per_sweep_um : tuple of float
+        RMS of each sweep's second half, um.
+    """
     mse = []
     for s, g in zip(sweeps, gains, strict=True):
         h = s.time_s.size // 2
