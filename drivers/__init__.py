@@ -341,12 +341,14 @@ class StageBase(abc.ABC):
         v = np.asarray(waveform_v, dtype=np.float32).ravel()
         if v.size == 0:
             raise ValueError("empty waveform")
-        self._ensure_rate()
-        guard.check(v.astype(float), 1.0 / self.profile.sample_rate_hz, self.profile.limits,
-                    self.voltage(), "waveform")
         player = _Player(self, v, on_block, poll_s)
         try:
+            self._ensure_rate()
+            guard.check(v.astype(float), 1.0 / self.profile.sample_rate_hz, self.profile.limits,
+                        self.voltage(), "waveform")
             return player.run(timeout_s)
+        except guard.LimitError:
+            raise  # refused before anything was sent: the stage stays where it is
         except BaseException as exc:
             self._deadline = None
             self._safe_state_quietly(exc)
@@ -391,9 +393,8 @@ class _Player:
         if v.size == 0:
             raise ValueError("empty waveform")
         self.stage, self.v, self.on_block, self.poll_s = stage, v, on_block, poll_s
-        table, self.recorder_capacity = stage._capacities()
-        self.table = min(table, v.size)
-        self.half = max(1, self.table // 2)
+        self.table = self.half = self.recorder_capacity = 0  # the device's, once run() starts
+        self.started = False  # whether a run of this waveform was started on the device
         self.written = self.delivered = 0
         self.in_callback = False
         self.last_heartbeat = -np.inf
@@ -404,11 +405,15 @@ class _Player:
 
     def run(self, timeout_s: float | None) -> Recording:
         stage, n = self.stage, self.v.size
+        table, self.recorder_capacity = stage._capacities()
+        self.table = min(table, n)
+        self.half = max(1, self.table // 2)
         limit = (n / stage.profile.sample_rate_hz + PLAY_MARGIN_S + self.table / UPLOAD_FLOOR
                  if timeout_s is None else timeout_s)
         deadline = stage._deadline = time.monotonic() + limit
         stage.upload(self.v[:self.table])
         self.written = self.table
+        self.started = True  # from here on the device may be playing this waveform
         if n > self.table or n > self.recorder_capacity:
             stage._start_checked(lambda: stage._start_stream(n))
         else:
@@ -485,7 +490,7 @@ class _Player:
         if self.in_callback:
             return
         try:
-            if not isinstance(cause, StageError | TimeoutError):
+            if self.started and not isinstance(cause, StageError | TimeoutError):
                 self._deliver(self.stage.status().play_position, running=False)
         except (StageError, TimeoutError) as exc:
             cause.add_note(f"reading back the rest after this failed too: {exc!r}")
