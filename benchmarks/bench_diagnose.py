@@ -22,6 +22,7 @@ from typing import Any
 
 from afmctl import calibration, experiment, extension, track
 from afmctl import diagnose as dg
+from afmctl import effects as fx
 from afmctl import emulator as em
 from afmctl.profile import Profile, default_profile
 from afmctl.transducer import Transducer
@@ -54,7 +55,12 @@ def run_case(cause: str, index: int, tmp: Path) -> dict[str, Any]:
     with InProcessStage(prof, clock=accelerated(SPEED)) as stage:
         recorded = calibration.record_standard(stage, prof, tmp / "sweeps")
     d = dg.diagnose(recorded)
-    row: dict[str, Any] = {"truth": cause, "index": index, "named": d.cause,
+    cfg = prof.emulator
+    assert cfg is not None
+    hidden = (cfg.model.polarization.thermal if cause == "thermal-relaxation"
+              else fx.Effects() if cause == "none" else cfg.effects)
+    row: dict[str, Any] = {"truth": cause, "index": index, "hidden": repr(hidden),
+                           "named": d.cause,
                            "gain": d.gain, "base_rms_um": d.base_rms_um,
                            "extended_rms_um": d.extended_rms_um,
                            "fitted": d.table[d.cause].fitted.parameters,
