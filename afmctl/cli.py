@@ -381,6 +381,7 @@ def _track(make_desired: Callable[[float], Any], profile_path: str | None,
            model_path: str | None, filters: str, out_dir: str | None, dry_run: bool,
            as_json: bool, condition: bool) -> None:
     from afmctl import calibration, experiment, modelfile
+    from afmctl import effects as fx
     from afmctl import track as trk
     prof = load_profile_or_exit(profile_path)
     desired = make_desired(1.0 / prof.sample_rate_hz)
@@ -405,11 +406,12 @@ def _track(make_desired: Callable[[float], Any], profile_path: str | None,
         out = _out_dir(out_dir)
         meta = {"profile": prof.name, "model": model_path or "identified (cached)",
                 "trajectory": desired.label, "sample_rate_Hz": prof.sample_rate_hz}
-        truth = prof.emulator.model if prof.emulator is not None else model
+        truth = prof.emulator.true_model if prof.emulator is not None else model
         outcomes = experiment.run_all(stage, {k: plans[k] for k in wanted}, desired, out, meta,
-                                      truth, say)
+                                      truth, say, sensor=model.effects)
     data = experiment.summary(outcomes, desired, {
-        **meta, "between_samples_model": "emulator truth" if prof.emulator else "model estimate"})
+        **meta, "between_samples_model": "emulator truth" if prof.emulator else "model estimate",
+        "readings_corrected_for": modelfile.effects_dict(fx.sensor_part(model.effects))})
     experiment.write_combined_csv(outcomes, desired, out / "run.csv")
     experiment.write_summary(data, out / "summary.json")
     experiment.plot(outcomes, desired, model.thickness_um, out / "track.png")

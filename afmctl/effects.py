@@ -18,6 +18,10 @@ Chain of one run, sample period ``dt`` (all units: V, um, s, Hz):
 6. ``sensor_delay``: the recorder holds the reading of ``d`` samples earlier (fractional ``d`` by
    linear interpolation).
 
+Steps 2 and 4 move the stage (the *plant*); steps 5 and 6 only misreport where it is (the
+*sensor*). ``track`` therefore aims the stage's true position (rod plus second mode) through the
+plant's inverse, and corrects the sensor's readings before it scores them.
+
 Everything here is a pure function of its arguments; the emulator carries the filter states.
 """
 
@@ -240,8 +244,18 @@ def measure(chain: Chain, u: FloatArray, mode_zi: FloatArray,
     return y, zf, hist
 
 
-def plant_target(chain: Chain, reading_um: FloatArray) -> FloatArray:
-    """The rod displacement (um) that makes the recorder read ``reading_um``: steps 6, 5, 4
-    inverted for a trajectory known in advance."""
-    w = ungauge(chain.effects, advance(reading_um, chain.effects.sensor_delay_samples))
-    return remove_mode(chain, w)
+def sensor_part(e: Effects) -> Effects:
+    """Only the effects that misreport the position (delay, gauge), not those that move it."""
+    return Effects(sensor_delay_samples=e.sensor_delay_samples,
+                   sensor_quadratic_per_um=e.sensor_quadratic_per_um)
+
+
+def sensor_correct(chain: Chain, reading_um: FloatArray) -> FloatArray:
+    """The stage's position (um) from recorded readings: steps 6 and 5 inverted (the delay by a
+    time advance, the gauge by its root). The readings themselves are never altered on disk."""
+    return ungauge(chain.effects, advance(reading_um, chain.effects.sensor_delay_samples))
+
+
+def position(chain: Chain, u: FloatArray) -> FloatArray:
+    """The stage's position (um): the rod displacement ``u`` plus its second mode, from rest."""
+    return add_mode(chain, u, mode_rest(chain, float(u[0])))[0]

@@ -18,6 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl import effects as fx
 from afmctl import runfile, track
 from afmctl import transducer as tr
 
@@ -82,17 +83,24 @@ def stream(stage: PlayingStage, wf: track.Waveform, path: Path, meta: Mapping[st
 
 def run_all(stage: PlayingStage, plans: Mapping[str, track.Waveform], desired: track.Desired,
             out: Path, meta: Mapping[str, object], between_model: tr.Transducer | None,
-            progress: Progress | None = None) -> dict[str, Outcome]:
-    """Run each plan in turn (inverse first) and score it; run files go to ``out`` (created)."""
+            progress: Progress | None = None, sensor: fx.Effects | None = None
+            ) -> dict[str, Outcome]:
+    """Run each plan in turn (inverse first) and score it; run files go to ``out`` (created).
+
+    The readings are scored as the stage's position: corrected for the ``sensor`` effects the
+    model knows (delay, gauge; none by default). The run files keep the raw readings.
+    """
     out.mkdir(parents=True, exist_ok=True)
     outcomes = {}
     for name, wf in plans.items():
         path = out / f"run_{name}.csv"
         u, v, complete = stream(stage, wf, path, meta, progress)
+        where = fx.sensor_correct(fx.compile_chain(sensor or fx.Effects(), wf.dt_s), u)
         between = None
         if between_model is not None:
             between = track.between_samples(between_model, wf, desired, tr.initial(between_model))
-        outcomes[name] = Outcome(wf, u, v, track.score(wf, desired, u, between), complete, path)
+        outcomes[name] = Outcome(wf, u, v, track.score(wf, desired, where, between), complete,
+                                 path)
     return outcomes
 
 

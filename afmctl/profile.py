@@ -120,6 +120,11 @@ class EmulatorConfig:
     table_capacity: int = 65536
     faults: WireFaults = field(default_factory=WireFaults)
 
+    @property
+    def true_model(self) -> Transducer:
+        """The device's truth as one model: the transducer with the effects it carries."""
+        return replace(self.model, effects=self.effects)
+
 
 @dataclass(frozen=True)
 class Profile:

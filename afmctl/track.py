@@ -12,9 +12,10 @@ Planning turns a desired displacement trajectory into a voltage waveform per fil
   The inversion horizon ``d`` is searched upward from the smallest non-chattering one until the
   waveform passes the guard: a larger horizon rounds the triangle's corners instead of asking the
   amplifier for an impulse. A model with effects (:mod:`afmctl.effects`, from ``afmctl
-  diagnose``) has them inverted around Algorithm 3: the sensor's delay, gauge error and second
-  mode on the target, the amplifier's lag on the voltage (its exact inverse, each step clamped to
-  95 % of the usable slew rate).
+  diagnose``) has the plant's inverted around Algorithm 3: the second mode on the target, the
+  amplifier's lag on the voltage (its exact inverse, each step clamped to 95 % of the usable slew
+  rate). Its sensor effects (delay, gauge error) do not move the stage: they correct the readings
+  before scoring (:func:`afmctl.effects.sensor_correct`).
 * ``linear``: the paper's baseline, a straight line fitted to the model's quasi-static
   voltage-displacement response over the same voltage range, with the same kind of ramps.
 
@@ -163,12 +164,12 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
     rate = 0.25 * limits.max_rate_v_per_ms * 1e3  # V/s for the ramps
     chain = fx.compile_chain(cm.model.effects, dt)
     rod0 = float(tr.simulate(cm, np.array([start_v]), state)[0][0])
-    u0 = float(fx.measure(chain, np.array([rod0]), *fx.rest(chain, rod0))[0][0])  # as read
+    u0 = float(fx.position(chain, np.array([rod0]))[0])  # rod plus second mode
     gain = _linear_from_model(cm, state, limits).gain_um_per_v
     n_in = ramp_samples(desired.u_um[0] - u0, rate * abs(gain), dt)
     target = np.concatenate([raised_cosine(u0, desired.u_um[0], n_in), desired.u_um[1:],
                              desired.u_um[-1:]])
-    target = fx.plant_target(chain, target)  # what the rod must do for the sensor to read that
+    target = fx.remove_mode(chain, target)  # what the rod must do for the stage to be there
     e_max = max(abs(limits.v_min), abs(limits.v_max)) / cm.model.thickness_um
     d0 = rd.smooth_horizon(cm.disc)
     last: guard.LimitError | None = None
@@ -297,10 +298,14 @@ def score(wf: Waveform, desired: Desired, measured_um: FloatArray,
 
 def between_samples(model: tr.Transducer, wf: Waveform, desired: Desired,
                     state: tr.StageState) -> FloatArray:
-    """Error between samples: the plant simulated on a grid ``FINE`` times finer, with the
-    voltage held (zero-order hold) and the desired trajectory linearly interpolated (um)."""
+    """Error of the stage's true position between samples: the plant (with the model's amplifier
+    lag and second mode, not its sensor) simulated on a grid ``FINE`` times finer, the voltage
+    held (zero-order hold), the desired trajectory linearly interpolated (um)."""
     fine = tr.compile_model(model, wf.dt_s / FINE)
-    u, _, _ = tr.simulate(fine, np.repeat(wf.voltage_v, FINE), state)
+    chain = fx.compile_chain(model.effects, wf.dt_s / FINE)
+    v = np.repeat(wf.voltage_v, FINE)
+    u, _, _ = tr.simulate(fine, fx.lag(chain, v, float(v[0]))[0], state)
+    u = fx.position(chain, u)
     start = wf.tracking.start * FINE
     n = (desired.u_um.size - 1) * FINE + 1
     t_fine = np.arange(n) / FINE

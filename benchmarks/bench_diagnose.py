@@ -3,8 +3,10 @@
 Each case is the shipped emulated stage carrying one catalogue effect (or none) at a random
 strength (:func:`afmctl.emulator.hidden_effect`); the three standard triangles are recorded on it
 through the driver interface (device clock 4x real time), and ``diagnose`` must name the effect.
-Then, for every case whose effect track can invert, the 27.9 Hz / 27.04 um triangle is tracked on
-that stage with the base and with the extended model that diagnose wrote.
+Then, for every case whose effect track can invert or correct for, the 27.9 Hz / 27.04 um triangle
+is tracked on that stage with the base and with the extended model that diagnose wrote, and judged
+by the stage's true position (``track_*_rms_um``: the emulator's plant simulated between samples)
+and by the readings as each model corrects them (``track_*_readings_rms_um``).
 
 Run: ``python benchmarks/bench_diagnose.py --json`` (last line: one JSON object with ``cases``,
 ``correct``, ``min_gain_with_effect``, ``false_alarms``, per-case rows and the track figures).
@@ -38,15 +40,22 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def track_rms(profile: Profile, models: dict[str, Transducer], out: Path) -> dict[str, float]:
-    """Inverse-filter RMS error (um) of the 27.9 Hz / 27.04 um triangle per model, on ``profile``."""
+def track_rms(profile: Profile, models: dict[str, Transducer], out: Path
+              ) -> dict[str, tuple[float, float]]:
+    """Per model: RMS error (um) of the 27.9 Hz / 27.04 um triangle on ``profile``'s stage, of
+    the stage's true position (the emulator's plant simulated between samples) and of the
+    readings as the model corrects them."""
+    assert profile.emulator is not None
     desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / profile.sample_rate_hz)
     rms = {}
     with InProcessStage(profile, clock=accelerated(SPEED)) as stage:
         for name, model in models.items():
             plans = track.plan(model, desired, profile.limits, stage.voltage(), ("inverse",))
-            runs = experiment.run_all(stage, plans, desired, out / name, {}, None)
-            rms[name] = runs["inverse"].score.rms_um
+            runs = experiment.run_all(stage, plans, desired, out / name, {},
+                                      profile.emulator.true_model, sensor=model.effects)
+            score = runs["inverse"].score
+            assert score.rms_between_um is not None
+            rms[name] = (score.rms_between_um, score.rms_um)
     return rms
 
 
@@ -67,7 +76,8 @@ def run_case(cause: str, index: int, tmp: Path) -> dict[str, Any]:
                            "seconds": round(d.seconds, 1)}
     if cause in TRACKABLE and d.cause == cause:
         rms = track_rms(prof, {"base": d.base_model, "extended": d.extended_model}, tmp / "track")
-        row["track_base_rms_um"], row["track_extended_rms_um"] = rms["base"], rms["extended"]
+        row["track_base_rms_um"], row["track_base_readings_rms_um"] = rms["base"]
+        row["track_extended_rms_um"], row["track_extended_readings_rms_um"] = rms["extended"]
     return row
 
 

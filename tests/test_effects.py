@@ -107,11 +107,12 @@ def test_delay_in_pieces_equals_delay_at_once() -> None:
     np.testing.assert_allclose(np.concatenate((a, b)), whole, atol=1e-12)
 
 
-def test_plant_target_then_measure_reads_the_target() -> None:
+def test_sensor_correct_inverts_the_sensor_and_position_adds_the_mode() -> None:
     e = fx.Effects(sensor_delay_samples=3.0, sensor_quadratic_per_um=1e-3,
                    second_mode=fx.SecondMode(800.0, 0.03, 0.2))
     chain = fx.compile_chain(e, DT)
-    want = _signal()
-    u = fx.plant_target(chain, want)
+    u = _signal()
     read, _, _ = fx.measure(chain, u, *fx.rest(chain, float(u[0])))
-    np.testing.assert_allclose(read[10:-10], want[10:-10], atol=1e-6)
+    where = fx.position(chain, u)  # where the stage is: rod plus mode
+    np.testing.assert_allclose(fx.sensor_correct(chain, read)[10:-10], where[10:-10], atol=1e-9)
+    assert fx.sensor_part(e) == fx.Effects(sensor_delay_samples=3.0, sensor_quadratic_per_um=1e-3)
