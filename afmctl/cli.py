@@ -57,6 +57,18 @@ def load_profile_or_exit(path: str | None):  # noqa: ANN201 (Profile)
         fail(f"bad profile: {exc}")
 
 
+def fit_settings(path: str | None):  # noqa: ANN201 (identify.Settings)
+    """Identification settings from a profile: its ``[identify]`` table, and its ``[stack]``
+    thickness for sweeps whose metadata gives none (defaults without a profile)."""
+    from afmctl import identify as idf
+    from afmctl import tomlfile
+    if path is None:
+        return idf.Settings()
+    prof = load_profile_or_exit(path)
+    base = idf.Settings(fallback_thickness_um=prof.thickness_um)
+    return idf.settings_from_table(tomlfile.load(path).table("identify", required=False), base)
+
+
 def progress_printer(quiet: bool) -> Callable[[str, int, int], None]:
     """Progress on stderr: a line per 10 % (and the last sample) of each run."""
     last: dict[str, int] = {}
@@ -180,8 +192,9 @@ def _report(result: Any) -> str:
 
 @main.command()
 @click.argument("sweep_files", nargs=-1, required=True)
-@click.option("--profile", "profile", default=None, help="TOML profile; its [identify] table "
-              "sets mass_kg, p_r_C_per_m2, thickness_um, n_coercive_fit, field_step, max_nfev.")
+@click.option("--profile", "profile", default=None, help="Stage profile: its [stack] thickness "
+              "for sweeps without layer_thickness_um; its [identify] table sets mass_kg, "
+              "p_r_C_per_m2, thickness_um, n_coercive_fit, field_step, max_nfev.")
 @click.option("-o", "--output", required=True, help="Model file to write (TOML).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @click.option("--plots", "plots_dir", default=None, help="Directory for per-sweep figures.")
@@ -192,10 +205,9 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
     Exit status: 0 converged, 1 the solver did not converge (no model written), 2 bad input.
     """
     from afmctl import identify as idf
-    from afmctl import modelfile, sweeps, tomlfile
+    from afmctl import modelfile, sweeps
 
-    table = None if profile is None else tomlfile.load(profile).table("identify", required=False)
-    settings = idf.settings_from_table(table)
+    settings = fit_settings(profile)
     data = [sweeps.read(f) for f in sweep_files]
     if not Path(output).resolve().parent.is_dir():
         raise InputError(f"{output}: directory does not exist")
@@ -230,7 +242,8 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
               help="Start the fits from this model (lognormal/normal densities) instead of "
                    "identifying one.")
 @click.option("--profile", "profile", default=None,
-              help="TOML profile whose [identify] table sets the fit options.")
+              help="Stage profile: its [stack] thickness for sweeps without one; its [identify] "
+                   "table sets the fit options.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output folder (default: ./afmctl-diagnose-<time>).")
 @click.option("--json", "as_json", is_flag=True, help="Print diagnosis.json on stdout.")
@@ -244,11 +257,10 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     """
     from afmctl import diagnose as dg
     from afmctl import identify as idf
-    from afmctl import modelfile, parametrization, plots, sweeps, tomlfile
+    from afmctl import modelfile, parametrization, plots, sweeps
     from afmctl.experiment import atomic_write
 
-    table = None if profile is None else tomlfile.load(profile).table("identify", required=False)
-    settings = dg.Settings(identify=idf.settings_from_table(table))
+    settings = dg.Settings(identify=fit_settings(profile))
     data = [sweeps.read(f) for f in sweep_files]
     start = None if model_path is None else modelfile.read(model_path)
     if start is not None:

@@ -54,8 +54,11 @@ class Settings:
     p_r : float
         Fixed remanence ``P_R``, C/m^2 (a scale convention).
     thickness_um : float or None
-        Layer thickness, um. None: take it from the sweeps' metadata, or fit in volts
-        (thickness 1 um, so the field in MV/m equals the voltage in V) if they do not give it.
+        Layer thickness, um. None: take it from the sweeps' metadata, else from
+        ``fallback_thickness_um`` (a profile's ``[stack]``), else fit in volts (thickness 1 um,
+        so the field in MV/m equals the voltage in V).
+    fallback_thickness_um : float or None
+        Layer thickness for sweeps whose metadata does not give one, um.
     window_s : (float, float) or None
         Only samples with ``t0 <= t < t1`` enter the residual; the model still runs from t = 0.
     n_coercive_fit : int
@@ -77,6 +80,7 @@ class Settings:
     mass_kg: float = 0.05
     p_r: float = 0.3
     thickness_um: float | None = None
+    fallback_thickness_um: float | None = None
     window_s: Window = None
     n_coercive_fit: int = 96
     field_step: float = 0.004
@@ -98,6 +102,7 @@ def settings_from_table(t: Table | None, base: Settings = Settings()) -> Setting
         return base
     thick = t.number("thickness_um", positive=True) if t.has("thickness_um") else base.thickness_um
     settings = Settings(
+        fallback_thickness_um=base.fallback_thickness_um,
         mass_kg=t.number("mass_kg", base.mass_kg, positive=True),
         p_r=t.number("p_r_C_per_m2", base.p_r, positive=True), thickness_um=thick,
         window_s=base.window_s, n_coercive_fit=t.integer("n_coercive_fit", base.n_coercive_fit,
@@ -248,7 +253,10 @@ def resolve_thickness(sweeps: Sequence[Sweep], settings: Settings) -> tuple[floa
     known = {s.thickness_um for s in sweeps if s.thickness_um is not None}
     if len(known) > 1:
         raise FitInputError(f"sweeps disagree on layer_thickness_um: {sorted(known)}")
-    return (known.pop(), True) if known else (1.0, False)
+    if known:
+        return known.pop(), True
+    fallback = settings.fallback_thickness_um
+    return (fallback, True) if fallback is not None else (1.0, False)
 
 
 # ----------------------------------------------------------------------------------------------

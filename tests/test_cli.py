@@ -10,6 +10,8 @@ from afmctl import modelfile
 from afmctl import sweeps as sw
 from afmctl.cli import main
 
+EMULATED = Path(__file__).resolve().parents[1] / "profiles" / "emulated.toml"
+
 MALFORMED = {
     "missing_column": b"time_s,voltage_V\n0,0\n0.001,1\n",
     "nan": b"time_s,voltage_V,displacement_um\n0,0,0\n0.001,NaN,1\n0.002,1,1\n",
@@ -78,13 +80,24 @@ def test_identify_human_report(tmp_path: Path, good_file: Path) -> None:
 
 def test_non_converged_fit_is_reported_as_failure(tmp_path: Path, good_file: Path) -> None:
     prof = tmp_path / "p.toml"
-    prof.write_text("[identify]\nmax_nfev = 1\n")
+    prof.write_text(EMULATED.read_text() + "\n[identify]\nmax_nfev = 1\n")
     out = tmp_path / "m.toml"
     res = CliRunner().invoke(main, ["identify", str(good_file), "-o", str(out), "--json",
                                     "--profile", str(prof)])
     assert res.exit_code == 1
     assert json.loads(res.stdout)["success"] is False
     assert not out.exists()
+
+
+def test_profile_gives_the_thickness_of_sweeps_without_one(tmp_path: Path,
+                                                          good_file: Path) -> None:
+    """A foreign sweep (no metadata) is fitted in volts alone, in MV/m with the stage's profile."""
+    out = tmp_path / "m.toml"
+    res = CliRunner().invoke(main, ["identify", str(good_file), "-o", str(out), "--json",
+                                    "--profile", str(EMULATED)])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["thickness_known"] is True
+    assert modelfile.read(out).thickness_um == 100.0
 
 
 def test_conflicting_thickness_exits_2(tmp_path: Path, emulate: Callable[..., sw.Sweep]) -> None:
