@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -299,8 +299,7 @@ def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um
     cand = ext.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
                          float(np.exp(x_start[4])))[name]
     if z_start is not None:
-        cand = ext.Candidate(cand.name, cand.labels, (tuple(z_start[6:]),), cand.lower,
-                             cand.upper)
+        cand = replace(cand, starts=(tuple(z_start[6:]),))
     space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um)
     return ext.fit(space, x_start, thickness, settings.max_nfev), cand.n_params
 

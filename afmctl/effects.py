@@ -121,21 +121,11 @@ def lag(chain: Chain, v: FloatArray, v_prev: float) -> tuple[FloatArray, float]:
     return y, float(y[-1])
 
 
-def unlag(chain: Chain, v_app: FloatArray, v_prev: float) -> FloatArray:
-    """The commands that make the amplifier output ``v_app`` (V) from ``v_prev``: exact inverse of
-    :func:`lag`."""
-    v_app = np.asarray(v_app, dtype=float)
-    if chain.lag_a == 0.0:
-        return v_app
-    a = chain.lag_a
-    return (v_app - a * np.concatenate(([v_prev], v_app[:-1]))) / (1 - a)
-
-
 def unlag_limited(chain: Chain, v_app: FloatArray, v_prev: float, max_step: float) -> FloatArray:
     """Commands (V) whose amplifier output follows ``v_app`` as closely as steps of at most
-    ``max_step`` (V per sample) allow: the exact :func:`unlag` sample by sample, each step clamped,
-    the amplifier state following the clamped command (so it catches up after a corner). Equal
-    to :func:`unlag` wherever that stays within the step limit."""
+    ``max_step`` (V per sample) allow: the exact inverse of :func:`lag` sample by sample, each
+    step clamped, the amplifier state following the clamped command (so it catches up after a
+    corner). With an unbounded ``max_step`` it is the exact inverse."""
     v_app = np.asarray(v_app, dtype=float)
     if chain.lag_a == 0.0:
         return v_app
