@@ -1,0 +1,78 @@
+"""``afmctl diagnose``: what the model gets wrong, the cause, the extended model."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import click
+
+from afmctl.cli.base import fail, fit_settings, main
+from afmctl.tomlfile import InputError
+
+
+@main.command()
+@click.argument("sweep_files", nargs=-1, required=True)
+@click.option("--model", "model_path", type=click.Path(dir_okay=False), default=None,
+              help="Start the fits from this model (lognormal/normal densities) instead of "
+                   "identifying one.")
+@click.option("--profile", "profile", default=None,
+              help="Stage profile: its [stack] thickness for sweeps without one; its [identify] "
+                   "table sets the fit options.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
+              help="Output folder (default: ./afmctl-diagnose-<time>).")
+@click.option("--json", "as_json", is_flag=True, help="Print diagnosis.json on stdout.")
+def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str | None,
+             out_dir: str | None, as_json: bool) -> None:
+    """Find what the model gets wrong on SWEEP_FILES, name the physical cause, extend the model
+    and measure the gain on held-out data.
+
+    Writes diagnosis.json, base.toml and extended.toml (model files for track), report.md and
+    residuals.png to --out.
+    """
+    from afmctl import diagnose as dg
+    from afmctl import identify as idf
+    from afmctl import modelfile, parametrization, plots, sweeps
+    from afmctl.experiment import atomic_write
+
+    settings = dg.Settings(identify=fit_settings(profile))
+    data = [sweeps.read(f) for f in sweep_files]
+    start = None if model_path is None else modelfile.read(model_path)
+    if start is not None:
+        try:
+            parametrization.internal(start)
+        except ValueError as exc:
+            raise InputError(f"--model {model_path}: {exc}") from None
+    idf.resolve_thickness(data, settings.identify)
+    dg.check(data)
+    out = Path(out_dir) if out_dir else Path(f"afmctl-diagnose-{time.strftime('%Y%m%d-%H%M%S')}")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: exists and is not a folder")
+    if (out / "diagnosis.json").exists():
+        fail(f"{out} already holds a diagnosis; choose another --out")
+    click.echo(f"diagnosing {len(data)} sweep(s): "
+               f"{len(dg.candidate_names(len(data), settings))} candidates ...", err=True)
+    d = dg.diagnose(data, settings, start, progress=lambda m: click.echo(m, err=True))
+    doc = d.as_dict()
+    text = json.dumps(doc, indent=2, allow_nan=False) + "\n"  # before anything is written
+    out.mkdir(parents=True, exist_ok=True)
+    header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
+    modelfile.write(d.base_model, out / "base.toml", header=header + "\nthe paper's model")
+    modelfile.write(d.extended_model, out / "extended.toml",
+                    header=header + f"\nextended with: {d.cause}")
+    before = [idf.predict(d.base_model, s.voltage_v, s.dt) for s in data]
+    after = [idf.predict(d.extended_model, s.voltage_v, s.dt, g)
+             for s, g in zip(data, d.extended_gains, strict=True)]
+    partial = out / "residuals.partial.png"
+    plots.diagnosis_figure(data, before, after, d.base_model.thickness_um,
+                           ("paper's model", f"extended: {d.cause}"), partial)
+    partial.replace(out / "residuals.png")
+    atomic_write(out / "report.md", dg.report(d, "residuals.png"))
+    atomic_write(out / "diagnosis.json", text)  # last: marks the folder complete
+    click.echo(f"cause: {d.cause} (held-out RMS {d.base_rms_um:.4f} -> {d.extended_rms_um:.4f} um, "
+               f"gain {d.gain:.2f}); wrote {out}/diagnosis.json, extended.toml, report.md, "
+               f"residuals.png", err=True)
+    if as_json:
+        click.echo(json.dumps(doc, allow_nan=False))
+

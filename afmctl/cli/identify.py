@@ -1,0 +1,73 @@
+"""``afmctl identify``: fit the model to measured sweeps."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+
+from afmctl.cli.base import fit_settings, main
+from afmctl.tomlfile import InputError
+
+
+def _report(result: Any) -> str:
+    """Human-readable fit report (``result`` is an ``identify.FitResult``)."""
+    state = "converged" if result.success else "NOT CONVERGED (fit failed)"
+    lines = [f"fit {state}: {result.message} (status {result.status}, {result.nfev} evaluations, "
+             f"{result.seconds:.2f} s)"]
+    if not result.thickness_known:
+        lines.append("layer thickness unknown: fitted in volts (thickness_um = 1 by convention)")
+    lines.append(f"{'sweep':40s} {'rms um':>9s} {'max um':>9s} {'rms %':>7s} {'max %':>7s}")
+    for s in result.sweeps:
+        lines.append(f"{Path(s.file).name:40s} {s.rms_um:9.4f} {s.max_um:9.4f} "
+                     f"{s.rms_pct:7.3f} {s.max_pct:7.3f}")
+    lines.append("parameters (1-sigma from the Jacobian):")
+    for p in result.parameters:
+        err = "fixed (scale convention)" if p.fixed else f"+- {p.stderr:.4g}"
+        lines.append(f"  {p.name:20s} {p.value:14.6g} {err:>26s}  {p.unit}")
+    return "\n".join(lines)
+
+
+@main.command()
+@click.argument("sweep_files", nargs=-1, required=True)
+@click.option("--profile", "profile", default=None, help="Stage profile: its [stack] thickness "
+              "for sweeps without layer_thickness_um; its [identify] table sets mass_kg, "
+              "p_r_C_per_m2, thickness_um, n_coercive_fit, field_step, max_nfev.")
+@click.option("-o", "--output", required=True, help="Model file to write (TOML).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@click.option("--plots", "plots_dir", default=None, help="Directory for per-sweep figures.")
+def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_json: bool,
+             plots_dir: str | None) -> None:
+    """Fit the stage model jointly to SWEEP_FILES and write it to the model file OUTPUT.
+
+    Exit status: 0 converged, 1 the solver did not converge (no model written), 2 bad input.
+    """
+    from afmctl import identify as idf
+    from afmctl import modelfile, sweeps
+
+    settings = fit_settings(profile)
+    data = [sweeps.read(f) for f in sweep_files]
+    if not Path(output).resolve().parent.is_dir():
+        raise InputError(f"{output}: directory does not exist")
+    idf.resolve_thickness(data, settings)  # validate before any progress output
+    click.echo(f"fitting {len(data)} sweep(s) ...", err=True)
+    result = idf.fit(data, settings, progress=lambda m: click.echo(m, err=True))
+    if plots_dir is not None:
+        from afmctl import plots
+
+        fitted = [idf.predict(result.model, s.voltage_v, s.dt) for s in data]
+        for p in plots.fit_figures(data, fitted, plots_dir):
+            click.echo(f"wrote {p}", err=True)
+    if result.success:
+        header = "afmctl identify: " + ", ".join(Path(f).name for f in sweep_files)
+        header += "\nm and p_r are fixed by convention (only their ratios to c, k, a1, a2, eta"
+        header += " are identifiable)"
+        modelfile.write(result.model, output, header=header)
+        click.echo(f"wrote {output}", err=True)
+    click.echo(json.dumps(result.to_dict()) if as_json else _report(result))
+    if not result.success:
+        sys.exit(1)
+
