@@ -389,26 +389,39 @@ def _solve(space: Space, x0: FloatArray, prob: _Problem) -> optimize.OptimizeRes
 
 def choose_starts(space: pz.LognormalSpace, x: FloatArray, y: FloatArray,
                   margin: float = 0.0) -> pz.LognormalSpace:
-    """Each sweep's initial hysteresis state, by coordinate descent over
-    :data:`afmctl.parametrization.STARTS` at the parameters ``x`` (two passes); a change must
-    lower the sum of squares by more than ``margin`` (um^2).
+    """Each sweep's initial hysteresis state among :data:`afmctl.parametrization.STARTS` at the
+    parameters ``x``: the best joint assignment (all sweeps alike, or the first alike and the
+    others each where the previous left it), then coordinate descent, one sweep at a time (two
+    passes). A change must lower the sum of squares by more than ``margin`` (um^2).
 
     After a sweep has reached both of its voltage extremes only the hysterons it cannot switch
     still remember the start; they shift ``Q`` by a constant, which the quadratic force term
-    turns into a gain: small, but at the noise floor it decides the fit.
+    turns into a gain: small, but at the noise floor it decides the fit. The gains are shared,
+    so sweeps that started alike must be switched together (one at a time, a shared gain fitted
+    to the others holds each back).
     """
-    best = space
-    cost = _cost(best, y, x) - margin
+    n = len(space.preps)
+    best, cost = space, _cost(space, y, x) - margin
+
+    def consider(starts: tuple[str, ...]) -> bool:
+        nonlocal best, cost
+        if starts == best.starts:
+            return False
+        trial = best.with_starts(starts)
+        c = _cost(trial, y, x)
+        if c < cost:
+            best, cost = trial, c - margin
+            return True
+        return False
+
+    for first in pz.STARTS[:3]:
+        consider((first,) * n)
+        consider((first,) + ("previous",) * (n - 1))
     for _ in range(2):
         changed = False
-        for i in range(len(space.preps)):
+        for i in range(n):
             for cand in pz.STARTS[:3] if i == 0 else pz.STARTS:
-                if cand == best.starts[i]:
-                    continue
-                trial = best.with_starts(best.starts[:i] + (cand,) + best.starts[i + 1:])
-                c = _cost(trial, y, x)
-                if c < cost:
-                    best, cost, changed = trial, c - margin, True
+                changed |= consider(best.starts[:i] + (cand,) + best.starts[i + 1:])
         if not changed:
             break
     return best
@@ -433,12 +446,14 @@ def _global(prob: _Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult,
     space = pz.LognormalSpace(prob.preps, st.scales, st.n_coercive_fit)
     coarse = pz.LognormalSpace(prob.preps, st.scales, 24)
     ranked = coarse.starts_ranked(lambda x: _cost(coarse, prob.y, x))
-    prob.say("starting guess " + ", ".join(f"{n}={v:.4g}" for n, v in
-                                             zip(pz.THETA_NAMES, np.exp(ranked[0]), strict=True)))
     best: tuple[pz.LognormalSpace, optimize.OptimizeResult] | None = None
     restarts = 0
-    for k, x0 in enumerate(ranked[:1 + st.restarts]):
-        if k:
+    for k, x_grid in enumerate(ranked[:1 + st.restarts]):
+        x0 = coarse.tune_rod(x_grid, lambda x: _cost(coarse, prob.y, x))
+        if not k:
+            prob.say("starting guess " + ", ".join(
+                f"{n}={v:.4g}" for n, v in zip(pz.THETA_NAMES, np.exp(x0), strict=True)))
+        else:
             restarts += 1
             prob.say(f"restart {k}: " + ", ".join(f"{v:.3g}" for v in np.exp(x0)))
         space, sol = _round(space, x0, prob)
@@ -503,7 +518,7 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     ok = sol.success and sol.status > 0
     fields = [p.field[p.keep] for p in preps]
     n_c = n_coercive_for(_model(space, sol.x, prob.y, thickness), fields)
-    if n_c > space.n_coercive:
+    if n_c >= 2 * space.n_coercive:  # below, the fit's own nodes err by < 2x the tolerance
         say(f"polishing with N_c = {n_c} coercive nodes (discretization < {DISCRETIZATION_UM} um)")
         space = space.with_starts(space.starts, n_c)
         sol = _solve(space, sol.x, prob)
@@ -522,7 +537,7 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     model = _model(final, sol.x, prob.y, thickness)
     if isinstance(final, pz.LognormalSpace):
         model = replace(model, polarization=replace(model.polarization,
-                                                    n_coercive=space.n_coercive))
+                                                    n_coercive=max(n_c, space.n_coercive)))
     env = envelope(sweeps, thickness)
     predicted = predict_set(model, sweeps, space.starts, offsets)
     errors = tuple(_error(s.path or s.name, s, u, settings.window_s, start, float(off))
