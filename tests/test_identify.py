@@ -168,9 +168,10 @@ def test_each_sweep_has_its_own_sensor_zero(emulate: Callable[..., sw.Sweep]) ->
 def test_narrow_interaction_field_gets_enough_coercive_nodes() -> None:
     """sigma_I = 0.12 MV/m (the Chapter-2 PZT of Smith's book): the default 128 nodes err by more
     than 0.01 um; the chosen N_c errs by less, checked against 16384 nodes over the envelope."""
-    from afmctl import parametrization as pz
     from afmctl import hysteresis as hy
-    true = pz.to_model(np.array([1.0, 0.3, 0.12, 1.0, 300.0, 0.3]), np.array([40.0, 0.5, 0.0]),
+    from afmctl import parametrization as pz
+    true = pz.to_model(np.array([1.0, 0.3, 0.12, 1.0, 300.0, 0.3]),
+                       np.array([40.0, 0.5, 0.0]),
                        pz.Scales(), 100.0)
     fields = [sw.nested_loops(1.0, 150.0, 4, 2000.0) / 100.0, sw.triangle(1.0, 150.0, 1, 2000.0)
               / 100.0 + 0.3]
