@@ -15,9 +15,10 @@ triangle or in a resonant transient is a few large differences: the scale is tak
 ``1.4826 median(|d - median(d)|)`` (the median absolute deviation, consistent for a normal
 distribution), so such bursts do not count. The orders 3 to 8 are tried and the smallest
 estimate kept: the signal can only inflate an estimate, and each order shrinks a component at
-frequency ``f`` by ``2 sin(pi f dt)`` (0.56 for a resonance at 1/11 of the sample rate). Assumes white noise: a sensor whose noise is
-low-pass filtered below the sample rate is under-estimated (its high-frequency part is what this
-sees), and quantization steps coarser than the noise are seen as noise.
+frequency ``f`` by ``2 sin(pi f dt)`` (0.56 for a resonance at 1/11 of the sample rate).
+Assumes white noise: a sensor whose noise is low-pass filtered below the sample rate is
+under-estimated (its high-frequency part is what this sees), and quantization steps coarser than
+the noise are seen as noise.
 
 References: the difference-based variance estimators of Rice (1984, Ann. Statist. 12, 1215) and
 Hall, Kay & Titterington (1990, Biometrika 77, 521); robust (MAD) scale as in Donoho &
