@@ -194,16 +194,30 @@ def test_narrow_interaction_field_gets_enough_coercive_nodes() -> None:
     assert hy.n_coercive_for(true.polarization, fields, 1.0) == 64  # a loose tolerance: the floor
 
 
-def test_undetermined_parameters_are_flagged(emulate: Callable[..., sw.Sweep]) -> None:
-    """A quasi-static sweep alone cannot fix the rod's resonance: flagged; the densities are fixed."""
-    v = sw.triangle(1.0, 150.0, 2, SAMPLE_RATE_HZ)[::2]
-    s = emulate(np.repeat(v, 2)[:-1], 1.0, seed=31)
-    res = idf.fit([s], idf.Settings(restarts=0))
-    und = res.uncertainty["undetermined"]
-    assert "log_natural_hz" in und and "log_median_MV_per_m" not in und
-    corr = np.array(res.uncertainty["correlation"]["matrix"], dtype=float)
-    assert corr.shape == (len(res.uncertainty["correlation"]["names"]),) * 2
-    np.testing.assert_allclose(np.diag(corr), 1.0, atol=1e-9)
+def test_undetermined_parameters_are_flagged() -> None:
+    """A parameter with a large relative 1-sigma, or one of a pair correlated beyond 0.999, is
+    flagged; offsets (one per sweep) are not judged by correlation."""
+    from afmctl import uncertainty as unc
+    names = ("log_natural_hz", "log_damping_ratio", "g1_um_per_MV_per_m", "offset_1_um",
+             "offset_2_um")
+    sd = np.array([0.01, 0.01, 0.02, 0.01, 0.01])
+    corr = np.eye(5)
+    corr[0, 1] = corr[1, 0] = 0.9995
+    corr[3, 4] = corr[4, 3] = 0.9999
+    cov = corr * np.outer(sd, sd)
+    p = np.array([5.5, -1.4, 0.03, 2.0, -3.0])
+    assert unc.undetermined(names, p, cov) == ["log_natural_hz", "log_damping_ratio",
+                                                "g1_um_per_MV_per_m"]  # 0.02 / 0.03 > 0.5
+    doc = unc.summary(names, p, cov)
+    assert doc["undetermined"] == unc.undetermined(names, p, cov)
+    np.testing.assert_allclose(np.array(doc["correlation"]["matrix"], float), corr, atol=1e-6)
+
+
+def test_standard_fit_reports_its_uncertainty(standard_fit: idf.FitResult) -> None:
+    u = standard_fit.uncertainty
+    assert u["undetermined"] == []
+    assert all(d["stderr"] > 0 for d in u["parameters"].values())
+    assert len(u["correlation"]["names"]) == 6 + 2 + 3
 
 
 def test_cli_names_a_sweep_above_twice_its_noise(tmp_path: Path,
@@ -214,7 +228,7 @@ def test_cli_names_a_sweep_above_twice_its_noise(tmp_path: Path,
 
     from afmctl.cli import main
     a = emulate(sw.triangle(27.9, 150.0, 4, SAMPLE_RATE_HZ), 27.9, seed=41)
-    b = emulate(sw.triangle(5.58, 150.0, 1, SAMPLE_RATE_HZ), 5.58, seed=42)
+    b = emulate(sw.triangle(5.58, 150.0, 4, SAMPLE_RATE_HZ), 5.58, seed=42)
     b = sw.Sweep(b.time_s, b.voltage_v, b.displacement_um + 0.3 * np.sin(2 * np.pi * 3 * b.time_s),
                  b.meta)
     sw.write(a, tmp_path / "clean.csv")
@@ -226,9 +240,37 @@ def test_cli_names_a_sweep_above_twice_its_noise(tmp_path: Path,
     doc = json.loads(res.stdout)
     assert doc["success"] is True and doc["at_noise_floor"] is False
     assert {"noise_um", "rms_over_noise"} <= set(doc["sweeps"][0])
-    assert doc["sweeps"][1]["rms_over_noise"] > 2 >= doc["sweeps"][0]["rms_over_noise"]
+    assert doc["sweeps"][1]["rms_over_noise"] > 5
     warn = [ln for ln in res.stderr.splitlines() if ln.startswith("warning:")]
-    assert len(warn) == 1 and "wobbly.csv" in warn[0] and "afmctl diagnose" in warn[0]
+    assert any("wobbly.csv" in ln for ln in warn) and all("afmctl diagnose" in ln for ln in warn)
+    assert len(warn) == sum(s["rms_over_noise"] > 2 for s in doc["sweeps"])
     assert set(doc["uncertainty"]) >= {"parameters", "correlation", "undetermined"}
     assert doc["envelope"]["voltage_max_V"] == pytest.approx(150.0, abs=0.1)
     assert modelfile.read_envelope(tmp_path / "m.toml") is not None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("index", "design", "start"), [(0, "semi-bipolar", "depoled"),
+                                                        (1, "unipolar", "poled-")])
+def test_foreign_stage_reaches_its_noise_floor(index: int, design: str, start: str) -> None:
+    """Sweeps recorded in sequence on the independently written foreign plant (other formulas,
+    random parameters, a lab's sweep design and sample rates), identified with defaults: every
+    sweep within 1.5x the plant's true sensor noise. (The bench runs 30 such stages.)"""
+    plant = pytest.importorskip("drivers.device.foreign")
+    from drivers.device.foreign_stages import random_stage
+    from drivers.device.foreign_sweeps import sweep_set
+    rng = np.random.default_rng([11, index])
+    lo, hi = (-30.0, 150.0) if design == "semi-bipolar" else (0.0, 150.0)
+    stage = random_stage(rng, drive_range_V=(lo, hi))
+    state, recorded = plant.initial_state(stage, start), []
+    for plan in sweep_set(design, lo, hi, rng):
+        state = plant.start_run(stage, state, rng)
+        state = plant.idle(stage, state, 1.0, float(plan.voltage_V[0]))
+        _, reading, state = plant.run(stage, plan.voltage_V, plan.sample_rate_hz, state, rng)
+        recorded.append(sw.from_arrays(plan.voltage_V, reading, plan.sample_rate_hz, {
+            "layer_thickness_um": str(stage.material.layer_thickness_um),
+            "frequency_hz": str(plan.frequency_hz)}, plan.name))
+    res = idf.fit(recorded)
+    assert res.success
+    for s in res.sweeps:
+        assert s.rms_um <= 1.5 * stage.sensor.noise_um, (s.file, s.rms_um, stage.sensor.noise_um)
