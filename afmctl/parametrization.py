@@ -129,9 +129,25 @@ def _discretize(fn: float, zeta: float, dt: float) -> rd.Discrete:
     if key not in _DISC_CACHE:
         if len(_DISC_CACHE) > 256:
             _DISC_CACHE.clear()
-        w = 2 * math.pi * fn
-        _DISC_CACHE[key] = rd.discretize(rd.Rod(1.0, 2 * zeta * w, w * w, 1.0), dt)
+        _DISC_CACHE[key] = unit_oscillator_zoh(fn, zeta, dt)
     return _DISC_CACHE[key]
+
+
+def unit_oscillator_zoh(fn: float, zeta: float, dt: float) -> rd.Discrete:
+    """Exact zero-order-hold discretization (18) of ``u'' + 2 zeta w u' + w^2 u = f`` in closed
+    form (the same as :func:`afmctl.rod.discretize` of a unit-mass rod, without a matrix
+    exponential): ``e^{A t} = e^{-zeta w t} (cosh(mu t) I + sinh(mu t)/mu (A + zeta w I))`` with
+    ``mu = w sqrt(zeta^2 - 1)`` (imaginary when underdamped), ``Gamma = A^-1 (Phi - I) B``."""
+    w = 2 * math.pi * fn
+    a = np.array([[0.0, 1.0], [-w * w, -2 * zeta * w]])
+    mu = w * np.sqrt(complex(zeta * zeta - 1.0))
+    x = mu * dt
+    ch = float(np.cosh(x).real)
+    sh = float((np.sinh(x) / mu).real) if abs(x) > 1e-8 else dt * (1 + float((x * x).real) / 6)
+    phi = math.exp(-zeta * w * dt) * (ch * np.eye(2) + sh * (a + zeta * w * np.eye(2)))
+    a_inv = np.array([[a[1, 1], -a[0, 1]], [-a[1, 0], a[0, 0]]]) / (w * w)
+    gamma = a_inv @ (phi - np.eye(2)) @ np.array([0.0, 1.0])
+    return rd.Discrete(phi, gamma, float(dt))
 
 
 def sweep_columns(q: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
