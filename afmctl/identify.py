@@ -206,7 +206,7 @@ class FitResult:
     nfev: int
     seconds: float
     thickness_known: bool
-    x: FloatArray = field(repr=False)
+    x: FloatArray = field(repr=False)  # the lognormal fit's log(theta), also after a refinement
     uncertainty: dict[str, Any] = field(default_factory=dict, repr=False)
     envelope: mf.Envelope | None = None
     restarts: int = 0
@@ -550,6 +550,7 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
         sol = _solve(space, sol.x, prob)
         ok = sol.success and sol.status > 0
     final: Space = space
+    x_lognormal = sol.x
     worst = float(np.max(prob.per_sweep(sol.fun)))
     if settings.density == "discrete" or (settings.density == "auto" and worst > REFINE):
         beta, _ = pz.project(space.design(sol.x), prob.y)
@@ -579,5 +580,5 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     ok = bool(ok and np.all(np.isfinite(sol.x)) and np.all(np.isfinite(beta)))
     return FitResult(model, unc.estimates(final, sol.x, beta, cov, settings.scales), errors, ok,
                      int(sol.status), str(sol.message), prob.nfev, time.perf_counter() - t0,
-                     known, sol.x, unc.summary(names, np.concatenate((sol.x, beta)), cov),
+                     known, x_lognormal, unc.summary(names, np.concatenate((sol.x, beta)), cov),
                      env, restarts)
