@@ -493,6 +493,31 @@ def _discretization_matters(space: pz.LognormalSpace, x: FloatArray, n_c: int,
                 > POLISH_SHARE)
 
 
+def _with_nodes(model: td.Transducer, n_c: int, space: pz.LognormalSpace,
+                sweeps: Sequence[Sweep], offsets: FloatArray,
+                say: Callable[[str], None]) -> tuple[td.Transducer, list[FloatArray]]:
+    """The model with ``n_c`` coercive nodes, unless it fits the sweeps worse than with the nodes
+    it was fitted with (then the parameters absorbed the fit's discretization, and the fitted
+    node count is kept and said)."""
+    pol = replace(model.polarization, n_coercive=space.n_coercive)
+    fitted = replace(model, polarization=pol)
+    if n_c <= space.n_coercive:
+        return fitted, predict_set(fitted, sweeps, space.starts, offsets)
+    fine = replace(model, polarization=replace(pol, n_coercive=n_c))
+    p_fine = predict_set(fine, sweeps, space.starts, offsets)
+    p_fit = predict_set(fitted, sweeps, space.starts, offsets)
+
+    def sse(pred: list[FloatArray]) -> float:
+        return sum(float(np.sum((s.displacement_um - u)[s.mask(None)] ** 2))
+                   for s, u in zip(sweeps, pred, strict=True))
+
+    if sse(p_fine) <= 1.1 * sse(p_fit):
+        return fine, p_fine
+    say(f"N_c = {n_c} fits worse than the fit's {space.n_coercive} nodes: keeping "
+        f"{space.n_coercive} (its discretization may exceed {DISCRETIZATION_UM} um)")
+    return fitted, p_fit
+
+
 def _model(space: Space, x: FloatArray, y: FloatArray, thickness_um: float) -> td.Transducer:
     """The physical model at ``x`` (gains projected; the sensor zero of the last sweep)."""
     beta, _ = pz.project(space.design(x), y)
@@ -546,8 +571,7 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     if n_c > space.n_coercive and _discretization_matters(space, sol.x, n_c, prob):
         n_fit = min(n_c, POLISH_MAX_NODES)
         say(f"polishing with {n_fit} coercive nodes (N_c = {n_c} for < {DISCRETIZATION_UM} um)")
-        space = space.with_starts(space.starts, n_fit)
-        sol = _solve(space, sol.x, prob)
+        space, sol = _round(space.with_starts(space.starts, n_fit), sol.x, prob)
         ok = sol.success and sol.status > 0
     final: Space = space
     x_lognormal = sol.x
@@ -569,10 +593,10 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     offsets = beta[2:]
     model = _model(final, sol.x, prob.y, thickness)
     if isinstance(final, pz.LognormalSpace):
-        model = replace(model, polarization=replace(model.polarization,
-                                                    n_coercive=max(n_c, space.n_coercive)))
+        model, predicted = _with_nodes(model, n_c, space, sweeps, offsets, say)
+    else:
+        predicted = predict_set(model, sweeps, space.starts, offsets)
     env = envelope(sweeps, thickness)
-    predicted = predict_set(model, sweeps, space.starts, offsets)
     errors = tuple(_error(s.path or s.name, s, u, settings.window_s, start, float(off))
                    for s, u, start, off in zip(sweeps, predicted, space.starts, offsets,
                                                strict=True))

@@ -139,7 +139,7 @@ def test_stage_far_from_defaults_reaches_the_noise_floor(start: str) -> None:
     res = idf.fit(_semi_bipolar(start, seed=11))
     assert res.success and res.at_noise_floor, [s.rms_over_noise for s in res.sweeps]
     for s in res.sweeps:
-        assert s.noise_um == pytest.approx(FAR_NOISE_UM, rel=0.1)
+        assert s.noise_um == pytest.approx(FAR_NOISE_UM, rel=0.15)  # 180 Hz mode at 2 kHz
         assert s.rms_over_noise <= 1.5
     doc = res.to_dict()
     assert doc["envelope"]["voltage_min_V"] == -40.0 and doc["envelope"]["voltage_max_V"] == 150.0
