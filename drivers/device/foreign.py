@@ -29,6 +29,7 @@ true positions as in one go.
 Example
 -------
 >>> import numpy as np
+>>> from drivers.device.foreign_stages import random_stage
 >>> rng = np.random.default_rng(1)
 >>> stage = random_stage(rng)
 >>> state = initial_state(stage, "poled+")
@@ -336,7 +337,7 @@ def _no_pack(par, eff, stage):
 def _pack_amp(par, eff: Amplifier, stage):
     w = 2 * math.pi * eff.bandwidth_hz
     par[fk.P_AMP], par[fk.P_AW], par[fk.P_AZ] = 1.0, w, eff.damping
-    par[fk.P_SLEW], par[fk.P_TAUS] = eff.slew_V_per_s, 0.25 / w
+    par[fk.P_SLEW] = eff.slew_V_per_s
 
 
 def _pack_latency(par, eff: SensorLatency, stage):
@@ -450,7 +451,7 @@ def initial_state(stage: Stage, start: str | float | tuple[float, ...] = "poled+
     volts = visited[-1] if visited else 0.0
     rising = len(visited) < 2 or visited[-1] >= visited[-2]
     st = np.zeros(fk.N_ST)
-    st[fk.S_VS] = st[fk.S_VA] = volts
+    st[fk.S_VA] = volts
     st[fk.S_E] = volts / mat.layer_thickness_um
     state = PlantState(st, np.zeros(4), boundary, up, np.zeros((8, 3)))
     return _settle(stage, state, 0.0, rising)
@@ -475,7 +476,7 @@ def _settle(stage: Stage, state: PlantState, dt: float, rising: bool) -> PlantSt
     xp = state.scalars[fk.S_XP] if dt > 0 else (u - half if rising else u + half)
     st[fk.S_XP] = min(max(xp, u - half), u + half)
     st[fk.S_F] = force
-    st[fk.S_VS] = st[fk.S_VA] = e * par[fk.P_THICK]
+    st[fk.S_VA] = e * par[fk.P_THICK]
     st[fk.S_WA] = 0.0
     s, _ = fk.gauge(par, st[fk.S_XP])
     st[fk.S_S] = st[fk.S_Y] = s

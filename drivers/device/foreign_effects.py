@@ -11,7 +11,7 @@ Causes and the dataclass that makes each:
 ==========================  =======================  ==========================================
 cause                       dataclass                physics
 ==========================  =======================  ==========================================
-``amplifier-lag``           :class:`Amplifier`       smooth slew limit, then a 2nd-order low-pass
+``amplifier-lag``           :class:`Amplifier`       2nd-order low-pass with a slew-rate limit
 ``sensor-delay``            :class:`SensorLatency`   2nd-order anti-alias filter + continuous delay
 ``thermal-relaxation``      :class:`Thermal`         Arrhenius switching (6)-(10) per hysteron
 ``second-mode``             :class:`SecondMass`      a platform mass coupled to the rod (2 DOF)
@@ -39,11 +39,11 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class Amplifier:
-    """Voltage amplifier: a smooth slew limiter followed by a second-order low-pass.
+    """Voltage amplifier: a second-order low-pass whose output slews at most ``slew_V_per_s``.
 
-    ``dv_s/dt = S tanh((g V - v_s) / (S tau_s))``, then
-    ``v'' + 2 zeta w v' + w^2 v = w^2 v_s`` with ``w = 2 pi bandwidth_hz``; ``tau_s`` is a tenth
-    of the low-pass's time scale ``1 / w`` (the limiter is linear and fast for small steps).
+    ``v' = S tanh(w_v / S)``, ``w_v' = w^2 (g V - v) - 2 zeta w w_v`` with
+    ``w = 2 pi bandwidth_hz``: the textbook low-pass while ``|w_v| << S``, a ramp at rate ``S``
+    after a large step.
 
     Parameters
     ----------

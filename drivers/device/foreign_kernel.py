@@ -39,18 +39,17 @@ NORMAL, LOGISTIC, LAPLACE = 0, 1, 2
 # Layout of the scalar parameter vector ``par``
 (P_THICK, P_CHI, P_F1, P_F2, P_GAIN, P_GRATE, P_ISCALE, P_IFAM,
  P_M1, P_C1, P_K1, P_M2, P_C2, P_K2, P_TWO,
- P_AMP, P_AW, P_AZ, P_SLEW, P_TAUS,
+ P_AMP, P_AW, P_AZ, P_SLEW,
  P_THERM, P_ET, P_NU0,
  P_PLAY,
  P_GPOLY, P_GC, P_GR, P_Q2, P_Q3,
  P_GSAT, P_SC, P_SK, P_SW,
- P_AA, P_AAW, P_AAZ, P_DELAY) = range(37)
-N_PAR = 37
+ P_AA, P_AAW, P_AAZ, P_DELAY) = range(36)
+N_PAR = 36
 
 # Layout of the scalar state vector ``st``
-(S_T, S_U1, S_V1, S_U2, S_V2, S_VS, S_VA, S_WA, S_E, S_F, S_XP, S_Y, S_DY, S_S,
- S_HEAD, S_COUNT) = range(16)
-N_ST = 16
+(S_T, S_VA, S_WA, S_E, S_F, S_XP, S_Y, S_DY, S_S, S_HEAD, S_COUNT) = range(11)
+N_ST = 11
 MAT_PER_SAMPLE = 8  # material updates per sample at most, when an amplifier moves the field
 
 
@@ -202,25 +201,23 @@ def _mech_step(par, q, f0, f1, h, k1, k2, k3, k4, tmp):
 
 
 @njit(cache=True)
-def _amp_rhs(par, vin, vs, va, wa):
+def _amp_rhs(par, vin, va, wa):
     slew = par[P_SLEW]
-    dvs = slew * math.tanh((vin - vs) / (slew * par[P_TAUS]))
     w = par[P_AW]
-    dwa = w * w * (vs - va) - 2.0 * par[P_AZ] * w * wa
-    return dvs, wa, dwa
+    return slew * math.tanh(wa / slew), w * w * (vin - va) - 2.0 * par[P_AZ] * w * wa
 
 
 @njit(cache=True)
 def _amp_step(par, st, vin, h):
-    """RK4 for the amplifier: smooth slew limiter, then a second-order low-pass."""
-    vs, va, wa = st[S_VS], st[S_VA], st[S_WA]
-    a1, b1, c1 = _amp_rhs(par, vin, vs, va, wa)
-    a2, b2, c2 = _amp_rhs(par, vin, vs + 0.5 * h * a1, va + 0.5 * h * b1, wa + 0.5 * h * c1)
-    a3, b3, c3 = _amp_rhs(par, vin, vs + 0.5 * h * a2, va + 0.5 * h * b2, wa + 0.5 * h * c2)
-    a4, b4, c4 = _amp_rhs(par, vin, vs + h * a3, va + h * b3, wa + h * c3)
-    st[S_VS] = vs + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
-    st[S_VA] = va + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
-    st[S_WA] = wa + h / 6.0 * (c1 + 2 * c2 + 2 * c3 + c4)
+    """RK4 for the amplifier: a second-order low-pass whose output rate saturates smoothly,
+    ``v' = S tanh(w_v / S)``, ``w_v' = w^2 (g V - v) - 2 zeta w w_v``."""
+    va, wa = st[S_VA], st[S_WA]
+    a1, b1 = _amp_rhs(par, vin, va, wa)
+    a2, b2 = _amp_rhs(par, vin, va + 0.5 * h * a1, wa + 0.5 * h * b1)
+    a3, b3 = _amp_rhs(par, vin, va + 0.5 * h * a2, wa + 0.5 * h * b2)
+    a4, b4 = _amp_rhs(par, vin, va + h * a3, wa + h * b3)
+    st[S_VA] = va + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
+    st[S_WA] = wa + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
 
 
 @njit(cache=True)
