@@ -222,11 +222,14 @@ def test_thermal_zero_temperature_limit_is_the_relay():
     ec = np.array([0.3, 0.5, 0.8])
     ei = np.array([-0.4, -0.1, 0.0, 0.2, 0.5])
     w = np.full((3, 5), 1 / 15)
-    x = np.ones((3, 5))
-    up = np.ones((3, 5), dtype=bool)
+    up = ~(ei[None, :] <= -ec[:, None])  # poled +, at 0 MV/m
+    x = up.astype(float)
     fields = np.concatenate([np.linspace(0, -1.2, 50), np.linspace(-1.2, 0.695, 70)])  # no ties
+    acc = np.array([fk.thermal_total(x, w)])
+    prev = 0.0
     for e in fields:
-        p = fk.thermal_update(x, ec, ei, w, e, 1e-3, 1e-6, 1e4, 0.0)
+        p = fk.thermal_update(x, ec, ei, w, e, prev, 1e-3, 1e-6, 1e4, 0.0, acc)
+        prev = e
         eff = e + ei[None, :]
         up = np.where(eff >= ec[:, None], True, np.where(eff <= -ec[:, None], False, up))
         np.testing.assert_allclose(x, up.astype(float), atol=1e-12)
@@ -238,9 +241,14 @@ def test_thermal_creep_monotone_and_toward_field():
     ei = np.linspace(-0.5, 0.5, 11)
     w = np.full((9, 11), 1 / 99)
     x = np.zeros((9, 11))  # poled -
+    acc = np.array([fk.thermal_total(x, w)])
+    prev = 0.0
     for e in np.linspace(0, 0.6, 60):  # up to a field that switches some, then hold
-        fk.thermal_update(x, ec, ei, w, e, 1e-3, 0.03, 1e4, 0.1)
-    ps = [fk.thermal_update(x, ec, ei, w, 0.6, dt, 0.03, 1e4, 0.1) for dt in [1e-3] * 200]
+        fk.thermal_update(x, ec, ei, w, e, prev, 1e-3, 0.03, 1e4, 0.1, acc)
+        prev = e
+    ps = [fk.thermal_update(x, ec, ei, w, 0.6, 0.6, 1e-3, 0.03, 1e4, 0.1, acc)
+          for _ in range(200)]
+    assert acc[0] == pytest.approx(fk.thermal_total(x, w), abs=1e-12)
     assert np.all(np.diff(ps) > 0)  # creeps up at constant field, never back
     assert ps[-1] - ps[0] > 1e-4
 

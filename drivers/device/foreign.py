@@ -301,12 +301,20 @@ def interaction_nodes(interaction: Interaction, n: int) -> tuple[FloatArray, Flo
     return nodes, weights / weights.sum()
 
 
-THERMAL_GRID = (40, 96)  # coercive x interaction nodes of the thermal kernel
+THERMAL_COERCIVE_NODES = 40
 
 
-def _thermal_grid(material: Material) -> tuple[FloatArray, FloatArray, FloatArray]:
-    ec2, v2 = coercive_nodes(material.coercive, THERMAL_GRID[0])
-    ei2, w2 = interaction_nodes(material.interaction, THERMAL_GRID[1])
+def thermal_interaction_nodes(material: Material, thermal: Thermal) -> int:
+    """Interaction nodes of the thermal grid: spaced at most ~E_T / 1.5 (so the hysterons'
+    thermally smeared switching overlaps into a smooth response), 32 ... 96."""
+    n = math.ceil(16.0 * material.interaction.std_MVm / thermal.thermal_field_MVm)
+    return 2 * min(48, max(16, (n + 1) // 2))
+
+
+def _thermal_grid(material: Material, thermal: Thermal) -> tuple[FloatArray, FloatArray,
+                                                                 FloatArray]:
+    ec2, v2 = coercive_nodes(material.coercive, THERMAL_COERCIVE_NODES)
+    ei2, w2 = interaction_nodes(material.interaction, thermal_interaction_nodes(material, thermal))
     return ec2, ei2, np.outer(v2, w2)
 
 
@@ -405,8 +413,8 @@ def substeps(stage: Stage, sample_rate_hz: float) -> int:
 def _arrays(stage: Stage):
     mat = stage.material
     ec, vc = coercive_nodes(mat.coercive, mat.n_coercive)
-    if stage.effect(Thermal) is not None:
-        ec2, ei2, w2 = _thermal_grid(mat)
+    if (thermal := stage.effect(Thermal)) is not None:
+        ec2, ei2, w2 = _thermal_grid(mat, thermal)
     else:
         ec2, ei2, w2 = np.ones(1), np.zeros(1), np.ones((1, 1))
     return ec, vc, ec2, ei2, w2
@@ -465,7 +473,8 @@ def _settle(stage: Stage, state: PlantState, dt: float, rising: bool) -> PlantSt
     st, x, b = state.scalars.copy(), state.up_fraction.copy(), state.boundary.copy()
     e = st[fk.S_E]
     if par[fk.P_THERM] > 0:
-        p = fk.thermal_update(x, ec2, ei2, w2, e, dt, par[fk.P_ET], par[fk.P_NU0], par[fk.P_CHI])
+        p = fk.thermal_update(x, ec2, ei2, w2, e, e, dt, par[fk.P_ET], par[fk.P_NU0],
+                              par[fk.P_CHI], np.array([fk.thermal_total(x, w2)]))
     else:
         p = par[fk.P_CHI] * e + fk.relay_polarization(b, vc, int(par[fk.P_IFAM]),
                                                       par[fk.P_ISCALE])

@@ -50,7 +50,7 @@ N_PAR = 36
 # Layout of the scalar state vector ``st``
 (S_T, S_VA, S_WA, S_E, S_F, S_XP, S_Y, S_DY, S_S, S_HEAD, S_COUNT) = range(11)
 N_ST = 11
-MAT_PER_SAMPLE = 8  # material updates per sample at most, when an amplifier moves the field
+MAT_PER_SAMPLE = 4  # material updates per sample at most, when an amplifier moves the field
 
 
 @njit(cache=True)
@@ -112,12 +112,51 @@ def mills(z: float) -> float:
     """phi(z) / Phi(z) for the standard normal (the hazard of the lower tail), any z."""
     if z < -30.0:
         return -z - 1.0 / z
+    if z > 6.0:  # Phi(z) = 1 within 1e-9
+        return math.exp(-0.5 * z * z) / SQRT2PI
     return math.sqrt(2.0 / math.pi) * math.exp(-0.5 * z * z) / math.erfc(-z / SQRT2)
 
 
 @njit(cache=True)
+def _first_at_least(arr: np.ndarray, val: float) -> int:
+    """Index of the first element of the sorted ``arr`` that is >= ``val`` (``arr.size`` if none)."""
+    lo, hi = 0, arr.size
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if arr[mid] < val:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True)
+def thermal_total(x: np.ndarray, w2: np.ndarray) -> float:
+    """sum w (2 x_+ - 1): the switched polarization over P_R without the thermal mean shifts."""
+    return float(np.sum(w2 * (2.0 * x - 1.0)))
+
+
+@njit(cache=True)
+def _thermal_cell(x, w2, i, j, ee, ec, dt, inv_et, nu0):
+    """Advance one hysteron; return (change of w (2x-1), w (x h_+ - (1 - x) h_-))."""
+    hm = mills((ec - ee) * inv_et)
+    hp = mills((ec + ee) * inv_et)
+    rate_up = nu0 * hm
+    rate_dn = nu0 * hp
+    tot = rate_up + rate_dn
+    old = x[i, j]
+    new = old
+    if tot > 0.0:  # both rates underflow far from either switching field
+        xeq = rate_up / tot
+        new = xeq + (old - xeq) * math.exp(-tot * dt)
+    x[i, j] = new
+    return 2.0 * w2[i, j] * (new - old), w2[i, j] * (new * hp - (1.0 - new) * hm)
+
+
+@njit(cache=True)
 def thermal_update(x: np.ndarray, ec2: np.ndarray, ei2: np.ndarray, w2: np.ndarray,
-                   field: float, dt: float, e_t: float, nu0: float, chi: float) -> float:
+                   field: float, prev_field: float, dt: float, e_t: float, nu0: float,
+                   chi: float, acc: np.ndarray) -> float:
     """Advance the up-fractions x_+ of every hysteron by ``dt`` at a frozen field; return P/P_R.
 
     Rates (7)-(8) with the barrier at the inflection points: for the piecewise quadratic
@@ -126,35 +165,41 @@ def thermal_update(x: np.ndarray, ec2: np.ndarray, ei2: np.ndarray, w2: np.ndarr
     The linear ODE for x_+ is solved exactly over ``dt``. The expected polarizations (9) are
     truncated-Gaussian means, <P_+>/P_R = 1 + chi E_e + chi E_T phi(z_+)/Phi(z_+) and
     <P_->/P_R = -1 + chi E_e - chi E_T phi(z_-)/Phi(z_-); the average (10) is weighted by the
-    quadrature weights ``w2`` (sum 1).
+    quadrature weights ``w2`` (sum 1, ``ei2`` sorted).
+
+    Only hysterons whose z_- or z_+ is below a cut, at this field or on the way from
+    ``prev_field``, are visited: beyond it ``nu0 dt phi(z) < 1e-9`` and x_+ cannot move
+    (hysterons past their switching field must already sit at x_+ = 0 or 1, as in any state
+    made from a relay state by this function).
+    ``acc[0]`` carries sum w (2 x_+ - 1) (see :func:`thermal_total`) and is updated.
     """
-    p = 0.0
-    cut = 9.0
+    inv_et = 1.0 / e_t
+    cut = math.sqrt(2.0 * math.log(max(nu0 * dt, 1.0) * 1e9)) + 0.5
+    lo_f = min(field, prev_field)
+    hi_f = max(field, prev_field)
+    band = cut * e_t
+    shift = 0.0
     for i in range(ec2.size):
-        for j in range(ei2.size):
-            ee = field + ei2[j]
-            zm = (ec2[i] - ee) / e_t
-            zp = (ec2[i] + ee) / e_t
-            xij = x[i, j]
-            if zm < cut or zp < cut:
-                hm = mills(zm)
-                hp = mills(zp)
-                rate_up = nu0 * hm
-                rate_dn = nu0 * hp
-                tot = rate_up + rate_dn
-                xeq = rate_up / tot
-                xij = xeq + (xij - xeq) * math.exp(-tot * dt)
-                x[i, j] = xij
-                p += w2[i, j] * (2.0 * xij - 1.0 + chi * e_t * (xij * hp - (1.0 - xij) * hm))
-            else:
-                p += w2[i, j] * (2.0 * xij - 1.0)
-    return p + chi * field
+        ec = ec2[i]
+        a_dn = _first_at_least(ei2, -ec - hi_f - band)
+        b_dn = _first_at_least(ei2, -ec - lo_f + band)
+        a_up = _first_at_least(ei2, ec - hi_f - band)
+        b_up = _first_at_least(ei2, ec - lo_f + band)
+        if b_dn >= a_up:  # the two bands overlap: visit their union once
+            b_dn, a_up = b_up, b_up
+        for lo, hi in ((a_dn, b_dn), (a_up, b_up)):
+            for j in range(lo, hi):
+                d, m = _thermal_cell(x, w2, i, j, field + ei2[j], ec, dt, inv_et, nu0)
+                acc[0] += d
+                shift += m
+    return chi * field + acc[0] + chi * e_t * shift
 
 
 @njit(cache=True)
-def _material(par, b, cdf, ec, vc, x, ec2, ei2, w2, field, dt):
+def _material(par, b, cdf, ec, vc, x, ec2, ei2, w2, acc, field, prev_field, dt):
     if par[P_THERM] > 0.0:
-        return thermal_update(x, ec2, ei2, w2, field, dt, par[P_ET], par[P_NU0], par[P_CHI])
+        return thermal_update(x, ec2, ei2, w2, field, prev_field, dt, par[P_ET], par[P_NU0],
+                              par[P_CHI], acc)
     return par[P_CHI] * field + relay_step(b, cdf, ec, vc, field, int(par[P_IFAM]),
                                            par[P_ISCALE])
 
@@ -165,39 +210,33 @@ def _force(par, p):
 
 
 @njit(cache=True)
-def _mech_rhs(par, q, force, out):
-    m1, c1, k1 = par[P_M1], par[P_C1], par[P_K1]
+def _accel(par, u1, v1, u2, v2, force):
+    """Accelerations of the rod end and (if present) the platform, um/s^2."""
     if par[P_TWO] > 0.0:
-        du = q[0] - q[2]
-        dv = q[1] - q[3]
-        coup = par[P_K2] * du + par[P_C2] * dv
-        out[0] = q[1]
-        out[1] = (force - c1 * q[1] - k1 * q[0] - coup) / m1
-        out[2] = q[3]
-        out[3] = coup / par[P_M2]
-    else:
-        out[0] = q[1]
-        out[1] = (force - c1 * q[1] - k1 * q[0]) / m1
-        out[2] = 0.0
-        out[3] = 0.0
+        coup = par[P_K2] * (u1 - u2) + par[P_C2] * (v1 - v2)
+        return ((force - par[P_C1] * v1 - par[P_K1] * u1 - coup) / par[P_M1],
+                coup / par[P_M2])
+    return (force - par[P_C1] * v1 - par[P_K1] * u1) / par[P_M1], 0.0
 
 
 @njit(cache=True)
-def _mech_step(par, q, f0, f1, h, k1, k2, k3, k4, tmp):
+def _mech_step(par, q, f0, f1, h):
     """RK4 for (16) (or its two-mass form) with the force linear from f0 to f1 over h."""
     fm = 0.5 * (f0 + f1)
-    _mech_rhs(par, q, f0, k1)
-    for n in range(4):
-        tmp[n] = q[n] + 0.5 * h * k1[n]
-    _mech_rhs(par, tmp, fm, k2)
-    for n in range(4):
-        tmp[n] = q[n] + 0.5 * h * k2[n]
-    _mech_rhs(par, tmp, fm, k3)
-    for n in range(4):
-        tmp[n] = q[n] + h * k3[n]
-    _mech_rhs(par, tmp, f1, k4)
-    for n in range(4):
-        q[n] += h / 6.0 * (k1[n] + 2.0 * k2[n] + 2.0 * k3[n] + k4[n])
+    u1, v1, u2, v2 = q[0], q[1], q[2], q[3]
+    a1, b1 = _accel(par, u1, v1, u2, v2, f0)
+    a2, b2 = _accel(par, u1 + 0.5 * h * v1, v1 + 0.5 * h * a1, u2 + 0.5 * h * v2,
+                    v2 + 0.5 * h * b1, fm)
+    v1b, v2b = v1 + 0.5 * h * a1, v2 + 0.5 * h * b1
+    a3, b3 = _accel(par, u1 + 0.5 * h * v1b, v1 + 0.5 * h * a2, u2 + 0.5 * h * v2b,
+                    v2 + 0.5 * h * b2, fm)
+    v1c, v2c = v1 + 0.5 * h * a2, v2 + 0.5 * h * b2
+    a4, b4 = _accel(par, u1 + h * v1c, v1 + h * a3, u2 + h * v2c, v2 + h * b3, f1)
+    v1d, v2d = v1 + h * a3, v2 + h * b3
+    q[0] = u1 + h / 6.0 * (v1 + 2 * v1b + 2 * v1c + v1d)
+    q[1] = v1 + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
+    q[2] = u2 + h / 6.0 * (v2 + 2 * v2b + 2 * v2c + v2d)
+    q[3] = v2 + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
 
 
 @njit(cache=True)
@@ -321,9 +360,9 @@ def _platform(par, st, q):
 
 
 @njit(cache=True)
-def _substep(par, st, q, hist, fa, fb, h, t, work):
+def _substep(par, st, q, hist, fa, fb, h, t):
     """Mechanics over one substep (force linear from fa to fb), then platform and sensor."""
-    _mech_step(par, q, fa, fb, h, work[0], work[1], work[2], work[3], work[4])
+    _mech_step(par, q, fa, fb, h)
     xp, vp = _platform(par, st, q)
     st[S_XP] = xp
     s0 = st[S_S]
@@ -359,10 +398,10 @@ def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, x, ec2, ei2, w2, hist, tru
         before noise, hum and offset (um).
     """
     h = dt / n_sub
-    work = np.empty((5, 4))
     cdf = np.empty(b.size)
     for i in range(b.size):
         cdf[i] = interaction_cdf(b[i], int(par[P_IFAM]), par[P_ISCALE])
+    acc = np.array([thermal_total(x, w2)])
     amp = par[P_AMP] > 0.0
     stride = (n_sub + MAT_PER_SAMPLE - 1) // MAT_PER_SAMPLE if amp else n_sub
     for k in range(volts.size):
@@ -380,7 +419,8 @@ def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, x, ec2, ei2, w2, hist, tru
                 field = st[S_VA] / par[P_THICK]
             else:
                 field = vin / par[P_THICK]
-            p = _material(par, b, cdf, ec, vc, x, ec2, ei2, w2, field, m * h)
+            p = _material(par, b, cdf, ec, vc, x, ec2, ei2, w2, acc, field, st[S_E], m * h)
+            st[S_E] = field
             f_new = _force(par, p)
             if not amp:
                 f_prev = f_new
@@ -388,8 +428,7 @@ def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, x, ec2, ei2, w2, hist, tru
                 fa = f_prev + (f_new - f_prev) * r / m
                 fb = f_prev + (f_new - f_prev) * (r + 1) / m
                 t += h
-                _substep(par, st, q, hist, fa, fb, h, t, work)
-            st[S_E] = field
+                _substep(par, st, q, hist, fa, fb, h, t)
             st[S_F] = f_new
             f_prev = f_new
             j += m
