@@ -283,6 +283,22 @@ def test_effects_at_zero_strength_parameters_change_nothing(stage):
         np.testing.assert_allclose(r, plain_r, atol=1e-9, err_msg=repr(eff))
 
 
+def test_dynamic_effects_vanish_in_their_limits(stage):
+    """A very fast amplifier, a very light and stiff platform, a very cold material.
+
+    The amplifier is critically damped: an underdamped one overshoots every held step, and the
+    material remembers the overshoot at each turning point (real physics, no limit)."""
+    v = sweep_set("standard", 0, 150, np.random.default_rng(1))[1].voltage_V
+    plain = fp.run(stage, v, 5000.0, fp.initial_state(stage), None)[0]
+    span = np.ptp(plain)
+    limits = [(Amplifier(2e5, 1.0, 1e9), 1e-4), (SecondMass(1e-4, 30.0, 0.5), 1e-4),
+              (Thermal(1e-4 * stage.material.coercive.median_MVm, 1e6), 2e-3)]
+    for eff, tol in limits:
+        st = with_effects(stage, eff)
+        t = fp.run(st, v, 5000.0, fp.initial_state(st), None)[0]
+        assert np.max(np.abs(t - plain)) < tol * span, eff
+
+
 def test_gauge_polynomial_matches_its_formula(stage):
     eff = GaugePolynomial(center_um=sum(stage.static_range_um) / 2, half_range_um=30.0,
                           quadratic=0.01, cubic=-0.02)
@@ -386,6 +402,10 @@ def test_gain_drift_per_run():
     s = replace(s, gain=1.1)
     t, _, _ = fp.run(two, np.full(3000, 50.0), 10_000.0, s, None)
     assert t[-1] - t[0] == pytest.approx(1.1 * 50.0 * um_per_volt(st), rel=1e-4)
+    creeping = with_effects(st, GainDrift(0.0, 0.0, per_second=0.01))
+    s = fp.idle(creeping, fp.initial_state(creeping, 0.0), 10.0, 0.0)
+    t, _, _ = fp.run(creeping, np.full(3000, 50.0), 10_000.0, s, None)
+    assert t[-1] - t[0] == pytest.approx(50.0 * um_per_volt(st) * (1 + 0.01 * 10.3), rel=1e-3)
 
 
 def test_backlash_is_a_dead_band():
@@ -400,7 +420,7 @@ def test_backlash_is_a_dead_band():
     assert np.ptp(t[4000:4100]) < np.ptp(plain[4000:4100])  # stuck while the play is taken up
 
 
-def test_interference_is_mains_hum(stage):
+def test_interference_is_mains_hum_and_spikes(stage):
     eff = Interference(60.0, (0.2, 0.05), (0.0, 1.0))
     st = with_effects(stage, eff)
     v = np.full(10_000, 20.0)
@@ -410,6 +430,12 @@ def test_interference_is_mains_hum(stage):
     f = np.fft.rfftfreq(r.size, 1 / 5000.0)
     assert spec[np.argmin(abs(f - 60))] == pytest.approx(0.2, rel=1e-3)
     assert spec[np.argmin(abs(f - 120))] == pytest.approx(0.05, rel=1e-3)
+    spiky = with_effects(stage, Interference(50.0, (0.0,), (0.0,), spike_um=1.0,
+                                             spike_period_s=0.1, spike_decay_s=1e-3,
+                                             spike_phase_s=1e-4))
+    _, r2, _ = fp.run(spiky, v, 5000.0, s, None)
+    jumps = np.flatnonzero(np.diff(r2) > 0.5) + 1
+    np.testing.assert_allclose(np.diff(jumps), 500)  # one spike every 0.1 s
 
 
 def test_noise_std_as_set(stage):

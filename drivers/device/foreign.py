@@ -15,8 +15,9 @@ Material
     the midpoint rule in ``ln E_c`` between the 1e-6 and 1 - 1e-6 quantiles, weighted by the
     density (13) (400 nodes: about 1e-5 of the polarization range from the continuum). The
     reversible part is ``E / eta``. Families: coercive lognormal (default), gamma or log-logistic;
-    interaction normal (default), logistic or Laplace. With a :class:`Thermal` effect the kernel
-    is (6)-(10) on a 2-D (E_c, E_I) grid instead.
+    interaction normal (default), logistic or Laplace. With a :class:`Thermal` effect, the
+    kernel (6)-(10) runs on a 2-D (E_c, E_I) grid (:func:`thermal_grid`) and its departure from
+    the relay model on the same rows is added (:func:`drivers.device.foreign_kernel._material`).
 Rod
     ``m u'' + c u' + k u = a1 P + a2 P^2`` (16), integrated by RK4 on substeps (at least 24 per
     period of the fastest dynamics); the commanded voltage is held over each sample interval.
@@ -241,7 +242,8 @@ class PlantState:
 
     ``scalars`` holds time, rod/platform coordinates, amplifier and filter states (layout in
     :mod:`drivers.device.foreign_kernel`); ``boundary`` the relay memory (one interaction-field
-    boundary per coercive node, MV/m); ``up_fraction`` the thermal kernel's x_+ per hysteron;
+    boundary per coercive node, MV/m); ``thermal_boundary`` the same on the thermal grid's rows
+    and ``up_fraction`` the thermal kernel's x_+ per hysteron;
     ``history`` the sensor signal's recent past (time, value, slope); ``gain`` the voltage gain of
     the current run and ``runs`` the number of runs started.
     """
@@ -249,6 +251,7 @@ class PlantState:
     scalars: FloatArray
     rod: FloatArray
     boundary: FloatArray
+    thermal_boundary: FloatArray
     up_fraction: FloatArray
     history: FloatArray
     gain: float = 1.0
@@ -289,33 +292,36 @@ def coercive_nodes(coercive: Coercive, n: int) -> tuple[FloatArray, FloatArray]:
     return ec, weights / weights.sum()
 
 
-@lru_cache(maxsize=64)
-def interaction_nodes(interaction: Interaction, n: int) -> tuple[FloatArray, FloatArray]:
-    """Gauss-Legendre nodes on each half of [q(1e-7), q(1 - 1e-7)] and normalized weights."""
-    dist = interaction.distribution()
-    top = dist.ppf(1 - 1e-7)
-    x, w = np.polynomial.legendre.leggauss(n // 2)
-    half = 0.5 * (x + 1.0) * top
-    nodes = np.concatenate([-half[::-1], half])
-    weights = np.concatenate([w[::-1], w]) * dist.pdf(nodes)
-    return nodes, weights / weights.sum()
+THERMAL_ROWS = 24  # coercive rows of the thermal grid
+THERMAL_MAX_COLUMNS = 4000
 
 
-THERMAL_COERCIVE_NODES = 40
+@lru_cache(maxsize=16)
+def thermal_grid(material: Material, thermal: Thermal) -> tuple[FloatArray, FloatArray,
+                                                                FloatArray, FloatArray]:
+    """The thermal kernel's hysteron grid.
 
+    Rows: ``THERMAL_ROWS`` coercive fields (:func:`coercive_nodes`). Columns: interaction
+    fields at the midpoints of a uniform grid on [q(1e-7), q(1 - 1e-7)] spaced at most E_T / 1.5
+    (so the thermally smeared switching of neighbours overlaps), 64 ... ``THERMAL_MAX_COLUMNS``.
 
-def thermal_interaction_nodes(material: Material, thermal: Thermal) -> int:
-    """Interaction nodes of the thermal grid: spaced at most ~E_T / 1.5 (so the hysterons'
-    thermally smeared switching overlaps into a smooth response), 32 ... 96."""
-    n = math.ceil(16.0 * material.interaction.std_MVm / thermal.thermal_field_MVm)
-    return 2 * min(48, max(16, (n + 1) // 2))
-
-
-def _thermal_grid(material: Material, thermal: Thermal) -> tuple[FloatArray, FloatArray,
-                                                                 FloatArray]:
-    ec2, v2 = coercive_nodes(material.coercive, THERMAL_COERCIVE_NODES)
-    ei2, w2 = interaction_nodes(material.interaction, thermal_interaction_nodes(material, thermal))
-    return ec2, ei2, np.outer(v2, w2)
+    Returns
+    -------
+    ec2, v2 : ndarray, shape (rows,)
+        Coercive fields (MV/m) and row weights (sum 1).
+    ei2 : ndarray, shape (cols,)
+        Interaction fields, MV/m, increasing.
+    w2 : ndarray, shape (rows, cols)
+        Hysteron weights; each row sums to its row weight.
+    """
+    ec2, v2 = coercive_nodes(material.coercive, THERMAL_ROWS)
+    dist = material.interaction.distribution()
+    top = float(dist.ppf(1 - 1e-7))
+    n = math.ceil(2 * top / (thermal.thermal_field_MVm / 1.5))
+    n = min(THERMAL_MAX_COLUMNS, max(64, n))
+    ei2 = -top + (np.arange(n) + 0.5) * 2 * top / n
+    w = dist.pdf(ei2)
+    return ec2, v2, ei2, np.outer(v2, w / w.sum())
 
 
 # ---------------------------------------------------------------- packing
@@ -410,14 +416,13 @@ def substeps(stage: Stage, sample_rate_hz: float) -> int:
 # ---------------------------------------------------------------- state
 
 
-def _arrays(stage: Stage):
+def _arrays(stage: Stage) -> tuple[FloatArray, ...]:
+    """ec, vc (the relay model's nodes) and ec2, v2, ei2, w2 (the thermal grid, or stand-ins)."""
     mat = stage.material
     ec, vc = coercive_nodes(mat.coercive, mat.n_coercive)
     if (thermal := stage.effect(Thermal)) is not None:
-        ec2, ei2, w2 = _thermal_grid(mat, thermal)
-    else:
-        ec2, ei2, w2 = np.ones(1), np.zeros(1), np.ones((1, 1))
-    return ec, vc, ec2, ei2, w2
+        return (ec, vc, *thermal_grid(mat, thermal))
+    return ec, vc, np.ones(1), np.ones(1), np.zeros(1), np.ones((1, 1))
 
 
 def _start_history(start: str | float | tuple[float, ...]) -> tuple[float, list[float]]:
@@ -449,7 +454,7 @@ def initial_state(stage: Stage, start: str | float | tuple[float, ...] = "poled+
     """
     b0, visited = _start_history(start)
     mat = stage.material
-    ec, _, ec2, ei2, w2 = _arrays(stage)
+    ec, _, ec2, _, ei2, _ = _arrays(stage)
     boundary = np.full(ec.size, b0)
     b2 = np.full(ec2.size, b0)
     for v in visited:
@@ -461,7 +466,7 @@ def initial_state(stage: Stage, start: str | float | tuple[float, ...] = "poled+
     st = np.zeros(fk.N_ST)
     st[fk.S_VA] = volts
     st[fk.S_E] = volts / mat.layer_thickness_um
-    state = PlantState(st, np.zeros(4), boundary, up, np.zeros((8, 3)))
+    state = PlantState(st, np.zeros(4), boundary, b2, up, np.zeros((8, 3)))
     return _settle(stage, state, 0.0, rising)
 
 
@@ -469,15 +474,11 @@ def _settle(stage: Stage, state: PlantState, dt: float, rising: bool) -> PlantSt
     """Put the mechanics, amplifier and sensor at rest at the state's field (after ``dt`` s of
     thermal relaxation at that field)."""
     par = _pack(stage, state.gain)
-    ec, vc, ec2, ei2, w2 = _arrays(stage)
+    ec, vc, ec2, v2, ei2, w2 = _arrays(stage)
     st, x, b = state.scalars.copy(), state.up_fraction.copy(), state.boundary.copy()
+    b2 = state.thermal_boundary.copy()
     e = st[fk.S_E]
-    if par[fk.P_THERM] > 0:
-        p = fk.thermal_update(x, ec2, ei2, w2, e, e, dt, par[fk.P_ET], par[fk.P_NU0],
-                              par[fk.P_CHI], np.array([fk.thermal_total(x, w2)]))
-    else:
-        p = par[fk.P_CHI] * e + fk.relay_polarization(b, vc, int(par[fk.P_IFAM]),
-                                                      par[fk.P_ISCALE])
+    p = fk.material_step(par, b, ec, vc, b2, ec2, v2, x, ei2, w2, e, e, dt)
     force = par[fk.P_F1] * p + par[fk.P_F2] * p * p
     u = force / par[fk.P_K1]
     q = np.array([u, 0.0, u, 0.0])
@@ -495,7 +496,8 @@ def _settle(stage: Stage, state: PlantState, dt: float, rising: bool) -> PlantSt
     hist[:2, 0] = st[fk.S_T] - 1e3, st[fk.S_T]
     hist[:2, 1] = s
     st[fk.S_HEAD], st[fk.S_COUNT] = 1, 2
-    return replace(state, scalars=st, rod=q, boundary=b, up_fraction=x, history=hist)
+    return replace(state, scalars=st, rod=q, boundary=b, thermal_boundary=b2, up_fraction=x,
+                   history=hist)
 
 
 def _history_room(stage: Stage, state: PlantState, h: float, dt: float) -> FloatArray:
@@ -551,20 +553,23 @@ def run(stage: Stage, voltage_V: FloatArray, sample_rate_hz: float, state: Plant
     dt = 1.0 / float(sample_rate_hz)
     n_sub = substeps(stage, sample_rate_hz)
     par = _pack(stage, state.gain)
-    ec, vc, ec2, ei2, w2 = _arrays(stage)
+    ec, vc, ec2, v2, ei2, w2 = _arrays(stage)
     st, q = state.scalars.copy(), state.rod.copy()
     b, x = state.boundary.copy(), state.up_fraction.copy()
+    b2 = state.thermal_boundary.copy()
     hist = _history_room(stage, state, dt / n_sub, dt)
     true_um, sensed = np.empty(volts.size), np.empty(volts.size)
     t0 = st[fk.S_T]
-    fk.simulate(volts, dt, n_sub, par, st, q, b, ec, vc, x, ec2, ei2, w2, hist, true_um, sensed)
+    fk.simulate(volts, dt, n_sub, par, st, q, b, ec, vc, b2, ec2, v2, x, ei2, w2, hist, true_um,
+                sensed)
     true_um -= stage.sensor.zero_um
     reading = sensed + (stage.sensor.offset_um - stage.sensor.zero_um)
     if (hum := stage.effect(Interference)) is not None:
         reading += interference_um(hum, t0 + dt * np.arange(volts.size))
     if rng is not None:
         reading += stage.sensor.noise_um * rng.standard_normal(volts.size)
-    new = replace(state, scalars=st, rod=q, boundary=b, up_fraction=x, history=hist)
+    new = replace(state, scalars=st, rod=q, boundary=b, thermal_boundary=b2, up_fraction=x,
+                  history=hist)
     return true_um, reading, new
 
 

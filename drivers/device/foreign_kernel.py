@@ -7,9 +7,10 @@ hold) and is cut into ``n_sub`` equal substeps. Within each substep, in this ord
    output over the layer thickness (without an amplifier the field steps to ``g V_k / d`` at
    ``t_k`` and stays there);
 2. the material is updated at the end field of a block of substeps (one block per sample without
-   an amplifier, at most ``MAT_PER_SAMPLE`` with one) (relay hysterons with the interaction field
-   integrated in closed form, or the thermally activated kernel on a 2-D hysteron grid, paper
-   (6)-(10), with the rate equations integrated exactly for the substep's frozen rates);
+   an amplifier; with one, a block ends when the field has moved by ``AMP_TOL_V`` over the
+   thickness, and at least ``MAT_PER_SAMPLE`` blocks make a sample): relay hysterons with the
+   interaction field integrated in closed form, or the thermally activated kernel on a 2-D
+   hysteron grid, paper (6)-(10), its rate equations solved exactly for the block's frozen rates;
 3. the mechanics (one or two masses, paper (16)) are advanced by RK4 with the force linear in time
    across the block (constant under the zero-order hold);
 4. the platform follows the rod through the linkage's play (if any), the gauge converts it
@@ -50,7 +51,8 @@ N_PAR = 36
 # Layout of the scalar state vector ``st``
 (S_T, S_VA, S_WA, S_E, S_F, S_XP, S_Y, S_DY, S_S, S_HEAD, S_COUNT) = range(11)
 N_ST = 11
-MAT_PER_SAMPLE = 4  # material updates per sample at most, when an amplifier moves the field
+MAT_PER_SAMPLE = 4  # under an amplifier: material updated at least this often per sample ...
+AMP_TOL_V = 0.01  # ... and whenever the amplifier's output has moved by this much, V
 
 
 @njit(cache=True)
@@ -196,12 +198,38 @@ def thermal_update(x: np.ndarray, ec2: np.ndarray, ei2: np.ndarray, w2: np.ndarr
 
 
 @njit(cache=True)
-def _material(par, b, cdf, ec, vc, x, ec2, ei2, w2, acc, field, prev_field, dt):
+def _cdfs(b, par):
+    out = np.empty(b.size)
+    for i in range(b.size):
+        out[i] = interaction_cdf(b[i], int(par[P_IFAM]), par[P_ISCALE])
+    return out
+
+
+@njit(cache=True)
+def _material(par, b, cdf, ec, vc, b2, cdf2, ec2, v2, x, ei2, w2, acc, field, prev_field, dt):
+    """P/P_R after a field step: the relay model, plus (with thermal activation) the thermal
+    grid's departure from the relay model on the same coercive rows.
+
+    The thermal kernel runs on a coarse coercive grid (rows ``ec2``, weights ``v2``); the relay
+    model is also run on those rows with the interaction field integrated in closed form
+    (boundaries ``b2``), and only the difference is added to the fine relay model. Both share the
+    rows' quadrature error, which cancels; the difference vanishes as E_T -> 0.
+    """
+    fam, scale = int(par[P_IFAM]), par[P_ISCALE]
+    p = par[P_CHI] * field + relay_step(b, cdf, ec, vc, field, fam, scale)
     if par[P_THERM] > 0.0:
-        return thermal_update(x, ec2, ei2, w2, field, prev_field, dt, par[P_ET], par[P_NU0],
-                              par[P_CHI], acc)
-    return par[P_CHI] * field + relay_step(b, cdf, ec, vc, field, int(par[P_IFAM]),
-                                           par[P_ISCALE])
+        hot = thermal_update(x, ec2, ei2, w2, field, prev_field, dt, par[P_ET], par[P_NU0],
+                             par[P_CHI], acc) - par[P_CHI] * field
+        p += hot - relay_step(b2, cdf2, ec2, v2, field, fam, scale)
+    return p
+
+
+@njit(cache=True)
+def material_step(par, b, ec, vc, b2, ec2, v2, x, ei2, w2, field, prev_field, dt):
+    """:func:`_material` for callers outside :func:`simulate` (builds its caches)."""
+    acc = np.array([thermal_total(x, w2)])
+    return _material(par, b, _cdfs(b, par), ec, vc, b2, _cdfs(b2, par), ec2, v2, x, ei2, w2,
+                     acc, field, prev_field, dt)
 
 
 @njit(cache=True)
@@ -240,23 +268,24 @@ def _mech_step(par, q, f0, f1, h):
 
 
 @njit(cache=True)
-def _amp_rhs(par, vin, va, wa):
-    slew = par[P_SLEW]
-    w = par[P_AW]
-    return slew * math.tanh(wa / slew), w * w * (vin - va) - 2.0 * par[P_AZ] * w * wa
+def _low_pass_rhs(u, y, v, w, zeta, slew):
+    rate = slew * math.tanh(v / slew) if slew > 0.0 else v
+    return rate, w * w * (u - y) - 2.0 * zeta * w * v
 
 
 @njit(cache=True)
-def _amp_step(par, st, vin, h):
-    """RK4 for the amplifier: a second-order low-pass whose output rate saturates smoothly,
-    ``v' = S tanh(w_v / S)``, ``w_v' = w^2 (g V - v) - 2 zeta w w_v``."""
-    va, wa = st[S_VA], st[S_WA]
-    a1, b1 = _amp_rhs(par, vin, va, wa)
-    a2, b2 = _amp_rhs(par, vin, va + 0.5 * h * a1, wa + 0.5 * h * b1)
-    a3, b3 = _amp_rhs(par, vin, va + 0.5 * h * a2, wa + 0.5 * h * b2)
-    a4, b4 = _amp_rhs(par, vin, va + h * a3, wa + h * b3)
-    st[S_VA] = va + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
-    st[S_WA] = wa + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
+def _low_pass_step(st, iy, iv, u0, u1, w, zeta, slew, h):
+    """RK4 for a second-order low-pass ``y' = S tanh(v / S)`` (``y' = v`` if ``slew`` is 0),
+    ``v' = w^2 (u - y) - 2 zeta w v`` over ``h`` with its input linear from u0 to u1; the state
+    is ``st[iy], st[iv]``."""
+    y, v = st[iy], st[iv]
+    um = 0.5 * (u0 + u1)
+    a1, b1 = _low_pass_rhs(u0, y, v, w, zeta, slew)
+    a2, b2 = _low_pass_rhs(um, y + 0.5 * h * a1, v + 0.5 * h * b1, w, zeta, slew)
+    a3, b3 = _low_pass_rhs(um, y + 0.5 * h * a2, v + 0.5 * h * b2, w, zeta, slew)
+    a4, b4 = _low_pass_rhs(u1, y + h * a3, v + h * b3, w, zeta, slew)
+    st[iy] = y + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
+    st[iv] = v + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
 
 
 @njit(cache=True)
@@ -280,25 +309,6 @@ def gauge(par, x):
             s = c + sgn * (knee + w * th)
             ds = ds * (1.0 - th * th)
     return s, ds
-
-
-@njit(cache=True)
-def _aa_rhs(par, sig, y, dy):
-    w = par[P_AAW]
-    return dy, w * w * (sig - y) - 2.0 * par[P_AAZ] * w * dy
-
-
-@njit(cache=True)
-def _aa_step(par, st, s0, s1, h):
-    """RK4 for the anti-alias filter (second order) with its input linear from s0 to s1."""
-    y, dy = st[S_Y], st[S_DY]
-    sm = 0.5 * (s0 + s1)
-    a1, b1 = _aa_rhs(par, s0, y, dy)
-    a2, b2 = _aa_rhs(par, sm, y + 0.5 * h * a1, dy + 0.5 * h * b1)
-    a3, b3 = _aa_rhs(par, sm, y + 0.5 * h * a2, dy + 0.5 * h * b2)
-    a4, b4 = _aa_rhs(par, s1, y + h * a3, dy + h * b3)
-    st[S_Y] = y + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
-    st[S_DY] = dy + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
 
 
 @njit(cache=True)
@@ -369,19 +379,21 @@ def _substep(par, st, q, hist, fa, fb, h, t):
     s1, ds1 = gauge(par, xp)
     st[S_S] = s1
     if par[P_AA] > 0.0:
-        _aa_step(par, st, s0, s1, h)
+        _low_pass_step(st, S_Y, S_DY, s0, s1, par[P_AAW], par[P_AAZ], 0.0, h)
         _push(st, hist, t, st[S_Y], st[S_DY])
     elif par[P_DELAY] > 0.0:
         _push(st, hist, t, s1, ds1 * vp)
 
 
 @njit(cache=True)
-def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, x, ec2, ei2, w2, hist, true_out, sens_out):
+def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, b2, ec2, v2, x, ei2, w2, hist, true_out,
+             sens_out):
     """Run the plant over held voltage samples; state arrays are updated in place.
 
-    With an amplifier the field moves within a sample: the amplifier is stepped every substep
-    and the material in blocks of ``ceil(n_sub / MAT_PER_SAMPLE)`` substeps, the force linear
-    in time across each block. Without one, the field and force are constant over the sample.
+    With an amplifier the field moves within a sample: the amplifier is stepped every substep,
+    the material whenever the amplifier's output has moved by ``AMP_TOL_V`` since the last
+    update and at least ``MAT_PER_SAMPLE`` times per sample, the force linear in time between
+    updates. Without one, the field and force are constant over the sample.
 
     Parameters
     ----------
@@ -391,35 +403,39 @@ def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, x, ec2, ei2, w2, hist, tru
         Sample period, s.
     n_sub : int
         Substeps per sample.
-    par, st, q, b, ec, vc, x, ec2, ei2, w2, hist : ndarray
+    par, st, q, b, ec, vc, b2, ec2, v2, x, ei2, w2, hist : ndarray
         Packed parameters and state (see :mod:`drivers.device.foreign`).
     true_out, sens_out : ndarray, shape (N,)
         Filled with the platform position at ``t_k`` (um) and the sensor signal at ``t_k``
         before noise, hum and offset (um).
     """
     h = dt / n_sub
-    cdf = np.empty(b.size)
-    for i in range(b.size):
-        cdf[i] = interaction_cdf(b[i], int(par[P_IFAM]), par[P_ISCALE])
+    cdf = _cdfs(b, par)
+    cdf2 = _cdfs(b2, par)
     acc = np.array([thermal_total(x, w2)])
     amp = par[P_AMP] > 0.0
-    stride = (n_sub + MAT_PER_SAMPLE - 1) // MAT_PER_SAMPLE if amp else n_sub
+    longest = (n_sub + MAT_PER_SAMPLE - 1) // MAT_PER_SAMPLE if amp else n_sub
+    tol = AMP_TOL_V / par[P_THICK]
     for k in range(volts.size):
         t = st[S_T]
         true_out[k] = st[S_XP]
         sens_out[k] = _sensed(par, st, hist, t)
         vin = volts[k] * par[P_GAIN] * (1.0 + par[P_GRATE] * t)
         f_prev = st[S_F]
-        j = 0
-        while j < n_sub:
-            m = min(stride, n_sub - j)
+        m = 0
+        for j in range(n_sub):
+            m += 1
             if amp:
-                for _ in range(m):
-                    _amp_step(par, st, vin, h)
+                _low_pass_step(st, S_VA, S_WA, vin, vin, par[P_AW], par[P_AZ], par[P_SLEW], h)
                 field = st[S_VA] / par[P_THICK]
+                if m < longest and j < n_sub - 1 and abs(field - st[S_E]) < tol:
+                    continue
+            elif j < n_sub - 1:
+                continue
             else:
                 field = vin / par[P_THICK]
-            p = _material(par, b, cdf, ec, vc, x, ec2, ei2, w2, acc, field, st[S_E], m * h)
+            p = _material(par, b, cdf, ec, vc, b2, cdf2, ec2, v2, x, ei2, w2, acc, field, st[S_E],
+                          m * h)
             st[S_E] = field
             f_new = _force(par, p)
             if not amp:
@@ -431,5 +447,5 @@ def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, x, ec2, ei2, w2, hist, tru
                 _substep(par, st, q, hist, fa, fb, h, t)
             st[S_F] = f_new
             f_prev = f_new
-            j += m
+            m = 0
         st[S_T] = st[S_T] + dt
