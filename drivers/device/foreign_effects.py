@@ -28,10 +28,13 @@ The last three are outside afmctl's diagnosis vocabulary (``OUT_OF_VOCABULARY``)
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from drivers.device import foreign_kernel as fk
 
 if TYPE_CHECKING:
     from drivers.device.foreign import Stage
@@ -313,6 +316,63 @@ def random_effect(cause: str, rng: np.random.Generator, stage: Stage,
     if not 0.0 <= s <= 1.0:
         raise ValueError(f"strength must be in [0, 1], got {s}")
     return _DRAW[cause](rng, stage, s)
+
+
+def _pack_amp(par, eff: Amplifier, stage):
+    w = 2 * math.pi * eff.bandwidth_hz
+    par[fk.P_AMP], par[fk.P_AW], par[fk.P_AZ] = 1.0, w, eff.damping
+    par[fk.P_SLEW] = eff.slew_V_per_s
+
+
+def _pack_latency(par, eff: SensorLatency, stage):
+    par[fk.P_DELAY] = eff.delay_s
+    if eff.antialias_hz > 0:
+        par[fk.P_AA], par[fk.P_AAW], par[fk.P_AAZ] = 1.0, 2 * math.pi * eff.antialias_hz, \
+            1 / math.sqrt(2)
+
+
+def _pack_thermal(par, eff: Thermal, stage):
+    par[fk.P_THERM], par[fk.P_ET], par[fk.P_NU0] = 1.0, eff.thermal_field_MVm, \
+        eff.attempt_rate_hz
+
+
+def _pack_mass(par, eff: SecondMass, stage):
+    m2 = eff.mass_ratio * stage.rod.mass_kg
+    w2 = 2 * math.pi * eff.frequency_ratio * stage.rod.resonance_hz
+    par[fk.P_TWO], par[fk.P_M2], par[fk.P_K2] = 1.0, m2, m2 * w2 * w2
+    par[fk.P_C2] = 2 * eff.damping * m2 * w2
+
+
+def _pack_poly(par, eff: GaugePolynomial, stage):
+    par[fk.P_GPOLY], par[fk.P_GC], par[fk.P_GR] = 1.0, eff.center_um, eff.half_range_um
+    par[fk.P_Q2], par[fk.P_Q3] = eff.quadratic, eff.cubic
+
+
+def _pack_sat(par, eff: GaugeSaturation, stage):
+    par[fk.P_GSAT], par[fk.P_SC], par[fk.P_SK], par[fk.P_SW] = (1.0, eff.center_um, eff.knee_um,
+                                                                 eff.softness_um)
+
+
+def _pack_drift(par, eff: GainDrift, stage):
+    par[fk.P_GRATE] = eff.per_second
+
+
+def _pack_play(par, eff: Backlash, stage):
+    par[fk.P_PLAY] = eff.gap_um
+
+
+_PACKERS: dict[type, Callable] = {Amplifier: _pack_amp, SensorLatency: _pack_latency, Thermal: _pack_thermal,
+            SecondMass: _pack_mass, GaugePolynomial: _pack_poly, GaugeSaturation: _pack_sat,
+            GainDrift: _pack_drift, Backlash: _pack_play}
+
+
+def pack_effect(par: np.ndarray, effect: Effect, stage: Stage) -> None:
+    """Write an effect's parameters into the kernel's parameter vector (see
+    :mod:`drivers.device.foreign_kernel`); interference acts outside the kernel and a run's
+    gain through the state, so they write nothing or only their drift rate."""
+    packer = _PACKERS.get(type(effect))
+    if packer is not None:
+        packer(par, effect, stage)
 
 
 def interference_um(effect: Interference, time_s: np.ndarray) -> np.ndarray:

@@ -9,8 +9,9 @@ hold) and is cut into ``n_sub`` equal substeps. Within each substep, in this ord
 2. the material is updated at the end field of a block of substeps (one block per sample without
    an amplifier; with one, a block ends when the field has moved by ``AMP_TOL_V`` over the
    thickness, and at least ``MAT_PER_SAMPLE`` blocks make a sample): relay hysterons with the
-   interaction field integrated in closed form, or the thermally activated kernel on a 2-D
-   hysteron grid, paper (6)-(10), its rate equations solved exactly for the block's frozen rates;
+   interaction field integrated in closed form, plus, with thermal activation, the departure of
+   the kernel (6)-(10) on a 2-D hysteron grid from the relay model on the same grid rows, its
+   rate equations solved exactly for the block's frozen rates;
 3. the mechanics (one or two masses, paper (16)) are advanced by RK4 with the force linear in time
    across the block (constant under the zero-order hold);
 4. the platform follows the rod through the linkage's play (if any), the gauge converts it
