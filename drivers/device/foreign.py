@@ -27,6 +27,15 @@ Sensor
 State goes in and comes out (:class:`PlantState`): running a waveform in chunks gives the same
 true positions as in one go.
 
+API
+---
+``initial_state(stage, start)``, ``run(stage, voltage_V, rate_hz, state, rng)``,
+``idle(stage, state, seconds, voltage_V)``, ``start_run(stage, state, rng)`` (at the start of
+each run: draws the run's voltage gain), ``describe(stage)`` (all parameters as JSON-able data).
+Random stages: :mod:`drivers.device.foreign_stages`; hidden effects:
+:mod:`drivers.device.foreign_effects`; sweep designs: :mod:`drivers.device.foreign_sweeps`;
+the compiled time stepping: :mod:`drivers.device.foreign_kernel`.
+
 Example
 -------
 >>> import numpy as np
@@ -46,7 +55,7 @@ from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import special, stats
+from scipy import linalg, special, stats
 
 from drivers.device import foreign_kernel as fk
 from drivers.device.foreign_effects import (
@@ -343,15 +352,29 @@ def _pack(stage: Stage, gain: float) -> FloatArray:
 
 
 def fastest_hz(stage: Stage) -> float:
-    """Highest natural frequency of the plant's dynamics, Hz (sets the substep)."""
+    """Highest natural frequency of the plant's dynamics integrated by RK4, Hz (sets the
+    substep; the anti-alias filter is integrated exactly)."""
     f = [stage.rod.resonance_hz]
     if (mode := stage.effect(SecondMass)) is not None:
         f.append(mode_frequencies_hz(stage, mode)[1])
     if (amp := stage.effect(Amplifier)) is not None:
         f.append(amp.bandwidth_hz)
-    if (lat := stage.effect(SensorLatency)) is not None:
-        f.append(lat.antialias_hz)
     return max(f)
+
+
+def _discretize_antialias(par: FloatArray, h: float) -> None:
+    """Exact one-substep map of the anti-alias filter for an input linear over ``h`` (s)."""
+    if par[fk.P_AA] <= 0:
+        return
+    w, zeta = par[fk.P_AAW], par[fk.P_AAZ]
+    aug = np.zeros((4, 4))
+    aug[:2, :2] = [[0.0, 1.0], [-w * w, -2 * zeta * w]]
+    aug[1, 2] = w * w  # input u enters y''
+    aug[2, 3] = 1.0 / h  # u' = (u1 - u0) / h
+    big = linalg.expm(aug * h)
+    par[fk.P_AAPHI:fk.P_AAPHI + 4] = big[:2, :2].ravel()
+    par[fk.P_AAG0:fk.P_AAG0 + 2] = big[:2, 2]
+    par[fk.P_AAG1:fk.P_AAG1 + 2] = big[:2, 3]
 
 
 def substeps(stage: Stage, sample_rate_hz: float) -> int:
@@ -499,6 +522,7 @@ def run(stage: Stage, voltage_V: FloatArray, sample_rate_hz: float, state: Plant
     dt = 1.0 / float(sample_rate_hz)
     n_sub = substeps(stage, sample_rate_hz)
     par = _pack(stage, state.gain)
+    _discretize_antialias(par, dt / n_sub)
     ec, vc, ec2, v2, ei2, w2 = _arrays(stage)
     st, q = state.scalars.copy(), state.rod.copy()
     b, x = state.boundary.copy(), state.up_fraction.copy()

@@ -205,16 +205,31 @@ def mode_frequencies_hz(stage: Stage, mode: SecondMass) -> tuple[float, float]:
     return float(np.sqrt(w2[0]) / (2 * math.pi)), float(np.sqrt(w2[1]) / (2 * math.pi))
 
 
+FAST_SWEEP_HZ = 27.9  # the fast standard triangle, on which lags show first
+MAX_AMPLIFIER_HZ = 10_000.0  # fastest amplifier drawn (it costs substeps)
+MAX_ANTIALIAS_HZ = 100_000.0  # (integrated exactly: costs nothing)
+
+
+def _weak_lag_s(stage: Stage) -> float:
+    """A lag that shifts the fast standard triangle's reading by ~3 sensor noise sigmas, s."""
+    lo, hi = stage.static_range_um
+    return 3.0 * stage.sensor.noise_um / ((hi - lo) * 2.0 * FAST_SWEEP_HZ)
+
+
 def _amplifier(rng, stage, s):
-    f = stage.rod.resonance_hz * _span(3.0, 0.2, s)
+    zeta = float(rng.uniform(0.5, 0.9))
+    strong = 2 * zeta / (2 * math.pi * 0.2 * stage.rod.resonance_hz)  # 0.2x the resonance
+    lag = _span(_weak_lag_s(stage), strong, s)
     span = stage.drive_range_V[1] - stage.drive_range_V[0]
-    return Amplifier(bandwidth_hz=f, damping=float(rng.uniform(0.5, 0.9)),
-                     slew_V_per_s=span * _span(300.0, 60.0, s))
+    return Amplifier(bandwidth_hz=min(MAX_AMPLIFIER_HZ, 2 * zeta / (2 * math.pi * lag)),
+                     damping=zeta, slew_V_per_s=span * _span(300.0, 60.0, s))
 
 
 def _latency(rng, stage, s):
-    return SensorLatency(delay_s=_span(0.3, 30.0, s) / 1e4,
-                         antialias_hz=float(rng.uniform(1500.0, 5000.0)))
+    total = _span(_weak_lag_s(stage), 3e-3, s)  # up to 30 samples at 10 kHz
+    f_aa = min(MAX_ANTIALIAS_HZ, max(1500.0, math.sqrt(2) / (2 * math.pi * 0.5 * total)))
+    return SensorLatency(delay_s=max(0.0, total - math.sqrt(2) / (2 * math.pi * f_aa)),
+                         antialias_hz=f_aa)
 
 
 def _thermal(rng, stage, s):
@@ -223,8 +238,8 @@ def _thermal(rng, stage, s):
 
 
 def _second(rng, stage, s):
-    return SecondMass(mass_ratio=_span(0.02, 0.5, s), frequency_ratio=float(rng.uniform(1.5, 4.0)),
-                      damping=_span(0.1, 0.02, s))
+    return SecondMass(mass_ratio=_span(0.002, 0.5, s),
+                      frequency_ratio=float(rng.uniform(1.5, 4.0)), damping=_span(0.1, 0.02, s))
 
 
 def _gauge_range(stage):
@@ -234,7 +249,7 @@ def _gauge_range(stage):
 
 def _polynomial(rng, stage, s):
     center, half = _gauge_range(stage)
-    eps = stage.sensor.noise_um * _span(8.0, 200.0, s) / half  # error at the range end / R
+    eps = stage.sensor.noise_um * _span(15.0, 300.0, s) / half  # error at the range end / R
     frac = float(rng.uniform(0.3, 0.7))
     sign = rng.choice([-1.0, 1.0], size=2)
     return GaugePolynomial(center_um=center, half_range_um=half,

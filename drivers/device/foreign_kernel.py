@@ -15,9 +15,10 @@ hold) and is cut into ``n_sub`` equal substeps. Within each substep, in this ord
 3. the mechanics (one or two masses, paper (16)) are advanced by RK4 with the force linear in time
    across the block (constant under the zero-order hold);
 4. the platform follows the rod through the linkage's play (if any), the gauge converts it
-   (nonlinearity, saturation), and the sensor's anti-alias filter is advanced by RK4 with its input
-   linear over the substep; the filtered signal and its slope are pushed into a history ring from
-   which delayed readings are taken by cubic Hermite interpolation.
+   (nonlinearity, saturation), and the sensor's anti-alias filter is advanced by its exact
+   one-substep map for an input linear over the substep (its bandwidth costs no substeps); the
+   filtered signal and its slope are pushed into a history ring from which delayed readings are
+   taken by cubic Hermite interpolation.
 
 The reading of sample ``k`` is taken at ``t_k`` before its interval is integrated, so it depends
 on ``V_0 .. V_{k-1}`` only (causal sampling). Every piece of state lives in the arrays passed in
@@ -47,7 +48,10 @@ NORMAL, LOGISTIC, LAPLACE = 0, 1, 2
  P_GPOLY, P_GC, P_GR, P_Q2, P_Q3,
  P_GSAT, P_SC, P_SK, P_SW,
  P_AA, P_AAW, P_AAZ, P_DELAY) = range(36)
-N_PAR = 36
+# The anti-alias filter's exact one-substep map (set per run, it depends on the substep):
+# z(h) = PHI z(0) + G0 u(0) + G1 (u(h) - u(0)) for z = (y, y') and u linear over the substep.
+P_AAPHI, P_AAG0, P_AAG1 = 36, 40, 42  # 4, 2 and 2 slots
+N_PAR = 44
 
 # Layout of the scalar state vector ``st``
 (S_T, S_VA, S_WA, S_E, S_F, S_XP, S_Y, S_DY, S_S, S_HEAD, S_COUNT) = range(11)
@@ -270,13 +274,12 @@ def _mech_step(par, q, f0, f1, h):
 
 @njit(cache=True)
 def _low_pass_rhs(u, y, v, w, zeta, slew):
-    rate = slew * math.tanh(v / slew) if slew > 0.0 else v
-    return rate, w * w * (u - y) - 2.0 * zeta * w * v
+    return slew * math.tanh(v / slew), w * w * (u - y) - 2.0 * zeta * w * v
 
 
 @njit(cache=True)
 def _low_pass_step(st, iy, iv, u0, u1, w, zeta, slew, h):
-    """RK4 for a second-order low-pass ``y' = S tanh(v / S)`` (``y' = v`` if ``slew`` is 0),
+    """RK4 for a second-order low-pass ``y' = S tanh(v / S)``,
     ``v' = w^2 (u - y) - 2 zeta w v`` over ``h`` with its input linear from u0 to u1; the state
     is ``st[iy], st[iv]``."""
     y, v = st[iy], st[iv]
@@ -380,7 +383,11 @@ def _substep(par, st, q, hist, fa, fb, h, t):
     s1, ds1 = gauge(par, xp)
     st[S_S] = s1
     if par[P_AA] > 0.0:
-        _low_pass_step(st, S_Y, S_DY, s0, s1, par[P_AAW], par[P_AAZ], 0.0, h)
+        y, dy = st[S_Y], st[S_DY]
+        st[S_Y] = (par[P_AAPHI] * y + par[P_AAPHI + 1] * dy + par[P_AAG0] * s0
+                   + par[P_AAG1] * (s1 - s0))
+        st[S_DY] = (par[P_AAPHI + 2] * y + par[P_AAPHI + 3] * dy + par[P_AAG0 + 1] * s0
+                    + par[P_AAG1 + 1] * (s1 - s0))
         _push(st, hist, t, st[S_Y], st[S_DY])
     elif par[P_DELAY] > 0.0:
         _push(st, hist, t, s1, ds1 * vp)
