@@ -188,7 +188,6 @@ def _track(make_desired: Callable[[float], Any], check: Callable[[float], None],
         return
     with opened_stage(prof) as stage:
         cal = _model(prof, stage, model_path, calibrate, recalibrate, profile_path)
-        say(cal.describe())
         outcomes, meta = _run(prof, stage, cal, desired, wanted, out, condition)
     _report(prof, cal, outcomes, desired, out, meta, as_json)
 
@@ -197,8 +196,8 @@ def _dry_run(prof: Any, desired: Any, wanted: tuple[str, ...], out: Path, condit
              cal: Any) -> None:
     from afmctl import experiment
     from afmctl import track as trk
-    say(cal.describe())
     plans = trk.plan(cal.model, desired, prof.limits, 0.0, wanted, condition=condition)
+    say(cal.describe())
     make_dir(out, "--out")
     for name in wanted:
         path = out / f"waveform_{name}.csv"
@@ -215,6 +214,7 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
     start_v = stage.voltage()
     say(f"planning {desired.label} from {start_v:.3f} V ...")
     plans = trk.plan(model, desired, prof.limits, start_v, wanted, condition=condition)
+    say(cal.describe())
     make_dir(out, "--out")
     meta = {"profile": prof.name, "model": str(cal.path), "trajectory": desired.label,
             "sample_rate_Hz": prof.sample_rate_hz}
