@@ -259,6 +259,10 @@ def uniform_time(where: str, t: FloatArray, rate_hz: float | None = None) -> Flo
     """
     _check_increasing(where, t)
     dt = 1.0 / rate_hz if rate_hz else (t[-1] - t[0]) / (t.size - 1)
+    mean_hz = (t.size - 1) / (t[-1] - t[0])
+    if rate_hz and abs(mean_hz / rate_hz - 1) > JITTER_TOL / t.size:
+        raise SweepFormatError(f"{where}: metadata sample_rate_hz {rate_hz:g} disagrees with the "
+                               f"time column ({mean_hz:.6g} Hz)")
     grid = t[0] + np.arange(t.size) * dt
     dev = np.abs(t - grid)
     worst = int(np.argmax(dev))

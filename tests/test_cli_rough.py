@@ -29,8 +29,6 @@ from afmctl.profile import default_profile
 ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 10_000.0
 TRACK = ["track", "triangle", "--model", "good.toml", "--dry-run"]
-SMALL_SWEEP = ("# layer_thickness_um: 100\ntime_s,voltage_V,displacement_um\n"
-               + "".join(f"{k / 1e4:.4f},{k * 0.5:.1f},{k * 0.01:.3f}\n" for k in range(6)))
 
 
 def command_paths(group: click.Group, prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
@@ -174,7 +172,7 @@ def run(case: Case, folder: Path) -> tuple[int, str, str, list[str]]:
     cfg = default_profile().emulator
     assert cfg is not None
     modelfile.write(cfg.model, folder / "good.toml")
-    (folder / "sweep.csv").write_text(SMALL_SWEEP)
+    (folder / "sweep.csv").write_text(ROUGH_FILES["timestamps with +-5 % jitter"]())
     for name, text in case.setup:
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
         if name == "rough.csv":

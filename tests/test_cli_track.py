@@ -132,3 +132,35 @@ def test_track_run_writes_files_and_json(model_file: Path, tmp_path: Path) -> No
                       "voltage_V_linear", "displacement_um_linear"]
     assert (out / "track.png").stat().st_size > 10_000
     assert (out / "run_inverse.csv").exists() and (out / "run_linear.csv").exists()
+
+
+def test_headline_figures_equal_the_benchmarks_steady_state(model_file: Path,
+                                                            tmp_path: Path) -> None:
+    """`track`'s printed and JSON figures are the benchmark's steady-state figures (computed there
+    from the raw arrays) for the same run: same model, a fresh emulated stage each (same seed)."""
+    import json
+    import sys
+
+    from afmctl.profile import default_profile
+    from drivers import open_stage
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_track
+
+    out = tmp_path / "run"
+    res = CliRunner().invoke(main, ["track", "triangle", "--freq", "27.9", "--amplitude", "27.04",
+                                    "--model", str(model_file), "--out", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout.strip().splitlines()[-1])
+    prof = default_profile()
+    with open_stage(prof) as stage:
+        bench = bench_track.run_experiment(stage, modelfile.read(model_file), prof, 27.9, 27.04,
+                                           3.0, tmp_path / "bench")
+    for name in ("inverse", "linear"):
+        f = doc["filters"][name]
+        assert f["steady"] and f["rms_um"] == pytest.approx(bench[f"{name}_rms_um"], rel=1e-12)
+        assert f["max_um"] == pytest.approx(bench[f"{name}_max_um"], rel=1e-12)
+        assert f["rms_transient_um"] is not None  # the first period, reported apart
+        assert f"{name:8s} RMS {f['rms_um']:.4f} um" in res.stderr
+    assert doc["ratio_linear_over_inverse"] == pytest.approx(bench["ratio"], rel=1e-12)
+    assert doc["between_samples_from"] == "emulator truth"
+    assert "horizon 2 samples" in res.stderr  # the corners' longer horizons stay local
