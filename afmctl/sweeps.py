@@ -252,22 +252,25 @@ def _check_increasing(where: str, t: FloatArray) -> None:
 def uniform_time(where: str, t: FloatArray, rate_hz: float | None = None) -> FloatArray:
     """The uniform clock ``t0 + k dt`` a sampled time column stands for.
 
-    ``dt`` is ``1 / rate_hz`` (the file's ``sample_rate_hz`` metadata) or the mean step. Each
+    ``dt`` is ``1 / rate_hz`` (the file's ``sample_rate_hz`` metadata) or the least-squares step. Each
     sample may be off that grid by up to ``JITTER_TOL`` of the period (float32 time columns, DAQ
     timestamps with jitter); otherwise :class:`SweepFormatError` names the worst sample, its
     deviation and the period.
     """
     _check_increasing(where, t)
-    dt = 1.0 / rate_hz if rate_hz else (t[-1] - t[0]) / (t.size - 1)
-    mean_hz = (t.size - 1) / (t[-1] - t[0])
-    if rate_hz and abs(mean_hz / rate_hz - 1) > JITTER_TOL / t.size:
-        raise SweepFormatError(f"{where}: metadata sample_rate_hz {rate_hz:g} disagrees with the "
-                               f"time column ({mean_hz:.6g} Hz)")
-    grid = t[0] + np.arange(t.size) * dt
+    k = np.arange(t.size, dtype=float)
+    slope, t0 = np.polyfit(k, t, 1) if t.size > 2 else (t[1] - t[0], t[0])
+    if rate_hz:
+        if abs(slope * rate_hz - 1) > JITTER_TOL / t.size:
+            raise SweepFormatError(f"{where}: metadata sample_rate_hz {rate_hz:g} disagrees with "
+                                   f"the time column ({1 / slope:.6g} Hz)")
+        slope, t0 = 1.0 / rate_hz, float(np.mean(t - k / rate_hz))
+    dt = float(slope)
+    grid = t0 + k * dt
     dev = np.abs(t - grid)
     worst = int(np.argmax(dev))
     if dev[worst] > JITTER_TOL * dt:
-        rate = "the sample_rate_hz metadata" if rate_hz else "the mean step"
+        rate = "the sample_rate_hz metadata" if rate_hz else "a least-squares fit"
         raise SweepFormatError(
             f"{where}: time is not uniformly sampled: data row {worst + 1} is {dev[worst]:.3g} s "
             f"off the {dt:.6g} s grid of {rate} ({100 * dev[worst] / dt:.0f} % of a period; "
