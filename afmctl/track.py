@@ -9,9 +9,10 @@ Planning turns a desired displacement trajectory into a voltage waveform per fil
 * ``inverse``: Algorithm 3 through the model. After conditioning, a ramp in displacement from the
   stage's output to the trajectory's first point (so the inverse carries the hysteresis state
   through it), the tracking part, then a raised-cosine ramp of the voltage back to the output.
-  The inversion horizon ``d`` is searched upward from the smallest non-chattering one until the
-  waveform passes the guard: a larger horizon rounds the triangle's corners instead of asking the
-  amplifier for an impulse. A model with effects (:mod:`afmctl.effects`, from ``afmctl
+  The inversion horizon ``d`` starts at the smallest non-chattering one and is lengthened stretch by
+  stretch (each corner of a periodic trajectory, and the smooth parts between) only where the
+  waveform would not pass the guard: a larger horizon rounds that corner instead of asking the
+  amplifier for an impulse, and the rest of the run keeps the accurate short horizon. A model with effects (:mod:`afmctl.effects`, from ``afmctl
   diagnose``) has the plant's inverted around Algorithm 3: the second mode on the target, the
   amplifier's lag on the voltage (its exact inverse, each step clamped to 95 % of the usable slew
   rate). Its sensor effects (delay, gauge error) do not move the stage: they correct the readings
