@@ -75,7 +75,7 @@ def stream(stage: PlayingStage, wf: track.Waveform, path: Path, meta: Mapping[st
             v[sl] = volt
             writer.write(np.arange(sl.start, sl.stop), t[sl], wf.desired_um[sl],
                          wf.voltage_v[sl], u[sl])
-            if progress is not None:
+            if progress is not None and np.any(valid):  # an interrupt hands the rest as missing
                 progress(wf.filter, sl.stop, n)
 
         stage.play(wf.voltage_v, on_block)

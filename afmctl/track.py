@@ -12,11 +12,12 @@ Planning turns a desired displacement trajectory into a voltage waveform per fil
   The inversion horizon ``d`` starts at the smallest non-chattering one and is lengthened stretch by
   stretch (each corner of a periodic trajectory, and the smooth parts between) only where the
   waveform would not pass the guard: a larger horizon rounds that corner instead of asking the
-  amplifier for an impulse, and the rest of the run keeps the accurate short horizon. A model with effects (:mod:`afmctl.effects`, from ``afmctl
-  diagnose``) has the plant's inverted around Algorithm 3: the second mode on the target, the
-  amplifier's lag on the voltage (its exact inverse, each step clamped to 95 % of the usable slew
-  rate). Its sensor effects (delay, gauge error) do not move the stage: they correct the readings
-  before scoring (:func:`afmctl.effects.sensor_correct`).
+  amplifier for an impulse, and the rest of the run keeps the accurate short horizon. A model
+  with effects (:mod:`afmctl.effects`, from ``afmctl diagnose``) has the plant's inverted around
+  Algorithm 3: the second mode on the target, the amplifier's lag on the voltage (its exact
+  inverse, each step clamped to 95 % of the usable slew rate; one horizon for the whole run, the
+  one the model predicts tracks best). Its sensor effects (delay, gauge error) do not move the
+  stage: they correct the readings before scoring (:func:`afmctl.effects.sensor_correct`).
 * ``linear``: the paper's baseline, a straight line fitted to the model's quasi-static
   voltage-displacement response over the same voltage range, with the same kind of ramps.
 

@@ -164,3 +164,33 @@ def test_headline_figures_equal_the_benchmarks_steady_state(model_file: Path,
     assert doc["ratio_linear_over_inverse"] == pytest.approx(bench["ratio"], rel=1e-12)
     assert doc["between_samples_from"] == "emulator truth"
     assert "horizon 2 samples" in res.stderr  # the corners' longer horizons stay local
+
+
+def test_between_samples_on_a_stage_without_emulator_is_a_model_estimate(
+        model_file: Path, tmp_path: Path) -> None:
+    """A lab profile (serial, no [emulator] table): the error between samples can only be the
+    model's own simulation; it is printed on its own line as a model estimate."""
+    import json
+
+    from afmctl.profile import default_profile
+    from drivers import servers as sv
+
+    text = (Path(__file__).resolve().parents[1] / "afmctl/profiles/emulated.toml").read_text()
+    text = text[:text.index("[emulator]")]
+    with sv.EmulatedDevice(default_profile()) as dev, \
+            sv.SerialServer(dev, "socket://127.0.0.1:0") as ser:
+        prof = tmp_path / "lab.toml"
+        prof.write_text(text.replace('kind = "emulated"', f'kind = "serial"\nurl = "{ser.url}"'))
+        res = CliRunner().invoke(main, ["track", "sine", "--freq", "27.9", "--amplitude", "20",
+                                        "--profile", str(prof), "--model", str(model_file),
+                                        "--filter", "inverse", "--out", str(tmp_path / "o"),
+                                        "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout.strip().splitlines()[-1])
+    assert doc["between_samples_from"] == "model estimate"
+    lines = res.stderr.splitlines()
+    headline = next(ln for ln in lines if ln.startswith("inverse  RMS"))
+    assert "between" not in headline
+    estimate = [ln for ln in lines if "between samples" in ln]
+    assert len(estimate) == 1 and estimate[0].startswith("model estimate, not measured: inverse")
+    assert f"{doc['filters']['inverse']['rms_between_um']:.4f} um" in estimate[0]
