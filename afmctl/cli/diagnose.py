@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from afmctl.cli.base import (
+    OutputError,
     check_output_dir,
     fit_settings,
     main,
@@ -55,8 +56,11 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
             raise InputError(f"--model {model_path}: {exc}") from None
     idf.resolve_thickness(data, settings.identify)
     dg.check(data)
-    out = check_output_dir(Path(out_dir) if out_dir else timestamped("afmctl-diagnose"),
-                           "--out", OUTPUTS, force)
+    out = Path(out_dir) if out_dir else timestamped("afmctl-diagnose")
+    if (out / "diagnosis.json").exists() and not force:
+        raise OutputError(f"--out {out}: already holds a diagnosis; choose another folder or add "
+                          f"--force to overwrite it")
+    check_output_dir(out, "--out", OUTPUTS, force)
     say(f"diagnosing {len(data)} sweep(s): "
         f"{len(dg.candidate_names(len(data), settings))} candidates ...")
     d = dg.diagnose(data, settings, start, progress=say)
