@@ -118,11 +118,12 @@ def test_real_stage_is_never_calibrated_unasked_then_calibrates_within_its_range
     0-150 V, identifies, tracks, and names the model it used. (This plant reaches 6.5-53.6 um on
     0-150 V, so the triangle is centred at 30 um.)"""
     from afmctl.profile import load_profile
-    from drivers import servers as sv
+    from drivers.device.emulated import EmulatedDevice
+    from drivers.device.serial_server import SerialServer
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    with sv.EmulatedDevice(load_profile(serial_profile(tmp_path, "socket://x:1"))) as dev, \
-            sv.SerialServer(dev, "socket://127.0.0.1:0") as ser:
+    with EmulatedDevice(load_profile(serial_profile(tmp_path, "socket://x:1"))) as dev, \
+            SerialServer(dev, "socket://127.0.0.1:0") as ser:
         prof = serial_profile(tmp_path, ser.url)
         argv = ["track", "triangle", "--profile", str(prof), "--freq", "27.9", "--amplitude",
                 "27.04", "--offset", "30", "--out", str(tmp_path / "run"), "--json"]

@@ -21,10 +21,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from afmctl import emulator, modelfile
+from afmctl import modelfile
 from afmctl import sweeps as sw
 from afmctl.cli import main
 from afmctl.profile import default_profile
+from drivers.device import plant
 
 ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 10_000.0
@@ -61,7 +62,7 @@ def base_sweep() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     cfg = default_profile().emulator
     assert cfg is not None
     v = sw.triangle(27.9, 150.0, 3, RATE_HZ)
-    u, _ = emulator.expected_readback(dc.replace(cfg, seed=5), RATE_HZ, v)
+    u, _ = plant.expected_readback(dc.replace(cfg, seed=5), RATE_HZ, v)
     return np.arange(v.size) / RATE_HZ, v, u
 
 

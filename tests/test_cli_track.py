@@ -173,12 +173,13 @@ def test_between_samples_on_a_stage_without_emulator_is_a_model_estimate(
     import json
 
     from afmctl.profile import default_profile
-    from drivers import servers as sv
+    from drivers.device.emulated import EmulatedDevice
+    from drivers.device.serial_server import SerialServer
 
     text = (Path(__file__).resolve().parents[1] / "afmctl/profiles/emulated.toml").read_text()
     text = text[:text.index("[emulator]")]
-    with sv.EmulatedDevice(default_profile()) as dev, \
-            sv.SerialServer(dev, "socket://127.0.0.1:0") as ser:
+    with EmulatedDevice(default_profile()) as dev, \
+            SerialServer(dev, "socket://127.0.0.1:0") as ser:
         prof = tmp_path / "lab.toml"
         prof.write_text(text.replace('kind = "emulated"', f'kind = "serial"\nurl = "{ser.url}"'))
         res = CliRunner().invoke(main, ["track", "sine", "--freq", "27.9", "--amplitude", "20",
