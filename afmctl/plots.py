@@ -67,7 +67,8 @@ def fit_figure(sweep: Sweep, fitted_um: FloatArray, path: str | Path,
                window_s: tuple[float, float] | None = None) -> Path:
     """Save a two-panel PNG: displacement (um) vs voltage (V), measured and fitted, and the
     residual measured - fitted (um) vs time (s), the part the fit does not judge (before the
-    sweep's memory index, outside ``window_s``) shaded and the RMS of the judged part stated.
+    sweep's memory index, outside ``window_s``) shaded, the RMS of the judged part stated and a
+    binned mean drawn over the noise cloud.
     Returns the path written."""
     judged = sweep.mask(window_s)
     r = sweep.displacement_um - fitted_um
@@ -77,7 +78,10 @@ def fit_figure(sweep: Sweep, fitted_um: FloatArray, path: str | Path,
         ax1.plot(sweep.voltage_v, fitted_um, "-", lw=1.0, label="model")
         ax1.set(xlabel="voltage (V)", ylabel="displacement (um)", title=sweep.name)
         ax1.legend(loc="upper left")
-        ax2.plot(sweep.time_s, r, lw=0.6, color="tab:blue", label=f"judged RMS {rms:.3g} um")
+        ax2.plot(sweep.time_s, r, lw=0.5, color="tab:blue", alpha=0.5,
+                 label=f"judged RMS {rms:.3g} um")
+        ax2.plot(*_binned_mean(sweep.time_s[judged], r[judged], 100), lw=1.4, color="k",
+                 label="binned mean (what is not noise)")
         for i, (a, b) in enumerate(_excluded_spans(sweep, judged)):
             ax2.axvspan(a, b, color="0.85", zorder=0,
                         label="not judged (unknown start state)" if i == 0 else None)
