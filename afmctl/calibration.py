@@ -189,9 +189,3 @@ def for_track(profile: Profile, stage: Any | None, progress: Progress | None = N
     with open_stage(profile) as private:
         return calibrate(profile, private, progress)
 
-
-def cached_model(profile: Profile, stage: Any | None,
-                 progress: Progress | None = None) -> Transducer:
-    """The cached identified model of ``profile``'s stage, calibrating it first if needed (an
-    emulated stage; see :func:`for_track`)."""
-    return for_track(profile, stage, progress).model
