@@ -153,9 +153,11 @@ def _model(prof: Any, stage: Any | None, model_path: str | None, calibrate: bool
            recalibrate: bool, profile_path: str | None) -> Any:
     """The calibration (``afmctl.calibration.Calibration``) track uses."""
     from afmctl import calibration
+    from afmctl.profile import EmulatedTransport
     if model_path is not None:
         return calibration.from_file(model_path)
-    if recalibrate or (calibrate and calibration.find(prof) is None):
+    emulated = isinstance(prof.transport, EmulatedTransport)
+    if recalibrate or ((calibrate or emulated) and calibration.find(prof) is None):
         lo, hi = prof.limits.v_min, prof.limits.v_max
         say(f"calibrating: recording {calibration.N_SWEEPS} standard sweeps over [{lo:g}, "
             f"{hi:g}] V, then identifying ...")
