@@ -354,8 +354,13 @@ def measured_kind(path: str | Path) -> str:
     cells = [h.strip().strip('"').strip() for h in lines[0].split(_delimiter(lines[0]))]
     has = {col: any(column_scale(c, col) is not None for c in cells)
            for col in ("time_s", "voltage_V", "displacement_um")}
-    if has["displacement_um"] and (has["time_s"] or has["voltage_V"]):
+    if not (has["time_s"] or has["voltage_V"]):
+        return ""
+    if has["displacement_um"]:
         return "a sweep file"
+    if any(c.lower().startswith(("displacement", "position")) for c in cells):
+        return "measured displacements"  # e.g. track's run.csv: displacement_um_<filter>
+    return ""
     return ""
 
 

@@ -130,10 +130,12 @@ def test_sample_rate_metadata_stands_for_a_time_column() -> None:
 def test_measured_files_are_recognised(tmp_path: Path) -> None:
     cases = {"sweep.csv": GOOD, "lab.csv": "Time (ms);Voltage (V);displacement_nm\n0;1;2\n",
              "run.csv": "# afmctl-run: 1\nseq,time_s\n", "model.toml": "format = 1\n",
-             "wave.csv": "time_s,desired_um\n0,1\n"}
+             "wave.csv": "time_s,desired_um\n0,1\n",
+             "tracked.csv": "time_s,desired_um,voltage_V_inverse,displacement_um_inverse\n"}
     kinds = {}
     for name, text in cases.items():
         (tmp_path / name).write_text(text)
         kinds[name] = sw.measured_kind(tmp_path / name)
     assert kinds == {"sweep.csv": "a sweep file", "lab.csv": "a sweep file",
-                     "run.csv": "an afmctl run file", "model.toml": "", "wave.csv": ""}
+                     "run.csv": "an afmctl run file", "model.toml": "", "wave.csv": "",
+                     "tracked.csv": "measured displacements"}
