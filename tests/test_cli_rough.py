@@ -215,10 +215,8 @@ def test_rough_input(case: Case, tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_readme_table_is_what_afmctl_prints(tmp_path: Path) -> None:
-    readme = (ROOT / "README.md").read_text()
-    begin, end = "<!-- rough-inputs:begin -->\n", "<!-- rough-inputs:end -->"
-    assert begin in readme and end in readme
-    assert readme[readme.index(begin) + len(begin):readme.index(end)] == table(tmp_path)
+    from test_bad_inputs import readme_section
+    assert readme_section("rough-inputs") == table(tmp_path)
 
 
 if __name__ == "__main__":
