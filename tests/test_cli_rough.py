@@ -27,7 +27,6 @@ from afmctl.cli import main
 from afmctl.profile import default_profile
 from drivers.device import plant
 
-ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 10_000.0
 TRACK = ["track", "triangle", "--model", "good.toml", "--dry-run"]
 
