@@ -222,3 +222,9 @@ if __name__ == "__main__":
     import tempfile
     with tempfile.TemporaryDirectory() as tmp:
         print(table(Path(tmp)), end="")
+
+
+@pytest.mark.parametrize("path", [(), ("track",)], ids=["afmctl", "track"])
+def test_bare_group_shows_its_help(path: tuple[str, ...]) -> None:
+    res = CliRunner().invoke(main, list(path))
+    assert res.exit_code == 2 and res.stderr.startswith("Usage: ") and "afmctl: error" not in res.stderr

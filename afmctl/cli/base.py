@@ -54,6 +54,9 @@ class Group(click.Group):
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL + 1)  # afmctl says what failed
         try:
             rv = super().main(*args, standalone_mode=False, **kw)
+        except click.exceptions.NoArgsIsHelpError as exc:  # a bare group: its help, as click does
+            exc.show()
+            sys.exit(exc.exit_code)
         except click.ClickException as exc:
             fail(exc.format_message().replace("\n", " "), exc.exit_code)
         except click.Abort:
