@@ -31,7 +31,7 @@ lightly damped stages); ``s = 1`` is strong (tens to hundreds of noise sigmas). 
 sigma the sensor noise and ``tau_3`` the lag that shifts the fast standard triangle (27.9 Hz over
 the static span) by 3 sigma:
 
-- amplifier-lag: low-pass lag ``2 zeta / w`` from ``tau_3`` (bandwidth at most 10 kHz) to the
+- amplifier-lag: low-pass lag ``2 zeta / w`` from ``tau_3`` (bandwidth at most 25 kHz) to the
   lag at 0.2x the rod's resonance; slew limit 300 -> 60 x the drive span per second;
 - sensor-delay: total latency (filter + delay) from ``tau_3`` to 3 ms (30 samples at 10 kHz); the
   anti-alias cut-off takes half of it (1.5-100 kHz), the pure delay the rest;
@@ -41,7 +41,8 @@ the static span) by 3 sigma:
   1.5-4 x the rod's resonance (drawn);
 - sensor-nonlinearity: error at the range end 15 -> 300 sigma, split at random between the
   quadratic and cubic terms, random signs;
-- voltage-gain-drift: per-run sigma 0.3 % -> 3 %, systematic drift 0.5-1 x that per run;
+- voltage-gain-drift: per-run sigma from 1.5 sigma over the static span (0.01-0.2 %) to 3 %,
+  systematic drift 0.5-1 x that per run;
 - backlash: play 6 -> 100 sigma;
 - gauge-saturation: compression at the range end 8 -> 300 sigma, knee at 60-85 % of the half range;
 - interference: hum 3 -> 30 sigma (harmonics 2 and 3 at 20-60 % and 10-40 %), half the draws with
@@ -231,7 +232,7 @@ def mode_frequencies_hz(stage: Stage, mode: SecondMass) -> tuple[float, float]:
 
 
 FAST_SWEEP_HZ = 27.9  # the fast standard triangle, on which lags show first
-MAX_AMPLIFIER_HZ = 10_000.0  # fastest amplifier drawn (it costs substeps)
+MAX_AMPLIFIER_HZ = 25_000.0  # fastest amplifier drawn (it costs substeps)
 MAX_ANTIALIAS_HZ = 100_000.0  # (integrated exactly: costs nothing)
 
 
@@ -283,7 +284,8 @@ def _polynomial(rng, stage, s):
 
 
 def _gain(rng, stage, s):
-    sigma = _span(0.003, 0.03, s)
+    lo, hi = stage.static_range_um
+    sigma = _span(1.5 * stage.sensor.noise_um / (hi - lo), 0.03, s)
     return GainDrift(sigma=sigma, per_run=float(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 1.0)
                                                  * sigma))
 
