@@ -37,11 +37,11 @@ the static span) by 3 sigma:
   anti-alias cut-off takes half of it (1.5-100 kHz), the pure delay the rest;
 - thermal-relaxation: E_T from 0.002 to 0.08 x the median coercive field; attempt rate
   10^3-10^5 /s (drawn);
-- second-mode: secondary mass 0.002 -> 0.5 x the rod's, its damping 0.1 -> 0.02; its own frequency
+- second-mode: secondary mass 0.03 -> 0.5 x the rod's, its damping 0.1 -> 0.02; its own frequency
   1.5-4 x the rod's resonance (drawn);
 - sensor-nonlinearity: error at the range end 15 -> 300 sigma, split at random between the
   quadratic and cubic terms, random signs;
-- voltage-gain-drift: per-run sigma from 1.5 sigma over the static span (0.01-0.2 %) to 3 %,
+- voltage-gain-drift: per-run sigma from 3 sigma over the static span (0.01-0.4 %) to 3 %,
   systematic drift 0.5-1 x that per run;
 - backlash: play 6 -> 100 sigma;
 - gauge-saturation: compression at the range end 8 -> 300 sigma, knee at 60-85 % of the half range;
@@ -264,7 +264,7 @@ def _thermal(rng, stage, s):
 
 
 def _second(rng, stage, s):
-    return SecondMass(mass_ratio=_span(0.002, 0.5, s),
+    return SecondMass(mass_ratio=_span(0.03, 0.5, s),
                       frequency_ratio=float(rng.uniform(1.5, 4.0)), damping=_span(0.1, 0.02, s))
 
 
@@ -285,7 +285,7 @@ def _polynomial(rng, stage, s):
 
 def _gain(rng, stage, s):
     lo, hi = stage.static_range_um
-    sigma = _span(1.5 * stage.sensor.noise_um / (hi - lo), 0.03, s)
+    sigma = _span(3.0 * stage.sensor.noise_um / (hi - lo), 0.03, s)
     return GainDrift(sigma=sigma, per_run=float(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 1.0)
                                                  * sigma))
 
