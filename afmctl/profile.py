@@ -38,13 +38,23 @@ class EmulatedTransport:
     """The emulated device, run in-process (no wire)."""
 
 
+#: Watchdog period a host arms for every run over a wire, in per-reply timeouts, when the profile
+#: gives none (2: one lost reply and its retry fit in a period).
+WATCHDOG_TIMEOUTS = 2.0
+
+
 @dataclass(frozen=True)
 class SerialTransport:
-    """ASCII protocol over any pyserial URL (a port, ``socket://host:port``, a pty path)."""
+    """ASCII protocol over any pyserial URL (a port, ``socket://host:port``, a pty path).
+
+    ``timeout_s`` is the per-reply timeout; ``watchdog_s`` the device watchdog's period the host
+    arms for every run (0: never armed), which must exceed ``timeout_s`` (one lost reply must not
+    end a run; default twice ``timeout_s``). The same two keys, in seconds, for every wire."""
 
     url: str
     baudrate: int = 115200
     timeout_s: float = 2.0
+    watchdog_s: float = WATCHDOG_TIMEOUTS * 2.0
 
 
 @dataclass(frozen=True)
@@ -53,6 +63,7 @@ class ModbusTcpTransport:
     port: int = 502
     unit: int = 1
     timeout_s: float = 2.0
+    watchdog_s: float = WATCHDOG_TIMEOUTS * 2.0
 
 
 @dataclass(frozen=True)
@@ -63,6 +74,7 @@ class ModbusRtuTransport:
     baudrate: int = 115200
     unit: int = 1
     timeout_s: float = 2.0
+    watchdog_s: float = WATCHDOG_TIMEOUTS * 2.0
 
 
 Transport = EmulatedTransport | SerialTransport | ModbusTcpTransport | ModbusRtuTransport
@@ -146,8 +158,12 @@ def _transport(t: Table) -> Transport:
     if kind == "emulated":
         return EmulatedTransport()
     timeout = t.number("timeout_s", 2.0, positive=True)
+    watchdog = t.number("watchdog_s", WATCHDOG_TIMEOUTS * timeout, nonnegative=True)
+    if 0 < watchdog <= timeout:
+        raise t.fail("watchdog_s", f"must exceed timeout_s ({timeout:g} s), or be 0 (never armed)")
     if kind == "serial":
-        return SerialTransport(t.string("url"), t.integer("baudrate", 115200, minimum=1), timeout)
+        return SerialTransport(t.string("url"), t.integer("baudrate", 115200, minimum=1), timeout,
+                               watchdog)
     unit = t.integer("unit", 1, minimum=1)
     if unit > 247:
         raise t.fail("unit", f"must be <= 247, got {unit}")
@@ -155,9 +171,9 @@ def _transport(t: Table) -> Transport:
         port = t.integer("port", 502, minimum=1)
         if port > 65535:
             raise t.fail("port", f"must be <= 65535, got {port}")
-        return ModbusTcpTransport(t.string("host"), port, unit, timeout)
+        return ModbusTcpTransport(t.string("host"), port, unit, timeout, watchdog)
     return ModbusRtuTransport(t.string("port"), t.integer("baudrate", 115200, minimum=1), unit,
-                              timeout)
+                              timeout, watchdog)
 
 
 def _limits(t: Table, sample_rate_hz: float) -> Limits:
