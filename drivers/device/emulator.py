@@ -311,8 +311,9 @@ class Emulator:
         self.tick(now)
         self._writable()
         self._idle()
+        v = float(np.float32(v))  # what the DAC gets, as every voltage on the wire
         self._check(np.array([v]), self.output_v)
-        self._hold(np.array([float(v)]), now)
+        self._hold(np.array([v]), now)
 
     def set_sample_rate(self, hz: float, now: float) -> None:
         self.tick(now)
@@ -366,10 +367,10 @@ class Emulator:
         self._writable()
         self._idle()
         n = self.table_length
+        if not 1 <= cycles or max(n, 1) * cycles > self.rec_u.size:
+            raise self._fail(6, f"cycles x length must be in [1, {self.rec_u.size}]")
         if n == 0 or not self.written[:n].all():
             raise self._fail(9)
-        if not 1 <= cycles or n * cycles > self.rec_u.size:
-            raise self._fail(6, f"cycles x length must be in [1, {self.rec_u.size}]")
         self._check(np.tile(self.table[:n].astype(float), min(cycles, 2))[:n + 1], self.output_v)
         self._begin(n * cycles, False, now)
 
