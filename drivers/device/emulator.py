@@ -317,10 +317,10 @@ class Emulator:
 
     def set_sample_rate(self, hz: float, now: float) -> None:
         self.tick(now)
+        if not MIN_RATE_HZ <= hz <= MAX_RATE_HZ:  # a bad argument comes first (precedence)
+            raise self._fail(2, f"sample rate must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz")
         self._writable()
         self._idle()
-        if not MIN_RATE_HZ <= hz <= MAX_RATE_HZ:
-            raise self._fail(2, f"sample rate must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz")
         self._catch_up(now)  # the idle time so far, at the old rate
         self.sample_rate_hz = float(hz)
         self.physics = Physics(self.config, self.sample_rate_hz)
