@@ -116,6 +116,25 @@ class ModbusStage(StageBase):
         up, down = rm.rtu_bytes_per_sample()
         return t.baudrate / 10 / up, t.baudrate / 10 / down
 
+    # -- diagnostics (the conformance check) ---------------------------------------------------
+    def echo(self, address: int, value: int) -> int:
+        """Write single register (FC6) ``value`` at ``address``; the value the device echoed.
+        StageError (the device's code) if refused."""
+        res = self._retrying(lambda: self._call("write_register", address, value))
+        if res.isError():
+            raise StageError(self._retrying(self._device_error), f"FC6 at {address}")
+        return int(res.registers[0])
+
+    def write_exception(self, address: int, regs: list[int]) -> int:
+        """The Modbus exception code a raw FC16 write of ``regs`` at ``address`` gets (0:
+        accepted)."""
+        res = self._call("write_registers", address, regs)
+        return int(getattr(res, "exception_code", -1)) if res.isError() else 0
+
+    def clear_error(self) -> None:
+        """Clear the device's last error (command 4)."""
+        self._write(HR.COMMAND, [rm.Cmd.CLEAR_ERROR])
+
     # -- Stage primitives ----------------------------------------------------------------------
     def identify(self) -> str:
         return f"afmctl register map {rm.MAP_VERSION}, unit {self.unit}"
