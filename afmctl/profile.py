@@ -30,7 +30,7 @@ FORMAT = "afmctl-profile"
 FORMAT_VERSION = 1
 
 __all__ = ["Effects", "SecondMode", "FileFormatError", "Profile", "load_profile", "default_profile",
-           "shipped_profile"]
+           "shipped_profile", "shipped_names"]
 
 
 @dataclass(frozen=True)
@@ -243,9 +243,25 @@ def from_table(t: Table) -> Profile:
         emulator=None if em is None else _emulator(em))
 
 
+def shipped_names() -> list[str]:
+    """Names of the profiles shipped with afmctl (``emulated``, ``lab-serial``, ...)."""
+    return sorted(f.name[:-len(".toml")] for f in resources.files("afmctl.profiles").iterdir()
+                  if f.name.endswith(".toml"))
+
+
 def load_profile(path: str | Path) -> Profile:
     """Read and validate a profile; FileFormatError (naming file and key) on anything wrong,
-    including a key no reader knows (``[identify]`` is :mod:`afmctl.identify`'s)."""
+    including a key no reader knows (``[identify]`` is :mod:`afmctl.identify`'s).
+
+    ``path`` may also name a shipped profile (``--profile lab-modbus``) when no such file exists
+    (a file of that name in the working directory wins)."""
+    if not Path(path).exists():
+        names = shipped_names()
+        if str(path) in names:
+            return shipped_profile(str(path))
+        if not Path(path).suffix:
+            raise FileFormatError(f"{path}: no such file, and no shipped profile of that name "
+                                  f"(shipped: {', '.join(names)})")
     t = load(path)
     profile = from_table(t)
     t.reject_unknown(ignore=("identify",))
@@ -256,7 +272,7 @@ def shipped_profile(name: str) -> Profile:
     """A profile shipped with afmctl, by name (``emulated``, ``lab-serial``, ``lab-modbus``)."""
     ref = resources.files("afmctl.profiles").joinpath(f"{name}.toml")
     with resources.as_file(ref) as path:
-        return load_profile(path)
+        return load_profile(Path(path))
 
 
 def default_profile() -> Profile:

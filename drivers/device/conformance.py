@@ -17,13 +17,13 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, ExitStack, contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.profile import Profile
+from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile
 from drivers import ascii_protocol as ap
 from drivers import register_map as rm
 from drivers.modbus_link import ModbusStage
@@ -166,14 +166,15 @@ def check_dc_set(bench: Bench) -> str:
     target = bench.hi if bench.hi > 0 else bench.lo
     v = math.copysign(min(abs(target), step), target) / 3
     stage.set_voltage(v)
-    expect(stage.voltage() == float(np.float32(v)), f"SVA {v!r} reads back {stage.voltage()!r}")
+    expect(stage.voltage() == float(np.float32(v)),
+           f"a DC set of {v!r} V reads back {stage.voltage()!r} V")
     full = bench.profile.limits.max_step_v(bench.rate)
     expect_code(lambda: stage.set_voltage(v + math.copysign(1.5 * full, v)), 4,
                 "a DC step of 1.5 slew steps")
     expect_code(lambda: stage.set_voltage(math.nan), 3, "a NaN DC set")
     expect(stage.voltage() == float(np.float32(v)), "a refused DC set changed the output")
     stage.safe_state()
-    return f"SVA {v:.4g} V applied as float32; 1.5-step and NaN sets refused (4, 3)"
+    return f"DC set {v:.4g} V applied as float32; 1.5-step and NaN sets refused (4, 3)"
 
 
 def check_limits(bench: Bench) -> str:
@@ -186,7 +187,7 @@ def check_limits(bench: Bench) -> str:
     expect_code(lambda: stage._write_chunk(1, np.array([over], dtype=np.float32)), 3,
                 f"a table sample one float32 step above v_max ({over!r})")
     stage._set_table_length(1)  # forget the samples at the limit
-    return f"{v_max:g} V accepted, {over!r} V refused"
+    return f"{v_max:g} V accepted, {float(over)!r} V refused"
 
 
 def check_table(bench: Bench) -> str:
@@ -491,6 +492,44 @@ CLAUSES: tuple[tuple[str, str, Callable[[Bench], str], bool], ...] = (
     ("§4.1", "FC6 echo", check_fc6_echo, False),
     ("§4", "register fields and exceptions", check_registers, True),
 )
+
+
+#: The wires the emulated device is checked on.
+EMULATED_WIRES = ("serial-pty", "serial-socket", "modbus-tcp", "modbus-rtu")
+
+
+@contextmanager
+def emulated_stage(profile: Profile, wire: str) -> Iterator[StageBase]:
+    """A fresh emulated device served on ``wire`` (one of :data:`EMULATED_WIRES`) and the host's
+    link to it."""
+    from drivers.device.emulated import EmulatedDevice
+    from drivers.device.modbus_server import ModbusRtuServer, ModbusTcpServer
+    from drivers.device.serial_server import SerialServer
+
+    with ExitStack() as stack:
+        dev = stack.enter_context(EmulatedDevice(profile))
+        if wire == "modbus-tcp":
+            port = stack.enter_context(ModbusTcpServer(dev)).port
+            stage: StageBase = ModbusStage(profile, ModbusTcpTransport("127.0.0.1", port))
+        elif wire == "modbus-rtu":
+            url = stack.enter_context(ModbusRtuServer(dev)).url
+            stage = ModbusStage(profile, ModbusRtuTransport(url))
+        else:
+            where = "pty" if wire == "serial-pty" else "socket://127.0.0.1:0"
+            stage = SerialStage(profile, stack.enter_context(SerialServer(dev, where)).url)
+        with stage:
+            yield stage
+
+
+def wires(profile: Profile, emulated: bool
+          ) -> Iterator[tuple[str, AbstractContextManager[StageBase]]]:
+    """What to check: the emulated device on every wire, or the stage the profile names."""
+    if emulated:
+        for wire in EMULATED_WIRES:
+            yield f"emulated device, {wire}", emulated_stage(profile, wire)
+        return
+    from drivers import open_stage
+    yield f"{profile.name}: {profile.transport}", open_stage(profile)
 
 
 def bounds(profile: Profile, max_voltage: float | None) -> tuple[float, float]:
