@@ -7,10 +7,14 @@ sample rate. An emulated stage also carries ``[emulator]``: its true model (``[e
 exactly the model-file schema of :mod:`afmctl.modelfile`), noise, seed, watchdog and optional
 effects that the base model lacks (``[emulator.effects.*]``, each off unless present) and wire
 faults its servers inject (``[emulator.faults]``, off unless present). Every key carries its unit.
+A wire's ``[transport]`` also gives ``timeout_s`` (per reply) and ``watchdog_s``, the device
+watchdog's period the host arms for every run (default twice ``timeout_s``, which it must exceed;
+0: never armed).
 
 Every problem raises :class:`~afmctl.tomlfile.FileFormatError` naming the file and key, which the
 CLI prints as one line with exit status 2. Shipped profiles live in ``afmctl/profiles/`` (package
-data; ``profiles/`` at the top of the repository links to them).
+data; ``profiles/`` at the top of the repository links to them) and are reachable by name
+(``--profile lab-modbus``) wherever a profile path is taken.
 """
 
 from __future__ import annotations
