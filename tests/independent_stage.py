@@ -306,22 +306,22 @@ def framed(payload: str, tag: int | None) -> str:
     return f"{body} *{crc(body)}"
 
 
-def floats(args: list[str], n: int) -> list[float]:
+def parsed(args: list[str], n: int, kind: type) -> list:
+    """``n`` arguments of type ``kind`` (error 2 if the count or a value is wrong)."""
     if len(args) != n:
         raise Refused(2)
     try:
-        return [float(a) for a in args]
+        return [kind(a) for a in args]
     except ValueError:
         raise Refused(2) from None
+
+
+def floats(args: list[str], n: int) -> list[float]:
+    return parsed(args, n, float)
 
 
 def ints(args: list[str], n: int) -> list[int]:
-    if len(args) != n:
-        raise Refused(2)
-    try:
-        return [int(a) for a in args]
-    except ValueError:
-        raise Refused(2) from None
+    return parsed(args, n, int)
 
 
 class SocketStage:

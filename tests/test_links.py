@@ -123,3 +123,35 @@ def test_fc6_echoes_the_written_value(profile: Profile) -> None:
         assert refused[7:] == bytes([0x86, rm.ILLEGAL_VALUE])
         with dev.lock:
             assert dev.emulator.last_error == 1
+
+
+def test_a_local_serial_device_is_a_uart_and_a_pty_is_not() -> None:
+    import os
+
+    import serial
+    port = serial.Serial()  # not opened: only its path is looked at
+    port.port = "/dev/ttyUSB0"
+    assert is_uart(port)
+    master, slave = os.openpty()
+    try:
+        port.port = os.ttyname(slave)
+        assert not is_uart(port)
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_uart_byte_counts_cover_real_lines(profile: Profile) -> None:
+    """The bytes per sample a UART's capacity is computed from are what the lines really take."""
+    from drivers import ascii_protocol as ap
+    rng = np.random.default_rng(3)
+    v = rng.uniform(-150, 150, 200).astype(np.float32)
+    line = ap.frame(ap.wav_line(0, v), 99999) + "\n"
+    assert 0.85 * ap.UPLOAD_BYTES_PER_SAMPLE <= len(line) / v.size <= ap.UPLOAD_BYTES_PER_SAMPLE
+    with stage_on("serial-pty", profile) as (stage, _):
+        stage.play(100.0 * np.sin(np.linspace(0, 6, 2000)) * np.linspace(0, 1, 2000))
+        reply = stage.query("DRR? 1000 200")
+    per_sample = (len(ap.frame(reply, 99999)) + 1) / 200
+    assert 0.7 * ap.READBACK_BYTES_PER_SAMPLE <= per_sample <= ap.READBACK_BYTES_PER_SAMPLE
+    up, down = rm.rtu_bytes_per_sample()
+    assert up == pytest.approx(4 + 21 / 60) and down == pytest.approx(8 + 26 / 62)
