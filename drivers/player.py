@@ -8,7 +8,11 @@ and hands every sample to ``on_block`` exactly once, measured or missing.
 
 from __future__ import annotations
 
+import signal
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -209,13 +213,20 @@ class Player:
         return True
 
     def _hand_over(self, first: int, end: int) -> None:
-        """Samples ``first .. end-1`` are final: count them delivered, pass them to on_block."""
+        """Samples ``first .. end-1`` are final: count them delivered, pass them to on_block.
+
+        A Ctrl-C (SIGINT) that arrives while on_block runs is held until it returns, so a block
+        is handed over whole (a run file never ends in half a block) and the interrupt is then
+        handled like one anywhere else in the run (the rest handed over by :meth:`abandon`); an
+        exception of on_block's own ends the hand-over (``in_callback`` stays set)."""
         self.delivered = end
         if self.on_block is not None and end > first:
             sl = slice(first, end)
             self.in_callback = True
-            self.on_block(first, self.volt[sl].copy(), self.u[sl].copy(), self.valid[sl].copy())
-            self.in_callback = False
+            with _sigint_held():
+                self.on_block(first, self.volt[sl].copy(), self.u[sl].copy(),
+                              self.valid[sl].copy())
+                self.in_callback = False
 
     def abandon(self, cause: BaseException) -> None:
         """After a failed run (the stage already safe): hand every sample not yet delivered to
@@ -233,3 +244,21 @@ class Player:
             self._hand_over(self.delivered, self.v.size)
         except Exception as exc:  # noqa: BLE001 - the original exception is what matters
             cause.add_note(f"handing over the missing samples failed: {exc!r}")
+
+
+@contextmanager
+def _sigint_held() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) until the block ends, then raise KeyboardInterrupt if one came.
+
+    Only the main thread receives Python's signal handlers; elsewhere this does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, _frame: came.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if came:
+        raise KeyboardInterrupt

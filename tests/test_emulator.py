@@ -311,11 +311,23 @@ def test_thermal_relaxation_goes_on_while_idle(profile: Profile) -> None:
     ramp, hold = _ramp_then_hold(90.0)
     emu = em.Emulator(prof)
     run(emu, ramp, 0.0)
-    u, _ = run(emu, hold[:200], ramp.size / RATE + 2.0)
+    u, _ = run(emu, hold[:200], ramp.size / RATE + 0.8)
     ph = plant.Physics(cfg, RATE)
-    _, _, state = ph.respond(np.concatenate([ramp, np.full(20000, 90.0)]), ph.initial())
+    _, _, state = ph.respond(np.concatenate([ramp, np.full(8000, 90.0)]), ph.initial())
     exp, _ = plant.expected_readback(cfg, RATE, hold[:200], run_index=1, state=state)
     np.testing.assert_allclose(u, exp, rtol=0, atol=1e-5)
     _, _, frozen = ph.respond(ramp, ph.initial())
     stale, _ = plant.expected_readback(cfg, RATE, hold[:200], run_index=1, state=frozen)
-    assert abs(stale[0] - u[0]) > 0.05  # 2 s of creep the frozen stage would have missed, um
+    assert abs(stale[0] - u[0]) > 0.05  # 0.8 s of creep the frozen stage would have missed, um
+
+
+def test_a_long_pause_is_simulated_up_to_the_horizon(profile: Profile) -> None:
+    """Idle beyond :data:`IDLE_HORIZON_S` costs no more than the horizon (the hold has settled)."""
+    prof = quiet(profile, second_mode=SecondMode(600.0, 0.02, 0.4))
+    ramp, hold = _ramp_then_hold(90.0)
+    runs = []
+    for pause_s in (em.IDLE_HORIZON_S, 50.0):
+        emu = em.Emulator(prof)
+        run(emu, ramp, 0.0)
+        runs.append(run(emu, hold[:100], ramp.size / RATE + pause_s)[0])
+    np.testing.assert_array_equal(runs[0], runs[1])

@@ -155,3 +155,29 @@ def test_uart_byte_counts_cover_real_lines(profile: Profile) -> None:
     assert 0.7 * ap.READBACK_BYTES_PER_SAMPLE <= per_sample <= ap.READBACK_BYTES_PER_SAMPLE
     up, down = rm.rtu_bytes_per_sample()
     assert up == pytest.approx(4 + 21 / 60) and down == pytest.approx(8 + 26 / 62)
+
+
+def test_ctrl_c_inside_on_block_is_held_until_the_block_is_handed_over(profile: Profile) -> None:
+    """A SIGINT that lands while on_block writes a block (an fsync, say) does not cut the block:
+    it is raised after it, the stage is made safe and every later sample is still handed over."""
+    import os
+    import signal
+    import time
+
+    v = np.concatenate([np.linspace(0.0, 20.0, 50), np.full(12_000, 20.0)])
+    seen: list[tuple[int, int]] = []
+
+    def on_block(first: int, volt: np.ndarray, *_: object) -> None:
+        if first == 0:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # the signal arrives while the block is being written
+        seen.append((first, volt.size))
+
+    with stage_on("serial-pty", profile) as (stage, _):
+        with pytest.raises(KeyboardInterrupt):
+            stage.play(v, on_block)
+        st = stage.status()
+    assert seen[0][0] == 0 and len(seen) >= 2  # the first block whole, then the rest
+    assert [f for f, _ in seen] == list(np.cumsum([0] + [m for _, m in seen[:-1]]))
+    assert sum(m for _, m in seen) == v.size
+    assert not st.running and st.output_v == 0.0
