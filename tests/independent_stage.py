@@ -1,11 +1,13 @@
-"""A stage written from ``docs/protocol.md`` alone: not afmctl's emulator, no afmctl or drivers code.
+"""A stage written from ``docs/protocol.md`` alone: not afmctl's emulator.
 
 A unipolar 0-150 V amplifier and DAQ behind the serial protocol on ``socket://127.0.0.1:PORT``, the
-way a serial-to-Ethernet adapter is reached. Its plant is its own: a Prandtl-Ishlinskii sum of play
-operators (rate-independent hysteresis) through a first-order mechanical lag, plus Gaussian sensor
-noise. Its table holds 4,096 samples and its recorder 32,768, so long runs stream. It logs the time
-of every ``WDT``, ``HB``, ``WGO``, ``WGS`` and ``SAFE`` it receives (``commands``), so tests can see
-what a host does to it.
+way a serial-to-Ethernet adapter is reached. Its protocol side uses no afmctl or drivers code; its
+physics is a foreign stage (:mod:`drivers.device.foreign`, a plant written independently of
+afmctl's model: relay hysterons, RK4 rod, gauge noise), drawn with a fixed seed, evolving while
+idle. The recorder's voltage is the command (this DAQ cannot measure the amplifier's output). Its
+table holds 4,096 samples and its recorder 32,768, so long runs stream. It logs the time of every
+``WDT``, ``HB``, ``WGO``, ``WGS`` and ``SAFE`` it receives (``commands``), so tests can see what a
+host does to it.
 """
 
 from __future__ import annotations
@@ -17,6 +19,9 @@ import time
 import zlib
 
 import numpy as np
+
+from drivers.device import foreign
+from drivers.device.foreign_stages import random_stage
 
 V_MIN, V_MAX, SLEW_V_PER_MS = 0.0, 150.0, 50.0
 TABLE, RECORDER, MAX_LINE = 4096, 32768, 8192
@@ -45,25 +50,27 @@ def num(x: float) -> str:
 
 
 class Plant:
-    """Play operators of thresholds ``R`` (V) and weights ``W`` (um/V), then a 0.3 ms lag."""
+    """The foreign stage drawn from ``seed`` (drive range 0-150 V), in device time."""
 
-    R = np.array([0.0, 8.0, 20.0, 40.0, 70.0])
-    W = np.array([0.12, 0.08, 0.06, 0.05, 0.04])
-
-    def __init__(self, rate_hz: float, noise_um: float = 0.003, seed: int = 5) -> None:
-        self.state = np.zeros(self.R.size)
-        self.u = 0.0
-        self.rate_hz = rate_hz
-        self.noise = noise_um
+    def __init__(self, rate_hz: float, seed: int = 5) -> None:
         self.rng = np.random.default_rng(seed)
+        self.stage = random_stage(self.rng)
+        self.state = foreign.initial_state(self.stage, "poled+")
+        self.rate_hz = rate_hz
+        self.t = time.monotonic()  # device time the plant has reached, s
 
-    def step(self, v: float) -> float:
-        """The reading before ``v`` acts, then ``v`` is held for one sample."""
-        reading = self.u + self.noise * self.rng.standard_normal()
-        self.state = np.clip(self.state, v - self.R, v + self.R)
-        target = float(self.W @ self.state)
-        self.u += (target - self.u) * (1.0 - math.exp(-1.0 / (3e-4 * self.rate_hz)))
+    def play(self, v: np.ndarray) -> np.ndarray:
+        """Gauge readings at each sample instant, um, while ``v`` (V) is held sample by sample."""
+        _, reading, self.state = foreign.run(self.stage, v, self.rate_hz, self.state, self.rng)
+        self.t += v.size / self.rate_hz
         return reading
+
+    def start(self, now: float, held_v: float) -> None:
+        """A run starts at ``now``: the plant idles at the held output until then."""
+        if now > self.t:
+            self.state = foreign.idle(self.stage, self.state, now - self.t, held_v)
+        self.state = foreign.start_run(self.stage, self.state, self.rng)
+        self.t = now
 
 
 class Device:
@@ -100,19 +107,26 @@ class Device:
         if run is None:
             return
         due = min(run["n"], math.floor((now - run["t0"]) * self.rate + 1e-9))
-        step = SLEW_V_PER_MS * 1000.0 / self.rate * (1 + 1e-6)
-        while self.pos < due:
-            k, s = self.pos, self.pos % self.length
-            if run["stream"] and self.slot[s] != k:
-                return self.fault(10)
-            v = self.table[s]
-            if abs(v - self.out) > step:
-                return self.fault(4)
-            self.rec[k % RECORDER] = (self.plant.step(v), v)
-            self.rec_k[k % RECORDER] = k
-            self.out = v
-            self.pos += 1
-        if self.pos >= run["n"]:
+        k = np.arange(self.pos, max(self.pos, due))
+        slots = k % self.length
+        n, fault = k.size, 0
+        if run["stream"]:
+            stale = np.flatnonzero(self.slot[slots] != k)
+            if stale.size:
+                n, fault = int(stale[0]), 10
+        v = self.table[slots[:n]]
+        steep = np.flatnonzero(np.abs(np.diff(v, prepend=self.out))
+                               > SLEW_V_PER_MS * 1000.0 / self.rate * (1 + 1e-6))
+        if steep.size:
+            n, fault = int(steep[0]), 4
+        if n:
+            self.rec[k[:n] % RECORDER] = np.column_stack([self.plant.play(v[:n]), v[:n]])
+            self.rec_k[k[:n] % RECORDER] = k[:n]
+            self.out = float(v[n - 1])
+            self.pos += n
+        if fault:
+            self.fault(fault)
+        elif self.pos >= run["n"]:
             self.run = None
 
     def fault(self, code: int) -> None:
@@ -122,8 +136,9 @@ class Device:
 
     def ramp(self) -> None:
         step = 0.9 * SLEW_V_PER_MS * 1000.0 / self.rate
-        for v in np.linspace(self.out, 0.0, math.ceil(abs(self.out) / step) + 1)[1:]:
-            self.plant.step(v)
+        ramp = np.linspace(self.out, 0.0, math.ceil(abs(self.out) / step) + 1)[1:]
+        if ramp.size:
+            self.plant.play(ramp)
         self.out = 0.0
 
     # -- commands ----------------------------------------------------------------------------
@@ -175,7 +190,7 @@ class Device:
         v = f32(floats(args, 1)[0])
         self.idle()
         self.check(np.array([v]), self.out)
-        self.plant.step(v)
+        self.plant.play(np.array([v]))
         self.out = v
         return "OK"
 
@@ -223,6 +238,7 @@ class Device:
         self.check(np.concatenate([first, first[:1]]) if wraps else first, self.out)
         self.rec[:] = np.nan
         self.rec_k[:] = -1
+        self.plant.start(now, self.out)
         self.pos, self.total, self.runs = 0, n, self.runs + 1
         self.wd_expired = False
         self.run = {"t0": now, "n": n, "stream": stream}
