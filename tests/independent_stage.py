@@ -50,11 +50,12 @@ def num(x: float) -> str:
 
 
 class Plant:
-    """The foreign stage drawn from ``seed`` (drive range 0-150 V), in device time."""
+    """The foreign stage drawn from ``seed`` (drive range 0-150 V, displacement span 90 um), in
+    device time."""
 
     def __init__(self, rate_hz: float, seed: int = 5) -> None:
         self.rng = np.random.default_rng(seed)
-        self.stage = random_stage(self.rng)
+        self.stage = random_stage(self.rng, span_um=90.0)  # 0-90 um: 45 +- 13.5 um in reach
         self.state = foreign.initial_state(self.stage, "poled+")
         self.rate_hz = rate_hz
         self.t = time.monotonic()  # device time the plant has reached, s
