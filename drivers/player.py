@@ -87,7 +87,7 @@ class Player:
             elif not st.running:
                 self._disarm()
             self._feed()
-            busy = self._refill(st.play_position) if st.running else False
+            busy = self._refilled(st.play_position) if st.running else False
             busy |= self._deliver(st.play_position, st.running)
             if not st.running and self.delivered >= st.play_position:
                 break
@@ -177,6 +177,22 @@ class Player:
             self.stage.set_watchdog(0.0)
             self.armed = False
         self.period = 0.0
+
+    def _refilled(self, position: int) -> bool:
+        """:meth:`_refill`; a block refused because the run has meanwhile stopped (an underrun, a
+        slew fault, the watchdog) says so: the refusal alone would hide why."""
+        try:
+            return self._refill(position)
+        except StageError as refusal:
+            if refusal.code < 1:
+                raise
+            st = self.stage.status()
+            if st.running:
+                raise
+            raise StageError(refusal.code, f"the run stopped after {st.play_position} of "
+                                           f"{self.v.size} samples before this block: the host "
+                                           f"fell behind (underrun) or the device stopped it"
+                             ) from refusal
 
     def _refill(self, position: int) -> bool:
         """Send the next half-table if the generator has played the samples its slots held."""

@@ -181,3 +181,22 @@ def test_ctrl_c_inside_on_block_is_held_until_the_block_is_handed_over(profile: 
     assert [f for f, _ in seen] == list(np.cumsum([0] + [m for _, m in seen[:-1]]))
     assert sum(m for _, m in seen) == v.size
     assert not st.running and st.output_v == 0.0
+
+
+def test_a_refill_refused_after_the_run_stopped_says_the_run_stopped(profile: Profile) -> None:
+    """The device underruns between the host's status poll and its refill (a device clock that
+    jumps 0.3 s per call): the error names the stopped run, not only the refused block."""
+    from drivers import StageError
+    from drivers.inprocess import InProcessStage
+    t = [0.0]
+
+    def jumpy() -> float:
+        t[0] += 0.3
+        return t[0]
+
+    prof = slow_link(profile, 10_000.0)
+    stage = InProcessStage(prof, clock=jumpy)
+    with pytest.raises(StageError) as info:
+        stage.play(np.linspace(0.0, 5.0, 3 * 4096))
+    assert info.value.code == 6 and "the run stopped after 4096 of 12288 samples" in str(info.value)
+    assert stage.status().output_v == 0.0
