@@ -5,9 +5,9 @@ way a serial-to-Ethernet adapter is reached. Its protocol side uses no afmctl or
 physics is a foreign stage (:mod:`drivers.device.foreign`, a plant written independently of
 afmctl's model: relay hysterons, RK4 rod, gauge noise), drawn with a fixed seed, evolving while
 idle. The recorder's voltage is the command (this DAQ cannot measure the amplifier's output). Its
-table holds 4,096 samples and its recorder 32,768, so long runs stream. It logs the time of every
-``WDT``, ``HB``, ``WGO``, ``WGS`` and ``SAFE`` it receives (``commands``), so tests can see what a
-host does to it.
+table holds 16,384 samples (1.6 s at 10 kHz) and its recorder 65,536, so long runs stream. It logs
+the time of every ``WDT``, ``HB``, ``WGO``, ``WGS`` and ``SAFE`` it receives (``commands``), so
+tests can see what a host does to it.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from drivers.device import foreign
 from drivers.device.foreign_stages import random_stage
 
 V_MIN, V_MAX, SLEW_V_PER_MS = 0.0, 150.0, 50.0
-TABLE, RECORDER, MAX_LINE = 4096, 32768, 8192
+TABLE, RECORDER, MAX_LINE = 16384, 65536, 8192
 MESSAGES = {1: "unknown command", 2: "bad argument", 3: "voltage outside limits",
             4: "slew limit exceeded", 5: "busy", 6: "index outside table or recorder",
             7: "read-only device", 8: "watchdog expired", 9: "waveform table incomplete",
