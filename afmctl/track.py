@@ -150,10 +150,13 @@ def _assemble(name: str, desired: Desired, ramp_in: FloatArray, v_track: FloatAr
 
 
 def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v: float,
-                 state: tr.StageState, prefix_v: FloatArray) -> Waveform:
+                 state: tr.StageState, prefix_v: FloatArray,
+                 horizon: int | None = None) -> Waveform:
     """Algorithm 3 waveform with the smallest horizon that passes the guard.
 
     ``prefix_v`` (the conditioning) is played first; ``state`` is the model state after it.
+    ``horizon`` fixes the inversion horizon instead of searching it (learning keeps the one of
+    its first iteration, so the plant it learns through stays the same).
 
     Raises
     ------
@@ -174,7 +177,7 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
     d0 = rd.smooth_horizon(cm.disc)
     last: guard.LimitError | None = None
     best: tuple[float, Waveform] | None = None
-    for d in (h for h in HORIZONS if h >= d0):
+    for d in ((horizon,) if horizon else (h for h in HORIZONS if h >= d0)):
         res = inv.algorithm3(cm, target, state, e_init=start_v / cm.model.thickness_um,
                              horizon=d, e_max=e_max)
         short = int(np.argmax(res.error))
@@ -203,6 +206,8 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
         best = (err, wf)
     if best is not None:
         return best[1]
+    if horizon:
+        raise guard.LimitError(f"horizon {horizon}: {last}")
     raise guard.LimitError(f"no inversion horizon up to {HORIZONS[-1]} samples keeps the "
                            f"waveform within limits; last: {last}")
 

@@ -35,6 +35,13 @@ def track_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      help="Start with one slow full-range excursion (to the profile's voltage "
                           "limits) that wipes out the stage's hysteresis memory; --no-condition "
                           "skips it and assumes a depoled stage (less accurate)."),
+        click.option("--learn", "learn", type=click.IntRange(min=0), default=0,
+                     help="Learn from repeated scans: after the inverse (or --filter linear) "
+                          "waveform, up to N iterations that correct it from the measured error "
+                          "(writes every iteration's run file, waveform_learned.csv, learn.png)."),
+        click.option("--learn-cutoff", type=click.FloatRange(min=0, min_open=True),
+                     default=600.0, show_default=True,
+                     help="Cut-off of the learning's zero-phase low-pass filter Q, Hz."),
     ]
     for opt in reversed(opts):
         fn = opt(fn)
@@ -98,7 +105,7 @@ def _out_dir(out_dir: str | None) -> Path:
 
 def _track(make_desired: Callable[[float], Any], profile_path: str | None,
            model_path: str | None, filters: str, out_dir: str | None, dry_run: bool,
-           as_json: bool, condition: bool) -> None:
+           as_json: bool, condition: bool, learn: int = 0, learn_cutoff: float = 600.0) -> None:
     from afmctl import calibration, experiment, modelfile
     from afmctl import effects as fx
     from afmctl import track as trk
@@ -106,6 +113,8 @@ def _track(make_desired: Callable[[float], Any], profile_path: str | None,
     desired = make_desired(1.0 / prof.sample_rate_hz)
     wanted = ("inverse", "linear") if filters == "both" else (filters,)
     say = progress_printer(False)
+    if learn and dry_run:
+        fail("--learn learns from measurements: it cannot be combined with --dry-run")
     if dry_run:
         model = (modelfile.read(model_path) if model_path
                  else calibration.cached_model(prof, None, say))
@@ -119,6 +128,12 @@ def _track(make_desired: Callable[[float], Any], profile_path: str | None,
     with open_stage(prof) as stage:
         model = (modelfile.read(model_path) if model_path
                  else calibration.cached_model(prof, stage, say))
+        if learn:
+            from afmctl.cli.play import learn_track
+            learn_track(desired, prof, model, model_path or "identified (cached)", stage, learn,
+                        learn_cutoff, "linear" if filters == "linear" else "inverse", condition,
+                        out_dir, as_json)
+            return
         start_v = stage.voltage()
         click.echo(f"planning {desired.label} from {start_v:.3f} V ...", err=True)
         plans = trk.plan(model, desired, prof.limits, start_v, wanted, condition=condition)

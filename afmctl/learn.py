@@ -1,0 +1,452 @@
+"""Iterative learning control (ILC) on top of the model inverse: learn from repeated scans.
+
+An AFM scans the same line again and again. Iteration 0 plays today's waveform (Algorithm 3
+through the model on the desired trajectory ``y_d``, :func:`afmctl.track.plan_inverse`); every
+next iteration corrects the **reference** that Algorithm 3 inverts, not the voltage:
+
+.. math::
+
+    r_0 = y_d, \\qquad r_{j+1} = r_j + Q\\,[L\\, e_j], \\qquad e_j = y_d - \\hat y_j ,
+
+where ``y^_j`` is the stage's true position in iteration ``j`` as the readings tell it (corrected
+for the model's sensor effects, :func:`afmctl.effects.sensor_correct`: learning must move the
+stage, not the readings) and the waveform of iteration ``j`` is Algorithm 3 of ``r_j`` (same
+conditioning, same inversion horizon every iteration). The model keeps inverting the hysteresis,
+the rod and any plant effects it knows; learning removes only what the model misses
+(inversion-based ILC, Leang & Devasia, Mechatronics 2006).
+
+* ``L = rho z^m``: a gain ``rho`` with a phase lead of ``m`` samples. Through its own inverse the
+  model is the identity (Algorithm 3 meets its target at the samples; the horizon only rounds
+  corners), so the model's local linearization gives ``L = 1``; what it misses (an amplifier lag,
+  a softer rod) shows mostly as a delay of the stage behind the reference. ``m`` is that delay,
+  measured once on iteration 0 (the shift of ``y^_0`` that best matches ``r_0``, at most
+  :attr:`Law.max_lead_samples`), and then held.
+* ``Q``: a zero-phase low-pass (Butterworth run forward and backward, :func:`q_filter`), cut-off
+  :attr:`Law.cutoff_hz`. It keeps learning out of the band where the plant is not known well
+  enough (a second mode, the noise).
+
+**Convergence.** With ``G`` the plant seen through the inverse (reference to true position,
+linearized about the trajectory: ``G = 1`` for an exact model), the error of the learned part
+contracts every iteration where
+
+.. math::  |Q(\\omega)\\,(1 - \\rho\\, e^{j \\omega m T} G(\\omega))| < 1
+
+for all frequencies ``omega`` (sample period ``T``). A lag the lead does not cancel turns the
+phase of ``G e^{j omega m T}``; the condition fails where it passes 60 degrees (for ``|G| = 1``),
+so the cut-off must stay below that frequency. Above the cut-off nothing is learned and the error
+stays what the model leaves; measurement noise passes ``Q`` into the reference each iteration
+(a floor of about ``sqrt(rho / (2 - rho)) sqrt(2 f_c T)`` times the noise in the true position).
+
+**Stopping.** Each waveform passes the guard (voltage, slew, current) before it is sent: one that
+would not (or a reference out of the stage's reach) is not sent, and learning ends with the best
+waveform so far. Learning also ends at the noise floor (the steady error of the readings within
+:attr:`Law.floor_factor` of the noise, estimated from the readings themselves) and on a diverging
+error (an iteration worse than :attr:`Law.diverge_factor` times the best so far).
+
+Judging is track's (at the samples and between them, the first period excluded) plus the imaging
+region of a raster line: the central 80 % of every ramp between turning points (:func:`imaging_mask`).
+"""
+
+from __future__ import annotations
+
+import dataclasses as dc
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import signal
+
+from afmctl import effects as fx
+from afmctl import experiment, guard, track
+from afmctl import transducer as tr
+
+FloatArray = NDArray[np.float64]
+#: Fraction of every ramp (centred) that a raster line images.
+IMAGING_FRACTION = 0.8
+
+
+@dataclass(frozen=True)
+class Law:
+    """The learning law's parameters (see the module docstring).
+
+    Parameters
+    ----------
+    cutoff_hz : float
+        -3 dB frequency of the zero-phase robustness filter Q (each pass), Hz.
+    gain : float
+        ``rho`` of ``L = rho z^m`` (0 < rho <= 1).
+    max_lead_samples : int
+        Largest phase lead ``m`` measured on iteration 0, samples.
+    floor_factor : float
+        Stop once the readings' steady RMS error is within this factor of the noise.
+    diverge_factor : float
+        Stop once an iteration is worse than this factor times the best so far.
+    """
+
+    cutoff_hz: float = 600.0
+    gain: float = 1.0
+    max_lead_samples: int = 10
+    floor_factor: float = 1.1
+    diverge_factor: float = 1.2
+
+    def __post_init__(self) -> None:
+        if not (self.cutoff_hz > 0 and 0 < self.gain <= 1 and self.max_lead_samples >= 0
+                and self.floor_factor >= 1 and self.diverge_factor > 1):
+            raise ValueError("learning law: need cutoff > 0, 0 < gain <= 1, lead >= 0, "
+                             "floor factor >= 1, divergence factor > 1")
+
+
+# ----------------------------------------------------------------------------------------------
+# the law (pure)
+# ----------------------------------------------------------------------------------------------
+
+
+def q_filter(x: FloatArray, dt_s: float, cutoff_hz: float) -> FloatArray:
+    """Zero-phase low-pass: 2nd-order Butterworth forward and backward (odd extension at the
+    ends), so the correction neither lags nor leads the error it comes from."""
+    wn = min(2 * cutoff_hz * dt_s, 0.99)
+    sos = signal.butter(2, wn, output="sos")
+    pad = min(x.size - 1, int(3 / (cutoff_hz * dt_s)) + 1)
+    return signal.sosfiltfilt(sos, x, padtype="odd", padlen=pad)
+
+
+def shift(x: FloatArray, m: int) -> FloatArray:
+    """``x[k + m]`` (the last sample held): a lead of ``m`` samples (a lag for ``m < 0``)."""
+    if m == 0:
+        return x.copy()
+    idx = np.clip(np.arange(x.size) + m, 0, x.size - 1)
+    return x[idx]
+
+
+def lead_samples(reference: FloatArray, position: FloatArray, skip: int, max_lead: int) -> int:
+    """The delay ``m`` (samples, 0..max_lead) of the stage behind the reference: the shift of
+    ``position`` that best matches ``reference`` beyond the first ``skip`` samples."""
+    best, best_m = np.inf, 0
+    for m in range(max_lead + 1):
+        d = shift(position, m)[skip:] - reference[skip:]
+        d = d[np.isfinite(d)]
+        if d.size == 0:
+            return 0
+        rms = float(np.sqrt(np.mean(d**2)))
+        if rms < best:
+            best, best_m = rms, m
+    return best_m
+
+
+def next_reference(reference: FloatArray, error: FloatArray, dt_s: float, law: Law,
+                   lead: int) -> FloatArray:
+    """``r_{j+1} = r_j + Q[rho z^m e_j]`` (um); missing samples (NaN) learn nothing."""
+    e = np.where(np.isfinite(error), error, 0.0)
+    return reference + q_filter(law.gain * shift(e, lead), dt_s, law.cutoff_hz)
+
+
+def noise_estimate(error: FloatArray) -> float:
+    """Sensor noise (um, 1 sigma) from the readings' error itself: the median absolute first
+    difference (robust to the corners), scaled for Gaussian noise (0.6745 sqrt 2)."""
+    d = np.diff(error[np.isfinite(error)])
+    if d.size == 0:
+        return float("nan")
+    return float(np.median(np.abs(d - np.median(d))) / (0.6745 * np.sqrt(2)))
+
+
+def steady_part(desired: track.Desired) -> slice:
+    """The samples judged: all after the first period of a periodic trajectory."""
+    if desired.period_s is None:
+        return slice(0, None)
+    return slice(min(int(round(desired.period_s / desired.dt_s)), desired.u_um.size - 1), None)
+
+
+def imaging_mask(desired: track.Desired, fraction: float = IMAGING_FRACTION) -> NDArray[np.bool_]:
+    """Samples in the central ``fraction`` of every ramp (monotone run between turning points)
+    of the desired trajectory, first period excluded: the imaging region of a raster line."""
+    u = desired.u_um
+    mask = np.zeros(u.size, dtype=bool)
+    slope = np.sign(np.diff(u))
+    turns = np.flatnonzero(slope[1:] * slope[:-1] < 0) + 1
+    edges = np.concatenate(([0], turns, [u.size - 1]))
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        trim = 0.5 * (1 - fraction) * (b - a)
+        mask[int(np.ceil(a + trim)):int(np.floor(b - trim)) + 1] = True
+    mask[:steady_part(desired).start] = False
+    return mask
+
+
+def imaging_rms(desired: track.Desired, error: FloatArray, fine: int = 1) -> float:
+    """RMS (um) of ``error`` over the imaging region; ``fine`` > 1 for an error sampled ``fine``
+    times per sample (between samples: sub-sample i of sample k at index ``k * fine + i``)."""
+    mask = imaging_mask(desired)
+    if fine > 1:
+        mask = np.repeat(mask, fine)[:error.size]
+    e = error[: mask.size][mask[: error.size]]
+    e = e[np.isfinite(e)]
+    return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
+
+
+def _rms(x: FloatArray) -> float:
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
+
+
+# ----------------------------------------------------------------------------------------------
+# planning a reference
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Planner:
+    """What stays fixed over the iterations: the model at the sample period, its state after the
+    conditioning, the conditioning itself, the seed filter and its horizon or voltage range."""
+
+    cm: tr.Compiled
+    limits: guard.Limits
+    start_v: float
+    state: tr.StageState
+    prefix_v: FloatArray
+    seed: str
+    horizon: int | None
+    v_range: tuple[float, float]
+
+
+def planner(model: tr.Transducer, desired: track.Desired, limits: guard.Limits,
+            start_v: float = 0.0, seed: str = "inverse", condition: bool = True
+            ) -> tuple[Planner, track.Waveform]:
+    """The planner and iteration 0's waveform (``seed``: ``inverse``, or the paper's ``linear``
+    filter, learning then through the line instead of the model)."""
+    if seed not in ("inverse", "linear"):
+        raise ValueError(f"unknown seed filter {seed!r}")
+    plans = track.plan(model, desired, limits, start_v, ("inverse", seed), condition=condition)
+    inv = plans["inverse"]
+    cm = tr.compile_model(model, desired.dt_s)
+    pre = track.conditioning(limits, start_v, desired.dt_s) if condition else np.zeros(0)
+    st0 = tr.initial(model, voltage_v=start_v)
+    _, _, st = tr.simulate(cm, pre, st0)
+    v_tr = inv.voltage_v[inv.tracking]
+    p = Planner(cm, limits, start_v, st, pre, seed, inv.horizon,
+                (float(v_tr.min()), float(v_tr.max())))
+    return p, plans[seed]
+
+
+def plan_reference(p: Planner, desired: track.Desired, reference: FloatArray
+                   ) -> track.Waveform:
+    """The seed filter's waveform for ``reference`` (um), scored against ``desired``.
+
+    Raises
+    ------
+    guard.LimitError
+        If the waveform would leave the stage's limits or the reference its reach.
+    """
+    ref = dc.replace(desired, u_um=np.asarray(reference, dtype=float))
+    if p.seed == "inverse":
+        wf = track.plan_inverse(p.cm, ref, p.limits, p.start_v, p.state, p.prefix_v, p.horizon)
+    else:
+        wf = track.plan_linear(p.cm, ref, p.limits, p.start_v, p.state, p.v_range, p.prefix_v)
+    d = wf.desired_um.copy()
+    d[wf.tracking] = desired.u_um
+    return dc.replace(wf, desired_um=d)
+
+
+# ----------------------------------------------------------------------------------------------
+# the iterations on a stage
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Iteration:
+    """One played iteration: its outcome (track's scores and run file), the true-position
+    error estimate ``error_um`` (desired - corrected readings, tracking part), the imaging-region
+    RMS at the samples and (with a plant model) between them, um."""
+
+    index: int
+    outcome: experiment.Outcome
+    error_um: FloatArray
+    rms_imaging_um: float
+    rms_imaging_between_um: float | None
+    steady_um: float
+
+    def as_dict(self) -> dict[str, Any]:
+        s = self.outcome.score
+        return {"iteration": self.index, "rms_um": s.rms_um, "max_um": s.max_um,
+                "rms_between_um": s.rms_between_um, "rms_imaging_um": self.rms_imaging_um,
+                "rms_imaging_between_um": self.rms_imaging_between_um,
+                "rms_steady_um": self.steady_um,
+                "max_slew_V_per_ms": self.outcome.waveform.max_slew_v_per_ms,
+                "complete": self.outcome.complete, "run_file": self.outcome.run_file.name}
+
+
+@dataclass(frozen=True)
+class Result:
+    """All finished iterations, the best one (smallest steady error), why learning stopped, the
+    noise estimate (um), the lead ``m`` (samples) and the compute time per iteration (s)."""
+
+    iterations: tuple[Iteration, ...]
+    best: int
+    stop: str
+    noise_um: float
+    lead: int
+    compute_s: tuple[float, ...]
+
+    @property
+    def best_iteration(self) -> Iteration:
+        return self.iterations[self.best]
+
+
+def judge(wf: track.Waveform, desired: track.Desired, index: int, measured: tuple[Any, ...],
+          path: Path, sensor: fx.Effects, truth: tr.Transducer | None) -> Iteration:
+    """Score one played iteration as track does (readings corrected for ``sensor``; between the
+    samples by simulating the plant ``truth``, if given), plus the imaging region.
+
+    ``measured`` is :func:`afmctl.experiment.stream`'s (displacement_um, voltage_v, complete).
+    """
+    u, v, complete = measured
+    where = fx.sensor_correct(fx.compile_chain(sensor, wf.dt_s), u)
+    between = img_between = None
+    if truth is not None:
+        between = track.between_samples(truth, wf, desired, tr.initial(truth))
+        img_between = imaging_rms(desired, between, track.FINE)
+    outcome = experiment.Outcome(wf, u, v, track.score(wf, desired, where, between), complete,
+                                 path)
+    err = desired.u_um - where[wf.tracking]
+    return Iteration(index, outcome, err, imaging_rms(desired, err), img_between,
+                     _rms(err[steady_part(desired)]))
+
+
+OnIteration = Callable[[Result], None]
+
+
+def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Desired,
+        limits: guard.Limits, out: Path, meta: Mapping[str, object], iterations: int,
+        law: Law = Law(), truth: tr.Transducer | None = None, seed: str = "inverse",
+        condition: bool = True, progress: experiment.Progress | None = None,
+        on_iteration: OnIteration | None = None) -> Result:
+    """Play iteration 0 and up to ``iterations`` learning iterations on ``stage``.
+
+    Every iteration's run file goes to ``out`` (``run_<seed>_iterNN.csv``) as it plays;
+    ``on_iteration`` is called with the result so far after each finished iteration (write the
+    summary there: an interrupt then loses nothing finished). ``truth`` (the plant, for judging
+    between the samples) defaults to the model. A refused waveform, the noise floor or a
+    diverging error end learning early (``Result.stop`` says which).
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    start_v = stage.voltage()
+    t0 = time.perf_counter()
+    p, wf = planner(model, desired, limits, start_v, seed, condition)
+    ref = desired.u_um.copy()
+    done: list[Iteration] = []
+    compute: list[float] = []
+    noise, lead, best, stop = float("nan"), 0, 0, "iterations done"
+    between = truth if truth is not None else model
+    for j in range(iterations + 1):
+        if j:
+            t0 = time.perf_counter()
+            ref = next_reference(ref, done[-1].error_um, desired.dt_s, law, lead)
+            try:
+                wf = plan_reference(p, desired, ref)
+            except guard.LimitError as exc:
+                stop = f"refused: {exc}"
+                break
+        wf = dc.replace(wf, filter=f"{seed}_iter{j:02d}")
+        t_plan = time.perf_counter() - t0
+        path = out / f"run_{wf.filter}.csv"
+        measured = experiment.stream(stage, wf, path, meta, progress)
+        t1 = time.perf_counter()
+        it = judge(wf, desired, j, measured, path, model.effects, between)
+        done.append(it)
+        if j == 0:
+            noise = noise_estimate(it.error_um[steady_part(desired)])
+            lead = lead_samples(ref, desired.u_um - it.error_um, steady_part(desired).start,
+                                law.max_lead_samples)
+        compute.append(t_plan + time.perf_counter() - t1)
+        if it.steady_um < done[best].steady_um:
+            best = j
+        result = Result(tuple(done), best, stop, noise, lead, tuple(compute))
+        if on_iteration is not None:
+            on_iteration(result)
+        if it.steady_um > law.diverge_factor * done[best].steady_um:
+            stop = (f"diverging: iteration {j} ({it.steady_um:.4g} um) worse than "
+                    f"{law.diverge_factor:g} x the best ({done[best].steady_um:.4g} um)")
+            break
+        if it.steady_um <= law.floor_factor * noise:
+            stop = f"noise floor: {it.steady_um:.4g} um within {law.floor_factor:g} x noise"
+            break
+    return Result(tuple(done), best, stop, noise, lead, tuple(compute))
+
+
+# ----------------------------------------------------------------------------------------------
+# outputs
+# ----------------------------------------------------------------------------------------------
+
+
+def summary(result: Result, desired: track.Desired, law: Law,
+            meta: Mapping[str, object]) -> dict[str, Any]:
+    """The ``--json`` object: track's per-run figures for iteration 0 and the best iteration, and
+    one row per iteration (``iterations``)."""
+    first, best = result.iterations[0], result.best_iteration
+    outs = {"iteration_0": first.outcome, "learned": best.outcome}
+    data = experiment.summary(outs, desired, meta)
+    data.update({
+        "iterations": [it.as_dict() for it in result.iterations],
+        "best_iteration": best.index, "stop": result.stop,
+        "noise_estimate_um": result.noise_um,
+        "law": {"cutoff_Hz": law.cutoff_hz, "gain": law.gain, "lead_samples": result.lead,
+                "floor_factor": law.floor_factor, "diverge_factor": law.diverge_factor},
+        "seconds_per_iteration_compute": float(np.mean(result.compute_s)),
+    })
+    return data
+
+
+def waveform_text(it: Iteration, desired: track.Desired, meta: Mapping[str, object]) -> str:
+    """``waveform_learned.csv``: the iteration's whole waveform (conditioning and ramps
+    included) with the desired trajectory on its tracking part, for ``afmctl play``."""
+    from afmctl import waveformfile
+
+    wf = it.outcome.waveform
+    info = {**meta, "trajectory": desired.label, "iteration": it.index,
+            "rms_steady_um": f"{it.steady_um:.6g}"}
+    if desired.period_s is not None:
+        info["period_s"] = f"{desired.period_s:.9g}"
+    return waveformfile.format_text(wf.time_s, wf.voltage_v, wf.desired_um, info)
+
+
+def write_outputs(result: Result, desired: track.Desired, law: Law, meta: Mapping[str, object],
+                  out: Path) -> dict[str, Any]:
+    """``summary.json``, ``waveform_learned.csv`` (the best iteration) and ``learn.png``, each
+    replaced atomically: called after every iteration, so an interrupt keeps what finished."""
+    data = summary(result, desired, law, meta)
+    experiment.write_summary(data, out / "summary.json")
+    experiment.atomic_write(out / "waveform_learned.csv",
+                            waveform_text(result.best_iteration, desired, meta))
+    plot(result, desired, out / "learn.png")
+    return data
+
+
+def plot(result: Result, desired: track.Desired, path: Path) -> None:
+    """Error RMS against iteration, and the error of the first and last iteration against time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    its = result.iterations
+    fig, ax = plt.subplots(2, 1, figsize=(8, 7), constrained_layout=True)
+    idx = [it.index for it in its]
+    ax[0].semilogy(idx, [it.steady_um for it in its], "o-", label="steady RMS (readings, corrected)")
+    ax[0].semilogy(idx, [it.outcome.score.rms_between_um or np.nan for it in its], "s--",
+                   label="RMS between samples (plant)")
+    ax[0].semilogy(idx, [it.rms_imaging_um for it in its], "^:", label="imaging region RMS")
+    if np.isfinite(result.noise_um):
+        ax[0].axhline(result.noise_um, color="gray", lw=0.8, label="noise estimate")
+    ax[0].set(xlabel="iteration", ylabel="error (um)", title=f"Learning: {desired.label}")
+    t = np.arange(desired.u_um.size) * desired.dt_s
+    for it, c in ((its[0], "tab:red"), (its[-1], "tab:blue")):
+        ax[1].plot(t, -it.error_um, color=c, lw=0.8,
+                   label=f"iteration {it.index}: RMS {it.steady_um:.3g} um")
+    ax[1].set(xlabel="time (s)", ylabel="error (um)")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(loc="best", fontsize=8)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
