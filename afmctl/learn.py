@@ -78,13 +78,18 @@ class Law:
     cutoff_hz : float
         -3 dB frequency of the zero-phase robustness filter Q (each pass), Hz.
     gain : float
-        ``rho`` of ``L = rho z^m`` (0 < rho <= 1).
+        ``rho`` of ``L = rho z^m`` (0 < rho < 2: for ``G = 1`` the error shrinks by
+        ``|1 - rho|`` per iteration).
     max_lead_samples : int
         Largest phase lead ``m`` measured on iteration 0, samples.
     floor_factor : float
         Stop once the readings' steady RMS error is within this factor of the noise.
     diverge_factor : float
         Stop once an iteration is worse than this factor times the best so far.
+    region : str
+        ``all``: learn from the error everywhere on the trajectory; ``imaging``: only from the
+        imaging region of every ramp (:func:`imaging_mask`), leaving the turnarounds free, so a
+        fast raster scan does not keep sharpening its corners up to the slew limit.
     """
 
     cutoff_hz: float = 600.0
@@ -92,11 +97,14 @@ class Law:
     max_lead_samples: int = 10
     floor_factor: float = 1.1
     diverge_factor: float = 1.2
+    region: str = "all"
 
     def __post_init__(self) -> None:
-        if not (self.cutoff_hz > 0 and 0 < self.gain <= 1 and self.max_lead_samples >= 0
+        if self.region not in ("all", "imaging"):
+            raise ValueError(f"learning region must be 'all' or 'imaging', not {self.region!r}")
+        if not (self.cutoff_hz > 0 and 0 < self.gain < 2 and self.max_lead_samples >= 0
                 and self.floor_factor >= 1 and self.diverge_factor > 1):
-            raise ValueError("learning law: need cutoff > 0, 0 < gain <= 1, lead >= 0, "
+            raise ValueError("learning law: need cutoff > 0, 0 < gain < 2, lead >= 0, "
                              "floor factor >= 1, divergence factor > 1")
 
 
@@ -138,19 +146,22 @@ def lead_samples(reference: FloatArray, position: FloatArray, skip: int, max_lea
 
 
 def next_reference(reference: FloatArray, error: FloatArray, dt_s: float, law: Law,
-                   lead: int) -> FloatArray:
-    """``r_{j+1} = r_j + Q[rho z^m e_j]`` (um); missing samples (NaN) learn nothing."""
-    e = np.where(np.isfinite(error), error, 0.0)
+                   lead: int, region: NDArray[np.bool_] | None = None) -> FloatArray:
+    """``r_{j+1} = r_j + Q[rho z^m e_j]`` (um); missing samples (NaN), and samples outside
+    ``region`` if given, learn nothing."""
+    keep = np.isfinite(error) if region is None else np.isfinite(error) & region
+    e = np.where(keep, error, 0.0)
     return reference + q_filter(law.gain * shift(e, lead), dt_s, law.cutoff_hz)
 
 
 def noise_estimate(error: FloatArray) -> float:
-    """Sensor noise (um, 1 sigma) from the readings' error itself: the median absolute first
-    difference (robust to the corners), scaled for Gaussian noise (0.6745 sqrt 2)."""
-    d = np.diff(error[np.isfinite(error)])
+    """Sensor noise (um, 1 sigma) from the readings' error itself: the median absolute second
+    difference (zero on straight stretches, robust to the corners), scaled for Gaussian noise
+    (0.6745 sqrt 6)."""
+    d = np.diff(error[np.isfinite(error)], 2)
     if d.size == 0:
         return float("nan")
-    return float(np.median(np.abs(d - np.median(d))) / (0.6745 * np.sqrt(2)))
+    return float(np.median(np.abs(d - np.median(d))) / (0.6745 * np.sqrt(6)))
 
 
 def steady_part(desired: track.Desired) -> slice:
@@ -160,9 +171,11 @@ def steady_part(desired: track.Desired) -> slice:
     return slice(min(int(round(desired.period_s / desired.dt_s)), desired.u_um.size - 1), None)
 
 
-def imaging_mask(desired: track.Desired, fraction: float = IMAGING_FRACTION) -> NDArray[np.bool_]:
+def imaging_mask(desired: track.Desired, fraction: float = IMAGING_FRACTION,
+                 first_period: bool = False) -> NDArray[np.bool_]:
     """Samples in the central ``fraction`` of every ramp (monotone run between turning points)
-    of the desired trajectory, first period excluded: the imaging region of a raster line."""
+    of the desired trajectory, the first period excluded unless ``first_period``: the imaging
+    region of a raster line."""
     u = desired.u_um
     mask = np.zeros(u.size, dtype=bool)
     slope = np.sign(np.diff(u))
@@ -171,7 +184,8 @@ def imaging_mask(desired: track.Desired, fraction: float = IMAGING_FRACTION) -> 
     for a, b in zip(edges[:-1], edges[1:], strict=True):
         trim = 0.5 * (1 - fraction) * (b - a)
         mask[int(np.ceil(a + trim)):int(np.floor(b - trim)) + 1] = True
-    mask[:steady_part(desired).start] = False
+    if not first_period:
+        mask[:steady_part(desired).start] = False
     return mask
 
 
@@ -338,11 +352,16 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     done: list[Iteration] = []
     compute: list[float] = []
     noise, lead, best, stop = float("nan"), 0, 0, "iterations done"
+
+    def judged(it: Iteration) -> float:  # what learning minimizes: its region's steady RMS
+        return it.rms_imaging_um if law.region == "imaging" else it.steady_um
+
     between = truth if truth is not None else model
+    region = imaging_mask(desired, first_period=True) if law.region == "imaging" else None
     for j in range(iterations + 1):
         if j:
             t0 = time.perf_counter()
-            ref = next_reference(ref, done[-1].error_um, desired.dt_s, law, lead)
+            ref = next_reference(ref, done[-1].error_um, desired.dt_s, law, lead, region)
             try:
                 wf = plan_reference(p, desired, ref)
             except guard.LimitError as exc:
@@ -360,17 +379,17 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
             lead = lead_samples(ref, desired.u_um - it.error_um, steady_part(desired).start,
                                 law.max_lead_samples)
         compute.append(t_plan + time.perf_counter() - t1)
-        if it.steady_um < done[best].steady_um:
+        if judged(it) < judged(done[best]):
             best = j
         result = Result(tuple(done), best, stop, noise, lead, tuple(compute))
         if on_iteration is not None:
             on_iteration(result)
-        if it.steady_um > law.diverge_factor * done[best].steady_um:
-            stop = (f"diverging: iteration {j} ({it.steady_um:.4g} um) worse than "
-                    f"{law.diverge_factor:g} x the best ({done[best].steady_um:.4g} um)")
+        if judged(it) > law.diverge_factor * judged(done[best]):
+            stop = (f"diverging: iteration {j} ({judged(it):.4g} um) worse than "
+                    f"{law.diverge_factor:g} x the best ({judged(done[best]):.4g} um)")
             break
-        if it.steady_um <= law.floor_factor * noise:
-            stop = f"noise floor: {it.steady_um:.4g} um within {law.floor_factor:g} x noise"
+        if judged(it) <= law.floor_factor * noise:
+            stop = f"noise floor: {judged(it):.4g} um within {law.floor_factor:g} x noise"
             break
     return Result(tuple(done), best, stop, noise, lead, tuple(compute))
 
@@ -392,7 +411,7 @@ def summary(result: Result, desired: track.Desired, law: Law,
         "best_iteration": best.index, "stop": result.stop,
         "noise_estimate_um": result.noise_um,
         "law": {"cutoff_Hz": law.cutoff_hz, "gain": law.gain, "lead_samples": result.lead,
-                "floor_factor": law.floor_factor, "diverge_factor": law.diverge_factor},
+                "floor_factor": law.floor_factor, "diverge_factor": law.diverge_factor, "region": law.region},
         "seconds_per_iteration_compute": float(np.mean(result.compute_s)),
     })
     return data
