@@ -145,13 +145,119 @@ def lead_samples(reference: FloatArray, position: FloatArray, skip: int, max_lea
     return best_m
 
 
-def next_reference(reference: FloatArray, error: FloatArray, dt_s: float, law: Law,
-                   lead: int, region: NDArray[np.bool_] | None = None) -> FloatArray:
-    """``r_{j+1} = r_j + Q[rho z^m e_j]`` (um); missing samples (NaN), and samples outside
-    ``region`` if given, learn nothing."""
+@dataclass(frozen=True)
+class Tuning:
+    """The learning filter ``L`` and ``Q``'s cut-off, fixed after iteration 0.
+
+    ``freqs_hz`` are the trajectory's harmonics where iteration 0 measured the plant ``G`` seen
+    through the inverse (``g``: ``Y / R`` there); with at least :data:`MIN_HARMONICS` of them
+    ``L = rho / G^`` per harmonic (``G^``: ``g`` interpolated, 1 at DC), otherwise
+    ``L = rho z^lead``. ``contraction`` is ``|Q (1 - rho z^m G)|`` at ``freqs_hz`` for the
+    plain gain-and-lead law (what ``G`` alone would let it do).
+    """
+
+    lead: int
+    cutoff_hz: float
+    freqs_hz: FloatArray
+    g: NDArray[np.complex128]
+    contraction: FloatArray
+
+    @property
+    def harmonic(self) -> bool:
+        return self.freqs_hz.size >= MIN_HARMONICS
+
+
+#: Fewest reliably measured harmonics for the per-harmonic inverse of ``G``.
+MIN_HARMONICS = 3
+#: A harmonic's G is measured when the reference's amplitude there exceeds this many standard
+#: errors of the noise (then ``|G^ - G| / |G| <~ 1 / RELIABLE``).
+RELIABLE = 8.0
+
+
+def harmonics(x: FloatArray, t_s: FloatArray, f0_hz: float, n_max: int
+              ) -> NDArray[np.complex128]:
+    """Complex amplitudes ``c_0 .. c_n_max`` of ``x(t) = sum Re(c_n exp(j 2 pi n f0 t))``
+    (least squares; exact for a periodic signal over any number of samples, no leakage)."""
+    w = 2 * np.pi * f0_hz * np.outer(t_s, np.arange(1, n_max + 1))
+    a = np.column_stack([np.ones(t_s.size), np.cos(w), np.sin(w)])
+    c = np.linalg.lstsq(a, x, rcond=None)[0]
+    return np.concatenate([[c[0]], c[1:n_max + 1] - 1j * c[n_max + 1:]])
+
+
+def synthesize(c: NDArray[np.complex128], t_s: FloatArray, f0_hz: float) -> FloatArray:
+    """The periodic signal of harmonic amplitudes ``c`` (see :func:`harmonics`) at ``t_s``."""
+    n = np.arange(c.size)
+    return np.real(np.exp(2j * np.pi * f0_hz * np.outer(t_s, n)) @ c)
+
+
+def q_gain(freqs_hz: FloatArray, dt_s: float, cutoff_hz: float) -> FloatArray:
+    """|Q| at ``freqs_hz``: the Butterworth of :func:`q_filter`, squared (two passes)."""
+    sos = signal.butter(2, min(2 * cutoff_hz * dt_s, 0.99), output="sos")
+    _, h = signal.sosfreqz(sos, worN=freqs_hz, fs=1 / dt_s)
+    return np.abs(h) ** 2
+
+
+def _n_max(desired: track.Desired, law: Law) -> int:
+    assert desired.period_s is not None
+    return max(1, int(min(2 * law.cutoff_hz, 0.4 / desired.dt_s) * desired.period_s))
+
+
+def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, law: Law,
+         noise_um: float) -> Tuning:
+    """``L`` and ``Q`` from iteration 0 (reference ``r_0`` and true-position estimate ``y_0``).
+
+    For a periodic trajectory, ``G = Y / R`` at every harmonic whose reference amplitude is
+    :data:`RELIABLE` standard errors of the noise or more (steady part). ``Q``'s cut-off is
+    ``law.cutoff_hz``, but never above the last measured harmonic (beyond it nothing is known
+    of ``G``, so ``|Q| <= 1/2`` there). The lead ``m`` of the plain law is the delay of
+    :func:`lead_samples` (used where too few harmonics are measured, e.g. a sine).
+    """
+    skip = steady_part(desired).start
+    m = lead_samples(reference, position, skip, law.max_lead_samples)
+    if desired.period_s is None:
+        return Tuning(m, law.cutoff_hz, np.zeros(0), np.zeros(0, complex), np.zeros(0))
+    dt, f0, n_max = desired.dt_s, 1 / desired.period_s, _n_max(desired, law)
+    t = np.arange(skip, reference.size) * dt
+    r = harmonics(reference[skip:], t, f0, n_max)[1:]
+    y = harmonics(np.nan_to_num(position[skip:], nan=float(np.nanmean(position))), t, f0,
+                  n_max)[1:]
+    se = (noise_um if np.isfinite(noise_um) else 0.0) * np.sqrt(2 / max(t.size, 1))
+    ok = np.abs(r) > max(RELIABLE * se, 1e-9 * np.abs(r).max())
+    freqs, g = f0 * np.arange(1, n_max + 1)[ok], y[ok] / r[ok]
+    fc = law.cutoff_hz
+    if freqs.size >= MIN_HARMONICS:
+        fc = min(fc, float(freqs.max()))
+    c = q_gain(freqs, dt, fc) * np.abs(1 - law.gain * np.exp(2j * np.pi * freqs * m * dt) * g)
+    return Tuning(m, fc, freqs, g, c)
+
+
+def _g_hat(tuning: Tuning, freqs: FloatArray) -> NDArray[np.complex128]:
+    """G^ at ``freqs``: the measured G interpolated (real and imaginary parts), 1 at DC, held
+    beyond the last measured harmonic."""
+    f = np.concatenate([[0.0], tuning.freqs_hz])
+    g = np.concatenate([[1.0 + 0j], tuning.g])
+    return np.interp(freqs, f, g.real) + 1j * np.interp(freqs, f, g.imag)
+
+
+def next_reference(reference: FloatArray, error: FloatArray, desired: track.Desired, law: Law,
+                   tuning: Tuning, region: NDArray[np.bool_] | None = None) -> FloatArray:
+    """``r_{j+1} = r_j + Q[L e_j]`` (um); missing samples (NaN), and samples outside
+    ``region`` if given, learn nothing.
+
+    Per harmonic (``tuning.harmonic``): ``E_n`` from the steady part, ``dR_n = Q_n rho E_n /
+    G^_n``, synthesized over the whole tracking part. Otherwise in time: ``Q[rho z^m e]``.
+    """
     keep = np.isfinite(error) if region is None else np.isfinite(error) & region
     e = np.where(keep, error, 0.0)
-    return reference + q_filter(law.gain * shift(e, lead), dt_s, law.cutoff_hz)
+    dt = desired.dt_s
+    if not tuning.harmonic or desired.period_s is None:
+        return reference + q_filter(law.gain * shift(e, tuning.lead), dt, tuning.cutoff_hz)
+    skip = steady_part(desired).start
+    f0, n_max = 1 / desired.period_s, _n_max(desired, law)
+    ce = harmonics(e[skip:], np.arange(skip, e.size) * dt, f0, n_max)
+    f = f0 * np.arange(n_max + 1)
+    dr = law.gain * q_gain(np.maximum(f, 1e-9), dt, tuning.cutoff_hz) * ce / _g_hat(tuning, f)
+    return reference + synthesize(dr, np.arange(e.size) * dt, f0)
 
 
 def noise_estimate(error: FloatArray) -> float:
@@ -293,15 +399,19 @@ class Iteration:
 
 @dataclass(frozen=True)
 class Result:
-    """All finished iterations, the best one (smallest steady error), why learning stopped, the
-    noise estimate (um), the lead ``m`` (samples) and the compute time per iteration (s)."""
+    """All finished iterations, the best one (smallest judged error), why learning stopped, the
+    noise estimate (um), the tuning of ``L`` and ``Q`` and the compute time per iteration (s)."""
 
     iterations: tuple[Iteration, ...]
     best: int
     stop: str
     noise_um: float
-    lead: int
+    tuning: Tuning
     compute_s: tuple[float, ...]
+
+    @property
+    def lead(self) -> int:
+        return self.tuning.lead
 
     @property
     def best_iteration(self) -> Iteration:
@@ -351,7 +461,8 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     ref = desired.u_um.copy()
     done: list[Iteration] = []
     compute: list[float] = []
-    noise, lead, best, stop = float("nan"), 0, 0, "iterations done"
+    noise, best, stop = float("nan"), 0, "iterations done"
+    tuning = Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex), np.zeros(0))
 
     def judged(it: Iteration) -> float:  # what learning minimizes: its region's steady RMS
         return it.rms_imaging_um if law.region == "imaging" else it.steady_um
@@ -361,7 +472,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     for j in range(iterations + 1):
         if j:
             t0 = time.perf_counter()
-            ref = next_reference(ref, done[-1].error_um, desired.dt_s, law, lead, region)
+            ref = next_reference(ref, done[-1].error_um, desired, law, tuning, region)
             try:
                 wf = plan_reference(p, desired, ref)
             except guard.LimitError as exc:
@@ -376,12 +487,11 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         done.append(it)
         if j == 0:
             noise = noise_estimate(it.error_um[steady_part(desired)])
-            lead = lead_samples(ref, desired.u_um - it.error_um, steady_part(desired).start,
-                                law.max_lead_samples)
+            tuning = tune(ref, desired.u_um - it.error_um, desired, law, noise)
         compute.append(t_plan + time.perf_counter() - t1)
         if judged(it) < judged(done[best]):
             best = j
-        result = Result(tuple(done), best, stop, noise, lead, tuple(compute))
+        result = Result(tuple(done), best, stop, noise, tuning, tuple(compute))
         if on_iteration is not None:
             on_iteration(result)
         if judged(it) > law.diverge_factor * judged(done[best]):
@@ -391,7 +501,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         if judged(it) <= law.floor_factor * noise:
             stop = f"noise floor: {judged(it):.4g} um within {law.floor_factor:g} x noise"
             break
-    return Result(tuple(done), best, stop, noise, lead, tuple(compute))
+    return Result(tuple(done), best, stop, noise, tuning, tuple(compute))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -410,7 +520,10 @@ def summary(result: Result, desired: track.Desired, law: Law,
         "iterations": [it.as_dict() for it in result.iterations],
         "best_iteration": best.index, "stop": result.stop,
         "noise_estimate_um": result.noise_um,
-        "law": {"cutoff_Hz": law.cutoff_hz, "gain": law.gain, "lead_samples": result.lead,
+        "law": {"max_cutoff_Hz": law.cutoff_hz, "cutoff_Hz": result.tuning.cutoff_hz,
+                "gain": law.gain, "lead_samples": result.lead,
+                "per_harmonic": result.tuning.harmonic,
+                "measured_harmonics_Hz": [round(float(f), 3) for f in result.tuning.freqs_hz],
                 "floor_factor": law.floor_factor, "diverge_factor": law.diverge_factor, "region": law.region},
         "seconds_per_iteration_compute": float(np.mean(result.compute_s)),
     })

@@ -22,14 +22,14 @@ def _out_dir(out_dir: str | None, prefix: str) -> Path:
 
 
 def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any,
-                iterations: int, cutoff_hz: float, seed: str, condition: bool,
+                iterations: int, law_args: dict[str, Any], seed: str, condition: bool,
                 out_dir: str | None, as_json: bool) -> None:
     """``afmctl track ... --learn N`` on an open ``stage``: iteration 0 is the ``seed`` filter's
     waveform, then up to N learning iterations (:mod:`afmctl.learn`); files after every
     iteration."""
     from afmctl import effects as fx
     from afmctl import learn, modelfile
-    law = learn.Law(cutoff_hz=cutoff_hz)
+    law = learn.Law(**law_args)
     out = _out_dir(out_dir, "track")
     meta = {"profile": prof.name, "model": model_name, "trajectory": desired.label,
             "sample_rate_Hz": prof.sample_rate_hz,

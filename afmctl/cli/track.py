@@ -42,6 +42,10 @@ def track_options(fn: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--learn-cutoff", type=click.FloatRange(min=0, min_open=True),
                      default=600.0, show_default=True,
                      help="Cut-off of the learning's zero-phase low-pass filter Q, Hz."),
+        click.option("--learn-region", type=click.Choice(["all", "imaging"]), default="all",
+                     show_default=True,
+                     help="Learn from the error everywhere, or only in the imaging region (the "
+                          "central 80 % of every ramp; for fast raster scans)."),
     ]
     for opt in reversed(opts):
         fn = opt(fn)
@@ -105,7 +109,8 @@ def _out_dir(out_dir: str | None) -> Path:
 
 def _track(make_desired: Callable[[float], Any], profile_path: str | None,
            model_path: str | None, filters: str, out_dir: str | None, dry_run: bool,
-           as_json: bool, condition: bool, learn: int = 0, learn_cutoff: float = 600.0) -> None:
+           as_json: bool, condition: bool, learn: int = 0, learn_cutoff: float = 600.0,
+           learn_region: str = "all") -> None:
     from afmctl import calibration, experiment, modelfile
     from afmctl import effects as fx
     from afmctl import track as trk
@@ -130,9 +135,10 @@ def _track(make_desired: Callable[[float], Any], profile_path: str | None,
                  else calibration.cached_model(prof, stage, say))
         if learn:
             from afmctl.cli.play import learn_track
+            law = {"cutoff_hz": learn_cutoff, "region": learn_region}
             learn_track(desired, prof, model, model_path or "identified (cached)", stage, learn,
-                        learn_cutoff, "linear" if filters == "linear" else "inverse", condition,
-                        out_dir, as_json)
+                        law, "linear" if filters == "linear" else "inverse", condition, out_dir,
+                        as_json)
             return
         start_v = stage.voltage()
         click.echo(f"planning {desired.label} from {start_v:.3f} V ...", err=True)
