@@ -90,6 +90,10 @@ class Law:
         ``all``: learn from the error everywhere on the trajectory; ``imaging``: only from the
         imaging region of every ramp (:func:`imaging_mask`), leaving the turnarounds free, so a
         fast raster scan does not keep sharpening its corners up to the slew limit.
+    max_boost : float
+        Largest ``|L|`` of the per-harmonic law: where the stage responds far less than the
+        model (``|G| < 1 / max_boost``) learning takes several smaller steps instead of one
+        step that asks for the whole missing response at once (and for the slew it needs).
     """
 
     cutoff_hz: float = 600.0
@@ -98,14 +102,16 @@ class Law:
     floor_factor: float = 1.1
     diverge_factor: float = 1.2
     region: str = "all"
+    max_boost: float = 2.0
 
     def __post_init__(self) -> None:
         if self.region not in ("all", "imaging"):
             raise ValueError(f"learning region must be 'all' or 'imaging', not {self.region!r}")
         if not (self.cutoff_hz > 0 and 0 < self.gain < 2 and self.max_lead_samples >= 0
-                and self.floor_factor >= 1 and self.diverge_factor > 1):
+                and self.floor_factor >= 1 and self.diverge_factor > 1
+                and self.max_boost >= 1):
             raise ValueError("learning law: need cutoff > 0, 0 < gain < 2, lead >= 0, "
-                             "floor factor >= 1, divergence factor > 1")
+                             "floor factor >= 1, divergence factor > 1, max boost >= 1")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -167,6 +173,8 @@ class Tuning:
         return self.freqs_hz.size >= MIN_HARMONICS
 
 
+#: Cut-off of the time-domain Q for the non-periodic part of the error, as a fraction of Q's.
+APERIODIC_FRACTION = 0.25
 #: Fewest reliably measured harmonics for the per-harmonic inverse of ``G``.
 MIN_HARMONICS = 3
 #: A harmonic's G is measured when the reference's amplitude there exceeds this many standard
@@ -245,7 +253,10 @@ def next_reference(reference: FloatArray, error: FloatArray, desired: track.Desi
     ``region`` if given, learn nothing.
 
     Per harmonic (``tuning.harmonic``): ``E_n`` from the steady part, ``dR_n = Q_n rho E_n /
-    G^_n``, synthesized over the whole tracking part. Otherwise in time: ``Q[rho z^m e]``.
+    G^_n`` (magnitude at most ``law.max_boost``), synthesized over the tracking part and
+    faded in over its first period (a raised
+    cosine from 0: the reference keeps joining the ramp-in smoothly). Otherwise in time:
+    ``Q[rho z^m e]``.
     """
     keep = np.isfinite(error) if region is None else np.isfinite(error) & region
     e = np.where(keep, error, 0.0)
@@ -256,8 +267,14 @@ def next_reference(reference: FloatArray, error: FloatArray, desired: track.Desi
     f0, n_max = 1 / desired.period_s, _n_max(desired, law)
     ce = harmonics(e[skip:], np.arange(skip, e.size) * dt, f0, n_max)
     f = f0 * np.arange(n_max + 1)
-    dr = law.gain * q_gain(np.maximum(f, 1e-9), dt, tuning.cutoff_hz) * ce / _g_hat(tuning, f)
-    return reference + synthesize(dr, np.arange(e.size) * dt, f0)
+    g = _g_hat(tuning, f)
+    inv_g = np.exp(-1j * np.angle(g)) * np.minimum(1 / np.abs(g), law.max_boost)
+    dr = law.gain * q_gain(np.maximum(f, 1e-9), dt, tuning.cutoff_hz) * ce * inv_g
+    t = np.arange(e.size) * dt
+    fade = 0.5 * (1 - np.cos(np.pi * np.minimum(np.arange(e.size) / max(skip, 1), 1.0)))
+    aperiodic = e - synthesize(ce, t, f0)  # drift, creep, the first period's transient
+    slow = q_filter(law.gain * aperiodic, dt, APERIODIC_FRACTION * tuning.cutoff_hz)
+    return reference + fade * synthesize(dr, t, f0) + slow
 
 
 def noise_estimate(error: FloatArray) -> float:
