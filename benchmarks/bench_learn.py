@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from afmctl import calibration, identify, learn, track
+from afmctl import calibration, identify, ilc, learn, track
 from afmctl import diagnose as dg
 from afmctl import effects as fx
 from afmctl import emulator as em
@@ -76,7 +76,7 @@ class TruthProbe:
 def true_rms(position: np.ndarray, it: learn.Iteration, desired: track.Desired) -> float:
     wf = it.outcome.waveform
     err = position[wf.tracking] - desired.u_um
-    return float(np.sqrt(np.mean(err[learn.steady_part(desired)] ** 2)))
+    return float(np.sqrt(np.mean(err[ilc.steady_part(desired)] ** 2)))
 
 
 def model_for(profile: Profile, cause: str, folder: Path) -> tuple[tr.Transducer, str]:
@@ -90,7 +90,7 @@ def model_for(profile: Profile, cause: str, folder: Path) -> tuple[tr.Transducer
 
 
 def learn_on(profile: Profile, model: tr.Transducer, desired: track.Desired, out: Path,
-             iterations: int, law: learn.Law, seed: str = "inverse"
+             iterations: int, law: ilc.Law, seed: str = "inverse"
              ) -> tuple[learn.Result, list[float]]:
     assert profile.emulator is not None
     with InProcessStage(profile, clock=accelerated(SPEED)) as stage:
@@ -112,7 +112,7 @@ def gain_floor(profile: Profile, res: learn.Result, desired: track.Desired) -> f
     wf = res.best_iteration.outcome.waveform
     pos = {g: ph.respond(g * wf.voltage_v, ph.initial())[0][wf.tracking]
            for g in (1.0, 1.0 + sigma, 1.0 - sigma)}
-    steady = learn.steady_part(desired)
+    steady = ilc.steady_part(desired)
     diffs = [pos[g][steady] - pos[1.0][steady] for g in (1.0 + sigma, 1.0 - sigma)]
     return float(np.sqrt(np.mean(np.concatenate(diffs) ** 2)))
 
@@ -132,7 +132,7 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
     t0 = time.perf_counter()
     model, source = model_for(prof, cause, tmp / f"{cause}-sweeps")
     desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / prof.sample_rate_hz)
-    res, rms = learn_on(prof, model, desired, tmp / cause, 5, learn.Law())
+    res, rms = learn_on(prof, model, desired, tmp / cause, 5, ilc.Law())
     noise = prof.emulator.noise_um
     final = rms[res.best]
     row: dict[str, Any] = {
@@ -188,8 +188,8 @@ def main() -> None:
         model, _ = model_for(base, "none", tmp / "default-sweeps")
         noise = base.emulator.noise_um
         desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / base.sample_rate_hz)
-        for seed, law in (("inverse", learn.Law()), ("linear", learn.Law()),
-                          ("linear", learn.Law(cutoff_hz=LINEAR_Q_HZ))):
+        for seed, law in (("inverse", ilc.Law()), ("linear", ilc.Law()),
+                          ("linear", ilc.Law(cutoff_hz=LINEAR_Q_HZ))):
             res, rms = learn_on(base, model, desired, tmp / f"seed-{seed}-{law.cutoff_hz:g}",
                                 SEED_ITERATIONS, dc.replace(law, floor_factor=1.0), seed)
             key = f"{seed}_seed_iterations" + ("" if law.cutoff_hz == 600 else "_q150")
@@ -201,7 +201,7 @@ def main() -> None:
             if seed == "inverse":
                 out["seconds_per_iteration_compute"] = float(np.mean(res.compute_s))
         fast = track.triangle(100.0, AMP_UM, 0.0, 3, 1 / base.sample_rate_hz)
-        res, rms = learn_on(base, model, fast, tmp / "100hz", 10, learn.Law(region="imaging"))
+        res, rms = learn_on(base, model, fast, tmp / "100hz", 10, ilc.Law(region="imaging"))
         img = [it.rms_imaging_between_um for it in res.iterations]
         out["rate_100hz_imaging_pct"] = 100 * img[res.best] / AMP_UM
         out["rate_100hz_imaging_um_by_iteration"] = img

@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from conftest import stage_on
 
 from afmctl import effects as fx
-from afmctl import learn, modelfile, runfile, track
+from afmctl import ilc, learn, modelfile, runfile, track
 from afmctl.cli import main
 from afmctl.profile import Profile
 from afmctl.transducer import Transducer
@@ -32,7 +32,7 @@ def test_q_filter_is_zero_phase_with_the_butterworth_magnitude_squared() -> None
     fc = 500.0
     for f in (50.0, 500.0):  # forward and backward: |H|^2 of a 2nd-order Butterworth
         x = np.sin(2 * np.pi * f * t)
-        y = learn.q_filter(x, DT, fc)
+        y = ilc.q_filter(x, DT, fc)
         mid = slice(5000, 15000)
         a = np.linalg.lstsq(np.column_stack([np.sin(2 * np.pi * f * t[mid]),
                                              np.cos(2 * np.pi * f * t[mid])]), y[mid],
@@ -44,9 +44,9 @@ def test_q_filter_is_zero_phase_with_the_butterworth_magnitude_squared() -> None
 def test_lead_is_the_delay_of_the_stage_behind_the_reference() -> None:
     d = track.triangle(27.9, 20.0, 0.0, 3, DT).u_um
     delayed = np.concatenate([np.full(4, d[0]), d[:-4]])
-    assert learn.lead_samples(d, delayed, 400, 10) == 4
-    assert learn.lead_samples(d, d, 400, 10) == 0
-    assert np.array_equal(learn.shift(delayed, 4)[:-4], d[:-4])
+    assert ilc.lead_samples(d, delayed, 400, 10) == 4
+    assert ilc.lead_samples(d, d, 400, 10) == 0
+    assert np.array_equal(ilc.shift(delayed, 4)[:-4], d[:-4])
 
 
 def test_one_step_of_a_pure_delay_plant_is_exact_below_the_cutoff() -> None:
@@ -60,9 +60,9 @@ def test_one_step_of_a_pure_delay_plant_is_exact_below_the_cutoff() -> None:
         return np.concatenate([np.full(m, r[0]), r[:-m]])
 
     desired = track.Desired(DT, want, None, 10.0, "sine")
-    tuning = learn.tune(want, plant(want), desired, learn.Law(), 0.0)
+    tuning = ilc.tune(want, plant(want), desired, ilc.Law(), 0.0)
     assert tuning.lead == m and not tuning.harmonic
-    r1 = learn.next_reference(want, want - plant(want), desired, learn.Law(), tuning)
+    r1 = ilc.next_reference(want, want - plant(want), desired, ilc.Law(), tuning)
     e1 = want - plant(r1)
     assert np.sqrt(np.mean(e1[500:-500] ** 2)) < 1e-3 * np.sqrt(np.mean((want - plant(want)) ** 2))
 
@@ -77,13 +77,13 @@ def test_per_harmonic_law_measures_g_and_inverts_it() -> None:
         return k * np.concatenate([np.full(m, r[0]), r[:-m]])
 
     y0 = plant(desired.u_um)
-    tuning = learn.tune(desired.u_um, y0, desired, learn.Law(), 0.02)
+    tuning = ilc.tune(desired.u_um, y0, desired, ilc.Law(), 0.02)
     assert tuning.harmonic and tuning.freqs_hz[0] == pytest.approx(27.9)
     assert set(np.round(tuning.freqs_hz / 27.9).astype(int)) <= set(range(1, 200, 2))  # odd
     want_g = k * np.exp(-2j * np.pi * tuning.freqs_hz * m * DT)
     np.testing.assert_allclose(tuning.g, want_g, rtol=0.05)
-    r1 = learn.next_reference(desired.u_um, desired.u_um - y0, desired, learn.Law(), tuning)
-    steady = learn.steady_part(desired)
+    r1 = ilc.next_reference(desired.u_um, desired.u_um - y0, desired, ilc.Law(), tuning)
+    steady = ilc.steady_part(desired)
     e0 = (desired.u_um - y0)[steady]
     e1 = (desired.u_um - plant(r1))[steady][m:]
     assert np.sqrt(np.mean(e1**2)) < 0.05 * np.sqrt(np.mean(e0**2))
@@ -92,24 +92,24 @@ def test_per_harmonic_law_measures_g_and_inverts_it() -> None:
 def test_harmonics_round_trip_without_leakage() -> None:
     t = np.arange(1234) * DT  # not a whole number of periods
     c = np.array([0.5, 2 - 1j, 0, 0.3j])
-    x = learn.synthesize(c, t, 27.9)
-    np.testing.assert_allclose(learn.harmonics(x, t, 27.9, 3), c, atol=1e-10)
+    x = ilc.synthesize(c, t, 27.9)
+    np.testing.assert_allclose(ilc.harmonics(x, t, 27.9, 3), c, atol=1e-10)
 
 
 def test_noise_estimate_recovers_gaussian_noise_on_a_triangle() -> None:
     d = track.triangle(27.9, 27.0, 0.0, 3, DT).u_um
     noisy = d + 0.02 * np.random.default_rng(1).standard_normal(d.size)
-    assert learn.noise_estimate(noisy) == pytest.approx(0.02, rel=0.1)
+    assert ilc.noise_estimate(noisy) == pytest.approx(0.02, rel=0.1)
 
 
 def test_imaging_mask_is_the_central_80_percent_of_every_ramp() -> None:
     desired = track.triangle(10.0, 20.0, 0.0, 3, DT)  # 1000 samples a period, ramps of 500
-    mask = learn.imaging_mask(desired)
+    mask = ilc.imaging_mask(desired)
     assert not mask[:1000].any()  # first period excluded
     assert mask[1000:].sum() == pytest.approx(0.8 * 2000, abs=6)
     u = desired.u_um
     assert np.all(np.abs(u[mask]) <= 0.8 * 10.0 + 0.05)  # turnarounds (|u| -> 10) left out
-    assert learn.imaging_mask(desired, first_period=True)[:1000].sum() > 700
+    assert ilc.imaging_mask(desired, first_period=True)[:1000].sum() > 700
 
 
 # ----------------------------------------------------------------------------------------------
@@ -132,13 +132,13 @@ def with_effects(profile: Profile, effects: fx.Effects) -> Profile:
 
 
 def learn_on(profile: Profile, model: Transducer, out: Path, iterations: int,
-             law: learn.Law | None = None, limits: object = None,
+             law: ilc.Law | None = None, limits: object = None,
              seed: str = "inverse") -> learn.Result:
     assert profile.emulator is not None
     desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / profile.sample_rate_hz)
     with InProcessStage(profile, clock=accelerated(8.0)) as stage:
         return learn.run(stage, model, desired, limits or profile.limits, out, {}, iterations,
-                         law or learn.Law(), profile.emulator.true_model, seed)
+                         law or ilc.Law(), profile.emulator.true_model, seed)
 
 
 def between(res: learn.Result) -> list[float]:
@@ -197,7 +197,7 @@ def test_a_diverging_error_ends_learning(profile: Profile, nominal: Transducer,
     tri = track.triangle(27.9, 27.04, 0.0, 3, DT)
     desired = track.from_samples(np.arange(tri.u_um.size) * DT, tri.u_um, DT, "file")
     with InProcessStage(profile, clock=accelerated(8.0)) as stage:
-        res = learn.run(stage, nominal, desired, profile.limits, tmp_path, {}, 8, learn.Law(),
+        res = learn.run(stage, nominal, desired, profile.limits, tmp_path, {}, 8, ilc.Law(),
                         nominal, "linear")
     steady = [it.steady_um for it in res.iterations]
     assert not res.tuning.harmonic
@@ -214,9 +214,9 @@ def test_sensor_effects_learning_needs_the_extended_model(profile: Profile,
     the trajectory and moves the stage's true position away from it; with the delay in the
     model (the readings corrected) the true position stays on it."""
     stage = with_effects(profile, fx.Effects(sensor_delay_samples=5))
-    base = learn_on(stage, nominal, tmp_path / "base", 3, learn.Law(floor_factor=1.0))
+    base = learn_on(stage, nominal, tmp_path / "base", 3, ilc.Law(floor_factor=1.0))
     ext = learn_on(stage, dc.replace(nominal, effects=fx.Effects(sensor_delay_samples=5)),
-                   tmp_path / "ext", 3, learn.Law(floor_factor=1.0))
+                   tmp_path / "ext", 3, ilc.Law(floor_factor=1.0))
     b, e = between(base), between(ext)
     assert base.iterations[-1].steady_um < 0.5 * base.iterations[0].steady_um  # readings: better
     assert b[-1] > 3 * b[0]  # the stage: worse
@@ -229,7 +229,7 @@ def test_learning_over_the_serial_protocol(profile: Profile, nominal: Transducer
     prof = softer_rod(profile)
     desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / prof.sample_rate_hz)
     with stage_on("serial-pty", prof) as (stage, _):
-        res = learn.run(stage, nominal, desired, prof.limits, tmp_path, {}, 2, learn.Law(),
+        res = learn.run(stage, nominal, desired, prof.limits, tmp_path, {}, 2, ilc.Law(),
                         prof.emulator.true_model)  # type: ignore[union-attr]
     steady = [it.steady_um for it in res.iterations]
     assert len(steady) == 3 and steady[2] < 0.2 * steady[0]

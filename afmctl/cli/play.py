@@ -28,8 +28,8 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
     waveform, then up to N learning iterations (:mod:`afmctl.learn`); files after every
     iteration."""
     from afmctl import effects as fx
-    from afmctl import learn, modelfile
-    law = learn.Law(**law_args)
+    from afmctl import ilc, learn, modelfile
+    law = ilc.Law(**law_args)
     out = _out_dir(out_dir, "track")
     meta = {"profile": prof.name, "model": model_name, "trajectory": desired.label,
             "sample_rate_Hz": prof.sample_rate_hz,
