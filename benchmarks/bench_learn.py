@@ -1,7 +1,7 @@
 """Issue 13 figures: learning from repeated scans (iterative learning control on the inverse).
 
 Stages: the shipped emulated stage, and that stage carrying one hidden effect of ``afmctl
-diagnose``'s catalogue each (:func:`afmctl.emulator.with_hidden_effect`, case ``2 i`` of the
+diagnose``'s catalogue each (:func:`drivers.device.plant.with_hidden_effect`, case ``2 i`` of the
 seeded diagnose batch: the first of each cause; true parameters printed). On each, the three
 standard triangles are recorded through the driver interface (device clock 4x real time) and the
 model is identified from them (:func:`afmctl.identify.fit`, never the stage's true parameters);
@@ -32,12 +32,12 @@ import numpy as np
 from afmctl import calibration, identify, ilc, learn, track
 from afmctl import diagnose as dg
 from afmctl import effects as fx
-from afmctl import emulator as em
 from afmctl import transducer as tr
 from afmctl.profile import Profile, default_profile
+from drivers.device import plant as em
 from drivers.inprocess import InProcessStage, accelerated
 
-SPEED = 4.0
+SPEED = 2.0  # device clock / real time (4 underran the sweep streams on a loaded host)
 FREQ_HZ, AMP_UM = 27.9, 27.04
 SENSOR = {"sensor-delay", "sensor-nonlinearity"}
 #: Q cut-off at which learning through the linear filter meets the convergence condition (the
