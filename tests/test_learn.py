@@ -223,6 +223,54 @@ def test_sensor_effects_learning_needs_the_extended_model(profile: Profile,
     assert max(e) < 2 * b[0]
 
 
+def test_ctrl_c_keeps_every_finished_iteration(profile: Profile, nominal: Transducer,
+                                               tmp_path: Path) -> None:
+    """An interrupt in the middle of iteration 2: iterations 0 and 1 keep their complete run
+    files and the summary, learned waveform and plot written after them; iteration 2's run file
+    is readable and marked interrupted; the stage is left at 0 V."""
+    desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / profile.sample_rate_hz)
+
+    def progress(what: str, done: int, total: int) -> None:
+        if what == "inverse_iter02" and done > total // 2:
+            raise KeyboardInterrupt
+
+    def each(res: learn.Result) -> None:
+        learn.write_outputs(res, desired, ilc.Law(), {"profile": "emulated"}, tmp_path)
+
+    with InProcessStage(profile, clock=accelerated(8.0)) as stage:
+        with pytest.raises(KeyboardInterrupt):
+            learn.run(stage, nominal, desired, profile.limits, tmp_path, {}, 4,
+                      ilc.Law(floor_factor=1.0), nominal, progress=progress, on_iteration=each)
+        assert stage.voltage() == 0.0
+    runs = [runfile.read(tmp_path / f"run_inverse_iter{j:02d}.csv") for j in range(3)]
+    assert [r.complete for r in runs] == [True, True, False] and "interrupted" in runs[2].end
+    doc = json.loads((tmp_path / "summary.json").read_text())
+    assert [r["iteration"] for r in doc["iterations"]] == [0, 1]
+    assert (tmp_path / "waveform_learned.csv").exists() and (tmp_path / "learn.png").exists()
+    assert not list(tmp_path.glob("*.partial"))
+
+
+def test_run_to_run_gain_variation_settles_at_its_floor(profile: Profile, nominal: Transducer,
+                                                        tmp_path: Path) -> None:
+    """Each run draws its applied-voltage gain (sigma 2 %): learning cannot know the next run's
+    gain, so it must not chase it into divergence. The kept waveform's true error stays within
+    twice the error a 1-sigma gain change alone makes (the variation's floor)."""
+    from drivers.device.plant import Physics
+    sigma = 0.02
+    stage = with_effects(profile, fx.Effects(voltage_gain_sigma=sigma))
+    res = learn_on(stage, nominal, tmp_path, 5)
+    steady = [it.steady_um for it in res.iterations]
+    assert all(x <= 1.2 * min(steady[:k + 1]) for k, x in enumerate(steady[:-1]))
+    wf = res.best_iteration.outcome.waveform
+    ph = Physics(profile.emulator, profile.sample_rate_hz)  # type: ignore[arg-type]
+    pos = {g: ph.respond(g * wf.voltage_v, ph.initial())[0][wf.tracking][358:]
+           for g in (1.0, 1 + sigma, 1 - sigma)}
+    floor = np.sqrt(np.mean(np.concatenate([pos[1 + sigma] - pos[1.0],
+                                            pos[1 - sigma] - pos[1.0]]) ** 2))
+    kept = res.best_iteration.outcome.score.rms_between_um
+    assert kept is not None and kept <= 2 * floor, (kept, floor, steady)
+
+
 def test_learning_over_the_serial_protocol(profile: Profile, nominal: Transducer,
                                            tmp_path: Path) -> None:
     """The same learning through the real serial driver on a pty."""
