@@ -3,22 +3,14 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Any
 
 import click
 
 from afmctl.cli.base import fail, load_profile_or_exit, main, progress_printer
-
-
-def _out_dir(out_dir: str | None, prefix: str) -> Path:
-    import time
-    path = Path(out_dir) if out_dir else Path(f"afmctl-{prefix}-{time.strftime('%Y%m%d-%H%M%S')}")
-    if path.exists() and any(path.glob("run_*.csv")):
-        fail(f"{path} already holds run data; choose another --out (measured data is never "
-             f"overwritten)")
-    path.mkdir(parents=True, exist_ok=True)
-    return path
+from afmctl.cli.track import _out_dir
 
 
 def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any,
@@ -30,7 +22,7 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
     from afmctl import effects as fx
     from afmctl import ilc, learn, modelfile
     law = ilc.Law(**law_args)
-    out = _out_dir(out_dir, "track")
+    out = _out_dir(out_dir)
     meta = {"profile": prof.name, "model": model_name, "trajectory": desired.label,
             "sample_rate_Hz": prof.sample_rate_hz,
             "between_samples_model": "emulator truth" if prof.emulator else "model estimate",
@@ -103,7 +95,7 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     from drivers import open_stage
     with open_stage(prof) as stage:
         guard.check(w.voltage_v, dt, prof.limits, stage.voltage(), "waveform")
-        out = _out_dir(out_dir, "play")
+        out = _out_dir(out_dir or f"afmctl-play-{time.strftime('%Y%m%d-%H%M%S')}")
         meta = {"profile": prof.name, "waveform": Path(wave).name,
                 "trajectory": w.meta.get("trajectory", "none"),
                 "sample_rate_Hz": prof.sample_rate_hz}
