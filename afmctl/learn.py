@@ -113,7 +113,9 @@ class Iteration:
 @dataclass(frozen=True)
 class Result:
     """All finished iterations, the best one (smallest judged error), why learning stopped, the
-    noise estimate (um), the tuning of ``L`` and ``Q`` and the compute time per iteration (s)."""
+    noise estimate (um), the tuning of ``L`` and ``Q`` and the compute time per iteration (s:
+    correction, Algorithm 3, guard and judging at the samples; the simulation of the plant
+    between the samples, which only reports, is left out)."""
 
     iterations: tuple[Iteration, ...]
     best: int
@@ -131,19 +133,23 @@ class Result:
         return self.iterations[self.best]
 
 
+def between_error(wf: track.Waveform, desired: track.Desired,
+                  truth: tr.Transducer | None) -> FloatArray | None:
+    """Error between the samples (:func:`afmctl.track.between_samples`) of the plant ``truth``,
+    or None without one."""
+    return None if truth is None else track.between_samples(truth, wf, desired, tr.initial(truth))
+
+
 def judge(wf: track.Waveform, desired: track.Desired, index: int, measured: tuple[Any, ...],
-          path: Path, sensor: fx.Effects, truth: tr.Transducer | None) -> Iteration:
+          path: Path, sensor: fx.Effects, between: FloatArray | None) -> Iteration:
     """Score one played iteration as track does (readings corrected for ``sensor``; between the
-    samples by simulating the plant ``truth``, if given), plus the imaging region.
+    samples from :func:`between_error`, if given), plus the imaging region.
 
     ``measured`` is :func:`afmctl.experiment.stream`'s (displacement_um, voltage_v, complete).
     """
     u, v, complete = measured
     where = fx.sensor_correct(fx.compile_chain(sensor, wf.dt_s), u)
-    between = img_between = None
-    if truth is not None:
-        between = track.between_samples(truth, wf, desired, tr.initial(truth))
-        img_between = ilc.imaging_rms(desired, between, track.FINE)
+    img_between = None if between is None else ilc.imaging_rms(desired, between, track.FINE)
     outcome = experiment.Outcome(wf, u, v, track.score(wf, desired, where, between), complete,
                                  path)
     err = desired.u_um - where[wf.tracking]
@@ -180,7 +186,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     def judged(it: Iteration) -> float:  # what learning minimizes: its region's steady RMS
         return it.rms_imaging_um if law.region == "imaging" else it.steady_um
 
-    between = truth if truth is not None else model
+    plant = truth if truth is not None else model
     region = ilc.imaging_mask(desired, first_period=True) if law.region == "imaging" else None
     for j in range(iterations + 1):
         if j:
@@ -195,6 +201,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         t_plan = time.perf_counter() - t0
         path = out / f"run_{wf.filter}.csv"
         measured = experiment.stream(stage, wf, path, meta, progress)
+        between = between_error(wf, desired, plant)  # reporting only: not part of the compute
         t1 = time.perf_counter()
         it = judge(wf, desired, j, measured, path, model.effects, between)
         done.append(it)

@@ -11,7 +11,10 @@ extended model (readings cannot tell where the stage is without it). Then ``lear
 
 Judged by the stage's **true position**: the emulator's own state (the applied voltage it
 recorded, run through its true plant, no sensor effects, no noise), at the samples, first period
-excluded. ``noise_um`` is the stage's sensor noise (1 sigma).
+excluded. ``noise_um`` is the stage's sensor noise (1 sigma). ``seconds_per_iteration_compute``
+is the host's work per iteration (correction, Algorithm 3, guard, judging at the samples) on the
+default stage, ``compute_over_stage`` its ratio to the time the stage takes to play the iteration
+(conditioning included).
 
 Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object).
 """
@@ -199,7 +202,10 @@ def main() -> None:
             log(f"seed {seed}, Q {law.cutoff_hz:g} Hz: true RMS "
                 f"{' -> '.join(f'{x:.4f}' for x in rms)} um; {res.stop}")
             if seed == "inverse":
+                run_s = res.iterations[0].outcome.waveform.voltage_v.size / base.sample_rate_hz
                 out["seconds_per_iteration_compute"] = float(np.mean(res.compute_s))
+                out["seconds_per_iteration_stage"] = run_s
+                out["compute_over_stage"] = out["seconds_per_iteration_compute"] / run_s
         fast = track.triangle(100.0, AMP_UM, 0.0, 3, 1 / base.sample_rate_hz)
         res, rms = learn_on(base, model, fast, tmp / "100hz", 10, ilc.Law(region="imaging"))
         img = [it.rms_imaging_between_um for it in res.iterations]

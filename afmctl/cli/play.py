@@ -109,7 +109,8 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
         u = w.desired_um[tracking]
         desired = track.Desired(dt, u, period, float(np.ptp(u)), data["trajectory"])
         truth = prof.emulator.true_model if prof.emulator is not None else None
-        it = learn.judge(wf, desired, 0, measured, out / "run_play.csv", sensor, truth)
+        it = learn.judge(wf, desired, 0, measured, out / "run_play.csv", sensor,
+                         learn.between_error(wf, desired, truth))
         data.update(it.as_dict())
         del data["iteration"]
         click.echo(f"play: steady RMS {it.steady_um:.4f} um, RMS {it.outcome.score.rms_um:.4f}"
