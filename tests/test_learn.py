@@ -173,6 +173,16 @@ def test_amplifier_lag_the_model_lacks_is_learned(profile: Profile, nominal: Tra
     assert res.stop == "iterations done" or "V/ms" in res.stop
 
 
+def test_learning_stops_at_the_noise_floor(profile: Profile, nominal: Transducer,
+                                           tmp_path: Path) -> None:
+    """The model is the stage's: one iteration brings the readings' error within 1.5 x the
+    noise (estimated from the readings: the stage's 20 nm), and learning stops there."""
+    res = learn_on(profile, nominal, tmp_path, 6, ilc.Law(floor_factor=1.5))
+    assert res.noise_um == pytest.approx(profile.emulator.noise_um, rel=0.15)  # type: ignore[union-attr]
+    assert res.stop.startswith("noise floor") and len(res.iterations) < 7
+    assert res.iterations[-1].steady_um <= 1.5 * res.noise_um < res.iterations[0].steady_um
+
+
 def test_a_refused_waveform_ends_learning_with_the_best_so_far(
         profile: Profile, nominal: Transducer, tmp_path: Path) -> None:
     """Planning limits just above iteration 0's slew: learning sharpens the corners, the next
