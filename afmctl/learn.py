@@ -28,7 +28,13 @@ from afmctl import transducer as tr
 
 FloatArray = NDArray[np.float64]
 DEFAULT_LAW = ilc.Law()
+
+
+# ----------------------------------------------------------------------------------------------
 # planning a reference
+# ----------------------------------------------------------------------------------------------
+
+
 @dataclass(frozen=True)
 class Planner:
     """What stays fixed over the iterations: the model at the sample period, its state after the
