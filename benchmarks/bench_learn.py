@@ -16,6 +16,11 @@ is the host's work per iteration (correction, Algorithm 3, guard, judging at the
 default stage, ``compute_over_stage`` its ratio to the time the stage takes to play the iteration
 (conditioning included).
 
+Foreign stages (``--foreign``): the independently written plant of
+:mod:`drivers.device.foreign` (a random stage, 0 .. 150 V), clean and with plant effects, the
+model identified from its standard sweep design (:mod:`foreign_learn`); sensor effects there
+would need ``diagnose`` and are left out.
+
 Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object).
 """
 
@@ -40,6 +45,9 @@ from afmctl.profile import Profile, default_profile
 from drivers.device import plant as em
 from drivers.inprocess import InProcessStage, accelerated
 
+sys.path.insert(0, str(Path(__file__).parent))
+import foreign_learn  # noqa: E402
+
 SPEED = 2.0  # device clock / real time (4 underran the sweep streams on a loaded host)
 FREQ_HZ, AMP_UM = 27.9, 27.04
 SENSOR = {"sensor-delay", "sensor-nonlinearity"}
@@ -47,6 +55,7 @@ SENSOR = {"sensor-delay", "sensor-nonlinearity"}
 #: rod's phase lag, which the line does not invert, passes 60 degrees at ~216 Hz).
 LINEAR_Q_HZ = 150.0
 SEED_ITERATIONS = 15
+FOREIGN_SEED = 1
 CAUSES = ("thermal-relaxation", "amplifier-lag", "second-mode", "voltage-gain-drift",
           "sensor-delay", "sensor-nonlinearity")
 
@@ -173,6 +182,8 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print the JSON object last")
     ap.add_argument("--stages", default="none," + ",".join(CAUSES),
                     help="comma-separated effects (none = the default stage)")
+    ap.add_argument("--foreign", default="none,amplifier-lag,second-mode",
+                    help="comma-separated effects on the foreign plant ('' for none)")
     args = ap.parse_args()
     base = default_profile()
     assert base.emulator is not None
@@ -183,11 +194,21 @@ def main() -> None:
         for cause in args.stages.split(","):
             index = 0 if cause == "none" else 2 * CAUSES.index(cause)
             rows.append(stage_row(base, cause, index, tmp))
+        for cause in args.foreign.split(",") if args.foreign else ():
+            t0 = time.perf_counter()
+            row = foreign_learn.learn_foreign(cause, FOREIGN_SEED, tmp / f"foreign-{cause}")
+            rows.append(row)
+            log(f"foreign {cause:12s}: true RMS "
+                f"{' -> '.join(f'{x:.4f}' for x in row['rms_um_by_iteration'])} um, kept "
+                f"{row['kept_iteration']}, {row['stop'][:60]}; final/noise "
+                f"{row['final_over_noise']:.2f} ({time.perf_counter() - t0:.0f} s)")
         out["stages"] = rows
         out["learn_ok"] = sum(r["ok"] for r in rows)
         out["stages_total"] = len(rows)
-        out["stages_used"] = "default emulated stage + afmctl's hidden effects (case 2i of the "\
-                             "diagnose batch); no foreign plant"
+        out["stages_used"] = ("afmctl's emulated stage, clean and with each of its hidden effects "
+                              "(case 2i of the diagnose batch); the foreign plant "
+                              "(drivers.device.foreign, random stage of seed "
+                              f"{FOREIGN_SEED}) clean and with plant effects at strength 0.5")
         model, _ = model_for(base, "none", tmp / "default-sweeps")
         noise = base.emulator.noise_um
         desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / base.sample_rate_hz)
