@@ -49,7 +49,8 @@ class Outcome:
     def as_dict(self) -> dict[str, Any]:
         missing = int(np.isnan(self.displacement_um).sum())
         return {**self.score.as_dict(), "max_slew_V_per_ms": self.waveform.max_slew_v_per_ms,
-                "horizon": self.waveform.horizon, "samples": int(self.waveform.voltage_v.size),
+                "horizon": self.waveform.horizon, "horizons": list(self.waveform.horizons),
+                "samples": int(self.waveform.voltage_v.size),
                 "missing_samples": missing, "complete": self.complete,
                 "run_file": self.run_file.name}
 
@@ -74,7 +75,7 @@ def stream(stage: PlayingStage, wf: track.Waveform, path: Path, meta: Mapping[st
             v[sl] = volt
             writer.write(np.arange(sl.start, sl.stop), t[sl], wf.desired_um[sl],
                          wf.voltage_v[sl], u[sl])
-            if progress is not None:
+            if progress is not None and np.any(valid):  # an interrupt hands the rest as missing
                 progress(wf.filter, sl.stop, n)
 
         stage.play(wf.voltage_v, on_block)
@@ -132,23 +133,30 @@ def write_combined_csv(outcomes: Mapping[str, Outcome], desired: track.Desired,
 
 def summary(outcomes: Mapping[str, Outcome], desired: track.Desired,
             meta: Mapping[str, object]) -> dict[str, Any]:
-    """The ``--json`` object: per-filter errors and the linear/inverse RMS ratio."""
+    """The ``--json`` object: per-filter errors and the linear/inverse RMS ratios (both over the
+    steady part, like the headline figures; ``_between`` from the errors between samples)."""
     out: dict[str, Any] = {**meta, "trajectory": desired.label,
                            "amplitude_um": desired.amplitude_um,
                            "filters": {k: o.as_dict() for k, o in outcomes.items()}}
     if {"inverse", "linear"} <= outcomes.keys():
-        out["ratio_linear_over_inverse"] = (outcomes["linear"].score.rms_um
-                                            / outcomes["inverse"].score.rms_um)
+        lin, inv = outcomes["linear"].score, outcomes["inverse"].score
+        out["ratio_linear_over_inverse"] = lin.rms_um / inv.rms_um
+        if lin.rms_between_um is not None and inv.rms_between_um:
+            out["ratio_linear_over_inverse_between"] = lin.rms_between_um / inv.rms_between_um
     return out
 
 
 def write_summary(data: Mapping[str, Any], path: Path) -> None:
-    atomic_write(path, json.dumps(data, indent=2) + "\n")
+    atomic_write(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
 
 
 def plot(outcomes: Mapping[str, Outcome], desired: track.Desired, thickness_um: float,
          path: Path) -> None:
-    """Desired and achieved trajectories, errors, and the field-displacement loop (Figs. 9-11)."""
+    """Desired and achieved trajectories, errors, and the field-displacement loop (Figs. 9-11).
+
+    The desired trajectory is drawn last (dashed, on top) so the filters cannot hide it; the first
+    period, left out of the headline figures, is shaded, and each error's legend states its RMS.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -156,16 +164,22 @@ def plot(outcomes: Mapping[str, Outcome], desired: track.Desired, thickness_um: 
 
     t = np.arange(desired.u_um.size) * desired.dt_s
     fig, ax = plt.subplots(3, 1, figsize=(8, 9.5), constrained_layout=True)
-    ax[0].plot(t, desired.u_um, "k-", lw=1.5, label="desired")
     colors = {"inverse": "tab:blue", "linear": "tab:red"}
+    t0 = 0.0
     for name, o in outcomes.items():
         u = o.displacement_um[o.waveform.tracking]
         v = o.waveform.voltage_v[o.waveform.tracking]
         c = colors.get(name, None)
-        ax[0].plot(t, u, color=c, lw=0.9, label=f"{name} filter")
+        t0 = o.score.steady_from_s
+        ax[0].plot(t, u, color=c, lw=1.6, alpha=0.8, label=f"{name} filter")
+        part = "steady part" if o.score.steady else "whole run"
         ax[1].plot(t, u - desired.u_um, color=c, lw=0.9,
-                   label=f"{name}: RMS {o.score.rms_um:.3g} um ({o.score.rms_pct:.2g} %)")
+                   label=f"{name}: RMS {o.score.rms_um:.3g} um ({o.score.rms_pct:.2g} %, {part})")
         ax[2].plot(v / thickness_um, u, color=c, lw=0.8, label=name)
+    ax[0].plot(t, desired.u_um, "k--", lw=1.0, label="desired", zorder=5)
+    for a in ax[:2]:
+        if t0 > 0:
+            a.axvspan(0, t0, color="0.9", zorder=0, label="first period (transient, not in RMS)")
     ax[0].set(xlabel="time (s)", ylabel="displacement (um)", title=f"Tracking: {desired.label}")
     ax[1].set(xlabel="time (s)", ylabel="error (um)")
     ax[2].set(xlabel="field (MV/m)", ylabel="displacement (um)", title="field-displacement")
@@ -176,23 +190,70 @@ def plot(outcomes: Mapping[str, Outcome], desired: track.Desired, thickness_um: 
     plt.close(fig)
 
 
+def incomplete_path(path: Path) -> Path:
+    """Where a sweep bound for ``path`` is streamed while it records: ``<stem>.incomplete.csv``,
+    numbered if an earlier interrupted one is there (measured data is never overwritten)."""
+    candidate = path.with_name(f"{path.stem}.incomplete.csv")
+    k = 2
+    while candidate.exists():
+        candidate = path.with_name(f"{path.stem}.incomplete-{k}.csv")
+        k += 1
+    return candidate
+
+
 def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v: FloatArray,
                  sample_rate_hz: float, meta: Mapping[str, str],
-                 progress: Progress | None = None) -> Any:
+                 progress: Progress | None = None, path: Path | None = None) -> Any:
     """Play one identification waveform and return it as a :class:`afmctl.sweeps.Sweep`.
 
     The sweep's ``voltage_V`` is the commanded voltage (what a filter controls); a sweep that lost
-    samples is refused rather than patched.
+    samples is refused rather than patched. With ``path``, the samples are also streamed as they
+    arrive (flushed per block) into :func:`incomplete_path`; when the sweep completes it is written
+    to ``path`` and that file removed, otherwise (interrupt, lost samples, stage failure) it stays
+    as a valid sweep file of the samples received in order, ending ``# end: interrupted (...)``.
     """
     from afmctl import sweeps
 
-    def on_block(first: int, volt: FloatArray, disp: FloatArray, valid: Any) -> None:
-        if progress is not None:
-            progress(name, first + len(disp), len(voltage_v))
+    meta = {**meta, "frequency_hz": f"{frequency_hz:g}"}
+    n = len(voltage_v)
+    got = np.full(n, np.nan)
+    streamed = incomplete_path(path) if path is not None else None
+    fh = None if streamed is None else open(streamed, "x", encoding="utf-8")  # noqa: SIM115
+    done = [0]  # samples received in order so far (what the incomplete file holds)
 
-    rec = stage.play(voltage_v, on_block)
-    lost = int((~np.asarray(rec.valid)).sum())
-    if lost:
-        raise RuntimeError(f"sweep {name}: {lost} samples were not received; record it again")
-    return sweeps.from_arrays(voltage_v, rec.displacement_um, sample_rate_hz,
-                              {**meta, "frequency_hz": f"{frequency_hz:g}"}, name)
+    def on_block(first: int, volt: FloatArray, disp: FloatArray, valid: Any) -> None:
+        got[first:first + len(disp)] = np.where(valid, disp, np.nan)
+        old = prefix = done[0]
+        while prefix < n and np.isfinite(got[prefix]):
+            prefix += 1
+        done[0] = prefix
+        if fh is not None and prefix > old:
+            rows = np.column_stack([np.arange(old, prefix) / sample_rate_hz,
+                                    voltage_v[old:prefix], got[old:prefix]])
+            np.savetxt(fh, rows, delimiter=",", fmt=("%.7f", "%.6f", "%.6f"))
+            fh.flush()
+            os.fsync(fh.fileno())
+        if progress is not None and np.any(valid):
+            progress(name, first + len(disp), n)
+
+    try:
+        if fh is not None:
+            fh.write("".join(f"# {k}: {v}\n" for k, v in meta.items()))
+            fh.write(",".join(sweeps.COLUMNS) + "\n")
+        rec = stage.play(voltage_v, on_block)
+        lost = int((~np.asarray(rec.valid)).sum())
+        if lost:
+            raise RuntimeError(f"sweep {name}: {lost} samples were not received; record it again")
+        sweep = sweeps.from_arrays(voltage_v, rec.displacement_um, sample_rate_hz, meta, name)
+        if path is not None:
+            sweeps.write(sweep, path)
+    except BaseException as exc:
+        if fh is not None:
+            why = f"{type(exc).__name__}: {exc}".replace("\n", " ")
+            fh.write(f"# end: interrupted ({why})\n")
+            fh.close()
+        raise
+    if fh is not None and streamed is not None:
+        fh.close()
+        streamed.unlink()
+    return sweep

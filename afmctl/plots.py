@@ -41,44 +41,95 @@ def _saved(path: str | Path, dpi: int, *grid: int, **kw: Any) -> Iterator[Any]:
         plt.close(fig)
 
 
-def fit_figure(sweep: Sweep, fitted_um: FloatArray, path: str | Path) -> Path:
+def _excluded_spans(sweep: Sweep, judged: NDArray[np.bool_]) -> list[tuple[float, float]]:
+    """Time spans (s) of the runs of samples left out of the judging."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], (~judged).astype(int), [0]])))
+    t = sweep.time_s
+    return [(t[a], t[min(b, t.size - 1)]) for a, b in zip(edges[::2], edges[1::2], strict=True)]
+
+
+def _binned_mean(x: FloatArray, y: FloatArray, bins: int = 60) -> tuple[FloatArray, FloatArray]:
+    """Mean of ``y`` in ``bins`` equal bins of ``x`` (bins without samples left out): the line a
+    reader sees through a noise cloud."""
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if x.size == 0:
+        return np.zeros(0), np.zeros(0)
+    edges = np.linspace(x.min(), x.max(), bins + 1)
+    idx = np.clip(np.digitize(x, edges) - 1, 0, bins - 1)
+    count = np.bincount(idx, minlength=bins)
+    total = np.bincount(idx, weights=y, minlength=bins)
+    keep = count > 0
+    return 0.5 * (edges[:-1] + edges[1:])[keep], total[keep] / count[keep]
+
+
+def fit_figure(sweep: Sweep, fitted_um: FloatArray, path: str | Path,
+               window_s: tuple[float, float] | None = None) -> Path:
     """Save a two-panel PNG: displacement (um) vs voltage (V), measured and fitted, and the
-    residual measured - fitted (um) vs time (s). Returns the path written."""
+    residual measured - fitted (um) vs time (s), the part the fit does not judge (before the
+    sweep's memory index, outside ``window_s``) shaded, the RMS of the judged part stated and a
+    binned mean drawn over the noise cloud.
+    Returns the path written."""
+    judged = sweep.mask(window_s)
+    r = sweep.displacement_um - fitted_um
+    rms = float(np.sqrt(np.mean(r[judged] ** 2))) if judged.any() else float("nan")
     with _saved(path, 110, 1, 2, figsize=(11, 4.2)) as (ax1, ax2):
         ax1.plot(sweep.voltage_v, sweep.displacement_um, ".", ms=1.5, alpha=0.4, label="measured")
         ax1.plot(sweep.voltage_v, fitted_um, "-", lw=1.0, label="model")
         ax1.set(xlabel="voltage (V)", ylabel="displacement (um)", title=sweep.name)
         ax1.legend(loc="upper left")
-        ax2.plot(sweep.time_s, sweep.displacement_um - fitted_um, lw=0.6)
+        ax2.plot(sweep.time_s, r, lw=0.5, color="tab:blue", alpha=0.5,
+                 label=f"judged RMS {rms:.3g} um")
+        ax2.plot(*_binned_mean(sweep.time_s[judged], r[judged], 100), lw=1.4, color="k",
+                 label="binned mean (what is not noise)")
+        for i, (a, b) in enumerate(_excluded_spans(sweep, judged)):
+            ax2.axvspan(a, b, color="0.85", zorder=0,
+                        label="not judged (unknown start state)" if i == 0 else None)
+        lim = 4 * rms if np.isfinite(rms) and rms > 0 else None
+        if lim is not None and np.abs(r).max() > lim:  # the transient must not hide the fit
+            ax2.set_ylim(-lim, lim)
         ax2.set(xlabel="time (s)", ylabel="residual (um)", title="measured - model")
+        ax2.legend(loc="upper right", fontsize=8)
     return Path(path)
 
 
-def fit_figures(sweeps: list[Sweep], fitted_um: list[FloatArray],
-                out_dir: str | Path) -> list[Path]:
+def fit_names(sweeps: list[Sweep]) -> list[str]:
+    """The file names :func:`fit_figures` writes."""
+    return [f"{_stem(s, i)}.png" for i, s in enumerate(sweeps)]
+
+
+def fit_figures(sweeps: list[Sweep], fitted_um: list[FloatArray], out_dir: str | Path,
+                window_s: tuple[float, float] | None = None) -> list[Path]:
     """One :func:`fit_figure` per sweep into ``out_dir`` (created if needed)."""
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
-    return [fit_figure(s, u, d / f"{_stem(s, i)}.png")
-            for i, (s, u) in enumerate(zip(sweeps, fitted_um, strict=True))]
+    return [fit_figure(s, u, d / name, window_s)
+            for s, u, name in zip(sweeps, fitted_um, fit_names(sweeps), strict=True)]
 
 
 def diagnosis_figure(sweeps: list[Sweep], before_um: list[FloatArray], after_um: list[FloatArray],
                      thickness_um: float, labels: tuple[str, str], path: str | Path) -> Path:
     """Residuals (measured - model, um) before and after the extension: per sweep against time
-    (left column) and against field (MV/m, right column); the judged second half is shaded."""
+    (left column; the judged second half shaded) and against field (MV/m, right column: the noise
+    cloud faint, its binned mean as a line). The base model is drawn over the extension, thicker
+    and dashed, so that identical models (cause ``none``) still show both."""
     n = len(sweeps)
+    styles = (dict(color="tab:red", lw=1.4, ls="--", zorder=3),
+              dict(color="tab:blue", lw=0.7, ls="-", zorder=2))
     with _saved(path, 100, n, 2, figsize=(12, 2.6 * n + 0.6), squeeze=False) as ax:
         for i, (s, b, a) in enumerate(zip(sweeps, before_um, after_um, strict=True)):
             m = s.mask(None)
-            for u, lab, c in ((b, labels[0], "tab:red"), (a, labels[1], "tab:blue")):
+            for u, lab, st in ((a, labels[1], styles[1]), (b, labels[0], styles[0])):
                 r = np.where(m, s.displacement_um - u, np.nan)
-                ax[i, 0].plot(s.time_s, r, lw=0.6, color=c, label=lab)
-                ax[i, 1].plot(s.voltage_v / thickness_um, r, ".", ms=1, alpha=0.4, color=c)
+                rms = float(np.sqrt(np.nanmean(r[s.time_s.size // 2:] ** 2)))
+                ax[i, 0].plot(s.time_s, r, label=f"{lab} (held-out RMS {rms:.3g} um)", **st)
+                field = s.voltage_v / thickness_um
+                ax[i, 1].plot(field, r, ".", ms=1, alpha=0.15, color=st["color"])
+                ax[i, 1].plot(*_binned_mean(field, r), **st)
             ax[i, 0].axvspan(s.time_s[s.time_s.size // 2], s.time_s[-1], color="0.9", zorder=0)
             ax[i, 0].set(ylabel="residual (um)", title=f"{s.name}: held-out half shaded")
-            ax[i, 1].set(ylabel="residual (um)", title=f"{s.name} against field")
+            ax[i, 0].legend(loc="upper right", fontsize=7)
+            ax[i, 1].set(ylabel="residual (um)", title=f"{s.name} against field (line: mean)")
         ax[-1, 0].set(xlabel="time (s)")
         ax[-1, 1].set(xlabel="field (MV/m)")
-        ax[0, 0].legend(loc="upper right", fontsize=8)
     return Path(path)

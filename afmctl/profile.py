@@ -7,10 +7,14 @@ sample rate. An emulated stage also carries ``[emulator]``: its true model (``[e
 exactly the model-file schema of :mod:`afmctl.modelfile`), noise, seed, watchdog and optional
 effects that the base model lacks (``[emulator.effects.*]``, each off unless present) and wire
 faults its servers inject (``[emulator.faults]``, off unless present). Every key carries its unit.
+A wire's ``[transport]`` also gives ``timeout_s`` (per reply) and ``watchdog_s``, the device
+watchdog's period the host arms for every run (default twice ``timeout_s``, which it must exceed;
+0: never armed).
 
 Every problem raises :class:`~afmctl.tomlfile.FileFormatError` naming the file and key, which the
 CLI prints as one line with exit status 2. Shipped profiles live in ``afmctl/profiles/`` (package
-data; ``profiles/`` at the top of the repository links to them).
+data; ``profiles/`` at the top of the repository links to them) and are reachable by name
+(``--profile lab-modbus``) wherever a profile path is taken.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ FORMAT = "afmctl-profile"
 FORMAT_VERSION = 1
 
 __all__ = ["Effects", "SecondMode", "FileFormatError", "Profile", "load_profile", "default_profile",
-           "shipped_profile"]
+           "shipped_profile", "shipped_names"]
 
 
 @dataclass(frozen=True)
@@ -38,13 +42,23 @@ class EmulatedTransport:
     """The emulated device, run in-process (no wire)."""
 
 
+#: Watchdog period a host arms for every run over a wire, in per-reply timeouts, when the profile
+#: gives none (2: one lost reply and its retry fit in a period).
+WATCHDOG_TIMEOUTS = 2.0
+
+
 @dataclass(frozen=True)
 class SerialTransport:
-    """ASCII protocol over any pyserial URL (a port, ``socket://host:port``, a pty path)."""
+    """ASCII protocol over any pyserial URL (a port, ``socket://host:port``, a pty path).
+
+    ``timeout_s`` is the per-reply timeout; ``watchdog_s`` the device watchdog's period the host
+    arms for every run (0: never armed), which must exceed ``timeout_s`` (one lost reply must not
+    end a run; default twice ``timeout_s``). The same two keys, in seconds, for every wire."""
 
     url: str
     baudrate: int = 115200
     timeout_s: float = 2.0
+    watchdog_s: float = WATCHDOG_TIMEOUTS * 2.0
 
 
 @dataclass(frozen=True)
@@ -53,6 +67,7 @@ class ModbusTcpTransport:
     port: int = 502
     unit: int = 1
     timeout_s: float = 2.0
+    watchdog_s: float = WATCHDOG_TIMEOUTS * 2.0
 
 
 @dataclass(frozen=True)
@@ -63,6 +78,7 @@ class ModbusRtuTransport:
     baudrate: int = 115200
     unit: int = 1
     timeout_s: float = 2.0
+    watchdog_s: float = WATCHDOG_TIMEOUTS * 2.0
 
 
 Transport = EmulatedTransport | SerialTransport | ModbusTcpTransport | ModbusRtuTransport
@@ -146,8 +162,12 @@ def _transport(t: Table) -> Transport:
     if kind == "emulated":
         return EmulatedTransport()
     timeout = t.number("timeout_s", 2.0, positive=True)
+    watchdog = t.number("watchdog_s", WATCHDOG_TIMEOUTS * timeout, nonnegative=True)
+    if 0 < watchdog <= timeout:
+        raise t.fail("watchdog_s", f"must exceed timeout_s ({timeout:g} s), or be 0 (never armed)")
     if kind == "serial":
-        return SerialTransport(t.string("url"), t.integer("baudrate", 115200, minimum=1), timeout)
+        return SerialTransport(t.string("url"), t.integer("baudrate", 115200, minimum=1), timeout,
+                               watchdog)
     unit = t.integer("unit", 1, minimum=1)
     if unit > 247:
         raise t.fail("unit", f"must be <= 247, got {unit}")
@@ -155,9 +175,9 @@ def _transport(t: Table) -> Transport:
         port = t.integer("port", 502, minimum=1)
         if port > 65535:
             raise t.fail("port", f"must be <= 65535, got {port}")
-        return ModbusTcpTransport(t.string("host"), port, unit, timeout)
+        return ModbusTcpTransport(t.string("host"), port, unit, timeout, watchdog)
     return ModbusRtuTransport(t.string("port"), t.integer("baudrate", 115200, minimum=1), unit,
-                              timeout)
+                              timeout, watchdog)
 
 
 def _limits(t: Table, sample_rate_hz: float) -> Limits:
@@ -227,9 +247,25 @@ def from_table(t: Table) -> Profile:
         emulator=None if em is None else _emulator(em))
 
 
+def shipped_names() -> list[str]:
+    """Names of the profiles shipped with afmctl (``emulated``, ``lab-serial``, ...)."""
+    return sorted(f.name[:-len(".toml")] for f in resources.files("afmctl.profiles").iterdir()
+                  if f.name.endswith(".toml"))
+
+
 def load_profile(path: str | Path) -> Profile:
     """Read and validate a profile; FileFormatError (naming file and key) on anything wrong,
-    including a key no reader knows (``[identify]`` is :mod:`afmctl.identify`'s)."""
+    including a key no reader knows (``[identify]`` is :mod:`afmctl.identify`'s).
+
+    ``path`` may also name a shipped profile (``--profile lab-modbus``) when no such file exists
+    (a file of that name in the working directory wins)."""
+    if not Path(path).exists():
+        names = shipped_names()
+        if str(path) in names:
+            return shipped_profile(str(path))
+        if not Path(path).suffix:
+            raise FileFormatError(f"{path}: no such file, and no shipped profile of that name "
+                                  f"(shipped: {', '.join(names)})")
     t = load(path)
     profile = from_table(t)
     t.reject_unknown(ignore=("identify",))
@@ -240,7 +276,7 @@ def shipped_profile(name: str) -> Profile:
     """A profile shipped with afmctl, by name (``emulated``, ``lab-serial``, ``lab-modbus``)."""
     ref = resources.files("afmctl.profiles").joinpath(f"{name}.toml")
     with resources.as_file(ref) as path:
-        return load_profile(path)
+        return load_profile(Path(path))
 
 
 def default_profile() -> Profile:

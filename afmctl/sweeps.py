@@ -28,6 +28,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,7 +41,8 @@ from afmctl.tomlfile import FileFormatError
 FloatArray = NDArray[np.float64]
 COLUMNS = ("time_s", "voltage_V", "displacement_um")
 STANDARD_FREQUENCIES_HZ = (0.279, 5.58, 27.9)
-UNIFORM_RTOL = 1e-3
+#: How far a sample's time may be off the uniform grid, as a fraction of the period.
+JITTER_TOL = 0.1
 #: Fraction of a sweep's voltage range within which an extreme counts as reached (memory_index).
 MEMORY_REACH = 0.995
 
@@ -135,7 +137,16 @@ def _check_number(text: str) -> str:
     return "" if math.isfinite(val) and val > 0 else "must be a positive finite number"
 
 
-def _split(where: str, text: str) -> tuple[dict[str, str], list[str], list[str]]:
+def _delimiter(header_line: str) -> str:
+    """``,`` unless the header is separated by ``;`` or tabs (spreadsheet exports)."""
+    if "," not in header_line:
+        for d in (";", "\t"):
+            if d in header_line:
+                return d
+    return ","
+
+
+def _split(where: str, text: str) -> tuple[dict[str, str], list[str], list[str], str]:
     meta: dict[str, str] = {}
     lines = text.splitlines()
     i = 0
@@ -146,29 +157,88 @@ def _split(where: str, text: str) -> tuple[dict[str, str], list[str], list[str]]
         i += 1
     if i == len(lines):
         raise SweepFormatError(f"{where}: empty (no header line {','.join(COLUMNS)})")
-    header = [h.strip().strip('"').strip() for h in lines[i].split(",")]
+    delim = _delimiter(lines[i])
+    header = [h.strip().strip('"').strip() for h in lines[i].split(delim)]
     body = [ln for ln in lines[i + 1:] if ln.strip() and not ln.startswith("#")]
-    return meta, header, body
+    return meta, header, body, delim
 
 
-def _parse_rows(where: str, header: list[str], body: list[str],
-                columns: tuple[str, ...] = COLUMNS) -> FloatArray:
-    missing = [c for c in columns if c not in header]
+#: Unit spellings accepted in column names, and the factor to afmctl's unit (s, V, um).
+UNITS = {
+    "s": {"s": 1.0, "sec": 1.0, "ms": 1e-3, "us": 1e-6, "\u00b5s": 1e-6, "\u03bcs": 1e-6},
+    "V": {"v": 1.0, "mv": 1e-3, "kv": 1e3},
+    "um": {"um": 1.0, "\u00b5m": 1.0, "\u03bcm": 1.0, "micron": 1.0, "nm": 1e-3, "mm": 1e3,
+           "m": 1e6},
+}
+#: Names of each quantity afmctl reads, lower case, and afmctl's unit for it.
+QUANTITIES = {"time": (("time", "t"), "s"), "voltage": (("voltage", "volt", "v"), "V"),
+              "displacement": (("displacement", "position", "disp"), "um"),
+              "desired": (("desired",), "um")}
+_NAME = re.compile(r"^\s*([a-z]+)\s*(?:[_ ]\s*([^\s()\[\]]+)|[_ ]?\s*[(\[]\s*([^\s()\[\]]+)\s*[)\]])"
+                   r"\s*$")
+
+
+def column_scale(name: str, column: str) -> float | None:
+    """Factor from the unit in the header cell ``name`` to afmctl's unit for ``column`` (e.g.
+    ``time_s``), or None if ``name`` is not that quantity (``displacement_nm`` -> 1e-3 for
+    ``displacement_um``; ``Voltage (V)`` -> 1 for ``voltage_V``; ``time_ms`` -> 1e-3)."""
+    if name == column:
+        return 1.0
+    quantity = column.split("_", 1)[0]
+    spellings, unit = QUANTITIES[quantity]
+    m = _NAME.match(name.lower())
+    if m is None or m.group(1) not in spellings:
+        return None
+    return UNITS[unit].get(m.group(2) or m.group(3))
+
+
+def _locate(where: str, header: list[str], columns: tuple[str, ...]
+            ) -> tuple[list[int], list[float]]:
+    """Index and unit factor of each wanted column in ``header``."""
+    index, scale, missing = [], [], []
+    for col in columns:
+        found = [(i, f) for i, h in enumerate(header) if (f := column_scale(h, col)) is not None]
+        if not found:
+            missing.append(col)
+        else:
+            index.append(found[0][0])
+            scale.append(found[0][1])
     if missing:
         raise SweepFormatError(f"{where}: missing column {', '.join(missing)} "
                                f"(header is {','.join(header)})")
+    return index, scale
+
+
+def _decimal_comma(where: str, header: list[str], body: list[str], delim: str) -> None:
+    """Name decimal commas in a comma-separated file as the cause of a ragged row."""
+    if delim != ",":
+        return
+    for row, line in enumerate(body, 1):
+        if line.count(",") + 1 != len(header):
+            raise SweepFormatError(
+                f"{where}: data row {row} has {line.count(',') + 1} fields for {len(header)} "
+                f"columns: decimal commas in a comma-separated file? Save it with decimal points "
+                f"or with ';' between columns")
+
+
+def _parse_rows(where: str, header: list[str], body: list[str], delim: str,
+                columns: tuple[str, ...] = COLUMNS) -> FloatArray:
+    cols, scale = _locate(where, header, columns)
     if not body:
         raise SweepFormatError(f"{where}: no data rows")
-    cols = [header.index(c) for c in columns]
+    if delim != ",":  # ';' or tab between columns: a comma inside a number is a decimal comma
+        body = [ln.replace(",", ".") for ln in body]
+    else:
+        _decimal_comma(where, header, body, delim)
     try:
-        data = np.loadtxt(io.StringIO("\n".join(body)), delimiter=",", usecols=cols, ndmin=2,
+        data = np.loadtxt(io.StringIO("\n".join(body)), delimiter=delim, usecols=cols, ndmin=2,
                           comments="#")
     except ValueError as exc:
         raise SweepFormatError(f"{where}: bad data row ({str(exc).splitlines()[-1]})") from None
     bad = np.flatnonzero(~np.all(np.isfinite(data), axis=1))
     if bad.size:
         raise SweepFormatError(f"{where}: non-finite value (NaN/inf) in data row {bad[0] + 1}")
-    return data
+    return data * np.asarray(scale)
 
 
 def _check_increasing(where: str, t: FloatArray) -> None:
@@ -179,23 +249,59 @@ def _check_increasing(where: str, t: FloatArray) -> None:
         raise SweepFormatError(f"{where}: time not strictly increasing at data row {bad[0] + 2}")
 
 
-def _check_time(where: str, t: FloatArray) -> None:
+def uniform_time(where: str, t: FloatArray, rate_hz: float | None = None) -> FloatArray:
+    """The uniform clock ``t0 + k dt`` a sampled time column stands for.
+
+    ``dt`` is ``1 / rate_hz`` (the file's ``sample_rate_hz`` metadata) or the least-squares step. Each
+    sample may be off that grid by up to ``JITTER_TOL`` of the period (float32 time columns, DAQ
+    timestamps with jitter); otherwise :class:`SweepFormatError` names the worst sample, its
+    deviation and the period.
+    """
     _check_increasing(where, t)
-    d = np.diff(t)
-    dt = (t[-1] - t[0]) / (t.size - 1)
-    if np.max(np.abs(d - dt)) > UNIFORM_RTOL * dt:
-        raise SweepFormatError(f"{where}: time is not uniformly sampled (period {dt:g} s)")
+    k = np.arange(t.size, dtype=float)
+    slope, t0 = np.polyfit(k, t, 1) if t.size > 2 else (t[1] - t[0], t[0])
+    if rate_hz:
+        if abs(slope * rate_hz - 1) > JITTER_TOL / t.size:
+            raise SweepFormatError(f"{where}: metadata sample_rate_hz {rate_hz:g} disagrees with "
+                                   f"the time column ({1 / slope:.6g} Hz)")
+        slope, t0 = 1.0 / rate_hz, float(np.mean(t - k / rate_hz))
+    dt = float(slope)
+    grid = t0 + k * dt
+    dev = np.abs(t - grid)
+    worst = int(np.argmax(dev))
+    if dev[worst] > JITTER_TOL * dt:
+        rate = "the sample_rate_hz metadata" if rate_hz else "a least-squares fit"
+        raise SweepFormatError(
+            f"{where}: time is not uniformly sampled: data row {worst + 1} is {dev[worst]:.3g} s "
+            f"off the {dt:.6g} s grid of {rate} ({100 * dev[worst] / dt:.0f} % of a period; "
+            f"tolerated {100 * JITTER_TOL:.0f} %)")
+    return grid
+
+
+def _rate(where: str, meta: dict[str, str]) -> float | None:
+    for key in ("sample_rate_hz", "sample_rate_Hz"):
+        if key in meta:
+            if problem := _check_number(meta[key]):
+                raise SweepFormatError(f"{where}: metadata {key}: {problem} ({meta[key]!r})")
+            return float(meta[key])
+    return None
 
 
 def parse(text: str, where: str = "<sweep>") -> Sweep:
     """Parse the text of a sweep file (see the module docstring for the format)."""
-    meta, header, body = _split(where, text)
-    data = _parse_rows(where, header, body)
-    _check_time(where, data[:, 0])
+    meta, header, body, delim = _split(where, text)
+    rate = _rate(where, meta)
+    if rate is not None and not any(column_scale(h, "time_s") is not None for h in header):
+        data = _parse_rows(where, header, body, delim, COLUMNS[1:])
+        t = np.arange(data.shape[0]) / rate
+        data = np.column_stack([t, data])
+    else:
+        data = _parse_rows(where, header, body, delim)
+    t = uniform_time(where, data[:, 0], rate)
     for key in ("layer_thickness_um", "frequency_hz"):
         if key in meta and (problem := _check_number(meta[key])):
             raise SweepFormatError(f"{where}: metadata {key}: {problem} ({meta[key]!r})")
-    return Sweep(data[:, 0].copy(), data[:, 1].copy(), data[:, 2].copy(), meta, where)
+    return Sweep(t, data[:, 1].copy(), data[:, 2].copy(), meta, where)
 
 
 def _read_text(path: str | Path) -> str:
@@ -222,13 +328,40 @@ def read(path: str | Path) -> Sweep:
 
 
 def read_trajectory(path: str | Path) -> tuple[FloatArray, FloatArray]:
-    """A desired trajectory for ``afmctl track file``: columns ``time_s,desired_um`` (any other
-    columns and ``#`` metadata allowed; time strictly increasing, not necessarily uniform)."""
+    """A desired trajectory for ``afmctl track file``: columns ``time_s,desired_um`` (other units
+    spelt as for sweeps; any other columns and ``#`` metadata allowed; time strictly increasing,
+    not necessarily uniform)."""
     where = str(path)
-    _, header, body = _split(where, _read_text(path))
-    data = _parse_rows(where, header, body, ("time_s", "desired_um"))
+    _, header, body, delim = _split(where, _read_text(path))
+    data = _parse_rows(where, header, body, delim, ("time_s", "desired_um"))
     _check_increasing(where, data[:, 0])
     return data[:, 0].copy(), data[:, 1].copy()
+
+
+def measured_kind(path: str | Path) -> str:
+    """What measured data the file ``path`` holds ("a sweep file", "an afmctl run file"), or ""
+    if it holds none that afmctl recognises (outputs may then replace it with --force)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(65536).decode("utf-8-sig", errors="replace")
+    except OSError:
+        return ""
+    if "# afmctl-run:" in head:
+        return "an afmctl run file"
+    lines = [ln for ln in head.splitlines() if ln.strip() and not ln.startswith("#")]
+    if not lines:
+        return ""
+    cells = [h.strip().strip('"').strip() for h in lines[0].split(_delimiter(lines[0]))]
+    has = {col: any(column_scale(c, col) is not None for c in cells)
+           for col in ("time_s", "voltage_V", "displacement_um")}
+    if not (has["time_s"] or has["voltage_V"]):
+        return ""
+    if has["displacement_um"]:
+        return "a sweep file"
+    if any(c.lower().startswith(("displacement", "position")) for c in cells):
+        return "measured displacements"  # e.g. track's run.csv: displacement_um_<filter>
+    return ""
+    return ""
 
 
 def format_text(sweep: Sweep) -> str:
@@ -286,37 +419,78 @@ def triangle(frequency_hz: float, amplitude_v: float, cycles: float,
     return amplitude_v * (1.0 - 4.0 * np.abs(phase - 0.5))
 
 
-def nested_loops(frequency_hz: float, amplitude_v: float, levels: int,
-                 sample_rate_hz: float) -> FloatArray:
-    """Nested minor loops (paper Fig. 1(b)): one triangle cycle per level, amplitudes decreasing
-    linearly from ``amplitude_v`` to ``amplitude_v / levels``, all loops through 0 V.
+def loop(frequency_hz: float, v_lo: float, v_hi: float, cycles: float, sample_rate_hz: float,
+         start_v: float = 0.0) -> FloatArray:
+    """Triangle cycles ``start -> v_hi -> v_lo -> start`` at one constant rate, any voltage range.
 
-    Returns the voltage, V, sampled at ``sample_rate_hz``.
+    ``start_v`` (clipped into [v_lo, v_hi]) is where each cycle starts and ends: the stage's safe
+    output 0 V, so a sweep starts where the stage is, on a unipolar (0-150 V), semi-bipolar
+    (-30-150 V) or bipolar range alike. ``loop(f, -A, A, ...)`` is :func:`triangle`.
+
+    Returns the voltage, V, ``round(cycles * sample_rate_hz / frequency_hz) + 1`` samples.
+
+    Examples
+    --------
+    >>> loop(1.0, 0.0, 2.0, 1, 8.0).tolist()
+    [0.0, 0.5, 1.0, 1.5, 2.0, 1.5, 1.0, 0.5, 0.0]
     """
-    parts = [triangle(frequency_hz, amplitude_v * (levels - i) / levels, 1, sample_rate_hz)[:-1]
-             for i in range(levels)]
-    return np.concatenate(parts + [np.zeros(1)])
+    v0 = min(max(start_v, v_lo), v_hi)
+    span = v_hi - v_lo
+    n = int(round(cycles * sample_rate_hz / frequency_hz))
+    phase = (np.arange(n + 1) * frequency_hz / sample_rate_hz) % 1.0
+    up = (v_hi - v0) / (2 * span)  # fraction of a cycle spent rising to v_hi
+    nodes = [0.0, up, up + 0.5, 1.0]
+    return np.interp(phase, nodes, [v0, v_hi, v_lo, v0])
+
+
+def nested_loops(frequency_hz: float, amplitude_v: float | None, levels: int,
+                 sample_rate_hz: float,
+                 v_range: tuple[float, float] | None = None) -> FloatArray:
+    """Nested minor loops (paper Fig. 1(b)): one loop per level, each from 0 V up, down and back,
+    the excursions shrinking linearly from the full range to ``1 / levels`` of it.
+
+    ``v_range`` (V) defaults to ``(-amplitude_v, amplitude_v)``. Returns the voltage, V, sampled
+    at ``sample_rate_hz``.
+    """
+    lo, hi = v_range if v_range is not None else (-float(amplitude_v), float(amplitude_v))
+    v0 = min(max(0.0, lo), hi)
+    parts = []
+    for i in range(levels):
+        s = (levels - i) / levels
+        parts.append(loop(frequency_hz, v0 + s * (lo - v0), v0 + s * (hi - v0), 1,
+                          sample_rate_hz, v0)[:-1])
+    return np.concatenate(parts + [np.full(1, v0)])
 
 
 def standard_set(amplitude_v: float = 150.0, sample_rate_hz: float = 10_000.0,
-                 minor_loop_hz: float = 0.1,
-                 minor_levels: int = 4) -> list[tuple[str, float, FloatArray]]:
+                 minor_loop_hz: float = 0.1, minor_levels: int = 4,
+                 v_range: tuple[float, float] | None = None
+                 ) -> list[tuple[str, float, FloatArray]]:
     """The standard identification set as (name, frequency_hz, voltage_v) triples.
 
-    Triangle sweeps at 0.279 Hz (2 cycles), 5.58 Hz (5 cycles) and 27.9 Hz (10 cycles), amplitude
-    ``amplitude_v``, as in Fig. 2 / Fig. 7 of the paper, then the nested minor loops of Fig. 1(b)
-    at ``minor_loop_hz``. The first three are what :func:`afmctl.identify.fit` is benchmarked on.
+    Triangle sweeps at 0.279 Hz (2 cycles), 5.58 Hz (5 cycles) and 27.9 Hz (10 cycles), as in
+    Fig. 2 / Fig. 7 of the paper, then the nested minor loops of Fig. 1(b) at ``minor_loop_hz``.
+    They cover ``v_range`` = (v_min, v_max) V (default ``(-amplitude_v, amplitude_v)``): a
+    unipolar, semi-bipolar or bipolar amplifier's range, every sweep starting and ending at 0 V
+    (or the range's end nearest it). The first three are what :func:`afmctl.identify.fit` is
+    benchmarked on.
 
     Examples
     --------
     >>> [name for name, _, _ in standard_set(sample_rate_hz=1000.0)]
     ['triangle_0.279hz', 'triangle_5.58hz', 'triangle_27.9hz', 'minor_loops_0.1hz']
+    >>> v = standard_set(v_range=(0.0, 150.0))[2][2]
+    >>> float(v[0]), float(v.min()), round(float(v.max()), 1)
+    (0.0, 0.0, 150.0)
     """
+    lo, hi = v_range if v_range is not None else (-amplitude_v, amplitude_v)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ValueError(f"the voltage range must be finite with v_min < v_max, got [{lo}, {hi}]")
     cycles = {0.279: 2, 5.58: 5, 27.9: 10}
-    out = [(f"triangle_{f:g}hz", f, triangle(f, amplitude_v, cycles[f], sample_rate_hz))
+    out = [(f"triangle_{f:g}hz", f, loop(f, lo, hi, cycles[f], sample_rate_hz))
            for f in STANDARD_FREQUENCIES_HZ]
     out.append((f"minor_loops_{minor_loop_hz:g}hz", minor_loop_hz,
-                nested_loops(minor_loop_hz, amplitude_v, minor_levels, sample_rate_hz)))
+                nested_loops(minor_loop_hz, None, minor_levels, sample_rate_hz, (lo, hi))))
     return out
 
 

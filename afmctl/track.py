@@ -9,13 +9,15 @@ Planning turns a desired displacement trajectory into a voltage waveform per fil
 * ``inverse``: Algorithm 3 through the model. After conditioning, a ramp in displacement from the
   stage's output to the trajectory's first point (so the inverse carries the hysteresis state
   through it), the tracking part, then a raised-cosine ramp of the voltage back to the output.
-  The inversion horizon ``d`` is searched upward from the smallest non-chattering one until the
-  waveform passes the guard: a larger horizon rounds the triangle's corners instead of asking the
-  amplifier for an impulse. A model with effects (:mod:`afmctl.effects`, from ``afmctl
-  diagnose``) has the plant's inverted around Algorithm 3: the second mode on the target, the
-  amplifier's lag on the voltage (its exact inverse, each step clamped to 95 % of the usable slew
-  rate). Its sensor effects (delay, gauge error) do not move the stage: they correct the readings
-  before scoring (:func:`afmctl.effects.sensor_correct`).
+  The inversion horizon ``d`` starts at the smallest non-chattering one and is lengthened stretch by
+  stretch (each corner of a periodic trajectory, and the smooth parts between) only where the
+  waveform would not pass the guard: a larger horizon rounds that corner instead of asking the
+  amplifier for an impulse, and the rest of the run keeps the accurate short horizon. A model
+  with effects (:mod:`afmctl.effects`, from ``afmctl diagnose``) has the plant's inverted around
+  Algorithm 3: the second mode on the target, the amplifier's lag on the voltage (its exact
+  inverse, each step clamped to 95 % of the usable slew rate; one horizon for the whole run, the
+  one the model predicts tracks best). Its sensor effects (delay, gauge error) do not move the
+  stage: they correct the readings before scoring (:func:`afmctl.effects.sensor_correct`).
 * ``linear``: the paper's baseline, a straight line fitted to the model's quasi-static
   voltage-displacement response over the same voltage range, with the same kind of ramps.
 
@@ -26,6 +28,7 @@ error at sample k is ``displacement[k] - desired[k]`` and sample k's voltage aim
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +46,11 @@ FINE = 8  # sub-samples per sample when judging between samples
 #: The amplifier-lag inverse may use this fraction of the usable slew rate.
 LAG_STEP = 0.95
 REACH_TOL_UM = 1e-3  # an inverse that misses its target by more hit the voltage limit
+#: Samples per stretch of a non-periodic trajectory (each stretch gets its own horizon).
+BLOCK = 64
+#: Samples on each side of a corner in the corner's own stretch (tried: 4 leaves corners no
+#: horizon can fix from the committed stretch before; 8 tracks best on the 27.9 Hz triangle).
+CORNER = 8
 
 
 @dataclass(frozen=True)
@@ -102,14 +110,35 @@ class Waveform:
     """A precomputed, guard-checked voltage waveform for one filter.
 
     ``desired_um`` is NaN on the conditioning and the ramps; ``tracking`` selects the tracking part.
+    ``horizons`` are the inversion horizons (samples) of the inverse's stretches (empty for the
+    linear filter), :attr:`horizon` the one most of them use.
     """
 
     filter: str
     dt_s: float
     voltage_v: FloatArray
     desired_um: FloatArray
-    horizon: int | None
     tracking: slice = field(repr=False)
+    horizons: tuple[int, ...] = ()
+
+    @property
+    def horizon(self) -> int | None:
+        """The inversion horizon of most stretches, samples (None for the linear filter)."""
+        if not self.horizons:
+            return None
+        values, counts = np.unique(self.horizons, return_counts=True)
+        return int(values[np.argmax(counts)])
+
+    def horizon_text(self) -> str:
+        """E.g. ``horizon 4 samples (5 on 2 of 13 stretches)``; "" for the linear filter."""
+        main = self.horizon
+        if main is None:
+            return ""
+        other = [h for h in self.horizons if h != main]
+        if not other:
+            return f"horizon {main} samples"
+        return (f"horizon {main} samples ({', '.join(str(h) for h in sorted(set(other)))} on "
+                f"{len(other)} of {len(self.horizons)} stretches)")
 
     @property
     def time_s(self) -> FloatArray:
@@ -141,27 +170,112 @@ def conditioning(limits: guard.Limits, start_v: float, dt_s: float) -> FloatArra
 
 
 def _assemble(name: str, desired: Desired, ramp_in: FloatArray, v_track: FloatArray,
-              ramp_out: FloatArray, horizon: int | None) -> Waveform:
+              ramp_out: FloatArray, horizons: tuple[int, ...] = ()) -> Waveform:
     n_in, n_tr = ramp_in.size, v_track.size
     v = np.concatenate([ramp_in, v_track, ramp_out])
     d = np.full(v.size, np.nan)
     d[n_in:n_in + n_tr] = desired.u_um
-    return Waveform(name, desired.dt_s, v, d, horizon, slice(n_in, n_in + n_tr))
+    return Waveform(name, desired.dt_s, v, d, slice(n_in, n_in + n_tr), horizons)
+
+
+def _segments(desired: Desired, n_in: int, n: int) -> list[int]:
+    """Boundaries of the stretches that each get their own inversion horizon: the ramp in, then
+    a stretch of ``2 CORNER + 1`` samples around each corner of a periodic trajectory (every half
+    period from its start at the minimum) with the smooth parts between, or blocks of ``BLOCK``
+    samples for a trajectory without a period."""
+    if desired.period_s is not None:
+        half = 0.5 * desired.period_s / desired.dt_s
+        corners = np.arange(half, n - n_in, half)
+        marks = n_in + np.round(np.concatenate([corners - CORNER, corners + CORNER + 1]))
+    else:
+        marks = np.arange(n_in + BLOCK, n, BLOCK)
+    return sorted({0, n_in, n, *(int(m) for m in marks if n_in < m < n)})
+
+
+def _reach(res: inv.Inversion, n: int, first: int) -> None:
+    short = int(np.argmax(res.error[:n]))
+    if res.error[short] > REACH_TOL_UM:
+        raise guard.LimitError(
+            f"the trajectory is out of the stage's reach: at sample {first + short} the model falls "
+            f"{res.error[short]:.3f} um short at the voltage limit; reduce amplitude or offset")
+
+
+def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState, start_v: float,
+                      limits: guard.Limits, bounds: list[int], e_max: float
+                      ) -> tuple[FloatArray, tuple[int, ...]]:
+    """Algorithm 3 stretch by stretch, each with the smallest horizon (from the smooth one up)
+    whose voltage passes the guard: one hard corner lengthens the horizon of its own stretch only.
+
+    Returns the voltage (V) and the horizon of each stretch.
+    """
+    thick, dt = cm.model.thickness_um, cm.dt
+    d0 = rd.smooth_horizon(cm.disc)
+    parts, horizons = [], []
+    st, v_prev = state, start_v
+    for s, e in zip(bounds[:-1], bounds[1:], strict=True):
+        last: guard.LimitError | None = None
+        for d in (h for h in HORIZONS if h >= d0):
+            res = inv.algorithm3(cm, target[s:e + d - 1], st, e_init=v_prev / thick, horizon=d,
+                                 e_max=e_max)
+            _reach(res, e - s, s)
+            v = res.voltage(thick)[:e - s]
+            try:
+                guard.check(v, dt, limits, v_prev, "inverse waveform")
+            except guard.LimitError as exc:
+                last = exc
+                continue
+            break
+        else:
+            raise guard.LimitError(f"no inversion horizon up to {HORIZONS[-1]} samples keeps the "
+                                   f"waveform within limits; last: {last}")
+        parts.append(v)
+        horizons.append(d)
+        st = tr.simulate(cm, v, st)[2]
+        v_prev = float(v[-1])
+    return np.concatenate(parts), tuple(horizons)
+
+
+def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.StageState,
+                   start_v: float, limits: guard.Limits, e_max: float,
+                   build: Any) -> Waveform:
+    """With an amplifier lag the slew limit clamps the lead at the corners: a longer horizon asks
+    for less of it but rounds the corners; keep the (uniform) one the model says tracks best."""
+    dt = cm.dt
+    last: guard.LimitError | None = None
+    best: tuple[float, Waveform] | None = None
+    for d in (h for h in HORIZONS if h >= rd.smooth_horizon(cm.disc)):
+        res = inv.algorithm3(cm, target, state, e_init=start_v / cm.model.thickness_um,
+                             horizon=d, e_max=e_max)
+        _reach(res, target.size, 0)
+        v = fx.unlag_limited(chain, res.voltage(cm.model.thickness_um), start_v,
+                             LAG_STEP * limits.max_rate_v_per_ms * 1e3 * dt)
+        try:
+            wf = build(v, (d,))
+        except guard.LimitError as exc:
+            last = exc
+            continue
+        u = tr.simulate(cm, fx.lag(chain, v, start_v)[0], state)[0]
+        err = _rms(u[1:] - target[:-1])  # target[k] is for sample k + 1
+        if best is not None and err >= best[0]:
+            return best[1]
+        best = (err, wf)
+    if best is not None:
+        return best[1]
+    raise guard.LimitError(f"no inversion horizon up to {HORIZONS[-1]} samples keeps the "
+                           f"waveform within limits; last: {last}")
 
 
 def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v: float,
-                 state: tr.StageState, prefix_v: FloatArray,
-                 horizon: int | None = None) -> Waveform:
-    """Algorithm 3 waveform with the smallest horizon that passes the guard.
+                 state: tr.StageState, prefix_v: FloatArray) -> Waveform:
+    """Algorithm 3 waveform, each stretch with the smallest horizon that passes the guard.
 
     ``prefix_v`` (the conditioning) is played first; ``state`` is the model state after it.
-    ``horizon`` fixes the inversion horizon instead of searching it (learning keeps the one of
-    its first iteration, so the plant it learns through stays the same).
 
     Raises
     ------
     guard.LimitError
-        If no horizon up to 64 samples gives a waveform within the limits.
+        If the trajectory is out of reach, or no horizon up to 64 samples gives a waveform
+        within the limits.
     """
     dt = desired.dt_s
     rate = 0.25 * limits.max_rate_v_per_ms * 1e3  # V/s for the ramps
@@ -174,42 +288,26 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
                              desired.u_um[-1:]])
     target = fx.remove_mode(chain, target)  # what the rod must do for the stage to be there
     e_max = max(abs(limits.v_min), abs(limits.v_max)) / cm.model.thickness_um
-    d0 = rd.smooth_horizon(cm.disc)
-    last: guard.LimitError | None = None
-    best: tuple[float, Waveform] | None = None
-    for d in ((horizon,) if horizon else (h for h in HORIZONS if h >= d0)):
-        res = inv.algorithm3(cm, target, state, e_init=start_v / cm.model.thickness_um,
-                             horizon=d, e_max=e_max)
-        short = int(np.argmax(res.error))
-        if res.error[short] > REACH_TOL_UM:
-            raise guard.LimitError(
-                f"the trajectory is out of the stage's reach: at sample {short} the model falls "
-                f"{res.error[short]:.3f} um short at the voltage limit; reduce amplitude or offset")
-        v = fx.unlag_limited(chain, res.voltage(cm.model.thickness_um), start_v,
-                             LAG_STEP * limits.max_rate_v_per_ms * 1e3 * dt)  # amplifier lag
+
+    def build(v: FloatArray, horizons: tuple[int, ...]) -> Waveform:
         v_in, v_tr = np.concatenate([prefix_v, v[:n_in]]), v[n_in:]
         out = raised_cosine(v_tr[-1], start_v, ramp_samples(v_tr[-1] - start_v, rate, dt))
-        wf = _assemble("inverse", desired, v_in, v_tr, out, d)
-        try:
-            guard.check(wf.voltage_v, dt, limits, start_v, "inverse waveform")
-        except guard.LimitError as exc:
-            last = exc
-            continue
-        if chain.lag_a == 0.0:
-            return wf
-        # with an amplifier lag the slew limit clamps the lead at the corners: a longer horizon
-        # asks for less of it but rounds the corners; keep the one the model says tracks best
-        u = tr.simulate(cm, fx.lag(chain, v, start_v)[0], state)[0]
-        err = _rms(u[1:] - target[:-1])  # target[k] is for sample k + 1
-        if best is not None and err >= best[0]:
-            return best[1]
-        best = (err, wf)
-    if best is not None:
-        return best[1]
-    if horizon:
-        raise guard.LimitError(f"horizon {horizon}: {last}")
-    raise guard.LimitError(f"no inversion horizon up to {HORIZONS[-1]} samples keeps the "
-                           f"waveform within limits; last: {last}")
+        wf = _assemble("inverse", desired, v_in, v_tr, out, horizons)
+        guard.check(wf.voltage_v, dt, limits, start_v, "inverse waveform")
+        return wf
+
+    if chain.lag_a != 0.0:
+        return _invert_lagged(cm, chain, target, state, start_v, limits, e_max, build)
+    try:
+        v, horizons = _invert_stretches(cm, target, state, start_v, limits,
+                                        _segments(desired, n_in, target.size), e_max)
+    except guard.LimitError as exc:
+        if "out of the stage's reach" in str(exc):
+            raise
+        # a stretch that no horizon fixes after the stretch before it: one horizon throughout
+        v, horizons = _invert_stretches(cm, target, state, start_v, limits, [0, target.size],
+                                        e_max)
+    return build(v, horizons)
 
 
 def _linear_from_model(cm: tr.Compiled, state: tr.StageState, limits: guard.Limits,
@@ -235,7 +333,7 @@ def plan_linear(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v
     dt, rate = desired.dt_s, 0.25 * limits.max_rate_v_per_ms * 1e3
     ramp_in = raised_cosine(start_v, v_tr[0], ramp_samples(v_tr[0] - start_v, rate, dt))
     ramp_out = raised_cosine(v_tr[-1], start_v, ramp_samples(v_tr[-1] - start_v, rate, dt))
-    wf = _assemble("linear", desired, np.concatenate([prefix_v, ramp_in]), v_tr, ramp_out, None)
+    wf = _assemble("linear", desired, np.concatenate([prefix_v, ramp_in]), v_tr, ramp_out)
     guard.check(wf.voltage_v, dt, limits, start_v, "linear waveform")
     return wf
 
@@ -265,22 +363,41 @@ def plan(model: tr.Transducer, desired: Desired, limits: guard.Limits, start_v: 
 
 @dataclass(frozen=True)
 class Score:
-    """Tracking errors of one run, um and % of the peak-to-peak amplitude."""
+    """Tracking errors of one run, um and % of the peak-to-peak amplitude.
+
+    The headline figures (``rms_um``, ``max_um`` and their %) are over the steady part: from one
+    period after the start of a periodic trajectory, as the benchmarks judge it (the first period
+    carries the transient of the ramp in). ``steady`` is False when that leaves less than a full
+    period (or the trajectory has no period): the headline is then over the whole run. The first
+    period is reported apart (``rms_transient_um``), and ``rms_all_um`` covers everything.
+    ``rms_between_um`` is the error between samples over the same part as the headline.
+    """
 
     rms_um: float
     max_um: float
     rms_pct: float
     max_pct: float
-    rms_steady_um: float
+    steady: bool
+    steady_from_s: float
+    rms_transient_um: float | None
+    rms_all_um: float
     rms_between_um: float | None
 
-    def as_dict(self) -> dict[str, float | None]:
+    def as_dict(self) -> dict[str, float | bool | None]:
         return dict(self.__dict__)
 
 
 def _rms(x: FloatArray) -> float:
     x = x[np.isfinite(x)]
     return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
+
+
+def steady_start(desired: Desired) -> int:
+    """First sample of the steady part: one period in, if a full period follows; else 0."""
+    if desired.period_s is None:
+        return 0
+    n_period = int(round(desired.period_s / desired.dt_s))
+    return n_period if desired.u_um.size >= 2 * n_period else 0
 
 
 def score(wf: Waveform, desired: Desired, measured_um: FloatArray,
@@ -290,15 +407,14 @@ def score(wf: Waveform, desired: Desired, measured_um: FloatArray,
     Missing samples (NaN in ``measured_um``) are left out, never filled in.
     """
     err = measured_um[wf.tracking] - desired.u_um
-    steady = err
-    if desired.period_s is not None:
-        steady = err[int(round(desired.period_s / desired.dt_s)):] if err.size > 1 else err
+    k0 = steady_start(desired)
+    steady = err[k0:]
     amp = desired.amplitude_um
-    rms, mx = _rms(err), float(np.nanmax(np.abs(err)))
-    between = None
-    if between_um is not None:
-        between = _rms(between_um)
-    return Score(rms, mx, 100 * rms / amp, 100 * mx / amp, _rms(steady), between)
+    rms = _rms(steady)
+    mx = float(np.nanmax(np.abs(steady))) if np.isfinite(steady).any() else float("nan")
+    between = None if between_um is None else _rms(between_um[k0 * FINE:])
+    return Score(rms, mx, 100 * rms / amp, 100 * mx / amp, k0 > 0, k0 * desired.dt_s,
+                 _rms(err[:k0]) if k0 else None, _rms(err), between)
 
 
 def between_samples(model: tr.Transducer, wf: Waveform, desired: Desired,

@@ -1,6 +1,7 @@
 """Upload and readback throughput of the emulated stage over its real wires.
 
-Modbus TCP on 127.0.0.1, Modbus RTU on a pty bridge and the ASCII protocol on a pty, each with a
+Modbus TCP on 127.0.0.1, Modbus RTU on a pty bridge and the ASCII protocol on a pty and on
+``socket://127.0.0.1`` (the way a serial-to-Ethernet adapter is reached), each with a
 20,000-sample waveform (upload: table length + chunks; readback: every recorder sample after the
 run). Run from the repository root::
 
@@ -44,7 +45,8 @@ def _stage(kind: str, profile: Profile) -> Iterator[StageBase]:
             rtu = stack.enter_context(ModbusRtuServer(dev))
             stage = ModbusStage(profile, ModbusRtuTransport(rtu.url))
         else:
-            stage = SerialStage(profile, stack.enter_context(SerialServer(dev, "pty")).url)
+            where = "socket://127.0.0.1:0" if kind == "serial_socket" else "pty"
+            stage = SerialStage(profile, stack.enter_context(SerialServer(dev, where)).url)
         with stage:
             yield stage
 
@@ -80,7 +82,8 @@ def main() -> None:
     profile = default_profile()
     result: dict[str, float | int] = {"samples": args.samples, "repeats": args.repeats}
     names = {"modbus_tcp": "Modbus TCP loopback", "modbus_rtu_pty": "Modbus RTU on a pty",
-             "serial_pty": "serial protocol on a pty"}
+             "serial_pty": "serial protocol on a pty",
+             "serial_socket": "serial protocol on socket://"}
     for kind, label in names.items():
         r = measure(kind, profile, args.samples, args.repeats)
         result.update({k: round(x) for k, x in r.items()})

@@ -8,7 +8,9 @@ Stage interface (:mod:`drivers.stage`, re-exported here)
     ``status``, ``safe_state`` (stop and ramp to 0 V), ``heartbeat``, ``close``, and ``play``,
     which does all of it for a waveform of any length (streamed through the device's table,
     read back progressively, left in the safe state on any error or interrupt);
-    :func:`open_stage` picks the implementation from a profile; :class:`StageError`.
+    :func:`open_stage` picks the implementation from a profile; :class:`StageError`,
+    :class:`LinkCapacityError`. :mod:`drivers.player` is one ``play``: link capacity check,
+    watchdog, double-buffered refill, progressive readback.
 Links (host side)
     :mod:`drivers.serial_link` speaks the ASCII protocol over any pyserial URL (a port, a pty path,
     ``socket://host:port``); :mod:`drivers.modbus_link` speaks the register map over Modbus TCP or
@@ -31,6 +33,15 @@ Test and benchmark harnesses (the safety campaign) live outside the shipped pack
 """
 
 from drivers.protocol import Status
-from drivers.stage import BlockCallback, Recording, Stage, StageBase, StageError, open_stage
+from drivers.stage import (
+    BlockCallback,
+    LinkCapacityError,
+    Recording,
+    Stage,
+    StageBase,
+    StageError,
+    open_stage,
+)
 
-__all__ = ["StageError", "Recording", "Status", "Stage", "StageBase", "BlockCallback", "open_stage"]
+__all__ = ["StageError", "LinkCapacityError", "Recording", "Status", "Stage", "StageBase",
+           "BlockCallback", "open_stage"]

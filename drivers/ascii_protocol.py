@@ -28,6 +28,11 @@ PROTOCOL_VERSION = 3
 MAX_LINE = 8192
 #: Largest chunk per WAV or DRR? line, samples.
 MAX_CHUNK = 256
+#: Bytes per sample on the wire for a full ``WAV`` line of volts (9 significant digits, e.g.
+#: ``-149.999985``, and a space; the line's own framing spread over its samples).
+UPLOAD_BYTES_PER_SAMPLE = 12.5
+#: Bytes per sample of a full ``DRR?`` reply (a sensor value and a voltage, each with a space).
+READBACK_BYTES_PER_SAMPLE = 24.5
 
 STATUS_KEYS = ("running", "fill", "error", "out", "runs", "len", "complete", "wd", "expired", "ro",
                "rate", "pos", "total", "wdt")

@@ -27,6 +27,7 @@ from drivers import StageBase, StageError
 from drivers import register_map as rm
 from drivers.protocol import Status
 from drivers.register_map import HR, IR
+from drivers.serial_link import is_uart
 
 
 def make_client(transport: ModbusTcpTransport | ModbusRtuTransport) -> Any:
@@ -60,6 +61,8 @@ class ModbusStage(StageBase):
             raise TypeError(f"not a Modbus transport: {t!r}")
         self.unit = t.unit
         self.timeout_s = t.timeout_s
+        self.watchdog_s = t.watchdog_s
+        self._transport = t
         self._client = make_client(t)
         self._lock = threading.Lock()  # sync pymodbus clients are not thread-safe
         self._page = -1
@@ -102,6 +105,35 @@ class ModbusStage(StageBase):
 
     def _write(self, address: int, regs: list[int], idempotent: bool = True) -> None:
         self._request("write_registers", address, regs, idempotent=idempotent)
+
+    def uart_rates(self) -> tuple[float, float] | None:
+        """Modbus RTU on a real UART: what its baud rate carries (10 bits per byte) with the
+        register map's blocks (:func:`~drivers.register_map.rtu_bytes_per_sample`). None for TCP,
+        a socket or a pty."""
+        t = self._transport
+        if not isinstance(t, ModbusRtuTransport) or not is_uart(getattr(self._client, "socket", None)):
+            return None
+        up, down = rm.rtu_bytes_per_sample()
+        return t.baudrate / 10 / up, t.baudrate / 10 / down
+
+    # -- diagnostics (the conformance check) ---------------------------------------------------
+    def echo(self, address: int, value: int) -> int:
+        """Write single register (FC6) ``value`` at ``address``; the value the device echoed.
+        StageError (the device's code) if refused."""
+        res = self._retrying(lambda: self._call("write_register", address, value))
+        if res.isError():
+            raise StageError(self._retrying(self._device_error), f"FC6 at {address}")
+        return int(res.registers[0])
+
+    def write_exception(self, address: int, regs: list[int]) -> int:
+        """The Modbus exception code a raw FC16 write of ``regs`` at ``address`` gets (0:
+        accepted)."""
+        res = self._call("write_registers", address, regs)
+        return int(getattr(res, "exception_code", -1)) if res.isError() else 0
+
+    def clear_error(self) -> None:
+        """Clear the device's last error (command 4)."""
+        self._write(HR.COMMAND, [rm.Cmd.CLEAR_ERROR])
 
     # -- Stage primitives ----------------------------------------------------------------------
     def identify(self) -> str:

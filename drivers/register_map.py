@@ -116,6 +116,16 @@ def regs_u32(regs: list[int]) -> int:
     return (regs[0] << 16) | regs[1]
 
 
+def rtu_bytes_per_sample() -> tuple[float, float]:
+    """Bytes on an RTU line per sample (requests and replies) for streaming blocks up and recorder
+    reads down: a write of :data:`STREAM_BLOCK_SAMPLES` (9 bytes of header and CRC, 4 of index,
+    4 per sample; 8-byte reply) and two reads of :data:`READ_SAMPLES` (8-byte request; 5 bytes of
+    header and CRC, 4 per sample)."""
+    up = (9 + 4 + 4 * STREAM_BLOCK_SAMPLES + 8) / STREAM_BLOCK_SAMPLES
+    down = 2 * (8 + 5 + 4 * READ_SAMPLES) / READ_SAMPLES
+    return up, down
+
+
 def decode_status(regs: list[int]) -> Status:
     """Input registers ``0 .. STATUS_END-1`` -> :class:`~drivers.protocol.Status`."""
     if regs[IR.MAP_VERSION] != MAP_VERSION:

@@ -9,17 +9,22 @@ hanging, after the retries that are safe (see :mod:`drivers`).
 from __future__ import annotations
 
 import contextlib
+import os
 import time
 from typing import Any
 
 import numpy as np
 import serial
 from numpy.typing import NDArray
+from serial.urlhandler.protocol_socket import Serial as SocketSerial
 
 from afmctl.profile import Profile, SerialTransport
 from drivers import StageBase, StageError
 from drivers import ascii_protocol as ap
 from drivers.protocol import ERRORS, Status
+
+#: Most bytes one non-blocking read drains from a ``socket://`` port.
+DRAIN_BYTES = 1 << 16
 
 
 class SerialStage(StageBase):
@@ -50,6 +55,8 @@ class SerialStage(StageBase):
         t = profile.transport
         cfg = t if isinstance(t, SerialTransport) else SerialTransport(url or "")
         self.timeout_s = cfg.timeout_s if timeout_s is None else timeout_s
+        self.watchdog_s = cfg.watchdog_s
+        self.baudrate = cfg.baudrate
         self._buf = bytearray()
         self._tag = 0
         self._broken = False
@@ -59,6 +66,8 @@ class SerialStage(StageBase):
             lambda: serial.serial_for_url(url or cfg.url, baudrate=cfg.baudrate,
                                           timeout=self.timeout_s, write_timeout=self.timeout_s))
         self._port = port if self._open is None else self._open()
+        #: The port's ``in_waiting`` says only whether bytes wait, not how many (``socket://``).
+        self._counts_one = isinstance(self._port, SocketSerial)
         version = self.query("VER?")
         if version != str(ap.PROTOCOL_VERSION):
             self.close()
@@ -71,7 +80,7 @@ class SerialStage(StageBase):
             if len(self._buf) > ap.MAX_LINE * 8:
                 raise StageError(-1, "reply line too long")
             try:
-                chunk = self._port.read(max(1, self._port.in_waiting))
+                chunk = self._read_block()
             except (serial.SerialException, OSError) as exc:
                 self._broken = True
                 raise StageError(-1, f"link failed: {exc}") from None
@@ -81,6 +90,25 @@ class SerialStage(StageBase):
         line = bytes(self._buf[:end])
         del self._buf[:end + 1]
         return line.decode("ascii", errors="replace").rstrip("\r")
+
+    def _read_block(self) -> bytes:
+        """What has arrived, as one block; waits up to the port's timeout for the first byte.
+
+        A UART or pty driver counts the bytes waiting; pyserial's ``socket://`` handler only says
+        whether any are (``in_waiting`` is 0 or 1), so there the first byte is awaited and the
+        rest drained with a non-blocking read (timeout 0) instead of one byte per call."""
+        port = self._port
+        waiting = port.in_waiting
+        if waiting > 1 or not self._counts_one:
+            return bytes(port.read(max(1, waiting)))
+        first = port.read(1)
+        if not first:
+            return b""
+        port.timeout = 0
+        try:
+            return bytes(first) + bytes(port.read(DRAIN_BYTES))
+        finally:
+            port.timeout = self.timeout_s
 
     def _exchange(self, line: str) -> str:
         """One attempt: send ``line`` framed with a new tag, return the payload of its reply."""
@@ -132,6 +160,17 @@ class SerialStage(StageBase):
         reply = self.query(line, idempotent)
         if reply != "OK":
             raise StageError(-1, f"expected OK to {line[:40]!r}, got {reply[:40]!r}")
+
+    def uart_rates(self) -> tuple[float, float] | None:
+        """At the baud rate of a real UART (10 bits per byte): upload at
+        :data:`~drivers.ascii_protocol.UPLOAD_BYTES_PER_SAMPLE`, readback at
+        :data:`~drivers.ascii_protocol.READBACK_BYTES_PER_SAMPLE` bytes per sample. None for a
+        socket or a pty (no baud rate limits them)."""
+        if not is_uart(self._port):
+            return None
+        bytes_per_s = self.baudrate / 10
+        return (bytes_per_s / ap.UPLOAD_BYTES_PER_SAMPLE,
+                bytes_per_s / ap.READBACK_BYTES_PER_SAMPLE)
 
     # -- Stage primitives ----------------------------------------------------------------------
     def identify(self) -> str:
@@ -200,3 +239,13 @@ class SerialStage(StageBase):
         except ValueError as exc:
             raise StageError(-1, f"CAP? reply: {exc}") from None
         return table, recorder
+
+
+def is_uart(port: Any) -> bool:
+    """Whether a pyserial port is a real UART: a local serial device that is not a pseudo-terminal
+    (``/dev/pts/N``, ``/dev/ptmx``). Sockets, ``loop://`` and ptys carry bytes at memory speed."""
+    path = getattr(port, "port", None)
+    if not isinstance(port, serial.Serial) or not isinstance(path, str) or "://" in path:
+        return False
+    real = os.path.realpath(path)
+    return not (real.startswith("/dev/pts/") or real == "/dev/ptmx")

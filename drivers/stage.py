@@ -35,17 +35,14 @@ from afmctl.profile import (
     Profile,
     SerialTransport,
 )
+from afmctl.tomlfile import InputError
 from drivers.protocol import ERRORS, Status
 
-__all__ = ["StageError", "Recording", "Status", "Stage", "StageBase", "BlockCallback", "open_stage"]
+__all__ = ["StageError", "LinkCapacityError", "Recording", "Status", "Stage", "StageBase",
+           "BlockCallback", "open_stage"]
 
 #: ``on_block(first_index, voltage_v, displacement_um, valid)`` of :meth:`StageBase.play`.
 BlockCallback = Callable[[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]], None]
-#: Seconds a run may overrun its nominal duration before :meth:`StageBase.play` gives up.
-PLAY_MARGIN_S = 5.0
-#: Upload rate, samples/s, that :meth:`StageBase.play`'s default timeout allows for the first table
-#: (below every transport's measured rate).
-UPLOAD_FLOOR = 2000.0
 T = TypeVar("T")
 
 
@@ -57,6 +54,11 @@ class StageError(RuntimeError):
         what = ERRORS.get(code, "transport or protocol failure")
         super().__init__(f"stage error {code}: {what}" + (f" ({detail})" if detail else ""))
         self.code = code
+
+
+class LinkCapacityError(InputError):
+    """A streamed run the link cannot carry at the stage's sample rate, refused before it started
+    (nothing played; exit status 2 at the CLI). The message gives the needed and available rates."""
 
 
 @dataclass(frozen=True)
@@ -96,6 +98,9 @@ class StageBase(abc.ABC):
     read_chunk: int = 62
     #: Attempts per idempotent request (the first one included).
     attempts: int = 4
+    #: Watchdog period armed for every :meth:`play`, s (0: not armed); the links take it from the
+    #: profile's ``[transport] watchdog_s``.
+    watchdog_s: float = 0.0
 
     def __init__(self, profile: Profile) -> None:
         self.profile = profile
@@ -210,15 +215,30 @@ class StageBase(abc.ABC):
     def _capacities(self) -> tuple[int, int]:
         """The device's table and recorder capacities, samples."""
 
+    def uart_rates(self) -> tuple[float, float] | None:
+        """Upload and readback rates, samples/s, that a real UART's baud rate allows (None: the
+        link is not a UART; its rates are only measured)."""
+        return None
+
     # -- composed operations -------------------------------------------------------------------
-    def upload(self, waveform_v: ArrayLike) -> None:
-        """Load the waveform table, V, shape (N,) (sent as float32, in chunks)."""
+    def upload(self, waveform_v: ArrayLike) -> NDArray[np.float64]:
+        """Load the waveform table, V, shape (N,) (sent as float32, in chunks).
+
+        Returns
+        -------
+        ndarray, shape (chunks,)
+            Seconds each chunk took, retries included (what the link carries).
+        """
         v = np.asarray(waveform_v, dtype=np.float32).ravel()
         if v.size == 0:
             raise ValueError("empty waveform")
         self._set_table_length(v.size)
+        took = []
         for first in range(0, v.size, self.upload_chunk):
+            t0 = time.monotonic()
             self._write_chunk(first, v[first:first + self.upload_chunk])
+            took.append(time.monotonic() - t0)
+        return np.array(took)
 
     def run(self, cycles: int = 1) -> None:
         """Start clocking out the table ``cycles`` times, recording every sample."""
@@ -268,8 +288,19 @@ class StageBase(abc.ABC):
         streamed: the first table-full is uploaded, the stream started, and each half of the table
         is refilled as soon as the generator has played it (double buffering). The recorder is
         read while the stage runs and every new contiguous block is handed to ``on_block`` in
-        order, so the caller can write it to disk as it arrives. Heartbeats are sent while running
-        if the device's watchdog is set.
+        order, so the caller can write it to disk as it arrives.
+
+        Link capacity: before a streamed run starts, the link's upload rate (timed on the first
+        table) and readback rate (timed on a few recorder reads; capped by the baud rate on a real
+        UART, :meth:`uart_rates`) are compared with what the run needs at the sample rate. If
+        refilling and reading along do not both fit, the recorder is read after the run instead
+        (when it holds the whole run); if even that does not fit, :class:`LinkCapacityError`.
+
+        Watchdog: with :attr:`watchdog_s` > 0 the device's watchdog is set to it and armed (a
+        heartbeat) just before the start, fed with four heartbeats per period (also between the
+        blocks of a refill or readback) while the run plays, and disarmed (period 0) once the
+        device reports the run over. A host that dies mid-run stops feeding it: the device stops
+        and ramps to 0 V within one period.
 
         Parameters
         ----------
@@ -283,9 +314,10 @@ class StageBase(abc.ABC):
         poll_s : float
             Pause between polls when there is nothing to do, s.
         timeout_s : float, optional
-            Longest time the call may take, s (default: N / sample rate + 5 s + the first table
-            at :data:`UPLOAD_FLOOR`). No request is attempted after it; the call then ends within
-            one request's timeout, plus the safe state's retries.
+            Longest time the call may take, s (default: the first table at
+            :data:`~drivers.player.UPLOAD_FLOOR`, then N / sample rate + 5 s + N at the measured
+            readback rate). No request is attempted after it; the call then ends within one
+            request's timeout, plus the safe state's retries.
 
         Returns
         -------
@@ -304,6 +336,9 @@ class StageBase(abc.ABC):
         afmctl.guard.LimitError
             The waveform (as float32, from the stage's present output) violates the profile's
             voltage, slew or current limits; nothing was sent.
+        LinkCapacityError
+            The link cannot carry this streamed run; nothing was played (the first table was
+            uploaded), ``on_block`` was not called.
 
         Before anything is sent the waveform is checked against the profile's limits (the device
         checks again). Recorder reads that fail after their retries leave those samples missing
@@ -315,14 +350,15 @@ class StageBase(abc.ABC):
         v = np.asarray(waveform_v, dtype=np.float32).ravel()
         if v.size == 0:
             raise ValueError("empty waveform")
-        player = _Player(self, v, on_block, poll_s)
+        from drivers.player import Player
+        player = Player(self, v, on_block, poll_s)
         try:
             self._ensure_rate()
             guard.check(v.astype(float), 1.0 / self.profile.sample_rate_hz, self.profile.limits,
                         self.voltage(), "waveform")
             return player.run(timeout_s)
-        except guard.LimitError:
-            raise  # refused before anything was sent: the stage stays where it is
+        except (guard.LimitError, LinkCapacityError):
+            raise  # refused before anything played: the stage stays where it is
         except BaseException as exc:
             self._deadline = None
             self._safe_state_quietly(exc)
@@ -354,124 +390,6 @@ class StageBase(abc.ABC):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-class _Player:
-    """One :meth:`StageBase.play`: the host's side of a (possibly streamed) run.
-
-    ``written`` is the next global sample to send, ``delivered`` the next one to read back.
-    """
-
-    def __init__(self, stage: StageBase, v: NDArray[np.float32], on_block: BlockCallback | None,
-                 poll_s: float) -> None:
-        if v.size == 0:
-            raise ValueError("empty waveform")
-        self.stage, self.v, self.on_block, self.poll_s = stage, v, on_block, poll_s
-        self.table = self.half = self.recorder_capacity = 0  # the device's, once run() starts
-        self.started = False  # whether a run of this waveform was started on the device
-        self.written = self.delivered = 0
-        self.in_callback = False
-        self.last_heartbeat = -np.inf
-        n = v.size
-        self.u = np.full(n, np.nan)
-        self.volt = np.full(n, np.nan)
-        self.valid = np.zeros(n, dtype=bool)
-
-    def run(self, timeout_s: float | None) -> Recording:
-        stage, n = self.stage, self.v.size
-        table, self.recorder_capacity = stage._capacities()
-        self.table = min(table, n)
-        self.half = max(1, self.table // 2)
-        limit = (n / stage.profile.sample_rate_hz + PLAY_MARGIN_S + self.table / UPLOAD_FLOOR
-                 if timeout_s is None else timeout_s)
-        deadline = stage._deadline = time.monotonic() + limit
-        stage.upload(self.v[:self.table])
-        self.written = self.table
-        self.started = True  # from here on the device may be playing this waveform
-        if n > self.table or n > self.recorder_capacity:
-            stage._start_checked(lambda: stage._start_stream(n))
-        else:
-            stage._start_checked(lambda: stage._start(1))
-        stage._last_run_samples = n
-        while True:
-            st = stage.status()
-            self._heartbeat(st)
-            busy = self._refill(st.play_position) if st.running else False
-            busy |= self._deliver(st.play_position, st.running)
-            if not st.running and self.delivered >= st.play_position:
-                break
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"run not done after {limit:.3g} s ({st.play_position} of {n} "
-                                   f"samples played, {self.delivered} read back)")
-            if not busy:
-                time.sleep(self.poll_s)
-        if st.play_position < n:
-            raise StageError(st.last_error if st.last_error else -1,
-                             f"the run stopped after {st.play_position} of {n} samples")
-        return Recording(self.volt, self.u, self.valid)
-
-    def _heartbeat(self, st: Status) -> None:
-        """Keep the device's watchdog fed (four heartbeats per period) while it runs."""
-        now = time.monotonic()
-        if st.running and st.watchdog_s > 0 and now - self.last_heartbeat >= st.watchdog_s / 4:
-            self.stage.heartbeat()
-            self.last_heartbeat = now
-
-    def _refill(self, position: int) -> bool:
-        """Send the next half-table if the generator has played the samples its slots held."""
-        n = self.v.size
-        if self.written >= n or self.written + self.half > position + self.table:
-            return False
-        end = min(n, self.written + self.half)
-        chunk = self.stage.upload_chunk
-        for first in range(self.written, end, chunk):
-            self.stage._write_chunk(first, self.v[first:min(end, first + chunk)])
-        self.written = end
-        return True
-
-    def _deliver(self, position: int, running: bool) -> bool:
-        """Read back recorded samples not yet delivered and hand them to ``on_block``; samples
-        already overwritten in the recorder ring are NaN, invalid. While running, at most four read
-        requests (or a quarter table) per call, so that refilling the table, which cannot wait,
-        comes round again soon; once stopped, everything left."""
-        most = max(1, min(self.half // 2, 4 * self.stage.read_chunk)) if running else position
-        end = min(position, self.delivered + most)
-        if end <= self.delivered:
-            return False
-        first, lost = self.delivered, max(self.delivered, position - self.recorder_capacity)
-        rec = self.stage.read_recorder(end - lost, lost, missing_ok=True) if end > lost else None
-        if rec is not None:
-            sl = slice(lost, end)
-            self.volt[sl], self.u[sl], self.valid[sl] = (rec.voltage_v, rec.displacement_um,
-                                                          rec.valid)
-        self._hand_over(first, end)
-        return True
-
-    def _hand_over(self, first: int, end: int) -> None:
-        """Samples ``first .. end-1`` are final: count them delivered, pass them to on_block."""
-        self.delivered = end
-        if self.on_block is not None and end > first:
-            sl = slice(first, end)
-            self.in_callback = True
-            self.on_block(first, self.volt[sl].copy(), self.u[sl].copy(), self.valid[sl].copy())
-            self.in_callback = False
-
-    def abandon(self, cause: BaseException) -> None:
-        """After a failed run (the stage already safe): hand every sample not yet delivered to
-        on_block, read back if the cause was not the link and the link still answers, else
-        missing. Nothing is done if on_block itself raised ``cause``; a failure here becomes a
-        note on ``cause``."""
-        if self.in_callback:
-            return
-        try:
-            if self.started and not isinstance(cause, StageError | TimeoutError):
-                self._deliver(self.stage.status().play_position, running=False)
-        except (StageError, TimeoutError) as exc:
-            cause.add_note(f"reading back the rest after this failed too: {exc!r}")
-        try:
-            self._hand_over(self.delivered, self.v.size)
-        except Exception as exc:  # noqa: BLE001 - the original exception is what matters
-            cause.add_note(f"handing over the missing samples failed: {exc!r}")
 
 
 #: The stage interface (an abstract base class: implementations inherit the composed operations).

@@ -41,15 +41,15 @@ from numpy.typing import NDArray
 
 from afmctl import guard
 from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile, WireFaults
-from drivers import StageBase, StageError
+from drivers import LinkCapacityError, StageBase, StageError
 from drivers.device.emulated import EmulatedDevice
 from drivers.device.emulator import Emulator, ramp_to_zero
 from drivers.device.modbus_server import ModbusRtuServer, ModbusTcpServer
 from drivers.device.serial_server import SerialServer
 from drivers.inprocess import InProcessStage
 from drivers.modbus_link import ModbusStage
+from drivers.player import Player
 from drivers.serial_link import SerialStage
-from drivers.stage import _Player
 
 WIRES = ("serial-socket", "serial-pty", "modbus-tcp", "modbus-rtu")
 BAD_KINDS = ("over_voltage", "over_slew", "step_in", "not_finite")
@@ -81,6 +81,7 @@ class Tally:
     refusal_unconfirmed: int = 0
     played_ok: int = 0
     played_failed: int = 0
+    link_refused: int = 0
     out_of_limit: int = 0
     hangs: int = 0
     lost: int = 0
@@ -228,6 +229,9 @@ def _play(bench: Bench, v: NDArray[np.float64], tally: Tally) -> None:
         stage.play(v, blocks, poll_s=0.0 if isinstance(stage, InProcessStage) else 0.002,
                    timeout_s=timeout)
         tally.played_ok += 1
+    except LinkCapacityError:  # refused before it started: nothing sent, nothing to hand over
+        tally.link_refused += 1
+        return
     except (StageError, TimeoutError):
         tally.played_failed += 1
     overrun = time.monotonic() - t0 - call_bound_s(stage, timeout)
@@ -249,7 +253,7 @@ def _bypass_guard(stage: StageBase, v: NDArray[np.float64], tally: Tally) -> Non
     check); the device must refuse it: code 3 or 4 at upload, start, or (a steep step between
     streamed blocks) when it comes to play it."""
     try:
-        _Player(stage, v.astype(np.float32), None, 0.002).run(v.size / stage.profile.sample_rate_hz
+        Player(stage, v.astype(np.float32), None, 0.002).run(v.size / stage.profile.sample_rate_hz
                                                                + 2.0)
         tally.refusal_unconfirmed += 1
     except StageError as exc:
@@ -257,7 +261,7 @@ def _bypass_guard(stage: StageBase, v: NDArray[np.float64], tally: Tally) -> Non
             tally.refused_by_device += 1
         else:
             tally.refusal_unconfirmed += 1
-    except TimeoutError:
+    except (TimeoutError, LinkCapacityError):
         tally.refusal_unconfirmed += 1
     finally:
         stage._deadline = None

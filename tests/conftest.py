@@ -30,6 +30,20 @@ SENSOR_ZERO_UM = 2.0  # an arbitrary sensor zero the fits must find
 TRANSPORTS = ["modbus-tcp", "modbus-rtu", "serial-pty", "serial-socket", "inprocess"]
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--device", action="store", default=None, metavar="PROFILE",
+                     help="run the tests marked `device` against the real stage of this profile")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if config.getoption("--device"):
+        return
+    skip = pytest.mark.skip(reason="needs real hardware: pytest --device PROFILE")
+    for item in items:
+        if item.get_closest_marker("device") is not None:
+            item.add_marker(skip)
+
+
 @pytest.fixture(autouse=True)
 def _quiet_pymodbus() -> None:
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)

@@ -158,11 +158,16 @@ def test_bad_input_exits_2_with_one_line_and_writes_nothing(case: Case, tmp_path
     assert written == []
 
 
-def test_readme_table_is_what_afmctl_prints(tmp_path: Path) -> None:
+def readme_section(tag: str) -> str:
+    """The README's text between ``<!-- TAG:begin -->`` and ``<!-- TAG:end -->``."""
     readme = (ROOT / "README.md").read_text()
-    begin, end = "<!-- bad-inputs:begin -->\n", "<!-- bad-inputs:end -->"
+    begin, end = f"<!-- {tag}:begin -->\n", f"<!-- {tag}:end -->"
     assert begin in readme and end in readme
-    assert readme[readme.index(begin) + len(begin):readme.index(end)] == table(tmp_path)
+    return readme[readme.index(begin) + len(begin):readme.index(end)]
+
+
+def test_readme_table_is_what_afmctl_prints(tmp_path: Path) -> None:
+    assert readme_section("bad-inputs") == table(tmp_path)
 
 
 if __name__ == "__main__":

@@ -132,3 +132,66 @@ def test_track_run_writes_files_and_json(model_file: Path, tmp_path: Path) -> No
                       "voltage_V_linear", "displacement_um_linear"]
     assert (out / "track.png").stat().st_size > 10_000
     assert (out / "run_inverse.csv").exists() and (out / "run_linear.csv").exists()
+
+
+def test_headline_figures_equal_the_benchmarks_steady_state(model_file: Path,
+                                                            tmp_path: Path) -> None:
+    """`track`'s printed and JSON figures are the benchmark's steady-state figures (computed there
+    from the raw arrays) for the same run: same model, a fresh emulated stage each (same seed)."""
+    import json
+    import sys
+
+    from afmctl.profile import default_profile
+    from drivers import open_stage
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_track
+
+    out = tmp_path / "run"
+    res = CliRunner().invoke(main, ["track", "triangle", "--freq", "27.9", "--amplitude", "27.04",
+                                    "--model", str(model_file), "--out", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout.strip().splitlines()[-1])
+    prof = default_profile()
+    with open_stage(prof) as stage:
+        bench = bench_track.run_experiment(stage, modelfile.read(model_file), prof, 27.9, 27.04,
+                                           3.0, tmp_path / "bench")
+    for name in ("inverse", "linear"):
+        f = doc["filters"][name]
+        assert f["steady"] and f["rms_um"] == pytest.approx(bench[f"{name}_rms_um"], rel=1e-12)
+        assert f["max_um"] == pytest.approx(bench[f"{name}_max_um"], rel=1e-12)
+        assert f["rms_transient_um"] is not None  # the first period, reported apart
+        assert f"{name:8s} RMS {f['rms_um']:.4f} um" in res.stderr
+    assert doc["ratio_linear_over_inverse"] == pytest.approx(bench["ratio"], rel=1e-12)
+    assert doc["between_samples_from"] == "emulator truth"
+    assert "horizon 2 samples" in res.stderr  # the corners' longer horizons stay local
+
+
+def test_between_samples_on_a_stage_without_emulator_is_a_model_estimate(
+        model_file: Path, tmp_path: Path) -> None:
+    """A lab profile (serial, no [emulator] table): the error between samples can only be the
+    model's own simulation; it is printed on its own line as a model estimate."""
+    import json
+
+    from afmctl.profile import default_profile
+    from drivers.device.emulated import EmulatedDevice
+    from drivers.device.serial_server import SerialServer
+
+    text = (Path(__file__).resolve().parents[1] / "afmctl/profiles/emulated.toml").read_text()
+    text = text[:text.index("[emulator]")]
+    with EmulatedDevice(default_profile()) as dev, \
+            SerialServer(dev, "socket://127.0.0.1:0") as ser:
+        prof = tmp_path / "lab.toml"
+        prof.write_text(text.replace('kind = "emulated"', f'kind = "serial"\nurl = "{ser.url}"'))
+        res = CliRunner().invoke(main, ["track", "sine", "--freq", "27.9", "--amplitude", "20",
+                                        "--profile", str(prof), "--model", str(model_file),
+                                        "--filter", "inverse", "--out", str(tmp_path / "o"),
+                                        "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout.strip().splitlines()[-1])
+    assert doc["between_samples_from"] == "model estimate"
+    lines = res.stderr.splitlines()
+    headline = next(ln for ln in lines if ln.startswith("inverse  RMS"))
+    assert "between" not in headline
+    estimate = [ln for ln in lines if "between samples" in ln]
+    assert len(estimate) == 1 and estimate[0].startswith("model estimate, not measured: inverse")
+    assert f"{doc['filters']['inverse']['rms_between_um']:.4f} um" in estimate[0]

@@ -374,14 +374,6 @@ def test_play_never_hangs(profile: Profile) -> None:
         assert not stage.status().running and emu.output_v == 0.0
 
 
-def test_play_feeds_the_watchdog(profile: Profile) -> None:
-    with stage_on("modbus-tcp", small_buffers(profile)) as (stage, _):
-        stage.set_watchdog(0.2)
-        rec = stage.play(long_waveform(2 * 4096 + 100))
-        st = stage.status()
-    assert rec.complete and st.watchdog_armed and not st.watchdog_expired
-
-
 def test_register_map_streams_at_global_indices(profile: Profile) -> None:
     emu = em.Emulator(small_buffers(profile))
     dev = RegisterDevice(emu, lambda: 0.0)

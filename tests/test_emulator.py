@@ -63,6 +63,8 @@ def test_state_persists_across_runs(profile: Profile) -> None:
     u2, _ = run(emu, v, 1.0)
     ph = plant.Physics(cfg, RATE)
     _, _, after = ph.respond(v.astype(np.float32).astype(float), ph.initial())  # as on the wire
+    held = float(np.float32(v[-1]))
+    _, _, after = ph.respond(np.full(7000, held), after)  # idle from 0.3 s to 1.0 s at the output
     exp, _ = plant.expected_readback(cfg, RATE, v, run_index=1, state=after)
     np.testing.assert_array_equal(u2, exp.astype(np.float32))
     first, _ = plant.expected_readback(cfg, RATE, v)
@@ -263,3 +265,69 @@ def test_stream_underrun_stops_and_ramps_to_zero(profile: Profile) -> None:
         emu.write_table(1000, v[1000:1500], 0.2)  # no stream any more: outside the table
     u, _ = emu.read_recorder(999, 2, 0.2)
     assert np.isfinite(u[0]) and np.isnan(u[1])
+
+
+def _ramp_then_hold(target_v: float) -> tuple[np.ndarray, np.ndarray]:
+    """A ramp at the slew limit to ``target_v`` (ends abruptly: the stage rings), then a hold."""
+    ramp = np.linspace(0.0, target_v, int(target_v / 4.5) + 1)[1:]  # 4.5 V per 0.1 ms sample
+    return ramp, np.full(2000, target_v)
+
+
+@pytest.mark.parametrize("effects", [{"second_mode": SecondMode(600.0, 0.02, 0.4)}, {}],
+                         ids=["second-mode", "rod"])
+def test_idle_time_lets_the_stage_settle_between_runs(profile: Profile,
+                                                      effects: dict[str, object]) -> None:
+    """A run that starts after an idle pause sees the plant as it evolved while holding the output
+    (exactly a continuous hold, by the same model), not frozen at the end of the last run."""
+    prof = quiet(profile, **effects)
+    cfg = prof.emulator
+    assert cfg is not None
+    ramp, hold = _ramp_then_hold(90.0)
+    emu_now, emu_later = em.Emulator(prof), em.Emulator(prof)
+    run(emu_now, ramp, 0.0)
+    run(emu_later, ramp, 0.0)
+    end = ramp.size / RATE
+    back_to_back, _ = run(emu_now, hold, end)
+    idle_s = 0.5
+    settled, _ = run(emu_later, hold, end + idle_s)
+    ph = plant.Physics(cfg, RATE)
+    _, _, state = ph.respond(np.concatenate([ramp, np.full(round(idle_s * RATE), 90.0)]),
+                             ph.initial())
+    exp, _ = plant.expected_readback(cfg, RATE, hold, run_index=1, state=state)
+    np.testing.assert_allclose(settled, exp, rtol=0, atol=1e-5)  # float32 recorder
+    ringing = np.ptp(back_to_back[:500])
+    assert ringing > 0.5  # the abrupt end rings at constant voltage ...
+    assert np.ptp(settled[:500]) < 0.02 * ringing  # ... and has decayed after the pause
+
+
+def test_thermal_relaxation_goes_on_while_idle(profile: Profile) -> None:
+    prof = quiet(profile)
+    cfg = prof.emulator
+    assert cfg is not None
+    pol = replace(cfg.model.polarization, n_coercive=48, n_interaction=16,
+                  thermal=hy.Thermal(0.05, 30.0))
+    cfg = replace(cfg, model=replace(cfg.model, polarization=pol))
+    prof = replace(prof, emulator=cfg)
+    ramp, hold = _ramp_then_hold(90.0)
+    emu = em.Emulator(prof)
+    run(emu, ramp, 0.0)
+    u, _ = run(emu, hold[:200], ramp.size / RATE + 0.8)
+    ph = plant.Physics(cfg, RATE)
+    _, _, state = ph.respond(np.concatenate([ramp, np.full(8000, 90.0)]), ph.initial())
+    exp, _ = plant.expected_readback(cfg, RATE, hold[:200], run_index=1, state=state)
+    np.testing.assert_allclose(u, exp, rtol=0, atol=1e-5)
+    _, _, frozen = ph.respond(ramp, ph.initial())
+    stale, _ = plant.expected_readback(cfg, RATE, hold[:200], run_index=1, state=frozen)
+    assert abs(stale[0] - u[0]) > 0.05  # 0.8 s of creep the frozen stage would have missed, um
+
+
+def test_a_long_pause_is_simulated_up_to_the_horizon(profile: Profile) -> None:
+    """Idle beyond :data:`IDLE_HORIZON_S` costs no more than the horizon (the hold has settled)."""
+    prof = quiet(profile, second_mode=SecondMode(600.0, 0.02, 0.4))
+    ramp, hold = _ramp_then_hold(90.0)
+    runs = []
+    for pause_s in (em.IDLE_HORIZON_S, 50.0):
+        emu = em.Emulator(prof)
+        run(emu, ramp, 0.0)
+        runs.append(run(emu, hold[:100], ramp.size / RATE + pause_s)[0])
+    np.testing.assert_array_equal(runs[0], runs[1])

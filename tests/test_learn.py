@@ -162,22 +162,23 @@ def test_learning_brings_a_wrong_model_to_the_noise_floor(profile: Profile, nomi
 def test_amplifier_lag_the_model_lacks_is_learned(profile: Profile, nominal: Transducer,
                                                    tmp_path: Path) -> None:
     """A 450 Hz amplifier the model lacks: G measured on iteration 0 lags; learning cuts the
-    error 5-fold, until the lead it needs at the corners reaches the slew limit (the waveform
-    that would pass it is not sent)."""
+    error 5-fold, until the lead it needs at the corners reaches the slew limit."""
     res = learn_on(with_effects(profile, fx.Effects(amplifier_bandwidth_hz=450.0)), nominal,
                    tmp_path, 4)
     readings = [it.steady_um for it in res.iterations]
     assert res.tuning.harmonic and np.all(np.angle(res.tuning.g[:5]) < 0)
     assert res.lead >= 2  # the lag: y0 is late
     assert readings[0] > 0.3 and readings[res.best] < 0.2 * readings[0]
-    assert res.stop == "iterations done" or "V/ms" in res.stop
+    # at the corners the lead it needs meets the slew limit: the planner lengthens that
+    # stretch's horizon (or the guard refuses), the next iteration is worse and learning stops
+    assert res.stop == "iterations done" or "V/ms" in res.stop or "diverging" in res.stop
 
 
 def test_learning_stops_at_the_noise_floor(profile: Profile, nominal: Transducer,
                                            tmp_path: Path) -> None:
-    """The model is the stage's: one iteration brings the readings' error within 1.5 x the
-    noise (estimated from the readings: the stage's 20 nm), and learning stops there."""
-    res = learn_on(profile, nominal, tmp_path, 6, ilc.Law(floor_factor=1.5))
+    """A stage whose rod is softer than the model's: learning brings the readings' error within
+    1.5 x the noise (estimated from the readings: the stage's 20 nm) and stops there."""
+    res = learn_on(softer_rod(profile), nominal, tmp_path, 8, ilc.Law(floor_factor=1.5))
     assert res.noise_um == pytest.approx(profile.emulator.noise_um, rel=0.15)  # type: ignore[union-attr]
     assert res.stop.startswith("noise floor") and len(res.iterations) < 7
     assert res.iterations[-1].steady_um <= 1.5 * res.noise_um < res.iterations[0].steady_um
@@ -185,16 +186,21 @@ def test_learning_stops_at_the_noise_floor(profile: Profile, nominal: Transducer
 
 def test_a_refused_waveform_ends_learning_with_the_best_so_far(
         profile: Profile, nominal: Transducer, tmp_path: Path) -> None:
-    """Planning limits just above iteration 0's slew: learning sharpens the corners, the next
-    waveform would exceed them, so it is not sent and iteration 0 is kept."""
+    """A stage whose rod is 25 % stiffer than the model's, with the upper voltage limit just above
+    what iteration 0 needs: learning asks for more voltage than the limit, that waveform is not
+    sent and the best so far is kept."""
     desired = track.triangle(27.9, 27.04, 0.0, 3, DT)
-    slew0 = track.plan(nominal, desired, profile.limits, 0.0, ("inverse",))["inverse"]
-    tight = dc.replace(profile.limits, slew_v_per_ms=slew0.max_slew_v_per_ms + 0.3)
-    res = learn_on(profile, nominal, tmp_path, 5, limits=tight)
-    assert res.stop.startswith("refused") and "V/ms" in res.stop
+    wf0 = track.plan(nominal, desired, profile.limits, 0.0, ("inverse",))["inverse"]
+    top = float(wf0.voltage_v[wf0.tracking].max())
+    tight = dc.replace(profile.limits, v_max=top + 0.5)
+    m = profile.emulator.model  # type: ignore[union-attr]
+    stiffer = dc.replace(profile, emulator=dc.replace(  # type: ignore[type-var]
+        profile.emulator, model=dc.replace(m, rod=dc.replace(m.rod, k=1.25 * m.rod.k))))
+    res = learn_on(stiffer, nominal, tmp_path, 5, limits=tight)
+    assert res.stop.startswith("refused"), res.stop
     assert len(list(tmp_path.glob("run_*.csv"))) == len(res.iterations) < 6
     for it in res.iterations:
-        assert it.outcome.waveform.max_slew_v_per_ms <= tight.max_rate_v_per_ms * (1 + 1e-12)
+        assert it.outcome.waveform.voltage_v.max() <= tight.v_max
     assert res.best == int(np.argmin([it.steady_um for it in res.iterations]))
 
 

@@ -95,3 +95,38 @@ def test_cli_bad_profile_exits_2_with_one_line(tmp_path: Path) -> None:
     assert result.exit_code == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "amplifier.current_mA" in lines[0] and result.stdout == ""
+
+
+LAB_SERIAL = Path(__file__).resolve().parents[1] / "afmctl" / "profiles" / "lab-serial.toml"
+
+
+@pytest.mark.parametrize(("new", "want"), [
+    ("timeout_s = 1.0", 2.0),  # the shipped key
+    ("timeout_s = 0.4\nwatchdog_s = 0", 0.0),  # explicitly never armed
+    ("timeout_s = 0.3\nwatchdog_s = 0.5", 0.5),
+])
+def test_transport_watchdog_period(tmp_path: Path, new: str, want: float) -> None:
+    text = LAB_SERIAL.read_text()
+    text = re.sub(r"timeout_s = 1\.0.*\nwatchdog_s = 2\.0.*\n", new + "\n", text)
+    path = tmp_path / "stage.toml"
+    path.write_text(text)
+    assert load_profile(path).transport.watchdog_s == want  # type: ignore[union-attr]
+
+
+def test_watchdog_defaults_to_twice_the_timeout_and_must_exceed_it(tmp_path: Path) -> None:
+    text = re.sub(r"watchdog_s = 2\.0.*\n", "", LAB_SERIAL.read_text())
+    path = tmp_path / "stage.toml"
+    path.write_text(text.replace("timeout_s = 1.0", "timeout_s = 0.7"))
+    assert load_profile(path).transport.watchdog_s == 1.4  # type: ignore[union-attr]
+    path.write_text(text.replace("timeout_s = 1.0", "timeout_s = 0.7\nwatchdog_s = 0.7"))
+    with pytest.raises(FileFormatError, match=r"transport\.watchdog_s: must exceed timeout_s"):
+        load_profile(path)
+
+
+def test_shipped_profiles_by_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    assert load_profile("lab-modbus").name == "lab-modbus"
+    with pytest.raises(FileFormatError, match="shipped: emulated, lab-modbus, lab-serial"):
+        load_profile("lab-modbuss")
+    monkeypatch.chdir(tmp_path)  # a file of that name in the working directory wins
+    (tmp_path / "emulated").write_text(LAB_SERIAL.read_text())
+    assert load_profile("emulated").name == "lab-serial"

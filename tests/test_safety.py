@@ -140,11 +140,11 @@ def test_lost_link_mid_run_marks_the_rest_missing_and_the_watchdog_zeroes(
     watchdog ramps to 0 V; the run file holds every sample, the unreceived ones marked missing."""
     small = small_buffers(profile)
     v = long_waveform(3 * 4096)
-    wf = track.Waveform("inverse", 1 / small.sample_rate_hz, v, np.full(v.size, np.nan), None,
+    wf = track.Waveform("inverse", 1 / small.sample_rate_hz, v, np.full(v.size, np.nan),
                         slice(0, v.size))
     with EmulatedDevice(small) as dev, SerialServer(dev, "socket://127.0.0.1:0") as srv:
         stage = SerialStage(small, srv.url, timeout_s=0.1)
-        stage.set_watchdog(0.2)
+        stage.watchdog_s = 0.2  # what play arms
 
         def cut(name: str, done: int, total: int) -> None:
             dev.faults.reconfigure(WireFaults(drop=1.0))

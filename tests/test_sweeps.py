@@ -91,3 +91,51 @@ def test_memory_index_is_the_first_full_excursion() -> None:
     assert sw.from_arrays(v, np.zeros(v.size), 8.0).memory_index == 6
     ramp = sw.from_arrays(np.arange(10.0), np.zeros(10), 8.0)  # one-sided: the top counts
     assert ramp.memory_index == 9
+
+
+@pytest.mark.parametrize(("name", "column", "scale"), [
+    ("time_s", "time_s", 1.0), ("time_ms", "time_s", 1e-3), ("Time (s)", "time_s", 1.0),
+    ("t [us]", "time_s", 1e-6), ("Voltage (V)", "voltage_V", 1.0), ("voltage_mV", "voltage_V", 1e-3),
+    ("displacement_nm", "displacement_um", 1e-3), ("Position (\u00b5m)", "displacement_um", 1.0),
+    ("displacement_mm", "displacement_um", 1e3), ("disp", "displacement_um", None),
+    ("voltage_um", "voltage_V", None), ("time_s", "voltage_V", None),
+])
+def test_column_units(name: str, column: str, scale: float | None) -> None:
+    assert sw.column_scale(name, column) == scale
+
+
+def test_units_are_converted() -> None:
+    s = sw.parse("Time (ms);Voltage (V);displacement_nm\n0;1,5;1000\n0,1;2,5;2000\n")
+    np.testing.assert_allclose(s.time_s, [0, 1e-4])
+    np.testing.assert_allclose(s.voltage_v, [1.5, 2.5])
+    np.testing.assert_allclose(s.displacement_um, [1.0, 2.0])
+
+
+def test_jitter_within_a_tenth_of_a_period_is_put_on_the_grid() -> None:
+    t = np.arange(1000) * 1e-4 + np.tile([0.0, 9e-6], 500)
+    rows = "".join(f"{a:.8f},1,2\n" for a in t)
+    s = sw.parse("time_s,voltage_V,displacement_um\n" + rows)
+    assert np.abs(np.diff(s.time_s) - s.dt).max() < 1e-12
+    t[700] += 2e-5  # 20 % of a period off at data row 701
+    bad = "time_s,voltage_V,displacement_um\n" + "".join(f"{a:.8f},1,2\n" for a in t)
+    with pytest.raises(sw.SweepFormatError, match=r"data row 701 is 1\.[0-9]+e-05 s off the 0\.0001 s grid"):
+        sw.parse(bad, "x.csv")
+
+
+def test_sample_rate_metadata_stands_for_a_time_column() -> None:
+    s = sw.parse("# sample_rate_hz: 2000\nvoltage_V,displacement_um\n1,2\n3,4\n5,6\n")
+    np.testing.assert_allclose(s.time_s, [0, 5e-4, 1e-3])
+
+
+def test_measured_files_are_recognised(tmp_path: Path) -> None:
+    cases = {"sweep.csv": GOOD, "lab.csv": "Time (ms);Voltage (V);displacement_nm\n0;1;2\n",
+             "run.csv": "# afmctl-run: 1\nseq,time_s\n", "model.toml": "format = 1\n",
+             "wave.csv": "time_s,desired_um\n0,1\n",
+             "tracked.csv": "time_s,desired_um,voltage_V_inverse,displacement_um_inverse\n"}
+    kinds = {}
+    for name, text in cases.items():
+        (tmp_path / name).write_text(text)
+        kinds[name] = sw.measured_kind(tmp_path / name)
+    assert kinds == {"sweep.csv": "a sweep file", "lab.csv": "a sweep file",
+                     "run.csv": "an afmctl run file", "model.toml": "", "wave.csv": "",
+                     "tracked.csv": "measured displacements"}

@@ -2,14 +2,20 @@
 
 ``afmctl``. Composes the library; holds no numerics and no device I/O.
 
-Exit codes: 0 success; 1 the stage failed or a fit did not converge; 2 bad input (one line on
-stderr, nothing written); 130 interrupted (the stage was put in its safe state).
+Exit codes: 0 success (``--help`` and ``--version`` too); 1 the stage failed or a fit did not
+converge; 2 bad input or an output that cannot be written (one line on stderr naming the option or
+path, nothing written); 130 interrupted (the stage, if one was opened, was put in its safe state).
 """
 
 from __future__ import annotations
 
+import logging
+import math
 import sys
-from collections.abc import Callable
+import tempfile
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any, NoReturn
 
 import click
@@ -17,22 +23,57 @@ import click
 from afmctl import __version__
 from afmctl.tomlfile import FileFormatError, InputError
 
+#: ``ctx.meta`` key set once a command has opened a stage (the Ctrl-C message depends on it).
+STAGE_OPENED = "afmctl.stage_opened"
+
 
 def fail(message: str, code: int = 2) -> NoReturn:
     click.echo(f"afmctl: error: {message}", err=True)
     sys.exit(code)
 
 
+class OutputError(InputError):
+    """An output path that cannot or must not be written (exit 2, one line naming it)."""
+
+
+def _interrupted() -> NoReturn:
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None and ctx.meta.get(STAGE_OPENED):
+        fail("interrupted; the stage was sent to its safe state", 130)
+    fail("interrupted; no stage was touched", 130)
+
+
 class Group(click.Group):
-    """Turns known failures into one line and an exit code instead of a traceback."""
+    """Turns known failures into one line and an exit code instead of a traceback.
+
+    Only afmctl's own errors are mapped: click's ``Exit`` (``--help``, ``--version``) and usage
+    errors keep their meaning (exit 0, or one line and exit 2).
+    """
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kw: Any) -> Any:
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL + 1)  # afmctl says what failed
+        try:
+            rv = super().main(*args, standalone_mode=False, **kw)
+        except click.exceptions.NoArgsIsHelpError as exc:  # a bare group: its help, as click does
+            exc.show()
+            sys.exit(exc.exit_code)
+        except click.ClickException as exc:
+            fail(exc.format_message().replace("\n", " "), exc.exit_code)
+        except click.Abort:
+            _interrupted()
+        if not standalone_mode:
+            return rv
+        sys.exit(rv if isinstance(rv, int) else 0)
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
+        except (click.exceptions.Exit, click.ClickException, click.Abort):
+            raise
         except InputError as exc:
             fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         except KeyboardInterrupt:
-            fail("interrupted; the stage was sent to its safe state", 130)
+            _interrupted()
         except Exception as exc:
             if type(exc).__name__ == "StageError" or isinstance(exc, TimeoutError | OSError):
                 fail(f"stage: {exc}", 1)
@@ -45,6 +86,38 @@ class Group(click.Group):
 @click.version_option(__version__, prog_name="afmctl")
 def main() -> None:
     """Make a hysteretic piezo stage track what it is told (Hatch, Smith et al. inverse filter)."""
+
+
+class Finite(click.ParamType):
+    """A finite float, optionally bounded below (``--freq nan`` is bad input, not a traceback)."""
+
+    name = "number"
+
+    def __init__(self, minimum: float | None = None, open_min: bool = False) -> None:
+        self.minimum, self.open_min = minimum, open_min
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> float:
+        try:
+            x = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number", param, ctx)
+        if not math.isfinite(x):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        if self.minimum is not None and (x < self.minimum or (self.open_min and x == self.minimum)):
+            self.fail(f"{value!r} must be {'>' if self.open_min else '>='} {self.minimum:g}",
+                      param, ctx)
+        return x
+
+
+@contextmanager
+def opened_stage(profile: Any) -> Iterator[Any]:
+    """``drivers.open_stage(profile)``, remembering that this command touched a stage."""
+    from drivers import open_stage
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None:
+        ctx.meta[STAGE_OPENED] = True
+    with open_stage(profile) as stage:
+        yield stage
 
 
 def load_profile_or_exit(path: str | None):  # noqa: ANN201 (Profile)
@@ -68,6 +141,110 @@ def fit_settings(path: str | None):  # noqa: ANN201 (identify.Settings)
     return idf.settings_from_table(tomlfile.load(path).table("identify", required=False), base)
 
 
+# ----------------------------------------------------------------------------------------------
+# outputs: checked before any work; measured data never overwritten
+# ----------------------------------------------------------------------------------------------
+
+
+def _writable_folder(folder: Path, what: str) -> None:
+    """Raise :class:`OutputError` unless a file can be created in ``folder`` (an existing folder)."""
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".afmctl-probe-"):
+            pass
+    except OSError as exc:
+        raise OutputError(f"{what}: cannot write in {folder} ({exc.strerror or exc})") from None
+
+
+def _existing_ancestor(path: Path, what: str) -> Path:
+    """The nearest existing ancestor of ``path``; it must be a folder."""
+    for parent in path.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise OutputError(f"{what}: {parent} is a file, not a folder")
+            return parent
+    raise OutputError(f"{what}: no existing folder above it")  # pragma: no cover (/ exists)
+
+
+def check_output_file(path: str | Path, option: str, force: bool) -> Path:
+    """Check that the file ``path`` may be written, before any work.
+
+    An existing file is refused unless ``force``; a measured file (a sweep or run file) always.
+    The folder must exist and be writable.
+    """
+    from afmctl.sweeps import measured_kind
+    p = Path(path)
+    what = f"{option} {p}"
+    if p.is_dir():
+        raise OutputError(f"{what}: is a folder, not a file")
+    if p.exists():
+        kind = measured_kind(p)
+        if kind:
+            raise OutputError(f"{what}: holds measured data ({kind}); it is never overwritten, "
+                              f"not even with --force")
+        if not force:
+            raise OutputError(f"{what}: exists; add --force to overwrite it")
+    parent = p.absolute().parent
+    if not parent.is_dir():
+        raise OutputError(f"{what}: folder {p.parent} does not exist")
+    _writable_folder(parent, what)
+    return p
+
+
+def check_output_dir(path: str | Path, option: str, names: Iterable[str], force: bool,
+                     measured: Iterable[str] = ()) -> Path:
+    """Check that the folder ``path`` may receive the files ``names`` (glob patterns), before any
+    work. It is not created here. Files matching ``measured`` are never overwritten; other
+    existing outputs are refused unless ``force``.
+    """
+    from afmctl.sweeps import measured_kind
+    p = Path(path)
+    what = f"{option} {p}"
+    if p.exists() and not p.is_dir():
+        raise OutputError(f"{what}: exists and is not a folder")
+    if not p.exists():
+        _writable_folder(_existing_ancestor(p, what), what)
+        return p
+    for pattern in measured:
+        for old in sorted(p.glob(pattern)):
+            raise OutputError(f"{what}: already holds measured data ({old.name}); it is never "
+                              f"overwritten: choose another folder")
+    for pattern in names:
+        for old in sorted(p.glob(pattern)):
+            kind = measured_kind(old)
+            if kind:
+                raise OutputError(f"{what}: {old.name} holds measured data ({kind}); it is never "
+                                  f"overwritten: choose another folder")
+            if not force:
+                raise OutputError(f"{what}: {old.name} exists; choose another folder or add "
+                                  f"--force to overwrite it")
+    _writable_folder(p, what)
+    return p
+
+
+def make_dir(path: Path, option: str) -> Path:
+    """Create the output folder checked by :func:`check_output_dir` (exit 2 naming it if not)."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{option} {path}: cannot create ({exc.strerror or exc})") from None
+    return path
+
+
+@contextmanager
+def writing(path: str | Path, option: str) -> Iterator[None]:
+    """Turn an OSError while writing an output into :class:`OutputError` naming the path."""
+    try:
+        yield
+    except OSError as exc:
+        raise OutputError(f"{option} {path}: cannot write ({exc.strerror or exc})") from None
+
+
+def timestamped(prefix: str) -> Path:
+    """``./<prefix>-<YYYYmmdd-HHMMSS>``, the default output folder."""
+    import time
+    return Path(f"{prefix}-{time.strftime('%Y%m%d-%H%M%S')}")
+
+
 def progress_printer(quiet: bool) -> Callable[[str, int, int], None]:
     """Progress on stderr: a line per 10 % (and the last sample) of each run."""
     last: dict[str, int] = {}
@@ -81,4 +258,9 @@ def progress_printer(quiet: bool) -> Callable[[str, int, int], None]:
                    err=True)
 
     return show
+
+
+def say(message: str) -> None:
+    """A line of progress or human-readable results on stderr."""
+    click.echo(message, err=True)
 

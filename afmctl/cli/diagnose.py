@@ -3,13 +3,23 @@
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import click
 
-from afmctl.cli.base import fail, fit_settings, main
+from afmctl.cli.base import (
+    OutputError,
+    check_output_dir,
+    fit_settings,
+    main,
+    make_dir,
+    say,
+    timestamped,
+    writing,
+)
 from afmctl.tomlfile import InputError
+
+OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residuals.png")
 
 
 @main.command()
@@ -23,8 +33,9 @@ from afmctl.tomlfile import InputError
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output folder (default: ./afmctl-diagnose-<time>).")
 @click.option("--json", "as_json", is_flag=True, help="Print diagnosis.json on stdout.")
+@click.option("--force", is_flag=True, help="Overwrite an earlier diagnosis in --out.")
 def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str | None,
-             out_dir: str | None, as_json: bool) -> None:
+             out_dir: str | None, as_json: bool, force: bool) -> None:
     """Find what the model gets wrong on SWEEP_FILES, name the physical cause, extend the model
     and measure the gain on held-out data.
 
@@ -33,8 +44,7 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     """
     from afmctl import diagnose as dg
     from afmctl import identify as idf
-    from afmctl import modelfile, parametrization, plots, sweeps
-    from afmctl.experiment import atomic_write
+    from afmctl import modelfile, parametrization, sweeps
 
     settings = dg.Settings(identify=fit_settings(profile))
     data = [sweeps.read(f) for f in sweep_files]
@@ -46,17 +56,31 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
             raise InputError(f"--model {model_path}: {exc}") from None
     idf.resolve_thickness(data, settings.identify)
     dg.check(data)
-    out = Path(out_dir) if out_dir else Path(f"afmctl-diagnose-{time.strftime('%Y%m%d-%H%M%S')}")
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out}: exists and is not a folder")
-    if (out / "diagnosis.json").exists():
-        fail(f"{out} already holds a diagnosis; choose another --out")
-    click.echo(f"diagnosing {len(data)} sweep(s): "
-               f"{len(dg.candidate_names(len(data), settings))} candidates ...", err=True)
-    d = dg.diagnose(data, settings, start, progress=lambda m: click.echo(m, err=True))
+    out = Path(out_dir) if out_dir else timestamped("afmctl-diagnose")
+    if (out / "diagnosis.json").exists() and not force:
+        raise OutputError(f"--out {out}: already holds a diagnosis; choose another folder or add "
+                          f"--force to overwrite it")
+    check_output_dir(out, "--out", OUTPUTS, force)
+    say(f"diagnosing {len(data)} sweep(s): "
+        f"{len(dg.candidate_names(len(data), settings))} candidates ...")
+    d = dg.diagnose(data, settings, start, progress=say)
     doc = d.as_dict()
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"  # before anything is written
-    out.mkdir(parents=True, exist_ok=True)
+    with writing(out, "--out"):
+        _write(d, data, sweep_files, out, text)
+    say(f"cause: {d.cause} (held-out RMS {d.base_rms_um:.4f} -> {d.extended_rms_um:.4f} um, "
+        f"gain {d.gain:.2f}); wrote {out}/" + ", ".join(OUTPUTS[1:] + OUTPUTS[:1]))
+    if as_json:
+        click.echo(json.dumps(doc, allow_nan=False))
+
+
+def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:  # noqa: ANN001
+    """Every file of a diagnosis, each atomic, ``diagnosis.json`` last (marks it complete)."""
+    from afmctl import diagnose as dg
+    from afmctl import identify as idf
+    from afmctl import modelfile, plots
+    from afmctl.experiment import atomic_write
+    make_dir(out, "--out")
     header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
     modelfile.write(d.base_model, out / "base.toml", header=header + "\nthe paper's model")
     modelfile.write(d.extended_model, out / "extended.toml",
@@ -70,9 +94,4 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     partial.replace(out / "residuals.png")
     atomic_write(out / "report.md", dg.report(d, "residuals.png"))
     atomic_write(out / "diagnosis.json", text)  # last: marks the folder complete
-    click.echo(f"cause: {d.cause} (held-out RMS {d.base_rms_um:.4f} -> {d.extended_rms_um:.4f} um, "
-               f"gain {d.gain:.2f}); wrote {out}/diagnosis.json, extended.toml, report.md, "
-               f"residuals.png", err=True)
-    if as_json:
-        click.echo(json.dumps(doc, allow_nan=False))
 

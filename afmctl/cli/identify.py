@@ -9,8 +9,15 @@ from typing import Any
 
 import click
 
-from afmctl.cli.base import fit_settings, main
-from afmctl.tomlfile import InputError
+from afmctl.cli.base import (
+    check_output_dir,
+    check_output_file,
+    fit_settings,
+    main,
+    make_dir,
+    say,
+    writing,
+)
 
 
 def _report(result: Any) -> str:
@@ -36,11 +43,14 @@ def _report(result: Any) -> str:
 @click.option("--profile", "profile", default=None, help="Stage profile: its [stack] thickness "
               "for sweeps without layer_thickness_um; its [identify] table sets mass_kg, "
               "p_r_C_per_m2, thickness_um, n_coercive_fit, field_step, max_nfev.")
-@click.option("-o", "--output", required=True, help="Model file to write (TOML).")
+@click.option("-o", "--output", required=True,
+              help="Model file to write (TOML); an existing file only with --force, a measured "
+                   "file (sweep, run) never.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @click.option("--plots", "plots_dir", default=None, help="Directory for per-sweep figures.")
+@click.option("--force", is_flag=True, help="Overwrite an existing model file or figures.")
 def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_json: bool,
-             plots_dir: str | None) -> None:
+             plots_dir: str | None, force: bool) -> None:
     """Fit the stage model jointly to SWEEP_FILES and write it to the model file OUTPUT.
 
     Exit status: 0 converged, 1 the solver did not converge (no model written), 2 bad input.
@@ -50,23 +60,26 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
 
     settings = fit_settings(profile)
     data = [sweeps.read(f) for f in sweep_files]
-    if not Path(output).resolve().parent.is_dir():
-        raise InputError(f"{output}: directory does not exist")
-    idf.resolve_thickness(data, settings)  # validate before any progress output
-    click.echo(f"fitting {len(data)} sweep(s) ...", err=True)
-    result = idf.fit(data, settings, progress=lambda m: click.echo(m, err=True))
+    check_output_file(output, "-o", force)
     if plots_dir is not None:
         from afmctl import plots
-
-        fitted = [idf.predict(result.model, s.voltage_v, s.dt) for s in data]
-        for p in plots.fit_figures(data, fitted, plots_dir):
-            click.echo(f"wrote {p}", err=True)
-    if result.success:
+        check_output_dir(plots_dir, "--plots", plots.fit_names(data), force)
+    idf.resolve_thickness(data, settings)  # validate before any progress output
+    say(f"fitting {len(data)} sweep(s) ...")
+    result = idf.fit(data, settings, progress=say)
+    if result.success:  # the model first: a figure that fails must not cost the fit
         header = "afmctl identify: " + ", ".join(Path(f).name for f in sweep_files)
         header += "\nm and p_r are fixed by convention (only their ratios to c, k, a1, a2, eta"
         header += " are identifiable)"
-        modelfile.write(result.model, output, header=header)
-        click.echo(f"wrote {output}", err=True)
+        with writing(output, "-o"):
+            modelfile.write(result.model, output, header=header)
+        say(f"wrote {output}")
+    if plots_dir is not None:
+        fitted = [idf.predict(result.model, s.voltage_v, s.dt) for s in data]
+        with writing(plots_dir, "--plots"):
+            for p in plots.fit_figures(data, fitted, make_dir(Path(plots_dir), "--plots"),
+                                       settings.window_s):
+                say(f"wrote {p}")
     click.echo(json.dumps(result.to_dict()) if as_json else _report(result))
     if not result.success:
         sys.exit(1)

@@ -3,14 +3,28 @@
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 from typing import Any
 
 import click
 
-from afmctl.cli.base import fail, load_profile_or_exit, main, progress_printer
-from afmctl.cli.track import _out_dir
+from afmctl.cli.base import (
+    check_output_dir,
+    fail,
+    load_profile_or_exit,
+    main,
+    make_dir,
+    opened_stage,
+    progress_printer,
+    timestamped,
+)
+
+
+def _out_dir(out_dir: str | None, prefix: str, force: bool = False) -> Path:
+    path = check_output_dir(Path(out_dir) if out_dir else timestamped(prefix), "--out",
+                            ("run_*.csv", "summary.json", "waveform_learned.csv", "learn.png"),
+                            force, measured=("run_*.csv",))
+    return make_dir(path, "--out")
 
 
 def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any,
@@ -22,7 +36,7 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
     from afmctl import effects as fx
     from afmctl import ilc, learn, modelfile
     law = ilc.Law(**law_args)
-    out = _out_dir(out_dir)
+    out = _out_dir(out_dir, "afmctl-track")
     meta = {"profile": prof.name, "model": model_name, "trajectory": desired.label,
             "sample_rate_Hz": prof.sample_rate_hz,
             "between_samples_model": "emulator truth" if prof.emulator else "model estimate",
@@ -91,11 +105,10 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
              f"plays every {dt * 1e3:.6g} ms")
     sensor = modelfile.read(model_path).effects if model_path else fx.Effects()
     tracking = _tracking(w.desired_um)
-    wf = track.Waveform("play", dt, w.voltage_v, w.desired_um, None, tracking)
-    from drivers import open_stage
-    with open_stage(prof) as stage:
+    wf = track.Waveform("play", dt, w.voltage_v, w.desired_um, tracking)
+    with opened_stage(prof) as stage:
         guard.check(w.voltage_v, dt, prof.limits, stage.voltage(), "waveform")
-        out = _out_dir(out_dir or f"afmctl-play-{time.strftime('%Y%m%d-%H%M%S')}")
+        out = _out_dir(out_dir, "afmctl-play")
         meta = {"profile": prof.name, "waveform": Path(wave).name,
                 "trajectory": w.meta.get("trajectory", "none"),
                 "sample_rate_Hz": prof.sample_rate_hz}

@@ -1,7 +1,8 @@
-"""``afmctl emulate``: the device side, served over the wires."""
+"""``afmctl emulate``, ``conformance``, ``status``, ``safe``: the stage itself, apart from a run."""
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 
@@ -11,8 +12,9 @@ from afmctl.cli.base import fail, load_profile_or_exit, main
 
 
 @main.command()
-@click.option("--profile", "profile_path", type=click.Path(dir_okay=False),
-              help="Stage profile with an [emulator] section (default: the shipped emulated one).")
+@click.option("--profile", "profile_path",
+              help="Stage profile with an [emulator] section, a file or a shipped name (default: "
+                   "the shipped emulated one).")
 @click.option("--modbus-port", type=click.IntRange(0, 65535), default=5020, show_default=True,
               help="Modbus TCP port (0: any free port).")
 @click.option("--serial", "serial_where", default="pty", show_default=True,
@@ -47,3 +49,95 @@ def emulate(profile_path: str | None, modbus_port: int, serial_where: str, no_rt
     except (OSError, ValueError) as exc:
         fail(f"cannot serve: {exc}", 1)
 
+
+
+PROFILE_HELP = ("Stage profile: a TOML file, or a shipped one by name (emulated, lab-serial, "
+                "lab-modbus); default: the shipped emulated one.")
+
+
+@main.command()
+@click.option("--profile", "profile_path", help=PROFILE_HELP)
+@click.option("--max-voltage", type=float, default=None,
+              help="Largest |voltage| the check commands, V (default: 10 % of the profile's "
+                   "voltage span).")
+@click.option("--yes", is_flag=True, help="Confirm that the stage may move (required on hardware).")
+@click.option("--json", "as_json", is_flag=True, help="Results as one JSON object on stdout.")
+def conformance(profile_path: str | None, max_voltage: float | None, yes: bool,
+                as_json: bool) -> None:
+    """Check a stage against docs/protocol.md, clause by clause (exit 0 only if all pass).
+
+    On a hardware profile it talks to the stage the profile names (serial or Modbus) and moves it
+    within +-max-voltage: pass --yes. On the emulated profile it serves the emulated device on
+    every wire (serial on a pty and on socket://, Modbus TCP, Modbus RTU) and checks each."""
+    prof = load_profile_or_exit(profile_path)
+    from afmctl.profile import EmulatedTransport
+    from drivers.device import conformance as cf
+    try:
+        lo, hi = cf.bounds(prof, max_voltage)
+    except ValueError as exc:
+        fail(str(exc))
+    emulated = isinstance(prof.transport, EmulatedTransport)
+    if not emulated and not yes:
+        fail(f"conformance moves the stage of profile {prof.name!r} between {lo:g} and {hi:g} V "
+             f"and plays runs on it; pass --yes to confirm (--max-voltage bounds it)")
+    report: dict[str, list[dict[str, object]]] = {}
+    for wire, opened in cf.wires(prof, emulated):
+        click.echo(f"conformance: {wire}, commanding {lo:g} .. {hi:g} V", err=True)
+        with opened as stage:
+            results = cf.run(stage, prof, max_voltage,
+                             lambda what: click.echo(f"  checking {what}", err=True))
+        report[wire] = [dict(clause=r.clause, title=r.title, passed=r.passed, detail=r.detail)
+                        for r in results]
+        if not as_json:
+            _print_table(wire, results)
+    ok = all(r["passed"] is not False for rows in report.values() for r in rows)
+    if as_json:
+        click.echo(json.dumps({"profile": prof.name, "max_voltage_V": max(abs(lo), abs(hi)),
+                               "passed": ok, "wires": report}))
+    if not ok:
+        sys.exit(1)
+
+
+def _print_table(wire: str, results: list) -> None:  # noqa: ANN001 (list[conformance.Result])
+    click.echo(f"{wire}:")
+    word = {True: "PASS", False: "FAIL", None: "n/a "}
+    for r in results:
+        click.echo(f"  {word[r.passed]}  {r.clause:17s} {r.title:38s} {r.detail}")
+    counts = [sum(r.passed is v for r in results) for v in (True, False, None)]
+    click.echo("  {} passed, {} failed, {} not applicable".format(*counts))
+
+
+@main.command()
+@click.option("--profile", "profile_path", help=PROFILE_HELP)
+@click.option("--json", "as_json", is_flag=True, help="One JSON object on stdout.")
+def status(profile_path: str | None, as_json: bool) -> None:
+    """Show the stage's state: identity, limits, output, run, watchdog, last error."""
+    prof = load_profile_or_exit(profile_path)
+    from drivers import open_stage
+    with open_stage(prof) as stage:
+        st, idn, (v_min, v_max, slew) = stage.status(), stage.identify(), stage.limits()
+    fields = {"profile": prof.name, "identity": idn, "running": st.running,
+              "output_V": st.output_v, "sample_rate_Hz": st.sample_rate_hz,
+              "v_min_V": v_min, "v_max_V": v_max, "slew_V_per_ms": slew,
+              "play_position_samples": st.play_position, "run_samples": st.run_samples,
+              "runs": st.run_count, "table_length_samples": st.table_length,
+              "recorder_fill_samples": st.recorder_fill, "watchdog_s": st.watchdog_s,
+              "watchdog_armed": st.watchdog_armed, "watchdog_expired": st.watchdog_expired,
+              "read_only": st.read_only, "last_error": st.last_error}
+    if as_json:
+        click.echo(json.dumps(fields))
+        return
+    for key, value in fields.items():
+        click.echo(f"{key}: {value}")
+
+
+@main.command()
+@click.option("--profile", "profile_path", help=PROFILE_HELP)
+def safe(profile_path: str | None) -> None:
+    """Stop the stage and ramp its output to 0 V (the safe state)."""
+    prof = load_profile_or_exit(profile_path)
+    from drivers import open_stage
+    with open_stage(prof) as stage:
+        stage.safe_state()
+        st = stage.status()
+    click.echo(f"safe: stopped, output {st.output_v:g} V")

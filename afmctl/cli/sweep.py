@@ -7,8 +7,35 @@ from pathlib import Path
 
 import click
 
-from afmctl.cli.base import load_profile_or_exit, main, progress_printer
+from afmctl.cli.base import (
+    Finite,
+    check_output_dir,
+    fail,
+    load_profile_or_exit,
+    main,
+    make_dir,
+    opened_stage,
+    progress_printer,
+    say,
+)
 from afmctl.tomlfile import InputError
+
+
+def _v_range(v_range: tuple[float, float] | None, prof) -> tuple[float, float]:  # noqa: ANN001
+    """The voltage range to cover: given (checked against the profile) or the profile's."""
+    lim = prof.limits
+    if v_range is None:
+        return lim.v_min, lim.v_max
+    lo, hi = v_range
+    if not lo < hi:
+        raise InputError(f"--v-range {lo:g} {hi:g}: VMIN must be below VMAX")
+    if lo < lim.v_min or hi > lim.v_max:
+        raise InputError(f"--v-range {lo:g} {hi:g} V exceeds the profile's limits "
+                         f"[{lim.v_min:g}, {lim.v_max:g}] V")
+    if not lo <= 0.0 <= hi:
+        raise InputError(f"--v-range {lo:g} {hi:g} V must contain 0 V (every sweep starts and "
+                         f"ends at the stage's safe output)")
+    return lo, hi
 
 
 @main.command()
@@ -16,37 +43,58 @@ from afmctl.tomlfile import InputError
               help="Stage profile (default: the embedded emulated stage).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True,
               help="Folder for the sweep files.")
-@click.option("--amplitude", type=click.FloatRange(min=0, min_open=True), default=150.0,
-              show_default=True, help="Voltage amplitude of the sweeps, V.")
+@click.option("--v-range", "v_range", type=(Finite(), Finite()), default=None,
+              metavar="VMIN VMAX",
+              help="Voltage range the sweeps cover, V (default: the profile's [v_min, v_max]; "
+                   "must contain 0 V).")
 @click.option("--only", multiple=True, metavar="NAME",
               help="Record only this sweep of the set (repeatable), e.g. triangle_27.9hz.")
-def sweep(profile_path: str | None, out_dir: str, amplitude: float, only: tuple[str, ...]) -> None:
-    """Record the standard identification set: triangles at 0.279, 5.58 and 27.9 Hz (Fig. 2) and
-    nested minor loops at 0.1 Hz (Fig. 1(b))."""
+@click.option("--resume", is_flag=True,
+              help="Record only the sweeps missing from --out (an interrupted one again); the "
+                   "files already there are kept.")
+def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] | None,
+          only: tuple[str, ...], resume: bool) -> None:
+    """Record the standard identification set over the stage's voltage range: triangles at
+    0.279, 5.58 and 27.9 Hz (Fig. 2) and nested minor loops at 0.1 Hz (Fig. 1(b)).
+
+    Each sweep is written to --out as it arrives (NAME.incomplete.csv); an interrupted one stays
+    there, marked, and `--resume` records what is missing. Measured files are never overwritten.
+    """
     from afmctl import experiment, sweeps
     prof = load_profile_or_exit(profile_path)
-    if not (prof.limits.v_min <= -amplitude and amplitude <= prof.limits.v_max):
-        raise InputError(f"--amplitude {amplitude} V exceeds the profile's limits "
-                         f"[{prof.limits.v_min}, {prof.limits.v_max}] V")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    meta = {"profile": prof.name, "layer_thickness_um": f"{prof.thickness_um:g}",
-            "sample_rate_hz": f"{prof.sample_rate_hz:g}",
-            "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-    chosen = [w for w in sweeps.standard_set(amplitude, prof.sample_rate_hz)
-              if not only or w[0] in only]
-    unknown = set(only) - {w[0] for w in chosen}
+    lo, hi = _v_range(v_range, prof)
+    standard = sweeps.standard_set(sample_rate_hz=prof.sample_rate_hz, v_range=(lo, hi))
+    unknown = set(only) - {w[0] for w in standard}
     if unknown:
-        names = ", ".join(w[0] for w in sweeps.standard_set(amplitude, prof.sample_rate_hz))
+        names = ", ".join(w[0] for w in standard)
         raise InputError(f"--only {sorted(unknown)[0]}: not in the standard set ({names})")
-    say = progress_printer(False)
-    from drivers import open_stage
-    with open_stage(prof) as stage:
+    chosen = [w for w in standard if not only or w[0] in only]
+    out = Path(out_dir)
+    done = [w[0] for w in chosen if (out / f"{w[0]}.csv").exists()]
+    if done and not resume:
+        raise InputError(f"--out {out}: {done[0]}.csv exists (measured data is never "
+                         f"overwritten): add --resume to record only what is missing, or choose "
+                         f"another folder")
+    chosen = [w for w in chosen if w[0] not in done]
+    check_output_dir(out, "--out", [f"{w[0]}.csv" for w in chosen], force=False)
+    for name in done:
+        say(f"{out / (name + '.csv')}: already recorded, kept")
+    meta = {"profile": prof.name, "layer_thickness_um": f"{prof.thickness_um:g}",
+            "sample_rate_hz": f"{prof.sample_rate_hz:g}", "v_range_V": f"{lo:g} {hi:g}",
+            "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    show = progress_printer(False)
+    if chosen:
+        say(f"recording {len(chosen)} sweep(s) over [{lo:g}, {hi:g}] V ...")
+        make_dir(out, "--out")
+    with opened_stage(prof) as stage:
         for name, freq, v in chosen:
             path = out / f"{name}.csv"
-            if path.exists():
-                raise InputError(f"{path} exists; measured data is never overwritten")
-            s = experiment.record_sweep(stage, name, freq, v, prof.sample_rate_hz, meta, say)
-            sweeps.write(s, path)
+            partial = experiment.incomplete_path(path)
+            try:
+                experiment.record_sweep(stage, name, freq, v, prof.sample_rate_hz, meta, show,
+                                        path)
+            except KeyboardInterrupt:
+                fail(f"interrupted; the stage was sent to its safe state; the sweep in progress "
+                     f"is kept in {partial}, marked incomplete; rerun with --resume to record "
+                     f"what is missing", 130)
             click.echo(str(path))
-

@@ -21,7 +21,11 @@ Modules, by concern:
 :mod:`~drivers.device.faults`
     Fault injection into what the device sends.
 
-An independently written foreign plant with hidden effects (``foreign``) and the conformance check
-that exercises any device against ``docs/protocol.md`` live here too. Host code (``afmctl`` and the
-links in :mod:`drivers`) never imports from here except to start an emulated stage.
+:mod:`~drivers.device.conformance`
+    The conformance check: exercises any device (this one or a lab's own) against
+    ``docs/protocol.md`` clause by clause, through the host's links (``afmctl conformance``).
+
+An independently written foreign plant with hidden effects (``foreign``) lives here too. Host code
+(``afmctl`` and the links in :mod:`drivers`) never imports from here except to start an emulated
+stage or to run the conformance check.
 """

@@ -8,7 +8,16 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.ascii_protocol import MAX_CHUNK, PROTOCOL_VERSION, FrameError, fmt, frame, status_line, unframe
+from drivers.ascii_protocol import (
+    MAX_CHUNK,
+    MAX_LINE,
+    PROTOCOL_VERSION,
+    FrameError,
+    fmt,
+    frame,
+    status_line,
+    unframe,
+)
 from drivers.device.emulator import IDENTITY, DeviceError, Emulator
 from drivers.protocol import ERRORS
 
@@ -59,6 +68,12 @@ class AsciiDevice:
         except FrameError:
             return None
         return frame(self.handle(payload), tag) if payload.strip() else None
+
+    def overlong(self) -> str:
+        """The framed reply to a line over :data:`~drivers.ascii_protocol.MAX_LINE` bytes (its tag
+        cannot be trusted: untagged); error 2 becomes the last error."""
+        self.em.last_error = 2
+        return frame(f"ERR 2 {ERRORS[2]} (line over {MAX_LINE} bytes)", None)
 
     def handle(self, line: str) -> str:
         """One command (without terminator or framing) -> one reply (without either)."""

@@ -61,6 +61,11 @@ class EmulatedDevice:
         with self.lock:
             return self.ascii.handle_framed(line)
 
+    def overlong_line(self) -> str:
+        """The reply to a line longer than the protocol allows (untagged ``ERR 2``)."""
+        with self.lock:
+            return self.ascii.overlong()
+
     def __enter__(self) -> EmulatedDevice:
         self._ticker.start()
         return self

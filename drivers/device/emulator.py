@@ -35,7 +35,11 @@ from drivers.protocol import ERRORS, Status
 FloatArray = NDArray[np.float64]
 
 IDENTITY = "afmctl,emulated-stage,0,protocol-3"
-SETTLE_S = 0.005
+#: Longest idle stretch the plant is simulated through, s: beyond it the hold is taken as settled
+#: (ringing decays in ms; the thermal kernel of the hidden effects, attempt rates 30-300 /s, relaxes
+#: mostly within 0.3 s). It also bounds the work a start does after a long pause (about 55 ms with
+#: the thermal kernel), which an accelerated device clock would otherwise count as played time.
+IDLE_HORIZON_S = 1.0
 MIN_RATE_HZ, MAX_RATE_HZ = 100.0, 100_000.0
 #: Longest stream, samples (2**29: what the 16-bit Modbus recorder page addresses; 14.9 h at 10 kHz).
 MAX_STREAM_SAMPLES = 1 << 29
@@ -143,6 +147,8 @@ class Emulator:
         self.last_heartbeat = 0.0
         self._run: _Run | None = None
         self._applied: list[FloatArray] = []
+        #: Device time up to which the plant has evolved (None: not since power-on), s.
+        self.plant_time: float | None = None
 
     @property
     def written(self) -> NDArray[np.bool_]:
@@ -174,10 +180,35 @@ class Emulator:
             self._applied.append(np.asarray(v, dtype=float))
             self.output_v = float(v[-1])
 
-    def _hold(self, v: FloatArray) -> None:
-        """Apply samples outside a run (DC set, ramp): the state advances, nothing is recorded."""
+    def _catch_up(self, now: float) -> None:
+        """Idle time: while no run plays, the plant goes on evolving at the held output (ringing
+        decays, the thermal kernel relaxes) in device time, sample by sample up to ``now`` (the
+        first :data:`IDLE_HORIZON_S` of a longer hold). Lazy: done before the plant is driven
+        again. Nothing is recorded or logged (the output does not change)."""
+        if self._run is not None:
+            return
+        if self.plant_time is None:
+            self.plant_time = now
+            return
+        k = math.floor((now - self.plant_time) * self.sample_rate_hz + 1e-9)
+        if k <= 0:
+            return
+        m = min(k, math.ceil(IDLE_HORIZON_S * self.sample_rate_hz))
+        _, _, self.state = self.physics.respond(np.full(m, self.output_v), self.state)
+        self.plant_time += k / self.sample_rate_hz
+
+    def _hold(self, v: FloatArray, now: float) -> None:
+        """Apply samples outside a run (DC set, ramp) from ``now``, after the idle time before it:
+        the state advances, nothing is recorded."""
+        self._catch_up(now)
         _, _, self.state = self.physics.respond(v, self.state)
         self._apply(v)
+        self.plant_time = max(self.plant_time or now, now) + v.size / self.sample_rate_hz
+
+    def _end(self, run: _Run) -> None:
+        """The generator stops after ``run.pos`` samples; the plant idles from their end."""
+        self._run = None
+        self.plant_time = run.start + run.pos / self.sample_rate_hz
 
     def _due(self, run: _Run, now: float) -> int:
         """Samples of ``run`` whose start time has come by ``now``."""
@@ -203,11 +234,12 @@ class Emulator:
             fault, n = 4, steep
         self._play(run, v[:n])
         if fault:
-            self._run = None
-            self._hold(ramp_to_zero(self.output_v, self.limits, self.sample_rate_hz))
+            self._end(run)
+            self._hold(ramp_to_zero(self.output_v, self.limits, self.sample_rate_hz),
+                       self.plant_time)  # type: ignore[arg-type]
             self.last_error = fault
         elif run.pos == run.total:
-            self._run = None
+            self._end(run)
 
     def _play(self, run: _Run, v: FloatArray) -> None:
         """Clock out ``v`` (the run's next samples) through the model into the recorder ring."""
@@ -236,16 +268,18 @@ class Emulator:
         self.armed = False
         self.expired = True
         self._halt(when)
-        self._hold(ramp_to_zero(self.output_v, self.limits, self.sample_rate_hz))
+        self._hold(ramp_to_zero(self.output_v, self.limits, self.sample_rate_hz), when)
         self.last_error = 8
 
     def _halt(self, now: float) -> None:
         """Stop the generator after the samples due by ``now`` (output holds the last one)."""
         self._advance(now)
-        self._run = None
+        if self._run is not None:
+            self._end(self._run)
 
     def _begin(self, total: int, stream: bool, now: float) -> None:
         """Start a run of ``total`` samples from ``now``, with an empty recorder."""
+        self._catch_up(now)
         self.rec_u[:] = np.nan
         self.rec_v[:] = np.nan
         self.rec_global[:] = -1
@@ -279,17 +313,17 @@ class Emulator:
         self.tick(now)
         self._writable()
         self._idle()
+        v = float(np.float32(v))  # what the DAC gets, as every voltage on the wire
         self._check(np.array([v]), self.output_v)
-        settle = np.full(max(1, round(SETTLE_S * self.sample_rate_hz)), float(v))
-        _, _, self.state = self.physics.respond(settle, self.state)
-        self._apply(settle[:1])
+        self._hold(np.array([v]), now)
 
     def set_sample_rate(self, hz: float, now: float) -> None:
         self.tick(now)
+        if not MIN_RATE_HZ <= hz <= MAX_RATE_HZ:  # a bad argument comes first (precedence)
+            raise self._fail(2, f"sample rate must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz")
         self._writable()
         self._idle()
-        if not MIN_RATE_HZ <= hz <= MAX_RATE_HZ:
-            raise self._fail(2, f"sample rate must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz")
+        self._catch_up(now)  # the idle time so far, at the old rate
         self.sample_rate_hz = float(hz)
         self.physics = Physics(self.config, self.sample_rate_hz)
 
@@ -335,10 +369,10 @@ class Emulator:
         self._writable()
         self._idle()
         n = self.table_length
+        if not 1 <= cycles or max(n, 1) * cycles > self.rec_u.size:
+            raise self._fail(6, f"cycles x length must be in [1, {self.rec_u.size}]")
         if n == 0 or not self.written[:n].all():
             raise self._fail(9)
-        if not 1 <= cycles or n * cycles > self.rec_u.size:
-            raise self._fail(6, f"cycles x length must be in [1, {self.rec_u.size}]")
         self._check(np.tile(self.table[:n].astype(float), min(cycles, 2))[:n + 1], self.output_v)
         self._begin(n * cycles, False, now)
 
@@ -369,7 +403,7 @@ class Emulator:
         """Stop the generator and ramp to 0 V within the slew limit."""
         self.tick(now)
         self._halt(now)
-        self._hold(ramp_to_zero(self.output_v, self.limits, self.sample_rate_hz))
+        self._hold(ramp_to_zero(self.output_v, self.limits, self.sample_rate_hz), now)
 
     def heartbeat(self, now: float) -> None:
         """Refresh (and, if a period is set, arm) the watchdog."""

@@ -51,6 +51,9 @@ class RegisterDevice:
         self.cycles = 1
         self.stream_total = 0
         self.page = 0
+        #: Last values accepted in ``HR.COMMAND`` and ``HR.HEARTBEAT``: what these registers read
+        #: back, so that a write single register (FC6) echoes the value written (protocol v4).
+        self.command = self.heartbeat = 0
 
     # -- reads ---------------------------------------------------------------------------------
     def read_input(self, address: int, count: int) -> list[int] | int:
@@ -84,8 +87,9 @@ class RegisterDevice:
         if address + count > HR.CONTROL_END:
             return ILLEGAL_ADDRESS
         s = self.em.status(self.clock())
-        regs = ([0] + u32_regs(self.cycles) + u32_regs(s.table_length) + f32_regs([s.output_v])
-                + [0] + f32_regs([s.watchdog_s, s.sample_rate_hz]) + [self.page]
+        regs = ([self.command] + u32_regs(self.cycles) + u32_regs(s.table_length)
+                + f32_regs([s.output_v]) + [self.heartbeat]
+                + f32_regs([s.watchdog_s, s.sample_rate_hz]) + [self.page]
                 + u32_regs(self.stream_total))
         return regs[address:address + count]
 
@@ -114,12 +118,14 @@ class RegisterDevice:
             self.cycles = regs_u32(regs)
         elif address == HR.COMMAND:
             self._command(regs[0], now)
+            self.command = regs[0]
         elif address == HR.TABLE_LENGTH:
             self.em.set_table_length(regs_u32(regs), now)
         elif address == HR.DC_VOLTAGE:
             self.em.set_voltage(float(regs_f32(regs)[0]), now)
         elif address == HR.HEARTBEAT:
             self.em.heartbeat(now)
+            self.heartbeat = regs[0]
         elif address == HR.WATCHDOG_S:
             self.em.set_watchdog(float(regs_f32(regs)[0]), now)
         elif address == HR.SAMPLE_RATE:

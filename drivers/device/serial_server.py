@@ -30,6 +30,8 @@ class SerialServer(SelectLoop):
         self._listener: socket.socket | None = None
         self._fds: dict[int, bytearray] = {}
         self._owned: list[int] = []
+        #: Descriptors whose current line is over-long: answered once, skipped up to its LF.
+        self._skipping: set[int] = set()
         if where == "pty":
             master, slave, path = open_pty()
             self._fds[master] = bytearray()
@@ -81,14 +83,20 @@ class SerialServer(SelectLoop):
         buf = self._fds[fd]
         buf += data
         while fd in self._fds and (end := buf.find(b"\n")) >= 0:
-            line = buf[:end].decode("ascii", errors="replace").rstrip("\r")
+            raw = bytes(buf[:end])
             del buf[:end + 1]
-            reply = self.device.handle_line(line)
+            if fd in self._skipping:  # the rest of an over-long line, already answered
+                self._skipping.discard(fd)
+                continue
+            reply = (self.device.overlong_line() if len(raw) > ap.MAX_LINE else
+                     self.device.handle_line(raw.decode("ascii", errors="replace").rstrip("\r")))
             if reply is not None:
                 self._send(fd, reply.encode("ascii") + b"\n")
-        if len(buf) > ap.MAX_LINE * 8:
+        if fd in self._fds and len(buf) > ap.MAX_LINE:
             buf.clear()
-            self._send(fd, ap.frame("ERR 2 bad argument", None).encode("ascii") + b"\n")
+            if fd not in self._skipping:
+                self._skipping.add(fd)
+                self._send(fd, self.device.overlong_line().encode("ascii") + b"\n")
 
     def _send(self, fd: int, reply: bytes) -> None:
         """Send one reply line, through the device's fault injector."""
