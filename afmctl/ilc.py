@@ -11,7 +11,7 @@ next iteration corrects the **reference** that Algorithm 3 inverts, not the volt
 where ``y^_j`` is the stage's true position in iteration ``j`` as the readings tell it (corrected
 for the model's sensor effects, :func:`afmctl.effects.sensor_correct`: learning must move the
 stage, not the readings) and the waveform of iteration ``j`` is Algorithm 3 of ``r_j`` (same
-conditioning every iteration). The model keeps inverting the hysteresis,
+conditioning and inversion horizons every iteration). The model keeps inverting the hysteresis,
 the rod and any plant effects it knows; learning removes only what the model misses
 (inversion-based ILC, Leang & Devasia, Mechatronics 2006).
 

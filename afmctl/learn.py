@@ -4,7 +4,7 @@ The law is :mod:`afmctl.ilc` (its docstring states it and its convergence condit
 module plays it on a stage through the interface of :mod:`drivers` (an object passed in, as
 :mod:`afmctl.experiment` does): iteration 0 is the seed filter's waveform (Algorithm 3 through
 the model, or the paper's linear filter), every next one the same filter on the corrected
-reference, with the same conditioning. Each waveform passes the guard
+reference, with the same conditioning and inversion horizons. Each waveform passes the guard
 before it is sent; one that would not ends learning with the best waveform so far, as do the
 noise floor and a diverging error. Every iteration's run file is written as its samples arrive,
 and ``summary.json``, ``waveform_learned.csv`` and ``learn.png`` after every iteration.
@@ -38,8 +38,9 @@ DEFAULT_LAW = ilc.Law()
 @dataclass(frozen=True)
 class Planner:
     """What stays fixed over the iterations: the model at the sample period, its state after the
-    conditioning, the conditioning itself, the seed filter and the linear filter's voltage range.
-    (The inverse's horizons are searched per stretch for every reference, as track does.)"""
+    conditioning, the conditioning itself, the seed filter, the inverse's horizons per stretch
+    (iteration 0's; a stretch's grows only where a corrected reference would otherwise break
+    the guard) and the linear filter's voltage range."""
 
     cm: tr.Compiled
     limits: guard.Limits
@@ -47,6 +48,7 @@ class Planner:
     state: tr.StageState
     prefix_v: FloatArray
     seed: str
+    horizons: tuple[int, ...]
     v_range: tuple[float, float]
 
 
@@ -64,7 +66,8 @@ def planner(model: tr.Transducer, desired: track.Desired, limits: guard.Limits,
     st0 = tr.initial(model, voltage_v=start_v)
     _, _, st = tr.simulate(cm, pre, st0)
     v_tr = inv.voltage_v[inv.tracking]
-    p = Planner(cm, limits, start_v, st, pre, seed, (float(v_tr.min()), float(v_tr.max())))
+    p = Planner(cm, limits, start_v, st, pre, seed, inv.horizons,
+                (float(v_tr.min()), float(v_tr.max())))
     return p, plans[seed]
 
 
@@ -79,7 +82,8 @@ def plan_reference(p: Planner, desired: track.Desired, reference: FloatArray
     """
     ref = dc.replace(desired, u_um=np.asarray(reference, dtype=float))
     if p.seed == "inverse":
-        wf = track.plan_inverse(p.cm, ref, p.limits, p.start_v, p.state, p.prefix_v)
+        wf = track.plan_inverse(p.cm, ref, p.limits, p.start_v, p.state, p.prefix_v,
+                                p.horizons)
     else:
         wf = track.plan_linear(p.cm, ref, p.limits, p.start_v, p.state, p.v_range, p.prefix_v)
     d = wf.desired_um.copy()
@@ -202,6 +206,8 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
             except guard.LimitError as exc:
                 stop = f"refused: {exc}"
                 break
+            if wf.horizons:  # horizons only grow (where a stretch needs it to pass the guard)
+                p = dc.replace(p, horizons=wf.horizons)
         wf = dc.replace(wf, filter=f"{seed}_iter{j:02d}")
         t_plan = time.perf_counter() - t0
         path = out / f"run_{wf.filter}.csv"
