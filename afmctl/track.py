@@ -207,10 +207,12 @@ def _reach(res: inv.Inversion, n: int, first: int) -> None:
 
 
 def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState, start_v: float,
-                      limits: guard.Limits, bounds: list[int], e_max: float
+                      limits: guard.Limits, bounds: list[int], e_max: float,
+                      fixed: tuple[int, ...] | None = None
                       ) -> tuple[FloatArray, tuple[int, ...]]:
     """Algorithm 3 stretch by stretch, each with the smallest horizon (from the smooth one up)
     whose voltage passes the guard: one hard corner lengthens the horizon of its own stretch only.
+    ``fixed`` gives each stretch the horizon to start the search from instead.
 
     Returns the voltage (V) and the horizon of each stretch.
     """
@@ -218,9 +220,9 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
     d0 = rd.smooth_horizon(cm.disc)
     parts, horizons = [], []
     st, v_prev = state, start_v
-    for s, e in zip(bounds[:-1], bounds[1:], strict=True):
+    for i, (s, e) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
         last: guard.LimitError | None = None
-        for d in (h for h in HORIZONS if h >= d0):
+        for d in (h for h in HORIZONS if h >= (max(d0, fixed[i]) if fixed else d0)):
             res = inv.algorithm3(cm, target[s:e + d - 1], st, e_init=v_prev / thick, horizon=d,
                                  e_max=e_max)
             _reach(res, e - s, s)
@@ -243,13 +245,13 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
 
 def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.StageState,
                    start_v: float, limits: guard.Limits, e_max: float,
-                   build: Any) -> Waveform:
+                   build: Any, fixed: tuple[int, ...] | None = None) -> Waveform:
     """With an amplifier lag the slew limit clamps the lead at the corners: a longer horizon asks
     for less of it but rounds the corners; keep the (uniform) one the model says tracks best."""
     dt = cm.dt
     last: guard.LimitError | None = None
     best: tuple[float, Waveform] | None = None
-    for d in (h for h in HORIZONS if h >= rd.smooth_horizon(cm.disc)):
+    for d in (h for h in HORIZONS if h >= max(rd.smooth_horizon(cm.disc), *(fixed or ()))):
         res = inv.algorithm3(cm, target, state, e_init=start_v / cm.model.thickness_um,
                              horizon=d, e_max=e_max)
         _reach(res, target.size, 0)
@@ -272,10 +274,14 @@ def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: 
 
 
 def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v: float,
-                 state: tr.StageState, prefix_v: FloatArray) -> Waveform:
+                 state: tr.StageState, prefix_v: FloatArray,
+                 horizons: tuple[int, ...] | None = None) -> Waveform:
     """Algorithm 3 waveform, each stretch with the smallest horizon that passes the guard.
 
     ``prefix_v`` (the conditioning) is played first; ``state`` is the model state after it.
+    ``horizons`` (those of an earlier plan of the same trajectory) are the stretches' shortest
+    horizons: learning starts each iteration's search from the last one's, so the horizons (and
+    the plant it learns through) only change where a corrected stretch would break the guard.
 
     Raises
     ------
@@ -303,10 +309,14 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
         return wf
 
     if chain.lag_a != 0.0:
-        return _invert_lagged(cm, chain, target, state, start_v, limits, e_max, build)
+        return _invert_lagged(cm, chain, target, state, start_v, limits, e_max, build, horizons)
+    bounds = _segments(desired, n_in, target.size)
+    if horizons:
+        fixed = bounds if len(horizons) == len(bounds) - 1 else [0, target.size]
+        return build(*_invert_stretches(cm, target, state, start_v, limits, fixed, e_max,
+                                        horizons))
     try:
-        v, horizons = _invert_stretches(cm, target, state, start_v, limits,
-                                        _segments(desired, n_in, target.size), e_max)
+        v, horizons = _invert_stretches(cm, target, state, start_v, limits, bounds, e_max)
     except guard.LimitError as exc:
         if "out of the stage's reach" in str(exc):
             raise

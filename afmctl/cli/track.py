@@ -66,6 +66,17 @@ def track_options(fn: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--extrapolate", is_flag=True,
                      help="Allow a waveform outside the model's validity envelope (the voltage "
                           "range it was identified on) by more than 5 % of its span."),
+        click.option("--learn", "learn", type=click.IntRange(min=0), default=0,
+                     help="Learn from repeated scans: after the inverse (or --filter linear) "
+                          "waveform, up to N iterations that correct it from the measured error "
+                          "(writes every iteration's run file, waveform_learned.csv, learn.png)."),
+        click.option("--learn-cutoff", type=click.FloatRange(min=0, min_open=True),
+                     default=600.0, show_default=True,
+                     help="Cut-off of the learning's zero-phase low-pass filter Q, Hz."),
+        click.option("--learn-region", type=click.Choice(["all", "imaging"]), default="all",
+                     show_default=True,
+                     help="Learn from the error everywhere, or only in the imaging region (the "
+                          "central 80 % of every ramp; for fast raster scans)."),
     ]
     for opt in reversed(opts):
         fn = opt(fn)
@@ -178,11 +189,25 @@ def _outputs(dry_run: bool, wanted: tuple[str, ...]) -> list[str]:
 def _track(make_desired: Callable[[float], Any], check: Callable[[float], None],
            profile_path: str | None, model_path: str | None, calibrate: bool, recalibrate: bool,
            filters: str, out_dir: str | None, force: bool, dry_run: bool, as_json: bool,
-           condition: bool, extrapolate: bool) -> None:
+           condition: bool, extrapolate: bool, learn: int = 0, learn_cutoff: float = 600.0,
+           learn_region: str = "all") -> None:
     if model_path is not None and (calibrate or recalibrate):
         raise InputError("--model and --calibrate/--recalibrate exclude each other")
+    if learn and dry_run:
+        raise InputError("--learn learns from measurements: it cannot be combined with "
+                         "--dry-run")
     prof = load_profile_or_exit(profile_path)
     check(prof.sample_rate_hz)
+    if learn:
+        from afmctl.cli.play import learn_track
+        desired = make_desired(1.0 / prof.sample_rate_hz)
+        with opened_stage(prof) as stage:
+            cal = _model(prof, stage, model_path, calibrate, recalibrate, profile_path)
+            learn_track(desired, prof, cal.model, str(cal.path), stage, learn,
+                        {"cutoff_hz": learn_cutoff, "region": learn_region},
+                        "linear" if filters == "linear" else "inverse", (condition, extrapolate),
+                        out_dir, as_json)
+        return
     wanted = ("inverse", "linear") if filters == "both" else (filters,)
     out = check_output_dir(Path(out_dir) if out_dir else timestamped("afmctl-track"), "--out",
                            _outputs(dry_run, wanted), force, measured=("run_*.csv",))

@@ -1,0 +1,136 @@
+"""``afmctl play``: replay a saved waveform; and ``afmctl track ... --learn N``'s body."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import click
+
+from afmctl.cli.base import (
+    check_output_dir,
+    fail,
+    load_profile_or_exit,
+    main,
+    make_dir,
+    opened_stage,
+    progress_printer,
+    timestamped,
+)
+
+
+def _out_dir(out_dir: str | None, prefix: str, force: bool = False) -> Path:
+    path = check_output_dir(Path(out_dir) if out_dir else timestamped(prefix), "--out",
+                            ("run_*.csv", "summary.json", "waveform_learned.csv", "learn.png"),
+                            force, measured=("run_*.csv",))
+    return make_dir(path, "--out")
+
+
+def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any,
+                iterations: int, law_args: dict[str, Any], seed: str, how: tuple[bool, bool],
+                out_dir: str | None, as_json: bool) -> None:
+    """``afmctl track ... --learn N`` on an open ``stage``: iteration 0 is the ``seed`` filter's
+    waveform, then up to N learning iterations (:mod:`afmctl.learn`); files after every
+    iteration. ``how`` = (condition, extrapolate): every iteration keeps to the model's validity
+    envelope (read from ``model_name``) unless extrapolate."""
+    from afmctl import effects as fx
+    from afmctl import ilc, learn, modelfile
+    law = ilc.Law(**law_args)
+    out = _out_dir(out_dir, "afmctl-track")
+    meta = {"profile": prof.name, "model": model_name, "trajectory": desired.label,
+            "sample_rate_Hz": prof.sample_rate_hz,
+            "between_samples_model": "emulator truth" if prof.emulator else "model estimate",
+            "readings_corrected_for": modelfile.effects_dict(fx.sensor_part(model.effects))}
+    truth = prof.emulator.true_model if prof.emulator is not None else model
+
+    def each(result: learn.Result) -> None:
+        it = result.iterations[-1]
+        click.echo(f"iteration {it.index}: steady RMS {it.steady_um:.4f} um, imaging "
+                   f"{it.rms_imaging_um:.4f} um, max slew "
+                   f"{it.outcome.waveform.max_slew_v_per_ms:.1f} V/ms", err=True)
+        learn.write_outputs(result, desired, law, meta, out)
+
+    click.echo(f"learning {desired.label}: up to {iterations} iterations after the {seed} "
+               f"waveform ...", err=True)
+    result = learn.run(stage, model, desired, prof.limits, out, meta, iterations, law, truth,
+                       seed, how[0], progress_printer(True), each,
+                       envelope=modelfile.read_envelope(model_name), extrapolate=how[1])
+    data = learn.write_outputs(result, desired, law, meta, out)
+    click.echo(f"stopped: {result.stop}; best iteration {result.best} "
+               f"({result.best_iteration.steady_um:.4f} um)", err=True)
+    click.echo(f"wrote {out}/run_*_iterNN.csv, summary.json, waveform_learned.csv, learn.png",
+               err=True)
+    if as_json:
+        click.echo(json.dumps(data))
+
+
+def _tracking(desired_um: Any) -> slice:
+    import numpy as np
+    ok = np.flatnonzero(np.isfinite(desired_um))
+    if ok.size == 0:
+        return slice(0, 0)
+    if ok.size != ok[-1] - ok[0] + 1:
+        fail("desired_um must be one contiguous run of values (empty only before and after it)")
+    return slice(int(ok[0]), int(ok[-1]) + 1)
+
+
+@main.command("play")
+@click.argument("wave", type=click.Path(dir_okay=False))
+@click.option("--profile", "profile_path", type=click.Path(dir_okay=False),
+              help="Stage profile (default: the embedded emulated stage).")
+@click.option("--model", "model_path", type=click.Path(dir_okay=False),
+              help="Model file whose sensor effects correct the readings before scoring.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
+              help="Output folder (default: ./afmctl-play-<time>).")
+@click.option("--json", "as_json", is_flag=True, help="Print the summary JSON on stdout.")
+def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: str | None,
+         as_json: bool) -> None:
+    """Replay a saved waveform (time_s,voltage_V[,desired_um] CSV, e.g. a learned one).
+
+    The waveform passes the same guard as track's (nothing is sent otherwise); its run file,
+    summary.json and scores (against desired_um, if the file has it) are track's.
+    """
+    import numpy as np
+
+    from afmctl import effects as fx
+    from afmctl import experiment, guard, learn, modelfile, track, waveformfile
+    from afmctl.tomlfile import FileFormatError
+    prof = load_profile_or_exit(profile_path)
+    try:
+        w = waveformfile.read(wave)
+    except FileFormatError as exc:
+        fail(str(exc))
+    dt = 1.0 / prof.sample_rate_hz
+    if abs(w.dt_s - dt) > 1e-6 * dt + 1e-9:
+        fail(f"the waveform is sampled every {w.dt_s * 1e3:.6g} ms; profile {prof.name!r} "
+             f"plays every {dt * 1e3:.6g} ms")
+    sensor = modelfile.read(model_path).effects if model_path else fx.Effects()
+    tracking = _tracking(w.desired_um)
+    wf = track.Waveform("play", dt, w.voltage_v, w.desired_um, tracking)
+    with opened_stage(prof) as stage:
+        guard.check(w.voltage_v, dt, prof.limits, stage.voltage(), "waveform")
+        out = _out_dir(out_dir, "afmctl-play")
+        meta = {"profile": prof.name, "waveform": Path(wave).name,
+                "trajectory": w.meta.get("trajectory", "none"),
+                "sample_rate_Hz": prof.sample_rate_hz}
+        measured = experiment.stream(stage, wf, out / "run_play.csv", meta,
+                                     progress_printer(True))
+    data: dict[str, Any] = {**meta, "samples": int(w.voltage_v.size),
+                            "complete": measured[2],
+                            "max_slew_V_per_ms": wf.max_slew_v_per_ms}
+    if tracking.stop > tracking.start:
+        period = float(w.meta["period_s"]) if "period_s" in w.meta else None
+        u = w.desired_um[tracking]
+        desired = track.Desired(dt, u, period, float(np.ptp(u)), data["trajectory"])
+        truth = prof.emulator.true_model if prof.emulator is not None else None
+        it = learn.judge(wf, desired, 0, measured, out / "run_play.csv", sensor,
+                         learn.between_error(wf, desired, truth))
+        data.update(it.as_dict())
+        del data["iteration"]
+        click.echo(f"play: steady RMS {it.steady_um:.4f} um, RMS {it.outcome.score.rms_um:.4f}"
+                   f" um, imaging {it.rms_imaging_um:.4f} um", err=True)
+    experiment.write_summary(data, out / "summary.json")
+    click.echo(f"wrote {out}/run_play.csv, summary.json", err=True)
+    if as_json:
+        click.echo(json.dumps(data))

@@ -1,0 +1,327 @@
+"""Learning from repeated scans: play, judge and correct the waveform iteration by iteration.
+
+The law is :mod:`afmctl.ilc` (its docstring states it and its convergence condition). This
+module plays it on a stage through the interface of :mod:`drivers` (an object passed in, as
+:mod:`afmctl.experiment` does): iteration 0 is the seed filter's waveform (Algorithm 3 through
+the model, or the paper's linear filter), every next one the same filter on the corrected
+reference, with the same conditioning and inversion horizons. Each waveform passes the guard
+before it is sent; one that would not ends learning with the best waveform so far, as do the
+noise floor and a diverging error. Every iteration's run file is written as its samples arrive,
+and ``summary.json``, ``waveform_learned.csv`` and ``learn.png`` after every iteration.
+"""
+
+from __future__ import annotations
+
+import dataclasses as dc
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl import effects as fx
+from afmctl import experiment, guard, ilc, track
+from afmctl import transducer as tr
+from afmctl.modelfile import Envelope
+
+FloatArray = NDArray[np.float64]
+DEFAULT_LAW = ilc.Law()
+
+
+# ----------------------------------------------------------------------------------------------
+# planning a reference
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Planner:
+    """What stays fixed over the iterations: the model at the sample period, its state after the
+    conditioning, the conditioning itself, the seed filter, the inverse's horizons per stretch
+    (iteration 0's; a stretch's grows only where a corrected reference would otherwise break
+    the guard), the linear filter's voltage range, and the model's validity envelope (every
+    iteration's waveform must stay inside it unless ``extrapolate``)."""
+
+    cm: tr.Compiled
+    limits: guard.Limits
+    start_v: float
+    state: tr.StageState
+    prefix_v: FloatArray
+    seed: str
+    horizons: tuple[int, ...]
+    v_range: tuple[float, float]
+    envelope: Envelope | None = None
+    extrapolate: bool = False
+
+
+def planner(model: tr.Transducer, desired: track.Desired, limits: guard.Limits,
+            start_v: float = 0.0, seed: str = "inverse", condition: bool = True,
+            envelope: Envelope | None = None, extrapolate: bool = False
+            ) -> tuple[Planner, track.Waveform]:
+    """The planner and iteration 0's waveform (``seed``: ``inverse``, or the paper's ``linear``
+    filter, learning then through the line instead of the model). ``envelope`` bounds the
+    conditioning and the waveforms as in :func:`afmctl.track.plan`."""
+    if seed not in ("inverse", "linear"):
+        raise ValueError(f"unknown seed filter {seed!r}")
+    plans = track.plan(model, desired, limits, start_v, ("inverse", seed), condition=condition,
+                       envelope=envelope, extrapolate=extrapolate)
+    inv = plans["inverse"]
+    cm = tr.compile_model(model, desired.dt_s)
+    pre = (track.conditioning(track.conditioning_limits(limits, envelope), start_v, desired.dt_s)
+           if condition else np.zeros(0))
+    st0 = tr.initial(model, voltage_v=start_v)
+    _, _, st = tr.simulate(cm, pre, st0)
+    v_tr = inv.voltage_v[inv.tracking]
+    p = Planner(cm, limits, start_v, st, pre, seed, inv.horizons,
+                (float(v_tr.min()), float(v_tr.max())), envelope, extrapolate)
+    return p, plans[seed]
+
+
+def plan_reference(p: Planner, desired: track.Desired, reference: FloatArray
+                   ) -> track.Waveform:
+    """The seed filter's waveform for ``reference`` (um), scored against ``desired``.
+
+    Raises
+    ------
+    guard.LimitError
+        If the waveform would leave the stage's limits or the reference its reach.
+    afmctl.track.EnvelopeError
+        If it would leave the model's validity envelope (and the planner does not extrapolate).
+    """
+    ref = dc.replace(desired, u_um=np.asarray(reference, dtype=float))
+    if p.seed == "inverse":
+        wf = track.plan_inverse(p.cm, ref, p.limits, p.start_v, p.state, p.prefix_v,
+                                p.horizons)
+    else:
+        wf = track.plan_linear(p.cm, ref, p.limits, p.start_v, p.state, p.v_range, p.prefix_v)
+    track.check_envelope(wf, p.envelope, p.extrapolate)
+    d = wf.desired_um.copy()
+    d[wf.tracking] = desired.u_um
+    return dc.replace(wf, desired_um=d)
+
+
+# ----------------------------------------------------------------------------------------------
+# the iterations on a stage
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Iteration:
+    """One played iteration: its outcome (track's scores and run file), the true-position
+    error estimate ``error_um`` (desired - corrected readings, tracking part), the imaging-region
+    RMS at the samples and (with a plant model) between them, um."""
+
+    index: int
+    outcome: experiment.Outcome
+    error_um: FloatArray
+    rms_imaging_um: float
+    rms_imaging_between_um: float | None
+    steady_um: float
+
+    def as_dict(self) -> dict[str, Any]:
+        s = self.outcome.score
+        return {"iteration": self.index, "rms_um": s.rms_um, "max_um": s.max_um,
+                "rms_between_um": s.rms_between_um, "rms_imaging_um": self.rms_imaging_um,
+                "rms_imaging_between_um": self.rms_imaging_between_um,
+                "rms_steady_um": self.steady_um,
+                "max_slew_V_per_ms": self.outcome.waveform.max_slew_v_per_ms,
+                "complete": self.outcome.complete, "run_file": self.outcome.run_file.name}
+
+
+@dataclass(frozen=True)
+class Result:
+    """All finished iterations, the best one (smallest judged error), why learning stopped, the
+    noise estimate (um), the tuning of ``L`` and ``Q`` and the compute time per iteration (s:
+    correction, Algorithm 3, guard and judging at the samples; the simulation of the plant
+    between the samples, which only reports, is left out)."""
+
+    iterations: tuple[Iteration, ...]
+    best: int
+    stop: str
+    noise_um: float
+    tuning: ilc.Tuning
+    compute_s: tuple[float, ...]
+
+    @property
+    def lead(self) -> int:
+        return self.tuning.lead
+
+    @property
+    def best_iteration(self) -> Iteration:
+        return self.iterations[self.best]
+
+
+def between_error(wf: track.Waveform, desired: track.Desired,
+                  truth: tr.Transducer | None) -> FloatArray | None:
+    """Error between the samples (:func:`afmctl.track.between_samples`) of the plant ``truth``,
+    or None without one."""
+    return None if truth is None else track.between_samples(truth, wf, desired, tr.initial(truth))
+
+
+def judge(wf: track.Waveform, desired: track.Desired, index: int, measured: tuple[Any, ...],
+          path: Path, sensor: fx.Effects, between: FloatArray | None) -> Iteration:
+    """Score one played iteration as track does (readings corrected for ``sensor``; between the
+    samples from :func:`between_error`, if given), plus the imaging region.
+
+    ``measured`` is :func:`afmctl.experiment.stream`'s (displacement_um, voltage_v, complete).
+    """
+    u, v, complete = measured
+    where = fx.sensor_correct(fx.compile_chain(sensor, wf.dt_s), u)
+    img_between = None if between is None else ilc.imaging_rms(desired, between, track.FINE)
+    outcome = experiment.Outcome(wf, u, v, track.score(wf, desired, where, between), complete,
+                                 path)
+    err = desired.u_um - where[wf.tracking]
+    return Iteration(index, outcome, err, ilc.imaging_rms(desired, err), img_between,
+                     ilc.rms(err[ilc.steady_part(desired)]))
+
+
+OnIteration = Callable[[Result], None]
+
+
+def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Desired,
+        limits: guard.Limits, out: Path, meta: Mapping[str, object], iterations: int,
+        law: ilc.Law = DEFAULT_LAW, truth: tr.Transducer | None = None, seed: str = "inverse",
+        condition: bool = True, progress: experiment.Progress | None = None,
+        on_iteration: OnIteration | None = None, envelope: Envelope | None = None,
+        extrapolate: bool = False) -> Result:
+    """Play iteration 0 and up to ``iterations`` learning iterations on ``stage``.
+
+    Every iteration's run file goes to ``out`` (``run_<seed>_iterNN.csv``) as it plays;
+    ``on_iteration`` is called with the result so far after each finished iteration (write the
+    summary there: an interrupt then loses nothing finished). ``truth`` (the plant, for judging
+    between the samples) defaults to the model. A refused waveform, the noise floor or a
+    diverging error end learning early (``Result.stop`` says which).
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    start_v = stage.voltage()
+    t0 = time.perf_counter()
+    p, wf = planner(model, desired, limits, start_v, seed, condition, envelope, extrapolate)
+    ref = desired.u_um.copy()
+    done: list[Iteration] = []
+    compute: list[float] = []
+    noise, best, stop = float("nan"), 0, "iterations done"
+    tuning = ilc.Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex), np.zeros(0))
+
+    def judged(it: Iteration) -> float:  # what learning minimizes: its region's steady RMS
+        return it.rms_imaging_um if law.region == "imaging" else it.steady_um
+
+    plant = truth if truth is not None else model
+    region = ilc.imaging_mask(desired, first_period=True) if law.region == "imaging" else None
+    for j in range(iterations + 1):
+        if j:
+            t0 = time.perf_counter()
+            ref = ilc.next_reference(ref, done[-1].error_um, desired, law, tuning, region)
+            try:
+                wf = plan_reference(p, desired, ref)
+            except (guard.LimitError, track.EnvelopeError) as exc:
+                stop = f"refused: {exc}"
+                break
+            if wf.horizons:  # horizons only grow (where a stretch needs it to pass the guard)
+                p = dc.replace(p, horizons=wf.horizons)
+        wf = dc.replace(wf, filter=f"{seed}_iter{j:02d}")
+        t_plan = time.perf_counter() - t0
+        path = out / f"run_{wf.filter}.csv"
+        measured = experiment.stream(stage, wf, path, meta, progress)
+        between = between_error(wf, desired, plant)  # reporting only: not part of the compute
+        t1 = time.perf_counter()
+        it = judge(wf, desired, j, measured, path, model.effects, between)
+        done.append(it)
+        if j == 0:
+            noise = ilc.noise_estimate(it.error_um[ilc.steady_part(desired)])
+            tuning = ilc.tune(ref, desired.u_um - it.error_um, desired, law, noise)
+        compute.append(t_plan + time.perf_counter() - t1)
+        if judged(it) < judged(done[best]):
+            best = j
+        result = Result(tuple(done), best, stop, noise, tuning, tuple(compute))
+        if on_iteration is not None:
+            on_iteration(result)
+        if judged(it) > law.diverge_factor * judged(done[best]):
+            stop = (f"diverging: iteration {j} ({judged(it):.4g} um) worse than "
+                    f"{law.diverge_factor:g} x the best ({judged(done[best]):.4g} um)")
+            break
+        if judged(it) <= law.floor_factor * noise:
+            stop = f"noise floor: {judged(it):.4g} um within {law.floor_factor:g} x noise"
+            break
+    return Result(tuple(done), best, stop, noise, tuning, tuple(compute))
+
+
+# ----------------------------------------------------------------------------------------------
+# outputs
+# ----------------------------------------------------------------------------------------------
+
+
+def summary(result: Result, desired: track.Desired, law: ilc.Law,
+            meta: Mapping[str, object]) -> dict[str, Any]:
+    """The ``--json`` object: track's per-run figures for iteration 0 and the best iteration, and
+    one row per iteration (``iterations``)."""
+    first, best = result.iterations[0], result.best_iteration
+    outs = {"iteration_0": first.outcome, "learned": best.outcome}
+    data = experiment.summary(outs, desired, meta)
+    data.update({
+        "iterations": [it.as_dict() for it in result.iterations],
+        "best_iteration": best.index, "stop": result.stop,
+        "noise_estimate_um": result.noise_um,
+        "law": {"max_cutoff_Hz": law.cutoff_hz, "cutoff_Hz": result.tuning.cutoff_hz,
+                "gain": law.gain, "lead_samples": result.lead,
+                "per_harmonic": result.tuning.harmonic,
+                "measured_harmonics_Hz": [round(float(f), 3) for f in result.tuning.freqs_hz],
+                "floor_factor": law.floor_factor, "diverge_factor": law.diverge_factor, "region": law.region},
+        "seconds_per_iteration_compute": float(np.mean(result.compute_s)),
+    })
+    return data
+
+
+def waveform_text(it: Iteration, desired: track.Desired, meta: Mapping[str, object]) -> str:
+    """``waveform_learned.csv``: the iteration's whole waveform (conditioning and ramps
+    included) with the desired trajectory on its tracking part, for ``afmctl play``."""
+    from afmctl import waveformfile
+
+    wf = it.outcome.waveform
+    info = {**meta, "trajectory": desired.label, "iteration": it.index,
+            "rms_steady_um": f"{it.steady_um:.6g}"}
+    if desired.period_s is not None:
+        info["period_s"] = f"{desired.period_s:.9g}"
+    return waveformfile.format_text(wf.time_s, wf.voltage_v, wf.desired_um, info)
+
+
+def write_outputs(result: Result, desired: track.Desired, law: ilc.Law,
+                  meta: Mapping[str, object], out: Path) -> dict[str, Any]:
+    """``summary.json``, ``waveform_learned.csv`` (the best iteration) and ``learn.png``, each
+    replaced atomically: called after every iteration, so an interrupt keeps what finished."""
+    data = summary(result, desired, law, meta)
+    experiment.write_summary(data, out / "summary.json")
+    experiment.atomic_write(out / "waveform_learned.csv",
+                            waveform_text(result.best_iteration, desired, meta))
+    plot(result, desired, out / "learn.png")
+    return data
+
+
+def plot(result: Result, desired: track.Desired, path: Path) -> None:
+    """Error RMS against iteration, and the error of the first and last iteration against time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    its = result.iterations
+    fig, ax = plt.subplots(2, 1, figsize=(8, 7), constrained_layout=True)
+    idx = [it.index for it in its]
+    ax[0].semilogy(idx, [it.steady_um for it in its], "o-", label="steady RMS (readings, corrected)")
+    ax[0].semilogy(idx, [it.outcome.score.rms_between_um or np.nan for it in its], "s--",
+                   label="RMS between samples (plant)")
+    ax[0].semilogy(idx, [it.rms_imaging_um for it in its], "^:", label="imaging region RMS")
+    if np.isfinite(result.noise_um):
+        ax[0].axhline(result.noise_um, color="gray", lw=0.8, label="noise estimate")
+    ax[0].set(xlabel="iteration", ylabel="error (um)", title=f"Learning: {desired.label}")
+    t = np.arange(desired.u_um.size) * desired.dt_s
+    for it, c in ((its[0], "tab:red"), (its[-1], "tab:blue")):
+        ax[1].plot(t, -it.error_um, color=c, lw=0.8,
+                   label=f"iteration {it.index}: RMS {it.steady_um:.3g} um")
+    ax[1].set(xlabel="time (s)", ylabel="error (um)")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(loc="best", fontsize=8)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
