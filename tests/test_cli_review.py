@@ -22,3 +22,13 @@ def test_output_file_under_a_file_names_the_file(tmp_path: Path) -> None:
     res = CliRunner().invoke(main, ["identify", str(sweep), "-o", str(out)])
     assert res.exit_code == 2
     assert _err(res) == f"afmctl: error: -o {out}: {tmp_path / 'afile'} is a file, not a folder"
+
+
+def test_sweep_refuses_a_uselessly_narrow_range_before_touching_the_stage(tmp_path: Path) -> None:
+    """`--v-range 0 1e-6` once recorded four sweeps of noise; now exit 2, nothing written."""
+    out = tmp_path / "s"
+    res = CliRunner().invoke(main, ["sweep", "--out", str(out), "--v-range", "0", "1e-6"])
+    assert res.exit_code == 2
+    assert _err(res) == ("afmctl: error: --v-range 0 1e-06 V: too narrow to identify a model; "
+                         "at least 1% of the profile's span (300 V)")
+    assert not out.exists()
