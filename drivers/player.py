@@ -278,8 +278,10 @@ class Player:
 def _sigint_held() -> Iterator[None]:
     """Hold Ctrl-C (SIGINT) until the block ends, then raise KeyboardInterrupt if one came.
 
-    Only the main thread receives Python's signal handlers; elsewhere this does nothing."""
-    if threading.current_thread() is not threading.main_thread():
+    Only the main thread receives Python's signal handlers; elsewhere this does nothing, as it
+    does when SIGINT is ignored (a process started in the background, ``nohup``)."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is signal.SIG_IGN):
         yield
         return
     came: list[int] = []

@@ -175,3 +175,17 @@ def test_an_interrupted_play_disarms_the_watchdog(kind: str, profile: Profile) -
         st = stage.status()
     assert not st.running and st.output_v == 0.0
     assert not st.watchdog_armed and not st.watchdog_expired and st.last_error == 0
+
+
+def test_an_ignored_sigint_stays_ignored_while_a_block_is_handed_over() -> None:
+    """A process that ignores SIGINT (started in the background) is not interrupted by one that
+    lands while a block is written (it once became a KeyboardInterrupt only there)."""
+    from drivers.player import _sigint_held
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with _sigint_held():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
