@@ -45,6 +45,8 @@ class EmulatedTransport:
 #: Watchdog period a host arms for every run over a wire, in per-reply timeouts, when the profile
 #: gives none (2: one lost reply and its retry fit in a period).
 WATCHDOG_TIMEOUTS = 2.0
+#: The longest watchdog period a device takes, s (``WDT`` outside 0 ... 3600 s is error 2).
+WATCHDOG_MAX_S = 3600.0
 
 
 @dataclass(frozen=True)
@@ -165,6 +167,9 @@ def _transport(t: Table) -> Transport:
     watchdog = t.number("watchdog_s", WATCHDOG_TIMEOUTS * timeout, nonnegative=True)
     if 0 < watchdog <= timeout:
         raise t.fail("watchdog_s", f"must exceed timeout_s ({timeout:g} s), or be 0 (never armed)")
+    if watchdog > WATCHDOG_MAX_S:
+        raise t.fail("watchdog_s", f"at most {WATCHDOG_MAX_S:g} s (docs/protocol.md, WDT), "
+                                   f"got {watchdog:g}")
     if kind == "serial":
         return SerialTransport(t.string("url"), t.integer("baudrate", 115200, minimum=1), timeout,
                                watchdog)

@@ -178,6 +178,18 @@ class Player:
             self.armed = False
         self.period = 0.0
 
+    def disarm_after(self, cause: BaseException) -> None:
+        """After a failed run (the stage already safe): disarm the watchdog this play armed, so
+        that it does not expire on the idle device later and leave error 8 (watchdog expired)
+        behind an interrupt; skipped when the link itself failed. A failure becomes a note."""
+        if not self.armed or isinstance(cause, TimeoutError) or (
+                isinstance(cause, StageError) and cause.code < 1):
+            return
+        try:
+            self._disarm()
+        except (StageError, TimeoutError) as exc:
+            cause.add_note(f"disarming the watchdog after this failed too: {exc!r}")
+
     def _refilled(self, position: int) -> bool:
         """:meth:`_refill`; a block refused because the run has meanwhile stopped (an underrun, a
         slew fault, the watchdog) says so: the refusal alone would hide why."""
@@ -266,8 +278,10 @@ class Player:
 def _sigint_held() -> Iterator[None]:
     """Hold Ctrl-C (SIGINT) until the block ends, then raise KeyboardInterrupt if one came.
 
-    Only the main thread receives Python's signal handlers; elsewhere this does nothing."""
-    if threading.current_thread() is not threading.main_thread():
+    Only the main thread receives Python's signal handlers; elsewhere this does nothing, as it
+    does when SIGINT is ignored (a process started in the background, ``nohup``)."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is signal.SIG_IGN):
         yield
         return
     came: list[int] = []

@@ -362,6 +362,7 @@ class StageBase(abc.ABC):
         except BaseException as exc:
             self._deadline = None
             self._safe_state_quietly(exc)
+            player.disarm_after(exc)
             player.abandon(exc)
             raise
         finally:

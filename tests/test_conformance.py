@@ -155,3 +155,14 @@ def test_status_and_safe_by_shipped_profile_name(profile: Profile, tmp_path: Pat
     assert named.exit_code == 0 and json.loads(named.stdout)["profile"] == "emulated"
     missing = CliRunner().invoke(main, ["status", "--profile", "lab-modbuss"])
     assert missing.exit_code == 2 and "shipped: emulated, lab-modbus, lab-serial" in missing.stderr
+
+
+def test_the_limits_clause_leaves_no_sample_beyond_the_bound_in_the_table(
+        profile: Profile) -> None:
+    """The limits clause writes v_max into a table slot (never played); it overwrites it
+    afterwards, so a device that keeps stale slots cannot later play a sample beyond the bound."""
+    with stage_on("serial-socket", profile) as (stage, em):
+        bench = cf.Bench(stage, profile, -5.0, 5.0)
+        cf.check_limits(bench)
+        assert np.max(np.abs(em.table)) <= 5.0
+        assert stage.status().last_error == 0

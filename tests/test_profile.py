@@ -130,3 +130,14 @@ def test_shipped_profiles_by_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatc
     monkeypatch.chdir(tmp_path)  # a file of that name in the working directory wins
     (tmp_path / "emulated").write_text(LAB_SERIAL.read_text())
     assert load_profile("emulated").name == "lab-serial"
+
+
+def test_watchdog_beyond_the_protocol_range_is_refused_at_load(tmp_path: Path) -> None:
+    """`watchdog_s = 1e9` loaded, then failed mid-sweep with the device's error 2; now the
+    profile names it."""
+    path = tmp_path / "stage.toml"
+    path.write_text(LAB_SERIAL.read_text().replace("watchdog_s = 2.0", "watchdog_s = 1e9"))
+    with pytest.raises(FileFormatError, match=r"transport\.watchdog_s: at most 3600 s"):
+        load_profile(path)
+    path.write_text(LAB_SERIAL.read_text().replace("watchdog_s = 2.0", "watchdog_s = 3600"))
+    assert load_profile(path).transport.watchdog_s == 3600.0  # type: ignore[union-attr]

@@ -156,3 +156,39 @@ def test_killed_host_leaves_the_stage_at_zero(kind: str, profile: Profile,
     assert log[-1] == 0.0
     steps = np.abs(np.diff(log))
     assert steps.max() <= profile.limits.max_step_v(rate) * (1 + 1e-6)  # the ramp within the slew
+
+
+@pytest.mark.parametrize("kind", ["serial-socket", "modbus-tcp"])
+def test_an_interrupted_play_disarms_the_watchdog(kind: str, profile: Profile) -> None:
+    """Ctrl-C mid-run: the stage is made safe and the watchdog disarmed, so it does not expire a
+    period later on the idle device and leave error 8 (watchdog expired) for `afmctl status`."""
+    v = ramp_and_hold(profile, 5.0, 1.5)
+
+    def interrupt(first: int, *_: object) -> None:
+        raise KeyboardInterrupt
+
+    with stage_on(kind, profile) as (stage, _):
+        stage.watchdog_s = 0.3
+        with pytest.raises(KeyboardInterrupt):
+            stage.play(v, interrupt)
+        time.sleep(0.5)
+        st = stage.status()
+    assert not st.running and st.output_v == 0.0
+    assert not st.watchdog_armed and not st.watchdog_expired and st.last_error == 0
+
+
+def test_an_ignored_sigint_stays_ignored_while_a_block_is_handed_over() -> None:
+    """A process that ignores SIGINT (started in the background) is not interrupted by one that
+    lands while a block is written (it once became a KeyboardInterrupt only there)."""
+    from drivers.player import _sigint_held
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        try:
+            with _sigint_held():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)
+        except KeyboardInterrupt:  # caught here: it would end the whole pytest session
+            pytest.fail("an ignored SIGINT became a KeyboardInterrupt")
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -185,6 +185,7 @@ def check_output_file(path: str | Path, option: str, force: bool) -> Path:
             raise OutputError(f"{what}: exists; add --force to overwrite it")
     parent = p.absolute().parent
     if not parent.is_dir():
+        _existing_ancestor(p, what)  # a file on the way is named as such
         raise OutputError(f"{what}: folder {p.parent} does not exist")
     _writable_folder(parent, what)
     return p

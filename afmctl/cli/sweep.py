@@ -20,6 +20,10 @@ from afmctl.cli.base import (
 )
 from afmctl.tomlfile import InputError
 
+#: The narrowest --v-range, as a fraction of the profile's span (below it the loops are lost in
+#: the sensor's noise and the amplifier's resolution).
+MIN_SPAN = 0.01
+
 
 def _v_range(v_range: tuple[float, float] | None, prof) -> tuple[float, float]:  # noqa: ANN001
     """The voltage range to cover: given (checked against the profile) or the profile's."""
@@ -32,6 +36,9 @@ def _v_range(v_range: tuple[float, float] | None, prof) -> tuple[float, float]: 
     if lo < lim.v_min or hi > lim.v_max:
         raise InputError(f"--v-range {lo:g} {hi:g} V exceeds the profile's limits "
                          f"[{lim.v_min:g}, {lim.v_max:g}] V")
+    if hi - lo < MIN_SPAN * (lim.v_max - lim.v_min):
+        raise InputError(f"--v-range {lo:g} {hi:g} V: too narrow to identify a model; at least "
+                         f"{MIN_SPAN:.0%} of the profile's span ({lim.v_max - lim.v_min:g} V)")
     if not lo <= 0.0 <= hi:
         raise InputError(f"--v-range {lo:g} {hi:g} V must contain 0 V (every sweep starts and "
                          f"ends at the stage's safe output)")
