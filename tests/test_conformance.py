@@ -4,6 +4,7 @@ break a clause fail exactly that clause (the check can fail)."""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -166,3 +167,18 @@ def test_the_limits_clause_leaves_no_sample_beyond_the_bound_in_the_table(
         cf.check_limits(bench)
         assert np.max(np.abs(em.table)) <= 5.0
         assert stage.status().last_error == 0
+
+
+def test_the_dc_set_clause_stays_within_the_bound_on_a_device_without_slew_check(
+        profile: Profile, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A device that takes any DC step is never sent one beyond ``--max-voltage``: with a bound
+    too tight for a step over the slew limit, the clause says that part was not checked."""
+    def set_voltage(self: Emulator, v: float, now: float) -> None:  # range checked, not slew
+        self.tick(now)
+        self._check(np.array([float(np.float32(v))]))
+        self._hold(np.array([float(np.float32(v))]), now)
+    _break(monkeypatch, "set_voltage", set_voltage)
+    with stage_on("serial-socket", profile) as (stage, em):
+        detail = cf.check_dc_set(cf.Bench(stage, profile, -2.0, 2.0))
+        assert np.max(np.abs(em.applied_log(time.monotonic()))) <= 2.0
+    assert "NOT checked" in detail

@@ -166,15 +166,20 @@ def check_dc_set(bench: Bench) -> str:
     target = bench.hi if bench.hi > 0 else bench.lo
     v = math.copysign(min(abs(target), step), target) / 3
     stage.set_voltage(v)
-    expect(stage.voltage() == float(np.float32(v)),
+    expect(np.float32(stage.voltage()) == np.float32(v),  # the text reply carries 9 digits
            f"a DC set of {v!r} V reads back {stage.voltage()!r} V")
-    full = bench.profile.limits.max_step_v(bench.rate)
-    expect_code(lambda: stage.set_voltage(v + math.copysign(1.5 * full, v)), 4,
-                "a DC step of 1.5 slew steps")
+    over = 1.2 * bench.profile.limits.max_step_v(bench.rate)  # a step that must be refused
+    # within the bounds even on a device that would wrongly take it
+    to = next((v + d * over for d in (1.0, -1.0) if bench.lo <= v + d * over <= bench.hi), None)
+    if to is not None:
+        expect_code(lambda: stage.set_voltage(to), 4, f"a DC step of 1.2 slew steps to {to:.4g} V")
     expect_code(lambda: stage.set_voltage(math.nan), 3, "a NaN DC set")
-    expect(stage.voltage() == float(np.float32(v)), "a refused DC set changed the output")
+    expect(np.float32(stage.voltage()) == np.float32(v), "a refused DC set changed the output")
     stage.safe_state()
-    return f"DC set {v:.4g} V applied as float32; 1.5-step and NaN sets refused (4, 3)"
+    slew = ("a 1.2-step set refused (4)" if to is not None else
+            f"the slew refusal NOT checked: a 1.2-step set ({over:.3g} V) does not fit the bounds "
+            f"[{bench.lo:g}, {bench.hi:g}] V (raise --max-voltage)")
+    return f"DC set {v:.4g} V applied as float32; NaN refused (3); {slew}"
 
 
 def check_limits(bench: Bench) -> str:
