@@ -8,8 +8,10 @@ Given measured sweeps, :func:`diagnose`
    on the first halves, each sweep weighing the same;
 3. measures each one's RMS error on the second halves (the root mean of the per-sweep mean squares)
    and its *gain* = base / extended held-out RMS;
-4. names the candidate with the smallest held-out RMS whose gain clears the bar for the parameters
-   it adds (:func:`required_gain`), or ``none``;
+4. reads every held-out RMS against the noise floor (the sensor noise of each sweep, as the
+   caller or :mod:`afmctl.noise` gives it) and decides (:mod:`afmctl.verdict`): a candidate that
+   brings the error near the floor, ``none`` when the paper's model is already there, or
+   ``unexplained`` when nothing is (with how far, the residual's signature and what to measure);
 5. analyses the base model's residuals against time, field, field rate, frequency, amplitude,
    turning points and between sweeps (:func:`residual_signature`), and refits the winner on all the
    data for the model file.
@@ -32,8 +34,10 @@ from afmctl import extension as ext
 from afmctl import identify as idf
 from afmctl import parametrization as pz
 from afmctl import transducer as td
+from afmctl import verdict as vd
 from afmctl.sweeps import Sweep
 from afmctl.tomlfile import InputError
+from afmctl.verdict import ratio, required_gain
 
 FloatArray = NDArray[np.float64]
 
@@ -52,6 +56,8 @@ CAUSES = {
     "second-mode": "a second mechanical mode of the stage, rung by the triangle's corners",
     "voltage-gain-drift": "the true applied voltage differs between experiments (the paper's "
                           "Section 6 hypothesis): each sweep has its own gain",
+    "unexplained": "neither the paper's model nor any candidate explains the data down to the "
+                   "sensor's noise: an effect outside the vocabulary (or several at once)",
 }
 
 
@@ -62,17 +68,7 @@ class Settings:
     identify: idf.Settings = idf.Settings()
     max_nfev: int = 60
     candidates: tuple[str, ...] = ext.NAMES
-
-
-def required_gain(n_params: int) -> float:
-    """Held-out gain an extension with ``n_params`` parameters must reach to be named: 1.1 for one
-    parameter and 0.05 more per further parameter (a parameter must buy at least 5 %)."""
-    return 1.1 + 0.05 * max(n_params - 1, 0) if n_params else 1.0
-
-
-def ratio(base_um: float, other_um: float) -> float:
-    """Gain of a model over the base: base / its held-out RMS (inf for a perfect one)."""
-    return base_um / other_um if other_um > 0 else math.inf
+    rule: vd.Rule = vd.Rule()
 
 
 def fitted_text(parameters: dict[str, float]) -> str:
@@ -90,8 +86,9 @@ class Judged:
     heldout_per_sweep_um: tuple[float, ...]
     fit_seconds: float
 
-    def as_dict(self, base_rms: float) -> dict[str, Any]:
+    def as_dict(self, base_rms: float, noise_um: float) -> dict[str, Any]:
         return {"heldout_rms_um": self.heldout_rms_um, "gain": ratio(base_rms, self.heldout_rms_um),
+                "over_noise": ratio(self.heldout_rms_um, noise_um),
                 "required_gain": required_gain(self.n_params), "parameters_added": self.n_params,
                 "heldout_rms_per_sweep_um": list(self.heldout_per_sweep_um),
                 "fitted": self.fitted.parameters, "fit_success": self.fitted.success,
@@ -100,13 +97,16 @@ class Judged:
 
 @dataclass(frozen=True)
 class Diagnosis:
-    """Outcome of :func:`diagnose`: the cause, held-out RMS (um) of the base and the extended
-    model, the candidate table, both models refitted on all the data (the extended one with
-    its per-sweep applied-voltage gains), the residual signature and the wall time (s)."""
+    """Outcome of :func:`diagnose`: the verdict, held-out RMS (um) of the base and the extended
+    model, the noise floor (um, overall and per sweep), the candidate table, both models refitted on
+    all the data (the extended one with its per-sweep applied-voltage gains; the base again if no
+    cause is named), the residual signature and the wall time (s)."""
 
     cause: str
     base_rms_um: float
     extended_rms_um: float
+    noise_um: float
+    noise_per_sweep_um: tuple[float, ...]
     table: dict[str, Judged]
     base_model: td.Transducer
     extended_model: td.Transducer
@@ -119,30 +119,62 @@ class Diagnosis:
     def gain(self) -> float:
         return ratio(self.base_rms_um, self.extended_rms_um)
 
+    @property
+    def base_over_noise(self) -> float:
+        return ratio(self.base_rms_um, self.noise_um)
+
+    @property
+    def extended_over_noise(self) -> float:
+        return ratio(self.extended_rms_um, self.noise_um)
+
+    @property
+    def closest(self) -> Judged:
+        """The model (base or candidate) with the smallest held-out RMS."""
+        return min(self.table.values(), key=lambda j: j.heldout_rms_um)
+
     def as_dict(self) -> dict[str, Any]:
         """The ``diagnosis.json`` object (and ``--json`` output); non-finite numbers are null."""
+        closest = self.closest
         return json_safe({
-            "cause": self.cause, "explanation": CAUSES[self.cause],
+            "cause": self.cause, "explanation": CAUSES.get(self.cause, CAUSES["unexplained"]),
             "base_rms_um": self.base_rms_um, "extended_rms_um": self.extended_rms_um,
-            "gain": self.gain, "evidence": self.evidence(),
-            "candidates": {k: j.as_dict(self.base_rms_um) for k, j in self.table.items()},
+            "gain": self.gain, "noise_um": self.noise_um,
+            "noise_per_sweep_um": list(self.noise_per_sweep_um),
+            "base_over_noise": self.base_over_noise,
+            "extended_over_noise": self.extended_over_noise,
+            "closest": {"model": closest.fitted.name, "heldout_rms_um": closest.heldout_rms_um,
+                        "over_noise": ratio(closest.heldout_rms_um, self.noise_um)},
+            "evidence": self.evidence(),
+            "suggestions": vd.suggestions(self.signature) if self.cause == "unexplained" else [],
+            "candidates": {k: j.as_dict(self.base_rms_um, self.noise_um)
+                           for k, j in self.table.items()},
             "extended_gains": list(self.extended_gains),
             "residuals": self.signature, "sweeps": list(self.files),
             "seconds": round(self.seconds, 2),
             "method": "fit on the first half of every sweep, judged on the second half (state "
-                      "carried through); each sweep weighs the same; base and extended models "
-                      "then refitted on all the data"})
+                      "carried through); each sweep weighs the same; every held-out RMS read "
+                      "against the noise floor; base and extended models then refitted on all "
+                      "the data"})
 
     def evidence(self) -> str:
-        """One paragraph: why this cause (or none)."""
+        """One paragraph: why this cause (or none, or unexplained)."""
         ranked = sorted(self.table.values(), key=lambda j: j.heldout_rms_um)
-        lines = [f"{j.fitted.name}: held-out {j.heldout_rms_um:.4f} um, gain "
+        lines = [f"{j.fitted.name}: held-out {j.heldout_rms_um:.4f} um "
+                 f"({ratio(j.heldout_rms_um, self.noise_um):.2f}x noise), gain "
                  f"{ratio(self.base_rms_um, j.heldout_rms_um):.2f} (needs "
                  f"{required_gain(j.n_params):.2f})" for j in ranked[:3]]
-        fitted = fitted_text(self.table[self.cause].fitted.parameters)
-        head = (f"{self.cause}: held-out RMS {self.base_rms_um:.4f} -> {self.extended_rms_um:.4f} "
-                f"um (gain {self.gain:.2f})" + (f" with {fitted}" if fitted else ""))
-        return head + "; best candidates: " + "; ".join(lines)
+        floor = (f"noise floor {self.noise_um:.4f} um; base model at "
+                 f"{self.base_over_noise:.2f}x noise")
+        if self.cause == "unexplained":
+            c = self.closest
+            head = (f"unexplained: {floor}, the closest model ({c.fitted.name}) at "
+                    f"{ratio(c.heldout_rms_um, self.noise_um):.2f}x: nothing reaches the floor")
+        else:
+            fitted = fitted_text(self.table[self.cause].fitted.parameters)
+            head = (f"{self.cause}: {floor}, held-out RMS {self.base_rms_um:.4f} -> "
+                    f"{self.extended_rms_um:.4f} um (gain {self.gain:.2f}, "
+                    f"{self.extended_over_noise:.2f}x noise)" + (f" with {fitted}" if fitted else ""))
+        return head + "; best models: " + "; ".join(lines)
 
 
 def json_safe(obj: Any) -> Any:
@@ -216,9 +248,31 @@ def _after_turns(v: FloatArray, dt: float, window_s: float) -> NDArray[np.bool_]
     return near
 
 
+def tone_fraction(r: FloatArray, dt: float, drive_hz: float | None) -> float:
+    """Fraction of the residual's power (mean removed) in its strongest spectral line that is no
+    harmonic of the drive (three bins around the peak; bins within one of a harmonic skipped).
+    White noise gives about 3 ln(N) / N; interference at a fixed frequency approaches 1."""
+    spec = np.abs(np.fft.rfft(r - np.mean(r))) ** 2
+    spec[0] = 0.0
+    total = float(np.sum(spec))
+    if total == 0 or spec.size < 8:
+        return 0.0
+    f = np.fft.rfftfreq(r.size, dt)
+    free = np.ones(spec.size, dtype=bool)
+    if drive_hz:
+        df = f[1]
+        near = np.abs(f / drive_hz - np.round(f / drive_hz)) * drive_hz <= 1.5 * df
+        free &= ~near
+    if not free.any():
+        return 0.0
+    k = int(np.argmax(np.where(free, spec, 0.0)))
+    return float(np.sum(spec[max(k - 1, 1):k + 2]) / total)
+
+
 def residual_signature(model: td.Transducer, sweeps: Sequence[Sweep]) -> dict[str, Any]:
     """How the model's residual (measured - predicted, um) depends on time, field, field rate,
-    frequency, amplitude, turning points, and how it differs between sweeps."""
+    frequency, amplitude, turning points, and how it differs between sweeps; the strongest tone
+    that is no harmonic of the drive (:func:`tone_fraction`)."""
     per, r_all, e_all, rate_all = [], [], [], []
     for s in sweeps:
         m = s.mask(None)
@@ -235,6 +289,7 @@ def residual_signature(model: td.Transducer, sweeps: Sequence[Sweep]) -> dict[st
             "corr_field": _corr(r, e), "corr_field_squared": _corr(r, e * e),
             "corr_field_rate": _corr(r, rate),
             "rms_after_turning_points_um": rms_turn,
+            "tone_fraction": tone_fraction(r, s.dt, s.frequency_hz),
             "rms_elsewhere_um": float(np.sqrt(np.mean(r[~turns] ** 2))) if (~turns).any()
             else float("nan")})
         r_all.append(r)
@@ -243,8 +298,14 @@ def residual_signature(model: td.Transducer, sweeps: Sequence[Sweep]) -> dict[st
     r, e, rate = (np.concatenate(a) for a in (r_all, e_all, rate_all))
     means = [p["mean_um"] for p in per]
     freq = [(p["frequency_hz"], p["rms_um"]) for p in per if p["frequency_hz"]]
-    return {"sweeps": per, "corr_field": _corr(r, e), "corr_field_squared": _corr(r, e * e),
+    turn = [p["rms_after_turning_points_um"] / p["rms_elsewhere_um"] for p in per
+            if p["rms_elsewhere_um"] > 0 and math.isfinite(p["rms_after_turning_points_um"])]
+    return {"sweeps": per, "rms_um": float(np.sqrt(np.mean(r ** 2))),
+            "corr_field": _corr(r, e), "corr_field_squared": _corr(r, e * e),
             "corr_field_rate": _corr(r, rate),
+            "corr_time": float(np.mean([p["corr_time"] for p in per])),
+            "turning_point_ratio": max(turn, default=1.0),
+            "tone_fraction": max(p["tone_fraction"] for p in per),
             "between_sweeps_mean_spread_um": float(np.ptp(means)) if len(means) > 1 else 0.0,
             "rms_vs_frequency": sorted(freq, key=lambda t: t[0])}
 
@@ -309,24 +370,33 @@ def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:
     return [n for n in settings.candidates if n != "voltage-gain-drift" or n_sweeps >= 2]
 
 
-def choose(table: dict[str, Judged]) -> str:
-    """The candidate with the smallest held-out RMS among those whose gain clears
-    :func:`required_gain`; ``none`` if no extension does."""
-    base = table["none"].heldout_rms_um
-    able = [j for j in table.values()
-            if ratio(base, j.heldout_rms_um) >= required_gain(j.n_params)]
-    return min(able, key=lambda j: j.heldout_rms_um, default=table["none"]).fitted.name
+def choose(table: dict[str, Judged], floor_um: float, rule: vd.Rule) -> str:
+    """The verdict on the candidate table against the noise floor ``floor_um`` (um):
+    :func:`afmctl.verdict.decide`."""
+    return vd.decide([vd.Scored(j.fitted.name, j.heldout_rms_um, j.n_params)
+                      for j in table.values()], floor_um, rule)
 
 
-def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
+def check_noise(sweeps: Sequence[Sweep], noise_um: Sequence[float]) -> tuple[float, ...]:
+    """The per-sweep noise (um) as floats; DiagnoseInputError unless one positive finite value
+    per sweep."""
+    noise = tuple(float(n) for n in noise_um)
+    if len(noise) != len(sweeps) or not all(math.isfinite(n) and n > 0 for n in noise):
+        raise DiagnoseInputError(f"need one positive sensor noise (um) per sweep, got {noise}")
+    return noise
+
+
+def diagnose(sweeps: Sequence[Sweep], noise_um: Sequence[float], settings: Settings = Settings(),
              start: td.Transducer | None = None,
              progress: Callable[[str], None] | None = None) -> Diagnosis:
-    """Find what the model gets wrong on ``sweeps``, fit each candidate cause, name the winner.
+    """Find what the model gets wrong on ``sweeps``, fit each candidate cause, give the verdict.
 
     Parameters
     ----------
     sweeps : sequence of Sweep
         Measured sweeps (at least one; ``voltage-gain-drift`` needs two).
+    noise_um : sequence of float
+        The sensor noise (1 sigma, um) of each sweep: the floor every held-out RMS is read against.
     settings : Settings
     start : Transducer, optional
         A model (lognormal/normal densities) to start the fits from instead of identifying one.
@@ -336,17 +406,19 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     Returns
     -------
     Diagnosis
-        Cause, base and extended held-out RMS (um), the per-candidate table, and the base model
-        and the winner refitted on all the data.
+        Verdict, base and extended held-out RMS (um), noise floor, the per-candidate table, and the
+        base model and the winner refitted on all the data.
 
     Raises
     ------
     DiagnoseInputError
-        Sweeps too short to split, or without a voltage excursion.
+        Sweeps too short to split, or without a voltage excursion; a noise that is not positive.
     """
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
     check(sweeps)
+    noise = check_noise(sweeps, noise_um)
+    floor = vd.floor(noise)
     thickness, _ = idf.resolve_thickness(sweeps, settings.identify)
     halves = [first_half(s) for s in sweeps]
     range_um = max(float(np.ptp(s.displacement_um[s.mask(None)])) for s in sweeps)
@@ -362,29 +434,41 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
         fitted, n_params = _fit(name, data, x0, thickness, range_um, settings)
         rms, per = heldout(fitted.model, fitted.gains, sweeps)
         table[name] = Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
-        say(f"  {name:20s} held-out RMS {rms:.4f} um ({time.perf_counter() - t1:.1f} s)")
-    cause = choose(table)
-    say(f"cause: {cause}; refitting the base model and the winner on all the data ...")
+        say(f"  {name:20s} held-out RMS {rms:.4f} um = {rms / floor:.2f}x noise "
+            f"({time.perf_counter() - t1:.1f} s)")
+    cause = choose(table, floor, settings.rule)
+    say(f"verdict: {cause}; refitting the base model and the winner on all the data ...")
     everything = _prepare(sweeps, thickness, settings.identify)
     base, _ = _fit("none", everything, table["none"].fitted.x, thickness, range_um, settings)
-    final = base if cause == "none" else _fit(cause, everything, table[cause].fitted.x[:6],
+    named = cause if cause in table else "none"
+    final = base if named == "none" else _fit(named, everything, table[named].fitted.x[:6],
                                               thickness, range_um, settings,
-                                              table[cause].fitted.x)[0]
-    return Diagnosis(cause, table["none"].heldout_rms_um, table[cause].heldout_rms_um, table,
-                     base.model, final.model, final.gains, residual_signature(base.model, sweeps),
-                     time.perf_counter() - t0, tuple(s.path or s.name for s in sweeps))
+                                              table[named].fitted.x)[0]
+    return Diagnosis(cause, table["none"].heldout_rms_um, table[named].heldout_rms_um, floor,
+                     noise, table, base.model, final.model, final.gains,
+                     residual_signature(base.model, sweeps), time.perf_counter() - t0,
+                     tuple(s.path or s.name for s in sweeps))
+
+
+def _suggestion_lines(d: Diagnosis) -> list[str]:
+    if d.cause != "unexplained":
+        return []
+    return ["", "What the residual shows, and what would tell more:", ""] + [
+        f"- {s['reading']}: {s['measure']}." for s in vd.suggestions(d.signature)]
 
 
 def report(d: Diagnosis, figure: str) -> str:
     """A short Markdown report: the cause, its evidence, the candidate table, the residuals."""
     lines = [f"# afmctl diagnose: {d.cause}", "", CAUSES[d.cause] + ".", "", d.evidence() + ".",
+             *_suggestion_lines(d),
              "", "Held-out RMS: each candidate fitted on the first half of every sweep and judged "
              "on the second half.", "",
-             "| candidate | parameters added | held-out RMS (um) | gain | needed | fitted |",
-             "|---|---:|---:|---:|---:|---|"]
+             "| candidate | parameters added | held-out RMS (um) | x noise | gain | needed | fitted |",
+             "|---|---:|---:|---:|---:|---:|---|"]
     for name, j in sorted(d.table.items(), key=lambda kv: kv[1].heldout_rms_um):
         fitted = fitted_text(j.fitted.parameters)
         lines.append(f"| {name} | {j.n_params} | {j.heldout_rms_um:.4f} | "
+                     f"{ratio(j.heldout_rms_um, d.noise_um):.2f} | "
                      f"{ratio(d.base_rms_um, j.heldout_rms_um):.2f} | "
                      f"{required_gain(j.n_params):.2f} | {fitted} |")
     sig = d.signature

@@ -22,9 +22,12 @@ from afmctl.tomlfile import InputError
                    "table sets the fit options.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output folder (default: ./afmctl-diagnose-<time>).")
+@click.option("--noise-um", "noise_um", type=float, default=None,
+              help="Sensor noise (1 sigma, um) of every sweep: the floor the errors are read "
+                   "against.")
 @click.option("--json", "as_json", is_flag=True, help="Print diagnosis.json on stdout.")
 def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str | None,
-             out_dir: str | None, as_json: bool) -> None:
+             out_dir: str | None, noise_um: float | None, as_json: bool) -> None:
     """Find what the model gets wrong on SWEEP_FILES, name the physical cause, extend the model
     and measure the gain on held-out data.
 
@@ -46,6 +49,9 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
             raise InputError(f"--model {model_path}: {exc}") from None
     idf.resolve_thickness(data, settings.identify)
     dg.check(data)
+    if noise_um is None:
+        raise InputError("--noise-um is required (the sensor noise, 1 sigma, um)")
+    noise = dg.check_noise(data, [noise_um] * len(data))
     out = Path(out_dir) if out_dir else Path(f"afmctl-diagnose-{time.strftime('%Y%m%d-%H%M%S')}")
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out}: exists and is not a folder")
@@ -53,7 +59,7 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
         fail(f"{out} already holds a diagnosis; choose another --out")
     click.echo(f"diagnosing {len(data)} sweep(s): "
                f"{len(dg.candidate_names(len(data), settings))} candidates ...", err=True)
-    d = dg.diagnose(data, settings, start, progress=lambda m: click.echo(m, err=True))
+    d = dg.diagnose(data, noise, settings, start, progress=lambda m: click.echo(m, err=True))
     doc = d.as_dict()
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"  # before anything is written
     out.mkdir(parents=True, exist_ok=True)
@@ -71,7 +77,8 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     atomic_write(out / "report.md", dg.report(d, "residuals.png"))
     atomic_write(out / "diagnosis.json", text)  # last: marks the folder complete
     click.echo(f"cause: {d.cause} (held-out RMS {d.base_rms_um:.4f} -> {d.extended_rms_um:.4f} um, "
-               f"gain {d.gain:.2f}); wrote {out}/diagnosis.json, extended.toml, report.md, "
+               f"gain {d.gain:.2f}; {d.base_over_noise:.2f}x -> {d.extended_over_noise:.2f}x the "
+               f"noise {d.noise_um:.4f} um); wrote {out}/diagnosis.json, extended.toml, report.md, "
                f"residuals.png", err=True)
     if as_json:
         click.echo(json.dumps(doc, allow_nan=False))
