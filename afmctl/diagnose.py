@@ -63,10 +63,12 @@ CAUSES = {
 
 @dataclass(frozen=True)
 class Settings:
-    """Options of :func:`diagnose`: identification settings of the fits and the solver budget."""
+    """Options of :func:`diagnose`: identification settings of the fits, the solver budget per run,
+    the number of starts per candidate, the candidates and the verdict's thresholds."""
 
     identify: idf.Settings = idf.Settings()
     max_nfev: int = 60
+    n_starts: int = 2
     candidates: tuple[str, ...] = ext.NAMES
     rule: vd.Rule = vd.Rule()
 
@@ -249,10 +251,10 @@ def _after_turns(v: FloatArray, dt: float, window_s: float) -> NDArray[np.bool_]
 
 
 def tone_fraction(r: FloatArray, dt: float, drive_hz: float | None) -> float:
-    """Fraction of the residual's power (mean removed) in its strongest spectral line that is no
-    harmonic of the drive (three bins around the peak; bins within one of a harmonic skipped).
-    White noise gives about 3 ln(N) / N; interference at a fixed frequency approaches 1."""
-    spec = np.abs(np.fft.rfft(r - np.mean(r))) ** 2
+    """Fraction of the residual's power (mean removed, Hann window) in its strongest spectral line
+    that is no harmonic of the drive (five bins around the peak; bins within three of a harmonic
+    skipped). White noise gives about 5 ln(N) / N; interference at a fixed frequency approaches 1."""
+    spec = np.abs(np.fft.rfft((r - np.mean(r)) * np.hanning(r.size))) ** 2
     spec[0] = 0.0
     total = float(np.sum(spec))
     if total == 0 or spec.size < 8:
@@ -261,12 +263,12 @@ def tone_fraction(r: FloatArray, dt: float, drive_hz: float | None) -> float:
     free = np.ones(spec.size, dtype=bool)
     if drive_hz:
         df = f[1]
-        near = np.abs(f / drive_hz - np.round(f / drive_hz)) * drive_hz <= 1.5 * df
+        near = np.abs(f / drive_hz - np.round(f / drive_hz)) * drive_hz <= 3.5 * df
         free &= ~near
     if not free.any():
         return 0.0
     k = int(np.argmax(np.where(free, spec, 0.0)))
-    return float(np.sum(spec[max(k - 1, 1):k + 2]) / total)
+    return float(np.sum(spec[max(k - 2, 1):k + 3]) / total)
 
 
 def residual_signature(model: td.Transducer, sweeps: Sequence[Sweep]) -> dict[str, Any]:
@@ -362,7 +364,8 @@ def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um
     if z_start is not None:
         cand = replace(cand, starts=(tuple(z_start[6:]),))
     space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um)
-    return ext.fit(space, x_start, thickness, settings.max_nfev), cand.n_params
+    return (ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts),
+            cand.n_params)
 
 
 def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:

@@ -14,7 +14,7 @@ Chain of one run, sample period ``dt`` (all units: V, um, s, Hz):
    ``a = exp(-2 pi f_a dt)``;
 3. the transducer (the paper's model) gives the rod displacement ``u``;
 4. ``second_mode``: ``x'' + 2 zeta w x' + w^2 x = w^2 gain u``, ``w = 2 pi f_2``; ``w = u + x``;
-5. ``sensor_nonlinearity``: the gauge reads ``w + c w^2``;
+5. ``sensor_nonlinearity``: the gauge reads ``w + c w^2 + c3 w^3``;
 6. ``sensor_delay``: the recorder holds the reading of ``d`` samples earlier (fractional ``d`` by
    linear interpolation).
 
@@ -60,7 +60,10 @@ class Effects:
     sensor_delay_samples : float
         Pure latency of the sensor readback, samples (fractional: linear interpolation).
     sensor_quadratic_per_um : float
-        Gauge nonlinearity: measured = u + c u^2, 1/um.
+        Gauge nonlinearity, quadratic term: measured = u + c u^2 + c3 u^3, c in 1/um.
+    sensor_cubic_per_um2 : float
+        Its cubic term c3, 1/um^2 (with ``c``, any smooth gauge error to third order about any
+        point: the offset and the gain are the model's own).
     second_mode : SecondMode or None
     voltage_gain_sigma : float
         Applied-voltage gain is ``1 + N(0, sigma)``, drawn once per run. A model cannot know the
@@ -72,6 +75,7 @@ class Effects:
     amplifier_bandwidth_hz: float | None = None
     sensor_delay_samples: float = 0.0
     sensor_quadratic_per_um: float = 0.0
+    sensor_cubic_per_um2: float = 0.0
     second_mode: SecondMode | None = None
     voltage_gain_sigma: float = 0.0
 
@@ -180,17 +184,27 @@ def remove_mode(chain: Chain, w: FloatArray) -> FloatArray:
 
 def gauge(effects: Effects, w: FloatArray) -> FloatArray:
     """Sensor reading of displacement ``w`` (um)."""
-    c = effects.sensor_quadratic_per_um
-    return w + c * w * w if c else w
+    c, c3 = effects.sensor_quadratic_per_um, effects.sensor_cubic_per_um2
+    return w + c * w * w + c3 * w * w * w if c or c3 else w
+
+
+#: Newton steps of :func:`ungauge` with a cubic term (quadratic convergence from the quadratic root).
+UNGAUGE_STEPS = 6
 
 
 def ungauge(effects: Effects, y: FloatArray) -> FloatArray:
-    """Displacement (um) whose reading is ``y``: the root of ``w + c w^2 = y`` nearest ``y``."""
-    c = effects.sensor_quadratic_per_um
-    if not c:
+    """Displacement (um) whose reading is ``y``: the root of ``w + c w^2 + c3 w^3 = y`` nearest
+    ``y`` (closed form without a cubic term; else Newton from the quadratic's root)."""
+    c, c3 = effects.sensor_quadratic_per_um, effects.sensor_cubic_per_um2
+    if not c and not c3:
         return y
-    disc = np.maximum(1.0 + 4.0 * c * y, 0.0)
-    return 2.0 * y / (1.0 + np.sqrt(disc))
+    w = 2.0 * y / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * c * y, 0.0)))
+    if not c3:
+        return w
+    for _ in range(UNGAUGE_STEPS):
+        slope = 1.0 + 2.0 * c * w + 3.0 * c3 * w * w
+        w = w - (w + c * w * w + c3 * w * w * w - y) / np.where(np.abs(slope) > 1e-3, slope, 1e-3)
+    return w
 
 
 def delay(x: FloatArray, d: float, history: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -237,7 +251,8 @@ def measure(chain: Chain, u: FloatArray, mode_zi: FloatArray,
 def sensor_part(e: Effects) -> Effects:
     """Only the effects that misreport the position (delay, gauge), not those that move it."""
     return Effects(sensor_delay_samples=e.sensor_delay_samples,
-                   sensor_quadratic_per_um=e.sensor_quadratic_per_um)
+                   sensor_quadratic_per_um=e.sensor_quadratic_per_um,
+                   sensor_cubic_per_um2=e.sensor_cubic_per_um2)
 
 
 def sensor_correct(chain: Chain, reading_um: FloatArray) -> FloatArray:

@@ -11,7 +11,7 @@ name                     phi (internal)                                   acts o
 ``thermal-relaxation``   log E_th (MV/m), log nu0 (1/s)                   kernel (10) for (4)
 ``amplifier-lag``        log f_a (Hz)                                     field, before (13)
 ``sensor-delay``         d (samples)                                      design columns
-``sensor-nonlinearity``  c R (c in 1/um, R the data's range in um)        measured displacement
+``sensor-nonlinearity``  c R, c3 R^2 (1/um, 1/um^2; R the range, um)     measured displacement
 ``second-mode``          log f_2 (Hz), log zeta_2, gain                   design columns
 ``voltage-gain-drift``   log g_s of every sweep but the last (mean 0)     field, per sweep
 =======================  ===============================================  =======================
@@ -65,14 +65,15 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float,
     cands = [
         Candidate("none", (), ((),), (), ()),
         Candidate("thermal-relaxation", ("log_field_scale_MV_per_m", "log_attempt_rate_per_s"),
-                  tuple((lf(f * e_max), lf(r)) for f in (0.01, 0.04) for r in (30.0, 300.0)),
+                  ((lf(0.002 * e_max), lf(1e3)),)  # close to the relay: the base model
+                  + tuple((lf(f * e_max), lf(r)) for f in (0.01, 0.04) for r in (30.0, 300.0)),
                   (lf(1e-3 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e5))),
         Candidate("amplifier-lag", ("log_bandwidth_Hz",), ((ln - 3,), (ln - 1.5,), (ln,)),
                   (lf(1.0),), (ln + 3,)),
         Candidate("sensor-delay", ("delay_samples",), ((0.5,), (2.0,), (5.0,), (10.0,)),
                   (0.0,), (50.0,)),
-        Candidate("sensor-nonlinearity", ("quadratic_times_range",), ((-0.05,), (0.05,)),
-                  (-0.3,), (0.3,)),
+        Candidate("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
+                  ((-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)), (-0.3, -0.3), (0.3, 0.3)),
         Candidate("second-mode", ("log_frequency_Hz", "log_damping_ratio", "gain"),
                   tuple((lf(f * rod_hz), lf(0.03), g) for f in (1.5, 3.0, 6.0) for g in (0.1,)
                         if f * rod_hz < 0.8 * nyquist_hz) or ((ln - 1, lf(0.03), 0.1),),
@@ -157,11 +158,17 @@ class ExtendedSpace:
                                                         float(phi[2])))
         return fx.Effects()
 
+    def _gauge(self, phi: FloatArray) -> fx.Effects:
+        if self.candidate.name != "sensor-nonlinearity":
+            return fx.Effects()
+        return fx.Effects(sensor_quadratic_per_um=float(phi[0]) / self.range_um,
+                          sensor_cubic_per_um2=float(phi[1]) / self.range_um ** 2)
+
     def system(self, z: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Weighted design matrix ``[L[Q], L[Q^2], 1]`` (after the output effects) and target."""
         theta, phi = np.exp(z[:6]), z[6:]
         out = self._output(phi)
-        c = float(phi[0]) / self.range_um if self.candidate.name == "sensor-nonlinearity" else 0.0
+        gauge = self._gauge(phi)
         blocks, ys = [], []
         for q, p, w in zip(self._q(theta, phi), self.preps, self.weights, strict=True):
             cols = pz.sweep_columns(q, theta[4], theta[5], p.dt)
@@ -170,7 +177,7 @@ class ExtendedSpace:
                 cols = np.column_stack([fx.measure(chain, col, *fx.rest(chain, float(col[0])))[0]
                                         for col in cols.T])
             blocks.append(w * cols[p.mask])
-            ys.append(w * fx.ungauge(fx.Effects(sensor_quadratic_per_um=c), p.y))
+            ys.append(w * fx.ungauge(gauge, p.y))
         return np.vstack(blocks), np.concatenate(ys)
 
     def residual(self, z: FloatArray) -> FloatArray:
@@ -191,8 +198,7 @@ class ExtendedSpace:
         elif name == "amplifier-lag":
             model = replace(model, effects=fx.Effects(amplifier_bandwidth_hz=math.exp(phi[0])))
         elif name == "sensor-nonlinearity":
-            model = replace(model, effects=fx.Effects(
-                sensor_quadratic_per_um=float(phi[0]) / self.range_um))
+            model = replace(model, effects=self._gauge(phi))
         elif name == "voltage-gain-drift":
             gains = tuple(math.exp(v) for v in _log_gains(phi))
             model = replace(model, effects=fx.Effects(voltage_gain_sigma=float(np.std(gains,
@@ -212,7 +218,8 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
     if name == "sensor-delay":
         return {"delay_samples": e.sensor_delay_samples}
     if name == "sensor-nonlinearity":
-        return {"quadratic_per_um": e.sensor_quadratic_per_um}
+        return {"quadratic_per_um": e.sensor_quadratic_per_um,
+                "cubic_per_um2": e.sensor_cubic_per_um2}
     if name == "second-mode" and e.second_mode is not None:
         m = e.second_mode
         return {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio, "gain": m.gain}
@@ -222,18 +229,22 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
 
 
 def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
-        max_nfev: int) -> Extended:
-    """Fit ``(x, phi)`` from the base parameters ``x_base`` and the best of the candidate's
-    starting ``phi`` (by cost)."""
+        max_nfev: int, n_starts: int = 1) -> Extended:
+    """Fit ``(x, phi)`` from the base parameters ``x_base``: a least-squares run from each of the
+    ``n_starts`` best of the candidate's starting ``phi`` (by cost), the lowest final cost kept."""
     lo, hi = space.bounds()
 
     def clip(z: FloatArray) -> FloatArray:
         return np.clip(z, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
 
+    def cost(z: FloatArray) -> float:
+        return float(np.sum(space.residual(z) ** 2))
+
     starts = [clip(np.concatenate((x_base, s))) for s in space.candidate.starts]
-    z0 = min(starts, key=lambda z: float(np.sum(space.residual(z) ** 2)))
-    sol = optimize.least_squares(space.residual, z0, bounds=(lo, hi), diff_step=1e-6,
-                                 max_nfev=max_nfev)
+    ranked = sorted(starts, key=cost)[:max(n_starts, 1)]
+    runs = [optimize.least_squares(space.residual, z0, bounds=(lo, hi), diff_step=1e-6,
+                                   max_nfev=max_nfev) for z0 in ranked]
+    sol = min(runs, key=lambda r: float(r.cost))
     model, gains = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
-                    bool(sol.success and sol.status > 0), int(sol.nfev), sol.x)
+                    bool(sol.success and sol.status > 0), int(sum(r.nfev for r in runs)), sol.x)

@@ -95,8 +95,9 @@ def effects_dict(e: Effects) -> dict[str, Any]:
         out["amplifier_lag"] = {"bandwidth_Hz": e.amplifier_bandwidth_hz}
     if e.sensor_delay_samples:
         out["sensor_delay"] = {"samples": e.sensor_delay_samples}
-    if e.sensor_quadratic_per_um:
-        out["sensor_nonlinearity"] = {"quadratic_per_um": e.sensor_quadratic_per_um}
+    if e.sensor_quadratic_per_um or e.sensor_cubic_per_um2:
+        out["sensor_nonlinearity"] = {"quadratic_per_um": e.sensor_quadratic_per_um,
+                                      "cubic_per_um2": e.sensor_cubic_per_um2}
     if e.second_mode is not None:
         m = e.second_mode
         out["second_mode"] = {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio,
@@ -132,6 +133,7 @@ def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
         amplifier_bandwidth_hz=None if lag is None else lag.number("bandwidth_Hz", positive=True),
         sensor_delay_samples=0.0 if dly is None else dly.number("samples", nonnegative=True),
         sensor_quadratic_per_um=0.0 if nl is None else nl.number("quadratic_per_um"),
+        sensor_cubic_per_um2=0.0 if nl is None else nl.number("cubic_per_um2", 0.0),
         second_mode=mode,
         voltage_gain_sigma=0.0 if gd is None else gd.number("sigma", nonnegative=True),
     ), None if th is None else _thermal(th)

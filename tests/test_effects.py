@@ -84,9 +84,13 @@ def test_second_mode_static_gain_and_resonance() -> None:
     assert 1 / period == pytest.approx(f * math.sqrt(1 - zeta ** 2), rel=0.01)
 
 
-def test_ungauge_inverts_gauge() -> None:
-    e = fx.Effects(sensor_quadratic_per_um=-2.5e-3)
+@pytest.mark.parametrize("e", [fx.Effects(sensor_quadratic_per_um=-2.5e-3),
+                               fx.Effects(sensor_quadratic_per_um=1e-3, sensor_cubic_per_um2=-4e-5),
+                               fx.Effects(sensor_cubic_per_um2=6e-5)],
+                         ids=["quadratic", "quadratic+cubic", "cubic"])
+def test_ungauge_inverts_gauge(e: fx.Effects) -> None:
     w = np.linspace(-45, 50, 101)
+    assert np.all(np.diff(fx.gauge(e, w)) > 0)  # a monotone gauge over this range
     np.testing.assert_allclose(fx.ungauge(e, fx.gauge(e, w)), w, atol=1e-10)
 
 
