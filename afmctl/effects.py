@@ -15,8 +15,9 @@ Chain of one run, sample period ``dt`` (all units: V, um, s, Hz):
 3. the transducer (the paper's model) gives the rod displacement ``u``;
 4. ``second_mode``: ``x'' + 2 zeta w x' + w^2 x = w^2 gain u``, ``w = 2 pi f_2``; ``w = u + x``;
 5. ``sensor_nonlinearity``: the gauge reads ``w + c w^2 + c3 w^3``;
-6. ``sensor_delay``: the recorder holds the reading of ``d`` samples earlier (fractional ``d`` by
-   linear interpolation).
+6. ``sensor_delay``: the recorder holds the reading of ``d = d_samples + d_s / dt`` samples
+   earlier (fractional ``d`` by linear interpolation): a latency counted in samples (a digital
+   pipeline) and one in seconds (the gauge's electronics), the same at any sample rate.
 
 Steps 2 and 4 move the stage (the *plant*); steps 5 and 6 only misreport where it is (the
 *sensor*). ``track`` therefore aims the stage's true position (rod plus second mode) through the
@@ -59,6 +60,8 @@ class Effects:
         First-order amplifier lag, -3 dB frequency, Hz.
     sensor_delay_samples : float
         Pure latency of the sensor readback, samples (fractional: linear interpolation).
+    sensor_delay_s : float
+        Latency of the sensor readback in time, s (adds ``sensor_delay_s / dt`` samples).
     sensor_quadratic_per_um : float
         Gauge nonlinearity, quadratic term: measured = u + c u^2 + c3 u^3, c in 1/um.
     sensor_cubic_per_um2 : float
@@ -74,6 +77,7 @@ class Effects:
 
     amplifier_bandwidth_hz: float | None = None
     sensor_delay_samples: float = 0.0
+    sensor_delay_s: float = 0.0
     sensor_quadratic_per_um: float = 0.0
     sensor_cubic_per_um2: float = 0.0
     second_mode: SecondMode | None = None
@@ -95,9 +99,14 @@ class Chain:
         return self.mode_b.size > 0
 
     @property
+    def delay_samples(self) -> float:
+        """Sensor latency at this sample period, samples."""
+        return self.effects.sensor_delay_samples + self.effects.sensor_delay_s / self.dt
+
+    @property
     def history(self) -> int:
         """Samples of sensor history the delay line keeps."""
-        d = self.effects.sensor_delay_samples
+        d = self.delay_samples
         return math.ceil(d) + 1 if d > 0 else 0
 
 
@@ -244,13 +253,13 @@ def measure(chain: Chain, u: FloatArray, mode_zi: FloatArray,
     Returns the reading, the second-mode state and the delay history after the last sample.
     """
     w, zf = add_mode(chain, u, mode_zi)
-    y, hist = delay(gauge(chain.effects, w), chain.effects.sensor_delay_samples, history)
+    y, hist = delay(gauge(chain.effects, w), chain.delay_samples, history)
     return y, zf, hist
 
 
 def sensor_part(e: Effects) -> Effects:
     """Only the effects that misreport the position (delay, gauge), not those that move it."""
-    return Effects(sensor_delay_samples=e.sensor_delay_samples,
+    return Effects(sensor_delay_samples=e.sensor_delay_samples, sensor_delay_s=e.sensor_delay_s,
                    sensor_quadratic_per_um=e.sensor_quadratic_per_um,
                    sensor_cubic_per_um2=e.sensor_cubic_per_um2)
 
@@ -258,7 +267,7 @@ def sensor_part(e: Effects) -> Effects:
 def sensor_correct(chain: Chain, reading_um: FloatArray) -> FloatArray:
     """The stage's position (um) from recorded readings: steps 6 and 5 inverted (the delay by a
     time advance, the gauge by its root). The readings themselves are never altered on disk."""
-    return ungauge(chain.effects, advance(reading_um, chain.effects.sensor_delay_samples))
+    return ungauge(chain.effects, advance(reading_um, chain.delay_samples))
 
 
 def position(chain: Chain, u: FloatArray) -> FloatArray:

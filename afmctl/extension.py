@@ -10,7 +10,7 @@ name                     phi (internal)                                   acts o
 ``none``                 --                                               --
 ``thermal-relaxation``   log E_th (MV/m), log nu0 (1/s)                   kernel (10) for (4)
 ``amplifier-lag``        log f_a (Hz)                                     field, before (13)
-``sensor-delay``         d (samples)                                      design columns
+``sensor-delay``         d (samples of the fastest sweep; a time)         design columns
 ``sensor-nonlinearity``  c R, c3 R^2 (1/um, 1/um^2; R the range, um)     measured displacement
 ``second-mode``          log f_2 (Hz), log zeta_2, gain                   design columns
 ``voltage-gain-drift``   log g_s of every sweep but the last (mean 0)     field, per sweep
@@ -70,8 +70,8 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float,
                   (lf(1e-3 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e5))),
         Candidate("amplifier-lag", ("log_bandwidth_Hz",), ((ln - 3,), (ln - 1.5,), (ln,)),
                   (lf(1.0),), (ln + 3,)),
-        Candidate("sensor-delay", ("delay_samples",), ((0.5,), (2.0,), (5.0,), (10.0,)),
-                  (0.0,), (50.0,)),
+        Candidate("sensor-delay", ("delay_fastest_samples",),
+                  ((0.5,), (2.0,), (5.0,), (10.0,), (25.0,)), (0.0,), (60.0,)),
         Candidate("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
                   ((-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)), (-0.3, -0.3), (0.3, 0.3)),
         Candidate("second-mode", ("log_frequency_Hz", "log_damping_ratio", "gain"),
@@ -114,6 +114,7 @@ class ExtendedSpace:
         self.candidate, self.preps, self.base = candidate, list(preps), base
         self.step = [field_step * float(np.max(np.abs(p.field))) for p in self.preps]
         self.range_um = range_um
+        self.dt_min = min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
 
@@ -152,7 +153,7 @@ class ExtendedSpace:
 
     def _output(self, phi: FloatArray) -> fx.Effects:
         if self.candidate.name == "sensor-delay":
-            return fx.Effects(sensor_delay_samples=float(phi[0]))
+            return fx.Effects(sensor_delay_s=float(phi[0]) * self.dt_min)
         if self.candidate.name == "second-mode":
             return fx.Effects(second_mode=fx.SecondMode(math.exp(phi[0]), math.exp(phi[1]),
                                                         float(phi[2])))
@@ -216,7 +217,7 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
     if name == "amplifier-lag" and e.amplifier_bandwidth_hz is not None:
         return {"bandwidth_Hz": e.amplifier_bandwidth_hz}
     if name == "sensor-delay":
-        return {"delay_samples": e.sensor_delay_samples}
+        return {"delay_s": e.sensor_delay_s}
     if name == "sensor-nonlinearity":
         return {"quadratic_per_um": e.sensor_quadratic_per_um,
                 "cubic_per_um2": e.sensor_cubic_per_um2}

@@ -93,8 +93,8 @@ def effects_dict(e: Effects) -> dict[str, Any]:
     out: dict[str, Any] = {}
     if e.amplifier_bandwidth_hz is not None:
         out["amplifier_lag"] = {"bandwidth_Hz": e.amplifier_bandwidth_hz}
-    if e.sensor_delay_samples:
-        out["sensor_delay"] = {"samples": e.sensor_delay_samples}
+    if e.sensor_delay_samples or e.sensor_delay_s:
+        out["sensor_delay"] = {"samples": e.sensor_delay_samples, "seconds": e.sensor_delay_s}
     if e.sensor_quadratic_per_um or e.sensor_cubic_per_um2:
         out["sensor_nonlinearity"] = {"quadratic_per_um": e.sensor_quadratic_per_um,
                                       "cubic_per_um2": e.sensor_cubic_per_um2}
@@ -131,7 +131,8 @@ def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
                                               sm.number("gain"))
     return Effects(
         amplifier_bandwidth_hz=None if lag is None else lag.number("bandwidth_Hz", positive=True),
-        sensor_delay_samples=0.0 if dly is None else dly.number("samples", nonnegative=True),
+        sensor_delay_samples=0.0 if dly is None else dly.number("samples", 0.0, nonnegative=True),
+        sensor_delay_s=0.0 if dly is None else dly.number("seconds", 0.0, nonnegative=True),
         sensor_quadratic_per_um=0.0 if nl is None else nl.number("quadratic_per_um"),
         sensor_cubic_per_um2=0.0 if nl is None else nl.number("cubic_per_um2", 0.0),
         second_mode=mode,

@@ -132,7 +132,7 @@ def test_track_with_extended_model_beats_base_on_stage_with_effect(
     ("none", fx.Effects(), [], (1.0, 1.0), 1e-4),
     ("amplifier-lag", fx.Effects(amplifier_bandwidth_hz=300.0), [math.log(300.0)], (1.0, 1.0),
      5e-3),
-    ("sensor-delay", fx.Effects(sensor_delay_samples=3.0), [3.0], (1.0, 1.0), 1e-4),
+    ("sensor-delay", fx.Effects(sensor_delay_s=3e-4), [3.0], (1.0, 1.0), 1e-4),
     ("second-mode", fx.Effects(second_mode=fx.SecondMode(600.0, 0.03, 0.4)),
      [math.log(600.0), math.log(0.03), 0.4], (1.0, 1.0), 1e-4),
     ("voltage-gain-drift", fx.Effects(), [-math.log(1.015)], (1 / 1.015, 1.015), 1e-4),

@@ -107,6 +107,17 @@ def test_delay_is_a_shift_and_advance_undoes_it(d: float, tol: float) -> None:
     np.testing.assert_allclose(fx.advance(late, d)[5:-5], x[5:-5], atol=tol)
 
 
+def test_a_delay_in_seconds_is_the_same_time_at_any_rate() -> None:
+    """0.6 ms of latency: 6 samples at 10 kHz, 3 at 5 kHz; added to a latency in samples."""
+    e = fx.Effects(sensor_delay_samples=1.0, sensor_delay_s=6e-4)
+    assert fx.compile_chain(e, 1e-4).delay_samples == pytest.approx(7.0)
+    assert fx.compile_chain(e, 2e-4).delay_samples == pytest.approx(4.0)
+    chain = fx.compile_chain(e, 2e-4)
+    u = np.sin(np.arange(200) * 0.05)
+    y, _, _ = fx.measure(chain, u, *fx.rest(chain, float(u[0])))
+    np.testing.assert_allclose(y[4:], u[:-4], atol=1e-12)
+
+
 def test_delay_in_pieces_equals_delay_at_once() -> None:
     chain = fx.compile_chain(fx.Effects(sensor_delay_samples=2.5), DT)
     x = _signal()
