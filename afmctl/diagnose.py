@@ -360,7 +360,7 @@ def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um
          settings: Settings, z_start: FloatArray | None = None) -> tuple[ext.Extended, int]:
     """Fit candidate ``name`` from the base parameters ``x_start`` (and its own ``z_start``)."""
     cand = ext.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
-                         float(np.exp(x_start[4])))[name]
+                         float(np.exp(x_start[4])), ext.field_rate_max(data.preps))[name]
     if z_start is not None:
         cand = replace(cand, starts=(tuple(z_start[6:]),))
     space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um)

@@ -9,7 +9,7 @@ name                     phi (internal)                                   acts o
 =======================  ===============================================  =======================
 ``none``                 --                                               --
 ``thermal-relaxation``   log E_th (MV/m), log nu0 (1/s)                   kernel (10) for (4)
-``amplifier-lag``        log f_a (Hz)                                     field, before (13)
+``amplifier-lag``        log f_a (Hz), log zeta_a, log S (MV/m/s)          field, before (13)
 ``sensor-delay``         d (samples of the fastest sweep; a time)         design columns
 ``sensor-nonlinearity``  c R, c3 R^2 (1/um, 1/um^2; R the range, um)     measured displacement
 ``second-mode``          log f_2 (Hz), log zeta_2, gain                   design columns
@@ -38,6 +38,8 @@ from afmctl import transducer as td
 FloatArray = NDArray[np.float64]
 NAMES = ("none", "thermal-relaxation", "amplifier-lag", "sensor-delay", "sensor-nonlinearity",
          "second-mode", "voltage-gain-drift")
+#: An amplifier slew limit this many times the data's fastest field rate is out of reach (off).
+SLEW_OFF = 3.0
 #: Grid of the thermal kernel, in the fit and in the extended model (N_i x N_j hysterons).
 THERMAL_GRID = (32, 12)
 
@@ -57,19 +59,31 @@ class Candidate:
         return len(self.labels)
 
 
-def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float,
-              rod_hz: float) -> dict[str, Candidate]:
+def field_rate_max(preps: Sequence[pz.Prepared]) -> float:
+    """Fastest rate of the field over the sweeps, MV/m/s."""
+    return max(float(np.max(np.abs(np.diff(p.field)))) / p.dt for p in preps) or 1.0
+
+
+def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
+              rate_max: float) -> dict[str, Candidate]:
     """The candidates for ``n_sweeps`` sweeps of peak field ``e_max`` (MV/m), Nyquist frequency
-    (Hz) and identified rod resonance ``rod_hz`` (Hz). ``voltage-gain-drift`` needs two sweeps."""
+    (Hz), identified rod resonance ``rod_hz`` (Hz) and fastest field rate ``rate_max`` (MV/m/s).
+    ``voltage-gain-drift`` needs two sweeps.
+
+    The amplifier is of second order (a first order is its overdamped limit) with a slew limit
+    that starts either out of reach (``SLEW_OFF`` times the fastest rate) or just below it."""
     lf, ln = math.log, math.log(nyquist_hz)
+    slew_off = lf(SLEW_OFF * rate_max)
     cands = [
         Candidate("none", (), ((),), (), ()),
         Candidate("thermal-relaxation", ("log_field_scale_MV_per_m", "log_attempt_rate_per_s"),
                   ((lf(0.002 * e_max), lf(1e3)),)  # close to the relay: the base model
                   + tuple((lf(f * e_max), lf(r)) for f in (0.01, 0.04) for r in (30.0, 300.0)),
                   (lf(1e-3 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e5))),
-        Candidate("amplifier-lag", ("log_bandwidth_Hz",), ((ln - 3,), (ln - 1.5,), (ln,)),
-                  (lf(1.0),), (ln + 3,)),
+        Candidate("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio", "log_slew_MV_per_m_s"),
+                  tuple((lf(f * rod_hz), lf(0.7), slew) for f in (0.3, 1.0, 3.0)
+                        for slew in (slew_off, lf(0.7 * rate_max))) + ((ln, lf(0.7), slew_off),),
+                  (lf(1.0), lf(0.05), lf(0.05 * rate_max)), (ln + 3, lf(10.0), slew_off + 1e-6)),
         Candidate("sensor-delay", ("delay_fastest_samples",),
                   ((0.5,), (2.0,), (5.0,), (10.0,), (25.0,)), (0.0,), (60.0,)),
         Candidate("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
@@ -131,7 +145,7 @@ class ExtendedSpace:
             if name == "voltage-gain-drift":
                 e = e * math.exp(_log_gains(phi)[s])
             elif name == "amplifier-lag":
-                chain = fx.compile_chain(fx.Effects(amplifier_bandwidth_hz=math.exp(phi[0])), p.dt)
+                chain = fx.compile_chain(self._amplifier(phi, 1.0), p.dt)
                 e = fx.lag(chain, e, float(e[0]))[0]
                 keep = pz.decimation(e, step)
             out.append((e, keep))
@@ -158,6 +172,15 @@ class ExtendedSpace:
             return fx.Effects(second_mode=fx.SecondMode(math.exp(phi[0]), math.exp(phi[1]),
                                                         float(phi[2])))
         return fx.Effects()
+
+    def _amplifier(self, phi: FloatArray, thickness_um: float) -> fx.Effects:
+        """The amplifier of ``phi`` (its slew in V/s for a stack ``thickness_um`` thick; none if
+        the slew stayed out of reach)."""
+        slew = math.exp(phi[2])
+        on = slew < math.exp(self.candidate.upper[2]) / 1.5
+        return fx.Effects(amplifier_bandwidth_hz=math.exp(phi[0]),
+                          amplifier_damping_ratio=math.exp(phi[1]),
+                          amplifier_slew_v_per_s=slew * thickness_um if on else None)
 
     def _gauge(self, phi: FloatArray) -> fx.Effects:
         if self.candidate.name != "sensor-nonlinearity":
@@ -197,7 +220,7 @@ class ExtendedSpace:
                           n_coercive=THERMAL_GRID[0], n_interaction=THERMAL_GRID[1])
             model = replace(model, polarization=pol)
         elif name == "amplifier-lag":
-            model = replace(model, effects=fx.Effects(amplifier_bandwidth_hz=math.exp(phi[0])))
+            model = replace(model, effects=self._amplifier(phi, thickness_um))
         elif name == "sensor-nonlinearity":
             model = replace(model, effects=self._gauge(phi))
         elif name == "voltage-gain-drift":
@@ -215,7 +238,9 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
     if name == "thermal-relaxation" and th is not None:
         return {"field_scale_MV_per_m": th.field_scale, "attempt_rate_per_s": th.attempt_rate}
     if name == "amplifier-lag" and e.amplifier_bandwidth_hz is not None:
-        return {"bandwidth_Hz": e.amplifier_bandwidth_hz}
+        return {"bandwidth_Hz": e.amplifier_bandwidth_hz,
+                "damping_ratio": e.amplifier_damping_ratio or math.nan,
+                "slew_V_per_s": e.amplifier_slew_v_per_s or math.inf}
     if name == "sensor-delay":
         return {"delay_s": e.sensor_delay_s}
     if name == "sensor-nonlinearity":

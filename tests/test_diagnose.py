@@ -130,8 +130,9 @@ def test_track_with_extended_model_beats_base_on_stage_with_effect(
 
 @pytest.mark.parametrize(("name", "effects", "phi", "gains", "tol_um"), [
     ("none", fx.Effects(), [], (1.0, 1.0), 1e-4),
-    ("amplifier-lag", fx.Effects(amplifier_bandwidth_hz=300.0), [math.log(300.0)], (1.0, 1.0),
-     5e-3),
+    ("amplifier-lag", fx.Effects(amplifier_bandwidth_hz=300.0, amplifier_damping_ratio=0.5,
+                                 amplifier_slew_v_per_s=6e3),  # below the 27.9 Hz rate
+     [math.log(300.0), math.log(0.5), math.log(6e3 / 100.0)], (1.0, 1.0), 5e-3),
     ("sensor-delay", fx.Effects(sensor_delay_s=3e-4), [3.0], (1.0, 1.0), 1e-4),
     ("second-mode", fx.Effects(second_mode=fx.SecondMode(600.0, 0.03, 0.4)),
      [math.log(600.0), math.log(0.03), 0.4], (1.0, 1.0), 1e-4),
@@ -156,7 +157,8 @@ def test_candidate_residual_vanishes_at_the_truth(name: str, effects: fx.Effects
     base = pz.LognormalSpace(preps, pz.Scales(), 256)
     range_um = max(float(np.ptp(p.y)) for p in preps)
     x = pz.internal(nominal)
-    cand = extension.catalogue(2, *pz.extent(preps), float(np.exp(x[4])))[name]
+    cand = extension.catalogue(2, *pz.extent(preps), float(np.exp(x[4])),
+                               extension.field_rate_max(preps))[name]
     space = extension.ExtendedSpace(cand, preps, base, 0.004, range_um)
     z = np.concatenate((x, phi if phi is not None else [2e-3 * range_um, -2e-5 * range_um ** 2]))
     r = space.residual(z)
