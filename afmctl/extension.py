@@ -41,7 +41,7 @@ NAMES = ("none", "thermal-relaxation", "amplifier-lag", "sensor-delay", "sensor-
 #: An amplifier slew limit this many times the data's fastest field rate is out of reach (off).
 SLEW_OFF = 3.0
 #: Grid of the thermal kernel, in the fit and in the extended model (N_i x N_j hysterons).
-THERMAL_GRID = (32, 12)
+THERMAL_GRID = (32, 24)
 
 
 @dataclass(frozen=True)
@@ -77,9 +77,9 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
     cands = [
         Candidate("none", (), ((),), (), ()),
         Candidate("thermal-relaxation", ("log_field_scale_MV_per_m", "log_attempt_rate_per_s"),
-                  ((lf(0.002 * e_max), lf(1e3)),)  # close to the relay: the base model
+                  ((lf(2e-4 * e_max), lf(1e6)),)  # close to the relay: the base model
                   + tuple((lf(f * e_max), lf(r)) for f in (0.01, 0.04) for r in (30.0, 300.0)),
-                  (lf(1e-3 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e5))),
+                  (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7))),
         Candidate("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio", "log_slew_MV_per_m_s"),
                   tuple((lf(f * rod_hz), lf(0.7), slew) for f in (0.3, 1.0, 3.0)
                         for slew in (slew_off, lf(0.7 * rate_max))) + ((ln, lf(0.7), slew_off),),
@@ -89,7 +89,8 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
         Candidate("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
                   ((-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)), (-0.3, -0.3), (0.3, 0.3)),
         Candidate("second-mode", ("log_frequency_Hz", "log_damping_ratio", "gain"),
-                  tuple((lf(f * rod_hz), lf(0.03), g) for f in (1.5, 3.0, 6.0) for g in (0.1,)
+                  tuple((lf(f * rod_hz), lf(0.03), g) for f in (1.5, 2.2, 3.0, 4.0, 6.0)
+                        for g in (0.1,)
                         if f * rod_hz < 0.8 * nyquist_hz) or ((ln - 1, lf(0.03), 0.1),),
                   (lf(min(1.05 * rod_hz, 0.3 * nyquist_hz)), lf(0.002), -0.9),
                   (ln, lf(0.5), 3.0)),
@@ -256,9 +257,14 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
 
 def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
         max_nfev: int, n_starts: int = 1) -> Extended:
-    """Fit ``(x, phi)`` from the base parameters ``x_base``: a least-squares run from each of the
-    ``n_starts`` best of the candidate's starting ``phi`` (by cost), the lowest final cost kept."""
+    """Fit ``(x, phi)`` from the base parameters ``x_base``.
+
+    Multi-start on the effect alone: from each of the ``n_starts`` best of the candidate's starting
+    ``phi`` (by cost) a short least-squares run moves ``phi`` with the base model held (a
+    Jacobian of a few columns); the best of those then starts the joint fit of ``(x, phi)``. The
+    base model is in every candidate's family, so its own cost bounds the result's."""
     lo, hi = space.bounds()
+    n_x = x_base.size
 
     def clip(z: FloatArray) -> FloatArray:
         return np.clip(z, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
@@ -266,11 +272,20 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     def cost(z: FloatArray) -> float:
         return float(np.sum(space.residual(z) ** 2))
 
+    def with_phi(phi: FloatArray) -> FloatArray:
+        return space.residual(np.concatenate((x_base, phi)))
+
     starts = [clip(np.concatenate((x_base, s))) for s in space.candidate.starts]
     ranked = sorted(starts, key=cost)[:max(n_starts, 1)]
-    runs = [optimize.least_squares(space.residual, z0, bounds=(lo, hi), diff_step=1e-6,
-                                   max_nfev=max_nfev) for z0 in ranked]
-    sol = min(runs, key=lambda r: float(r.cost))
+    nfev = len(starts)
+    if n_x < ranked[0].size:
+        runs = [optimize.least_squares(with_phi, z0[n_x:], bounds=(lo[n_x:], hi[n_x:]),
+                                       diff_step=1e-6, max_nfev=max_nfev // 2) for z0 in ranked]
+        nfev += sum(r.nfev for r in runs)
+        best = min(runs, key=lambda r: float(r.cost))
+        ranked = [clip(np.concatenate((x_base, best.x)))]
+    sol = optimize.least_squares(space.residual, ranked[0], bounds=(lo, hi), diff_step=1e-6,
+                                 max_nfev=max_nfev)
     model, gains = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
-                    bool(sol.success and sol.status > 0), int(sum(r.nfev for r in runs)), sol.x)
+                    bool(sol.success and sol.status > 0), nfev + int(sol.nfev), sol.x)
