@@ -1,7 +1,7 @@
 """Issue 6 figures: afmctl diagnose on a seeded batch of emulated stages with hidden effects.
 
 Each case is the shipped emulated stage carrying one catalogue effect (or none) at a random
-strength (:func:`afmctl.emulator.hidden_effect`); the three standard triangles are recorded on it
+strength (:func:`drivers.device.plant.hidden_effect`); the three standard triangles are recorded on it
 through the driver interface (device clock 4x real time), and ``diagnose`` must name the effect.
 Then, for every case whose effect track can invert or correct for, the 27.9 Hz / 27.04 um triangle
 is tracked on that stage with the base and with the extended model that diagnose wrote, and judged
@@ -25,9 +25,9 @@ from typing import Any
 from afmctl import calibration, experiment, extension, track
 from afmctl import diagnose as dg
 from afmctl import effects as fx
-from afmctl import emulator as em
 from afmctl.profile import Profile, default_profile
 from afmctl.transducer import Transducer
+from drivers.device import plant
 from drivers.inprocess import InProcessStage, accelerated
 
 SPEED = 4.0
@@ -60,7 +60,7 @@ def track_rms(profile: Profile, models: dict[str, Transducer], out: Path
 
 
 def run_case(cause: str, index: int, tmp: Path) -> dict[str, Any]:
-    prof = em.with_hidden_effect(default_profile(), cause, index)
+    prof = plant.with_hidden_effect(default_profile(), cause, index)
     with InProcessStage(prof, clock=accelerated(SPEED)) as stage:
         recorded = calibration.record_standard(stage, prof, tmp / "sweeps")
     d = dg.diagnose(recorded)
@@ -88,7 +88,7 @@ def main() -> None:
     args = ap.parse_args()
     t0 = time.perf_counter()
     rows = []
-    for cause, index in em.hidden_cases(extension.NAMES, args.per_cause):
+    for cause, index in plant.hidden_cases(extension.NAMES, args.per_cause):
         with tempfile.TemporaryDirectory() as tmp:
             row = run_case(cause, index, Path(tmp))
         rows.append(row)

@@ -26,7 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile, default_profile  # noqa: E402
 from drivers import StageBase  # noqa: E402
-from drivers import servers as sv  # noqa: E402
+from drivers.device.emulated import EmulatedDevice  # noqa: E402
+from drivers.device.modbus_server import ModbusRtuServer, ModbusTcpServer  # noqa: E402
+from drivers.device.serial_server import SerialServer  # noqa: E402
 from drivers.modbus_link import ModbusStage  # noqa: E402
 from drivers.serial_link import SerialStage  # noqa: E402
 
@@ -34,15 +36,15 @@ from drivers.serial_link import SerialStage  # noqa: E402
 @contextmanager
 def _stage(kind: str, profile: Profile) -> Iterator[StageBase]:
     with ExitStack() as stack:
-        dev = stack.enter_context(sv.EmulatedDevice(profile))
+        dev = stack.enter_context(EmulatedDevice(profile))
         if kind == "modbus_tcp":
-            srv = stack.enter_context(sv.ModbusTcpServer(dev))
+            srv = stack.enter_context(ModbusTcpServer(dev))
             stage: StageBase = ModbusStage(profile, ModbusTcpTransport("127.0.0.1", srv.port))
         elif kind == "modbus_rtu_pty":
-            rtu = stack.enter_context(sv.ModbusRtuServer(dev))
+            rtu = stack.enter_context(ModbusRtuServer(dev))
             stage = ModbusStage(profile, ModbusRtuTransport(rtu.url))
         else:
-            stage = SerialStage(profile, stack.enter_context(sv.SerialServer(dev, "pty")).url)
+            stage = SerialStage(profile, stack.enter_context(SerialServer(dev, "pty")).url)
         with stage:
             yield stage
 

@@ -1,5 +1,5 @@
 """The emulated stage in-process: the :class:`~drivers.StageBase` interface on an
-:class:`~afmctl.emulator.Emulator`, with no wire (tests, and ``afmctl track`` without hardware)."""
+:class:`~drivers.device.emulator.Emulator`, with no wire (tests, and ``afmctl track`` without hardware)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,10 @@ from contextlib import contextmanager
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.emulator import IDENTITY, DeviceError, Emulator, Status
 from afmctl.profile import Profile
 from drivers import StageBase, StageError
+from drivers.device.emulator import IDENTITY, DeviceError, Emulator
+from drivers.protocol import Status
 
 
 @contextmanager

@@ -1,6 +1,7 @@
 """Host side of the Modbus register map (``drivers.register_map``) on pymodbus (TCP and RTU).
 
-Every pymodbus client call of afmctl lives in this module (servers: ``drivers.servers``). One
+Every pymodbus client call of afmctl lives in this module (the emulated device's servers:
+``drivers.device.modbus_server``). One
 request is in flight at a time; the client has a timeout; a refused request (Modbus exception
 response) is turned into :class:`~drivers.StageError` carrying the device's own error code, read
 from ``IR.LAST_ERROR``; a transport failure (no reply, a bad CRC on RTU, a stale transaction id on
@@ -21,10 +22,10 @@ from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
-from afmctl.emulator import Status
 from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile
 from drivers import StageBase, StageError
 from drivers import register_map as rm
+from drivers.protocol import Status
 from drivers.register_map import HR, IR
 
 

@@ -16,10 +16,10 @@ import numpy as np
 import serial
 from numpy.typing import NDArray
 
-from afmctl.emulator import ERRORS, Status
 from afmctl.profile import Profile, SerialTransport
 from drivers import StageBase, StageError
 from drivers import ascii_protocol as ap
+from drivers.protocol import ERRORS, Status
 
 
 class SerialStage(StageBase):

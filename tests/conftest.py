@@ -13,11 +13,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pytest
 
-from afmctl import emulator
 from afmctl import identify as idf
 from afmctl import sweeps as sw
 from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile, default_profile
 from afmctl.transducer import Transducer
+from drivers.device import emulator, plant
 
 if TYPE_CHECKING:
     from drivers import StageBase
@@ -62,7 +62,7 @@ def emulate() -> Callable[..., sw.Sweep]:
 
     def make(voltage_v: np.ndarray, frequency_hz: float, seed: int,
              meta: bool = True) -> sw.Sweep:
-        u, _ = emulator.expected_readback(dc.replace(cfg, seed=seed), SAMPLE_RATE_HZ, voltage_v)
+        u, _ = plant.expected_readback(dc.replace(cfg, seed=seed), SAMPLE_RATE_HZ, voltage_v)
         md = {"frequency_hz": f"{frequency_hz:g}", "layer_thickness_um": "100.0",
               "profile": "emulated"} if meta else {}
         return sw.from_arrays(voltage_v, u + SENSOR_ZERO_UM, SAMPLE_RATE_HZ, md,
@@ -91,7 +91,7 @@ def waveform() -> np.ndarray:
 
 @pytest.fixture
 def device(profile: Profile) -> Iterator[object]:
-    from drivers.servers import EmulatedDevice
+    from drivers.device.emulated import EmulatedDevice
     with EmulatedDevice(profile) as dev:
         yield dev
 
@@ -100,22 +100,24 @@ def device(profile: Profile) -> Iterator[object]:
 def stage_on(kind: str, profile: Profile, read_only: bool | None = None
              ) -> Iterator[tuple[StageBase, emulator.Emulator]]:
     """A host stage talking to a fresh emulated device over ``kind`` (see TRANSPORTS)."""
-    from drivers import servers as sv
+    from drivers.device.emulated import EmulatedDevice
+    from drivers.device.modbus_server import ModbusRtuServer, ModbusTcpServer
+    from drivers.device.serial_server import SerialServer
     from drivers.inprocess import InProcessStage
     from drivers.modbus_link import ModbusStage
     from drivers.serial_link import SerialStage
 
     with ExitStack() as stack:
-        dev = stack.enter_context(sv.EmulatedDevice(profile, read_only=read_only))
+        dev = stack.enter_context(EmulatedDevice(profile, read_only=read_only))
         if kind == "modbus-tcp":
-            srv = stack.enter_context(sv.ModbusTcpServer(dev))
+            srv = stack.enter_context(ModbusTcpServer(dev))
             stage: StageBase = ModbusStage(profile, ModbusTcpTransport("127.0.0.1", srv.port))
         elif kind == "modbus-rtu":  # 921,600 baud: 115,200 cannot carry 10 kHz both ways
-            rtu = stack.enter_context(sv.ModbusRtuServer(dev, baudrate=921_600))
+            rtu = stack.enter_context(ModbusRtuServer(dev, baudrate=921_600))
             stage = ModbusStage(profile, ModbusRtuTransport(rtu.url, baudrate=921_600))
         elif kind.startswith("serial"):
             where = "pty" if kind == "serial-pty" else "socket://127.0.0.1:0"
-            ser = stack.enter_context(sv.SerialServer(dev, where))
+            ser = stack.enter_context(SerialServer(dev, where))
             stage = SerialStage(profile, ser.url)
         else:
             stage = InProcessStage(profile, emulator=dev.emulator, lock=dev.lock)

@@ -2,7 +2,7 @@
 clean data claims nothing; the extended model tracks better on a stage carrying the effect.
 
 The CI subset runs four cases of the seeded batch of ``benchmarks/bench_diagnose.py``
-(:func:`afmctl.emulator.hidden_cases`; the bench runs all 14: two per cause, ``none`` included)."""
+(:func:`drivers.device.plant.hidden_cases`; the bench runs all 14: two per cause, ``none`` included)."""
 
 from __future__ import annotations
 
@@ -19,10 +19,10 @@ from conftest import PROFILE
 from afmctl import calibration, experiment, extension, track
 from afmctl import diagnose as dg
 from afmctl import effects as fx
-from afmctl import emulator as em
 from afmctl import sweeps as sw
 from afmctl.cli import main
 from afmctl.profile import Profile
+from drivers.device import plant
 
 
 def record(profile: Profile, out: Path) -> list[sw.Sweep]:
@@ -33,7 +33,7 @@ def record(profile: Profile, out: Path) -> list[sw.Sweep]:
         return calibration.record_standard(stage, profile, out)
 
 
-CI_CASES = [c for c in em.hidden_cases(extension.NAMES)
+CI_CASES = [c for c in plant.hidden_cases(extension.NAMES)
             if c in {("thermal-relaxation", 2), ("amplifier-lag", 4), ("second-mode", 11),
                      ("voltage-gain-drift", 12)}]
 
@@ -41,7 +41,7 @@ CI_CASES = [c for c in em.hidden_cases(extension.NAMES)
 @pytest.mark.slow
 @pytest.mark.parametrize(("cause", "index"), CI_CASES)
 def test_hidden_effect_is_named_with_gain(cause: str, index: int, tmp_path: Path) -> None:
-    d = dg.diagnose(record(em.with_hidden_effect(PROFILE, cause, index), tmp_path))
+    d = dg.diagnose(record(plant.with_hidden_effect(PROFILE, cause, index), tmp_path))
     assert d.cause == cause, d.evidence()
     assert d.gain >= 2.0, d.evidence()
     assert d.extended_model != d.base_model

@@ -12,12 +12,17 @@ import numpy as np
 import pytest
 from conftest import TRANSPORTS, stage_on
 
-from afmctl import emulator as em
 from afmctl.profile import Profile
 from drivers import StageError, open_stage
 from drivers import ascii_protocol as ap
 from drivers import register_map as rm
-from drivers import servers as sv
+from drivers.device import emulator as em
+from drivers.device import plant
+from drivers.device.ascii_device import AsciiDevice
+from drivers.device.emulated import EmulatedDevice
+from drivers.device.modbus_server import ModbusTcpServer
+from drivers.device.register_device import RegisterDevice
+from drivers.device.wire import open_pty
 from drivers.inprocess import InProcessStage
 from drivers.modbus_link import ModbusStage
 from drivers.serial_link import SerialStage
@@ -27,7 +32,7 @@ from drivers.serial_link import SerialStage
 def test_readback_equals_model_over_each_transport(kind: str, profile: Profile,
                                                    waveform: np.ndarray) -> None:
     assert profile.emulator is not None
-    u_exp, v_exp = em.expected_readback(profile.emulator, profile.sample_rate_hz, waveform)
+    u_exp, v_exp = plant.expected_readback(profile.emulator, profile.sample_rate_hz, waveform)
     with stage_on(kind, profile) as (stage, _):
         stage.upload(waveform)
         stage.run(1)
@@ -100,7 +105,7 @@ def test_repeated_upload_block_is_harmless(profile: Profile) -> None:
 
 def test_register_map_rejects_partial_fields(profile: Profile) -> None:
     emu = em.Emulator(profile)
-    dev = rm.RegisterDevice(emu, lambda: 0.0)
+    dev = RegisterDevice(emu, lambda: 0.0)
     assert dev.write(rm.HR.DC_VOLTAGE, [0x4020]) == rm.ILLEGAL_ADDRESS  # half a float32
     assert dev.write(rm.HR.DC_VOLTAGE + 1, [0, 0]) == rm.ILLEGAL_ADDRESS
     assert dev.read_input(rm.IR.DISPLACEMENT + 1, 2) == rm.ILLEGAL_ADDRESS
@@ -167,7 +172,7 @@ def test_serial_codec_against_a_script(profile: Profile) -> None:
 
 def test_serial_host_times_out_instead_of_hanging(profile: Profile) -> None:
     import os
-    master, _slave, path = sv.open_pty()
+    master, _slave, path = open_pty()
     try:
         with pytest.raises(StageError, match="no complete reply"):
             SerialStage(profile, path, timeout_s=0.2)
@@ -177,7 +182,7 @@ def test_serial_host_times_out_instead_of_hanging(profile: Profile) -> None:
 
 
 def test_ascii_device_reports_unknown_and_malformed_commands(profile: Profile) -> None:
-    dev = ap.AsciiDevice(em.Emulator(profile), lambda: 0.0)
+    dev = AsciiDevice(em.Emulator(profile), lambda: 0.0)
     assert dev.handle("FOO").startswith("ERR 1")
     assert dev.handle("WAV 0 2 1.0").startswith("ERR 2")
     assert dev.handle("SVA x").startswith("ERR 2")
@@ -192,9 +197,18 @@ def test_open_stage_defaults_to_the_in_process_emulator(profile: Profile) -> Non
 
 
 def test_afmctl_imports_no_device_library() -> None:
-    code = ("import sys, afmctl, afmctl.emulator, afmctl.profile, afmctl.cli\n"
+    code = ("import sys, afmctl, afmctl.profile, afmctl.cli\n"
             "bad = [m for m in sys.modules\n"
             "       if m.split('.')[0] in ('serial', 'pymodbus', 'drivers')]\n"
+            "assert not bad, bad\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_device_logic_imports_no_device_library() -> None:
+    """The emulated device's logic and plant (used in-process, e.g. by diagnose's tests) and the
+    stage interface import neither pyserial nor pymodbus: only the links and servers do."""
+    code = ("import sys, drivers, drivers.device.emulator, drivers.device.plant, drivers.inprocess\n"
+            "bad = [m for m in sys.modules if m.split('.')[0] in ('serial', 'pymodbus')]\n"
             "assert not bad, bad\n")
     subprocess.run([sys.executable, "-c", code], check=True)
 
@@ -213,9 +227,9 @@ def _mbpoll_values(text: str) -> list[str]:
 
 @pytest.mark.skipif(shutil.which("mbpoll") is None,
                     reason="mbpoll (Debian package) could not be installed")
-def test_mbpoll_reads_map_and_writes_dc_voltage(profile: Profile, device: sv.EmulatedDevice
+def test_mbpoll_reads_map_and_writes_dc_voltage(profile: Profile, device: EmulatedDevice
                                                 ) -> None:
-    with sv.ModbusTcpServer(device) as srv:
+    with ModbusTcpServer(device) as srv:
         base = ["-m", "tcp", "-p", str(srv.port), "-a", "1"]
         version = _mbpoll(*base, "-t", "3", "-r", str(rm.IR.MAP_VERSION), "-c", "1", "127.0.0.1")
         assert _mbpoll_values(version) == [str(rm.MAP_VERSION)]
@@ -277,7 +291,7 @@ def test_play_streams_three_tables_and_matches_the_model(kind: str, profile: Pro
         small = replace(small, sample_rate_hz=5000.0)
     v = long_waveform(3 * 4096)
     assert small.emulator is not None
-    u_exp, v_exp = em.expected_readback(small.emulator, small.sample_rate_hz, v)
+    u_exp, v_exp = plant.expected_readback(small.emulator, small.sample_rate_hz, v)
     blocks = Blocks()
     with stage_on(kind, small) as (stage, emu):
         rec = stage.play(v, blocks)
@@ -370,7 +384,7 @@ def test_play_feeds_the_watchdog(profile: Profile) -> None:
 
 def test_register_map_streams_at_global_indices(profile: Profile) -> None:
     emu = em.Emulator(small_buffers(profile))
-    dev = rm.RegisterDevice(emu, lambda: 0.0)
+    dev = RegisterDevice(emu, lambda: 0.0)
     v = np.linspace(0.0, 1.0, 60).astype(np.float32)
     assert dev.write(rm.HR.TABLE_LENGTH, rm.u32_regs(100)) is None
     assert dev.write(rm.HR.STREAM_FIRST, rm.u32_regs(40) + rm.f32_regs(v)) is None

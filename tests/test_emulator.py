@@ -7,9 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from afmctl import emulator as em
 from afmctl import hysteresis as hy
 from afmctl.profile import Effects, Profile, SecondMode
+from drivers.device import emulator as em
+from drivers.device import plant
 
 RATE = 10_000.0
 
@@ -48,7 +49,7 @@ def test_recorder_is_the_model_run_in_device_time(profile: Profile) -> None:
     u, _ = emu.read_recorder(0, 4000, 1.1)
     assert np.isfinite(u[:1000]).all() and np.isnan(u[1000:]).all()
     u, va = emu.read_recorder(0, 4000, 1.5)
-    exp_u, exp_v = em.expected_readback(profile.emulator, RATE, v)  # type: ignore[arg-type]
+    exp_u, exp_v = plant.expected_readback(profile.emulator, RATE, v)  # type: ignore[arg-type]
     np.testing.assert_array_equal(u, exp_u.astype(np.float32))
     np.testing.assert_array_equal(va, exp_v.astype(np.float32))
 
@@ -60,11 +61,11 @@ def test_state_persists_across_runs(profile: Profile) -> None:
     v = sine(3000)
     run(emu, v, 0.0)
     u2, _ = run(emu, v, 1.0)
-    ph = em.Physics(cfg, RATE)
+    ph = plant.Physics(cfg, RATE)
     _, _, after = ph.respond(v.astype(np.float32).astype(float), ph.initial())  # as on the wire
-    exp, _ = em.expected_readback(cfg, RATE, v, run_index=1, state=after)
+    exp, _ = plant.expected_readback(cfg, RATE, v, run_index=1, state=after)
     np.testing.assert_array_equal(u2, exp.astype(np.float32))
-    first, _ = em.expected_readback(cfg, RATE, v)
+    first, _ = plant.expected_readback(cfg, RATE, v)
     assert np.max(np.abs(u2 - first)) > 0.1  # hysteresis memory: not a fresh start
 
 
@@ -238,7 +239,7 @@ def test_stream_equals_one_long_run_and_recorder_is_a_ring(profile: Profile) -> 
     st = emu.status(0.4)
     assert not st.running and st.play_position == 3000 and st.last_error == 0
     assert st.recorder_fill == 1500
-    exp_u, _ = em.expected_readback(profile.emulator, RATE, v)  # type: ignore[arg-type]
+    exp_u, _ = plant.expected_readback(profile.emulator, RATE, v)  # type: ignore[arg-type]
     u, _ = emu.read_recorder(0, 3000, 0.4)
     assert np.isnan(u[:1500]).all()  # overwritten in the ring: missing, never wrong
     np.testing.assert_array_equal(u[1500:], exp_u[1500:].astype(np.float32))

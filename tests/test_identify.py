@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from conftest import NOISE_UM, PROFILE, SAMPLE_RATE_HZ
 
-from afmctl import emulator, modelfile
 from afmctl import identify as idf
+from afmctl import modelfile
 from afmctl import sweeps as sw
 from afmctl.transducer import Transducer
+from drivers.device import plant
 
 
 def test_fit_rms_within_noise_on_every_standard_sweep(standard_fit: idf.FitResult) -> None:
@@ -87,7 +88,7 @@ def test_sweeps_recorded_in_sequence_fit_within_noise(standard_fit: idf.FitResul
     made the 5.58 Hz sweep's RMS 0.86 um (43x the noise) with a depoled start."""
     cfg = PROFILE.emulator
     assert cfg is not None
-    ph = emulator.Physics(cfg, SAMPLE_RATE_HZ)
+    ph = plant.Physics(cfg, SAMPLE_RATE_HZ)
     state, recorded = ph.initial(), []
     for run, (name, _, v) in enumerate(sw.standard_set(150.0, SAMPLE_RATE_HZ)[:3]):
         gain, noise = ph.draws(run, v.size)

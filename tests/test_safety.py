@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import campaign
 import numpy as np
 import pytest
 from conftest import stage_on
@@ -17,9 +18,11 @@ from test_drivers import ScriptedPort, long_waveform, small_buffers
 
 from afmctl import experiment, guard, modelfile, runfile, track
 from afmctl.profile import Profile, WireFaults
-from drivers import StageError, campaign
+from drivers import StageError
 from drivers import ascii_protocol as ap
-from drivers import servers as sv
+from drivers.device.emulated import EmulatedDevice
+from drivers.device.modbus_server import ModbusTcpServer
+from drivers.device.serial_server import SerialServer
 from drivers.serial_link import SerialStage
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -139,7 +142,7 @@ def test_lost_link_mid_run_marks_the_rest_missing_and_the_watchdog_zeroes(
     v = long_waveform(3 * 4096)
     wf = track.Waveform("inverse", 1 / small.sample_rate_hz, v, np.full(v.size, np.nan), None,
                         slice(0, v.size))
-    with sv.EmulatedDevice(small) as dev, sv.SerialServer(dev, "socket://127.0.0.1:0") as srv:
+    with EmulatedDevice(small) as dev, SerialServer(dev, "socket://127.0.0.1:0") as srv:
         stage = SerialStage(small, srv.url, timeout_s=0.1)
         stage.set_watchdog(0.2)
 
@@ -165,7 +168,7 @@ def test_sigint_to_track_leaves_the_stage_safe_and_a_valid_partial_file(
     assert profile.emulator is not None
     modelfile.write(profile.emulator.model, model)
     out = tmp_path / "out"
-    with sv.EmulatedDevice(profile) as dev, sv.SerialServer(dev, "socket://127.0.0.1:0") as srv:
+    with EmulatedDevice(profile) as dev, SerialServer(dev, "socket://127.0.0.1:0") as srv:
         prof = tmp_path / "stage.toml"
         text = (ROOT / "afmctl/profiles/emulated.toml").read_text()
         prof.write_text(text.replace('kind = "emulated"', f'kind = "serial"\nurl = "{srv.url}"'))
@@ -208,8 +211,8 @@ def test_sigint_to_track_leaves_the_stage_safe_and_a_valid_partial_file(
 
 def test_servers_bind_loopback_by_default(profile: Profile) -> None:
     faulty = WireFaults(drop=1e-12)
-    with sv.EmulatedDevice(profile, faults=faulty) as dev, sv.ModbusTcpServer(dev) as tcp, \
-            sv.SerialServer(dev, "socket://:0") as ser:
+    with EmulatedDevice(profile, faults=faulty) as dev, ModbusTcpServer(dev) as tcp, \
+            SerialServer(dev, "socket://:0") as ser:
         assert tcp._proxy is not None
         assert tcp._proxy._listener.getsockname()[0] == "127.0.0.1"
         assert tcp._server.transport.sockets[0].getsockname()[0] == "127.0.0.1"

@@ -32,7 +32,7 @@ def emulate(profile_path: str | None, modbus_port: int, serial_where: str, no_rt
     bind = "0.0.0.0" if bind_any else (host or "127.0.0.1")
     if serial_where.startswith("socket://") and not (host or bind_any):
         serial_where = serial_where.replace("socket://:", f"socket://{bind}:")
-    from drivers.servers import serve_all
+    from drivers.device.emulated import serve_all
     try:
         with serve_all(prof, host=bind, modbus_port=modbus_port, serial=serial_where,
                        rtu=not no_rtu, read_only=read_only or None) as where:

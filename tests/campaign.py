@@ -40,13 +40,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl import guard
-from afmctl.emulator import Emulator, ramp_to_zero
 from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile, WireFaults
-from drivers import StageBase, StageError, _Player
-from drivers import servers as sv
+from drivers import StageBase, StageError
+from drivers.device.emulated import EmulatedDevice
+from drivers.device.emulator import Emulator, ramp_to_zero
+from drivers.device.modbus_server import ModbusRtuServer, ModbusTcpServer
+from drivers.device.serial_server import SerialServer
 from drivers.inprocess import InProcessStage
 from drivers.modbus_link import ModbusStage
 from drivers.serial_link import SerialStage
+from drivers.stage import _Player
 
 WIRES = ("serial-socket", "serial-pty", "modbus-tcp", "modbus-rtu")
 BAD_KINDS = ("over_voltage", "over_slew", "step_in", "not_finite")
@@ -285,7 +288,7 @@ class FakeClock:
 
 @contextmanager
 def bench_on(kind: str, profile: Profile, faults: WireFaults | None = None,
-             timeout_s: float = WIRE_TIMEOUT_S) -> Iterator[tuple[Bench, sv.EmulatedDevice | None]]:
+             timeout_s: float = WIRE_TIMEOUT_S) -> Iterator[tuple[Bench, EmulatedDevice | None]]:
     """A :class:`Bench` over ``kind`` (``"inprocess"`` or one of :data:`WIRES`), faults injected
     on the wire as given (default: :data:`WIRE_FAULTS`)."""
     with ExitStack() as stack:
@@ -295,19 +298,19 @@ def bench_on(kind: str, profile: Profile, faults: WireFaults | None = None,
             stage: StageBase = InProcessStage(profile, em, clock, lock)
             yield Bench(stage, em, lock, clock), None
             return
-        dev = stack.enter_context(sv.EmulatedDevice(
+        dev = stack.enter_context(EmulatedDevice(
             profile, faults=WIRE_FAULTS[kind] if faults is None else faults))
         if kind == "modbus-tcp":
-            port = stack.enter_context(sv.ModbusTcpServer(dev)).port
+            port = stack.enter_context(ModbusTcpServer(dev)).port
             stage = ModbusStage(profile, ModbusTcpTransport("127.0.0.1", port,
                                                             timeout_s=timeout_s))
         elif kind == "modbus-rtu":
-            url = stack.enter_context(sv.ModbusRtuServer(dev, baudrate=921_600)).url
+            url = stack.enter_context(ModbusRtuServer(dev, baudrate=921_600)).url
             stage = ModbusStage(profile, ModbusRtuTransport(url, baudrate=921_600,
                                                             timeout_s=timeout_s))
         else:
             where = "pty" if kind == "serial-pty" else "socket://127.0.0.1:0"
-            url = stack.enter_context(sv.SerialServer(dev, where)).url
+            url = stack.enter_context(SerialServer(dev, where)).url
             stage = SerialStage(profile, url, timeout_s=timeout_s)
         stack.enter_context(stage)
         yield Bench(stage, dev.emulator, dev.lock, dev.clock), dev

@@ -1,0 +1,127 @@
+"""The device's interpreter of the serial (ASCII) protocol: command lines -> an
+:class:`~drivers.device.emulator.Emulator` -> framed reply lines. No I/O (the servers in
+:mod:`drivers.device.serial_server` move the bytes). Codec: :mod:`drivers.ascii_protocol`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from drivers.ascii_protocol import MAX_CHUNK, PROTOCOL_VERSION, FrameError, fmt, frame, status_line, unframe
+from drivers.device.emulator import IDENTITY, DeviceError, Emulator
+from drivers.protocol import ERRORS
+
+
+class AsciiDevice:
+    """Interpret command lines for an :class:`~drivers.device.emulator.Emulator`.
+
+    Parameters
+    ----------
+    emulator : Emulator
+    clock : callable
+        Returns the device time, s (``time.monotonic`` on a server, a fake in tests).
+    """
+
+    def __init__(self, emulator: Emulator, clock: Callable[[], float]) -> None:
+        self.em = emulator
+        self.clock = clock
+        self._commands: dict[str, Callable[[list[str], float], str]] = {
+            "*IDN?": lambda a, t: self._noargs(a, IDENTITY),
+            "VER?": lambda a, t: self._noargs(a, str(PROTOCOL_VERSION)),
+            "SVA": lambda a, t: self._ok(self.em.set_voltage(_float(a, 0, 1), t)),
+            "VOL?": lambda a, t: self._noargs(a, fmt(self.em.status(t).output_v)),
+            "WTR": lambda a, t: self._ok(self.em.set_sample_rate(_float(a, 0, 1), t)),
+            "WTR?": lambda a, t: self._noargs(a, fmt(self.em.status(t).sample_rate_hz)),
+            "WTL": lambda a, t: self._ok(self.em.set_table_length(_int(a, 0, 1), t)),
+            "WTL?": lambda a, t: self._noargs(a, str(self.em.status(t).table_length)),
+            "WAV": self._wav,
+            "WGO": self._wgo,
+            "WGS": lambda a, t: self._ok(self.em.start_stream(_int(a, 0, 1), t)),
+            "POS?": lambda a, t: self._noargs(a, str(self.em.status(t).play_position)),
+            "CAP?": lambda a, t: self._noargs(a, f"{self.em.table.size} {self.em.rec_u.size}"),
+            "DRL?": lambda a, t: self._noargs(a, str(self.em.status(t).recorder_fill)),
+            "DRR?": self._drr,
+            "STA?": lambda a, t: self._noargs(a, status_line(self.em.status(t))),
+            "ERR?": lambda a, t: self._noargs(a, str(self.em.pop_error(t))),
+            "LIM?": lambda a, t: self._noargs(a, " ".join(fmt(x) for x in (
+                self.em.limits.v_min, self.em.limits.v_max, self.em.limits.slew_v_per_ms))),
+            "SAFE": lambda a, t: self._ok(self.em.safe_state(t)),
+            "HB": lambda a, t: self._ok(self.em.heartbeat(t)),
+            "WDT": lambda a, t: self._ok(self.em.set_watchdog(_float(a, 0, 1), t)),
+        }
+
+    def handle_framed(self, line: str) -> str | None:
+        """One received line (framed or typed by hand) -> the framed reply, or None for a line
+        whose CRC is wrong (discarded unanswered) or that is blank."""
+        try:
+            payload, tag = unframe(line.strip(), required=False)
+        except FrameError:
+            return None
+        return frame(self.handle(payload), tag) if payload.strip() else None
+
+    def handle(self, line: str) -> str:
+        """One command (without terminator or framing) -> one reply (without either)."""
+        words = line.strip().split()
+        now = self.clock()
+        try:
+            if not words or words[0].upper() not in self._commands:
+                raise DeviceError(1, words[0] if words else "empty line")
+            return self._commands[words[0].upper()](words[1:], now)
+        except DeviceError as exc:
+            self.em.last_error = exc.code
+            return f"ERR {exc.code} {ERRORS[exc.code]}"
+
+    @staticmethod
+    def _ok(_: None) -> str:
+        return "OK"
+
+    @staticmethod
+    def _noargs(args: list[str], reply: str) -> str:
+        if args:
+            raise DeviceError(2, "query takes no arguments")
+        return reply
+
+    def _wav(self, args: list[str], now: float) -> str:
+        first, n = _int(args, 0, None), _int(args, 1, None)
+        if not 1 <= n <= MAX_CHUNK or len(args) != 2 + n:
+            raise DeviceError(2, f"WAV <first> <n <= {MAX_CHUNK}> then n values")
+        self.em.write_table(first, np.array([_float(args, i) for i in range(2, 2 + n)]), now)
+        return "OK"
+
+    def _wgo(self, args: list[str], now: float) -> str:
+        cycles = _int(args, 0, 1)
+        if cycles == 0:
+            self.em.stop(now)
+        else:
+            self.em.start(cycles, now)
+        return "OK"
+
+    def _drr(self, args: list[str], now: float) -> str:
+        first, n = _int(args, 0, 2), _int(args, 1, 2)
+        if not 1 <= n <= MAX_CHUNK:
+            raise DeviceError(2, f"DRR? <first> <n <= {MAX_CHUNK}>")
+        u, v = self.em.read_recorder(first, n, now)
+        return f"{first} {n} " + " ".join(f"{fmt(a)} {fmt(b)}" for a, b in zip(u, v, strict=True))
+
+
+def _arg(args: list[str], i: int, count: int | None) -> str:
+    if count is not None and len(args) != count:
+        raise DeviceError(2, f"expected {count} argument(s), got {len(args)}")
+    if i >= len(args):
+        raise DeviceError(2, "missing argument")
+    return args[i]
+
+
+def _float(args: list[str], i: int, count: int | None = None) -> float:
+    try:
+        return float(_arg(args, i, count))
+    except ValueError:
+        raise DeviceError(2, f"not a number: {args[i]!r}") from None
+
+
+def _int(args: list[str], i: int, count: int | None) -> int:
+    try:
+        return int(_arg(args, i, count))
+    except ValueError:
+        raise DeviceError(2, f"not an integer: {args[i]!r}") from None

@@ -1,0 +1,51 @@
+"""What both wire protocols share: the device's error codes and its status record. No I/O.
+
+The host's links (:mod:`drivers.serial_link`, :mod:`drivers.modbus_link`) decode a device's replies
+into these; the emulated device (:mod:`drivers.device`) produces them. ``docs/protocol.md`` is the
+normative text.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+#: Error codes shared by both wire protocols (sticky until queried or cleared).
+ERRORS: dict[int, str] = {
+    0: "no error",
+    1: "unknown command",
+    2: "bad argument",
+    3: "voltage outside limits",
+    4: "slew limit exceeded",
+    5: "busy: generator running",
+    6: "index outside table or recorder",
+    7: "read-only device",
+    8: "watchdog expired: ramped to 0 V",
+    9: "waveform table incomplete",
+    10: "stream underrun: ramped to 0 V",
+}
+
+
+@dataclass(frozen=True)
+class Status:
+    """What the device reports about itself.
+
+    ``recorder_fill`` is the number of samples the recorder holds (at most its capacity);
+    ``play_position`` the number of samples the generator has clocked out in the current or last run
+    (global index of the next one); ``run_samples`` that run's length (``N_total`` of a stream).
+    """
+
+    running: bool
+    recorder_fill: int
+    last_error: int
+    output_v: float
+    run_count: int
+    table_length: int
+    table_complete: bool
+    watchdog_armed: bool
+    watchdog_expired: bool
+    read_only: bool
+    sample_rate_hz: float
+    play_position: int
+    run_samples: int
+    watchdog_s: float
+

@@ -1,0 +1,503 @@
+"""The stage interface: :class:`StageBase` (chunked upload, streamed play with readback, retries,
+safe state on any error) on a few primitives per transport, and :func:`open_stage`.
+
+Units on this interface: volts, micrometres (sensor scale and offset from the profile applied),
+seconds. Every blocking call has a timeout; none can hang.
+
+Reliability: a request that fails on the wire (no reply within the timeout, a corrupted or stale
+reply, a dropped connection: :class:`StageError` code -1) is retried up to :attr:`StageBase.attempts`
+times, after a resync of the link, when repeating it is harmless: queries, absolute set points,
+heartbeats, stop, safe state, and table blocks (they carry their sample index). A start is never
+repeated blindly: the host reads the run counter to see whether it took effect. A refusal by the
+device (code >= 1) is never retried. During :meth:`~StageBase.play` no attempt starts after the
+run's deadline, and recorder reads that still fail leave their samples missing (NaN,
+``valid=False``) instead of failing the run; every sample of the waveform is handed to ``on_block``
+exactly once, measured or missing, whatever happens.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from afmctl import guard
+from afmctl.profile import (
+    EmulatedTransport,
+    ModbusRtuTransport,
+    ModbusTcpTransport,
+    Profile,
+    SerialTransport,
+)
+from drivers.protocol import ERRORS, Status
+
+__all__ = ["StageError", "Recording", "Status", "Stage", "StageBase", "BlockCallback", "open_stage"]
+
+#: ``on_block(first_index, voltage_v, displacement_um, valid)`` of :meth:`StageBase.play`.
+BlockCallback = Callable[[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]], None]
+#: Seconds a run may overrun its nominal duration before :meth:`StageBase.play` gives up.
+PLAY_MARGIN_S = 5.0
+#: Upload rate, samples/s, that :meth:`StageBase.play`'s default timeout allows for the first table
+#: (below every transport's measured rate).
+UPLOAD_FLOOR = 2000.0
+T = TypeVar("T")
+
+
+class StageError(RuntimeError):
+    """The stage refused a command (``code`` from :data:`drivers.protocol.ERRORS`, or -1 for a
+    protocol or transport failure)."""
+
+    def __init__(self, code: int, detail: str = "") -> None:
+        what = ERRORS.get(code, "transport or protocol failure")
+        super().__init__(f"stage error {code}: {what}" + (f" ({detail})" if detail else ""))
+        self.code = code
+
+
+@dataclass(frozen=True)
+class Recording:
+    """Recorder contents of one run.
+
+    Attributes
+    ----------
+    voltage_v : ndarray, shape (N,)
+        Voltage on the stack during each sample, V (NaN where missing).
+    displacement_um : ndarray, shape (N,)
+        Sensor displacement at each sample instant, um (NaN where missing).
+    valid : ndarray of bool, shape (N,)
+        False for samples the device had not recorded.
+    """
+
+    voltage_v: NDArray[np.float64]
+    displacement_um: NDArray[np.float64]
+    valid: NDArray[np.bool_]
+
+    @property
+    def complete(self) -> bool:
+        return bool(self.valid.all())
+
+
+class StageBase(abc.ABC):
+    """The stage interface. Subclasses supply the primitives; chunking and units live here.
+
+    Parameters
+    ----------
+    profile : Profile
+        Limits, sample rate and sensor calibration of the stage.
+    """
+
+    #: Samples per upload and readback request of this transport.
+    upload_chunk: int = 61
+    read_chunk: int = 62
+    #: Attempts per idempotent request (the first one included).
+    attempts: int = 4
+
+    def __init__(self, profile: Profile) -> None:
+        self.profile = profile
+        self._last_run_samples = 0
+        #: Requests repeated after a transport failure, since the stage was opened.
+        self.retries = 0
+        self._deadline: float | None = None
+
+    # -- reliability -----------------------------------------------------------------------------
+    def _resync(self) -> None:
+        """Bring the link back to a known state after a failed request (discard anything in
+        flight, reconnect). The default does nothing (no wire)."""
+        return None
+
+    def _retrying(self, attempt: Callable[[], T], idempotent: bool = True) -> T:
+        """``attempt()``, repeated after a resync on transport failure (``StageError`` -1) up to
+        :attr:`attempts` times if ``idempotent``; no attempt starts after a run's deadline."""
+        tries = self.attempts if idempotent else 1
+        for i in range(tries):
+            if self._deadline is not None and time.monotonic() > self._deadline:
+                raise TimeoutError("the run's deadline passed while the link was failing")
+            try:
+                return attempt()
+            except StageError as exc:
+                if exc.code != -1 or i == tries - 1:
+                    raise
+            self.retries += 1
+            self._resync_quietly()
+        raise AssertionError("unreachable")
+
+    def _resync_quietly(self) -> None:
+        """:meth:`_resync`; if that fails too, the next attempt will find out."""
+        try:
+            self._resync()
+        except StageError:
+            pass
+
+    def _start_checked(self, start: Callable[[], None]) -> None:
+        """Start a run (not idempotent): on a transport failure, read the run counter to learn
+        whether the start took effect before trying again."""
+        before = self.status().run_count
+        for i in range(self.attempts):
+            try:
+                return start()
+            except StageError as exc:
+                if exc.code != -1 or i == self.attempts - 1:
+                    raise
+            self.retries += 1
+            self._resync_quietly()
+            if self.status().run_count > before:
+                return None
+        return None
+
+    # -- primitives ----------------------------------------------------------------------------
+    @abc.abstractmethod
+    def identify(self) -> str: ...
+
+    @abc.abstractmethod
+    def status(self) -> Status: ...
+
+    @abc.abstractmethod
+    def limits(self) -> tuple[float, float, float]:
+        """The device's own limits: v_min (V), v_max (V), slew (V/ms)."""
+
+    def voltage(self) -> float:
+        """Output voltage now, V."""
+        return self.status().output_v
+
+    @abc.abstractmethod
+    def set_voltage(self, v: float) -> None:
+        """DC output, V (refused outside the limits or beyond one slew-limited step)."""
+
+    @abc.abstractmethod
+    def stop(self) -> None: ...
+
+    @abc.abstractmethod
+    def safe_state(self) -> None:
+        """Stop the generator and ramp the output to 0 V within the slew limit."""
+
+    @abc.abstractmethod
+    def heartbeat(self) -> None: ...
+
+    @abc.abstractmethod
+    def set_watchdog(self, period_s: float) -> None:
+        """Watchdog period, s (0 disarms); the next heartbeat arms it."""
+
+    @abc.abstractmethod
+    def set_sample_rate(self, hz: float) -> None: ...
+
+    @abc.abstractmethod
+    def close(self) -> None: ...
+
+    @abc.abstractmethod
+    def _set_table_length(self, n: int) -> None: ...
+
+    @abc.abstractmethod
+    def _write_chunk(self, first: int, values: NDArray[np.float32]) -> None: ...
+
+    @abc.abstractmethod
+    def _start(self, cycles: int) -> None: ...
+
+    @abc.abstractmethod
+    def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Raw sensor and voltage of samples ``first .. first+n-1``, float32, NaN if missing."""
+
+    @abc.abstractmethod
+    def _start_stream(self, n_total: int) -> None:
+        """Play ``n_total`` samples through the table as a ring (``_write_chunk`` then takes
+        global sample indices)."""
+
+    @abc.abstractmethod
+    def _capacities(self) -> tuple[int, int]:
+        """The device's table and recorder capacities, samples."""
+
+    # -- composed operations -------------------------------------------------------------------
+    def upload(self, waveform_v: ArrayLike) -> None:
+        """Load the waveform table, V, shape (N,) (sent as float32, in chunks)."""
+        v = np.asarray(waveform_v, dtype=np.float32).ravel()
+        if v.size == 0:
+            raise ValueError("empty waveform")
+        self._set_table_length(v.size)
+        for first in range(0, v.size, self.upload_chunk):
+            self._write_chunk(first, v[first:first + self.upload_chunk])
+
+    def run(self, cycles: int = 1) -> None:
+        """Start clocking out the table ``cycles`` times, recording every sample."""
+        n = self.status().table_length
+        self._start_checked(lambda: self._start(cycles))
+        self._last_run_samples = n * cycles
+
+    def wait(self, timeout_s: float | None = None, poll_s: float = 0.02) -> Status:
+        """Poll until the generator stops; TimeoutError after ``timeout_s`` (default: the run's
+        duration + 5 s)."""
+        deadline: float | None = None
+        while (st := self.status()).running:
+            if deadline is None:
+                limit = timeout_s if timeout_s is not None else (
+                    self._last_run_samples / st.sample_rate_hz + 5.0)
+                deadline = time.monotonic() + limit
+            elif time.monotonic() > deadline:
+                raise TimeoutError(f"stage still running after {limit:.3g} s")
+            time.sleep(poll_s)
+        return st
+
+    def read_recorder(self, n: int | None = None, first: int = 0, *,
+                      missing_ok: bool = False) -> Recording:
+        """Read ``n`` recorder samples from global index ``first`` (default: all of the last run).
+
+        With ``missing_ok``, a request that still fails on the wire after its retries leaves its
+        samples missing (NaN, ``valid=False``) instead of raising."""
+        n = self._last_run_samples - first if n is None else n
+        raw = np.full(n, np.nan, dtype=np.float32)
+        volt = np.full(n, np.nan, dtype=np.float32)
+        for off in range(0, n, self.read_chunk):
+            m = min(self.read_chunk, n - off)
+            try:
+                raw[off:off + m], volt[off:off + m] = self._read_chunk(first + off, m)
+            except StageError as exc:
+                if not (missing_ok and exc.code == -1):
+                    raise
+        u = self.profile.sensor_scale_um * raw.astype(float) + self.profile.sensor_offset_um
+        v = volt.astype(float)
+        return Recording(v, u, np.isfinite(u) & np.isfinite(v))
+
+    def play(self, waveform_v: ArrayLike, on_block: BlockCallback | None = None, *,
+             poll_s: float = 0.01, timeout_s: float | None = None) -> Recording:
+        """Play a waveform of any length and read back what the stage did, block by block.
+
+        A waveform that fits the device's table is uploaded and run once; a longer one is
+        streamed: the first table-full is uploaded, the stream started, and each half of the table
+        is refilled as soon as the generator has played it (double buffering). The recorder is
+        read while the stage runs and every new contiguous block is handed to ``on_block`` in
+        order, so the caller can write it to disk as it arrives. Heartbeats are sent while running
+        if the device's watchdog is set.
+
+        Parameters
+        ----------
+        waveform_v : array_like, shape (N,)
+            Voltage per sample, V (sent as float32).
+        on_block : callable, optional
+            ``on_block(first_index, voltage_v, displacement_um, valid)`` with arrays of shape (m,)
+            (V, um, bool) for samples ``first_index .. first_index+m-1``; the blocks are in order,
+            contiguous and cover ``[0, N)`` even when the run fails (samples never measured are
+            NaN with ``valid=False``), unless on_block itself raised.
+        poll_s : float
+            Pause between polls when there is nothing to do, s.
+        timeout_s : float, optional
+            Longest time the call may take, s (default: N / sample rate + 5 s + the first table
+            at :data:`UPLOAD_FLOOR`). No request is attempted after it; the call then ends within
+            one request's timeout, plus the safe state's retries.
+
+        Returns
+        -------
+        Recording
+            All N samples; samples the recorder no longer (or never) held are NaN with
+            ``valid=False``.
+
+        Raises
+        ------
+        StageError
+            The device refused a command or stopped early (e.g. code 10: underrun, the host fell
+            behind; the device has ramped to 0 V).
+        TimeoutError
+            The run did not finish by its deadline.
+
+        afmctl.guard.LimitError
+            The waveform (as float32, from the stage's present output) violates the profile's
+            voltage, slew or current limits; nothing was sent.
+
+        Before anything is sent the waveform is checked against the profile's limits (the device
+        checks again). Recorder reads that fail after their retries leave those samples missing
+        (``valid=False``) and the run goes on. On any exception or KeyboardInterrupt the stage is
+        put in the safe state (best effort: a failure of that is attached as a note), the samples
+        not yet delivered are handed to ``on_block`` (read back if the link still works, else
+        missing), and the exception propagates.
+        """
+        v = np.asarray(waveform_v, dtype=np.float32).ravel()
+        if v.size == 0:
+            raise ValueError("empty waveform")
+        player = _Player(self, v, on_block, poll_s)
+        try:
+            self._ensure_rate()
+            guard.check(v.astype(float), 1.0 / self.profile.sample_rate_hz, self.profile.limits,
+                        self.voltage(), "waveform")
+            return player.run(timeout_s)
+        except guard.LimitError:
+            raise  # refused before anything was sent: the stage stays where it is
+        except BaseException as exc:
+            self._deadline = None
+            self._safe_state_quietly(exc)
+            player.abandon(exc)
+            raise
+        finally:
+            self._deadline = None
+
+    def _ensure_rate(self) -> None:
+        """Clock the device at the profile's sample rate: timestamps, the model's discretization
+        and the slew check all assume it. StageError if the device will not take it."""
+        want = self.profile.sample_rate_hz
+        if math.isclose(self.status().sample_rate_hz, want, rel_tol=1e-6):
+            return
+        self.set_sample_rate(want)
+        got = self.status().sample_rate_hz
+        if not math.isclose(got, want, rel_tol=1e-6):
+            raise StageError(-1, f"the device clocks {got:g} Hz; the profile says {want:g} Hz")
+
+    def _safe_state_quietly(self, cause: BaseException) -> None:
+        """Best-effort safe state after ``cause``; never replaces it (a failure becomes a note)."""
+        try:
+            self.safe_state()
+        except BaseException as exc:  # noqa: BLE001 - the original exception is what matters
+            cause.add_note(f"safe_state() after this failed too: {exc!r}")
+
+    def __enter__(self) -> StageBase:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class _Player:
+    """One :meth:`StageBase.play`: the host's side of a (possibly streamed) run.
+
+    ``written`` is the next global sample to send, ``delivered`` the next one to read back.
+    """
+
+    def __init__(self, stage: StageBase, v: NDArray[np.float32], on_block: BlockCallback | None,
+                 poll_s: float) -> None:
+        if v.size == 0:
+            raise ValueError("empty waveform")
+        self.stage, self.v, self.on_block, self.poll_s = stage, v, on_block, poll_s
+        self.table = self.half = self.recorder_capacity = 0  # the device's, once run() starts
+        self.started = False  # whether a run of this waveform was started on the device
+        self.written = self.delivered = 0
+        self.in_callback = False
+        self.last_heartbeat = -np.inf
+        n = v.size
+        self.u = np.full(n, np.nan)
+        self.volt = np.full(n, np.nan)
+        self.valid = np.zeros(n, dtype=bool)
+
+    def run(self, timeout_s: float | None) -> Recording:
+        stage, n = self.stage, self.v.size
+        table, self.recorder_capacity = stage._capacities()
+        self.table = min(table, n)
+        self.half = max(1, self.table // 2)
+        limit = (n / stage.profile.sample_rate_hz + PLAY_MARGIN_S + self.table / UPLOAD_FLOOR
+                 if timeout_s is None else timeout_s)
+        deadline = stage._deadline = time.monotonic() + limit
+        stage.upload(self.v[:self.table])
+        self.written = self.table
+        self.started = True  # from here on the device may be playing this waveform
+        if n > self.table or n > self.recorder_capacity:
+            stage._start_checked(lambda: stage._start_stream(n))
+        else:
+            stage._start_checked(lambda: stage._start(1))
+        stage._last_run_samples = n
+        while True:
+            st = stage.status()
+            self._heartbeat(st)
+            busy = self._refill(st.play_position) if st.running else False
+            busy |= self._deliver(st.play_position, st.running)
+            if not st.running and self.delivered >= st.play_position:
+                break
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"run not done after {limit:.3g} s ({st.play_position} of {n} "
+                                   f"samples played, {self.delivered} read back)")
+            if not busy:
+                time.sleep(self.poll_s)
+        if st.play_position < n:
+            raise StageError(st.last_error if st.last_error else -1,
+                             f"the run stopped after {st.play_position} of {n} samples")
+        return Recording(self.volt, self.u, self.valid)
+
+    def _heartbeat(self, st: Status) -> None:
+        """Keep the device's watchdog fed (four heartbeats per period) while it runs."""
+        now = time.monotonic()
+        if st.running and st.watchdog_s > 0 and now - self.last_heartbeat >= st.watchdog_s / 4:
+            self.stage.heartbeat()
+            self.last_heartbeat = now
+
+    def _refill(self, position: int) -> bool:
+        """Send the next half-table if the generator has played the samples its slots held."""
+        n = self.v.size
+        if self.written >= n or self.written + self.half > position + self.table:
+            return False
+        end = min(n, self.written + self.half)
+        chunk = self.stage.upload_chunk
+        for first in range(self.written, end, chunk):
+            self.stage._write_chunk(first, self.v[first:min(end, first + chunk)])
+        self.written = end
+        return True
+
+    def _deliver(self, position: int, running: bool) -> bool:
+        """Read back recorded samples not yet delivered and hand them to ``on_block``; samples
+        already overwritten in the recorder ring are NaN, invalid. While running, at most four read
+        requests (or a quarter table) per call, so that refilling the table, which cannot wait,
+        comes round again soon; once stopped, everything left."""
+        most = max(1, min(self.half // 2, 4 * self.stage.read_chunk)) if running else position
+        end = min(position, self.delivered + most)
+        if end <= self.delivered:
+            return False
+        first, lost = self.delivered, max(self.delivered, position - self.recorder_capacity)
+        rec = self.stage.read_recorder(end - lost, lost, missing_ok=True) if end > lost else None
+        if rec is not None:
+            sl = slice(lost, end)
+            self.volt[sl], self.u[sl], self.valid[sl] = (rec.voltage_v, rec.displacement_um,
+                                                          rec.valid)
+        self._hand_over(first, end)
+        return True
+
+    def _hand_over(self, first: int, end: int) -> None:
+        """Samples ``first .. end-1`` are final: count them delivered, pass them to on_block."""
+        self.delivered = end
+        if self.on_block is not None and end > first:
+            sl = slice(first, end)
+            self.in_callback = True
+            self.on_block(first, self.volt[sl].copy(), self.u[sl].copy(), self.valid[sl].copy())
+            self.in_callback = False
+
+    def abandon(self, cause: BaseException) -> None:
+        """After a failed run (the stage already safe): hand every sample not yet delivered to
+        on_block, read back if the cause was not the link and the link still answers, else
+        missing. Nothing is done if on_block itself raised ``cause``; a failure here becomes a
+        note on ``cause``."""
+        if self.in_callback:
+            return
+        try:
+            if self.started and not isinstance(cause, StageError | TimeoutError):
+                self._deliver(self.stage.status().play_position, running=False)
+        except (StageError, TimeoutError) as exc:
+            cause.add_note(f"reading back the rest after this failed too: {exc!r}")
+        try:
+            self._hand_over(self.delivered, self.v.size)
+        except Exception as exc:  # noqa: BLE001 - the original exception is what matters
+            cause.add_note(f"handing over the missing samples failed: {exc!r}")
+
+
+#: The stage interface (an abstract base class: implementations inherit the composed operations).
+Stage = StageBase
+
+
+def open_stage(profile: Profile, **options: Any) -> StageBase:
+    """Open the stage a profile describes.
+
+    Parameters
+    ----------
+    profile : Profile
+    **options
+        Passed to the implementation, e.g. ``emulator=`` for the in-process stage or ``url=``
+        to override a serial URL.
+    """
+    t = profile.transport
+    if isinstance(t, EmulatedTransport):
+        from drivers.inprocess import InProcessStage
+        return InProcessStage(profile, **options)
+    if isinstance(t, SerialTransport):
+        from drivers.serial_link import SerialStage
+        return SerialStage(profile, **options)
+    if isinstance(t, ModbusTcpTransport | ModbusRtuTransport):
+        from drivers.modbus_link import ModbusStage
+        return ModbusStage(profile, **options)
+    raise TypeError(f"unknown transport {t!r}")
+
+
