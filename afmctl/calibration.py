@@ -86,5 +86,6 @@ def _calibrate(profile: Profile, stage: Any, folder: Path,
         raise RuntimeError(f"calibration fit did not converge: {result.message}")
     modelfile.write(result.model, folder / "model.toml",
                     header=f"afmctl calibration of profile {profile.name}: identified from "
-                           f"{', '.join(s.path for s in recorded)}")
+                           f"{', '.join(s.path for s in recorded)}",
+                    envelope=result.envelope, uncertainty=result.uncertainty)
     return result.model

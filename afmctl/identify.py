@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -29,13 +29,30 @@ from numpy.typing import NDArray
 from scipy import optimize
 
 from afmctl import effects as fx
+from afmctl import hysteresis as hy
+from afmctl import modelfile as mf
+from afmctl import noise as ns
 from afmctl import parametrization as pz
+from afmctl import rod as rd
 from afmctl import transducer as td
+from afmctl import uncertainty as unc
 from afmctl.sweeps import Sweep
 from afmctl.tomlfile import InputError, Table
+from afmctl.uncertainty import Estimate
 
 FloatArray = NDArray[np.float64]
 Window = tuple[float, float] | None
+#: A sweep is at the noise floor when its fit RMS is at most this many times its sensor noise.
+FLOOR = 1.5
+#: Above this many times its noise a sweep is named on stderr (``afmctl identify``).
+WARN = 2.0
+#: A different start state must lower the sum of squares by this many noise variances.
+START_MARGIN = 25.0
+#: Largest error (um) the coercive-field discretization of an identified model may add.
+DISCRETIZATION_UM = 0.01
+
+__all__ = ["Estimate", "FitResult", "Settings", "SweepError", "fit", "predict", "predict_set",
+           "sweep_error", "envelope", "n_coercive_for", "resolve_thickness", "FLOOR", "WARN"]
 
 
 class FitInputError(InputError):
@@ -69,6 +86,9 @@ class Settings:
         turning point; linear interpolation in between (0 evaluates every sample).
     max_nfev : int
         Budget of residual evaluations of the solver (per stage).
+    restarts : int
+        Further starts tried (the next-best points of the starting grid) while a sweep's fit
+        stays above :data:`FLOOR` times its sensor noise.
     density : {"parametric", "discrete"}
         ``discrete`` refines the lognormal fit with a general coercive density.
     n_density_nodes : int
@@ -85,6 +105,7 @@ class Settings:
     n_coercive_fit: int = 96
     field_step: float = 0.004
     max_nfev: int = 300
+    restarts: int = 3
     density: Literal["parametric", "discrete"] = "parametric"
     n_density_nodes: int = 24
     smoothing: float = 1e-6
@@ -96,7 +117,7 @@ class Settings:
 
 def settings_from_table(t: Table | None, base: Settings = Settings()) -> Settings:
     """Settings from a profile's ``[identify]`` table (keys ``mass_kg``, ``p_r_C_per_m2``,
-    ``thickness_um``, ``n_coercive_fit``, ``field_step``, ``max_nfev``, ``density``,
+    ``thickness_um``, ``n_coercive_fit``, ``field_step``, ``max_nfev``, ``restarts``, ``density``,
     ``n_density_nodes``, ``smoothing``); missing keys keep ``base``."""
     if t is None:
         return base
@@ -109,6 +130,7 @@ def settings_from_table(t: Table | None, base: Settings = Settings()) -> Setting
                                                          minimum=4),
         field_step=t.number("field_step", base.field_step, nonnegative=True),
         max_nfev=t.integer("max_nfev", base.max_nfev, minimum=1),
+        restarts=t.integer("restarts", base.restarts, minimum=0),
         density=t.string("density", base.density, choices=("parametric", "discrete")),  # type: ignore[arg-type]
         n_density_nodes=t.integer("n_density_nodes", base.n_density_nodes, minimum=3),
         smoothing=t.number("smoothing", base.smoothing, nonnegative=True))
@@ -117,25 +139,22 @@ def settings_from_table(t: Table | None, base: Settings = Settings()) -> Setting
 
 
 @dataclass(frozen=True)
-class Estimate:
-    """One fitted parameter with its approximate 1-sigma interval (0 for fixed ones)."""
-
-    name: str
-    value: float
-    stderr: float
-    unit: str
-    fixed: bool = False
-
-
-@dataclass(frozen=True)
 class SweepError:
-    """Error of a model on one sweep (over its judged window), um."""
+    """Error of a model on one sweep (over its judged window), um, against its sensor noise.
+
+    ``noise_um`` is the sweep's sensor noise estimated from its data alone
+    (:func:`afmctl.noise.sensor_noise_um`); ``start`` the hysteresis state the sweep was taken
+    to start from (one of :data:`afmctl.parametrization.STARTS`) and ``offset_um`` its sensor zero.
+    """
 
     file: str
     rms_um: float
     max_um: float
     range_um: float
     n_samples: int
+    noise_um: float = float("nan")
+    start: str = "depoled"
+    offset_um: float = float("nan")
 
     @property
     def rms_pct(self) -> float:
@@ -145,13 +164,26 @@ class SweepError:
     def max_pct(self) -> float:
         return 100.0 * self.max_um / self.range_um
 
+    @property
+    def rms_over_noise(self) -> float:
+        return self.rms_um / self.noise_um if self.noise_um > 0 else float("inf")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"file": self.file, "rms_um": self.rms_um, "max_um": self.max_um,
+                "range_um": self.range_um, "rms_pct": self.rms_pct, "max_pct": self.max_pct,
+                "n_samples": self.n_samples, "noise_um": _finite(self.noise_um),
+                "rms_over_noise": _finite(self.rms_over_noise), "start": self.start,
+                "offset_um": _finite(self.offset_um)}
+
 
 @dataclass(frozen=True)
 class FitResult:
     """Outcome of :func:`fit`: the model, parameters, per-sweep errors and the solver's status.
 
     ``success`` is True only if the solver reports convergence (status > 0) and the result is
-    finite; a fit stopped by ``max_nfev`` or failing is reported as such.
+    finite; a fit stopped by ``max_nfev`` or failing is reported as such. It says nothing about
+    how good the fit is: that is ``at_noise_floor`` (every sweep within :data:`FLOOR` times its
+    sensor noise).
     """
 
     model: td.Transducer
@@ -164,86 +196,36 @@ class FitResult:
     seconds: float
     thickness_known: bool
     x: FloatArray = field(repr=False)
+    uncertainty: dict[str, Any] = field(default_factory=dict, repr=False)
+    envelope: mf.Envelope | None = None
+    restarts: int = 0
+
+    @property
+    def at_noise_floor(self) -> bool:
+        return all(s.rms_over_noise <= FLOOR for s in self.sweeps)
+
+    def above_floor(self, factor: float = WARN) -> list[SweepError]:
+        """The sweeps whose fit RMS exceeds ``factor`` times their sensor noise."""
+        return [s for s in self.sweeps if not s.rms_over_noise <= factor]
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (the ``--json`` output of ``afmctl identify``)."""
         return {
             "success": self.success, "status": self.status, "message": self.message,
-            "nfev": self.nfev, "seconds": round(self.seconds, 3),
-            "thickness_known": self.thickness_known,
+            "nfev": self.nfev, "seconds": round(self.seconds, 3), "restarts": self.restarts,
+            "thickness_known": self.thickness_known, "at_noise_floor": self.at_noise_floor,
+            "n_coercive": self.model.polarization.n_coercive,
             "parameters": {p.name: {"value": _finite(p.value), "stderr": _finite(p.stderr),
                                     "unit": p.unit, "fixed": p.fixed} for p in self.parameters},
-            "sweeps": [{"file": s.file, "rms_um": s.rms_um, "max_um": s.max_um,
-                        "range_um": s.range_um, "rms_pct": s.rms_pct, "max_pct": s.max_pct,
-                        "n_samples": s.n_samples} for s in self.sweeps],
+            "sweeps": [s.to_dict() for s in self.sweeps],
+            "uncertainty": self.uncertainty,
+            "envelope": None if self.envelope is None else self.envelope.to_dict(),
         }
 
 
 def _finite(v: float) -> float | None:
     """JSON has no NaN/inf: non-finite values become null."""
-    return v if np.isfinite(v) else None
-
-
-# ----------------------------------------------------------------------------------------------
-# solver and uncertainty
-# ----------------------------------------------------------------------------------------------
-
-
-Space = pz.LognormalSpace | pz.DiscreteSpace
-
-
-def _residual_fn(space: Space, y: FloatArray) -> Callable[[FloatArray], FloatArray]:
-    def residual(x: FloatArray) -> FloatArray:
-        return np.concatenate((pz.project(space.design(x), y)[1], space.penalty(x)))
-
-    return residual
-
-
-def _solve(space: Space, x0: FloatArray, y: FloatArray, max_nfev: int) -> optimize.OptimizeResult:
-    lo, hi = space.bounds()
-    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
-    return optimize.least_squares(_residual_fn(space, y), x0, bounds=(lo, hi),
-                                  x_scale=space.x_scale, diff_step=1e-6, max_nfev=max_nfev)
-
-
-def _covariance(space: Space, x: FloatArray, beta: FloatArray, y: FloatArray) -> FloatArray:
-    """``s^2 (J^T J)^+`` for the full internal vector ``(x, g1, g2, offset)`` (data rows only)."""
-    a0 = space.design(x)
-    r0 = y - a0 @ beta
-    cols = []
-    for i in range(x.size):
-        step = 1e-5 * max(1.0, abs(float(x[i])))
-        xs = x.copy()
-        xs[i] += step
-        cols.append(-((space.design(xs) - a0) @ beta) / step)
-    jac = np.column_stack(cols + [-a0])
-    s2 = float(r0 @ r0) / max(1, y.size - jac.shape[1])
-    return s2 * np.linalg.pinv(jac.T @ jac)
-
-
-def _estimates(space: Space, x: FloatArray, beta: FloatArray, cov: FloatArray,
-               settings: Settings) -> tuple[Estimate, ...]:
-    """Delta-method 1-sigma for the physical parameters; m and P_R reported as fixed."""
-    p = np.concatenate((x, beta))
-    n = x.size
-
-    def values(q: FloatArray) -> FloatArray:
-        return np.array([v for _, v, _ in pz.describe(space.model(q[:n], q[n:], 1.0))])
-
-    f0 = values(p)
-    jac = np.empty((f0.size, p.size))
-    for i in range(p.size):
-        h = 1e-6 * max(1.0, abs(p[i]))
-        pp = p.copy()
-        pp[i] += h
-        jac[:, i] = (values(pp) - f0) / h
-    var = np.einsum("ij,jk,ik->i", jac, cov, jac)
-    described = pz.describe(space.model(x, beta, 1.0))
-    out = [Estimate(name, float(v), float(np.sqrt(max(s, 0.0))), unit)
-           for (name, v, unit), s in zip(described, var, strict=True)]
-    out += [Estimate("m", settings.mass_kg, 0.0, "kg", fixed=True),
-            Estimate("p_r", settings.p_r, 0.0, "C/m^2", fixed=True)]
-    return tuple(out)
+    return float(v) if np.isfinite(v) else None
 
 
 def resolve_thickness(sweeps: Sequence[Sweep], settings: Settings) -> tuple[float, bool]:
@@ -260,40 +242,221 @@ def resolve_thickness(sweeps: Sequence[Sweep], settings: Settings) -> tuple[floa
 
 
 # ----------------------------------------------------------------------------------------------
-# public entry points
+# predictions of a model on sweeps
 # ----------------------------------------------------------------------------------------------
 
 
-def predict(model: td.Transducer, voltage_v: FloatArray, dt: float,
-            gain: float = 1.0) -> FloatArray:
-    """Displacement (um) the model predicts for a voltage history, as the sensor reads it.
+def _start_state(model: td.Transducer, start: str, v0: float,
+                 previous: hy.PolarizationState | None) -> td.StageState:
+    """Stage state before a sweep's first sample ``v0`` (V): the hysteresis ``start`` (one of
+    :data:`afmctl.parametrization.STARTS`), then ``v0`` applied quasi-statically, rod at rest."""
+    if start == "previous" and previous is not None:
+        p, ps = hy.run(model.polarization, np.array([v0 / model.thickness_um]), previous)
+        return td.StageState(ps, rd.rest_state(model.rod, float(model.rod.force(p)[0])))
+    return td.initial(model, "depoled" if start == "previous" else start, v0)  # type: ignore[arg-type]
 
-    From the depoled state with the first voltage applied quasi-statically (as every sweep is
-    assumed to start), through the model's effects (:mod:`afmctl.effects`, none for a model of
-    the paper's form) with applied-voltage gain ``gain``.
-    """
+
+def _reading(model: td.Transducer, voltage_v: FloatArray, dt: float, gain: float, start: str,
+             previous: hy.PolarizationState | None) -> tuple[FloatArray, hy.PolarizationState]:
     chain = fx.compile_chain(model.effects, dt)
     v = gain * np.asarray(voltage_v, dtype=float)
     v, _ = fx.lag(chain, v, float(v[0]))
-    u, _, _ = td.simulate(td.compile_model(model, dt), v, td.initial(model, "depoled", v[0]))
-    return fx.measure(chain, u, *fx.rest(chain, float(u[0])))[0]
+    st = _start_state(model, start, float(v[0]), previous)
+    u, _, end = td.simulate(td.compile_model(model, dt), v, st)
+    return fx.measure(chain, u, *fx.rest(chain, float(u[0])))[0], end.polarization
 
 
-def sweep_error(model: td.Transducer, sweep: Sweep, window_s: Window = None) -> SweepError:
-    """RMS, max and range (um) of ``measured - predicted`` on ``sweep`` (within ``window_s``)."""
+def predict(model: td.Transducer, voltage_v: FloatArray, dt: float, gain: float = 1.0,
+            start: str = "depoled") -> FloatArray:
+    """Displacement (um) the model predicts for a voltage history, as the sensor reads it.
+
+    From the hysteresis state ``start`` (default depoled) with the first voltage applied
+    quasi-statically, through the model's effects (:mod:`afmctl.effects`, none for a model of
+    the paper's form) with applied-voltage gain ``gain``.
+    """
+    return _reading(model, voltage_v, dt, gain, start, None)[0]
+
+
+def predict_set(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str],
+                offsets_um: Sequence[float] | None = None) -> list[FloatArray]:
+    """Predicted readings (um) of a set of sweeps recorded in sequence, each from its start
+    (``previous``: where the sweep before left the hysteresis) and with its own sensor zero
+    ``offsets_um`` (default: the model's)."""
+    out, prev = [], None
+    offs = offsets_um if offsets_um is not None else [model.rod.offset_um] * len(sweeps)
+    for s, start, off in zip(sweeps, starts, offs, strict=True):
+        u, prev = _reading(model, s.voltage_v, s.dt, 1.0, start, prev)
+        out.append(u + (off - model.rod.offset_um))
+    return out
+
+
+def _error(name: str, sweep: Sweep, predicted: FloatArray, window_s: Window, start: str,
+           offset_um: float) -> SweepError:
     m = sweep.mask(window_s)
-    err = (sweep.displacement_um - predict(model, sweep.voltage_v, sweep.dt))[m]
-    y = sweep.displacement_um[m]
-    return SweepError(sweep.path or sweep.name, float(np.sqrt(np.mean(err ** 2))),
-                      float(np.max(np.abs(err))), float(np.ptp(y)), int(m.sum()))
+    err = (sweep.displacement_um - predicted)[m]
+    return SweepError(name, float(np.sqrt(np.mean(err ** 2))), float(np.max(np.abs(err))),
+                      float(np.ptp(sweep.displacement_um[m])), int(m.sum()),
+                      ns.sensor_noise_um(sweep.displacement_um), start, offset_um)
 
 
-def _stage(space: Space, x0: FloatArray, y: FloatArray, settings: Settings,
-           say: Callable[[str], None], label: str) -> tuple[optimize.OptimizeResult, FloatArray]:
-    sol = _solve(space, x0, y, settings.max_nfev)
-    say(f"{label}: {sol.message} (status {sol.status}, {sol.nfev} evaluations)")
-    beta, _ = pz.project(space.design(sol.x), y)
-    return sol, beta
+def sweep_error(model: td.Transducer, sweep: Sweep, window_s: Window = None,
+                start: str = "depoled") -> SweepError:
+    """RMS, max and range (um) of ``measured - predicted`` on ``sweep`` (within ``window_s``),
+    with the sweep's sensor noise."""
+    return _error(sweep.path or sweep.name, sweep, predict(model, sweep.voltage_v, sweep.dt,
+                                                           start=start),
+                  window_s, start, model.rod.offset_um)
+
+
+def n_coercive_for(model: td.Transducer, fields: Sequence[FloatArray],
+                   tol_um: float = DISCRETIZATION_UM) -> int:
+    """Coercive nodes for ``model`` so the discretization of (13) adds at most ``tol_um`` to the
+    displacement over the field histories ``fields`` (MV/m; the identified sweeps span the
+    envelope), from :func:`afmctl.hysteresis.n_coercive_for` with the rod's static gain
+    ``1e6 |a1 + 2 a2 P| / k`` (um per C/m^2) at the largest polarization reached."""
+    pol, rod = model.polarization, model.rod
+    e_max = max(float(np.max(np.abs(e))) for e in fields)
+    p_max = float(np.max(np.abs(hy.run(pol, np.array([e_max, -e_max, e_max]),
+                                       hy.initial_state(pol))[0])))
+    gain = 1e6 * (abs(rod.a1) + 2 * abs(rod.a2) * p_max) / rod.k
+    return hy.n_coercive_for(pol, list(fields), tol_um / max(gain, 1e-300))
+
+
+def envelope(sweeps: Sequence[Sweep], thickness_um: float) -> mf.Envelope:
+    """The validity envelope of a model identified on ``sweeps``: their voltage and field range,
+    frequencies (metadata ``frequency_hz``, else turning points per second / 2) and sample rates."""
+    v_lo = min(float(np.min(s.voltage_v)) for s in sweeps)
+    v_hi = max(float(np.max(s.voltage_v)) for s in sweeps)
+
+    def freq(s: Sweep) -> float:
+        if s.frequency_hz is not None:
+            return s.frequency_hz
+        n_turns = pz.turning_points(s.voltage_v).size - 2
+        return 0.5 * n_turns / max(float(s.time_s[-1] - s.time_s[0]), s.dt)
+
+    return mf.Envelope(v_lo, v_hi, v_lo / thickness_um, v_hi / thickness_um,
+                       tuple(round(freq(s), 6) for s in sweeps),
+                       tuple(round(1.0 / s.dt, 6) for s in sweeps))
+
+
+# ----------------------------------------------------------------------------------------------
+# the fit
+# ----------------------------------------------------------------------------------------------
+
+
+Space = pz.LognormalSpace | pz.DiscreteSpace
+
+
+@dataclass
+class _Problem:
+    """The sweeps prepared for the residual, their stacked measurements and noise floors."""
+
+    sweeps: Sequence[Sweep]
+    preps: list[pz.Prepared]
+    y: FloatArray
+    noise: FloatArray
+    settings: Settings
+    say: Callable[[str], None]
+    nfev: int = 0
+
+    def per_sweep(self, r: FloatArray) -> FloatArray:
+        """RMS of the stacked residual ``r`` per sweep over its sensor noise."""
+        ends = np.cumsum([int(p.mask.sum()) for p in self.preps])
+        parts = np.split(r[:ends[-1]], ends[:-1])
+        return np.array([np.sqrt(np.mean(q ** 2)) for q in parts]) / self.noise
+
+
+def _residual_fn(space: Space, y: FloatArray) -> Callable[[FloatArray], FloatArray]:
+    def residual(x: FloatArray) -> FloatArray:
+        return np.concatenate((pz.project(space.design(x), y)[1], space.penalty(x)))
+
+    return residual
+
+
+def _cost(space: Space, y: FloatArray, x: FloatArray) -> float:
+    return float(np.sum(_residual_fn(space, y)(x) ** 2))
+
+
+def _solve(space: Space, x0: FloatArray, prob: _Problem) -> optimize.OptimizeResult:
+    lo, hi = space.bounds()
+    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    sol = optimize.least_squares(_residual_fn(space, prob.y), x0, bounds=(lo, hi),
+                                 x_scale=space.x_scale, diff_step=1e-6,
+                                 max_nfev=prob.settings.max_nfev)
+    prob.nfev += int(sol.nfev)
+    return sol
+
+
+def choose_starts(space: pz.LognormalSpace, x: FloatArray, y: FloatArray,
+                  margin: float = 0.0) -> pz.LognormalSpace:
+    """Each sweep's initial hysteresis state, by coordinate descent over
+    :data:`afmctl.parametrization.STARTS` at the parameters ``x`` (two passes); a change must
+    lower the sum of squares by more than ``margin`` (um^2).
+
+    After a sweep has reached both of its voltage extremes only the hysterons it cannot switch
+    still remember the start; they shift ``Q`` by a constant, which the quadratic force term
+    turns into a gain: small, but at the noise floor it decides the fit.
+    """
+    best = space
+    cost = _cost(best, y, x) - margin
+    for _ in range(2):
+        changed = False
+        for i in range(len(space.preps)):
+            for cand in pz.STARTS[:3] if i == 0 else pz.STARTS:
+                if cand == best.starts[i]:
+                    continue
+                trial = best.with_starts(best.starts[:i] + (cand,) + best.starts[i + 1:])
+                c = _cost(trial, y, x)
+                if c < cost:
+                    best, cost, changed = trial, c - margin, True
+        if not changed:
+            break
+    return best
+
+
+def _round(space: pz.LognormalSpace, x0: FloatArray,
+           prob: _Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult]:
+    """Solve, re-choose the starts, and solve again if they changed."""
+    sol = _solve(space, x0, prob)
+    chosen = choose_starts(space, sol.x, prob.y, START_MARGIN * float(np.mean(prob.noise ** 2)))
+    if chosen.starts != space.starts:
+        prob.say(f"  starts {', '.join(chosen.starts)}: refitting")
+        space, sol = chosen, _solve(chosen, sol.x, prob)
+    return space, sol
+
+
+def _global(prob: _Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult, int]:
+    """The lognormal fit from data-driven starting values; more starts (the next-best distinct
+    points of the starting grid) while a sweep stays above :data:`FLOOR` times its noise.
+    Returns the best space, solution and the number of restarts."""
+    st = prob.settings
+    space = pz.LognormalSpace(prob.preps, st.scales, st.n_coercive_fit)
+    coarse = pz.LognormalSpace(prob.preps, st.scales, 24)
+    ranked = coarse.starts_ranked(lambda x: _cost(coarse, prob.y, x))
+    prob.say("starting guess " + ", ".join(f"{n}={v:.4g}" for n, v in
+                                             zip(pz.THETA_NAMES, np.exp(ranked[0]), strict=True)))
+    best: tuple[pz.LognormalSpace, optimize.OptimizeResult] | None = None
+    restarts = 0
+    for k, x0 in enumerate(ranked[:1 + st.restarts]):
+        if k:
+            restarts += 1
+            prob.say(f"restart {k}: " + ", ".join(f"{v:.3g}" for v in np.exp(x0)))
+        space, sol = _round(space, x0, prob)
+        ratio = prob.per_sweep(sol.fun)
+        prob.say(f"  {sol.message} (status {sol.status}); RMS / noise per sweep "
+                 + " / ".join(f"{r:.2f}" for r in ratio))
+        if best is None or sol.cost < best[1].cost:
+            best = (space, sol)
+        if np.all(ratio <= FLOOR):
+            break
+    assert best is not None
+    return best[0], best[1], restarts
+
+
+def _model(space: Space, x: FloatArray, y: FloatArray, thickness_um: float) -> td.Transducer:
+    """The physical model at ``x`` (gains projected; the sensor zero of the last sweep)."""
+    beta, _ = pz.project(space.design(x), y)
+    return space.model(x, np.array([beta[0], beta[1], beta[-1]]), thickness_um)
 
 
 def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
@@ -303,7 +466,9 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     Parameters
     ----------
     sweeps : sequence of Sweep
-        Each simulated from its own start (depoled, first voltage applied quasi-statically).
+        In the order they were recorded. Each starts from its own hysteresis state (chosen among
+        :data:`afmctl.parametrization.STARTS`) and has its own sensor zero; each is judged from
+        its :attr:`~afmctl.sweeps.Sweep.memory_index` on.
     settings : Settings
     progress : callable, optional
         Receives one-line progress messages (the CLI prints them on stderr).
@@ -311,8 +476,9 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     Returns
     -------
     FitResult
-        The model (default node counts for the lognormal density), parameters with 1-sigma,
-        per-sweep errors of that model at the full rate, and the solver's status.
+        The model (its ``N_c`` chosen by :func:`n_coercive_for`), parameters with 1-sigma,
+        per-sweep errors of that model at the full rate against each sweep's sensor noise,
+        the uncertainty, the validity envelope and the solver's status.
 
     Examples
     --------
@@ -331,24 +497,40 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
         preps = [pz.prepare(s, thickness, settings.field_step, settings.window_s) for s in sweeps]
     except ValueError as exc:
         raise FitInputError(str(exc)) from None
-    y = np.concatenate([p.y for p in preps])
-    space: Space = pz.LognormalSpace(preps, settings.scales, settings.n_coercive_fit)
-    coarse = pz.LognormalSpace(preps, settings.scales, 24)
-    x0 = coarse.start(lambda x: float(np.sum(_residual_fn(coarse, y)(x) ** 2)))
-    say("starting guess " + ", ".join(f"{n}={v:.4g}" for n, v in
-                                        zip(pz.THETA_NAMES, np.exp(x0), strict=True)))
-    sol, beta = _stage(space, x0, y, settings, say, "lognormal density")
-    nfev, ok = sol.nfev, sol.success and sol.status > 0
+    noise = np.array([max(ns.sensor_noise_um(s.displacement_um), 1e-12) for s in sweeps])
+    prob = _Problem(sweeps, preps, np.concatenate([p.y for p in preps]), noise, settings, say)
+    space, sol, restarts = _global(prob)
+    ok = sol.success and sol.status > 0
+    fields = [p.field[p.keep] for p in preps]
+    n_c = n_coercive_for(_model(space, sol.x, prob.y, thickness), fields)
+    if n_c > space.n_coercive:
+        say(f"polishing with N_c = {n_c} coercive nodes (discretization < {DISCRETIZATION_UM} um)")
+        space = space.with_starts(space.starts, n_c)
+        sol = _solve(space, sol.x, prob)
+        ok = sol.success and sol.status > 0
+    final: Space = space
     if settings.density == "discrete":
-        space, x0 = pz.DiscreteSpace.around(np.exp(sol.x), preps, settings.scales,
+        beta, _ = pz.project(space.design(sol.x), prob.y)
+        final, x0 = pz.DiscreteSpace.around(np.exp(sol.x), preps, settings.scales,
                                             settings.n_density_nodes, settings.smoothing,
-                                            float(beta[0]))
-        sol, beta = _stage(space, x0, y, settings, say, "discrete density")
-        nfev, ok = nfev + sol.nfev, ok and sol.success and sol.status > 0
-    cov = _covariance(space, sol.x, beta, y)
-    model = space.model(sol.x, beta, thickness)
-    errors = tuple(sweep_error(model, s, settings.window_s) for s in sweeps)
+                                            float(beta[0]), space.starts)
+        sol = _solve(final, x0, prob)
+        say(f"discrete density: {sol.message} (status {sol.status})")
+        ok = ok and sol.success and sol.status > 0
+    beta, _ = pz.project(final.design(sol.x), prob.y)
+    offsets = beta[2:]
+    model = _model(final, sol.x, prob.y, thickness)
+    if isinstance(final, pz.LognormalSpace):
+        model = replace(model, polarization=replace(model.polarization,
+                                                    n_coercive=space.n_coercive))
+    env = envelope(sweeps, thickness)
+    predicted = predict_set(model, sweeps, space.starts, offsets)
+    errors = tuple(_error(s.path or s.name, s, u, settings.window_s, start, float(off))
+                   for s, u, start, off in zip(sweeps, predicted, space.starts, offsets,
+                                               strict=True))
+    cov, names = unc.covariance(final, sol.x, beta, prob.y)
     ok = bool(ok and np.all(np.isfinite(sol.x)) and np.all(np.isfinite(beta)))
-    return FitResult(model, _estimates(space, sol.x, beta, cov, settings), errors, ok,
-                     int(sol.status), str(sol.message), int(nfev), time.perf_counter() - t0,
-                     known, sol.x)
+    return FitResult(model, unc.estimates(final, sol.x, beta, cov, settings.scales), errors, ok,
+                     int(sol.status), str(sol.message), prob.nfev, time.perf_counter() - t0,
+                     known, sol.x, unc.summary(names, np.concatenate((sol.x, beta)), cov),
+                     env, restarts)

@@ -4,7 +4,7 @@
 table uses the same schema. Every key carries its unit in its name. Example::
 
     format = "afmctl-model"
-    format_version = 1
+    format_version = 2
 
     [transducer]
     thickness_um = 100.0
@@ -33,6 +33,29 @@ table uses the same schema. Every key carries its unit in its name. Example::
     a2_N_per_C2_m4 = 0.0
     offset_um = 0.0
 
+Version 2 adds two optional tables that ``identify`` writes (version 1 files, without them, are
+still read). ``[envelope]``: where the model was identified, which ``track`` keeps to (see
+:class:`Envelope`)::
+
+    [envelope]
+    voltage_min_V = 0.0
+    voltage_max_V = 150.0
+    field_min_MV_per_m = 0.0
+    field_max_MV_per_m = 1.5
+    frequencies_Hz = [0.279, 5.58, 27.9]
+    sample_rates_Hz = [10000.0, 10000.0, 10000.0]
+
+``[uncertainty]``: the fit's internal parameters with their 1-sigma, correlations and the ones the
+data did not determine (:mod:`afmctl.uncertainty`; informational, not read back into the model)::
+
+    [uncertainty]
+    method = "Gauss-Newton s^2 (J^T J)^+ at the solution (logs for log_ parameters)"
+    parameters = ["log_median_MV_per_m", ...]
+    value = [...]
+    stderr = [...]
+    correlation = [[1.0, ...], ...]
+    undetermined = []
+
 Optional ``[effects.*]`` tables (one per effect, as ``afmctl diagnose`` writes them; schema of
 :mod:`afmctl.effects`, the same as a profile's ``[emulator.effects.*]``)::
 
@@ -42,6 +65,8 @@ Optional ``[effects.*]`` tables (one per effect, as ``afmctl diagnose`` writes t
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -52,9 +77,87 @@ from afmctl.tomlfile import FileFormatError, Table, dumps, load
 from afmctl.transducer import Transducer
 
 FORMAT = "afmctl-model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
+#: A waveform may leave the envelope's voltage range by this fraction of its span.
+ENVELOPE_TOLERANCE = 0.05
 
-__all__ = ["FileFormatError", "read", "write", "to_dict", "from_table", "FORMAT_VERSION"]
+__all__ = ["FileFormatError", "Envelope", "read", "read_envelope", "write", "to_dict",
+           "from_table", "FORMAT_VERSION"]
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """Where a model was identified: the range of its sweeps.
+
+    Parameters
+    ----------
+    voltage_min_v, voltage_max_v : float
+        Lowest and highest voltage of the sweeps, V.
+    field_min_mv_m, field_max_mv_m : float
+        The same as field, MV/m.
+    frequencies_hz : tuple of float
+        Fundamental frequency of each sweep, Hz.
+    sample_rates_hz : tuple of float
+        Sample rate of each sweep, Hz.
+    """
+
+    voltage_min_v: float
+    voltage_max_v: float
+    field_min_mv_m: float
+    field_max_mv_m: float
+    frequencies_hz: tuple[float, ...]
+    sample_rates_hz: tuple[float, ...]
+
+    @property
+    def span_v(self) -> float:
+        return self.voltage_max_v - self.voltage_min_v
+
+    def excess_v(self, v_min: float, v_max: float) -> float:
+        """How far (V) the voltage range ``[v_min, v_max]`` reaches outside the envelope's."""
+        return max(0.0, self.voltage_min_v - v_min, v_max - self.voltage_max_v)
+
+    def admits(self, v_min: float, v_max: float,
+               tolerance: float = ENVELOPE_TOLERANCE) -> bool:
+        """True if ``[v_min, v_max]`` leaves the envelope by at most ``tolerance`` of its span."""
+        return self.excess_v(v_min, v_max) <= tolerance * self.span_v
+
+    def describe(self) -> str:
+        return (f"{self.voltage_min_v:g} ... {self.voltage_max_v:g} V, "
+                f"{', '.join(f'{f:g}' for f in self.frequencies_hz)} Hz")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"voltage_min_V": self.voltage_min_v, "voltage_max_V": self.voltage_max_v,
+                "field_min_MV_per_m": self.field_min_mv_m,
+                "field_max_MV_per_m": self.field_max_mv_m,
+                "frequencies_Hz": list(self.frequencies_hz),
+                "sample_rates_Hz": list(self.sample_rates_hz)}
+
+
+def _envelope(t: Table) -> Envelope:
+    env = Envelope(t.number("voltage_min_V"), t.number("voltage_max_V"),
+                   t.number("field_min_MV_per_m"), t.number("field_max_MV_per_m"),
+                   t.numbers("frequencies_Hz"), t.numbers("sample_rates_Hz"))
+    if not env.voltage_max_v > env.voltage_min_v:
+        raise t.fail("voltage_max_V", "must be above voltage_min_V")
+    return env
+
+
+UNCERTAINTY_KEYS = ("method", "parameters", "value", "stderr", "correlation", "undetermined")
+
+
+def uncertainty_table(u: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``[uncertainty]`` table from :func:`afmctl.uncertainty.summary` (NaN for unknown)."""
+    names = list(u["parameters"])
+
+    def num(v: float | None) -> float:
+        return float("nan") if v is None else float(v)
+
+    return {"method": u["method"], "parameters": names,
+            "value": [num(u["parameters"][n]["value"]) for n in names],
+            "stderr": [num(u["parameters"][n]["stderr"]) for n in names],
+            "correlation": [[num(v) for v in row] for row in u["correlation"]["matrix"]],
+            "undetermined": list(u["undetermined"])}
 
 
 def _density_dict(d: hy.Lognormal | hy.Normal | hy.Discrete) -> dict[str, Any]:
@@ -194,19 +297,50 @@ def from_table(t: Table) -> Transducer:
     return Transducer(pol, rod, tt.number("thickness_um", positive=True), effects)
 
 
-def read(path: str | Path) -> Transducer:
-    """Read a model file; FileFormatError (naming file and key) on anything malformed."""
+def _load(path: str | Path) -> tuple[Transducer, Envelope | None]:
     t = load(path)
-    t.check_format(FORMAT, FORMAT_VERSION)
+    fmt = t.string("format")
+    if fmt != FORMAT:
+        raise t.fail("format", f"expected {FORMAT!r}, got {fmt!r}")
+    ver = t.integer("format_version")
+    if ver not in READABLE_VERSIONS:
+        raise t.fail("format_version", f"this afmctl reads versions "
+                     f"{', '.join(map(str, READABLE_VERSIONS))}, got {ver}")
     model = from_table(t)
+    env_t = t.table("envelope", required=False) if ver >= 2 else None
+    env = None if env_t is None else _envelope(env_t)
+    unc = t.table("uncertainty", required=False) if ver >= 2 else None
+    if unc is not None:
+        for key in UNCERTAINTY_KEYS:
+            unc.has(key)
     t.reject_unknown()
-    return model
+    return model, env
 
 
-def write(model: Transducer, path: str | Path, header: str = "") -> None:
-    """Write ``model`` atomically (temporary file then rename: never a half-written model)."""
+def read(path: str | Path) -> Transducer:
+    """Read a model file (format version 1 or 2); FileFormatError (naming file and key) on
+    anything malformed."""
+    return _load(path)[0]
+
+
+def read_envelope(path: str | Path) -> Envelope | None:
+    """The ``[envelope]`` of a model file (None for version 1 files and models without one)."""
+    return _load(path)[1]
+
+
+def write(model: Transducer, path: str | Path, header: str = "",
+          envelope: Envelope | None = None,
+          uncertainty: Mapping[str, Any] | None = None) -> None:
+    """Write ``model`` atomically (temporary file then rename: never a half-written model), with
+    its validity ``envelope`` and the fit's ``uncertainty`` (:func:`afmctl.uncertainty.summary`)
+    if given."""
     p = Path(path)
-    text = "".join(f"# {line}\n" for line in header.splitlines()) + dumps(to_dict(model))
+    data = to_dict(model)
+    if envelope is not None:
+        data["envelope"] = envelope.to_dict()
+    if uncertainty:
+        data["uncertainty"] = uncertainty_table(uncertainty)
+    text = "".join(f"# {line}\n" for line in header.splitlines()) + dumps(data)
     tmp = p.with_name(p.name + ".partial")
     tmp.write_text(text, encoding="utf-8")
     tmp.replace(p)

@@ -41,6 +41,9 @@ from afmctl.sweeps import Sweep
 FloatArray = NDArray[np.float64]
 THETA_NAMES = ("median_MV_per_m", "sigma_ln", "std_MV_per_m", "r_MV_per_m", "natural_hz",
                "damping_ratio")
+#: Hysteresis states a sweep may start from: depoled, poled either way (by a field beyond every
+#: coercive field), or where the previous sweep of the set left it (sweeps recorded in sequence).
+STARTS = ("depoled", "positive", "negative", "previous")
 
 
 @dataclass(frozen=True)
@@ -137,29 +140,58 @@ def sweep_columns(q: FloatArray, fn: float, zeta: float, dt: float) -> FloatArra
                             np.ones(q.size)))
 
 
+def offset_columns(preps: Sequence[Prepared]) -> FloatArray:
+    """One indicator column per sweep on the stacked residual samples: each sweep has its own
+    sensor zero (a gauge re-zeroed between sweeps, or drifting, costs nothing then)."""
+    sizes = [int(p.mask.sum()) for p in preps]
+    return np.repeat(np.eye(len(sizes)), sizes, axis=0)
+
+
 def columns(q_keep: Sequence[FloatArray], fn: float, zeta: float,
             preps: Sequence[Prepared]) -> FloatArray:
-    """Design matrix ``[L[Q], L[Q^2], 1]`` on the residual samples of all sweeps, stacked."""
-    return np.vstack([sweep_columns(_full_rate(prep, q_k), fn, zeta, prep.dt)[prep.mask]
-                      for q_k, prep in zip(q_keep, preps, strict=True)])
+    """Design matrix ``[L[Q], L[Q^2], 1_s]`` on the residual samples of all sweeps, stacked
+    (``1_s``: :func:`offset_columns`)."""
+    gains = np.vstack([sweep_columns(_full_rate(prep, q_k), fn, zeta, prep.dt)[prep.mask, :2]
+                       for q_k, prep in zip(q_keep, preps, strict=True)])
+    return np.hstack((gains, offset_columns(preps)))
 
 
 def hysteresis(theta: FloatArray, fields: Sequence[FloatArray], n_coercive: int,
                thermal: hy.Thermal | None = None, n_interaction: int = 16,
-               holds: Sequence[FloatArray] | None = None) -> list[FloatArray]:
-    """``Q = E + r H(E)`` (MV/m) of (13) for each field history (MV/m), from the depoled state.
+               holds: Sequence[FloatArray] | None = None,
+               starts: Sequence[str] | None = None) -> list[FloatArray]:
+    """``Q = E + r H(E)`` (MV/m) of (13) for each field history (MV/m).
 
     ``theta[:4]`` = (median E_c, sigma_ln, sigma_I, r). With ``thermal`` the kernel (10) runs on
-    an ``n_coercive`` x ``n_interaction`` grid, each sample held for ``holds`` (s).
+    an ``n_coercive`` x ``n_interaction`` grid, each sample held for ``holds`` (s). ``starts``
+    gives each history's initial state (one of :data:`STARTS`; default all depoled).
     """
     median, sig, std, r = (float(v) for v in theta[:4])
     pol = hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
                           interaction=hy.Normal(std), n_coercive=n_coercive,
                           n_interaction=n_interaction, thermal=thermal)
-    kern = hy.build_kernel(pol)
     dts: Sequence[FloatArray | float] = holds if holds is not None else [1e-4] * len(fields)
-    return [hy.run(kern, e, hy.initial_state(pol), dt)[0] for e, dt in zip(fields, dts,
-                                                                            strict=True)]
+    return run_from(pol, fields, starts, dts)
+
+
+def run_from(pol: hy.Polarization, fields: Sequence[FloatArray], starts: Sequence[str] | None,
+             dts: Sequence[FloatArray | float] | None = None) -> list[FloatArray]:
+    """Polarization (13) of ``pol`` for each field history (MV/m), each from its start.
+
+    ``starts[i]`` is one of :data:`STARTS`; ``previous`` carries the state the history before
+    left (the first history has none before it: depoled).
+    """
+    kern = hy.build_kernel(pol)
+    starts = starts or ["depoled"] * len(fields)
+    out, state = [], None
+    for e, start, dt in zip(fields, starts, dts or [1e-4] * len(fields), strict=True):
+        if start == "previous" and state is not None:
+            st = state
+        else:
+            st = hy.initial_state(pol, "depoled" if start == "previous" else start)  # type: ignore[arg-type]
+        q, state = hy.run(kern, e, st, dt)
+        out.append(q)
+    return out
 
 
 def project(a: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -243,14 +275,22 @@ class LognormalSpace:
     """``x = log(theta)``, theta = (median E_c, sigma_ln, sigma_I, r, f_n, zeta): criteria (12)
     with a lognormal ``nu_1`` and a normal ``nu_2``."""
 
-    def __init__(self, preps: Sequence[Prepared], scales: Scales, n_coercive: int) -> None:
+    def __init__(self, preps: Sequence[Prepared], scales: Scales, n_coercive: int,
+                 starts: Sequence[str] | None = None) -> None:
         self.preps, self.scales, self.n_coercive = list(preps), scales, n_coercive
+        self.starts = tuple(starts or ["depoled"] * len(self.preps))
         self.x_scale: str | float = 1.0  # logs: unit steps are natural
         self.names = tuple(f"log_{n}" for n in THETA_NAMES)
 
+    def with_starts(self, starts: Sequence[str], n_coercive: int | None = None) -> LognormalSpace:
+        """The same space with other initial states (one of :data:`STARTS` per sweep) and
+        optionally another number of coercive nodes."""
+        return LognormalSpace(self.preps, self.scales, n_coercive or self.n_coercive, starts)
+
     def design(self, x: FloatArray, n_coercive: int | None = None) -> FloatArray:
         theta = np.exp(x)
-        q = hysteresis(theta, [p.field[p.keep] for p in self.preps], n_coercive or self.n_coercive)
+        q = hysteresis(theta, [p.field[p.keep] for p in self.preps], n_coercive or self.n_coercive,
+                       starts=self.starts)
         return columns(q, theta[4], theta[5], self.preps)
 
     def penalty(self, x: FloatArray) -> FloatArray:
@@ -262,16 +302,22 @@ class LognormalSpace:
         hi = np.log([10 * e_max, 3.0, 10 * e_max, 100 * e_max, 20 * nyq, 5.0])
         return lo, hi
 
-    def start(self, cost: Callable[[FloatArray], float]) -> FloatArray:
-        """Starting ``x`` from the data alone: the peak field scales a grid over coercive median
-        and hysteretic weight (rod static), then a grid over the natural frequency."""
+    def starts_ranked(self, cost: Callable[[FloatArray], float],
+                      n_best: int = 4) -> list[FloatArray]:
+        """Starting ``x`` from the data alone, best first: the peak field scales a grid over the
+        coercive median and the hysteretic weight (rod static); each of the ``n_best`` best grid
+        points then takes the best natural frequency of a grid below the Nyquist frequency."""
         e_max, nyq = extent(self.preps)
         grid = [np.log([mf * e_max, 0.5, 0.3 * mf * e_max, rf * e_max, 0.45 * nyq, 0.5])
                 for mf in (0.2, 0.5, 0.9) for rf in (0.05, 0.2, 0.6)]
-        best = min(grid, key=cost)
+        costs = [cost(x) for x in grid]
+        ranked = [grid[i] for i in np.argsort(costs)]
         freqs = [f for f in (30.0, 100.0, 300.0, 1000.0, 3000.0) if f < 0.45 * nyq]
-        cands = [best] + [np.concatenate((best[:4], np.log([f, 0.3]))) for f in freqs]
-        return min(cands, key=cost)
+        out = []
+        for best in ranked[:n_best]:
+            cands = [best] + [np.concatenate((best[:4], np.log([f, 0.3]))) for f in freqs]
+            out.append(min(cands, key=cost))
+        return out + ranked[n_best:]
 
     def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
         return to_model(np.exp(x), beta, self.scales, thickness_um)
@@ -292,8 +338,9 @@ class DiscreteSpace:
     ``sqrt(lambda N) g1 D2 c`` (second differences, um) appended to the residual."""
 
     def __init__(self, preps: Sequence[Prepared], scales: Scales, nodes: FloatArray,
-                 smoothing: float, g1: float) -> None:
+                 smoothing: float, g1: float, starts: Sequence[str] | None = None) -> None:
         self.preps, self.scales, self.nodes = list(preps), scales, np.asarray(nodes, float)
+        self.starts = tuple(starts or ["depoled"] * len(self.preps))
         self.names = tuple(f"c@{e:.4g}" for e in self.nodes) + (
             "log_std_MV_per_m", "log_natural_hz", "log_damping_ratio")
         n_obs = sum(int(p.mask.sum()) for p in self.preps)
@@ -304,7 +351,8 @@ class DiscreteSpace:
 
     @classmethod
     def around(cls, theta: FloatArray, preps: Sequence[Prepared], scales: Scales, n_nodes: int,
-               smoothing: float, g1: float) -> tuple[DiscreteSpace, FloatArray]:
+               smoothing: float, g1: float,
+               starts: Sequence[str] | None = None) -> tuple[DiscreteSpace, FloatArray]:
         """Nodes spanning +-3 sigma_ln of a lognormal fit ``theta`` (capped at twice the peak
         field) and the starting ``x`` that reproduces it."""
         median, sig, std, r, fn, zeta = theta
@@ -314,7 +362,7 @@ class DiscreteSpace:
         dens = np.exp(-0.5 * (np.log(nodes / median) / sig) ** 2) / nodes
         cells = hy.Discrete(tuple(nodes), tuple(np.ones(n_nodes))).nodes_weights()[1]
         c = r * dens * cells / float(np.sum(dens * cells))
-        space = cls(preps, scales, nodes, smoothing, g1)
+        space = cls(preps, scales, nodes, smoothing, g1, starts)
         return space, np.concatenate((c, np.log([std, fn, zeta])))
 
     def _columns_h(self, std: float) -> list[FloatArray]:
@@ -322,14 +370,12 @@ class DiscreteSpace:
         if std not in self._h:
             if len(self._h) > 4:
                 self._h.clear()
-            out = []
-            for p in self.preps:
-                e = p.field[p.keep]
-                cols = [hy.run(pol, e, hy.initial_state(pol))[0] - e
-                        for pol in (hy.Polarization(1.0, 1.0, hy.Discrete((float(n),), (1.0,)),
-                                                    hy.Normal(std)) for n in self.nodes)]
-                out.append(np.column_stack([_full_rate(p, c) for c in cols]))
-            self._h[std] = out
+            fields = [p.field[p.keep] for p in self.preps]
+            per_node = [run_from(hy.Polarization(1.0, 1.0, hy.Discrete((float(n),), (1.0,)),
+                                                 hy.Normal(std)), fields, self.starts)
+                        for n in self.nodes]
+            self._h[std] = [np.column_stack([_full_rate(p, q[i] - fields[i]) for q in per_node])
+                            for i, p in enumerate(self.preps)]
         return self._h[std]
 
     def _basis(self, std: float, fn: float, zeta: float) -> list[_Basis]:
@@ -356,8 +402,8 @@ class DiscreteSpace:
         for p, b in zip(self.preps, self._basis(std, fn, zeta), strict=True):
             q = b.field + b.h @ c
             lq2 = unit_filter(q * q, fn, zeta, p.dt)[p.mask]
-            blocks.append(np.column_stack((b.le + b.lh @ c, lq2, np.ones(lq2.size))))
-        return np.vstack(blocks)
+            blocks.append(np.column_stack((b.le + b.lh @ c, lq2)))
+        return np.hstack((np.vstack(blocks), offset_columns(self.preps)))
 
     def penalty(self, x: FloatArray) -> FloatArray:
         return self.weight * np.diff(x[:self.nodes.size], 2)

@@ -20,22 +20,38 @@ def _report(result: Any) -> str:
              f"{result.seconds:.2f} s)"]
     if not result.thickness_known:
         lines.append("layer thickness unknown: fitted in volts (thickness_um = 1 by convention)")
-    lines.append(f"{'sweep':40s} {'rms um':>9s} {'max um':>9s} {'rms %':>7s} {'max %':>7s}")
+    floor = "at" if result.at_noise_floor else "NOT at"
+    lines.append(f"{floor} the noise floor (every sweep within 1.5x its sensor noise); "
+                 f"N_c = {result.model.polarization.n_coercive}, {result.restarts} restart(s)")
+    lines.append(f"{'sweep':32s} {'start':>9s} {'rms um':>9s} {'noise um':>9s} {'rms/noise':>9s} "
+                 f"{'max um':>9s} {'rms %':>7s}")
     for s in result.sweeps:
-        lines.append(f"{Path(s.file).name:40s} {s.rms_um:9.4f} {s.max_um:9.4f} "
-                     f"{s.rms_pct:7.3f} {s.max_pct:7.3f}")
+        lines.append(f"{Path(s.file).name:32s} {s.start:>9s} {s.rms_um:9.4f} {s.noise_um:9.4f} "
+                     f"{s.rms_over_noise:9.2f} {s.max_um:9.4f} {s.rms_pct:7.3f}")
     lines.append("parameters (1-sigma from the Jacobian):")
     for p in result.parameters:
         err = "fixed (scale convention)" if p.fixed else f"+- {p.stderr:.4g}"
         lines.append(f"  {p.name:20s} {p.value:14.6g} {err:>26s}  {p.unit}")
+    und = result.uncertainty.get("undetermined", [])
+    lines.append("undetermined by the data: " + (", ".join(und) if und else "none"))
+    if result.envelope is not None:
+        lines.append(f"validity envelope: {result.envelope.describe()}")
     return "\n".join(lines)
+
+
+def _warn_above_floor(result: Any) -> None:
+    """Name on stderr every sweep the best fit leaves above 2x its sensor noise."""
+    for s in result.above_floor():
+        click.echo(f"warning: {Path(s.file).name}: fit RMS {s.rms_um:.4f} um is "
+                   f"{s.rms_over_noise:.1f}x its sensor noise ({s.noise_um:.4f} um); the model "
+                   f"misses something there: run `afmctl diagnose` on these sweeps", err=True)
 
 
 @main.command()
 @click.argument("sweep_files", nargs=-1, required=True)
 @click.option("--profile", "profile", default=None, help="Stage profile: its [stack] thickness "
               "for sweeps without layer_thickness_um; its [identify] table sets mass_kg, "
-              "p_r_C_per_m2, thickness_um, n_coercive_fit, field_step, max_nfev.")
+              "p_r_C_per_m2, thickness_um, n_coercive_fit, field_step, max_nfev, restarts.")
 @click.option("-o", "--output", required=True, help="Model file to write (TOML).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @click.option("--plots", "plots_dir", default=None, help="Directory for per-sweep figures.")
@@ -43,7 +59,10 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
              plots_dir: str | None) -> None:
     """Fit the stage model jointly to SWEEP_FILES and write it to the model file OUTPUT.
 
-    Exit status: 0 converged, 1 the solver did not converge (no model written), 2 bad input.
+    Sweeps in the order they were recorded. Exit status: 0 converged, 1 the solver did not
+    converge (no model written), 2 bad input. Converged is not good: each sweep's fit RMS is
+    reported against its sensor noise (estimated from the data), and sweeps left above 2x are
+    named on stderr.
     """
     from afmctl import identify as idf
     from afmctl import modelfile, sweeps
@@ -58,15 +77,18 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
     if plots_dir is not None:
         from afmctl import plots
 
-        fitted = [idf.predict(result.model, s.voltage_v, s.dt) for s in data]
+        fitted = idf.predict_set(result.model, data, [s.start for s in result.sweeps],
+                                 [s.offset_um for s in result.sweeps])
         for p in plots.fit_figures(data, fitted, plots_dir):
             click.echo(f"wrote {p}", err=True)
     if result.success:
         header = "afmctl identify: " + ", ".join(Path(f).name for f in sweep_files)
         header += "\nm and p_r are fixed by convention (only their ratios to c, k, a1, a2, eta"
         header += " are identifiable)"
-        modelfile.write(result.model, output, header=header)
+        modelfile.write(result.model, output, header=header, envelope=result.envelope,
+                        uncertainty=result.uncertainty)
         click.echo(f"wrote {output}", err=True)
+    _warn_above_floor(result)
     click.echo(json.dumps(result.to_dict()) if as_json else _report(result))
     if not result.success:
         sys.exit(1)
