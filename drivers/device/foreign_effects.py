@@ -1,0 +1,326 @@
+"""Hidden effects of the foreign plant: each a frozen dataclass, each off unless a stage carries it.
+
+Every effect is made by a formula family other than the one a naive candidate would fit
+(a first-order amplifier, an integer sample shift, the relay kernel with a drifting threshold, a
+single added resonance, a quadratic gauge, one gain per sweep). ``random_effect`` draws one at a
+strength ``s`` in [0, 1]: 0 is meant to be barely detectable (a misfit of the order of twice the
+sensor noise), 1 strong; every parameter is interpolated log-linearly between its two ends.
+
+Causes and the dataclass that makes each:
+
+==========================  =======================  ==========================================
+cause                       dataclass                physics
+==========================  =======================  ==========================================
+``amplifier-lag``           :class:`Amplifier`       smooth slew limit, then a 2nd-order low-pass
+``sensor-delay``            :class:`SensorLatency`   2nd-order anti-alias filter + continuous delay
+``thermal-relaxation``      :class:`Thermal`         Arrhenius switching (6)-(10) per hysteron
+``second-mode``             :class:`SecondMass`      a platform mass coupled to the rod (2 DOF)
+``sensor-nonlinearity``     :class:`GaugePolynomial` quadratic and cubic gauge error
+``voltage-gain-drift``      :class:`GainDrift`       random per-run gain and a systematic drift
+``backlash``                :class:`Backlash`        play (dead band) in the stage linkage
+``gauge-saturation``        :class:`GaugeSaturation` soft clipping of the gauge past a knee
+``interference``            :class:`Interference`    mains hum + harmonics, periodic spikes
+==========================  =======================  ==========================================
+
+The last three are outside afmctl's diagnosis vocabulary (``OUT_OF_VOCABULARY``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from drivers.device.foreign import Stage
+
+
+@dataclass(frozen=True)
+class Amplifier:
+    """Voltage amplifier: a smooth slew limiter followed by a second-order low-pass.
+
+    ``dv_s/dt = S tanh((g V - v_s) / (S tau_s))``, then
+    ``v'' + 2 zeta w v' + w^2 v = w^2 v_s`` with ``w = 2 pi bandwidth_hz``; ``tau_s`` is a tenth
+    of the low-pass's time scale ``1 / w`` (the limiter is linear and fast for small steps).
+
+    Parameters
+    ----------
+    bandwidth_hz : float
+        Natural frequency of the low-pass, Hz.
+    damping : float
+        Its damping ratio (0.5-0.9).
+    slew_V_per_s : float
+        Slew-rate limit of the output, V/s.
+    """
+
+    bandwidth_hz: float
+    damping: float
+    slew_V_per_s: float
+
+
+@dataclass(frozen=True)
+class SensorLatency:
+    """Sensor electronics: a second-order Butterworth anti-alias filter, then a pure delay.
+
+    Parameters
+    ----------
+    delay_s : float
+        Continuous latency, s (any fraction of a sample).
+    antialias_hz : float
+        Cut-off of the anti-alias filter, Hz (0: no filter).
+    """
+
+    delay_s: float
+    antialias_hz: float
+
+
+@dataclass(frozen=True)
+class Thermal:
+    """Thermally activated switching of every hysteron (paper (6)-(10)).
+
+    Parameters
+    ----------
+    thermal_field_MVm : float
+        ``E_T = sqrt(eta k T / V)``, MV/m: the width over which a hysteron switches ahead of its
+        coercive field; the energy barrier is ``(E_c - E_e)^2 / (2 eta)``, i.e. ``z^2/2`` in
+        units of ``kT/V`` with ``z = (E_c - E_e) / E_T``.
+    attempt_rate_hz : float
+        ``nu0``, 1/s: the prefactor of the switching likelihoods (8).
+    """
+
+    thermal_field_MVm: float
+    attempt_rate_hz: float
+
+
+@dataclass(frozen=True)
+class SecondMass:
+    """A platform of mass ``mass_ratio * m`` joined to the rod's end by a spring and a damper.
+
+    The sensor reads (and the stage positions) the platform. The platform on its spring alone
+    would resonate at ``frequency_ratio`` times the rod's resonance with damping ratio
+    ``damping``; coupled, the two modes split (see :func:`mode_frequencies_hz`).
+    """
+
+    mass_ratio: float
+    frequency_ratio: float
+    damping: float
+
+
+@dataclass(frozen=True)
+class GaugePolynomial:
+    """Gauge error ``s = x + R (q2 y^2 + q3 y^3)`` with ``y = (x - center_um) / R``.
+
+    ``R = half_range_um``; ``quadratic`` (q2) and ``cubic`` (q3) are the errors at the range
+    end as fractions of ``R``.
+    """
+
+    center_um: float
+    half_range_um: float
+    quadratic: float
+    cubic: float
+
+
+@dataclass(frozen=True)
+class GainDrift:
+    """The applied voltage is ``g V`` with ``g = (1 + per_run n)(1 + sigma N(0,1))(1 + per_second t)``.
+
+    ``n`` counts runs started with :func:`drivers.device.foreign.start_run`, the normal draw is
+    made there (one per run), ``t`` is the device time, s.
+    """
+
+    sigma: float
+    per_run: float
+    per_second: float = 0.0
+
+
+@dataclass(frozen=True)
+class Backlash:
+    """Play of ``gap_um`` in the linkage: the platform follows the rod only when pushed."""
+
+    gap_um: float
+
+
+@dataclass(frozen=True)
+class GaugeSaturation:
+    """The gauge compresses past ``knee_um`` from ``center_um``:
+    ``s = c + sign(d) (K + W tanh((|d| - K) / W))`` for ``|d| > K`` (``d = x - c``)."""
+
+    center_um: float
+    knee_um: float
+    softness_um: float
+
+
+@dataclass(frozen=True)
+class Interference:
+    """Pick-up on the sensor line, added to the reading as a function of device time.
+
+    ``sum_h A_h sin(2 pi h f t + phi_h)`` over harmonics ``h = 1, 2, ...`` of the mains
+    frequency ``f``, plus spikes ``A_s exp(-(t - t_n) / tau)`` at ``t_n = phase + n T``.
+    """
+
+    mains_hz: float
+    amplitudes_um: tuple[float, ...]
+    phases_rad: tuple[float, ...]
+    spike_um: float = 0.0
+    spike_period_s: float = 1.0
+    spike_decay_s: float = 2e-4
+    spike_phase_s: float = 0.0
+
+
+Effect = (Amplifier | SensorLatency | Thermal | SecondMass | GaugePolynomial | GainDrift
+          | Backlash | GaugeSaturation | Interference)
+
+CAUSES = {
+    "amplifier-lag": Amplifier, "sensor-delay": SensorLatency, "thermal-relaxation": Thermal,
+    "second-mode": SecondMass, "sensor-nonlinearity": GaugePolynomial,
+    "voltage-gain-drift": GainDrift, "backlash": Backlash, "gauge-saturation": GaugeSaturation,
+    "interference": Interference,
+}
+OUT_OF_VOCABULARY = ("backlash", "gauge-saturation", "interference")
+
+
+def cause_of(effect: Effect) -> str:
+    """The cause name of an effect instance."""
+    return next(name for name, cls in CAUSES.items() if isinstance(effect, cls))
+
+
+def _span(lo: float, hi: float, s: float) -> float:
+    """Log-linear interpolation from ``lo`` (s = 0) to ``hi`` (s = 1)."""
+    return float(lo * (hi / lo) ** s)
+
+
+def mode_frequencies_hz(stage: Stage, mode: SecondMass) -> tuple[float, float]:
+    """Undamped natural frequencies of the rod coupled to the platform, Hz (lower, upper)."""
+    m1, k1 = stage.rod.mass_kg, stage.rod.stiffness_N_m
+    m2 = mode.mass_ratio * m1
+    k2 = m2 * (2 * math.pi * mode.frequency_ratio * stage.rod.resonance_hz) ** 2
+    mass = np.diag([m1, m2])
+    stiff = np.array([[k1 + k2, -k2], [-k2, k2]])
+    w2 = np.sort(np.linalg.eigvals(np.linalg.solve(mass, stiff)).real)
+    return float(np.sqrt(w2[0]) / (2 * math.pi)), float(np.sqrt(w2[1]) / (2 * math.pi))
+
+
+def _amplifier(rng, stage, s):
+    f = stage.rod.resonance_hz * _span(3.0, 0.2, s)
+    span = stage.drive_range_V[1] - stage.drive_range_V[0]
+    return Amplifier(bandwidth_hz=f, damping=float(rng.uniform(0.5, 0.9)),
+                     slew_V_per_s=span * _span(300.0, 60.0, s))
+
+
+def _latency(rng, stage, s):
+    return SensorLatency(delay_s=_span(0.3, 30.0, s) / 1e4,
+                         antialias_hz=float(rng.uniform(1500.0, 5000.0)))
+
+
+def _thermal(rng, stage, s):
+    return Thermal(thermal_field_MVm=stage.material.coercive_median_MVm * _span(0.004, 0.08, s),
+                   attempt_rate_hz=float(10 ** rng.uniform(3.0, 5.0)))
+
+
+def _second(rng, stage, s):
+    return SecondMass(mass_ratio=_span(0.02, 0.5, s), frequency_ratio=float(rng.uniform(1.5, 4.0)),
+                      damping=_span(0.1, 0.02, s))
+
+
+def _gauge_range(stage):
+    lo, hi = stage.static_range_um
+    return 0.5 * (lo + hi), 0.5 * (hi - lo)
+
+
+def _polynomial(rng, stage, s):
+    center, half = _gauge_range(stage)
+    eps = stage.sensor.noise_um * _span(8.0, 200.0, s) / half  # error at the range end / R
+    frac = float(rng.uniform(0.3, 0.7))
+    sign = rng.choice([-1.0, 1.0], size=2)
+    return GaugePolynomial(center_um=center, half_range_um=half,
+                           quadratic=float(sign[0] * eps * frac),
+                           cubic=float(sign[1] * eps * (1 - frac)))
+
+
+def _gain(rng, stage, s):
+    sigma = _span(0.003, 0.03, s)
+    return GainDrift(sigma=sigma, per_run=float(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 1.0)
+                                                 * sigma))
+
+
+def _backlash(rng, stage, s):
+    return Backlash(gap_um=stage.sensor.noise_um * _span(6.0, 100.0, s))
+
+
+def _softness(excess: float, compression: float) -> float:
+    """W with ``excess - W tanh(excess / W) = compression`` (0 < compression < excess)."""
+    lo, hi = 1e-6 * excess, 1e6 * excess
+    for _ in range(200):
+        mid = math.sqrt(lo * hi)
+        if excess - mid * math.tanh(excess / mid) > compression:
+            lo = mid
+        else:
+            hi = mid
+    return math.sqrt(lo * hi)
+
+
+def _saturation(rng, stage, s):
+    center, half = _gauge_range(stage)
+    knee = half * float(rng.uniform(0.6, 0.85))
+    squeeze = min(stage.sensor.noise_um * _span(8.0, 300.0, s), 0.6 * (half - knee))
+    return GaugeSaturation(center_um=center, knee_um=knee,
+                           softness_um=_softness(half - knee, squeeze))
+
+
+def _interference(rng, stage, s):
+    amp = stage.sensor.noise_um * _span(3.0, 30.0, s)
+    amps = (amp, amp * float(rng.uniform(0.2, 0.6)), amp * float(rng.uniform(0.1, 0.4)))
+    spiky = bool(rng.random() < 0.5)
+    return Interference(mains_hz=float(rng.choice([50.0, 60.0])), amplitudes_um=amps,
+                        phases_rad=tuple(float(p) for p in rng.uniform(0, 2 * math.pi, 3)),
+                        spike_um=10.0 * amp if spiky else 0.0,
+                        spike_period_s=float(1.0 / rng.uniform(3.0, 20.0)),
+                        spike_phase_s=float(rng.uniform(0.0, 0.05)))
+
+
+_DRAW = {
+    "amplifier-lag": _amplifier, "sensor-delay": _latency, "thermal-relaxation": _thermal,
+    "second-mode": _second, "sensor-nonlinearity": _polynomial, "voltage-gain-drift": _gain,
+    "backlash": _backlash, "gauge-saturation": _saturation, "interference": _interference,
+}
+
+
+def random_effect(cause: str, rng: np.random.Generator, stage: Stage,
+                  strength: float | None = None) -> Effect:
+    """Draw one hidden effect of ``cause`` for ``stage``.
+
+    Parameters
+    ----------
+    cause : str
+        One of :data:`CAUSES`.
+    rng : numpy.random.Generator
+        Source of the random parameters.
+    stage : Stage
+        The stage the effect is made for (its resonance, range and noise set the scales).
+    strength : float, optional
+        0 (barely detectable) ... 1 (strong); drawn uniformly if None.
+
+    Returns
+    -------
+    Effect
+        A frozen dataclass; add it to a stage with ``with_effects``.
+    """
+    if cause not in _DRAW:
+        raise ValueError(f"unknown cause {cause!r} (one of {', '.join(_DRAW)})")
+    s = float(rng.uniform(0.0, 1.0)) if strength is None else float(strength)
+    if not 0.0 <= s <= 1.0:
+        raise ValueError(f"strength must be in [0, 1], got {s}")
+    return _DRAW[cause](rng, stage, s)
+
+
+def interference_um(effect: Interference, time_s: np.ndarray) -> np.ndarray:
+    """Pick-up added to the reading at the device times ``time_s`` (s), um."""
+    out = np.zeros_like(time_s)
+    for h, (a, p) in enumerate(zip(effect.amplitudes_um, effect.phases_rad, strict=True), 1):
+        out += a * np.sin(2 * math.pi * h * effect.mains_hz * time_s + p)
+    if effect.spike_um:
+        since = np.mod(time_s - effect.spike_phase_s, effect.spike_period_s)
+        out += effect.spike_um * np.exp(-since / effect.spike_decay_s)
+    return out
