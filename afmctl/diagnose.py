@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 
 from afmctl import extension as ext
 from afmctl import identify as idf
+from afmctl import noise as ns
 from afmctl import parametrization as pz
 from afmctl import transducer as td
 from afmctl import verdict as vd
@@ -110,9 +111,8 @@ class Diagnosis:
     noise_um: float
     noise_per_sweep_um: tuple[float, ...]
     table: dict[str, Judged]
-    base_model: td.Transducer
-    extended_model: td.Transducer
-    extended_gains: tuple[float, ...]
+    base: ext.Extended
+    extended: ext.Extended
     signature: dict[str, Any]
     seconds: float
     files: tuple[str, ...]
@@ -120,6 +120,23 @@ class Diagnosis:
     @property
     def gain(self) -> float:
         return ratio(self.base_rms_um, self.extended_rms_um)
+
+    @property
+    def base_model(self) -> td.Transducer:
+        return self.base.model
+
+    @property
+    def extended_model(self) -> td.Transducer:
+        return self.extended.model
+
+    @property
+    def extended_gains(self) -> tuple[float, ...]:
+        return self.extended.gains
+
+    def predictions(self, sweeps: Sequence[Sweep]) -> tuple[list[FloatArray], list[FloatArray]]:
+        """Readings (um) the base and the extended model (both refitted on all the data) predict
+        for ``sweeps``, each sweep from its start, with its sensor zero and gain."""
+        return predicted(self.base, sweeps), predicted(self.extended, sweeps)
 
     @property
     def base_over_noise(self) -> float:
@@ -201,16 +218,24 @@ def first_half(s: Sweep) -> Sweep:
     return Sweep(s.time_s[:h], s.voltage_v[:h], s.displacement_um[:h], s.meta, s.path)
 
 
-def heldout(model: td.Transducer, gains: Sequence[float],
+def predicted(fitted: ext.Extended, sweeps: Sequence[Sweep]) -> list[FloatArray]:
+    """Readings (um) the fitted candidate predicts for ``sweeps`` recorded in sequence: each from
+    its start, with its sensor zero and applied-voltage gain (:func:`afmctl.identify.predict_set`)."""
+    return idf.predict_set(fitted.model, sweeps, fitted.starts, fitted.offsets_um, fitted.gains)
+
+
+def heldout(space: ext.ExtendedSpace, fitted: ext.Extended,
             sweeps: Sequence[Sweep]) -> tuple[float, tuple[float, ...]]:
-    """Error of ``model`` on the second half of every sweep, the part no fit saw.
+    """Error of a fitted candidate on the second half of every sweep, the part no fit saw.
 
     Parameters
     ----------
-    model : Transducer
-        With its effects (:func:`afmctl.identify.predict` runs it from each sweep's start).
-    gains : sequence of float
-        Applied-voltage gain of each sweep (1 unless ``voltage-gain-drift``).
+    space : ExtendedSpace
+        The candidate on the whole sweeps (:meth:`~afmctl.extension.ExtendedSpace.on`): its
+        readings are computed exactly as in the fit, the state carried from each sweep's start
+        through both halves.
+    fitted : Extended
+        The candidate fitted on the first halves (its parameters, gains and sensor zeros).
     sweeps : sequence of Sweep
 
     Returns
@@ -221,9 +246,9 @@ def heldout(model: td.Transducer, gains: Sequence[float],
         RMS of each sweep's second half, um.
     """
     mse = []
-    for s, g in zip(sweeps, gains, strict=True):
+    for s, u in zip(sweeps, space.readings(fitted.x, fitted.beta), strict=True):
         h = s.time_s.size // 2
-        err = s.displacement_um - idf.predict(model, s.voltage_v, s.dt, g)
+        err = s.displacement_um - u
         judged = s.mask(None)
         judged[:h] = False
         mse.append(float(np.mean(err[judged] ** 2)))
@@ -271,14 +296,15 @@ def tone_fraction(r: FloatArray, dt: float, drive_hz: float | None) -> float:
     return float(np.sum(spec[max(k - 2, 1):k + 3]) / total)
 
 
-def residual_signature(model: td.Transducer, sweeps: Sequence[Sweep]) -> dict[str, Any]:
+def residual_signature(fitted: ext.Extended, sweeps: Sequence[Sweep]) -> dict[str, Any]:
     """How the model's residual (measured - predicted, um) depends on time, field, field rate,
     frequency, amplitude, turning points, and how it differs between sweeps; the strongest tone
     that is no harmonic of the drive (:func:`tone_fraction`)."""
     per, r_all, e_all, rate_all = [], [], [], []
-    for s in sweeps:
+    model = fitted.model
+    for s, u in zip(sweeps, predicted(fitted, sweeps), strict=True):
         m = s.mask(None)
-        r = (s.displacement_um - idf.predict(model, s.voltage_v, s.dt))[m]
+        r = (s.displacement_um - u)[m]
         e = (s.voltage_v / model.thickness_um)[m]
         rate = np.gradient(s.voltage_v / model.thickness_um, s.dt)[m]
         period = 1.0 / s.frequency_hz if s.frequency_hz else s.time_s[-1] - s.time_s[0]
@@ -340,6 +366,11 @@ def check(sweeps: Sequence[Sweep]) -> None:
                 f"full excursion (sample {s.memory_index}); record a longer sweep")
 
 
+#: Most coercive nodes in the candidates' fits (the identification may ask for more; the held-out
+#: predictions use 256).
+MAX_COERCIVE = 256
+
+
 @dataclass(frozen=True)
 class _Data:
     """Sweeps prepared once for every candidate's fit."""
@@ -350,14 +381,39 @@ class _Data:
     nyquist_hz: float
 
 
-def _prepare(sweeps: Sequence[Sweep], thickness: float, settings: idf.Settings) -> _Data:
+def _prepare(sweeps: Sequence[Sweep], thickness: float, settings: idf.Settings,
+             starts: Sequence[str] | None = None, n_coercive: int | None = None) -> _Data:
+    """The sweeps prepared for the fits: each from its start (None: chosen later), the
+    hysteresis on ``n_coercive`` nodes (None: the identification's fitting count)."""
     preps = [pz.prepare(s, thickness, settings.field_step, None) for s in sweeps]
-    return _Data(preps, pz.LognormalSpace(preps, settings.scales, settings.n_coercive_fit),
-                 *pz.extent(preps))
+    space = pz.LognormalSpace(preps, settings.scales, n_coercive or settings.n_coercive_fit,
+                              starts)
+    return _Data(preps, space, *pz.extent(preps))
+
+
+def _base_fit(halves: Sequence[Sweep], thickness: float, settings: Settings,
+              start: td.Transducer | None, say: Callable[[str], None]) -> tuple[_Data, FloatArray]:
+    """The robust base fit on the first halves (:func:`afmctl.identify.fit`: each sweep's start
+    state and sensor zero, the coercive node count), or ``start``'s parameters with the starts
+    chosen for them: the data prepared for every candidate, and ``x`` of the base model."""
+    if start is None:
+        say("identifying the base model on the first halves ...")
+        res = idf.fit(halves, settings.identify)
+        n_c = min(max(settings.identify.n_coercive_fit, res.model.polarization.n_coercive),
+                  MAX_COERCIVE)
+        say("  base fit: RMS / noise per half " + " / ".join(
+            f"{e.rms_over_noise:.2f}" for e in res.sweeps) + f"; N_c = {n_c}")
+        return _prepare(halves, thickness, settings.identify, [e.start for e in res.sweeps],
+                        n_c), res.x
+    x0 = pz.internal(start)
+    data = _prepare(halves, thickness, settings.identify)
+    y = np.concatenate([p.y for p in data.preps])
+    return replace(data, base=idf.choose_starts(data.base, x0, y)), x0
 
 
 def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um: float,
-         settings: Settings, z_start: FloatArray | None = None) -> tuple[ext.Extended, int]:
+         settings: Settings, z_start: FloatArray | None = None
+         ) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
     """Fit candidate ``name`` from the base parameters ``x_start`` (and its own ``z_start``)."""
     cand = ext.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
                          float(np.exp(x_start[4])), ext.field_rate_max(data.preps))[name]
@@ -365,7 +421,7 @@ def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um
         cand = replace(cand, starts=(tuple(z_start[6:]),))
     space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um)
     return (ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts),
-            cand.n_params)
+            cand.n_params, space)
 
 
 def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:
@@ -389,22 +445,24 @@ def check_noise(sweeps: Sequence[Sweep], noise_um: Sequence[float]) -> tuple[flo
     return noise
 
 
-def diagnose(sweeps: Sequence[Sweep], noise_um: Sequence[float], settings: Settings = Settings(),
+def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
              start: td.Transducer | None = None,
-             progress: Callable[[str], None] | None = None) -> Diagnosis:
+             progress: Callable[[str], None] | None = None,
+             noise_um: Sequence[float] | None = None) -> Diagnosis:
     """Find what the model gets wrong on ``sweeps``, fit each candidate cause, give the verdict.
 
     Parameters
     ----------
     sweeps : sequence of Sweep
         Measured sweeps (at least one; ``voltage-gain-drift`` needs two).
-    noise_um : sequence of float
-        The sensor noise (1 sigma, um) of each sweep: the floor every held-out RMS is read against.
     settings : Settings
     start : Transducer, optional
         A model (lognormal/normal densities) to start the fits from instead of identifying one.
     progress : callable, optional
         One-line progress messages.
+    noise_um : sequence of float, optional
+        The sensor noise (1 sigma, um) of each sweep: the floor every held-out RMS is read
+        against. Default: estimated from each sweep's data (:func:`afmctl.noise.sensor_noise_um`).
 
     Returns
     -------
@@ -420,36 +478,34 @@ def diagnose(sweeps: Sequence[Sweep], noise_um: Sequence[float], settings: Setti
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
     check(sweeps)
-    noise = check_noise(sweeps, noise_um)
+    noise = check_noise(sweeps, noise_um if noise_um is not None else
+                        [ns.sensor_noise_um(s.displacement_um) for s in sweeps])
     floor = vd.floor(noise)
     thickness, _ = idf.resolve_thickness(sweeps, settings.identify)
     halves = [first_half(s) for s in sweeps]
     range_um = max(float(np.ptp(s.displacement_um[s.mask(None)])) for s in sweeps)
-    if start is None:
-        say("identifying the base model on the first halves ...")
-        x0 = idf.fit(halves, settings.identify).x
-    else:
-        x0 = pz.internal(start)
-    data = _prepare(halves, thickness, settings.identify)
+    data, x0 = _base_fit(halves, thickness, settings, start, say)
+    whole = [pz.prepare(s, thickness, settings.identify.field_step, None) for s in sweeps]
     table: dict[str, Judged] = {}
     for name in candidate_names(len(sweeps), settings):
         t1 = time.perf_counter()
-        fitted, n_params = _fit(name, data, x0, thickness, range_um, settings)
-        rms, per = heldout(fitted.model, fitted.gains, sweeps)
+        fitted, n_params, space = _fit(name, data, x0, thickness, range_um, settings)
+        rms, per = heldout(space.on(whole), fitted, sweeps)
         table[name] = Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
         say(f"  {name:20s} held-out RMS {rms:.4f} um = {rms / floor:.2f}x noise "
             f"({time.perf_counter() - t1:.1f} s)")
     cause = choose(table, floor, settings.rule)
     say(f"verdict: {cause}; refitting the base model and the winner on all the data ...")
-    everything = _prepare(sweeps, thickness, settings.identify)
-    base, _ = _fit("none", everything, table["none"].fitted.x, thickness, range_um, settings)
+    everything = _prepare(sweeps, thickness, settings.identify, data.base.starts,
+                          data.base.n_coercive)
+    base = _fit("none", everything, table["none"].fitted.x, thickness, range_um, settings)[0]
     named = cause if cause in table else "none"
     final = base if named == "none" else _fit(named, everything, table[named].fitted.x[:6],
                                               thickness, range_um, settings,
                                               table[named].fitted.x)[0]
     return Diagnosis(cause, table["none"].heldout_rms_um, table[named].heldout_rms_um, floor,
-                     noise, table, base.model, final.model, final.gains,
-                     residual_signature(base.model, sweeps), time.perf_counter() - t0,
+                     noise, table, base, final, residual_signature(base, sweeps),
+                     time.perf_counter() - t0,
                      tuple(s.path or s.name for s in sweeps))
 
 

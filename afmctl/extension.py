@@ -38,15 +38,21 @@ from afmctl import transducer as td
 FloatArray = NDArray[np.float64]
 NAMES = ("none", "thermal-relaxation", "amplifier-lag", "sensor-delay", "sensor-nonlinearity",
          "second-mode", "voltage-gain-drift")
+#: Candidates whose parameters change ``Q`` (they act on the field or in the kernel).
+INPUT_SIDE = ("thermal-relaxation", "amplifier-lag", "voltage-gain-drift")
+#: ``Q`` of this many recent parameter sets is remembered (:meth:`ExtendedSpace._q`).
+MEMO = 12
 #: An amplifier slew limit this many times the data's fastest field rate is out of reach (off).
 SLEW_OFF = 3.0
 #: Grid of the thermal kernel, in the fit and in the extended model (N_i x N_j hysterons).
-THERMAL_GRID = (32, 24)
+THERMAL_GRID = (64, 48)
 
 
 @dataclass(frozen=True)
 class Candidate:
-    """One candidate: its extra parameters' names, starting values and bounds (internal units)."""
+    """One candidate: its extra parameters' names, starting values and bounds (internal units).
+
+    ``starts[0]`` is the effect switched off (the base model)."""
 
     name: str
     labels: tuple[str, ...]
@@ -78,19 +84,23 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
         Candidate("none", (), ((),), (), ()),
         Candidate("thermal-relaxation", ("log_field_scale_MV_per_m", "log_attempt_rate_per_s"),
                   ((lf(2e-4 * e_max), lf(1e6)),)  # close to the relay: the base model
-                  + tuple((lf(f * e_max), lf(r)) for f in (0.01, 0.04) for r in (30.0, 300.0)),
+                  + tuple((lf(f * e_max), lf(r)) for f in (0.003, 0.01, 0.03)
+                          for r in (1e2, 1e4, 1e6)),
                   (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7))),
         Candidate("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio", "log_slew_MV_per_m_s"),
-                  tuple((lf(f * rod_hz), lf(0.7), slew) for f in (0.3, 1.0, 3.0)
-                        for slew in (slew_off, lf(0.7 * rate_max))) + ((ln, lf(0.7), slew_off),),
+                  ((ln + 2.9, lf(0.7), slew_off),)  # far beyond the data: the base model
+                  + tuple((lf(f * rod_hz), lf(0.7), slew) for f in (0.3, 1.0, 3.0)
+                          for slew in (slew_off, lf(0.7 * rate_max))) + ((ln, lf(0.7), slew_off),),
                   (lf(1.0), lf(0.05), lf(0.05 * rate_max)), (ln + 3, lf(10.0), slew_off + 1e-6)),
         Candidate("sensor-delay", ("delay_fastest_samples",),
-                  ((0.5,), (2.0,), (5.0,), (10.0,), (25.0,)), (0.0,), (60.0,)),
+                  ((0.0,), (0.5,), (2.0,), (5.0,), (10.0,), (25.0,)), (0.0,), (60.0,)),
         Candidate("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
-                  ((-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)), (-0.3, -0.3), (0.3, 0.3)),
+                  ((0.0, 0.0), (-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)),
+                  (-0.3, -0.3), (0.3, 0.3)),
         Candidate("second-mode", ("log_frequency_Hz", "log_damping_ratio", "gain"),
-                  tuple((lf(f * rod_hz), lf(0.03), g) for f in (1.5, 2.2, 3.0, 4.0, 6.0)
-                        for g in (0.1,)
+                  ((lf(2.0 * rod_hz), lf(0.03), 1e-4),)  # no mode: the base model
+                  + tuple((lf(f * rod_hz), lf(0.03), g) for f in (1.5, 2.2, 3.0, 4.0, 6.0)
+                          for g in (0.1,)
                         if f * rod_hz < 0.8 * nyquist_hz) or ((ln - 1, lf(0.03), 0.1),),
                   (lf(min(1.05 * rod_hz, 0.3 * nyquist_hz)), lf(0.002), -0.9),
                   (ln, lf(0.5), 3.0)),
@@ -104,7 +114,8 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
 
 @dataclass(frozen=True)
 class Extended:
-    """A fitted candidate: the model (with its effect), per-sweep gains, and the solver's word."""
+    """A fitted candidate: the model (with its effect), per-sweep applied-voltage gains, initial
+    hysteresis states and sensor zeros (um), and the solver's word."""
 
     name: str
     model: td.Transducer
@@ -113,6 +124,22 @@ class Extended:
     success: bool
     nfev: int
     x: FloatArray
+    starts: tuple[str, ...]
+    offsets_um: tuple[float, ...]
+    beta: FloatArray
+
+
+def _with_zeros(blocks: Sequence[FloatArray]) -> FloatArray:
+    """Stack per-sweep blocks ``[g1 col, g2 col, zero col]`` into ``[L[Q], L[Q^2], 1_s]``: the
+    zero column of each sweep in a column of its own."""
+    n = len(blocks)
+    out = np.zeros((sum(b.shape[0] for b in blocks), 2 + n))
+    row = 0
+    for s, b in enumerate(blocks):
+        out[row:row + b.shape[0], :2] = b[:, :2]
+        out[row:row + b.shape[0], 2 + s] = b[:, 2]
+        row += b.shape[0]
+    return out
 
 
 def _log_gains(phi: FloatArray) -> FloatArray:
@@ -122,16 +149,20 @@ def _log_gains(phi: FloatArray) -> FloatArray:
 
 
 class ExtendedSpace:
-    """The residual of one candidate on prepared sweeps: ``z = (x, phi)``."""
+    """The residual of one candidate on prepared sweeps: ``z = (x, phi)``. Each sweep starts
+    from the hysteresis state of ``base.starts`` and has its own sensor zero (as in
+    :func:`afmctl.identify.fit`)."""
 
     def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
-                 field_step: float, range_um: float) -> None:
+                 field_step: float, range_um: float, dt_min: float | None = None) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
+        self.step_rel = field_step
         self.step = [field_step * float(np.max(np.abs(p.field))) for p in self.preps]
         self.range_um = range_um
-        self.dt_min = min(p.dt for p in self.preps)
+        self.dt_min = dt_min or min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
+        self._memo: dict[bytes, list[FloatArray]] = {}
 
     def bounds(self) -> tuple[FloatArray, FloatArray]:
         lo, hi = self.base.bounds()
@@ -153,18 +184,40 @@ class ExtendedSpace:
         return out
 
     def _q(self, theta: FloatArray, phi: FloatArray) -> list[FloatArray]:
-        """``Q`` at the full rate per sweep (eq. (13), or (10) for thermal relaxation)."""
+        """``Q`` at the full rate per sweep (eq. (13), or (10) for thermal relaxation).
+
+        Remembered for the last few arguments it depends on (``theta[:4]``, and ``phi`` for the
+        effects that act before or in the hysteresis): a finite-difference Jacobian moves one
+        parameter at a time, and the rod's and the output effects' parameters leave ``Q`` alone.
+        """
+        key = theta[:4].tobytes() + (phi.tobytes() if self.candidate.name in INPUT_SIDE else b"")
+        if key not in self._memo:
+            if len(self._memo) >= MEMO:
+                self._memo.pop(next(iter(self._memo)))
+            self._memo[key] = self._q_new(theta, phi)
+        return self._memo[key]
+
+    def _q_new(self, theta: FloatArray, phi: FloatArray) -> list[FloatArray]:
         fields = self._fields(phi)
-        thermal, holds = None, None
+        q_keep = pz.hysteresis(theta, [e[keep] for e, keep in fields], self.base.n_coercive,
+                               starts=self.base.starts)
         if self.candidate.name == "thermal-relaxation":
-            thermal = hy.Thermal(math.exp(phi[0]), math.exp(phi[1]))
-            holds = [np.diff(keep, append=p.field.size) * p.dt
-                     for (_, keep), p in zip(fields, self.preps, strict=True)]
-        n_c = THERMAL_GRID[0] if thermal else self.base.n_coercive
-        q_keep = pz.hysteresis(theta, [e[keep] for e, keep in fields], n_c, thermal,
-                               THERMAL_GRID[1], holds)
+            off = np.asarray(self.candidate.starts[0])
+            q_keep = [q + a - b for q, a, b in zip(q_keep, self._thermal(theta, phi, fields),
+                                                    self._thermal(theta, off, fields), strict=True)]
         return [np.interp(np.arange(e.size), keep, q) if keep.size < e.size else q
                 for (e, keep), q in zip(fields, q_keep, strict=True)]
+
+    def _thermal(self, theta: FloatArray, phi: FloatArray,
+                 fields: list[tuple[FloatArray, NDArray[np.intp]]]) -> list[FloatArray]:
+        """``Q`` of kernel (10) on the :data:`THERMAL_GRID` at the kept samples, each held for
+        its time. Used as a difference to the relay limit (``starts[0]``): the grid's own error
+        (0.2 % of ``Q`` against the relay kernel's closed form) cancels."""
+        holds = [np.diff(keep, append=p.field.size) * p.dt
+                 for (_, keep), p in zip(fields, self.preps, strict=True)]
+        return pz.hysteresis(theta, [e[keep] for e, keep in fields], THERMAL_GRID[0],
+                             hy.Thermal(math.exp(phi[0]), math.exp(phi[1])), THERMAL_GRID[1],
+                             holds, self.base.starts)
 
     def _output(self, phi: FloatArray) -> fx.Effects:
         if self.candidate.name == "sensor-delay":
@@ -189,31 +242,56 @@ class ExtendedSpace:
         return fx.Effects(sensor_quadratic_per_um=float(phi[0]) / self.range_um,
                           sensor_cubic_per_um2=float(phi[1]) / self.range_um ** 2)
 
-    def system(self, z: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Weighted design matrix ``[L[Q], L[Q^2], 1]`` (after the output effects) and target."""
+    def columns(self, z: FloatArray) -> list[FloatArray]:
+        """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` after the output effects (the
+        sensor zero is the rod's, so it sees them too), shape (N, 3)."""
         theta, phi = np.exp(z[:6]), z[6:]
-        out = self._output(phi)
-        gauge = self._gauge(phi)
-        blocks, ys = [], []
-        for q, p, w in zip(self._q(theta, phi), self.preps, self.weights, strict=True):
-            cols = pz.sweep_columns(q, theta[4], theta[5], p.dt)
+        out, blocks = self._output(phi), []
+        for q, p in zip(self._q(theta, phi), self.preps, strict=True):
+            cols = np.column_stack((pz.sweep_columns(q, theta[4], theta[5], p.dt)[:, :2],
+                                    np.ones(q.size)))
             if out != fx.Effects():
                 chain = fx.compile_chain(out, p.dt)
-                cols = np.column_stack([fx.measure(chain, col, *fx.rest(chain, float(col[0])))[0]
-                                        for col in cols.T])
-            blocks.append(w * cols[p.mask])
-            ys.append(w * fx.ungauge(gauge, p.y))
-        return np.vstack(blocks), np.concatenate(ys)
+                cols = np.column_stack([fx.measure(chain, c, *fx.rest(chain, float(c[0])))[0]
+                                        for c in cols.T])
+            blocks.append(cols)
+        return blocks
+
+    def system(self, z: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Weighted design matrix ``[L[Q], L[Q^2], 1_s]`` (``1_s`` one sensor zero per sweep)
+        and target (the readings through the inverse gauge)."""
+        gauge = self._gauge(z[6:])
+        blocks = [w * c[p.mask] for c, p, w in zip(self.columns(z), self.preps, self.weights,
+                                                      strict=True)]
+        ys = [w * fx.ungauge(gauge, p.y) for p, w in zip(self.preps, self.weights, strict=True)]
+        return _with_zeros(blocks), np.concatenate(ys)
+
+    def readings(self, z: FloatArray, beta: FloatArray) -> list[FloatArray]:
+        """What the sensor reads (um) at every sample of every sweep for ``z`` and the linear
+        parameters ``beta = (g1, g2, zero_1, ..., zero_S)``."""
+        gauge = self._gauge(z[6:])
+        return [fx.gauge(gauge, c[:, :2] @ beta[:2] + c[:, 2] * beta[2 + s])
+                for s, c in enumerate(self.columns(z))]
+
+    def on(self, preps: Sequence[pz.Prepared]) -> ExtendedSpace:
+        """The same candidate, starts and node count on other prepared sweeps (the whole sweeps
+        a fit on their first halves is judged on)."""
+        base = pz.LognormalSpace(preps, self.base.scales, self.base.n_coercive, self.base.starts)
+        return ExtendedSpace(self.candidate, preps, base, self.step_rel, self.range_um,
+                             self.dt_min)
 
     def residual(self, z: FloatArray) -> FloatArray:
         a, y = self.system(z)
         return pz.project(a, y)[1]
 
-    def to_model(self, z: FloatArray, thickness_um: float) -> tuple[td.Transducer, tuple[float, ...]]:
-        """The physical model (effect included) and the per-sweep applied-voltage gains."""
+    def to_model(self, z: FloatArray, thickness_um: float
+                 ) -> tuple[td.Transducer, tuple[float, ...], tuple[float, ...]]:
+        """The physical model (effect included; the last sweep's sensor zero), the per-sweep
+        applied-voltage gains and sensor zeros (um)."""
         a, y = self.system(z)
         beta, _ = pz.project(a, y)
-        model = self.base.model(z[:6], beta, thickness_um)
+        model = self.base.model(z[:6], np.array([beta[0], beta[1], beta[-1]]), thickness_um)
+        offsets = tuple(float(b) for b in beta[2:])
         phi, name = z[6:], self.candidate.name
         gains = tuple([1.0] * len(self.preps))
         if name == "thermal-relaxation":
@@ -230,7 +308,7 @@ class ExtendedSpace:
                                                                                      ddof=1))))
         else:
             model = replace(model, effects=self._output(phi))
-        return model, gains
+        return model, gains, offsets
 
 
 def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[str, float]:
@@ -286,6 +364,7 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
         ranked = [clip(np.concatenate((x_base, best.x)))]
     sol = optimize.least_squares(space.residual, ranked[0], bounds=(lo, hi), diff_step=1e-6,
                                  max_nfev=max_nfev)
-    model, gains = space.to_model(sol.x, thickness_um)
+    model, gains, offsets = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
-                    bool(sol.success and sol.status > 0), nfev + int(sol.nfev), sol.x)
+                    bool(sol.success and sol.status > 0), nfev + int(sol.nfev), sol.x,
+                    space.base.starts, offsets, pz.project(*space.system(sol.x))[0])

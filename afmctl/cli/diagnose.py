@@ -24,7 +24,7 @@ from afmctl.tomlfile import InputError
               help="Output folder (default: ./afmctl-diagnose-<time>).")
 @click.option("--noise-um", "noise_um", type=float, default=None,
               help="Sensor noise (1 sigma, um) of every sweep: the floor the errors are read "
-                   "against.")
+                   "against (default: estimated from each sweep's data).")
 @click.option("--json", "as_json", is_flag=True, help="Print diagnosis.json on stdout.")
 def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str | None,
              out_dir: str | None, noise_um: float | None, as_json: bool) -> None:
@@ -49,9 +49,7 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
             raise InputError(f"--model {model_path}: {exc}") from None
     idf.resolve_thickness(data, settings.identify)
     dg.check(data)
-    if noise_um is None:
-        raise InputError("--noise-um is required (the sensor noise, 1 sigma, um)")
-    noise = dg.check_noise(data, [noise_um] * len(data))
+    noise = None if noise_um is None else dg.check_noise(data, [noise_um] * len(data))
     out = Path(out_dir) if out_dir else Path(f"afmctl-diagnose-{time.strftime('%Y%m%d-%H%M%S')}")
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out}: exists and is not a folder")
@@ -59,7 +57,8 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
         fail(f"{out} already holds a diagnosis; choose another --out")
     click.echo(f"diagnosing {len(data)} sweep(s): "
                f"{len(dg.candidate_names(len(data), settings))} candidates ...", err=True)
-    d = dg.diagnose(data, noise, settings, start, progress=lambda m: click.echo(m, err=True))
+    d = dg.diagnose(data, settings, start, progress=lambda m: click.echo(m, err=True),
+                    noise_um=noise)
     doc = d.as_dict()
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"  # before anything is written
     out.mkdir(parents=True, exist_ok=True)
@@ -67,9 +66,7 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     modelfile.write(d.base_model, out / "base.toml", header=header + "\nthe paper's model")
     modelfile.write(d.extended_model, out / "extended.toml",
                     header=header + f"\nextended with: {d.cause}")
-    before = [idf.predict(d.base_model, s.voltage_v, s.dt) for s in data]
-    after = [idf.predict(d.extended_model, s.voltage_v, s.dt, g)
-             for s, g in zip(data, d.extended_gains, strict=True)]
+    before, after = d.predictions(data)
     partial = out / "residuals.partial.png"
     plots.diagnosis_figure(data, before, after, d.base_model.thickness_um,
                            ("paper's model", f"extended: {d.cause}"), partial)
