@@ -13,8 +13,8 @@ Given measured sweeps, :func:`diagnose`
    brings the error near the floor, ``none`` when the paper's model is already there, or
    ``unexplained`` when nothing is (with how far, the residual's signature and what to measure);
 5. analyses the base model's residuals against time, field, field rate, frequency, amplitude,
-   turning points and between sweeps (:func:`residual_signature`), and refits the winner on all the
-   data for the model file.
+   turning points, a tone that is no harmonic of the drive, and between sweeps
+   (:func:`residual_signature`). The model files are the fits on the first halves.
 
 Pure numerics and data: files and plots are written by the CLI (:mod:`afmctl.cli`).
 """
@@ -101,8 +101,8 @@ class Judged:
 @dataclass(frozen=True)
 class Diagnosis:
     """Outcome of :func:`diagnose`: the verdict, held-out RMS (um) of the base and the extended
-    model, the noise floor (um, overall and per sweep), the candidate table, both models refitted on
-    all the data (the extended one with its per-sweep applied-voltage gains; the base again if no
+    model, the noise floor (um, overall and per sweep), the candidate table, both models fitted on
+    the first halves (the extended one with its per-sweep applied-voltage gains; the base again if no
     cause is named), the residual signature and the wall time (s)."""
 
     cause: str
@@ -134,7 +134,7 @@ class Diagnosis:
         return self.extended.gains
 
     def predictions(self, sweeps: Sequence[Sweep]) -> tuple[list[FloatArray], list[FloatArray]]:
-        """Readings (um) the base and the extended model (both refitted on all the data) predict
+        """Readings (um) the base and the extended model (fitted on the first halves) predict
         for ``sweeps``, each sweep from its start, with its sensor zero and gain."""
         return predicted(self.base, sweeps), predicted(self.extended, sweeps)
 
@@ -172,8 +172,8 @@ class Diagnosis:
             "seconds": round(self.seconds, 2),
             "method": "fit on the first half of every sweep, judged on the second half (state "
                       "carried through); each sweep weighs the same; every held-out RMS read "
-                      "against the noise floor; base and extended models then refitted on all "
-                      "the data"})
+                      "against the noise floor; the model files are the fits on the first "
+                      "halves"})
 
     def evidence(self) -> str:
         """One paragraph: why this cause (or none, or unexplained)."""
@@ -412,13 +412,10 @@ def _base_fit(halves: Sequence[Sweep], thickness: float, settings: Settings,
 
 
 def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um: float,
-         settings: Settings, z_start: FloatArray | None = None
-         ) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
-    """Fit candidate ``name`` from the base parameters ``x_start`` (and its own ``z_start``)."""
+         settings: Settings) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
+    """Fit candidate ``name`` from the base parameters ``x_start``."""
     cand = ext.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
                          float(np.exp(x_start[4])), ext.field_rate_max(data.preps))[name]
-    if z_start is not None:
-        cand = replace(cand, starts=(tuple(z_start[6:]),))
     space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um)
     return (ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts),
             cand.n_params, space)
@@ -468,7 +465,7 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     -------
     Diagnosis
         Verdict, base and extended held-out RMS (um), noise floor, the per-candidate table, and the
-        base model and the winner refitted on all the data.
+        base model and the winner (fitted on the first halves).
 
     Raises
     ------
@@ -495,14 +492,9 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
         say(f"  {name:20s} held-out RMS {rms:.4f} um = {rms / floor:.2f}x noise "
             f"({time.perf_counter() - t1:.1f} s)")
     cause = choose(table, floor, settings.rule)
-    say(f"verdict: {cause}; refitting the base model and the winner on all the data ...")
-    everything = _prepare(sweeps, thickness, settings.identify, data.base.starts,
-                          data.base.n_coercive)
-    base = _fit("none", everything, table["none"].fitted.x, thickness, range_um, settings)[0]
+    say(f"verdict: {cause}")
     named = cause if cause in table else "none"
-    final = base if named == "none" else _fit(named, everything, table[named].fitted.x[:6],
-                                              thickness, range_um, settings,
-                                              table[named].fitted.x)[0]
+    base, final = table["none"].fitted, table[named].fitted
     return Diagnosis(cause, table["none"].heldout_rms_um, table[named].heldout_rms_um, floor,
                      noise, table, base, final, residual_signature(base, sweeps),
                      time.perf_counter() - t0,
