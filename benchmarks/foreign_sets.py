@@ -1,7 +1,7 @@
 """Write sweep sets recorded on random foreign stages (drivers/device/foreign*.py).
 
     python benchmarks/foreign_sets.py --out DIR --n N --seed S [--effect CAUSE] [--strength X]
-        [--design D] [--start S]
+        [--design D] [--start S] [--families default|random]
 
 Each stage goes to its own folder ``DIR/stage_XX/``: one sweep CSV per sweep in afmctl's sweep
 format, recorded in sequence on one plant (its state carried from sweep to sweep, a random idle
@@ -27,6 +27,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from drivers.device import foreign as plant  # noqa: E402
+from drivers.device.foreign import COERCIVE_FAMILIES, INTERACTION_FAMILIES  # noqa: E402
 from drivers.device.foreign_effects import CAUSES, random_effect  # noqa: E402
 from drivers.device.foreign_stages import random_stage  # noqa: E402
 from drivers.device.foreign_sweeps import DESIGNS, SweepPlan, sweep_set  # noqa: E402
@@ -96,7 +97,11 @@ def one_stage(folder: Path, seed: int, index: int, args) -> dict:
     rng = np.random.default_rng([seed, index])
     design = args.design if args.design != "random" else str(rng.choice(DESIGNS))
     lo, hi = drive_range(design, rng)
-    stage = random_stage(rng, drive_range_V=(lo, hi))
+    families = {}
+    if args.families == "random":
+        families = {"coercive_family": str(rng.choice(COERCIVE_FAMILIES)),
+                    "interaction_family": str(rng.choice(INTERACTION_FAMILIES))}
+    stage = random_stage(rng, drive_range_V=(lo, hi), **families)
     strength = None
     if args.effect != "none":
         strength = float(rng.uniform(0, 1)) if args.strength is None else args.strength
@@ -124,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--strength", type=float, default=None, help="0 (barely) .. 1 (strong)")
     ap.add_argument("--design", default="random", choices=["random", *DESIGNS])
     ap.add_argument("--start", default="random", choices=["random", *STARTS])
+    ap.add_argument("--families", default="default", choices=["default", "random"],
+                    help="density families: lognormal/normal, or drawn from all three each")
     args = ap.parse_args(argv)
     if args.out.exists() and any(args.out.iterdir()):
         print(f"foreign_sets: error: {args.out} exists and is not empty", file=sys.stderr)

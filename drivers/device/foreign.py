@@ -15,8 +15,9 @@ Material
     the midpoint rule in ``ln E_c`` between the 1e-6 and 1 - 1e-6 quantiles, weighted by the
     density (13) (400 nodes: about 1e-5 of the polarization range from the continuum). The
     reversible part is ``E / eta``. Families: coercive lognormal (default), gamma or log-logistic;
-    interaction normal (default), logistic or Laplace. With a :class:`Thermal` effect the kernel
-    is (6)-(10) on a 2-D (E_c, E_I) grid instead.
+    interaction normal (default), logistic or Laplace. With a :class:`Thermal` effect, the
+    kernel (6)-(10) runs on a 2-D (E_c, E_I) grid (:func:`thermal_grid`) and its departure from
+    the relay model on the same rows is added (:func:`drivers.device.foreign_kernel._material`).
 Rod
     ``m u'' + c u' + k u = a1 P + a2 P^2`` (16), integrated by RK4 on substeps (at least 24 per
     period of the fastest dynamics); the commanded voltage is held over each sample interval.
@@ -26,9 +27,19 @@ Sensor
 State goes in and comes out (:class:`PlantState`): running a waveform in chunks gives the same
 true positions as in one go.
 
+API
+---
+``initial_state(stage, start)``, ``run(stage, voltage_V, rate_hz, state, rng)``,
+``idle(stage, state, seconds, voltage_V)``, ``start_run(stage, state, rng)`` (at the start of
+each run: draws the run's voltage gain), ``describe(stage)`` (all parameters as JSON-able data).
+Random stages: :mod:`drivers.device.foreign_stages`; hidden effects:
+:mod:`drivers.device.foreign_effects`; sweep designs: :mod:`drivers.device.foreign_sweeps`;
+the compiled time stepping: :mod:`drivers.device.foreign_kernel`.
+
 Example
 -------
 >>> import numpy as np
+>>> from drivers.device.foreign_stages import random_stage
 >>> rng = np.random.default_rng(1)
 >>> stage = random_stage(rng)
 >>> state = initial_state(stage, "poled+")
@@ -44,16 +55,13 @@ from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import special, stats
+from scipy import linalg, special, stats
 
 from drivers.device import foreign_kernel as fk
 from drivers.device.foreign_effects import (
     Amplifier,
-    Backlash,
     Effect,
     GainDrift,
-    GaugePolynomial,
-    GaugeSaturation,
     Interference,
     SecondMass,
     SensorLatency,
@@ -61,6 +69,7 @@ from drivers.device.foreign_effects import (
     cause_of,
     interference_um,
     mode_frequencies_hz,
+    pack_effect,
 )
 
 FloatArray = NDArray[np.float64]
@@ -240,7 +249,8 @@ class PlantState:
 
     ``scalars`` holds time, rod/platform coordinates, amplifier and filter states (layout in
     :mod:`drivers.device.foreign_kernel`); ``boundary`` the relay memory (one interaction-field
-    boundary per coercive node, MV/m); ``up_fraction`` the thermal kernel's x_+ per hysteron;
+    boundary per coercive node, MV/m); ``thermal_boundary`` the same on the thermal grid's rows
+    and ``up_fraction`` the thermal kernel's x_+ per hysteron;
     ``history`` the sensor signal's recent past (time, value, slope); ``gain`` the voltage gain of
     the current run and ``runs`` the number of runs started.
     """
@@ -248,6 +258,7 @@ class PlantState:
     scalars: FloatArray
     rod: FloatArray
     boundary: FloatArray
+    thermal_boundary: FloatArray
     up_fraction: FloatArray
     history: FloatArray
     gain: float = 1.0
@@ -288,25 +299,36 @@ def coercive_nodes(coercive: Coercive, n: int) -> tuple[FloatArray, FloatArray]:
     return ec, weights / weights.sum()
 
 
-@lru_cache(maxsize=64)
-def interaction_nodes(interaction: Interaction, n: int) -> tuple[FloatArray, FloatArray]:
-    """Gauss-Legendre nodes on each half of [q(1e-7), q(1 - 1e-7)] and normalized weights."""
-    dist = interaction.distribution()
-    top = dist.ppf(1 - 1e-7)
-    x, w = np.polynomial.legendre.leggauss(n // 2)
-    half = 0.5 * (x + 1.0) * top
-    nodes = np.concatenate([-half[::-1], half])
-    weights = np.concatenate([w[::-1], w]) * dist.pdf(nodes)
-    return nodes, weights / weights.sum()
+THERMAL_ROWS = 24  # coercive rows of the thermal grid
+THERMAL_MAX_COLUMNS = 4000
 
 
-THERMAL_GRID = (40, 96)  # coercive x interaction nodes of the thermal kernel
+@lru_cache(maxsize=16)
+def thermal_grid(material: Material, thermal: Thermal) -> tuple[FloatArray, FloatArray,
+                                                                FloatArray, FloatArray]:
+    """The thermal kernel's hysteron grid.
 
+    Rows: ``THERMAL_ROWS`` coercive fields (:func:`coercive_nodes`). Columns: interaction
+    fields at the midpoints of a uniform grid on [q(1e-7), q(1 - 1e-7)] spaced at most E_T / 1.5
+    (so the thermally smeared switching of neighbours overlaps), 64 ... ``THERMAL_MAX_COLUMNS``.
 
-def _thermal_grid(material: Material) -> tuple[FloatArray, FloatArray, FloatArray]:
-    ec2, v2 = coercive_nodes(material.coercive, THERMAL_GRID[0])
-    ei2, w2 = interaction_nodes(material.interaction, THERMAL_GRID[1])
-    return ec2, ei2, np.outer(v2, w2)
+    Returns
+    -------
+    ec2, v2 : ndarray, shape (rows,)
+        Coercive fields (MV/m) and row weights (sum 1).
+    ei2 : ndarray, shape (cols,)
+        Interaction fields, MV/m, increasing.
+    w2 : ndarray, shape (rows, cols)
+        Hysteron weights; each row sums to its row weight.
+    """
+    ec2, v2 = coercive_nodes(material.coercive, THERMAL_ROWS)
+    dist = material.interaction.distribution()
+    top = float(dist.ppf(1 - 1e-7))
+    n = math.ceil(2 * top / (thermal.thermal_field_MVm / 1.5))
+    n = min(THERMAL_MAX_COLUMNS, max(64, n))
+    ei2 = -top + (np.arange(n) + 0.5) * 2 * top / n
+    w = dist.pdf(ei2)
+    return ec2, v2, ei2, np.outer(v2, w / w.sum())
 
 
 # ---------------------------------------------------------------- packing
@@ -325,72 +347,34 @@ def _pack(stage: Stage, gain: float) -> FloatArray:
     par[fk.P_M1], par[fk.P_C1], par[fk.P_K1] = (rod.mass_kg, rod.damping_N_s_per_m,
                                                 rod.stiffness_N_per_m)
     for eff in stage.effects:
-        _PACKERS.get(type(eff), _no_pack)(par, eff, stage)
+        pack_effect(par, eff, stage)
     return par
 
 
-def _no_pack(par, eff, stage):
-    """Effects that act outside the kernel (interference) or through the state (gain)."""
-
-
-def _pack_amp(par, eff: Amplifier, stage):
-    w = 2 * math.pi * eff.bandwidth_hz
-    par[fk.P_AMP], par[fk.P_AW], par[fk.P_AZ] = 1.0, w, eff.damping
-    par[fk.P_SLEW], par[fk.P_TAUS] = eff.slew_V_per_s, 0.25 / w
-
-
-def _pack_latency(par, eff: SensorLatency, stage):
-    par[fk.P_DELAY] = eff.delay_s
-    if eff.antialias_hz > 0:
-        par[fk.P_AA], par[fk.P_AAW], par[fk.P_AAZ] = 1.0, 2 * math.pi * eff.antialias_hz, \
-            1 / math.sqrt(2)
-
-
-def _pack_thermal(par, eff: Thermal, stage):
-    par[fk.P_THERM], par[fk.P_ET], par[fk.P_NU0] = 1.0, eff.thermal_field_MVm, \
-        eff.attempt_rate_hz
-
-
-def _pack_mass(par, eff: SecondMass, stage):
-    m2 = eff.mass_ratio * stage.rod.mass_kg
-    w2 = 2 * math.pi * eff.frequency_ratio * stage.rod.resonance_hz
-    par[fk.P_TWO], par[fk.P_M2], par[fk.P_K2] = 1.0, m2, m2 * w2 * w2
-    par[fk.P_C2] = 2 * eff.damping * m2 * w2
-
-
-def _pack_poly(par, eff: GaugePolynomial, stage):
-    par[fk.P_GPOLY], par[fk.P_GC], par[fk.P_GR] = 1.0, eff.center_um, eff.half_range_um
-    par[fk.P_Q2], par[fk.P_Q3] = eff.quadratic, eff.cubic
-
-
-def _pack_sat(par, eff: GaugeSaturation, stage):
-    par[fk.P_GSAT], par[fk.P_SC], par[fk.P_SK], par[fk.P_SW] = (1.0, eff.center_um, eff.knee_um,
-                                                                 eff.softness_um)
-
-
-def _pack_drift(par, eff: GainDrift, stage):
-    par[fk.P_GRATE] = eff.per_second
-
-
-def _pack_play(par, eff: Backlash, stage):
-    par[fk.P_PLAY] = eff.gap_um
-
-
-_PACKERS = {Amplifier: _pack_amp, SensorLatency: _pack_latency, Thermal: _pack_thermal,
-            SecondMass: _pack_mass, GaugePolynomial: _pack_poly, GaugeSaturation: _pack_sat,
-            GainDrift: _pack_drift, Backlash: _pack_play}
-
-
 def fastest_hz(stage: Stage) -> float:
-    """Highest natural frequency of the plant's dynamics, Hz (sets the substep)."""
+    """Highest natural frequency of the plant's dynamics integrated by RK4, Hz (sets the
+    substep; the anti-alias filter is integrated exactly)."""
     f = [stage.rod.resonance_hz]
     if (mode := stage.effect(SecondMass)) is not None:
         f.append(mode_frequencies_hz(stage, mode)[1])
     if (amp := stage.effect(Amplifier)) is not None:
         f.append(amp.bandwidth_hz)
-    if (lat := stage.effect(SensorLatency)) is not None:
-        f.append(lat.antialias_hz)
     return max(f)
+
+
+def _discretize_antialias(par: FloatArray, h: float) -> None:
+    """Exact one-substep map of the anti-alias filter for an input linear over ``h`` (s)."""
+    if par[fk.P_AA] <= 0:
+        return
+    w, zeta = par[fk.P_AAW], par[fk.P_AAZ]
+    aug = np.zeros((4, 4))
+    aug[:2, :2] = [[0.0, 1.0], [-w * w, -2 * zeta * w]]
+    aug[1, 2] = w * w  # input u enters y''
+    aug[2, 3] = 1.0 / h  # u' = (u1 - u0) / h
+    big = linalg.expm(aug * h)
+    par[fk.P_AAPHI:fk.P_AAPHI + 4] = big[:2, :2].ravel()
+    par[fk.P_AAG0:fk.P_AAG0 + 2] = big[:2, 2]
+    par[fk.P_AAG1:fk.P_AAG1 + 2] = big[:2, 3]
 
 
 def substeps(stage: Stage, sample_rate_hz: float) -> int:
@@ -401,14 +385,13 @@ def substeps(stage: Stage, sample_rate_hz: float) -> int:
 # ---------------------------------------------------------------- state
 
 
-def _arrays(stage: Stage):
+def _arrays(stage: Stage) -> tuple[FloatArray, ...]:
+    """ec, vc (the relay model's nodes) and ec2, v2, ei2, w2 (the thermal grid, or stand-ins)."""
     mat = stage.material
     ec, vc = coercive_nodes(mat.coercive, mat.n_coercive)
-    if stage.effect(Thermal) is not None:
-        ec2, ei2, w2 = _thermal_grid(mat)
-    else:
-        ec2, ei2, w2 = np.ones(1), np.zeros(1), np.ones((1, 1))
-    return ec, vc, ec2, ei2, w2
+    if (thermal := stage.effect(Thermal)) is not None:
+        return (ec, vc, *thermal_grid(mat, thermal))
+    return ec, vc, np.ones(1), np.ones(1), np.zeros(1), np.ones((1, 1))
 
 
 def _start_history(start: str | float | tuple[float, ...]) -> tuple[float, list[float]]:
@@ -440,7 +423,7 @@ def initial_state(stage: Stage, start: str | float | tuple[float, ...] = "poled+
     """
     b0, visited = _start_history(start)
     mat = stage.material
-    ec, _, ec2, ei2, w2 = _arrays(stage)
+    ec, _, ec2, _, ei2, _ = _arrays(stage)
     boundary = np.full(ec.size, b0)
     b2 = np.full(ec2.size, b0)
     for v in visited:
@@ -450,9 +433,9 @@ def initial_state(stage: Stage, start: str | float | tuple[float, ...] = "poled+
     volts = visited[-1] if visited else 0.0
     rising = len(visited) < 2 or visited[-1] >= visited[-2]
     st = np.zeros(fk.N_ST)
-    st[fk.S_VS] = st[fk.S_VA] = volts
+    st[fk.S_VA] = volts
     st[fk.S_E] = volts / mat.layer_thickness_um
-    state = PlantState(st, np.zeros(4), boundary, up, np.zeros((8, 3)))
+    state = PlantState(st, np.zeros(4), boundary, b2, up, np.zeros((8, 3)))
     return _settle(stage, state, 0.0, rising)
 
 
@@ -460,14 +443,11 @@ def _settle(stage: Stage, state: PlantState, dt: float, rising: bool) -> PlantSt
     """Put the mechanics, amplifier and sensor at rest at the state's field (after ``dt`` s of
     thermal relaxation at that field)."""
     par = _pack(stage, state.gain)
-    ec, vc, ec2, ei2, w2 = _arrays(stage)
+    ec, vc, ec2, v2, ei2, w2 = _arrays(stage)
     st, x, b = state.scalars.copy(), state.up_fraction.copy(), state.boundary.copy()
+    b2 = state.thermal_boundary.copy()
     e = st[fk.S_E]
-    if par[fk.P_THERM] > 0:
-        p = fk.thermal_update(x, ec2, ei2, w2, e, dt, par[fk.P_ET], par[fk.P_NU0], par[fk.P_CHI])
-    else:
-        p = par[fk.P_CHI] * e + fk.relay_polarization(b, vc, int(par[fk.P_IFAM]),
-                                                      par[fk.P_ISCALE])
+    p = fk.material_step(par, b, ec, vc, b2, ec2, v2, x, ei2, w2, e, e, dt)
     force = par[fk.P_F1] * p + par[fk.P_F2] * p * p
     u = force / par[fk.P_K1]
     q = np.array([u, 0.0, u, 0.0])
@@ -475,7 +455,7 @@ def _settle(stage: Stage, state: PlantState, dt: float, rising: bool) -> PlantSt
     xp = state.scalars[fk.S_XP] if dt > 0 else (u - half if rising else u + half)
     st[fk.S_XP] = min(max(xp, u - half), u + half)
     st[fk.S_F] = force
-    st[fk.S_VS] = st[fk.S_VA] = e * par[fk.P_THICK]
+    st[fk.S_VA] = e * par[fk.P_THICK]
     st[fk.S_WA] = 0.0
     s, _ = fk.gauge(par, st[fk.S_XP])
     st[fk.S_S] = st[fk.S_Y] = s
@@ -485,7 +465,8 @@ def _settle(stage: Stage, state: PlantState, dt: float, rising: bool) -> PlantSt
     hist[:2, 0] = st[fk.S_T] - 1e3, st[fk.S_T]
     hist[:2, 1] = s
     st[fk.S_HEAD], st[fk.S_COUNT] = 1, 2
-    return replace(state, scalars=st, rod=q, boundary=b, up_fraction=x, history=hist)
+    return replace(state, scalars=st, rod=q, boundary=b, thermal_boundary=b2, up_fraction=x,
+                   history=hist)
 
 
 def _history_room(stage: Stage, state: PlantState, h: float, dt: float) -> FloatArray:
@@ -541,20 +522,24 @@ def run(stage: Stage, voltage_V: FloatArray, sample_rate_hz: float, state: Plant
     dt = 1.0 / float(sample_rate_hz)
     n_sub = substeps(stage, sample_rate_hz)
     par = _pack(stage, state.gain)
-    ec, vc, ec2, ei2, w2 = _arrays(stage)
+    _discretize_antialias(par, dt / n_sub)
+    ec, vc, ec2, v2, ei2, w2 = _arrays(stage)
     st, q = state.scalars.copy(), state.rod.copy()
     b, x = state.boundary.copy(), state.up_fraction.copy()
+    b2 = state.thermal_boundary.copy()
     hist = _history_room(stage, state, dt / n_sub, dt)
     true_um, sensed = np.empty(volts.size), np.empty(volts.size)
     t0 = st[fk.S_T]
-    fk.simulate(volts, dt, n_sub, par, st, q, b, ec, vc, x, ec2, ei2, w2, hist, true_um, sensed)
+    fk.simulate(volts, dt, n_sub, par, st, q, b, ec, vc, b2, ec2, v2, x, ei2, w2, hist, true_um,
+                sensed)
     true_um -= stage.sensor.zero_um
     reading = sensed + (stage.sensor.offset_um - stage.sensor.zero_um)
     if (hum := stage.effect(Interference)) is not None:
         reading += interference_um(hum, t0 + dt * np.arange(volts.size))
     if rng is not None:
         reading += stage.sensor.noise_um * rng.standard_normal(volts.size)
-    new = replace(state, scalars=st, rod=q, boundary=b, up_fraction=x, history=hist)
+    new = replace(state, scalars=st, rod=q, boundary=b, thermal_boundary=b2, up_fraction=x,
+                  history=hist)
     return true_um, reading, new
 
 

@@ -11,7 +11,7 @@ Causes and the dataclass that makes each:
 ==========================  =======================  ==========================================
 cause                       dataclass                physics
 ==========================  =======================  ==========================================
-``amplifier-lag``           :class:`Amplifier`       smooth slew limit, then a 2nd-order low-pass
+``amplifier-lag``           :class:`Amplifier`       2nd-order low-pass with a slew-rate limit
 ``sensor-delay``            :class:`SensorLatency`   2nd-order anti-alias filter + continuous delay
 ``thermal-relaxation``      :class:`Thermal`         Arrhenius switching (6)-(10) per hysteron
 ``second-mode``             :class:`SecondMass`      a platform mass coupled to the rod (2 DOF)
@@ -28,10 +28,13 @@ The last three are outside afmctl's diagnosis vocabulary (``OUT_OF_VOCABULARY``)
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from drivers.device import foreign_kernel as fk
 
 if TYPE_CHECKING:
     from drivers.device.foreign import Stage
@@ -39,11 +42,11 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class Amplifier:
-    """Voltage amplifier: a smooth slew limiter followed by a second-order low-pass.
+    """Voltage amplifier: a second-order low-pass whose output slews at most ``slew_V_per_s``.
 
-    ``dv_s/dt = S tanh((g V - v_s) / (S tau_s))``, then
-    ``v'' + 2 zeta w v' + w^2 v = w^2 v_s`` with ``w = 2 pi bandwidth_hz``; ``tau_s`` is a tenth
-    of the low-pass's time scale ``1 / w`` (the limiter is linear and fast for small steps).
+    ``v' = S tanh(w_v / S)``, ``w_v' = w^2 (g V - v) - 2 zeta w w_v`` with
+    ``w = 2 pi bandwidth_hz``: the textbook low-pass while ``|w_v| << S``, a ramp at rate ``S``
+    after a large step.
 
     Parameters
     ----------
@@ -202,16 +205,31 @@ def mode_frequencies_hz(stage: Stage, mode: SecondMass) -> tuple[float, float]:
     return float(np.sqrt(w2[0]) / (2 * math.pi)), float(np.sqrt(w2[1]) / (2 * math.pi))
 
 
+FAST_SWEEP_HZ = 27.9  # the fast standard triangle, on which lags show first
+MAX_AMPLIFIER_HZ = 10_000.0  # fastest amplifier drawn (it costs substeps)
+MAX_ANTIALIAS_HZ = 100_000.0  # (integrated exactly: costs nothing)
+
+
+def _weak_lag_s(stage: Stage) -> float:
+    """A lag that shifts the fast standard triangle's reading by ~3 sensor noise sigmas, s."""
+    lo, hi = stage.static_range_um
+    return 3.0 * stage.sensor.noise_um / ((hi - lo) * 2.0 * FAST_SWEEP_HZ)
+
+
 def _amplifier(rng, stage, s):
-    f = stage.rod.resonance_hz * _span(3.0, 0.2, s)
+    zeta = float(rng.uniform(0.5, 0.9))
+    strong = 2 * zeta / (2 * math.pi * 0.2 * stage.rod.resonance_hz)  # 0.2x the resonance
+    lag = _span(_weak_lag_s(stage), strong, s)
     span = stage.drive_range_V[1] - stage.drive_range_V[0]
-    return Amplifier(bandwidth_hz=f, damping=float(rng.uniform(0.5, 0.9)),
-                     slew_V_per_s=span * _span(300.0, 60.0, s))
+    return Amplifier(bandwidth_hz=min(MAX_AMPLIFIER_HZ, 2 * zeta / (2 * math.pi * lag)),
+                     damping=zeta, slew_V_per_s=span * _span(300.0, 60.0, s))
 
 
 def _latency(rng, stage, s):
-    return SensorLatency(delay_s=_span(0.3, 30.0, s) / 1e4,
-                         antialias_hz=float(rng.uniform(1500.0, 5000.0)))
+    total = _span(_weak_lag_s(stage), 3e-3, s)  # up to 30 samples at 10 kHz
+    f_aa = min(MAX_ANTIALIAS_HZ, max(1500.0, math.sqrt(2) / (2 * math.pi * 0.5 * total)))
+    return SensorLatency(delay_s=max(0.0, total - math.sqrt(2) / (2 * math.pi * f_aa)),
+                         antialias_hz=f_aa)
 
 
 def _thermal(rng, stage, s):
@@ -220,8 +238,8 @@ def _thermal(rng, stage, s):
 
 
 def _second(rng, stage, s):
-    return SecondMass(mass_ratio=_span(0.02, 0.5, s), frequency_ratio=float(rng.uniform(1.5, 4.0)),
-                      damping=_span(0.1, 0.02, s))
+    return SecondMass(mass_ratio=_span(0.002, 0.5, s),
+                      frequency_ratio=float(rng.uniform(1.5, 4.0)), damping=_span(0.1, 0.02, s))
 
 
 def _gauge_range(stage):
@@ -231,7 +249,7 @@ def _gauge_range(stage):
 
 def _polynomial(rng, stage, s):
     center, half = _gauge_range(stage)
-    eps = stage.sensor.noise_um * _span(8.0, 200.0, s) / half  # error at the range end / R
+    eps = stage.sensor.noise_um * _span(15.0, 300.0, s) / half  # error at the range end / R
     frac = float(rng.uniform(0.3, 0.7))
     sign = rng.choice([-1.0, 1.0], size=2)
     return GaugePolynomial(center_um=center, half_range_um=half,
@@ -313,6 +331,63 @@ def random_effect(cause: str, rng: np.random.Generator, stage: Stage,
     if not 0.0 <= s <= 1.0:
         raise ValueError(f"strength must be in [0, 1], got {s}")
     return _DRAW[cause](rng, stage, s)
+
+
+def _pack_amp(par, eff: Amplifier, stage):
+    w = 2 * math.pi * eff.bandwidth_hz
+    par[fk.P_AMP], par[fk.P_AW], par[fk.P_AZ] = 1.0, w, eff.damping
+    par[fk.P_SLEW] = eff.slew_V_per_s
+
+
+def _pack_latency(par, eff: SensorLatency, stage):
+    par[fk.P_DELAY] = eff.delay_s
+    if eff.antialias_hz > 0:
+        par[fk.P_AA], par[fk.P_AAW], par[fk.P_AAZ] = 1.0, 2 * math.pi * eff.antialias_hz, \
+            1 / math.sqrt(2)
+
+
+def _pack_thermal(par, eff: Thermal, stage):
+    par[fk.P_THERM], par[fk.P_ET], par[fk.P_NU0] = 1.0, eff.thermal_field_MVm, \
+        eff.attempt_rate_hz
+
+
+def _pack_mass(par, eff: SecondMass, stage):
+    m2 = eff.mass_ratio * stage.rod.mass_kg
+    w2 = 2 * math.pi * eff.frequency_ratio * stage.rod.resonance_hz
+    par[fk.P_TWO], par[fk.P_M2], par[fk.P_K2] = 1.0, m2, m2 * w2 * w2
+    par[fk.P_C2] = 2 * eff.damping * m2 * w2
+
+
+def _pack_poly(par, eff: GaugePolynomial, stage):
+    par[fk.P_GPOLY], par[fk.P_GC], par[fk.P_GR] = 1.0, eff.center_um, eff.half_range_um
+    par[fk.P_Q2], par[fk.P_Q3] = eff.quadratic, eff.cubic
+
+
+def _pack_sat(par, eff: GaugeSaturation, stage):
+    par[fk.P_GSAT], par[fk.P_SC], par[fk.P_SK], par[fk.P_SW] = (1.0, eff.center_um, eff.knee_um,
+                                                                 eff.softness_um)
+
+
+def _pack_drift(par, eff: GainDrift, stage):
+    par[fk.P_GRATE] = eff.per_second
+
+
+def _pack_play(par, eff: Backlash, stage):
+    par[fk.P_PLAY] = eff.gap_um
+
+
+_PACKERS: dict[type, Callable] = {Amplifier: _pack_amp, SensorLatency: _pack_latency, Thermal: _pack_thermal,
+            SecondMass: _pack_mass, GaugePolynomial: _pack_poly, GaugeSaturation: _pack_sat,
+            GainDrift: _pack_drift, Backlash: _pack_play}
+
+
+def pack_effect(par: np.ndarray, effect: Effect, stage: Stage) -> None:
+    """Write an effect's parameters into the kernel's parameter vector (see
+    :mod:`drivers.device.foreign_kernel`); interference acts outside the kernel and a run's
+    gain through the state, so they write nothing or only their drift rate."""
+    packer = _PACKERS.get(type(effect))
+    if packer is not None:
+        packer(par, effect, stage)
 
 
 def interference_um(effect: Interference, time_s: np.ndarray) -> np.ndarray:

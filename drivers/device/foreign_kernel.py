@@ -7,15 +7,18 @@ hold) and is cut into ``n_sub`` equal substeps. Within each substep, in this ord
    output over the layer thickness (without an amplifier the field steps to ``g V_k / d`` at
    ``t_k`` and stays there);
 2. the material is updated at the end field of a block of substeps (one block per sample without
-   an amplifier, at most ``MAT_PER_SAMPLE`` with one) (relay hysterons with the interaction field
-   integrated in closed form, or the thermally activated kernel on a 2-D hysteron grid, paper
-   (6)-(10), with the rate equations integrated exactly for the substep's frozen rates);
+   an amplifier; with one, a block ends when the field has moved by ``AMP_TOL_V`` over the
+   thickness, and at least ``MAT_PER_SAMPLE`` blocks make a sample): relay hysterons with the
+   interaction field integrated in closed form, plus, with thermal activation, the departure of
+   the kernel (6)-(10) on a 2-D hysteron grid from the relay model on the same grid rows, its
+   rate equations solved exactly for the block's frozen rates;
 3. the mechanics (one or two masses, paper (16)) are advanced by RK4 with the force linear in time
    across the block (constant under the zero-order hold);
 4. the platform follows the rod through the linkage's play (if any), the gauge converts it
-   (nonlinearity, saturation), and the sensor's anti-alias filter is advanced by RK4 with its input
-   linear over the substep; the filtered signal and its slope are pushed into a history ring from
-   which delayed readings are taken by cubic Hermite interpolation.
+   (nonlinearity, saturation), and the sensor's anti-alias filter is advanced by its exact
+   one-substep map for an input linear over the substep (its bandwidth costs no substeps); the
+   filtered signal and its slope are pushed into a history ring from which delayed readings are
+   taken by cubic Hermite interpolation.
 
 The reading of sample ``k`` is taken at ``t_k`` before its interval is integrated, so it depends
 on ``V_0 .. V_{k-1}`` only (causal sampling). Every piece of state lives in the arrays passed in
@@ -39,19 +42,22 @@ NORMAL, LOGISTIC, LAPLACE = 0, 1, 2
 # Layout of the scalar parameter vector ``par``
 (P_THICK, P_CHI, P_F1, P_F2, P_GAIN, P_GRATE, P_ISCALE, P_IFAM,
  P_M1, P_C1, P_K1, P_M2, P_C2, P_K2, P_TWO,
- P_AMP, P_AW, P_AZ, P_SLEW, P_TAUS,
+ P_AMP, P_AW, P_AZ, P_SLEW,
  P_THERM, P_ET, P_NU0,
  P_PLAY,
  P_GPOLY, P_GC, P_GR, P_Q2, P_Q3,
  P_GSAT, P_SC, P_SK, P_SW,
- P_AA, P_AAW, P_AAZ, P_DELAY) = range(37)
-N_PAR = 37
+ P_AA, P_AAW, P_AAZ, P_DELAY) = range(36)
+# The anti-alias filter's exact one-substep map (set per run, it depends on the substep):
+# z(h) = PHI z(0) + G0 u(0) + G1 (u(h) - u(0)) for z = (y, y') and u linear over the substep.
+P_AAPHI, P_AAG0, P_AAG1 = 36, 40, 42  # 4, 2 and 2 slots
+N_PAR = 44
 
 # Layout of the scalar state vector ``st``
-(S_T, S_U1, S_V1, S_U2, S_V2, S_VS, S_VA, S_WA, S_E, S_F, S_XP, S_Y, S_DY, S_S,
- S_HEAD, S_COUNT) = range(16)
-N_ST = 16
-MAT_PER_SAMPLE = 8  # material updates per sample at most, when an amplifier moves the field
+(S_T, S_VA, S_WA, S_E, S_F, S_XP, S_Y, S_DY, S_S, S_HEAD, S_COUNT) = range(11)
+N_ST = 11
+MAT_PER_SAMPLE = 4  # under an amplifier: material updated at least this often per sample ...
+AMP_TOL_V = 0.01  # ... and whenever the amplifier's output has moved by this much, V
 
 
 @njit(cache=True)
@@ -113,12 +119,51 @@ def mills(z: float) -> float:
     """phi(z) / Phi(z) for the standard normal (the hazard of the lower tail), any z."""
     if z < -30.0:
         return -z - 1.0 / z
+    if z > 6.0:  # Phi(z) = 1 within 1e-9
+        return math.exp(-0.5 * z * z) / SQRT2PI
     return math.sqrt(2.0 / math.pi) * math.exp(-0.5 * z * z) / math.erfc(-z / SQRT2)
 
 
 @njit(cache=True)
+def _first_at_least(arr: np.ndarray, val: float) -> int:
+    """Index of the first element of the sorted ``arr`` that is >= ``val`` (``arr.size`` if none)."""
+    lo, hi = 0, arr.size
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if arr[mid] < val:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True)
+def thermal_total(x: np.ndarray, w2: np.ndarray) -> float:
+    """sum w (2 x_+ - 1): the switched polarization over P_R without the thermal mean shifts."""
+    return float(np.sum(w2 * (2.0 * x - 1.0)))
+
+
+@njit(cache=True)
+def _thermal_cell(x, w2, i, j, ee, ec, dt, inv_et, nu0):
+    """Advance one hysteron; return (change of w (2x-1), w (x h_+ - (1 - x) h_-))."""
+    hm = mills((ec - ee) * inv_et)
+    hp = mills((ec + ee) * inv_et)
+    rate_up = nu0 * hm
+    rate_dn = nu0 * hp
+    tot = rate_up + rate_dn
+    old = x[i, j]
+    new = old
+    if tot > 0.0:  # both rates underflow far from either switching field
+        xeq = rate_up / tot
+        new = xeq + (old - xeq) * math.exp(-tot * dt)
+    x[i, j] = new
+    return 2.0 * w2[i, j] * (new - old), w2[i, j] * (new * hp - (1.0 - new) * hm)
+
+
+@njit(cache=True)
 def thermal_update(x: np.ndarray, ec2: np.ndarray, ei2: np.ndarray, w2: np.ndarray,
-                   field: float, dt: float, e_t: float, nu0: float, chi: float) -> float:
+                   field: float, prev_field: float, dt: float, e_t: float, nu0: float,
+                   chi: float, acc: np.ndarray) -> float:
     """Advance the up-fractions x_+ of every hysteron by ``dt`` at a frozen field; return P/P_R.
 
     Rates (7)-(8) with the barrier at the inflection points: for the piecewise quadratic
@@ -127,37 +172,69 @@ def thermal_update(x: np.ndarray, ec2: np.ndarray, ei2: np.ndarray, w2: np.ndarr
     The linear ODE for x_+ is solved exactly over ``dt``. The expected polarizations (9) are
     truncated-Gaussian means, <P_+>/P_R = 1 + chi E_e + chi E_T phi(z_+)/Phi(z_+) and
     <P_->/P_R = -1 + chi E_e - chi E_T phi(z_-)/Phi(z_-); the average (10) is weighted by the
-    quadrature weights ``w2`` (sum 1).
+    quadrature weights ``w2`` (sum 1, ``ei2`` sorted).
+
+    Only hysterons whose z_- or z_+ is below a cut, at this field or on the way from
+    ``prev_field``, are visited: beyond it ``nu0 dt phi(z) < 1e-9`` and x_+ cannot move
+    (hysterons past their switching field must already sit at x_+ = 0 or 1, as in any state
+    made from a relay state by this function).
+    ``acc[0]`` carries sum w (2 x_+ - 1) (see :func:`thermal_total`) and is updated.
     """
-    p = 0.0
-    cut = 9.0
+    inv_et = 1.0 / e_t
+    cut = math.sqrt(2.0 * math.log(max(nu0 * dt, 1.0) * 1e9)) + 0.5
+    lo_f = min(field, prev_field)
+    hi_f = max(field, prev_field)
+    band = cut * e_t
+    shift = 0.0
     for i in range(ec2.size):
-        for j in range(ei2.size):
-            ee = field + ei2[j]
-            zm = (ec2[i] - ee) / e_t
-            zp = (ec2[i] + ee) / e_t
-            xij = x[i, j]
-            if zm < cut or zp < cut:
-                hm = mills(zm)
-                hp = mills(zp)
-                rate_up = nu0 * hm
-                rate_dn = nu0 * hp
-                tot = rate_up + rate_dn
-                xeq = rate_up / tot
-                xij = xeq + (xij - xeq) * math.exp(-tot * dt)
-                x[i, j] = xij
-                p += w2[i, j] * (2.0 * xij - 1.0 + chi * e_t * (xij * hp - (1.0 - xij) * hm))
-            else:
-                p += w2[i, j] * (2.0 * xij - 1.0)
-    return p + chi * field
+        ec = ec2[i]
+        a_dn = _first_at_least(ei2, -ec - hi_f - band)
+        b_dn = _first_at_least(ei2, -ec - lo_f + band)
+        a_up = _first_at_least(ei2, ec - hi_f - band)
+        b_up = _first_at_least(ei2, ec - lo_f + band)
+        if b_dn >= a_up:  # the two bands overlap: visit their union once
+            b_dn, a_up = b_up, b_up
+        for lo, hi in ((a_dn, b_dn), (a_up, b_up)):
+            for j in range(lo, hi):
+                d, m = _thermal_cell(x, w2, i, j, field + ei2[j], ec, dt, inv_et, nu0)
+                acc[0] += d
+                shift += m
+    return chi * field + acc[0] + chi * e_t * shift
 
 
 @njit(cache=True)
-def _material(par, b, cdf, ec, vc, x, ec2, ei2, w2, field, dt):
+def _cdfs(b, par):
+    out = np.empty(b.size)
+    for i in range(b.size):
+        out[i] = interaction_cdf(b[i], int(par[P_IFAM]), par[P_ISCALE])
+    return out
+
+
+@njit(cache=True)
+def _material(par, b, cdf, ec, vc, b2, cdf2, ec2, v2, x, ei2, w2, acc, field, prev_field, dt):
+    """P/P_R after a field step: the relay model, plus (with thermal activation) the thermal
+    grid's departure from the relay model on the same coercive rows.
+
+    The thermal kernel runs on a coarse coercive grid (rows ``ec2``, weights ``v2``); the relay
+    model is also run on those rows with the interaction field integrated in closed form
+    (boundaries ``b2``), and only the difference is added to the fine relay model. Both share the
+    rows' quadrature error, which cancels; the difference vanishes as E_T -> 0.
+    """
+    fam, scale = int(par[P_IFAM]), par[P_ISCALE]
+    p = par[P_CHI] * field + relay_step(b, cdf, ec, vc, field, fam, scale)
     if par[P_THERM] > 0.0:
-        return thermal_update(x, ec2, ei2, w2, field, dt, par[P_ET], par[P_NU0], par[P_CHI])
-    return par[P_CHI] * field + relay_step(b, cdf, ec, vc, field, int(par[P_IFAM]),
-                                           par[P_ISCALE])
+        hot = thermal_update(x, ec2, ei2, w2, field, prev_field, dt, par[P_ET], par[P_NU0],
+                             par[P_CHI], acc) - par[P_CHI] * field
+        p += hot - relay_step(b2, cdf2, ec2, v2, field, fam, scale)
+    return p
+
+
+@njit(cache=True)
+def material_step(par, b, ec, vc, b2, ec2, v2, x, ei2, w2, field, prev_field, dt):
+    """:func:`_material` for callers outside :func:`simulate` (builds its caches)."""
+    acc = np.array([thermal_total(x, w2)])
+    return _material(par, b, _cdfs(b, par), ec, vc, b2, _cdfs(b2, par), ec2, v2, x, ei2, w2,
+                     acc, field, prev_field, dt)
 
 
 @njit(cache=True)
@@ -166,61 +243,53 @@ def _force(par, p):
 
 
 @njit(cache=True)
-def _mech_rhs(par, q, force, out):
-    m1, c1, k1 = par[P_M1], par[P_C1], par[P_K1]
+def _accel(par, u1, v1, u2, v2, force):
+    """Accelerations of the rod end and (if present) the platform, um/s^2."""
     if par[P_TWO] > 0.0:
-        du = q[0] - q[2]
-        dv = q[1] - q[3]
-        coup = par[P_K2] * du + par[P_C2] * dv
-        out[0] = q[1]
-        out[1] = (force - c1 * q[1] - k1 * q[0] - coup) / m1
-        out[2] = q[3]
-        out[3] = coup / par[P_M2]
-    else:
-        out[0] = q[1]
-        out[1] = (force - c1 * q[1] - k1 * q[0]) / m1
-        out[2] = 0.0
-        out[3] = 0.0
+        coup = par[P_K2] * (u1 - u2) + par[P_C2] * (v1 - v2)
+        return ((force - par[P_C1] * v1 - par[P_K1] * u1 - coup) / par[P_M1],
+                coup / par[P_M2])
+    return (force - par[P_C1] * v1 - par[P_K1] * u1) / par[P_M1], 0.0
 
 
 @njit(cache=True)
-def _mech_step(par, q, f0, f1, h, k1, k2, k3, k4, tmp):
+def _mech_step(par, q, f0, f1, h):
     """RK4 for (16) (or its two-mass form) with the force linear from f0 to f1 over h."""
     fm = 0.5 * (f0 + f1)
-    _mech_rhs(par, q, f0, k1)
-    for n in range(4):
-        tmp[n] = q[n] + 0.5 * h * k1[n]
-    _mech_rhs(par, tmp, fm, k2)
-    for n in range(4):
-        tmp[n] = q[n] + 0.5 * h * k2[n]
-    _mech_rhs(par, tmp, fm, k3)
-    for n in range(4):
-        tmp[n] = q[n] + h * k3[n]
-    _mech_rhs(par, tmp, f1, k4)
-    for n in range(4):
-        q[n] += h / 6.0 * (k1[n] + 2.0 * k2[n] + 2.0 * k3[n] + k4[n])
+    u1, v1, u2, v2 = q[0], q[1], q[2], q[3]
+    a1, b1 = _accel(par, u1, v1, u2, v2, f0)
+    a2, b2 = _accel(par, u1 + 0.5 * h * v1, v1 + 0.5 * h * a1, u2 + 0.5 * h * v2,
+                    v2 + 0.5 * h * b1, fm)
+    v1b, v2b = v1 + 0.5 * h * a1, v2 + 0.5 * h * b1
+    a3, b3 = _accel(par, u1 + 0.5 * h * v1b, v1 + 0.5 * h * a2, u2 + 0.5 * h * v2b,
+                    v2 + 0.5 * h * b2, fm)
+    v1c, v2c = v1 + 0.5 * h * a2, v2 + 0.5 * h * b2
+    a4, b4 = _accel(par, u1 + h * v1c, v1 + h * a3, u2 + h * v2c, v2 + h * b3, f1)
+    v1d, v2d = v1 + h * a3, v2 + h * b3
+    q[0] = u1 + h / 6.0 * (v1 + 2 * v1b + 2 * v1c + v1d)
+    q[1] = v1 + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
+    q[2] = u2 + h / 6.0 * (v2 + 2 * v2b + 2 * v2c + v2d)
+    q[3] = v2 + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
 
 
 @njit(cache=True)
-def _amp_rhs(par, vin, vs, va, wa):
-    slew = par[P_SLEW]
-    dvs = slew * math.tanh((vin - vs) / (slew * par[P_TAUS]))
-    w = par[P_AW]
-    dwa = w * w * (vs - va) - 2.0 * par[P_AZ] * w * wa
-    return dvs, wa, dwa
+def _low_pass_rhs(u, y, v, w, zeta, slew):
+    return slew * math.tanh(v / slew), w * w * (u - y) - 2.0 * zeta * w * v
 
 
 @njit(cache=True)
-def _amp_step(par, st, vin, h):
-    """RK4 for the amplifier: smooth slew limiter, then a second-order low-pass."""
-    vs, va, wa = st[S_VS], st[S_VA], st[S_WA]
-    a1, b1, c1 = _amp_rhs(par, vin, vs, va, wa)
-    a2, b2, c2 = _amp_rhs(par, vin, vs + 0.5 * h * a1, va + 0.5 * h * b1, wa + 0.5 * h * c1)
-    a3, b3, c3 = _amp_rhs(par, vin, vs + 0.5 * h * a2, va + 0.5 * h * b2, wa + 0.5 * h * c2)
-    a4, b4, c4 = _amp_rhs(par, vin, vs + h * a3, va + h * b3, wa + h * c3)
-    st[S_VS] = vs + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
-    st[S_VA] = va + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
-    st[S_WA] = wa + h / 6.0 * (c1 + 2 * c2 + 2 * c3 + c4)
+def _low_pass_step(st, iy, iv, u0, u1, w, zeta, slew, h):
+    """RK4 for a second-order low-pass ``y' = S tanh(v / S)``,
+    ``v' = w^2 (u - y) - 2 zeta w v`` over ``h`` with its input linear from u0 to u1; the state
+    is ``st[iy], st[iv]``."""
+    y, v = st[iy], st[iv]
+    um = 0.5 * (u0 + u1)
+    a1, b1 = _low_pass_rhs(u0, y, v, w, zeta, slew)
+    a2, b2 = _low_pass_rhs(um, y + 0.5 * h * a1, v + 0.5 * h * b1, w, zeta, slew)
+    a3, b3 = _low_pass_rhs(um, y + 0.5 * h * a2, v + 0.5 * h * b2, w, zeta, slew)
+    a4, b4 = _low_pass_rhs(u1, y + h * a3, v + h * b3, w, zeta, slew)
+    st[iy] = y + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
+    st[iv] = v + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
 
 
 @njit(cache=True)
@@ -244,25 +313,6 @@ def gauge(par, x):
             s = c + sgn * (knee + w * th)
             ds = ds * (1.0 - th * th)
     return s, ds
-
-
-@njit(cache=True)
-def _aa_rhs(par, sig, y, dy):
-    w = par[P_AAW]
-    return dy, w * w * (sig - y) - 2.0 * par[P_AAZ] * w * dy
-
-
-@njit(cache=True)
-def _aa_step(par, st, s0, s1, h):
-    """RK4 for the anti-alias filter (second order) with its input linear from s0 to s1."""
-    y, dy = st[S_Y], st[S_DY]
-    sm = 0.5 * (s0 + s1)
-    a1, b1 = _aa_rhs(par, s0, y, dy)
-    a2, b2 = _aa_rhs(par, sm, y + 0.5 * h * a1, dy + 0.5 * h * b1)
-    a3, b3 = _aa_rhs(par, sm, y + 0.5 * h * a2, dy + 0.5 * h * b2)
-    a4, b4 = _aa_rhs(par, s1, y + h * a3, dy + h * b3)
-    st[S_Y] = y + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
-    st[S_DY] = dy + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
 
 
 @njit(cache=True)
@@ -324,28 +374,34 @@ def _platform(par, st, q):
 
 
 @njit(cache=True)
-def _substep(par, st, q, hist, fa, fb, h, t, work):
+def _substep(par, st, q, hist, fa, fb, h, t):
     """Mechanics over one substep (force linear from fa to fb), then platform and sensor."""
-    _mech_step(par, q, fa, fb, h, work[0], work[1], work[2], work[3], work[4])
+    _mech_step(par, q, fa, fb, h)
     xp, vp = _platform(par, st, q)
     st[S_XP] = xp
     s0 = st[S_S]
     s1, ds1 = gauge(par, xp)
     st[S_S] = s1
     if par[P_AA] > 0.0:
-        _aa_step(par, st, s0, s1, h)
+        y, dy = st[S_Y], st[S_DY]
+        st[S_Y] = (par[P_AAPHI] * y + par[P_AAPHI + 1] * dy + par[P_AAG0] * s0
+                   + par[P_AAG1] * (s1 - s0))
+        st[S_DY] = (par[P_AAPHI + 2] * y + par[P_AAPHI + 3] * dy + par[P_AAG0 + 1] * s0
+                    + par[P_AAG1 + 1] * (s1 - s0))
         _push(st, hist, t, st[S_Y], st[S_DY])
     elif par[P_DELAY] > 0.0:
         _push(st, hist, t, s1, ds1 * vp)
 
 
 @njit(cache=True)
-def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, x, ec2, ei2, w2, hist, true_out, sens_out):
+def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, b2, ec2, v2, x, ei2, w2, hist, true_out,
+             sens_out):
     """Run the plant over held voltage samples; state arrays are updated in place.
 
-    With an amplifier the field moves within a sample: the amplifier is stepped every substep
-    and the material in blocks of ``ceil(n_sub / MAT_PER_SAMPLE)`` substeps, the force linear
-    in time across each block. Without one, the field and force are constant over the sample.
+    With an amplifier the field moves within a sample: the amplifier is stepped every substep,
+    the material whenever the amplifier's output has moved by ``AMP_TOL_V`` since the last
+    update and at least ``MAT_PER_SAMPLE`` times per sample, the force linear in time between
+    updates. Without one, the field and force are constant over the sample.
 
     Parameters
     ----------
@@ -355,35 +411,40 @@ def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, x, ec2, ei2, w2, hist, tru
         Sample period, s.
     n_sub : int
         Substeps per sample.
-    par, st, q, b, ec, vc, x, ec2, ei2, w2, hist : ndarray
+    par, st, q, b, ec, vc, b2, ec2, v2, x, ei2, w2, hist : ndarray
         Packed parameters and state (see :mod:`drivers.device.foreign`).
     true_out, sens_out : ndarray, shape (N,)
         Filled with the platform position at ``t_k`` (um) and the sensor signal at ``t_k``
         before noise, hum and offset (um).
     """
     h = dt / n_sub
-    work = np.empty((5, 4))
-    cdf = np.empty(b.size)
-    for i in range(b.size):
-        cdf[i] = interaction_cdf(b[i], int(par[P_IFAM]), par[P_ISCALE])
+    cdf = _cdfs(b, par)
+    cdf2 = _cdfs(b2, par)
+    acc = np.array([thermal_total(x, w2)])
     amp = par[P_AMP] > 0.0
-    stride = (n_sub + MAT_PER_SAMPLE - 1) // MAT_PER_SAMPLE if amp else n_sub
+    longest = (n_sub + MAT_PER_SAMPLE - 1) // MAT_PER_SAMPLE if amp else n_sub
+    tol = AMP_TOL_V / par[P_THICK]
     for k in range(volts.size):
         t = st[S_T]
         true_out[k] = st[S_XP]
         sens_out[k] = _sensed(par, st, hist, t)
         vin = volts[k] * par[P_GAIN] * (1.0 + par[P_GRATE] * t)
         f_prev = st[S_F]
-        j = 0
-        while j < n_sub:
-            m = min(stride, n_sub - j)
+        m = 0
+        for j in range(n_sub):
+            m += 1
             if amp:
-                for _ in range(m):
-                    _amp_step(par, st, vin, h)
+                _low_pass_step(st, S_VA, S_WA, vin, vin, par[P_AW], par[P_AZ], par[P_SLEW], h)
                 field = st[S_VA] / par[P_THICK]
+                if m < longest and j < n_sub - 1 and abs(field - st[S_E]) < tol:
+                    continue
+            elif j < n_sub - 1:
+                continue
             else:
                 field = vin / par[P_THICK]
-            p = _material(par, b, cdf, ec, vc, x, ec2, ei2, w2, field, m * h)
+            p = _material(par, b, cdf, ec, vc, b2, cdf2, ec2, v2, x, ei2, w2, acc, field, st[S_E],
+                          m * h)
+            st[S_E] = field
             f_new = _force(par, p)
             if not amp:
                 f_prev = f_new
@@ -391,9 +452,8 @@ def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, x, ec2, ei2, w2, hist, tru
                 fa = f_prev + (f_new - f_prev) * r / m
                 fb = f_prev + (f_new - f_prev) * (r + 1) / m
                 t += h
-                _substep(par, st, q, hist, fa, fb, h, t, work)
-            st[S_E] = field
+                _substep(par, st, q, hist, fa, fb, h, t)
             st[S_F] = f_new
             f_prev = f_new
-            j += m
+            m = 0
         st[S_T] = st[S_T] + dt
