@@ -515,7 +515,8 @@ def switching_rates(field_eff: FloatArray, ec: FloatArray, th: Thermal) -> tuple
 
 
 def n_coercive_for(params: Polarization, fields: list[FloatArray], tol: float,
-                   n_min: int = 64, n_max: int = 8192) -> int:
+                   n_min: int = 64, n_max: int = 4096,
+                   starts: tuple[Initial, ...] = ("depoled", "positive", "negative")) -> int:
     """Smallest number of coercive nodes ``n_min * 2^j`` that resolves (13) to ``tol``.
 
     The midpoint rule in the cumulative probability of ``nu_1`` converges at about first order
@@ -523,8 +524,8 @@ def n_coercive_for(params: Polarization, fields: list[FloatArray], tol: float,
     form switches over a field range ~ sigma_I; a narrower ``nu_2`` makes every column a step and
     the sum a staircase until the nodes are denser). The error of ``N`` nodes is estimated as the
     largest difference from ``2N`` nodes over the field histories ``fields`` (MV/m), each run from
-    the depoled and from both poled states; the first ``N`` whose difference is at most
-    ``tol / 2`` (C/m^2) is returned (for first-order convergence its error is then below ``tol``).
+    each of the ``starts``; the first ``N`` whose difference is at most ``tol / 2`` (C/m^2) is
+    returned (for first-order convergence its error is then below ``tol``), at most ``n_max``.
     Parameters with a discrete coercive density have their own nodes: ``n_min`` is returned.
     """
     if isinstance(params.coercive, Discrete):
@@ -533,8 +534,7 @@ def n_coercive_for(params: Polarization, fields: list[FloatArray], tol: float,
     def runs(n: int) -> list[FloatArray]:
         pol = replace(params, n_coercive=n)
         kern = build_kernel(pol)
-        return [run(kern, e, initial_state(pol, how))[0] for e in fields
-                for how in ("depoled", "positive", "negative")]
+        return [run(kern, e, initial_state(pol, how))[0] for e in fields for how in starts]
 
     n, coarse = n_min, runs(n_min)
     while n < n_max:

@@ -48,6 +48,13 @@ FLOOR = 1.5
 WARN = 2.0
 #: A different start state must lower the sum of squares by this many noise variances.
 START_MARGIN = 25.0
+#: Above this many times its noise on some sweep, the fit tries a general coercive density
+#: (kept if it lowers the sum of squares by more than 2 noise variances per added parameter).
+REFINE = 1.25
+#: The fit is polished with more coercive nodes if they change a sweep by this share of its noise.
+POLISH_SHARE = 0.3
+#: At most this many coercive nodes during the fit (the model itself gets N_c).
+POLISH_MAX_NODES = 512
 #: Largest error (um) the coercive-field discretization of an identified model may add.
 DISCRETIZATION_UM = 0.01
 
@@ -89,8 +96,11 @@ class Settings:
     restarts : int
         Further starts tried (the next-best points of the starting grid) while a sweep's fit
         stays above :data:`FLOOR` times its sensor noise.
-    density : {"parametric", "discrete"}
-        ``discrete`` refines the lognormal fit with a general coercive density.
+    density : {"auto", "parametric", "discrete"}
+        ``discrete`` refines the lognormal fit with a general coercive density; ``auto`` tries
+        that refinement when a sweep stays above :data:`REFINE` times its noise and keeps it if
+        it lowers the sum of squares by more than 2 noise variances per added parameter;
+        ``parametric`` never does.
     n_density_nodes : int
         Nodes of the discrete coercive density.
     smoothing : float
@@ -106,7 +116,7 @@ class Settings:
     field_step: float = 0.004
     max_nfev: int = 300
     restarts: int = 3
-    density: Literal["parametric", "discrete"] = "parametric"
+    density: Literal["auto", "parametric", "discrete"] = "auto"
     n_density_nodes: int = 24
     smoothing: float = 1e-6
 
@@ -131,7 +141,8 @@ def settings_from_table(t: Table | None, base: Settings = Settings()) -> Setting
         field_step=t.number("field_step", base.field_step, nonnegative=True),
         max_nfev=t.integer("max_nfev", base.max_nfev, minimum=1),
         restarts=t.integer("restarts", base.restarts, minimum=0),
-        density=t.string("density", base.density, choices=("parametric", "discrete")),  # type: ignore[arg-type]
+        density=t.string("density", base.density,  # type: ignore[arg-type]
+                         choices=("auto", "parametric", "discrete")),
         n_density_nodes=t.integer("n_density_nodes", base.n_density_nodes, minimum=3),
         smoothing=t.number("smoothing", base.smoothing, nonnegative=True))
     t.reject_unknown()
@@ -195,7 +206,7 @@ class FitResult:
     nfev: int
     seconds: float
     thickness_known: bool
-    x: FloatArray = field(repr=False)
+    x: FloatArray = field(repr=False)  # the lognormal fit's log(theta), also after a refinement
     uncertainty: dict[str, Any] = field(default_factory=dict, repr=False)
     envelope: mf.Envelope | None = None
     restarts: int = 0
@@ -312,17 +323,21 @@ def sweep_error(model: td.Transducer, sweep: Sweep, window_s: Window = None,
 
 
 def n_coercive_for(model: td.Transducer, fields: Sequence[FloatArray],
-                   tol_um: float = DISCRETIZATION_UM) -> int:
+                   tol_um: float = DISCRETIZATION_UM,
+                   starts: Sequence[str] = ("depoled", "positive", "negative")) -> int:
     """Coercive nodes for ``model`` so the discretization of (13) adds at most ``tol_um`` to the
     displacement over the field histories ``fields`` (MV/m; the identified sweeps span the
-    envelope), from :func:`afmctl.hysteresis.n_coercive_for` with the rod's static gain
+    envelope) from each of the ``starts``, from :func:`afmctl.hysteresis.n_coercive_for` with the
+    rod's static gain
     ``1e6 |a1 + 2 a2 P| / k`` (um per C/m^2) at the largest polarization reached."""
     pol, rod = model.polarization, model.rod
     e_max = max(float(np.max(np.abs(e))) for e in fields)
     p_max = float(np.max(np.abs(hy.run(pol, np.array([e_max, -e_max, e_max]),
                                        hy.initial_state(pol))[0])))
     gain = 1e6 * (abs(rod.a1) + 2 * abs(rod.a2) * p_max) / rod.k
-    return hy.n_coercive_for(pol, list(fields), tol_um / max(gain, 1e-300))
+    hows = tuple(sorted({"depoled" if s == "previous" else s for s in starts}))
+    return hy.n_coercive_for(pol, list(fields), tol_um / max(gain, 1e-300),
+                             starts=hows)  # type: ignore[arg-type]
 
 
 def envelope(sweeps: Sequence[Sweep], thickness_um: float) -> mf.Envelope:
@@ -392,26 +407,39 @@ def _solve(space: Space, x0: FloatArray, prob: _Problem) -> optimize.OptimizeRes
 
 def choose_starts(space: pz.LognormalSpace, x: FloatArray, y: FloatArray,
                   margin: float = 0.0) -> pz.LognormalSpace:
-    """Each sweep's initial hysteresis state, by coordinate descent over
-    :data:`afmctl.parametrization.STARTS` at the parameters ``x`` (two passes); a change must
-    lower the sum of squares by more than ``margin`` (um^2).
+    """Each sweep's initial hysteresis state among :data:`afmctl.parametrization.STARTS` at the
+    parameters ``x``: the best joint assignment (all sweeps alike, or the first alike and the
+    others each where the previous left it), then coordinate descent, one sweep at a time (two
+    passes). A change must lower the sum of squares by more than ``margin`` (um^2).
 
     After a sweep has reached both of its voltage extremes only the hysterons it cannot switch
     still remember the start; they shift ``Q`` by a constant, which the quadratic force term
-    turns into a gain: small, but at the noise floor it decides the fit.
+    turns into a gain: small, but at the noise floor it decides the fit. The gains are shared,
+    so sweeps that started alike must be switched together (one at a time, a shared gain fitted
+    to the others holds each back).
     """
-    best = space
-    cost = _cost(best, y, x) - margin
+    n = len(space.preps)
+    best, cost = space, _cost(space, y, x) - margin
+
+    def consider(starts: tuple[str, ...]) -> bool:
+        nonlocal best, cost
+        if starts == best.starts:
+            return False
+        trial = best.with_starts(starts)
+        c = _cost(trial, y, x)
+        if c < cost:
+            best, cost = trial, c - margin
+            return True
+        return False
+
+    for first in pz.STARTS[:3]:
+        consider((first,) * n)
+        consider((first,) + ("previous",) * (n - 1))
     for _ in range(2):
         changed = False
-        for i in range(len(space.preps)):
+        for i in range(n):
             for cand in pz.STARTS[:3] if i == 0 else pz.STARTS:
-                if cand == best.starts[i]:
-                    continue
-                trial = best.with_starts(best.starts[:i] + (cand,) + best.starts[i + 1:])
-                c = _cost(trial, y, x)
-                if c < cost:
-                    best, cost, changed = trial, c - margin, True
+                changed |= consider(best.starts[:i] + (cand,) + best.starts[i + 1:])
         if not changed:
             break
     return best
@@ -436,12 +464,14 @@ def _global(prob: _Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult,
     space = pz.LognormalSpace(prob.preps, st.scales, st.n_coercive_fit)
     coarse = pz.LognormalSpace(prob.preps, st.scales, 24)
     ranked = coarse.starts_ranked(lambda x: _cost(coarse, prob.y, x))
-    prob.say("starting guess " + ", ".join(f"{n}={v:.4g}" for n, v in
-                                             zip(pz.THETA_NAMES, np.exp(ranked[0]), strict=True)))
     best: tuple[pz.LognormalSpace, optimize.OptimizeResult] | None = None
     restarts = 0
-    for k, x0 in enumerate(ranked[:1 + st.restarts]):
-        if k:
+    for k, x_grid in enumerate(ranked[:1 + st.restarts]):
+        x0 = coarse.tune_rod(x_grid, lambda x: _cost(coarse, prob.y, x))
+        if not k:
+            prob.say("starting guess " + ", ".join(
+                f"{n}={v:.4g}" for n, v in zip(pz.THETA_NAMES, np.exp(x0), strict=True)))
+        else:
             restarts += 1
             prob.say(f"restart {k}: " + ", ".join(f"{v:.3g}" for v in np.exp(x0)))
         space, sol = _round(space, x0, prob)
@@ -454,6 +484,16 @@ def _global(prob: _Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult,
             break
     assert best is not None
     return best[0], best[1], restarts
+
+
+def _discretization_matters(space: pz.LognormalSpace, x: FloatArray, n_c: int,
+                            prob: _Problem) -> bool:
+    """True if the fit's own coercive nodes and ``n_c`` nodes differ, on some sweep, by more than
+    :data:`POLISH_SHARE` of its noise in RMS (then the fit is polished with more nodes)."""
+    a_fit, a_fine = space.design(x), space.with_starts(space.starts, n_c).design(x)
+    beta, _ = pz.project(a_fit, prob.y)
+    return bool(np.max(prob.per_sweep((a_fine - a_fit) @ beta))
+                > POLISH_SHARE)
 
 
 def _model(space: Space, x: FloatArray, y: FloatArray, thickness_um: float) -> td.Transducer:
@@ -505,27 +545,35 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     space, sol, restarts = _global(prob)
     ok = sol.success and sol.status > 0
     fields = [p.field[p.keep] for p in preps]
-    n_c = n_coercive_for(_model(space, sol.x, prob.y, thickness), fields)
-    if n_c > space.n_coercive:
-        say(f"polishing with N_c = {n_c} coercive nodes (discretization < {DISCRETIZATION_UM} um)")
-        space = space.with_starts(space.starts, n_c)
+    n_c = n_coercive_for(_model(space, sol.x, prob.y, thickness), fields, starts=space.starts)
+    if n_c > space.n_coercive and _discretization_matters(space, sol.x, n_c, prob):
+        n_fit = min(n_c, POLISH_MAX_NODES)
+        say(f"polishing with {n_fit} coercive nodes (N_c = {n_c} for < {DISCRETIZATION_UM} um)")
+        space = space.with_starts(space.starts, n_fit)
         sol = _solve(space, sol.x, prob)
         ok = sol.success and sol.status > 0
     final: Space = space
-    if settings.density == "discrete":
+    x_lognormal = sol.x
+    worst = float(np.max(prob.per_sweep(sol.fun)))
+    if settings.density == "discrete" or (settings.density == "auto" and worst > REFINE):
         beta, _ = pz.project(space.design(sol.x), prob.y)
-        final, x0 = pz.DiscreteSpace.around(np.exp(sol.x), preps, settings.scales,
-                                            settings.n_density_nodes, settings.smoothing,
-                                            float(beta[0]), space.starts)
-        sol = _solve(final, x0, prob)
-        say(f"discrete density: {sol.message} (status {sol.status})")
-        ok = ok and sol.success and sol.status > 0
+        disc, x0 = pz.DiscreteSpace.around(np.exp(sol.x), preps, settings.scales,
+                                           settings.n_density_nodes, settings.smoothing,
+                                           float(beta[0]), space.starts)
+        say(f"general coercive density ({settings.n_density_nodes} nodes) ...")
+        dsol = _solve(disc, x0, prob)
+        gain = 2 * (sol.cost - dsol.cost) / float(np.mean(prob.noise ** 2))
+        say(f"  {dsol.message} (status {dsol.status}); RMS / noise per sweep "
+            + " / ".join(f"{r:.2f}" for r in prob.per_sweep(dsol.fun)))
+        if settings.density == "discrete" or gain > 2 * (x0.size - sol.x.size):
+            final, sol = disc, dsol
+            ok = ok and dsol.success and dsol.status > 0
     beta, _ = pz.project(final.design(sol.x), prob.y)
     offsets = beta[2:]
     model = _model(final, sol.x, prob.y, thickness)
     if isinstance(final, pz.LognormalSpace):
         model = replace(model, polarization=replace(model.polarization,
-                                                    n_coercive=space.n_coercive))
+                                                    n_coercive=max(n_c, space.n_coercive)))
     env = envelope(sweeps, thickness)
     predicted = predict_set(model, sweeps, space.starts, offsets)
     errors = tuple(_error(s.path or s.name, s, u, settings.window_s, start, float(off))
@@ -535,5 +583,5 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     ok = bool(ok and np.all(np.isfinite(sol.x)) and np.all(np.isfinite(beta)))
     return FitResult(model, unc.estimates(final, sol.x, beta, cov, settings.scales), errors, ok,
                      int(sol.status), str(sol.message), prob.nfev, time.perf_counter() - t0,
-                     known, sol.x, unc.summary(names, np.concatenate((sol.x, beta)), cov),
+                     known, x_lognormal, unc.summary(names, np.concatenate((sol.x, beta)), cov),
                      env, restarts)

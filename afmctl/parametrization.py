@@ -129,9 +129,25 @@ def _discretize(fn: float, zeta: float, dt: float) -> rd.Discrete:
     if key not in _DISC_CACHE:
         if len(_DISC_CACHE) > 256:
             _DISC_CACHE.clear()
-        w = 2 * math.pi * fn
-        _DISC_CACHE[key] = rd.discretize(rd.Rod(1.0, 2 * zeta * w, w * w, 1.0), dt)
+        _DISC_CACHE[key] = unit_oscillator_zoh(fn, zeta, dt)
     return _DISC_CACHE[key]
+
+
+def unit_oscillator_zoh(fn: float, zeta: float, dt: float) -> rd.Discrete:
+    """Exact zero-order-hold discretization (18) of ``u'' + 2 zeta w u' + w^2 u = f`` in closed
+    form (the same as :func:`afmctl.rod.discretize` of a unit-mass rod, without a matrix
+    exponential): ``e^{A t} = e^{-zeta w t} (cosh(mu t) I + sinh(mu t)/mu (A + zeta w I))`` with
+    ``mu = w sqrt(zeta^2 - 1)`` (imaginary when underdamped), ``Gamma = A^-1 (Phi - I) B``."""
+    w = 2 * math.pi * fn
+    a = np.array([[0.0, 1.0], [-w * w, -2 * zeta * w]])
+    mu = w * np.sqrt(complex(zeta * zeta - 1.0))
+    x = mu * dt
+    ch = float(np.cosh(x).real)
+    sh = float((np.sinh(x) / mu).real) if abs(x) > 1e-8 else dt * (1 + float((x * x).real) / 6)
+    phi = math.exp(-zeta * w * dt) * (ch * np.eye(2) + sh * (a + zeta * w * np.eye(2)))
+    a_inv = np.array([[a[1, 1], -a[0, 1]], [-a[1, 0], a[0, 0]]]) / (w * w)
+    gamma = a_inv @ (phi - np.eye(2)) @ np.array([0.0, 1.0])
+    return rd.Discrete(phi, gamma, float(dt))
 
 
 def sweep_columns(q: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
@@ -174,22 +190,40 @@ def hysteresis(theta: FloatArray, fields: Sequence[FloatArray], n_coercive: int,
     return run_from(pol, fields, starts, dts)
 
 
+QCache = dict[tuple[bytes, int, tuple[str, ...]], tuple[FloatArray, hy.PolarizationState]]
+
+
 def run_from(pol: hy.Polarization, fields: Sequence[FloatArray], starts: Sequence[str] | None,
-             dts: Sequence[FloatArray | float] | None = None) -> list[FloatArray]:
+             dts: Sequence[FloatArray | float] | None = None, cache: QCache | None = None,
+             key: bytes = b"") -> list[FloatArray]:
     """Polarization (13) of ``pol`` for each field history (MV/m), each from its start.
 
     ``starts[i]`` is one of :data:`STARTS`; ``previous`` carries the state the history before
-    left (the first history has none before it: depoled).
+    left (the first history has none before it: depoled). With a ``cache`` (and a ``key`` that
+    identifies ``pol``), each history's result is kept per start sequence up to it, so trying
+    other starts, or other rod parameters, re-runs only what changed.
     """
-    kern = hy.build_kernel(pol)
-    starts = starts or ["depoled"] * len(fields)
+    starts = tuple(starts or ["depoled"] * len(fields))
+    kern: hy.Kernel | None = None
     out, state = [], None
-    for e, start, dt in zip(fields, starts, dts or [1e-4] * len(fields), strict=True):
-        if start == "previous" and state is not None:
-            st = state
-        else:
-            st = hy.initial_state(pol, "depoled" if start == "previous" else start)  # type: ignore[arg-type]
-        q, state = hy.run(kern, e, st, dt)
+    for i, (e, start, dt) in enumerate(zip(fields, starts, dts or [1e-4] * len(fields),
+                                          strict=True)):
+        ck = (key, pol.n_coercive, starts[:i + 1])
+        if cache is None or ck not in cache:
+            if start == "previous" and state is not None:
+                st = state
+            else:
+                st = hy.initial_state(pol, "depoled" if start == "previous" else start)  # type: ignore[arg-type]
+            kern = kern or hy.build_kernel(pol)
+            q, end = hy.run(kern, e, st, dt)
+            if cache is None:
+                out.append(q)
+                state = end
+                continue
+            if len(cache) > 256:
+                cache.clear()
+            cache[ck] = (q, end)
+        q, state = cache[ck]
         out.append(q)
     return out
 
@@ -276,21 +310,26 @@ class LognormalSpace:
     with a lognormal ``nu_1`` and a normal ``nu_2``."""
 
     def __init__(self, preps: Sequence[Prepared], scales: Scales, n_coercive: int,
-                 starts: Sequence[str] | None = None) -> None:
+                 starts: Sequence[str] | None = None, cache: QCache | None = None) -> None:
         self.preps, self.scales, self.n_coercive = list(preps), scales, n_coercive
         self.starts = tuple(starts or ["depoled"] * len(self.preps))
+        self._cache: QCache = {} if cache is None else cache
         self.x_scale: str | float = 1.0  # logs: unit steps are natural
         self.names = tuple(f"log_{n}" for n in THETA_NAMES)
 
     def with_starts(self, starts: Sequence[str], n_coercive: int | None = None) -> LognormalSpace:
         """The same space with other initial states (one of :data:`STARTS` per sweep) and
         optionally another number of coercive nodes."""
-        return LognormalSpace(self.preps, self.scales, n_coercive or self.n_coercive, starts)
+        return LognormalSpace(self.preps, self.scales, n_coercive or self.n_coercive, starts,
+                              self._cache)
 
-    def design(self, x: FloatArray, n_coercive: int | None = None) -> FloatArray:
+    def design(self, x: FloatArray) -> FloatArray:
         theta = np.exp(x)
-        q = hysteresis(theta, [p.field[p.keep] for p in self.preps], n_coercive or self.n_coercive,
-                       starts=self.starts)
+        median, sig, std, r = (float(v) for v in theta[:4])
+        pol = hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
+                              interaction=hy.Normal(std), n_coercive=self.n_coercive)
+        q = run_from(pol, [p.field[p.keep] for p in self.preps], self.starts,
+                     cache=self._cache, key=np.asarray(x[:4], dtype=float).tobytes())
         return columns(q, theta[4], theta[5], self.preps)
 
     def penalty(self, x: FloatArray) -> FloatArray:
@@ -302,22 +341,23 @@ class LognormalSpace:
         hi = np.log([10 * e_max, 3.0, 10 * e_max, 100 * e_max, 20 * nyq, 5.0])
         return lo, hi
 
-    def starts_ranked(self, cost: Callable[[FloatArray], float],
-                      n_best: int = 4) -> list[FloatArray]:
+    def starts_ranked(self, cost: Callable[[FloatArray], float]) -> list[FloatArray]:
         """Starting ``x`` from the data alone, best first: the peak field scales a grid over the
-        coercive median and the hysteretic weight (rod static); each of the ``n_best`` best grid
-        points then takes the best natural frequency of a grid below the Nyquist frequency."""
+        coercive median and the hysteretic weight (rod static at 0.45 of the Nyquist frequency);
+        see :meth:`tune_rod` for the rod."""
         e_max, nyq = extent(self.preps)
         grid = [np.log([mf * e_max, 0.5, 0.3 * mf * e_max, rf * e_max, 0.45 * nyq, 0.5])
                 for mf in (0.2, 0.5, 0.9) for rf in (0.05, 0.2, 0.6)]
         costs = [cost(x) for x in grid]
-        ranked = [grid[i] for i in np.argsort(costs)]
+        return [grid[i] for i in np.argsort(costs)]
+
+    def tune_rod(self, x: FloatArray, cost: Callable[[FloatArray], float]) -> FloatArray:
+        """``x`` with the best natural frequency of a grid below the Nyquist frequency
+        (damping 0.3), or unchanged if none is better."""
+        _, nyq = extent(self.preps)
         freqs = [f for f in (30.0, 100.0, 300.0, 1000.0, 3000.0) if f < 0.45 * nyq]
-        out = []
-        for best in ranked[:n_best]:
-            cands = [best] + [np.concatenate((best[:4], np.log([f, 0.3]))) for f in freqs]
-            out.append(min(cands, key=cost))
-        return out + ranked[n_best:]
+        cands = [x] + [np.concatenate((x[:4], np.log([f, 0.3]))) for f in freqs]
+        return min(cands, key=cost)
 
     def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
         return to_model(np.exp(x), beta, self.scales, thickness_um)

@@ -5,7 +5,11 @@ Planning turns a desired displacement trajectory into a voltage waveform per fil
 * Every waveform starts by **conditioning** the stage: one slow excursion from the present output to
   the upper and lower voltage limits and back. By the wiping-out property of the model (and of the
   material) this erases the memory of whatever the stage did before, so the model's state at the
-  start of tracking is known rather than assumed.
+  start of tracking is known rather than assumed. With a model's validity envelope (the voltage
+  range it was identified on, :class:`afmctl.modelfile.Envelope`) the excursion stays inside it:
+  a wider one could repole the material into a state the model never saw. A waveform whose
+  tracking part leaves the envelope by more than 5 % of its span is refused
+  (:class:`EnvelopeError`) unless extrapolation is asked for.
 * ``inverse``: Algorithm 3 through the model. After conditioning, a ramp in displacement from the
   stage's output to the trajectory's first point (so the inverse carries the hysteresis state
   through it), the tracking part, then a raised-cosine ramp of the voltage back to the output.
@@ -25,7 +29,7 @@ error at sample k is ``displacement[k] - desired[k]`` and sample k's voltage aim
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,6 +40,8 @@ from afmctl import guard
 from afmctl import inverse as inv
 from afmctl import rod as rd
 from afmctl import transducer as tr
+from afmctl.modelfile import Envelope
+from afmctl.tomlfile import InputError
 
 FloatArray = NDArray[np.float64]
 HORIZONS = (1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 20, 24, 32, 48, 64)
@@ -235,21 +241,51 @@ def plan_linear(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v
     return wf
 
 
+class EnvelopeError(InputError):
+    """The waveform leaves the model's validity envelope (one line naming the envelope)."""
+
+
+def conditioning_limits(limits: guard.Limits, env: Envelope | None) -> guard.Limits:
+    """The profile's limits narrowed to the envelope's voltage range (where they overlap)."""
+    if env is None:
+        return limits
+    lo, hi = max(limits.v_min, env.voltage_min_v), min(limits.v_max, env.voltage_max_v)
+    return replace(limits, v_min=lo, v_max=hi) if lo < hi else limits
+
+
+def check_envelope(wf: Waveform, env: Envelope | None, extrapolate: bool) -> None:
+    """EnvelopeError if the tracking part of ``wf`` leaves ``env`` by more than 5 % of its span."""
+    if env is None or extrapolate:
+        return
+    v = wf.voltage_v[wf.tracking]
+    lo, hi = float(v.min()), float(v.max())
+    if not env.admits(lo, hi):
+        raise EnvelopeError(
+            f"the {wf.filter} waveform needs {lo:.1f} ... {hi:.1f} V, outside the model's validity "
+            f"envelope ({env.describe()}) by {env.excess_v(lo, hi):.1f} V (> 5 % of its span): "
+            f"identify on sweeps that cover it, or pass --extrapolate")
+
+
 def plan(model: tr.Transducer, desired: Desired, limits: guard.Limits, start_v: float = 0.0,
          filters: tuple[str, ...] = ("inverse", "linear"),
-         state: tr.StageState | None = None, condition: bool = True) -> dict[str, Waveform]:
+         state: tr.StageState | None = None, condition: bool = True,
+         envelope: Envelope | None = None, extrapolate: bool = False) -> dict[str, Waveform]:
     """Guard-checked waveforms for each filter (the inverse one first: it sets the voltage range).
 
     ``state`` is the model state at the stage's present output ``start_v`` (default: depoled, then
     ``start_v`` applied); the conditioning that starts every waveform makes the result insensitive
     to it for every hysteron the voltage limits can switch. ``condition=False`` leaves it out (no
     full-stroke excursion, e.g. with a tip near the sample): the model then assumes ``state``.
+    ``envelope`` (the model's, if known) bounds the conditioning and, unless ``extrapolate``,
+    the waveforms (:func:`check_envelope`).
     """
     cm = tr.compile_model(model, desired.dt_s)
     st0 = state if state is not None else tr.initial(model, voltage_v=start_v)
-    pre = conditioning(limits, start_v, desired.dt_s) if condition else np.zeros(0)
+    pre = (conditioning(conditioning_limits(limits, envelope), start_v, desired.dt_s)
+           if condition else np.zeros(0))
     _, _, st = tr.simulate(cm, pre, st0)
     wf = plan_inverse(cm, desired, limits, start_v, st, pre)
+    check_envelope(wf, envelope, extrapolate)
     out = {"inverse": wf} if "inverse" in filters else {}
     if "linear" in filters:
         track_v = wf.voltage_v[wf.tracking]

@@ -8,7 +8,17 @@ thickness is not documented), a linear fit and a classical Prandtl-Ishlinskii op
 discrete coercive density is reported beside it.
 
 Emulated: the three standard triangle sweeps (0.279, 5.58, 27.9 Hz, 150 V, 10 kHz) of the nominal
-stage with 0.03 um sensor noise; ``identify_seconds`` is the wall time of ``identify.fit`` on them.
+stage with 0.03 um sensor noise; ``identify_seconds`` is the wall time of ``identify.fit`` on them
+(``identify_cpu_seconds`` its CPU time: the wall time on a machine shared with other work).
+
+Foreign stages (issue 11): ``--foreign N`` sweep sets recorded on random stages of the independently
+written simulator (``benchmarks/foreign_sets.py``, ``drivers/device/foreign*.py``: other formulas,
+parameters over wide ranges, lab sweep designs, sample rates, start states), each identified with
+default settings from its sweeps in recorded order. Every sweep's fit RMS is judged against the
+simulator's true sensor noise (``truth.json``): ``foreign_at_floor`` counts the stages with every
+sweep within 1.5x, ``foreign_worst_over_noise`` is the largest ratio, ``foreign_median_seconds``
+the median fit time; ``foreign_rows`` has one row per stage (design, start, ratios, the noise
+estimated from the data beside the truth).
 
 The last line printed is one JSON object. Run from the repo root:
 ``PYTHONPATH=. python benchmarks/bench_identify.py --json``
@@ -18,7 +28,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -77,19 +89,63 @@ def emulated() -> dict[str, object]:
 
     std = [sweep(f, v) for _, f, v in sw.standard_set(150.0, RATE_HZ)[:3]]
     identify.fit(std[2:], identify.Settings(max_nfev=2))  # warm the JIT caches (not timed)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     res = identify.fit(std)
-    seconds = time.perf_counter() - t0
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     unseen = identify.sweep_error(res.model, sweep(13.95, sw.triangle(13.95, 150.0, 5, RATE_HZ)))
-    return {"identify_seconds": seconds, "identify_success": res.success,
+    return {"identify_seconds": seconds, "identify_cpu_seconds": cpu,
+            "identify_success": res.success, "identify_at_noise_floor": res.at_noise_floor,
             "emulated_fit_rms_um": [s.rms_um for s in res.sweeps],
             "emulated_13.95hz_prediction_rms_um": unseen.rms_um, "emulated_noise_um": NOISE_UM}
+
+
+FOREIGN_SETS = REPO / "benchmarks" / "foreign_sets.py"
+
+
+def foreign_stage(folder: Path) -> dict[str, object]:
+    """Identify one foreign stage's sweeps (recorded order) and judge them by the true noise."""
+    truth = json.loads((folder / "truth.json").read_text())
+    data = [sw.read(folder / f"{s['name']}.csv") for s in truth["sweeps"]]
+    t0 = time.perf_counter()
+    res = identify.fit(data)
+    seconds = time.perf_counter() - t0
+    ratios = [s.rms_um / truth["noise_um"] for s in res.sweeps]
+    return {"stage": folder.name, "design": truth["design"], "start": truth["start"],
+            "noise_um": truth["noise_um"], "noise_estimated_um": [s.noise_um for s in res.sweeps],
+            "rms_over_noise": ratios, "starts_chosen": [s.start for s in res.sweeps],
+            "at_floor": max(ratios) <= identify.FLOOR, "success": res.success,
+            "restarts": res.restarts, "n_coercive": res.model.polarization.n_coercive,
+            "seconds": seconds}
+
+
+def foreign(n: int, seed: int, keep: Path | None) -> dict[str, object]:
+    """``foreign_*`` figures over ``n`` stages written by ``benchmarks/foreign_sets.py``."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = keep if keep is not None else Path(tmp) / "sets"
+        subprocess.run([sys.executable, str(FOREIGN_SETS), "--out", str(out), "--n", str(n),
+                        "--seed", str(seed)], check=True, stdout=subprocess.DEVNULL)
+        rows = []
+        for folder in sorted(out.glob("stage_*")):
+            rows.append(foreign_stage(folder))
+            r = rows[-1]
+            print(f"  {r['stage']} {r['design']:12s} start {r['start']!s:>8.8s}: RMS / noise "
+                  + " / ".join(f"{x:.2f}" for x in r["rms_over_noise"])  # type: ignore[attr-defined]
+                  + f" ({r['seconds']:.1f} s)", file=sys.stderr)
+    worst = [max(r["rms_over_noise"]) for r in rows]  # type: ignore[type-var]
+    return {"foreign_stages": len(rows), "foreign_at_floor": sum(bool(r["at_floor"]) for r in rows),
+            "foreign_worst_over_noise": max(worst),
+            "foreign_median_seconds": float(np.median([r["seconds"] for r in rows])),
+            "foreign_seed": seed, "foreign_rows": rows}
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="end with one JSON line (always printed)")
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="real sweep file")
+    ap.add_argument("--foreign", type=int, default=30, help="foreign stages (0: skip)")
+    ap.add_argument("--foreign-seed", type=int, default=2026)
+    ap.add_argument("--keep-foreign", type=Path, default=None,
+                    help="write the foreign sweep sets here (must not exist) instead of a temp dir")
     args = ap.parse_args()
     out: dict[str, object] = {}
     if args.data.is_file():
@@ -102,6 +158,14 @@ def main() -> int:
                     "pi_heldout_rms_um": None})
     print("emulated standard sweeps ...", file=sys.stderr)
     out.update(emulated())
+    if args.foreign and FOREIGN_SETS.is_file():
+        print(f"{args.foreign} foreign stages ...", file=sys.stderr)
+        out.update(foreign(args.foreign, args.foreign_seed, args.keep_foreign))
+    else:
+        print("foreign stages skipped (--foreign 0 or no benchmarks/foreign_sets.py)",
+              file=sys.stderr)
+        out.update({"foreign_stages": 0, "foreign_at_floor": None,
+                    "foreign_worst_over_noise": None, "foreign_median_seconds": None})
     if not args.json:
         for k, v in out.items():
             print(f"{k:36s} {v}")

@@ -67,7 +67,7 @@ def test_identify_json_model_and_plots(tmp_path: Path, good_file: Path) -> None:
     assert s["file"] == str(good_file) and s["rms_um"] <= 1.5 * NOISE_UM
     assert doc["parameters"]["m"]["fixed"] is True
     model = modelfile.read(out)
-    assert model.thickness_um == 1.0 and model.polarization.n_coercive == 256
+    assert model.thickness_um == 1.0 and model.polarization.n_coercive == doc["n_coercive"] >= 64
     assert len(list(plots.glob("*.png"))) == 1
 
 

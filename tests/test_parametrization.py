@@ -56,3 +56,16 @@ def test_discrete_space_reproduces_its_lognormal_start(true_model: Transducer) -
     model = space.model(x0, np.array([25.7, 0.4, 0.0]), 100.0)
     assert sum(w for w in model.polarization.coercive.nodes_weights()[1]) == pytest.approx(1.0)
     assert model.polarization.eta == pytest.approx(0.36 / 0.3)
+
+
+@pytest.mark.parametrize(("fn", "zeta", "dt"), [(250.0, 0.25, 1e-4), (100.0, 1.0, 1e-3),
+                                                (1000.0, 3.0, 1e-4), (5.0, 0.003, 1e-3)])
+def test_closed_form_oscillator_discretization_equals_the_matrix_exponential(
+        fn: float, zeta: float, dt: float) -> None:
+    """Under-, critically and over-damped: the closed form against rod.discretize (expm)."""
+    from afmctl import rod as rd
+    w = 2 * np.pi * fn
+    ref = rd.discretize(rd.Rod(1.0, 2 * zeta * w, w * w, 1.0), dt)
+    new = pz.unit_oscillator_zoh(fn, zeta, dt)
+    np.testing.assert_allclose(new.phi, ref.phi, rtol=1e-12, atol=1e-14 * np.abs(ref.phi).max())
+    np.testing.assert_allclose(new.gamma, ref.gamma, rtol=1e-12)

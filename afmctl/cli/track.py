@@ -35,6 +35,9 @@ def track_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      help="Start with one slow full-range excursion (to the profile's voltage "
                           "limits) that wipes out the stage's hysteresis memory; --no-condition "
                           "skips it and assumes a depoled stage (less accurate)."),
+        click.option("--extrapolate", is_flag=True,
+                     help="Allow a waveform outside the model's validity envelope (the voltage "
+                          "range it was identified on) by more than 5 % of its span."),
     ]
     for opt in reversed(opts):
         fn = opt(fn)
@@ -96,9 +99,15 @@ def _out_dir(out_dir: str | None) -> Path:
     return path
 
 
+def _envelope(prof: Any, model_path: str | None) -> Any:
+    """The validity envelope of the model in use (None for a model file without one)."""
+    from afmctl import calibration, modelfile
+    return modelfile.read_envelope(model_path or calibration.cache_dir(prof) / "model.toml")
+
+
 def _track(make_desired: Callable[[float], Any], profile_path: str | None,
            model_path: str | None, filters: str, out_dir: str | None, dry_run: bool,
-           as_json: bool, condition: bool) -> None:
+           as_json: bool, condition: bool, extrapolate: bool) -> None:
     from afmctl import calibration, experiment, modelfile
     from afmctl import effects as fx
     from afmctl import track as trk
@@ -109,7 +118,8 @@ def _track(make_desired: Callable[[float], Any], profile_path: str | None,
     if dry_run:
         model = (modelfile.read(model_path) if model_path
                  else calibration.cached_model(prof, None, say))
-        plans = trk.plan(model, desired, prof.limits, 0.0, wanted, condition=condition)
+        plans = trk.plan(model, desired, prof.limits, 0.0, wanted, condition=condition,
+                         envelope=_envelope(prof, model_path), extrapolate=extrapolate)
         out = _out_dir(out_dir)
         for name in wanted:
             experiment.write_waveform_csv(plans[name], out / f"waveform_{name}.csv")
@@ -121,7 +131,8 @@ def _track(make_desired: Callable[[float], Any], profile_path: str | None,
                  else calibration.cached_model(prof, stage, say))
         start_v = stage.voltage()
         click.echo(f"planning {desired.label} from {start_v:.3f} V ...", err=True)
-        plans = trk.plan(model, desired, prof.limits, start_v, wanted, condition=condition)
+        plans = trk.plan(model, desired, prof.limits, start_v, wanted, condition=condition,
+                         envelope=_envelope(prof, model_path), extrapolate=extrapolate)
         out = _out_dir(out_dir)
         meta = {"profile": prof.name, "model": model_path or "identified (cached)",
                 "trajectory": desired.label, "sample_rate_Hz": prof.sample_rate_hz}
