@@ -380,7 +380,7 @@ def test_second_mass_matches_lti_simulation():
     k2, c2 = m2 * w2 ** 2, 2 * 0.03 * m2 * w2
     a = np.array([[0, 1, 0, 0], [-(k1 + k2) / m1, -(c1 + c2) / m1, k2 / m1, c2 / m1],
                   [0, 0, 0, 1], [k2 / m2, c2 / m2, -k2 / m2, -c2 / m2]])
-    sys = signal.StateSpace(a, [[0], [1 / m1], [0], [0]], [[0, 0, 1, 0]], [[0]])
+    sys = signal.StateSpace(a, [[0], [1 / m1], [0], [0]], [[1, 0, 0, 0]], [[0]])  # rod end
     df = 10.0 * um_per_volt(st) * k1  # force step, um N/m
     _, y, _ = signal.lsim(sys, np.full(4000, df), np.arange(4000) / rate)
     np.testing.assert_allclose(t2 - t2[0], y, atol=1e-4 * np.ptp(y))

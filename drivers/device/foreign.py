@@ -607,7 +607,8 @@ def describe(stage: Stage) -> dict:
         "resonance_hz": stage.rod.resonance_hz,
         "damping_ratio": stage.rod.damping_ratio,
         "chi_per_MVm": stage.material.chi_per_MVm,
-        "static_range_um": [lo, hi],
+        "static_range_um": [lo, hi],  # in the rod's frame (effects' centres use it)
+        "static_range_from_zero_um": [lo - stage.sensor.zero_um, hi - stage.sensor.zero_um],
         "static_span_um": hi - lo,
         "a2_P_R_over_a1": stage.rod.a2_N_per_C2_m4 * stage.material.remanence_C_m2
         / stage.rod.a1_N_per_C_m2,

@@ -2,11 +2,7 @@
 
 Every effect is made by a formula family other than the one a naive candidate would fit
 (a first-order amplifier, an integer sample shift, the relay kernel with a drifting threshold, a
-single added resonance, a quadratic gauge, one gain per sweep). ``random_effect`` draws one at a
-strength ``s`` in [0, 1]: 0 is meant to be barely detectable (a misfit of the order of twice the
-sensor noise), 1 strong; every parameter is interpolated log-linearly between its two ends.
-
-Causes and the dataclass that makes each:
+single added resonance, a quadratic gauge, one gain per sweep).
 
 ==========================  =======================  ==========================================
 cause                       dataclass                physics
@@ -14,7 +10,7 @@ cause                       dataclass                physics
 ``amplifier-lag``           :class:`Amplifier`       2nd-order low-pass with a slew-rate limit
 ``sensor-delay``            :class:`SensorLatency`   2nd-order anti-alias filter + continuous delay
 ``thermal-relaxation``      :class:`Thermal`         Arrhenius switching (6)-(10) per hysteron
-``second-mode``             :class:`SecondMass`      a platform mass coupled to the rod (2 DOF)
+``second-mode``             :class:`SecondMass`      a second mass coupled to the rod (2 DOF)
 ``sensor-nonlinearity``     :class:`GaugePolynomial` quadratic and cubic gauge error
 ``voltage-gain-drift``      :class:`GainDrift`       random per-run gain and a systematic drift
 ``backlash``                :class:`Backlash`        play (dead band) in the stage linkage
@@ -23,6 +19,34 @@ cause                       dataclass                physics
 ==========================  =======================  ==========================================
 
 The last three are outside afmctl's diagnosis vocabulary (``OUT_OF_VOCABULARY``).
+
+Strength
+--------
+``random_effect`` draws an effect at a strength ``s`` in [0, 1], every parameter interpolated
+log-linearly between its two ends. ``s = 0`` was calibrated to be barely detectable: refitting
+the clean plant itself (all its material and rod parameters and an offset, started at the truth)
+to the three standard sweeps of a stage with the effect leaves about 1.2-3x the sensor noise on
+the worst sweep (two random stages per cause; the lags and the second mass can leave more on
+lightly damped stages); ``s = 1`` is strong (tens to hundreds of noise sigmas). The ends, with
+sigma the sensor noise and ``tau_3`` the lag that shifts the fast standard triangle (27.9 Hz over
+the static span) by 3 sigma:
+
+- amplifier-lag: low-pass lag ``2 zeta / w`` from ``tau_3`` (bandwidth at most 25 kHz) to the
+  lag at 0.2x the rod's resonance; slew limit 300 -> 60 x the drive span per second;
+- sensor-delay: total latency (filter + delay) from ``tau_3`` to 3 ms (30 samples at 10 kHz); the
+  anti-alias cut-off takes half of it (1.5-100 kHz), the pure delay the rest;
+- thermal-relaxation: E_T from 0.002 to 0.08 x the median coercive field; attempt rate
+  10^3-10^5 /s (drawn);
+- second-mode: secondary mass 0.002 -> 0.5 x the rod's, its damping 0.1 -> 0.02; its own frequency
+  1.5-4 x the rod's resonance (drawn);
+- sensor-nonlinearity: error at the range end 15 -> 300 sigma, split at random between the
+  quadratic and cubic terms, random signs;
+- voltage-gain-drift: per-run sigma from 1.5 sigma over the static span (0.01-0.2 %) to 3 %,
+  systematic drift 0.5-1 x that per run;
+- backlash: play 6 -> 100 sigma;
+- gauge-saturation: compression at the range end 8 -> 300 sigma, knee at 60-85 % of the half range;
+- interference: hum 3 -> 30 sigma (harmonics 2 and 3 at 20-60 % and 10-40 %), half the draws with
+  spikes of 10x the hum every 50-330 ms.
 """
 
 from __future__ import annotations
@@ -99,11 +123,13 @@ class Thermal:
 
 @dataclass(frozen=True)
 class SecondMass:
-    """A platform of mass ``mass_ratio * m`` joined to the rod's end by a spring and a damper.
+    """A secondary mass ``mass_ratio * m`` (a sample holder, the next axis, the frame) joined to
+    the rod's end by a spring and a damper: a second mechanical mode.
 
-    The sensor reads (and the stage positions) the platform. The platform on its spring alone
-    would resonate at ``frequency_ratio`` times the rod's resonance with damping ratio
-    ``damping``; coupled, the two modes split (see :func:`mode_frequencies_hz`).
+    The sensor reads (and the stage positions) the rod's end; the secondary mass acts on it
+    through the coupling. Alone on its spring it would resonate at ``frequency_ratio`` times the
+    rod's resonance with damping ratio ``damping``; coupled, the two modes split
+    (see :func:`mode_frequencies_hz`), the more the heavier the mass.
     """
 
     mass_ratio: float
@@ -195,7 +221,7 @@ def _span(lo: float, hi: float, s: float) -> float:
 
 
 def mode_frequencies_hz(stage: Stage, mode: SecondMass) -> tuple[float, float]:
-    """Undamped natural frequencies of the rod coupled to the platform, Hz (lower, upper)."""
+    """Undamped natural frequencies of the rod coupled to the second mass, Hz (lower, upper)."""
     m1, k1 = stage.rod.mass_kg, stage.rod.stiffness_N_m
     m2 = mode.mass_ratio * m1
     k2 = m2 * (2 * math.pi * mode.frequency_ratio * stage.rod.resonance_hz) ** 2
@@ -206,7 +232,7 @@ def mode_frequencies_hz(stage: Stage, mode: SecondMass) -> tuple[float, float]:
 
 
 FAST_SWEEP_HZ = 27.9  # the fast standard triangle, on which lags show first
-MAX_AMPLIFIER_HZ = 10_000.0  # fastest amplifier drawn (it costs substeps)
+MAX_AMPLIFIER_HZ = 25_000.0  # fastest amplifier drawn (it costs substeps)
 MAX_ANTIALIAS_HZ = 100_000.0  # (integrated exactly: costs nothing)
 
 
@@ -233,7 +259,7 @@ def _latency(rng, stage, s):
 
 
 def _thermal(rng, stage, s):
-    return Thermal(thermal_field_MVm=stage.material.coercive_median_MVm * _span(0.004, 0.08, s),
+    return Thermal(thermal_field_MVm=stage.material.coercive_median_MVm * _span(0.002, 0.08, s),
                    attempt_rate_hz=float(10 ** rng.uniform(3.0, 5.0)))
 
 
@@ -258,7 +284,8 @@ def _polynomial(rng, stage, s):
 
 
 def _gain(rng, stage, s):
-    sigma = _span(0.003, 0.03, s)
+    lo, hi = stage.static_range_um
+    sigma = _span(1.5 * stage.sensor.noise_um / (hi - lo), 0.03, s)
     return GainDrift(sigma=sigma, per_run=float(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 1.0)
                                                  * sigma))
 

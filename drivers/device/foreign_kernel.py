@@ -244,7 +244,7 @@ def _force(par, p):
 
 @njit(cache=True)
 def _accel(par, u1, v1, u2, v2, force):
-    """Accelerations of the rod end and (if present) the platform, um/s^2."""
+    """Accelerations of the rod end and (if present) the second mass, um/s^2."""
     if par[P_TWO] > 0.0:
         coup = par[P_K2] * (u1 - u2) + par[P_C2] * (v1 - v2)
         return ((force - par[P_C1] * v1 - par[P_K1] * u1 - coup) / par[P_M1],
@@ -359,9 +359,9 @@ def _sensed(par, st, hist, t):
 
 @njit(cache=True)
 def _platform(par, st, q):
-    """Platform position through the linkage play, um, and its velocity."""
-    u = q[2] if par[P_TWO] > 0.0 else q[0]
-    v = q[3] if par[P_TWO] > 0.0 else q[1]
+    """Platform position (the rod's end, through the linkage play), um, and its velocity."""
+    u = q[0]
+    v = q[1]
     half = 0.5 * par[P_PLAY]
     xp = st[S_XP]
     if half <= 0.0:
