@@ -23,7 +23,7 @@ import json
 import statistics
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -35,10 +35,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import foreign_sets  # noqa: E402
 
 from afmctl import diagnose as dg  # noqa: E402
+from afmctl import extension as ext  # noqa: E402
+from afmctl import (
+    guard,  # noqa: E402
+    track,  # noqa: E402
+)
 from afmctl import sweeps as sw  # noqa: E402
-from afmctl import track  # noqa: E402
+from afmctl import transducer as td  # noqa: E402
 from afmctl.profile import default_profile  # noqa: E402
-from afmctl.transducer import Transducer  # noqa: E402
 from drivers.device import foreign as plant  # noqa: E402
 from drivers.device.foreign_effects import OUT_OF_VOCABULARY, random_effect  # noqa: E402
 from drivers.device.foreign_stages import random_stage  # noqa: E402
@@ -87,18 +91,34 @@ def make_stage(cause: str, strength: float | None, index: int
     return stage, sweeps, state, truth
 
 
-def track_rms(stage: plant.Stage, state: plant.PlantState, models: dict[str, Transducer],
+def model_state(fitted: ext.Extended, sweeps: list[sw.Sweep]) -> td.StageState:
+    """The model's state after the recorded sweeps, each from the start the fit chose."""
+    model, st = fitted.model, None
+    for s, start in zip(sweeps, fitted.starts, strict=True):
+        if st is None or start != "previous":
+            st = td.initial(model, "depoled" if start == "previous" else start,  # type: ignore[arg-type]
+                            float(s.voltage_v[0]))
+        _, _, st = td.simulate(td.compile_model(model, s.dt), s.voltage_v, st)
+    assert st is not None
+    return st
+
+
+def track_rms(stage: plant.Stage, state: plant.PlantState, fits: dict[str, ext.Extended],
               sweeps: list[sw.Sweep]) -> dict[str, float]:
     """RMS error (um) of the stage's true position (in the readings' frame) against a 27.9 Hz
-    triangle over the middle 60 % of the recorded range, planned with each model."""
+    triangle over 35-75 % of the recorded range, planned with each model from its state
+    after the sweeps, within the stage's drive range."""
     prof = default_profile()
+    limits = replace(prof.limits, v_min=0.0, v_max=150.0)
     dt = 1 / prof.sample_rate_hz
     lo, hi = (float(np.percentile(np.concatenate([s.displacement_um for s in sweeps]), q))
               for q in (2, 98))
-    desired = track.triangle(27.9, 0.6 * (hi - lo), lo + 0.2 * (hi - lo), 3, dt)
+    desired = track.triangle(27.9, 0.4 * (hi - lo), lo + 0.35 * (hi - lo), 3, dt)
+    start_v = float(sweeps[-1].voltage_v[-1])
     out = {}
-    for name, model in models.items():
-        wf = track.plan(model, desired, prof.limits, 0.0, ("inverse",))["inverse"]
+    for name, fitted in fits.items():
+        wf = track.plan(fitted.model, desired, limits, start_v, ("inverse",),
+                        state=model_state(fitted, sweeps))["inverse"]
         true_um, _, _ = plant.run(stage, wf.voltage_v, prof.sample_rate_hz, state, None)
         err = (true_um + stage.sensor.offset_um - wf.desired_um)[wf.tracking]
         out[name] = float(np.sqrt(np.mean(err ** 2)))
@@ -117,7 +137,11 @@ def run_case(case: tuple[str, float | None, int]) -> dict[str, Any]:
         "fitted": d.table[d.cause].fitted.parameters if d.cause in d.table else {},
         "seconds": round(d.seconds, 1)}
     if cause in TRACKABLE:
-        rms = track_rms(stage, state, {"base": d.base_model, "extended": d.extended_model}, sweeps)
+        try:
+            rms = track_rms(stage, state, {"base": d.base, "extended": d.extended}, sweeps)
+        except guard.LimitError as exc:  # counted as not beating the base
+            row["track_error"] = str(exc)
+            rms = {"base": 0.0, "extended": np.inf}
         row["track_base_rms_um"], row["track_extended_rms_um"] = rms["base"], rms["extended"]
     return row
 
@@ -157,12 +181,18 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print the JSON object last")
     ap.add_argument("--jobs", type=int, default=1, help="cases run in parallel (default 1)")
     ap.add_argument("--clean", type=int, default=4, help="clean stages (default 4)")
+    ap.add_argument("--rows", type=Path, default=None,
+                    help="append every case's row to this JSON-lines file as it finishes")
     args = ap.parse_args()
     t0 = time.perf_counter()
     rows = []
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        for row in pool.map(run_case, cases(args.clean)):
+        for future in as_completed([pool.submit(run_case, c) for c in cases(args.clean)]):
+            row = future.result()
             rows.append(row)
+            if args.rows is not None:
+                with args.rows.open("a", encoding="utf-8") as f:
+                    f.write(json.dumps(dg.json_safe(row)) + "\n")
             extra = (f"; track {row['track_base_rms_um']:.4f} -> "
                      f"{row['track_extended_rms_um']:.4f} um" if "track_base_rms_um" in row else "")
             log(f"{row['cause']:20s} s={row['strength']}: named {row['named']:20s} base "
