@@ -3,8 +3,8 @@ than the candidates): a clean stage gets ``none`` at the noise floor, an effect 
 outside the vocabulary comes out ``unexplained``; the CLI's JSON; the extended model tracks better
 on a stage carrying an effect; each candidate's residual vanishes at its truth.
 
-The CI subset runs three stages of ``benchmarks/bench_diagnose.py``'s batch with a few candidates
-each (the bench runs 31 stages with all of them)."""
+The CI subset runs three foreign stages made as ``benchmarks/bench_diagnose.py`` makes its 31 (two of
+them with a few candidates only, to stay short); the bench runs all candidates on all stages."""
 
 from __future__ import annotations
 
