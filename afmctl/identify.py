@@ -289,15 +289,18 @@ def predict(model: td.Transducer, voltage_v: FloatArray, dt: float, gain: float 
 
 
 def predict_set(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str],
-                offsets_um: Sequence[float] | None = None) -> list[FloatArray]:
+                offsets_um: Sequence[float] | None = None,
+                gains: Sequence[float] | None = None) -> list[FloatArray]:
     """Predicted readings (um) of a set of sweeps recorded in sequence, each from its start
-    (``previous``: where the sweep before left the hysteresis) and with its own sensor zero
-    ``offsets_um`` (default: the model's)."""
+    (``previous``: where the sweep before left the hysteresis), with its own sensor zero
+    ``offsets_um`` (default: the model's; it is the rod's zero, so the model's sensor effects see
+    it) and applied-voltage gain ``gains`` (default 1)."""
     out, prev = [], None
     offs = offsets_um if offsets_um is not None else [model.rod.offset_um] * len(sweeps)
-    for s, start, off in zip(sweeps, starts, offs, strict=True):
-        u, prev = _reading(model, s.voltage_v, s.dt, 1.0, start, prev)
-        out.append(u + (off - model.rod.offset_um))
+    for s, start, off, g in zip(sweeps, starts, offs, gains or [1.0] * len(sweeps), strict=True):
+        zeroed = replace(model, rod=replace(model.rod, offset_um=float(off)))
+        u, prev = _reading(zeroed, s.voltage_v, s.dt, g, start, prev)
+        out.append(u)
     return out
 
 

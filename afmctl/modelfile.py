@@ -195,11 +195,14 @@ def effects_dict(e: Effects) -> dict[str, Any]:
     """The ``[effects.*]`` tables of the effects that are on (empty if none)."""
     out: dict[str, Any] = {}
     if e.amplifier_bandwidth_hz is not None:
-        out["amplifier_lag"] = {"bandwidth_Hz": e.amplifier_bandwidth_hz}
-    if e.sensor_delay_samples:
-        out["sensor_delay"] = {"samples": e.sensor_delay_samples}
-    if e.sensor_quadratic_per_um:
-        out["sensor_nonlinearity"] = {"quadratic_per_um": e.sensor_quadratic_per_um}
+        amp = {"bandwidth_Hz": e.amplifier_bandwidth_hz, "damping_ratio": e.amplifier_damping_ratio,
+               "slew_V_per_s": e.amplifier_slew_v_per_s}
+        out["amplifier_lag"] = {k: v for k, v in amp.items() if v is not None}
+    if e.sensor_delay_samples or e.sensor_delay_s:
+        out["sensor_delay"] = {"samples": e.sensor_delay_samples, "seconds": e.sensor_delay_s}
+    if e.sensor_quadratic_per_um or e.sensor_cubic_per_um2:
+        out["sensor_nonlinearity"] = {"quadratic_per_um": e.sensor_quadratic_per_um,
+                                      "cubic_per_um2": e.sensor_cubic_per_um2}
     if e.second_mode is not None:
         m = e.second_mode
         out["second_mode"] = {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio,
@@ -218,6 +221,11 @@ def _thermal(t: Table) -> hy.Thermal:
                       t.number("attempt_rate_per_s", positive=True))
 
 
+def _optional(t: Table | None, key: str) -> float | None:
+    """A positive number of ``t`` if the key is there, else None."""
+    return t.number(key, positive=True) if t is not None and t.has(key) else None
+
+
 def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
     """Effects (and thermal relaxation, which belongs to the polarization kernel) from an
     ``effects`` table: one sub-table per effect that is on, keys with units (see
@@ -233,8 +241,12 @@ def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
                                               sm.number("gain"))
     return Effects(
         amplifier_bandwidth_hz=None if lag is None else lag.number("bandwidth_Hz", positive=True),
-        sensor_delay_samples=0.0 if dly is None else dly.number("samples", nonnegative=True),
+        amplifier_damping_ratio=_optional(lag, "damping_ratio"),
+        amplifier_slew_v_per_s=_optional(lag, "slew_V_per_s"),
+        sensor_delay_samples=0.0 if dly is None else dly.number("samples", 0.0, nonnegative=True),
+        sensor_delay_s=0.0 if dly is None else dly.number("seconds", 0.0, nonnegative=True),
         sensor_quadratic_per_um=0.0 if nl is None else nl.number("quadratic_per_um"),
+        sensor_cubic_per_um2=0.0 if nl is None else nl.number("cubic_per_um2", 0.0),
         second_mode=mode,
         voltage_gain_sigma=0.0 if gd is None else gd.number("sigma", nonnegative=True),
     ), None if th is None else _thermal(th)

@@ -38,6 +38,46 @@ def test_lag_step_response_is_first_order() -> None:
     np.testing.assert_allclose(y, 1 - np.exp(-2 * np.pi * bw * DT * k), atol=1e-12)
 
 
+@pytest.mark.parametrize("zeta", [0.3, 0.7, 2.0])
+def test_second_order_amplifier_step_response(zeta: float) -> None:
+    """The closed-form step response of ``v'' + 2 zeta w v' + w^2 v = w^2`` from rest, sampled
+    one period after each command (the ZOH convention of the first order)."""
+    f = 300.0
+    w = 2 * np.pi * f
+    chain = fx.compile_chain(fx.Effects(amplifier_bandwidth_hz=f, amplifier_damping_ratio=zeta), DT)
+    y, _ = fx.lag(chain, np.ones(400), 0.0)
+    t = np.arange(1, 401) * DT
+    if zeta < 1:
+        wd = w * np.sqrt(1 - zeta ** 2)
+        exact = 1 - np.exp(-zeta * w * t) * (np.cos(wd * t) + zeta * w / wd * np.sin(wd * t))
+    else:
+        r1, r2 = -w * (zeta - np.sqrt(zeta ** 2 - 1)), -w * (zeta + np.sqrt(zeta ** 2 - 1))
+        exact = 1 + (r2 * np.exp(r1 * t) - r1 * np.exp(r2 * t)) / (r1 - r2)
+    np.testing.assert_allclose(y, exact, atol=1e-9)
+
+
+def test_amplifier_slew_limit_caps_the_output_rate() -> None:
+    """A 10 V step into a first-order amplifier with a 20 V/ms limit: a ramp at the limit, then
+    the exponential approach; the second order obeys the same cap."""
+    for zeta in (None, 0.5):
+        e = fx.Effects(amplifier_bandwidth_hz=2000.0, amplifier_damping_ratio=zeta,
+                       amplifier_slew_v_per_s=2e4)
+        y, _ = fx.lag(fx.compile_chain(e, DT), np.full(300, 10.0), 0.0)
+        assert np.max(np.abs(np.diff(y, prepend=0.0))) <= 2e4 * DT * (1 + 1e-12)
+        np.testing.assert_allclose(y[:4], 2e4 * DT * np.arange(1, 5))
+        assert y[-1] == pytest.approx(10.0, abs=1e-6)
+
+
+def test_second_order_unlag_follows_a_smooth_target() -> None:
+    chain = fx.compile_chain(fx.Effects(amplifier_bandwidth_hz=300.0, amplifier_damping_ratio=0.6),
+                             DT)
+    v = 1.0 + 20 * np.sin(2 * np.pi * 27.9 * np.arange(2000) * DT) ** 2
+    out, _ = fx.lag(chain, fx.unlag_limited(chain, v, 1.0, np.inf), 1.0)
+    plain, _ = fx.lag(chain, v, 1.0)
+    inner = slice(0, -5)  # the target's rate after its end is unknown
+    assert np.max(np.abs(out - v)[inner]) < 0.01 * np.max(np.abs(plain - v))
+
+
 def test_slew_limited_unlag() -> None:
     """Within the step limit it is the exact inverse; at a step it ramps at the limit, then the
     amplifier output catches up with the target and follows it exactly again."""
@@ -84,9 +124,13 @@ def test_second_mode_static_gain_and_resonance() -> None:
     assert 1 / period == pytest.approx(f * math.sqrt(1 - zeta ** 2), rel=0.01)
 
 
-def test_ungauge_inverts_gauge() -> None:
-    e = fx.Effects(sensor_quadratic_per_um=-2.5e-3)
+@pytest.mark.parametrize("e", [fx.Effects(sensor_quadratic_per_um=-2.5e-3),
+                               fx.Effects(sensor_quadratic_per_um=1e-3, sensor_cubic_per_um2=-4e-5),
+                               fx.Effects(sensor_cubic_per_um2=6e-5)],
+                         ids=["quadratic", "quadratic+cubic", "cubic"])
+def test_ungauge_inverts_gauge(e: fx.Effects) -> None:
     w = np.linspace(-45, 50, 101)
+    assert np.all(np.diff(fx.gauge(e, w)) > 0)  # a monotone gauge over this range
     np.testing.assert_allclose(fx.ungauge(e, fx.gauge(e, w)), w, atol=1e-10)
 
 
@@ -101,6 +145,17 @@ def test_delay_is_a_shift_and_advance_undoes_it(d: float, tol: float) -> None:
     k = np.arange(x.size) - d
     np.testing.assert_allclose(late[5:], np.interp(k, np.arange(x.size), x)[5:], atol=1e-12)
     np.testing.assert_allclose(fx.advance(late, d)[5:-5], x[5:-5], atol=tol)
+
+
+def test_a_delay_in_seconds_is_the_same_time_at_any_rate() -> None:
+    """0.6 ms of latency: 6 samples at 10 kHz, 3 at 5 kHz; added to a latency in samples."""
+    e = fx.Effects(sensor_delay_samples=1.0, sensor_delay_s=6e-4)
+    assert fx.compile_chain(e, 1e-4).delay_samples == pytest.approx(7.0)
+    assert fx.compile_chain(e, 2e-4).delay_samples == pytest.approx(4.0)
+    chain = fx.compile_chain(e, 2e-4)
+    u = np.sin(np.arange(200) * 0.05)
+    y, _, _ = fx.measure(chain, u, *fx.rest(chain, float(u[0])))
+    np.testing.assert_allclose(y[4:], u[:-4], atol=1e-12)
 
 
 def test_delay_in_pieces_equals_delay_at_once() -> None:

@@ -18,9 +18,13 @@ def test_round_trip(nominal: Transducer, tmp_path: Path) -> None:
         nominal.polarization, thermal=hy.Thermal(0.05, 100.0),
         coercive=hy.Discrete((0.5, 1.0, 1.5), (0.2, 0.6, 0.2))))
     effects = dc.replace(nominal, effects=Effects(
-        amplifier_bandwidth_hz=400.0, sensor_delay_samples=2.5, sensor_quadratic_per_um=-1e-3,
+        amplifier_bandwidth_hz=400.0, sensor_delay_samples=2.5, sensor_delay_s=1e-4,
+        sensor_quadratic_per_um=-1e-3, sensor_cubic_per_um2=2e-5,
         second_mode=SecondMode(600.0, 0.03, 0.4), voltage_gain_sigma=0.02))
-    for m in (nominal, thermal, effects):
+    amp2 = dc.replace(nominal, effects=Effects(amplifier_bandwidth_hz=120.0,
+                                               amplifier_damping_ratio=0.6,
+                                               amplifier_slew_v_per_s=2e4))
+    for m in (nominal, thermal, effects, amp2):
         modelfile.write(m, tmp_path / "m.toml", header="test")
         assert modelfile.read(tmp_path / "m.toml") == m
     assert not list(tmp_path.glob("*.partial"))

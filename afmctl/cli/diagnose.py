@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from afmctl.cli.base import (
+    Finite,
     OutputError,
     check_output_dir,
     fit_settings,
@@ -32,10 +33,13 @@ OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residua
                    "table sets the fit options.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output folder (default: ./afmctl-diagnose-<time>).")
+@click.option("--noise-um", "noise_um", type=Finite(0, open_min=True), default=None,
+              help="Sensor noise (1 sigma, um) of every sweep: the floor the errors are read "
+                   "against (default: estimated from each sweep's data).")
 @click.option("--json", "as_json", is_flag=True, help="Print diagnosis.json on stdout.")
 @click.option("--force", is_flag=True, help="Overwrite an earlier diagnosis in --out.")
 def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str | None,
-             out_dir: str | None, as_json: bool, force: bool) -> None:
+             out_dir: str | None, noise_um: float | None, as_json: bool, force: bool) -> None:
     """Find what the model gets wrong on SWEEP_FILES, name the physical cause, extend the model
     and measure the gain on held-out data.
 
@@ -56,6 +60,7 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
             raise InputError(f"--model {model_path}: {exc}") from None
     idf.resolve_thickness(data, settings.identify)
     dg.check(data)
+    noise = None if noise_um is None else dg.check_noise(data, [noise_um] * len(data))
     out = Path(out_dir) if out_dir else timestamped("afmctl-diagnose")
     if (out / "diagnosis.json").exists() and not force:
         raise OutputError(f"--out {out}: already holds a diagnosis; choose another folder or add "
@@ -63,13 +68,14 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     check_output_dir(out, "--out", OUTPUTS, force)
     say(f"diagnosing {len(data)} sweep(s): "
         f"{len(dg.candidate_names(len(data), settings))} candidates ...")
-    d = dg.diagnose(data, settings, start, progress=say)
+    d = dg.diagnose(data, settings, start, progress=say, noise_um=noise)
     doc = d.as_dict()
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"  # before anything is written
     with writing(out, "--out"):
         _write(d, data, sweep_files, out, text)
     say(f"cause: {d.cause} (held-out RMS {d.base_rms_um:.4f} -> {d.extended_rms_um:.4f} um, "
-        f"gain {d.gain:.2f}); wrote {out}/" + ", ".join(OUTPUTS[1:] + OUTPUTS[:1]))
+        f"gain {d.gain:.2f}; {d.base_over_noise:.2f}x -> {d.extended_over_noise:.2f}x the noise "
+        f"{d.noise_um:.4f} um); wrote {out}/" + ", ".join(OUTPUTS[1:] + OUTPUTS[:1]))
     if as_json:
         click.echo(json.dumps(doc, allow_nan=False))
 
@@ -77,7 +83,6 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
 def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:  # noqa: ANN001
     """Every file of a diagnosis, each atomic, ``diagnosis.json`` last (marks it complete)."""
     from afmctl import diagnose as dg
-    from afmctl import identify as idf
     from afmctl import modelfile, plots
     from afmctl.experiment import atomic_write
     make_dir(out, "--out")
@@ -85,9 +90,7 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     modelfile.write(d.base_model, out / "base.toml", header=header + "\nthe paper's model")
     modelfile.write(d.extended_model, out / "extended.toml",
                     header=header + f"\nextended with: {d.cause}")
-    before = [idf.predict(d.base_model, s.voltage_v, s.dt) for s in data]
-    after = [idf.predict(d.extended_model, s.voltage_v, s.dt, g)
-             for s, g in zip(data, d.extended_gains, strict=True)]
+    before, after = d.predictions(data)
     partial = out / "residuals.partial.png"
     plots.diagnosis_figure(data, before, after, d.base_model.thickness_um,
                            ("paper's model", f"extended: {d.cause}"), partial)
