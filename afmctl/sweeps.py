@@ -327,6 +327,17 @@ def read(path: str | Path) -> Sweep:
     return parse(_read_text(path), str(path))
 
 
+def read_complete(path: str | Path) -> Sweep:
+    """:func:`read`, refusing a sweep that was interrupted while it recorded (``afmctl sweep``
+    streams into ``<name>.incomplete.csv`` and ends it ``# end: interrupted (...)``): a fit on
+    part of a sweep, or on it beside its completed rerun, would be judged on the wrong data."""
+    text = _read_text(path)
+    if any(ln.startswith("# end: interrupted") for ln in text.splitlines()[-3:]):
+        raise SweepFormatError(f"{path}: an interrupted sweep (ends '# end: interrupted'); record "
+                               f"the rest with afmctl sweep --resume and fit the complete file")
+    return parse(text, str(path))
+
+
 def read_trajectory(path: str | Path) -> tuple[FloatArray, FloatArray]:
     """A desired trajectory for ``afmctl track file``: columns ``time_s,desired_um`` (other units
     spelt as for sweeps; any other columns and ``#`` metadata allowed; time strictly increasing,

@@ -188,6 +188,10 @@ def test_ctrl_c_in_sweep_keeps_the_sweep_in_progress_and_resume_records_it(
     full = sweeps.read(out / "triangle_0.279hz.csv")
     assert full.time_s.size == 71_686 and partial.exists()  # measured data is never removed
     np.testing.assert_allclose(full.voltage_v[:kept.time_s.size], kept.voltage_v, atol=1e-6)
+    res = CliRunner().invoke(main, ["identify", *map(str, sorted(out.glob("*.csv"))), "-o",
+                                    str(tmp_path / "m.toml")])
+    assert res.exit_code == 2 and str(partial) in res.stderr and "--resume" in res.stderr
+    assert not (tmp_path / "m.toml").exists()  # never a fit on part of a sweep beside its rerun
 
 
 def test_ctrl_c_in_identify_says_no_stage_was_touched(tmp_path: Path,

@@ -139,3 +139,14 @@ def test_measured_files_are_recognised(tmp_path: Path) -> None:
     assert kinds == {"sweep.csv": "a sweep file", "lab.csv": "a sweep file",
                      "run.csv": "an afmctl run file", "model.toml": "", "wave.csv": "",
                      "tracked.csv": "measured displacements"}
+
+
+def test_an_interrupted_sweep_reads_but_is_refused_for_fitting(tmp_path: Path) -> None:
+    """afmctl sweep's partial file (kept on Ctrl-C) is a valid sweep, but identify and diagnose
+    (read_complete) refuse it, naming --resume; a complete file passes both."""
+    done, partial = tmp_path / "a.csv", tmp_path / "a.incomplete.csv"
+    done.write_text(GOOD)
+    partial.write_text(GOOD + "# end: interrupted (KeyboardInterrupt)\n")
+    np.testing.assert_array_equal(sw.read(partial).voltage_v, sw.read_complete(done).voltage_v)
+    with pytest.raises(FileFormatError, match="interrupted sweep.*--resume"):
+        sw.read_complete(partial)

@@ -51,7 +51,7 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     from afmctl import modelfile, parametrization, sweeps
 
     settings = dg.Settings(identify=fit_settings(profile))
-    data = [sweeps.read(f) for f in sweep_files]
+    data = [sweeps.read_complete(f) for f in sweep_files]
     start = None if model_path is None else modelfile.read(model_path)
     if start is not None:
         try:

@@ -78,7 +78,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
     from afmctl import modelfile, sweeps
 
     settings = fit_settings(profile)
-    data = [sweeps.read(f) for f in sweep_files]
+    data = [sweeps.read_complete(f) for f in sweep_files]
     check_output_file(output, "-o", force)
     if plots_dir is not None:
         from afmctl import plots
