@@ -304,7 +304,7 @@ def parse(text: str, where: str = "<sweep>") -> Sweep:
     return Sweep(t, data[:, 1].copy(), data[:, 2].copy(), meta, where)
 
 
-def _read_text(path: str | Path) -> str:
+def read_text(path: str | Path) -> str:
     """The UTF-8 text of a data file; :class:`SweepFormatError` if absent, binary or not UTF-8."""
     p = Path(path)
     try:
@@ -324,14 +324,14 @@ def _read_text(path: str | Path) -> str:
 
 def read(path: str | Path) -> Sweep:
     """Read and validate a sweep file; :class:`SweepFormatError` (one line) on anything wrong."""
-    return parse(_read_text(path), str(path))
+    return parse(read_text(path), str(path))
 
 
 def read_complete(path: str | Path) -> Sweep:
     """:func:`read`, refusing a sweep that was interrupted while it recorded (``afmctl sweep``
     streams into ``<name>.incomplete.csv`` and ends it ``# end: interrupted (...)``): a fit on
     part of a sweep, or on it beside its completed rerun, would be judged on the wrong data."""
-    text = _read_text(path)
+    text = read_text(path)
     if any(ln.startswith("# end: interrupted") for ln in text.splitlines()[-3:]):
         raise SweepFormatError(f"{path}: an interrupted sweep (ends '# end: interrupted'); record "
                                f"the rest with afmctl sweep --resume and fit the complete file")
@@ -343,7 +343,7 @@ def read_trajectory(path: str | Path) -> tuple[FloatArray, FloatArray]:
     spelt as for sweeps; any other columns and ``#`` metadata allowed; time strictly increasing,
     not necessarily uniform)."""
     where = str(path)
-    _, header, body, delim = _split(where, _read_text(path))
+    _, header, body, delim = _split(where, read_text(path))
     data = _parse_rows(where, header, body, delim, ("time_s", "desired_um"))
     _check_increasing(where, data[:, 0])
     return data[:, 0].copy(), data[:, 1].copy()

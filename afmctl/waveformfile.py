@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl import sweeps
 from afmctl.tomlfile import FileFormatError
 
 FloatArray = NDArray[np.float64]
@@ -103,9 +104,5 @@ def parse(text: str, where: str = "<waveform>") -> WaveformFile:
 
 
 def read(path: str | Path) -> WaveformFile:
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FileFormatError(f"{p}: cannot read ({exc.__class__.__name__})") from None
-    return parse(text, str(p))
+    """Read a waveform file (one line naming the file if it is absent, binary or malformed)."""
+    return parse(sweeps.read_text(path), str(path))
