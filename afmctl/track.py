@@ -251,7 +251,7 @@ def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: 
     dt = cm.dt
     last: guard.LimitError | None = None
     best: tuple[float, Waveform] | None = None
-    for d in (h for h in HORIZONS if h >= max(rd.smooth_horizon(cm.disc), *(fixed or ()))):
+    for d in (h for h in HORIZONS if h >= max((rd.smooth_horizon(cm.disc), *(fixed or ())))):
         res = inv.algorithm3(cm, target, state, e_init=start_v / cm.model.thickness_um,
                              horizon=d, e_max=e_max)
         _reach(res, target.size, 0)
