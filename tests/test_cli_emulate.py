@@ -34,3 +34,20 @@ def test_emulate_serves_until_interrupted(profile: Profile) -> None:
         _, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
     assert "stopped" in err
+
+
+def test_emulate_on_a_port_in_use_names_the_port() -> None:
+    """One line naming the address, exit 1 (not pymodbus's text alone), nothing left running."""
+    import socket
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        res = subprocess.run([sys.executable, "-m", "afmctl", "emulate", "--modbus-port",
+                              str(port), "--no-rtu"], capture_output=True, text=True, env=env,
+                             timeout=60)
+    assert res.returncode == 1, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"127.0.0.1:{port}" in lines[0], res.stderr
+    assert lines[0].startswith("afmctl: error: cannot serve:")

@@ -82,8 +82,16 @@ class _ModbusServerBase:
             await server.serve_forever(background=True)
             return server
 
-        self._server = self._loop.run(start())
+        try:
+            self._server = self._loop.run(start())
+        except RuntimeError as exc:  # pymodbus's "Could not start listen" names no address
+            self._loop.close()
+            raise OSError(f"Modbus server cannot listen on {self._address()}: {exc} (in use?)"
+                          ) from None
         return self
+
+    def _address(self) -> str:
+        raise NotImplementedError
 
     def __exit__(self, *exc: object) -> None:
         assert self._loop is not None
@@ -116,6 +124,9 @@ class ModbusTcpServer(_ModbusServerBase):
         where = (LOOPBACK, 0) if self.device.faults.active else (self.host, self.port)
         return _PymodbusTcpServer(sim_device(self.device, self.unit), address=where)
 
+    def _address(self) -> str:
+        return f"{self.host}:{self.port}"
+
     def __enter__(self) -> ModbusTcpServer:
         super().__enter__()
         backend = self._server.transport.sockets[0].getsockname()[1]
@@ -144,6 +155,9 @@ class ModbusRtuServer(_ModbusServerBase):
     def _make(self) -> Any:
         return ModbusSerialServer(sim_device(self.device, self.unit), framer=FramerType.RTU,
                                   port=self._bridge.device_path, baudrate=self.baudrate)
+
+    def _address(self) -> str:
+        return self.url
 
     def __enter__(self) -> ModbusRtuServer:
         self._bridge.__enter__()
