@@ -182,7 +182,7 @@ def to_dict(model: Transducer) -> dict[str, Any]:
     r = model.rod
     out = {
         "format": FORMAT, "format_version": FORMAT_VERSION,
-        "transducer": {"thickness_um": model.thickness_um},
+        "transducer": {"thickness_um": model.thickness_um, "initial_state": model.initial},
         "polarization": pd,
         "rod": {"m_kg": r.m, "c_Ns_per_m": r.c, "k_N_per_m": r.k, "a1_N_per_C_m2": r.a1,
                 "a2_N_per_C2_m4": r.a2, "offset_um": r.offset_um},
@@ -294,7 +294,9 @@ def from_table(t: Table) -> Transducer:
               a2=r.number("a2_N_per_C2_m4", 0.0), offset_um=r.number("offset_um", 0.0))
     tt = t.table("transducer")
     assert tt is not None
-    return Transducer(pol, rod, tt.number("thickness_um", positive=True), effects)
+    return Transducer(pol, rod, tt.number("thickness_um", positive=True), effects,
+                      tt.string("initial_state", "depoled",  # type: ignore[arg-type]
+                                choices=("depoled", "positive", "negative")))
 
 
 def _load(path: str | Path) -> tuple[Transducer, Envelope | None]:

@@ -33,12 +33,18 @@ class Transducer:
         What the stage adds around this model (amplifier, sensor, second mode; see
         :mod:`afmctl.effects`); none by default. :func:`simulate` is the paper's model alone;
         ``afmctl diagnose`` fits effects and ``afmctl track`` inverts them.
+    initial : {"depoled", "positive", "negative"}
+        The hysteresis state the stage was in before the voltages the model was identified on
+        (identify finds it from the data; a stage poled once keeps that state outside the
+        voltage range it is driven over, e.g. below 0 V on a unipolar stage): the default
+        state of :func:`initial`.
     """
 
     polarization: hy.Polarization
     rod: rd.Rod
     thickness_um: float
     effects: Effects = field(default_factory=Effects)
+    initial: hy.Initial = "depoled"
 
     def field(self, voltage_v: FloatArray) -> FloatArray:
         return np.asarray(voltage_v, dtype=float) / self.thickness_um
@@ -52,10 +58,11 @@ class StageState:
     rod: FloatArray
 
 
-def initial(model: Transducer, how: hy.Initial = "depoled",
+def initial(model: Transducer, how: hy.Initial | None = None,
             voltage_v: float = 0.0) -> StageState:
-    """State at rest: the given initial polarization, then ``voltage_v`` applied quasi-statically."""
-    ps = hy.initial_state(model.polarization, how)
+    """State at rest: the initial polarization ``how`` (default the model's own
+    :attr:`Transducer.initial`), then ``voltage_v`` applied quasi-statically."""
+    ps = hy.initial_state(model.polarization, model.initial if how is None else how)
     p, ps = hy.run(model.polarization, np.array([voltage_v / model.thickness_um]), ps)
     f = model.rod.force(p)[0]
     return StageState(ps, rd.rest_state(model.rod, f))
