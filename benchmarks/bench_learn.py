@@ -17,9 +17,10 @@ default stage, ``compute_over_stage`` its ratio to the time the stage takes to p
 (conditioning included).
 
 Foreign stages (``--foreign``): the independently written plant of
-:mod:`drivers.device.foreign` (a random stage, 0 .. 150 V), clean and with plant effects, the
-model identified from its standard sweep design (:mod:`foreign_learn`); sensor effects there
-would need ``diagnose`` and are left out.
+:mod:`drivers.device.foreign` (a random stage, 0 .. 150 V, ``[emulator.foreign]`` of the shipped
+``emulated-foreign`` profile) clean and with plant effects, served over the serial protocol on a
+pty; its standard triangles recorded through the driver and the model from ``afmctl identify``
+on them (:mod:`foreign_learn`); sensor effects there would need ``diagnose`` and are left out.
 
 Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object).
 """
@@ -207,8 +208,9 @@ def main() -> None:
         out["stages_total"] = len(rows)
         out["stages_used"] = ("afmctl's emulated stage, clean and with each of its hidden effects "
                               "(case 2i of the diagnose batch); the foreign plant "
-                              "(drivers.device.foreign, random stage of seed "
-                              f"{FOREIGN_SEED}) clean and with plant effects at strength 0.5")
+                              "(drivers.device.foreign, [emulator.foreign] seed "
+                              f"{FOREIGN_SEED}, over the serial protocol on a pty) clean and "
+                              "with plant effects at strength 0.5")
         model, _ = model_for(base, "none", tmp / "default-sweeps")
         noise = base.emulator.noise_um
         desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / base.sample_rate_hz)
