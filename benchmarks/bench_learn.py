@@ -42,6 +42,7 @@ from afmctl import calibration, identify, ilc, learn, track
 from afmctl import diagnose as dg
 from afmctl import effects as fx
 from afmctl import transducer as tr
+from afmctl.guard import LimitError
 from afmctl.profile import Profile, default_profile
 from drivers.device import plant as em
 from drivers.inprocess import InProcessStage, accelerated
@@ -174,6 +175,16 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
     return row
 
 
+def refused_or(cause: str, row: Any) -> dict[str, Any]:
+    """``row()``, or a failed row when the planner refuses the trajectory (out of reach)."""
+    try:
+        return row()
+    except LimitError as exc:
+        log(f"{cause}: refused: {exc}")
+        return {"effect": cause, "rms_um_by_iteration": [], "kept_iteration": None,
+                "stop": f"refused: {exc}", "final_over_noise": float("inf"), "ok": False}
+
+
 def iterations_to(rms: list[float], level: float) -> int | None:
     return next((i for i, x in enumerate(rms) if x <= level), None)
 
@@ -192,17 +203,19 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as td:
         tmp = Path(td)
         rows = []
-        for cause in args.stages.split(","):
-            index = 0 if cause == "none" else 2 * CAUSES.index(cause)
-            rows.append(stage_row(base, cause, index, tmp))
         for cause in args.foreign.split(",") if args.foreign else ():
-            t0 = time.perf_counter()
-            row = foreign_learn.learn_foreign(cause, FOREIGN_SEED, tmp / f"foreign-{cause}")
+            row = refused_or(cause, lambda c=cause: foreign_learn.learn_foreign(
+                c, FOREIGN_SEED, tmp / f"foreign-{c}"))
             rows.append(row)
             log(f"foreign {cause:12s}: true RMS "
                 f"{' -> '.join(f'{x:.4f}' for x in row['rms_um_by_iteration'])} um, kept "
                 f"{row['kept_iteration']}, {row['stop'][:60]}; final/noise "
-                f"{row['final_over_noise']:.2f} ({time.perf_counter() - t0:.0f} s)")
+                f"{row['final_over_noise']:.2f}; resonance "
+                f"{row.get('identified_resonance_Hz', float('nan')):.0f} Hz identified, "
+                f"{row.get('true_resonance_Hz', float('nan')):.0f} Hz true")
+        for cause in args.stages.split(",") if args.stages else ():
+            index = 0 if cause == "none" else 2 * CAUSES.index(cause)
+            rows.append(refused_or(cause, lambda c=cause, i=index: stage_row(base, c, i, tmp)))
         out["stages"] = rows
         out["learn_ok"] = sum(r["ok"] for r in rows)
         out["stages_total"] = len(rows)
