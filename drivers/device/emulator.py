@@ -3,7 +3,8 @@
 No I/O, no clock, no device library: every method that depends on time takes ``now`` (s, any
 monotonic origin) explicitly, so tests step the clock by hand and the servers
 (:mod:`drivers.device.emulated`) pass ``time.monotonic()``. The plant it drives is
-:class:`~drivers.device.plant.Physics`.
+:class:`~drivers.device.plant.Physics`, or the foreign stage of a profile's ``[emulator.foreign]``
+(:class:`~drivers.device.foreign_physics.ForeignPhysics`): :func:`plant`.
 
 Global sample ``k`` of a run is table slot ``k mod L`` (the table tiled over the cycles, or in a
 stream the ring the host refills while it plays). The generator plays lazily: advancing to ``now``
