@@ -196,6 +196,8 @@ def main() -> None:
                     help="comma-separated effects (none = the default stage)")
     ap.add_argument("--foreign", default="none,amplifier-lag,second-mode",
                     help="comma-separated effects on the foreign plant ('' for none)")
+    ap.add_argument("--no-earlier", dest="earlier", action="store_false",
+                    help="leave out the earlier bench's clean foreign stage (116 Hz rod)")
     args = ap.parse_args()
     base = default_profile()
     assert base.emulator is not None
@@ -213,6 +215,11 @@ def main() -> None:
                 f"{row['final_over_noise']:.2f}; resonance "
                 f"{row.get('identified_resonance_Hz', float('nan')):.0f} Hz identified, "
                 f"{row.get('true_resonance_Hz', float('nan')):.0f} Hz true")
+        if args.earlier:
+            row = refused_or("none (earlier stage)", lambda: foreign_learn.learn_foreign(
+                "none", FOREIGN_SEED, tmp / "foreign-earlier", overrides=foreign_learn.EARLIER_CLEAN))
+            rows.append({**row, "stage": "the earlier bench's clean foreign stage (116 Hz)"})
+            log(f"foreign earlier clean stage: {row['stop'][:160]}")
         for cause in args.stages.split(",") if args.stages else ():
             index = 0 if cause == "none" else 2 * CAUSES.index(cause)
             rows.append(refused_or(cause, lambda c=cause, i=index: stage_row(base, c, i, tmp)))

@@ -38,15 +38,29 @@ PLANT_CAUSES = ("none", "amplifier-lag", "second-mode", "thermal-relaxation",
 STRENGTH = 0.5
 
 
-def foreign_profile(cause: str, seed: int) -> Profile:
-    """The shipped 0-150 V foreign profile, its stage drawn from ``seed`` with ``cause``."""
+#: The clean stage the in-process bench used before (``random_stage`` of ``default_rng([1, 13])``:
+#: rod at 116 Hz, damping 0.055; its identify then put the resonance at 1.96 kHz), as the
+#: parameters ``[emulator.foreign]`` fixes.
+EARLIER_CLEAN = (("layer_thickness_um", 142.684502), ("coercive_median_rel", 0.684287),
+                 ("coercive_shape", 0.342828), ("interaction_std_rel", 0.216091),
+                 ("reversible_rel", 0.250022), ("remanence_C_m2", 0.214156),
+                 ("resonance_hz", 115.910768), ("damping_ratio", 0.054747),
+                 ("mass_kg", 0.148293), ("span_um", 84.607148), ("a2_ratio", -0.204942),
+                 ("noise_um", 0.01521), ("offset_um", -0.452971))
+
+
+def foreign_profile(cause: str, seed: int, overrides: tuple[tuple[str, float], ...] = ()
+                    ) -> Profile:
+    """The shipped 0-150 V foreign profile, its stage drawn from ``seed`` with ``cause`` (and the
+    parameters ``overrides`` fixes instead of the profile's)."""
     if cause not in PLANT_CAUSES:
         raise ValueError(f"{cause!r}: only plant-side causes {PLANT_CAUSES} are judged here")
     base = shipped_profile("emulated-foreign")
     assert base.emulator is not None and base.emulator.foreign is not None
     spec = dc.replace(base.emulator.foreign, seed=seed,
                       effect=None if cause == "none" else cause,
-                      strength=None if cause == "none" else STRENGTH)
+                      strength=None if cause == "none" else STRENGTH,
+                      overrides=overrides or base.emulator.foreign.overrides)
     return dc.replace(base, name=f"foreign-{seed}-{cause}",
                       emulator=dc.replace(base.emulator, foreign=spec))
 
@@ -85,9 +99,10 @@ def identified(profile: Profile, stage: Any, folder: Path) -> tuple[Any, Any, An
             (fast, fit["at_noise_floor"], fit["parameters"]["natural_frequency"]["value"]))
 
 
-def learn_foreign(cause: str, seed: int, out: Path, iterations: int = 5) -> dict[str, Any]:
+def learn_foreign(cause: str, seed: int, out: Path, iterations: int = 5,
+                  overrides: tuple[tuple[str, float], ...] = ()) -> dict[str, Any]:
     """One foreign stage over a pty: identify, then learn, judged by its true position."""
-    prof = foreign_profile(cause, seed)
+    prof = foreign_profile(cause, seed, overrides)
     t0 = time.perf_counter()
     with EmulatedDevice(prof) as dev, SerialServer(dev, "pty") as ser:
         truth = dev.emulator.physics.stage  # type: ignore[attr-defined]
