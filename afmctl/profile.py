@@ -6,7 +6,11 @@ sensor's raw reading maps to displacement (``[sensor]``), the layer thickness (`
 sample rate. An emulated stage also carries ``[emulator]``: its true model (``[emulator.model]``,
 exactly the model-file schema of :mod:`afmctl.modelfile`), noise, seed, watchdog and optional
 effects that the base model lacks (``[emulator.effects.*]``, each off unless present) and wire
-faults its servers inject (``[emulator.faults]``, off unless present). Every key carries its unit.
+faults its servers inject (``[emulator.faults]``, off unless present). ``[emulator.foreign]``
+(off unless present, :class:`ForeignStage`) replaces the plant by an independently written
+foreign stage (:mod:`drivers.device.foreign`) drawn from its ``seed``: ``[emulator.model]`` is then
+only what ``track``/``play`` take as the truth between samples, not what the device does.
+Every key carries its unit.
 A wire's ``[transport]`` also gives ``timeout_s`` (per reply) and ``watchdog_s``, the device
 watchdog's period the host arms for every run (default twice ``timeout_s``, which it must exceed;
 0: never armed).
@@ -33,8 +37,8 @@ from afmctl.transducer import Transducer
 FORMAT = "afmctl-profile"
 FORMAT_VERSION = 1
 
-__all__ = ["Effects", "SecondMode", "FileFormatError", "Profile", "load_profile", "default_profile",
-           "shipped_profile", "shipped_names"]
+__all__ = ["Effects", "SecondMode", "FileFormatError", "ForeignStage", "Profile", "load_profile",
+           "default_profile", "shipped_profile", "shipped_names"]
 
 
 @dataclass(frozen=True)
@@ -123,6 +127,50 @@ class WireFaults:
         return any(p > 0 for p in self.probabilities())
 
 
+#: Parameters of a random foreign stage a profile may fix (``[emulator.foreign]``), with the name
+#: :func:`drivers.device.foreign_stages.random_stage` knows each by (units in the names).
+FOREIGN_NUMBERS: dict[str, str] = {
+    "layer_thickness_um": "layer_thickness_um", "coercive_median_rel": "coercive_median_rel",
+    "coercive_shape": "coercive_shape", "interaction_std_rel": "interaction_std_rel",
+    "reversible_rel": "reversible_rel", "remanence_C_m2": "remanence_C_m2",
+    "resonance_Hz": "resonance_hz", "damping_ratio": "damping_ratio", "mass_kg": "mass_kg",
+    "span_um": "span_um", "a2_ratio": "a2_ratio", "noise_um": "noise_um",
+    "offset_um": "offset_um"}
+FOREIGN_FAMILIES = {"coercive_family": ("lognormal", "gamma", "loglogistic"),
+                    "interaction_family": ("normal", "logistic", "laplace")}
+#: Hidden causes a foreign stage may carry (:func:`drivers.device.foreign_effects.random_effect`).
+FOREIGN_CAUSES = ("amplifier-lag", "sensor-delay", "thermal-relaxation", "second-mode",
+                  "sensor-nonlinearity", "voltage-gain-drift", "backlash", "gauge-saturation",
+                  "interference")
+
+
+@dataclass(frozen=True)
+class ForeignStage:
+    """A foreign stage as the emulated device's plant (``[emulator.foreign]``).
+
+    Parameters
+    ----------
+    seed : int
+        Draws the stage (and its effect) and seeds its sensor noise.
+    start : str or float
+        State at power-on: ``"poled+"``, ``"poled-"``, ``"depoled"`` or a voltage, V (poled+,
+        then brought to it).
+    effect : str or None
+        One hidden cause of :data:`FOREIGN_CAUSES` (None: a clean stage).
+    strength : float or None
+        The effect's strength, 0 (barely detectable) .. 1 (strong); None: drawn.
+    overrides : tuple of (str, float or str)
+        Fixed stage parameters, by :func:`~drivers.device.foreign_stages.random_stage`'s names
+        (the profile's keys are :data:`FOREIGN_NUMBERS` and :data:`FOREIGN_FAMILIES`).
+    """
+
+    seed: int = 0
+    start: str | float = "poled+"
+    effect: str | None = None
+    strength: float | None = None
+    overrides: tuple[tuple[str, float | str], ...] = ()
+
+
 @dataclass(frozen=True)
 class EmulatorConfig:
     """The emulated device's truth: model, effects, noise (um, 1 sigma), seed, watchdog (s), and
@@ -137,6 +185,7 @@ class EmulatorConfig:
     recorder_capacity: int = 262144
     table_capacity: int = 65536
     faults: WireFaults = field(default_factory=WireFaults)
+    foreign: ForeignStage | None = None
 
     @property
     def true_model(self) -> Transducer:
@@ -215,6 +264,33 @@ def _faults(t: Table | None) -> WireFaults:
                       seed=t.integer("seed", 0))
 
 
+def _foreign(t: Table | None) -> ForeignStage | None:
+    if t is None:
+        return None
+    known = {"seed", "start", "effect", "strength", *FOREIGN_NUMBERS, *FOREIGN_FAMILIES}
+    for key in t.data:
+        if key not in known:
+            raise t.fail(key, f"unknown key (known: {', '.join(sorted(known))})")
+    start: str | float = "poled+"
+    if isinstance(t.data.get("start"), (int, float)) and not isinstance(t.data["start"], bool):
+        start = t.number("start")
+    elif t.has("start"):
+        start = t.string("start", choices=("poled+", "poled-", "depoled"))
+    effect = t.string("effect", choices=FOREIGN_CAUSES) if t.has("effect") else None
+    strength = t.number("strength", nonnegative=True) if t.has("strength") else None
+    if strength is not None and strength > 1:
+        raise t.fail("strength", f"must be in [0, 1], got {strength}")
+    if strength is not None and effect is None:
+        raise t.fail("strength", "needs an effect")
+    over: list[tuple[str, float | str]] = []
+    for key, name in FOREIGN_NUMBERS.items():
+        if t.has(key):
+            signed = key in ("a2_ratio", "offset_um")
+            over.append((name, t.number(key) if signed else t.number(key, positive=True)))
+    over += [(k, t.string(k, choices=c)) for k, c in FOREIGN_FAMILIES.items() if t.has(k)]
+    return ForeignStage(t.integer("seed", 0), start, effect, strength, tuple(over))
+
+
 def _emulator(t: Table) -> EmulatorConfig:
     mt = t.table("model")
     assert mt is not None
@@ -230,7 +306,8 @@ def _emulator(t: Table) -> EmulatorConfig:
         read_only=t.boolean("read_only"),
         recorder_capacity=t.integer("recorder_capacity", 262144, minimum=1),
         table_capacity=t.integer("table_capacity", 65536, minimum=1),
-        faults=_faults(t.table("faults", required=False)))
+        faults=_faults(t.table("faults", required=False)),
+        foreign=_foreign(t.table("foreign", required=False)))
 
 
 def from_table(t: Table) -> Profile:

@@ -17,9 +17,10 @@ default stage, ``compute_over_stage`` its ratio to the time the stage takes to p
 (conditioning included).
 
 Foreign stages (``--foreign``): the independently written plant of
-:mod:`drivers.device.foreign` (a random stage, 0 .. 150 V), clean and with plant effects, the
-model identified from its standard sweep design (:mod:`foreign_learn`); sensor effects there
-would need ``diagnose`` and are left out.
+:mod:`drivers.device.foreign` (a random stage, 0 .. 150 V, ``[emulator.foreign]`` of the shipped
+``emulated-foreign`` profile) clean and with plant effects, served over the serial protocol on a
+pty; its standard triangles recorded through the driver and the model from ``afmctl identify``
+on them (:mod:`foreign_learn`); sensor effects there would need ``diagnose`` and are left out.
 
 Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object).
 """
@@ -41,6 +42,7 @@ from afmctl import calibration, identify, ilc, learn, track
 from afmctl import diagnose as dg
 from afmctl import effects as fx
 from afmctl import transducer as tr
+from afmctl.guard import LimitError
 from afmctl.profile import Profile, default_profile
 from drivers.device import plant as em
 from drivers.inprocess import InProcessStage, accelerated
@@ -173,6 +175,16 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
     return row
 
 
+def refused_or(cause: str, row: Any) -> dict[str, Any]:
+    """``row()``, or a failed row when the planner refuses the trajectory (out of reach)."""
+    try:
+        return row()
+    except LimitError as exc:
+        log(f"{cause}: refused: {exc}")
+        return {"effect": cause, "rms_um_by_iteration": [], "kept_iteration": None,
+                "stop": f"refused: {exc}", "final_over_noise": float("inf"), "ok": False}
+
+
 def iterations_to(rms: list[float], level: float) -> int | None:
     return next((i for i, x in enumerate(rms) if x <= level), None)
 
@@ -184,6 +196,8 @@ def main() -> None:
                     help="comma-separated effects (none = the default stage)")
     ap.add_argument("--foreign", default="none,amplifier-lag,second-mode",
                     help="comma-separated effects on the foreign plant ('' for none)")
+    ap.add_argument("--no-earlier", dest="earlier", action="store_false",
+                    help="leave out the earlier bench's clean foreign stage (116 Hz rod)")
     args = ap.parse_args()
     base = default_profile()
     assert base.emulator is not None
@@ -191,24 +205,32 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as td:
         tmp = Path(td)
         rows = []
-        for cause in args.stages.split(","):
-            index = 0 if cause == "none" else 2 * CAUSES.index(cause)
-            rows.append(stage_row(base, cause, index, tmp))
         for cause in args.foreign.split(",") if args.foreign else ():
-            t0 = time.perf_counter()
-            row = foreign_learn.learn_foreign(cause, FOREIGN_SEED, tmp / f"foreign-{cause}")
+            row = refused_or(cause, lambda c=cause: foreign_learn.learn_foreign(
+                c, FOREIGN_SEED, tmp / f"foreign-{c}"))
             rows.append(row)
             log(f"foreign {cause:12s}: true RMS "
                 f"{' -> '.join(f'{x:.4f}' for x in row['rms_um_by_iteration'])} um, kept "
                 f"{row['kept_iteration']}, {row['stop'][:60]}; final/noise "
-                f"{row['final_over_noise']:.2f} ({time.perf_counter() - t0:.0f} s)")
+                f"{row['final_over_noise']:.2f}; resonance "
+                f"{row.get('identified_resonance_Hz', float('nan')):.0f} Hz identified, "
+                f"{row.get('true_resonance_Hz', float('nan')):.0f} Hz true")
+        if args.earlier:
+            row = refused_or("none (earlier stage)", lambda: foreign_learn.learn_foreign(
+                "none", FOREIGN_SEED, tmp / "foreign-earlier", overrides=foreign_learn.EARLIER_CLEAN))
+            rows.append({**row, "stage": "the earlier bench's clean foreign stage (116 Hz)"})
+            log(f"foreign earlier clean stage: {row['stop'][:160]}")
+        for cause in args.stages.split(",") if args.stages else ():
+            index = 0 if cause == "none" else 2 * CAUSES.index(cause)
+            rows.append(refused_or(cause, lambda c=cause, i=index: stage_row(base, c, i, tmp)))
         out["stages"] = rows
         out["learn_ok"] = sum(r["ok"] for r in rows)
         out["stages_total"] = len(rows)
         out["stages_used"] = ("afmctl's emulated stage, clean and with each of its hidden effects "
                               "(case 2i of the diagnose batch); the foreign plant "
-                              "(drivers.device.foreign, random stage of seed "
-                              f"{FOREIGN_SEED}) clean and with plant effects at strength 0.5")
+                              "(drivers.device.foreign, [emulator.foreign] seed "
+                              f"{FOREIGN_SEED}, over the serial protocol on a pty) clean and "
+                              "with plant effects at strength 0.5")
         model, _ = model_for(base, "none", tmp / "default-sweeps")
         noise = base.emulator.noise_um
         desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / base.sample_rate_hz)

@@ -3,7 +3,8 @@
 No I/O, no clock, no device library: every method that depends on time takes ``now`` (s, any
 monotonic origin) explicitly, so tests step the clock by hand and the servers
 (:mod:`drivers.device.emulated`) pass ``time.monotonic()``. The plant it drives is
-:class:`~drivers.device.plant.Physics`.
+:class:`~drivers.device.plant.Physics`, or the foreign stage of a profile's ``[emulator.foreign]``
+(:class:`~drivers.device.foreign_physics.ForeignPhysics`): :func:`plant`.
 
 Global sample ``k`` of a run is table slot ``k mod L`` (the table tiled over the cycles, or in a
 stream the ring the host refills while it plays). The generator plays lazily: advancing to ``now``
@@ -29,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl.profile import Limits, Profile
+from drivers.device.foreign_physics import ForeignPhysics
 from drivers.device.plant import Physics
 from drivers.protocol import ERRORS, Status
 
@@ -101,6 +103,16 @@ def first_steep(v: FloatArray, previous_v: float, limits: Limits, sample_rate_hz
     return int(bad[0]) if bad.size else v.size
 
 
+def plant(profile: Profile, sample_rate_hz: float) -> Physics:
+    """The device's plant: afmctl's own model and effects, or the foreign stage of the profile's
+    ``[emulator.foreign]`` (driven over the profile's voltage range)."""
+    config = profile.emulator
+    assert config is not None
+    if config.foreign is None:
+        return Physics(config, sample_rate_hz)
+    return ForeignPhysics(config, sample_rate_hz, (profile.limits.v_min, profile.limits.v_max))
+
+
 class Emulator:
     """The emulated device: waveform table, generator, recorder, DC output, limits and watchdog.
 
@@ -128,7 +140,7 @@ class Emulator:
         self.limits = profile.limits
         self.read_only = self.config.read_only if read_only is None else read_only
         self.sample_rate_hz = profile.sample_rate_hz
-        self.physics = Physics(self.config, self.sample_rate_hz)
+        self.physics = plant(self.profile, self.sample_rate_hz)
         self.state = self.physics.initial()
         self.table = np.zeros(self.config.table_capacity, dtype=np.float32)
         self.slot_global = np.full(self.config.table_capacity, -1, dtype=np.int64)
@@ -325,7 +337,7 @@ class Emulator:
         self._idle()
         self._catch_up(now)  # the idle time so far, at the old rate
         self.sample_rate_hz = float(hz)
-        self.physics = Physics(self.config, self.sample_rate_hz)
+        self.physics = plant(self.profile, self.sample_rate_hz)
 
     def set_table_length(self, n: int, now: float) -> None:
         """Declare the waveform length; every index in [0, n) must then be written once."""
