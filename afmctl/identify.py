@@ -600,8 +600,6 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     else:
         predicted = predict_set(model, sweeps, space.starts, offsets)
     env = envelope(sweeps, thickness)
-    first = space.starts[0]  # the stage's state before the sweeps: the model's own initial state
-    model = replace(model, initial=first if first != "previous" else "depoled")  # type: ignore[arg-type]
     errors = tuple(_error(s.path or s.name, s, u, settings.window_s, start, float(off))
                    for s, u, start, off in zip(sweeps, predicted, space.starts, offsets,
                                                strict=True))

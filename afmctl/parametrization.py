@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -191,6 +191,14 @@ def hysteresis(theta: FloatArray, fields: Sequence[FloatArray], n_coercive: int,
 
 
 QCache = dict[tuple[bytes, int, tuple[str, ...]], tuple[FloatArray, hy.PolarizationState]]
+
+
+def with_initial(model: td.Transducer, starts: Sequence[str]) -> td.Transducer:
+    """``model`` with its initial state (:attr:`afmctl.transducer.Transducer.initial`) the
+    start of the first sweep (depoled if that start is unknown, ``previous``): where the stage was
+    before the sweeps it was fitted to, so that track and learning start from it too."""
+    first = starts[0] if starts else "depoled"
+    return replace(model, initial=first if first != "previous" else "depoled")  # type: ignore[arg-type]
 
 
 def run_from(pol: hy.Polarization, fields: Sequence[FloatArray], starts: Sequence[str] | None,
@@ -360,7 +368,7 @@ class LognormalSpace:
         return min(cands, key=cost)
 
     def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
-        return to_model(np.exp(x), beta, self.scales, thickness_um)
+        return with_initial(to_model(np.exp(x), beta, self.scales, thickness_um), self.starts)
 
 
 @dataclass(frozen=True)
@@ -463,4 +471,5 @@ class DiscreteSpace:
         dens = hy.Discrete(tuple(self.nodes), tuple(float(v) for v in c / r / cells))
         std, fn, zeta = np.exp(x[k:])
         pol = hy.Polarization(1.0, 1.0, dens, hy.Normal(float(std)))
-        return build_model(pol, r, fn, zeta, beta, self.scales, thickness_um)
+        return with_initial(build_model(pol, r, fn, zeta, beta, self.scales, thickness_um),
+                            self.starts)

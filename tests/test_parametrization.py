@@ -69,3 +69,22 @@ def test_closed_form_oscillator_discretization_equals_the_matrix_exponential(
     new = pz.unit_oscillator_zoh(fn, zeta, dt)
     np.testing.assert_allclose(new.phi, ref.phi, rtol=1e-12, atol=1e-14 * np.abs(ref.phi).max())
     np.testing.assert_allclose(new.gamma, ref.gamma, rtol=1e-12)
+
+
+@pytest.mark.parametrize(("starts", "initial"), [(("positive", "previous"), "positive"),
+                                                 (("negative",), "negative"),
+                                                 (("previous",), "depoled"), ((), "depoled")])
+def test_every_space_gives_its_model_the_first_sweeps_start(starts: tuple[str, ...],
+                                                             initial: str) -> None:
+    """identify and diagnose build models through the spaces: each model starts where its
+    sweeps did (track and learning start from Transducer.initial)."""
+    v = sw.triangle(5.58, 150.0, 1, 2000.0)
+    prep = pz.prepare(sw.from_arrays(v, 0.1 * v, 2000.0), 100.0, 0.0, None)
+    preps = [prep] * max(len(starts), 1)
+    theta = np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25])
+    beta = np.array([25.7, 0.4, 0.0])
+    lognormal = pz.LognormalSpace(preps, pz.Scales(), 64, starts or None)
+    discrete, x0 = pz.DiscreteSpace.around(theta, preps, pz.Scales(), 16, 0.0, 25.7,
+                                           starts or None)
+    assert lognormal.model(np.log(theta), beta, 100.0).initial == initial
+    assert discrete.model(x0, beta, 100.0).initial == initial
