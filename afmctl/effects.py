@@ -10,10 +10,12 @@ and writes them into a model file (``[effects.*]``), and ``afmctl track`` invert
 Chain of one run, sample period ``dt`` (all units: V, um, s, Hz):
 
 1. ``voltage_gain``: the stack sees ``g v_cmd`` with ``g = 1 + N(0, sigma)`` drawn once per run;
-2. ``amplifier_lag``: first order, exact ZOH, ``v[k] = a v[k-1] + (1 - a) g v_cmd[k]``,
-   ``a = exp(-2 pi f_a dt)``; or second order (``v'' + 2 zeta w v' + w^2 v = w^2 g v_cmd``,
-   ``w = 2 pi f_a``, the same ZOH convention); either with its own slew limit (the output moves
-   at most ``S dt`` per sample: an amplifier's current limit into the stack's capacitance);
+2. ``amplifier_lag``: first order (``v' = w (g v_cmd - v)``) or second order
+   (``v'' + 2 zeta w v' + w^2 v = w^2 g v_cmd``), ``w = 2 pi f_a``, each command held over its
+   sample (exact ZOH); the stack sees the output's mean over each sample (what the rod's ZOH
+   model takes as held). Either with its own slew limit ``S``: the output rate saturates
+   smoothly, ``v' = d / sqrt(1 + (d / S)^2)`` for the drive ``d`` the linear amplifier would
+   slew at (an output stage's current limit into the stack's capacitance, reached gradually);
 3. the transducer (the paper's model) gives the rod displacement ``u``;
 4. ``second_mode``: ``x'' + 2 zeta w x' + w^2 x = w^2 gain u``, ``w = 2 pi f_2``; ``w = u + x``;
 5. ``sensor_nonlinearity``: the gauge reads ``w + c w^2 + c3 w^3``;
@@ -95,7 +97,11 @@ class Effects:
 
 @dataclass(frozen=True)
 class Chain:
-    """:class:`Effects` prepared for one sample period: filter coefficients."""
+    """:class:`Effects` prepared for one sample period: filter coefficients.
+
+    ``amp_ad``, ``amp_bd``: the amplifier's state ``(v, r)`` from one sample instant to the next
+    under a held command; ``amp_ca``, ``amp_da``: the mean output over that interval (exact ZOH,
+    the linear amplifier)."""
 
     effects: Effects
     dt: float
@@ -104,16 +110,12 @@ class Chain:
     mode_a: FloatArray
     amp_ad: FloatArray
     amp_bd: FloatArray
+    amp_ca: FloatArray
+    amp_da: float
 
     @property
     def has_amplifier(self) -> bool:
         return self.effects.amplifier_bandwidth_hz is not None
-
-    @property
-    def amp_simple(self) -> bool:
-        """A first-order amplifier without slew limit (an exact linear filter)."""
-        e = self.effects
-        return e.amplifier_damping_ratio is None and e.amplifier_slew_v_per_s is None
 
     @property
     def has_mode(self) -> bool:
@@ -131,16 +133,28 @@ class Chain:
         return math.ceil(d) + 1 if d > 0 else 0
 
 
-def _amplifier_ss(effects: Effects, lag_a: float, dt: float) -> tuple[FloatArray, FloatArray]:
-    """State update ``x[k] = Ad x[k-1] + Bd v_cmd[k]`` of the amplifier, ``x = (v, v')``."""
+def _amplifier_matrix(effects: Effects) -> tuple[FloatArray, FloatArray]:
+    """Continuous ``(A, B)`` of the linear amplifier on the state ``(v, r)``: ``v' = r``,
+    ``r' = w^2 (u - v) - 2 zeta w r``; a first order (``v' = w (u - v)``) keeps ``r = 0``."""
+    w = 2 * math.pi * float(effects.amplifier_bandwidth_hz or 0.0)
     zeta = effects.amplifier_damping_ratio
-    if effects.amplifier_bandwidth_hz is None or zeta is None:
-        return np.array([[lag_a, 0.0], [0.0, 0.0]]), np.array([1.0 - lag_a, 0.0])
-    w = 2 * math.pi * effects.amplifier_bandwidth_hz
-    m = np.zeros((3, 3))
-    m[0, 1], m[1, 0], m[1, 1], m[1, 2] = 1.0, -w * w, -2 * zeta * w, w * w
+    if zeta is None:
+        return np.array([[-w, 0.0], [0.0, 0.0]]), np.array([w, 0.0])
+    return np.array([[0.0, 1.0], [-w * w, -2 * zeta * w]]), np.array([0.0, w * w])
+
+
+def _amplifier_ss(effects: Effects, dt: float) -> tuple[FloatArray, FloatArray, FloatArray,
+                                                        float]:
+    """Exact ZOH of the linear amplifier over ``dt``: ``x[k+1] = Ad x[k] + Bd u[k]`` and the mean
+    output over the interval ``Ca x[k] + Da u[k]`` (one matrix exponential of the system
+    augmented with the held input and the output's integral)."""
+    if effects.amplifier_bandwidth_hz is None:
+        return np.eye(2), np.zeros(2), np.array([1.0, 0.0]), 0.0
+    a, b = _amplifier_matrix(effects)
+    m = np.zeros((4, 4))
+    m[:2, :2], m[:2, 2], m[3, 0] = a, b, 1.0
     e = linalg.expm(m * dt)
-    return e[:2, :2], e[:2, 2]
+    return e[:2, :2], e[:2, 2], e[3, :2] / dt, float(e[3, 2] / dt)
 
 
 def compile_chain(effects: Effects, dt: float) -> Chain:
@@ -154,71 +168,124 @@ def compile_chain(effects: Effects, dt: float) -> Chain:
         bd, ad, _ = signal.cont2discrete(([m.gain * w * w], [1.0, 2 * m.damping_ratio * w, w * w]),
                                          dt, method="zoh")
         b, a = np.ravel(bd), np.asarray(ad, dtype=float)
-    return Chain(effects, dt, lag_a, b, a, *_amplifier_ss(effects, lag_a, dt))
+    return Chain(effects, dt, lag_a, b, a, *_amplifier_ss(effects, dt))
+
+
+#: Most integration substeps per sample of a slew-limited amplifier; an amplifier that would need
+#: more is so fast against the sample rate that its slew limit is treated as linear (its lag,
+#: which the limit lengthens, is far below a sample).
+MAX_SUBSTEPS = 48
 
 
 @nb.njit(cache=True)
-def _amplify(ad: FloatArray, bd: FloatArray, v: FloatArray, v0: float, max_step: float,
-             rate: float) -> FloatArray:  # pragma: no cover - compiled
+def _linear(ad: FloatArray, bd: FloatArray, ca: FloatArray, da: float, v: FloatArray,
+            x0: float, x1: float) -> tuple[FloatArray, float]:  # pragma: no cover - compiled
     y = np.empty(v.size)
-    x0, x1 = v0, 0.0
     for k in range(v.size):
-        n0 = ad[0, 0] * x0 + ad[0, 1] * x1 + bd[0] * v[k]
-        n1 = ad[1, 0] * x0 + ad[1, 1] * x1 + bd[1] * v[k]
-        if n0 - x0 > max_step:
-            n0, n1 = x0 + max_step, rate
-        elif x0 - n0 > max_step:
-            n0, n1 = x0 - max_step, -rate
-        x0, x1 = n0, n1
-        y[k] = x0
-    return y
+        y[k] = ca[0] * x0 + ca[1] * x1 + da * v[k]
+        x0, x1 = (ad[0, 0] * x0 + ad[0, 1] * x1 + bd[0] * v[k],
+                  ad[1, 0] * x0 + ad[1, 1] * x1 + bd[1] * v[k])
+    return y, x0
+
+
+@nb.njit(cache=True)
+def _slope(v: float, r: float, u: float, w: float, zeta: float, second: bool,
+           slew: float) -> tuple[float, float]:  # pragma: no cover - compiled
+    drive = r if second else w * (u - v)
+    q = drive / slew
+    dv = drive / math.sqrt(1.0 + q * q)
+    dr = w * w * (u - v) - 2.0 * zeta * w * r if second else 0.0
+    return dv, dr
+
+
+@nb.njit(cache=True)
+def _slewed(v: FloatArray, v0: float, w: float, zeta: float, second: bool, slew: float,
+            dt: float, n_sub: int) -> tuple[FloatArray, float]:  # pragma: no cover - compiled
+    y = np.empty(v.size)
+    x, r, h = v0, 0.0, dt / n_sub
+    for k in range(v.size):
+        u, area = v[k], 0.0
+        for _ in range(n_sub):  # RK4 on (v, r, integral of v)
+            a0, b0 = _slope(x, r, u, w, zeta, second, slew)
+            a1, b1 = _slope(x + 0.5 * h * a0, r + 0.5 * h * b0, u, w, zeta, second, slew)
+            a2, b2 = _slope(x + 0.5 * h * a1, r + 0.5 * h * b1, u, w, zeta, second, slew)
+            a3, b3 = _slope(x + h * a2, r + h * b2, u, w, zeta, second, slew)
+            area += h * x + h * h / 6.0 * (a0 + a1 + a2)
+            x += h / 6.0 * (a0 + 2.0 * a1 + 2.0 * a2 + a3)
+            r += h / 6.0 * (b0 + 2.0 * b1 + 2.0 * b2 + b3)
+        y[k] = area / dt
+    return y, x
+
+
+def _substeps(effects: Effects, dt: float) -> int:
+    """RK4 substeps per sample for the slew-limited amplifier (0: too fast, treat as linear)."""
+    w = 2 * math.pi * float(effects.amplifier_bandwidth_hz or 0.0)
+    stiff = w * dt * max(1.0, 2.0 * (effects.amplifier_damping_ratio or 0.5))
+    n = max(1, math.ceil(stiff / 0.5))
+    return n if n <= MAX_SUBSTEPS else 0
 
 
 def lag(chain: Chain, v: FloatArray, v_prev: float) -> tuple[FloatArray, float]:
-    """Amplifier output for commanded ``v`` (V), from rest at output ``v_prev``; returns (v, last).
+    """Voltage on the stack (V) during each sample for commanded ``v`` (V), each command held
+    over its sample: the amplifier's mean output over the interval (the rod's ZOH input), from
+    rest at output ``v_prev``. Returns the voltages and the output at the end.
 
-    A second-order amplifier starts at rest (no rate) on every call: call it once per run."""
+    With a slew limit ``S`` the output moves at ``v' = d / sqrt(1 + (d / S)^2)`` for a drive
+    ``d`` (the rate the linear amplifier would have): a smooth current limit, linear for
+    ``|d| << S``, never faster than ``S``. A second-order amplifier starts at rest (no rate) on
+    every call: call it once per run."""
     v = np.asarray(v, dtype=float)
     if not chain.has_amplifier or v.size == 0:
         return v, float(v[-1]) if v.size else v_prev
-    if chain.amp_simple:
-        a = chain.lag_a
-        y, _ = signal.lfilter([1 - a], [1.0, -a], v, zi=[a * v_prev])
-        return y, float(y[-1])
-    slew = chain.effects.amplifier_slew_v_per_s
-    rate = math.inf if slew is None else slew
-    y = _amplify(chain.amp_ad, chain.amp_bd, v, float(v_prev), rate * chain.dt, rate)
-    return y, float(y[-1])
+    e = chain.effects
+    n_sub = _substeps(e, chain.dt) if e.amplifier_slew_v_per_s is not None else 0
+    if n_sub == 0:
+        return _linear(chain.amp_ad, chain.amp_bd, chain.amp_ca, chain.amp_da, v,
+                       float(v_prev), 0.0)
+    zeta = e.amplifier_damping_ratio
+    return _slewed(v, float(v_prev), 2 * math.pi * float(e.amplifier_bandwidth_hz), zeta or 0.0,
+                   zeta is not None, float(e.amplifier_slew_v_per_s), chain.dt, n_sub)
+
+
+def _rate_drive(rate: FloatArray, slew: float | None) -> FloatArray:
+    """The drive ``d`` whose limited rate (:func:`lag`) is ``rate`` (V/s); rates beyond 99 % of
+    the limit are out of reach and ask for the drive at 99 %."""
+    if slew is None:
+        return rate
+    q = np.clip(rate / slew, -0.99, 0.99)
+    return slew * q / np.sqrt(1 - q * q)
 
 
 def unlag_limited(chain: Chain, v_app: FloatArray, v_prev: float, max_step: float) -> FloatArray:
-    """Commands (V) whose amplifier output follows ``v_app`` as closely as steps of at most
-    ``max_step`` (V per sample) allow: the exact inverse of :func:`lag` sample by sample, each
-    step clamped, the amplifier state following the clamped command (so it catches up after a
-    corner). With an unbounded ``max_step`` it is the exact inverse.
+    """Commands (V) whose amplifier output (:func:`lag`) follows ``v_app`` as closely as steps of
+    at most ``max_step`` (V per sample) allow, each step clamped.
 
-    A second-order amplifier is inverted in continuous time, ``v + 2 zeta v' / w + v'' / w^2`` of
-    the target (central differences; the target is known in advance) half a sample back (the
-    middle of the held command's interval), each step clamped: not
-    exact, but free of the sampled inverse's ringing (its zero near -1)."""
+    The amplifier is inverted in continuous time on the target (known in advance; central
+    differences): ``v + d / w`` for a first order, ``v + (d' + 2 zeta w d) / w^2`` for a second,
+    with ``d`` the drive that gives the target's rate through the slew limit (``d = v'`` without
+    one). ``v_app[k]`` is the mean over sample ``k``'s interval, so the command held over it is
+    the inverse at its middle, i.e. at ``k``. A first order without slew limit is inverted
+    exactly, sample by sample (the amplifier state following the clamped command, so it
+    catches up after a corner)."""
     v_app = np.asarray(v_app, dtype=float)
     if not chain.has_amplifier:
         return v_app
-    zeta = chain.effects.amplifier_damping_ratio
-    if zeta is not None:
-        w = 2 * math.pi * float(chain.effects.amplifier_bandwidth_hz)  # type: ignore[arg-type]
+    e = chain.effects
+    zeta = e.amplifier_damping_ratio
+    if zeta is not None or e.amplifier_slew_v_per_s is not None:
+        w = 2 * math.pi * float(e.amplifier_bandwidth_hz)  # type: ignore[arg-type]
         padded = np.concatenate(([v_prev], v_app, v_app[-1:]))
-        d1 = np.gradient(padded, chain.dt)
-        ideal = padded + 2 * zeta * d1 / w + np.gradient(d1, chain.dt) / (w * w)
-        # the command held over (k-1, k] is the continuous inverse at its middle
-        return _clamp_steps(0.5 * (ideal[1:-1] + ideal[:-2]), v_prev, max_step)
-    a = chain.lag_a
+        drive = _rate_drive(np.gradient(padded, chain.dt), e.amplifier_slew_v_per_s)
+        ideal = padded + (drive / w if zeta is None
+                          else (np.gradient(drive, chain.dt) + 2 * zeta * w * drive) / (w * w))
+        return _clamp_steps(ideal[1:-1], v_prev, max_step)
+    a, c = chain.lag_a, float(chain.amp_ca[0])  # mean over a sample: c x[k] + (1 - c) v[k]
     out = np.empty_like(v_app)
-    cmd = out_prev = v_prev
+    cmd = x = v_prev
     for k, target in enumerate(v_app):
-        ideal = (target - a * out_prev) / (1 - a)
+        ideal = (target - c * x) / (1 - c)
         cmd = min(max(ideal, cmd - max_step), cmd + max_step)
-        out_prev = a * out_prev + (1 - a) * cmd
+        x = a * x + (1 - a) * cmd
         out[k] = cmd
     return out
 

@@ -32,6 +32,7 @@ from scipy import optimize
 
 from afmctl import effects as fx
 from afmctl import hysteresis as hy
+from afmctl import identify as idf
 from afmctl import parametrization as pz
 from afmctl import transducer as td
 
@@ -42,8 +43,9 @@ NAMES = ("none", "thermal-relaxation", "amplifier-lag", "sensor-delay", "sensor-
 INPUT_SIDE = ("thermal-relaxation", "amplifier-lag", "voltage-gain-drift")
 #: ``Q`` of this many recent parameter sets is remembered (:meth:`ExtendedSpace._q`).
 MEMO = 12
-#: An amplifier slew limit this many times the data's fastest field rate is out of reach (off).
-SLEW_OFF = 3.0
+#: An amplifier slew limit this many times the data's fastest field rate is out of reach (off):
+#: the smooth limit of :func:`afmctl.effects.lag` lengthens the lag there by under 0.1 %.
+SLEW_OFF = 30.0
 #: Grid of the thermal kernel, in the fit and in the extended model (N_i x N_j hysterons).
 THERMAL_GRID = (64, 48)
 
@@ -52,13 +54,16 @@ THERMAL_GRID = (64, 48)
 class Candidate:
     """One candidate: its extra parameters' names, starting values and bounds (internal units).
 
-    ``starts[0]`` is the effect switched off (the base model)."""
+    ``starts[0]`` is the effect switched off (the base model). ``free_rod``: the effect alters
+    what the base model's rod absorbed (an amplifier's lag is partly taken up by a slower, more
+    damped rod), so the multi-start moves the rod with the effect."""
 
     name: str
     labels: tuple[str, ...]
     starts: tuple[tuple[float, ...], ...]
     lower: tuple[float, ...]
     upper: tuple[float, ...]
+    free_rod: bool = False
 
     @property
     def n_params(self) -> int:
@@ -77,7 +82,8 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
     ``voltage-gain-drift`` needs two sweeps.
 
     The amplifier is of second order (a first order is its overdamped limit) with a slew limit
-    that starts either out of reach (``SLEW_OFF`` times the fastest rate) or just below it."""
+    that starts either out of reach (``SLEW_OFF`` times the fastest rate) or at 1.5 times it
+    (the smooth limit then lengthens the fastest ramp's lag by a third)."""
     lf, ln = math.log, math.log(nyquist_hz)
     slew_off = lf(SLEW_OFF * rate_max)
     cands = [
@@ -90,8 +96,9 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
         Candidate("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio", "log_slew_MV_per_m_s"),
                   ((ln + 2.9, lf(0.7), slew_off),)  # far beyond the data: the base model
                   + tuple((lf(f * rod_hz), lf(0.7), slew) for f in (0.3, 1.0, 3.0)
-                          for slew in (slew_off, lf(0.7 * rate_max))) + ((ln, lf(0.7), slew_off),),
-                  (lf(1.0), lf(0.05), lf(0.05 * rate_max)), (ln + 3, lf(10.0), slew_off + 1e-6)),
+                          for slew in (slew_off, lf(1.5 * rate_max))) + ((ln, lf(0.7), slew_off),),
+                  (lf(1.0), lf(0.05), lf(0.3 * rate_max)), (ln + 3, lf(10.0), slew_off + 1e-6),
+                  free_rod=True),
         Candidate("sensor-delay", ("delay_fastest_samples",),
                   ((0.0,), (0.5,), (2.0,), (5.0,), (10.0,), (25.0,)), (0.0,), (60.0,)),
         Candidate("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
@@ -280,6 +287,18 @@ class ExtendedSpace:
         return ExtendedSpace(self.candidate, preps, base, self.step_rel, self.range_um,
                              self.dt_min)
 
+    def with_starts(self, starts: Sequence[str]) -> ExtendedSpace:
+        """The same candidate with other initial hysteresis states (one per sweep)."""
+        return ExtendedSpace(self.candidate, self.preps, self.base.with_starts(starts),
+                             self.step_rel, self.range_um, self.dt_min)
+
+    def through(self, phi: FloatArray) -> pz.LognormalSpace:
+        """The base model's space on the fields the hysteresis sees with the input-side effect
+        ``phi`` (the amplifier's output): the paper's model fitted through the effect."""
+        preps = [replace(p, field=e, keep=keep)
+                 for p, (e, keep) in zip(self.preps, self._fields(phi), strict=True)]
+        return pz.LognormalSpace(preps, self.base.scales, self.base.n_coercive, self.base.starts)
+
     def residual(self, z: FloatArray) -> FloatArray:
         a, y = self.system(z)
         return pz.project(a, y)[1]
@@ -333,16 +352,44 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
     return {}
 
 
+def _rebase(space: ExtendedSpace, z: FloatArray, lo: FloatArray, hi: FloatArray,
+            max_nfev: int) -> tuple[ExtendedSpace, FloatArray]:
+    """``x`` refitted with the effect of ``z`` held, as identify fits the paper's model on the
+    fields the effect makes (each sweep's start re-chosen at the result, and refitted if one
+    changed): the base fit had distorted ``x`` and the starts to absorb the effect."""
+    n_x = z.size - space.candidate.n_params
+    base = space.through(z[n_x:])
+    w = np.repeat(space.weights, [int(p.mask.sum()) for p in space.preps])
+    y = np.concatenate([p.y for p in base.preps])
+
+    def solve(b: pz.LognormalSpace, x0: FloatArray) -> FloatArray:
+        def res(x: FloatArray) -> FloatArray:
+            return pz.project(w[:, None] * b.design(x), w * y)[1]
+        return optimize.least_squares(res, x0, bounds=(lo[:n_x], hi[:n_x]), diff_step=1e-6,
+                                      max_nfev=max_nfev).x
+
+    x = solve(base, z[:n_x])
+    chosen = idf.choose_starts(base, x, y)
+    if chosen.starts != base.starts:
+        x = solve(chosen, x)
+    return space.with_starts(chosen.starts), np.concatenate((x, z[n_x:]))
+
+
 def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
-        max_nfev: int, n_starts: int = 1) -> Extended:
-    """Fit ``(x, phi)`` from the base parameters ``x_base``.
+        max_nfev: int, n_starts: int = 1) -> tuple[Extended, ExtendedSpace]:
+    """Fit ``(x, phi)`` from the base parameters ``x_base``; returns the fit and its space (the
+    initial hysteresis states it chose).
 
     Multi-start on the effect alone: from each of the ``n_starts`` best of the candidate's starting
-    ``phi`` (by cost) a short least-squares run moves ``phi`` with the base model held (a
-    Jacobian of a few columns); the best of those then starts the joint fit of ``(x, phi)``. The
-    base model is in every candidate's family, so its own cost bounds the result's."""
+    ``phi`` (by cost) a short least-squares run moves ``phi`` (and the rod's two parameters, for
+    a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
+    columns); the best of those then starts the joint fit of ``(x, phi)``. An input-side
+    candidate with ``free_rod`` (the amplifier) first refits ``x`` and the starts through its
+    effect (:func:`_rebase`). The base model is in every candidate's family, so its own cost
+    bounds the result's."""
     lo, hi = space.bounds()
     n_x = x_base.size
+    n_held = 4 if space.candidate.free_rod else n_x
 
     def clip(z: FloatArray) -> FloatArray:
         return np.clip(z, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
@@ -350,21 +397,24 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     def cost(z: FloatArray) -> float:
         return float(np.sum(space.residual(z) ** 2))
 
-    def with_phi(phi: FloatArray) -> FloatArray:
-        return space.residual(np.concatenate((x_base, phi)))
+    def with_free(v: FloatArray) -> FloatArray:
+        return space.residual(np.concatenate((x_base[:n_held], v)))
 
     starts = [clip(np.concatenate((x_base, s))) for s in space.candidate.starts]
     ranked = sorted(starts, key=cost)[:max(n_starts, 1)]
     nfev = len(starts)
     if n_x < ranked[0].size:
-        runs = [optimize.least_squares(with_phi, z0[n_x:], bounds=(lo[n_x:], hi[n_x:]),
+        runs = [optimize.least_squares(with_free, z0[n_held:], bounds=(lo[n_held:], hi[n_held:]),
                                        diff_step=1e-6, max_nfev=max_nfev // 2) for z0 in ranked]
         nfev += sum(r.nfev for r in runs)
         best = min(runs, key=lambda r: float(r.cost))
-        ranked = [clip(np.concatenate((x_base, best.x)))]
+        ranked = [clip(np.concatenate((x_base[:n_held], best.x)))]
+        if space.candidate.free_rod and space.candidate.name in INPUT_SIDE:
+            space, z = _rebase(space, ranked[0], lo, hi, max_nfev)
+            ranked = [clip(z)]
     sol = optimize.least_squares(space.residual, ranked[0], bounds=(lo, hi), diff_step=1e-6,
                                  max_nfev=max_nfev)
     model, gains, offsets = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
                     bool(sol.success and sol.status > 0), nfev + int(sol.nfev), sol.x,
-                    space.base.starts, offsets, pz.project(*space.system(sol.x))[0])
+                    space.base.starts, offsets, pz.project(*space.system(sol.x))[0]), space
