@@ -33,6 +33,7 @@ from scipy import optimize
 from afmctl import effects as fx
 from afmctl import hysteresis as hy
 from afmctl import identify as idf
+from afmctl import noise as ns
 from afmctl import parametrization as pz
 from afmctl import transducer as td
 
@@ -56,7 +57,9 @@ class Candidate:
 
     ``starts[0]`` is the effect switched off (the base model). ``free_rod``: the effect alters
     what the base model's rod absorbed (an amplifier's lag is partly taken up by a slower, more
-    damped rod), so the multi-start moves the rod with the effect."""
+    damped rod), so the multi-start moves the rod with the effect, and its best run is run again
+    with its last parameter at each other value the starts give it (a switch: the amplifier's
+    slew limit off or on, which a local fit cannot turn)."""
 
     name: str
     labels: tuple[str, ...]
@@ -352,31 +355,25 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
     return {}
 
 
-def _rebase(space: ExtendedSpace, z: FloatArray, lo: FloatArray, hi: FloatArray,
-            max_nfev: int) -> tuple[ExtendedSpace, FloatArray]:
-    """``x`` refitted with the effect of ``z`` held, as identify fits the paper's model on the
-    fields the effect makes (each sweep's start re-chosen at the result, and refitted if one
-    changed): the base fit had distorted ``x`` and the starts to absorb the effect."""
+def _rebase(space: ExtendedSpace, z: FloatArray,
+            settings: idf.Settings) -> tuple[ExtendedSpace, FloatArray]:
+    """``x`` and each sweep's start identified afresh with the effect of ``z`` held: identify's
+    global fit (its grid of starting points, restarts while a sweep stays off its noise) on the
+    fields the effect makes. The base fit had distorted ``x`` and the starts to absorb the
+    effect (a rod slowed to a third of its resonance under a strong amplifier lag), too far for
+    a local fit to come back from."""
     n_x = z.size - space.candidate.n_params
     base = space.through(z[n_x:])
-    w = np.repeat(space.weights, [int(p.mask.sum()) for p in space.preps])
-    y = np.concatenate([p.y for p in base.preps])
-
-    def solve(b: pz.LognormalSpace, x0: FloatArray) -> FloatArray:
-        def res(x: FloatArray) -> FloatArray:
-            return pz.project(w[:, None] * b.design(x), w * y)[1]
-        return optimize.least_squares(res, x0, bounds=(lo[:n_x], hi[:n_x]), diff_step=1e-6,
-                                      max_nfev=max_nfev).x
-
-    x = solve(base, z[:n_x])
-    chosen = idf.choose_starts(base, x, y)
-    if chosen.starts != base.starts:
-        x = solve(chosen, x)
-    return space.with_starts(chosen.starts), np.concatenate((x, z[n_x:]))
+    noise = np.array([max(ns.sensor_noise_um(p.y), 1e-12) for p in base.preps])
+    prob = idf.Problem((), base.preps, np.concatenate([p.y for p in base.preps]), noise,
+                       settings, lambda _m: None)
+    found, sol, _ = idf.global_fit(prob)
+    return space.with_starts(found.starts), np.concatenate((sol.x, z[n_x:]))
 
 
 def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
-        max_nfev: int, n_starts: int = 1) -> tuple[Extended, ExtendedSpace]:
+        max_nfev: int, n_starts: int = 1,
+        identify: idf.Settings | None = None) -> tuple[Extended, ExtendedSpace]:
     """Fit ``(x, phi)`` from the base parameters ``x_base``; returns the fit and its space (the
     initial hysteresis states it chose).
 
@@ -384,9 +381,9 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     ``phi`` (by cost) a short least-squares run moves ``phi`` (and the rod's two parameters, for
     a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
     columns); the best of those then starts the joint fit of ``(x, phi)``. An input-side
-    candidate with ``free_rod`` (the amplifier) first refits ``x`` and the starts through its
-    effect (:func:`_rebase`). The base model is in every candidate's family, so its own cost
-    bounds the result's."""
+    candidate with ``free_rod`` (the amplifier) first identifies ``x`` and the starts afresh
+    through its effect (:func:`_rebase`, with the ``identify`` settings). The base model is in
+    every candidate's family, so its own cost bounds the result's."""
     lo, hi = space.bounds()
     n_x = x_base.size
     n_held = 4 if space.candidate.free_rod else n_x
@@ -406,11 +403,17 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     if n_x < ranked[0].size:
         runs = [optimize.least_squares(with_free, z0[n_held:], bounds=(lo[n_held:], hi[n_held:]),
                                        diff_step=1e-6, max_nfev=max_nfev // 2) for z0 in ranked]
-        nfev += sum(r.nfev for r in runs)
         best = min(runs, key=lambda r: float(r.cost))
+        if space.candidate.free_rod:  # the switch (the slew limit) tried the other way too
+            other = {s[-1] for s in space.candidate.starts} - {float(best.x[-1])}
+            runs += [optimize.least_squares(
+                with_free, np.concatenate((best.x[:-1], [v])), bounds=(lo[n_held:], hi[n_held:]),
+                diff_step=1e-6, max_nfev=max_nfev // 2) for v in sorted(other)]
+            best = min(runs, key=lambda r: float(r.cost))
+        nfev += sum(r.nfev for r in runs)
         ranked = [clip(np.concatenate((x_base[:n_held], best.x)))]
         if space.candidate.free_rod and space.candidate.name in INPUT_SIDE:
-            space, z = _rebase(space, ranked[0], lo, hi, max_nfev)
+            space, z = _rebase(space, ranked[0], identify or idf.Settings())
             ranked = [clip(z)]
     sol = optimize.least_squares(space.residual, ranked[0], bounds=(lo, hi), diff_step=1e-6,
                                  max_nfev=max_nfev)

@@ -366,7 +366,7 @@ Space = pz.LognormalSpace | pz.DiscreteSpace
 
 
 @dataclass
-class _Problem:
+class Problem:
     """The sweeps prepared for the residual, their stacked measurements and noise floors."""
 
     sweeps: Sequence[Sweep]
@@ -395,7 +395,7 @@ def _cost(space: Space, y: FloatArray, x: FloatArray) -> float:
     return float(np.sum(_residual_fn(space, y)(x) ** 2))
 
 
-def _solve(space: Space, x0: FloatArray, prob: _Problem) -> optimize.OptimizeResult:
+def _solve(space: Space, x0: FloatArray, prob: Problem) -> optimize.OptimizeResult:
     lo, hi = space.bounds()
     x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
     sol = optimize.least_squares(_residual_fn(space, prob.y), x0, bounds=(lo, hi),
@@ -446,7 +446,7 @@ def choose_starts(space: pz.LognormalSpace, x: FloatArray, y: FloatArray,
 
 
 def _round(space: pz.LognormalSpace, x0: FloatArray,
-           prob: _Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult]:
+           prob: Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult]:
     """Solve, re-choose the starts, and solve again if they changed."""
     sol = _solve(space, x0, prob)
     chosen = choose_starts(space, sol.x, prob.y, START_MARGIN * float(np.mean(prob.noise ** 2)))
@@ -456,7 +456,7 @@ def _round(space: pz.LognormalSpace, x0: FloatArray,
     return space, sol
 
 
-def _global(prob: _Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult, int]:
+def global_fit(prob: Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult, int]:
     """The lognormal fit from data-driven starting values; more starts (the next-best distinct
     points of the starting grid) while a sweep stays above :data:`FLOOR` times its noise.
     Returns the best space, solution and the number of restarts."""
@@ -487,7 +487,7 @@ def _global(prob: _Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult,
 
 
 def _discretization_matters(space: pz.LognormalSpace, x: FloatArray, n_c: int,
-                            prob: _Problem) -> bool:
+                            prob: Problem) -> bool:
     """True if the fit's own coercive nodes and ``n_c`` nodes differ, on some sweep, by more than
     :data:`POLISH_SHARE` of its noise in RMS (then the fit is polished with more nodes)."""
     a_fit, a_fine = space.design(x), space.with_starts(space.starts, n_c).design(x)
@@ -566,8 +566,8 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     except ValueError as exc:
         raise FitInputError(str(exc)) from None
     noise = np.array([max(ns.sensor_noise_um(s.displacement_um), 1e-12) for s in sweeps])
-    prob = _Problem(sweeps, preps, np.concatenate([p.y for p in preps]), noise, settings, say)
-    space, sol, restarts = _global(prob)
+    prob = Problem(sweeps, preps, np.concatenate([p.y for p in preps]), noise, settings, say)
+    space, sol, restarts = global_fit(prob)
     ok = sol.success and sol.status > 0
     fields = [p.field[p.keep] for p in preps]
     n_c = n_coercive_for(_model(space, sol.x, prob.y, thickness), fields, starts=space.starts)
