@@ -382,8 +382,9 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
     columns); the best of those then starts the joint fit of ``(x, phi)``. An input-side
     candidate with ``free_rod`` (the amplifier) first identifies ``x`` and the starts afresh
-    through its effect (:func:`_rebase`, with the ``identify`` settings). The base model is in
-    every candidate's family, so its own cost bounds the result's."""
+    through its effect (:func:`_rebase`, with the ``identify`` settings; kept if it lowers the
+    cost). The base model is in every candidate's family, so its own cost bounds the
+    result's."""
     lo, hi = space.bounds()
     n_x = x_base.size
     n_held = 4 if space.candidate.free_rod else n_x
@@ -413,8 +414,9 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
         nfev += sum(r.nfev for r in runs)
         ranked = [clip(np.concatenate((x_base[:n_held], best.x)))]
         if space.candidate.free_rod and space.candidate.name in INPUT_SIDE:
-            space, z = _rebase(space, ranked[0], identify or idf.Settings())
-            ranked = [clip(z)]
+            found, z = _rebase(space, ranked[0], identify or idf.Settings())
+            if float(np.sum(found.residual(clip(z)) ** 2)) < cost(ranked[0]):
+                space, ranked = found, [clip(z)]
     sol = optimize.least_squares(space.residual, ranked[0], bounds=(lo, hi), diff_step=1e-6,
                                  max_nfev=max_nfev)
     model, gains, offsets = space.to_model(sol.x, thickness_um)
