@@ -93,8 +93,7 @@ def test_foreign_amplifier_stage_is_named_and_tracked() -> None:
     track plans with the extended model within the stage's 0-150 V and tracks the stage's true
     position better than with the base model."""
     stage, sweeps, state, _ = bench.make_stage("amplifier-lag", 0.5, 101)
-    d = dg.diagnose(sweeps, dg.Settings(candidates=("none", "amplifier-lag", "sensor-delay",
-                                                     "second-mode")))
+    d = dg.diagnose(sweeps, dg.Settings(candidates=("none", "amplifier-lag", "sensor-delay")))
     assert d.base_over_noise > 5.0, d.evidence()
     assert d.cause == "amplifier-lag", d.evidence()
     assert d.gain > 3.0, d.evidence()
