@@ -167,7 +167,6 @@ class ExtendedSpace:
                  field_step: float, range_um: float, dt_min: float | None = None) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
         self.step_rel = field_step
-        self.step = [field_step * float(np.max(np.abs(p.field))) for p in self.preps]
         self.range_um = range_um
         self.dt_min = dt_min or min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
@@ -180,16 +179,19 @@ class ExtendedSpace:
                 np.concatenate((hi, self.candidate.upper)))
 
     def _fields(self, phi: FloatArray) -> list[tuple[FloatArray, NDArray[np.intp]]]:
-        """Per sweep: the field the hysteresis sees (MV/m, full rate) and the samples kept."""
+        """Per sweep: the field the hysteresis sees (MV/m, full rate) and the samples kept: the
+        command's (its turning points and field steps) and the amplifier output's own turning
+        points. Not re-decimated per ``phi``: samples that jump as ``phi`` moves would make the
+        cost a staircase in ``phi`` that finite differences cannot follow."""
         name, out = self.candidate.name, []
-        for s, (p, step) in enumerate(zip(self.preps, self.step, strict=True)):
+        for s, p in enumerate(self.preps):
             e, keep = p.field, p.keep
             if name == "voltage-gain-drift":
                 e = e * math.exp(_log_gains(phi)[s])
             elif name == "amplifier-lag":
                 chain = fx.compile_chain(self._amplifier(phi, 1.0), p.dt)
                 e = fx.lag(chain, e, float(e[0]))[0]
-                keep = pz.decimation(e, step)
+                keep = np.union1d(keep, pz.turning_points(e))
             out.append((e, keep))
         return out
 
