@@ -57,9 +57,10 @@ class Candidate:
 
     ``starts[0]`` is the effect switched off (the base model). ``free_rod``: the effect alters
     what the base model's rod absorbed (an amplifier's lag is partly taken up by a slower, more
-    damped rod), so the multi-start moves the rod with the effect, and its best run is run again
-    with its last parameter at each other value the starts give it (a switch: the amplifier's
-    slew limit off or on, which a local fit cannot turn)."""
+    damped rod; a sensor's latency by a slower, less damped one), so the multi-start moves the
+    rod with the effect. ``switch``: the last parameter is a switch (the amplifier's slew limit
+    off or on, which a local fit cannot turn): the multi-start's best run is run again with it at
+    each other value the starts give it."""
 
     name: str
     labels: tuple[str, ...]
@@ -67,6 +68,7 @@ class Candidate:
     lower: tuple[float, ...]
     upper: tuple[float, ...]
     free_rod: bool = False
+    switch: bool = False
 
     @property
     def n_params(self) -> int:
@@ -101,9 +103,10 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
                   + tuple((lf(f * rod_hz), lf(0.7), slew) for f in (0.3, 1.0, 3.0)
                           for slew in (slew_off, lf(1.5 * rate_max))) + ((ln, lf(0.7), slew_off),),
                   (lf(1.0), lf(0.05), lf(0.3 * rate_max)), (ln + 3, lf(10.0), slew_off + 1e-6),
-                  free_rod=True),
+                  free_rod=True, switch=True),
         Candidate("sensor-delay", ("delay_fastest_samples",),
-                  ((0.0,), (0.5,), (2.0,), (5.0,), (10.0,), (25.0,)), (0.0,), (60.0,)),
+                  ((0.0,), (0.5,), (2.0,), (5.0,), (10.0,), (25.0,)), (0.0,), (60.0,),
+                  free_rod=True),
         Candidate("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
                   ((0.0, 0.0), (-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)),
                   (-0.3, -0.3), (0.3, 0.3)),
@@ -299,9 +302,14 @@ class ExtendedSpace:
 
     def through(self, phi: FloatArray) -> pz.LognormalSpace:
         """The base model's space on the fields the hysteresis sees with the input-side effect
-        ``phi`` (the amplifier's output): the paper's model fitted through the effect."""
-        preps = [replace(p, field=e, keep=keep)
-                 for p, (e, keep) in zip(self.preps, self._fields(phi), strict=True)]
+        ``phi`` (the amplifier's output), or on the readings a sensor delay ``phi`` had made late
+        advanced back: the paper's model fitted through the effect."""
+        if self.candidate.name == "sensor-delay":
+            preps = [replace(p, y=fx.advance(p.y, float(phi[0]) * self.dt_min / p.dt))
+                     for p in self.preps]
+        else:
+            preps = [replace(p, field=e, keep=keep)
+                     for p, (e, keep) in zip(self.preps, self._fields(phi), strict=True)]
         return pz.LognormalSpace(preps, self.base.scales, self.base.n_coercive, self.base.starts)
 
     def residual(self, z: FloatArray) -> FloatArray:
@@ -359,17 +367,22 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
 
 def _rebase(space: ExtendedSpace, z: FloatArray,
             settings: idf.Settings) -> tuple[ExtendedSpace, FloatArray]:
-    """``x`` and each sweep's start identified afresh with the effect of ``z`` held: identify's
-    global fit (its grid of starting points, restarts while a sweep stays off its noise) on the
-    fields the effect makes. The base fit had distorted ``x`` and the starts to absorb the
-    effect (a rod slowed to a third of its resonance under a strong amplifier lag), too far for
-    a local fit to come back from."""
+    """``x`` and each sweep's start fitted afresh with the effect of ``z`` held
+    (:meth:`ExtendedSpace.through`): the base fit had distorted ``x`` and the starts to absorb
+    the effect (a rod slowed to a third of its resonance under a strong amplifier lag; loops
+    widened by a sensor's latency). Through an amplifier with identify's global fit (its grid of
+    starting points, restarts while a sweep stays off its noise): too far for a local fit to
+    come back from; through a sensor delay with identify's local round from ``x`` (solve,
+    re-choose the starts, solve again if one changed)."""
     n_x = z.size - space.candidate.n_params
     base = space.through(z[n_x:])
     noise = np.array([max(ns.sensor_noise_um(p.y), 1e-12) for p in base.preps])
     prob = idf.Problem((), base.preps, np.concatenate([p.y for p in base.preps]), noise,
                        settings, lambda _m: None)
-    found, sol, _ = idf.global_fit(prob)
+    if space.candidate.name in INPUT_SIDE:
+        found, sol, _ = idf.global_fit(prob)
+    else:
+        found, sol = idf.solve_round(base, z[:n_x], prob)
     return space.with_starts(found.starts), np.concatenate((sol.x, z[n_x:]))
 
 
@@ -382,8 +395,8 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     Multi-start on the effect alone: from each of the ``n_starts`` best of the candidate's starting
     ``phi`` (by cost) a short least-squares run moves ``phi`` (and the rod's two parameters, for
     a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
-    columns); the best of those then starts the joint fit of ``(x, phi)``. An input-side
-    candidate with ``free_rod`` (the amplifier) first identifies ``x`` and the starts afresh
+    columns); the best of those then starts the joint fit of ``(x, phi)``. A candidate with
+    ``free_rod`` (the amplifier, the sensor delay) first fits ``x`` and the starts afresh
     through its effect (:func:`_rebase`, with the ``identify`` settings; kept if it lowers the
     cost). The base model is in every candidate's family, so its own cost bounds the
     result's."""
@@ -407,7 +420,7 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
         runs = [optimize.least_squares(with_free, z0[n_held:], bounds=(lo[n_held:], hi[n_held:]),
                                        diff_step=1e-6, max_nfev=max_nfev // 2) for z0 in ranked]
         best = min(runs, key=lambda r: float(r.cost))
-        if space.candidate.free_rod:  # the switch (the slew limit) tried the other way too
+        if space.candidate.switch:  # the switch (the slew limit) tried the other way too
             other = {s[-1] for s in space.candidate.starts} - {float(best.x[-1])}
             runs += [optimize.least_squares(
                 with_free, np.concatenate((best.x[:-1], [v])), bounds=(lo[n_held:], hi[n_held:]),
@@ -415,7 +428,7 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
             best = min(runs, key=lambda r: float(r.cost))
         nfev += sum(r.nfev for r in runs)
         ranked = [clip(np.concatenate((x_base[:n_held], best.x)))]
-        if space.candidate.free_rod and space.candidate.name in INPUT_SIDE:
+        if space.candidate.free_rod:
             found, z = _rebase(space, ranked[0], identify or idf.Settings())
             if float(np.sum(found.residual(clip(z)) ** 2)) < cost(ranked[0]):
                 space, ranked = found, [clip(z)]

@@ -445,7 +445,7 @@ def choose_starts(space: pz.LognormalSpace, x: FloatArray, y: FloatArray,
     return best
 
 
-def _round(space: pz.LognormalSpace, x0: FloatArray,
+def solve_round(space: pz.LognormalSpace, x0: FloatArray,
            prob: Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult]:
     """Solve, re-choose the starts, and solve again if they changed."""
     sol = _solve(space, x0, prob)
@@ -474,7 +474,7 @@ def global_fit(prob: Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResul
         else:
             restarts += 1
             prob.say(f"restart {k}: " + ", ".join(f"{v:.3g}" for v in np.exp(x0)))
-        space, sol = _round(space, x0, prob)
+        space, sol = solve_round(space, x0, prob)
         ratio = prob.per_sweep(sol.fun)
         prob.say(f"  {sol.message} (status {sol.status}); RMS / noise per sweep "
                  + " / ".join(f"{r:.2f}" for r in ratio))
@@ -574,7 +574,7 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     if n_c > space.n_coercive and _discretization_matters(space, sol.x, n_c, prob):
         n_fit = min(n_c, POLISH_MAX_NODES)
         say(f"polishing with {n_fit} coercive nodes (N_c = {n_c} for < {DISCRETIZATION_UM} um)")
-        space, sol = _round(space.with_starts(space.starts, n_fit), sol.x, prob)
+        space, sol = solve_round(space.with_starts(space.starts, n_fit), sol.x, prob)
         ok = sol.success and sol.status > 0
     final: Space = space
     x_lognormal = sol.x
