@@ -17,7 +17,8 @@ Chain of one run, sample period ``dt`` (all units: V, um, s, Hz):
    smoothly, ``v' = d / sqrt(1 + (d / S)^2)`` for the drive ``d`` the linear amplifier would
    slew at (an output stage's current limit into the stack's capacitance, reached gradually);
 3. the transducer (the paper's model) gives the rod displacement ``u``;
-4. ``second_mode``: ``x'' + 2 zeta w x' + w^2 x = w^2 gain u``, ``w = 2 pi f_2``; ``w = u + x``;
+4. ``second_mode``: ``x'' + 2 zeta w x' + w^2 x = w^2 gain u + 2 w rate_gain u'``,
+   ``w = 2 pi f_2``; ``w = u + x``;
 5. ``sensor_nonlinearity``: the gauge reads ``w + c w^2 + c3 w^3``;
 6. ``sensor_delay``: the recorder holds the reading of ``d = d_samples + d_s / dt`` samples
    earlier (fractional ``d`` by linear interpolation): a latency counted in samples (a digital
@@ -47,12 +48,18 @@ FloatArray = NDArray[np.float64]
 class SecondMode:
     """A second mechanical mode driven by the main displacement.
 
-    ``x'' + 2 zeta w x' + w^2 x = w^2 gain u`` with ``w = 2 pi frequency_hz``; ``x`` (um) is added.
+    ``x'' + 2 zeta w x' + w^2 x = w^2 gain u + 2 w rate_gain u'`` with ``w = 2 pi frequency_hz``;
+    ``x`` (um) is added. The displacement's transfer function is then the rod's times
+    ``(s^2 + 2 (zeta + rate_gain) w s + (1 + gain) w^2) / (s^2 + 2 zeta w s + w^2)``: a pole pair
+    (the mode) and a zero pair (an anti-resonance) of their own frequencies and dampings, as a
+    second mass coupled to the rod's end makes them (its reaction through spring and damper);
+    ``rate_gain = 0`` is a mode driven through a spring alone (a base-excited mode).
     """
 
     frequency_hz: float
     damping_ratio: float
     gain: float
+    rate_gain: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -165,9 +172,13 @@ def compile_chain(effects: Effects, dt: float) -> Chain:
     if effects.second_mode is not None:
         m = effects.second_mode
         w = 2 * math.pi * m.frequency_hz
-        bd, ad, _ = signal.cont2discrete(([m.gain * w * w], [1.0, 2 * m.damping_ratio * w, w * w]),
-                                         dt, method="zoh")
-        b, a = np.ravel(bd), np.asarray(ad, dtype=float)
+        den = [1.0, 2 * m.damping_ratio * w, w * w]
+        # ZOH is linear in the numerator: the spring and the damper terms discretized apart
+        # (a numerator with a vanishing leading term is ill-conditioned for cont2discrete)
+        b_u, ad, _ = signal.cont2discrete(([w * w], den), dt, method="zoh")
+        b_du, _, _ = signal.cont2discrete(([2 * w, 0.0], den), dt, method="zoh")
+        b = m.gain * np.ravel(b_u) + m.rate_gain * np.ravel(b_du)
+        a = np.asarray(ad, dtype=float)
     return Chain(effects, dt, lag_a, b, a, *_amplifier_ss(effects, dt))
 
 

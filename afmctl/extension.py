@@ -12,7 +12,7 @@ name                     phi (internal)                                   acts o
 ``amplifier-lag``        log f_a (Hz), log zeta_a, log S (MV/m/s)          field, before (13)
 ``sensor-delay``         d (samples of the fastest sweep; a time)         design columns
 ``sensor-nonlinearity``  c R, c3 R^2 (1/um, 1/um^2; R the range, um)     measured displacement
-``second-mode``          log f_2 (Hz), log zeta_2, gain                   design columns
+``second-mode``          log f_2 (Hz), log zeta_2, gain, rate gain        design columns
 ``voltage-gain-drift``   log g_s of every sweep but the last (mean 0)     field, per sweep
 =======================  ===============================================  =======================
 
@@ -47,6 +47,8 @@ MEMO = 12
 #: An amplifier slew limit this many times the data's fastest field rate is out of reach (off):
 #: the smooth limit of :func:`afmctl.effects.lag` lengthens the lag there by under 0.1 %.
 SLEW_OFF = 30.0
+#: Candidates whose multi-start result refits the paper's model through the effect (:func:`_rebase`).
+REBASED = ("amplifier-lag", "sensor-delay")
 #: Grid of the thermal kernel, in the fit and in the extended model (N_i x N_j hysterons).
 THERMAL_GRID = (64, 48)
 
@@ -110,13 +112,13 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
         Candidate("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
                   ((0.0, 0.0), (-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)),
                   (-0.3, -0.3), (0.3, 0.3)),
-        Candidate("second-mode", ("log_frequency_Hz", "log_damping_ratio", "gain"),
-                  ((lf(2.0 * rod_hz), lf(0.03), 1e-4),)  # no mode: the base model
-                  + tuple((lf(f * rod_hz), lf(0.03), g) for f in (1.5, 2.2, 3.0, 4.0, 6.0)
+        Candidate("second-mode", ("log_frequency_Hz", "log_damping_ratio", "gain", "rate_gain"),
+                  ((lf(2.0 * rod_hz), lf(0.03), 1e-4, 0.0),)  # no mode: the base model
+                  + tuple((lf(f * rod_hz), lf(0.03), g, 0.0) for f in (1.5, 2.2, 3.0, 4.0, 6.0)
                           for g in (0.1,)
-                        if f * rod_hz < 0.8 * nyquist_hz) or ((ln - 1, lf(0.03), 0.1),),
-                  (lf(min(1.05 * rod_hz, 0.3 * nyquist_hz)), lf(0.002), -0.9),
-                  (ln, lf(0.5), 3.0)),
+                        if f * rod_hz < 0.8 * nyquist_hz) or ((ln - 1, lf(0.03), 0.1, 0.0),),
+                  (lf(min(1.05 * rod_hz, 0.3 * nyquist_hz)), lf(0.002), -0.9, -1.0),
+                  (ln, lf(0.5), 3.0, 1.0), free_rod=True),
     ]
     if n_sweeps >= 2:
         k = n_sweeps - 1
@@ -239,7 +241,7 @@ class ExtendedSpace:
             return fx.Effects(sensor_delay_s=float(phi[0]) * self.dt_min)
         if self.candidate.name == "second-mode":
             return fx.Effects(second_mode=fx.SecondMode(math.exp(phi[0]), math.exp(phi[1]),
-                                                        float(phi[2])))
+                                                        float(phi[2]), float(phi[3])))
         return fx.Effects()
 
     def _amplifier(self, phi: FloatArray, thickness_um: float) -> fx.Effects:
@@ -359,7 +361,8 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
                 "cubic_per_um2": e.sensor_cubic_per_um2}
     if name == "second-mode" and e.second_mode is not None:
         m = e.second_mode
-        return {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio, "gain": m.gain}
+        return {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio, "gain": m.gain,
+                "rate_gain": m.rate_gain}
     if name == "voltage-gain-drift":
         return {f"gain_sweep_{i + 1}": g for i, g in enumerate(gains)}
     return {}
@@ -395,11 +398,10 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     Multi-start on the effect alone: from each of the ``n_starts`` best of the candidate's starting
     ``phi`` (by cost) a short least-squares run moves ``phi`` (and the rod's two parameters, for
     a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
-    columns); the best of those then starts the joint fit of ``(x, phi)``. A candidate with
-    ``free_rod`` (the amplifier, the sensor delay) first fits ``x`` and the starts afresh
-    through its effect (:func:`_rebase`, with the ``identify`` settings; kept if it lowers the
-    cost). The base model is in every candidate's family, so its own cost bounds the
-    result's."""
+    columns); the best of those then starts the joint fit of ``(x, phi)``. The amplifier and the
+    sensor delay (:data:`REBASED`) first fit ``x`` and the starts afresh through their effect
+    (:func:`_rebase`, with the ``identify`` settings; kept if it lowers the cost). The base
+    model is in every candidate's family, so its own cost bounds the result's."""
     lo, hi = space.bounds()
     n_x = x_base.size
     n_held = 4 if space.candidate.free_rod else n_x
@@ -428,7 +430,7 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
             best = min(runs, key=lambda r: float(r.cost))
         nfev += sum(r.nfev for r in runs)
         ranked = [clip(np.concatenate((x_base[:n_held], best.x)))]
-        if space.candidate.free_rod:
+        if space.candidate.name in REBASED:
             found, z = _rebase(space, ranked[0], identify or idf.Settings())
             if float(np.sum(found.residual(clip(z)) ** 2)) < cost(ranked[0]):
                 space, ranked = found, [clip(z)]

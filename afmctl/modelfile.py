@@ -207,6 +207,8 @@ def effects_dict(e: Effects) -> dict[str, Any]:
         m = e.second_mode
         out["second_mode"] = {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio,
                               "gain": m.gain}
+        if m.rate_gain:
+            out["second_mode"]["rate_gain"] = m.rate_gain
     if e.voltage_gain_sigma:
         out["voltage_gain_drift"] = {"sigma": e.voltage_gain_sigma}
     return out
@@ -238,7 +240,7 @@ def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
     th, lag, dly, nl, sm, gd = (t.table(k, required=False) for k in EFFECT_TABLES)
     mode = None if sm is None else SecondMode(sm.number("frequency_Hz", positive=True),
                                               sm.number("damping_ratio", positive=True),
-                                              sm.number("gain"))
+                                              sm.number("gain"), sm.number("rate_gain", 0.0))
     return Effects(
         amplifier_bandwidth_hz=None if lag is None else lag.number("bandwidth_Hz", positive=True),
         amplifier_damping_ratio=_optional(lag, "damping_ratio"),

@@ -143,7 +143,7 @@ def test_track_with_extended_model_beats_base_on_stage_with_effect(
      [math.log(300.0), math.log(0.5), math.log(6e3 / 100.0)], (1.0, 1.0), 5e-3),
     ("sensor-delay", fx.Effects(sensor_delay_s=3e-4), [3.0], (1.0, 1.0), 1e-4),
     ("second-mode", fx.Effects(second_mode=fx.SecondMode(600.0, 0.03, 0.4)),
-     [math.log(600.0), math.log(0.03), 0.4], (1.0, 1.0), 1e-4),
+     [math.log(600.0), math.log(0.03), 0.4, 0.0], (1.0, 1.0), 1e-4),
     ("voltage-gain-drift", fx.Effects(), [-math.log(1.015)], (1 / 1.015, 1.015), 1e-4),
     ("sensor-nonlinearity", fx.Effects(sensor_quadratic_per_um=2e-3, sensor_cubic_per_um2=-2e-5),
      None, (1.0, 1.0), 1e-4),
