@@ -19,7 +19,8 @@ Chain of one run, sample period ``dt`` (all units: V, um, s, Hz):
 3. the transducer (the paper's model) gives the rod displacement ``u``;
 4. ``second_mode``: ``x'' + 2 zeta w x' + w^2 x = w^2 gain u + 2 w rate_gain u'``,
    ``w = 2 pi f_2``; ``w = u + x``;
-5. ``sensor_nonlinearity``: the gauge reads ``w + c w^2 + c3 w^3``;
+5. ``sensor_nonlinearity``: the gauge reads ``w + c v^2 + c3 v^3``, ``v = w - w_c`` about a
+   centre ``w_c`` (um);
 6. ``sensor_delay``: the recorder holds the reading of ``d = d_samples + d_s / dt`` samples
    earlier (fractional ``d`` by linear interpolation): a latency counted in samples (a digital
    pipeline) and one in seconds (the gauge's electronics), the same at any sample rate.
@@ -83,6 +84,10 @@ class Effects:
     sensor_cubic_per_um2 : float
         Its cubic term c3, 1/um^2 (with ``c``, any smooth gauge error to third order about any
         point: the offset and the gain are the model's own).
+    sensor_center_um : float
+        The point ``w_c`` the two terms are taken about, um: the reading is
+        ``w + c (w - w_c)^2 + c3 (w - w_c)^3`` (about the middle of the range the coefficients
+        stay small and independent; about 0, far from the range, they are neither).
     second_mode : SecondMode or None
     voltage_gain_sigma : float
         Applied-voltage gain is ``1 + N(0, sigma)``, drawn once per run. A model cannot know the
@@ -98,6 +103,7 @@ class Effects:
     sensor_delay_s: float = 0.0
     sensor_quadratic_per_um: float = 0.0
     sensor_cubic_per_um2: float = 0.0
+    sensor_center_um: float = 0.0
     second_mode: SecondMode | None = None
     voltage_gain_sigma: float = 0.0
 
@@ -351,7 +357,8 @@ def remove_mode(chain: Chain, w: FloatArray) -> FloatArray:
 def gauge(effects: Effects, w: FloatArray) -> FloatArray:
     """Sensor reading of displacement ``w`` (um)."""
     c, c3 = effects.sensor_quadratic_per_um, effects.sensor_cubic_per_um2
-    return w + c * w * w + c3 * w * w * w if c or c3 else w
+    v = w - effects.sensor_center_um
+    return w + c * v * v + c3 * v * v * v if c or c3 else w
 
 
 #: Newton steps of :func:`ungauge` with a cubic term (quadratic convergence from the quadratic root).
@@ -359,18 +366,21 @@ UNGAUGE_STEPS = 6
 
 
 def ungauge(effects: Effects, y: FloatArray) -> FloatArray:
-    """Displacement (um) whose reading is ``y``: the root of ``w + c w^2 + c3 w^3 = y`` nearest
-    ``y`` (closed form without a cubic term; else Newton from the quadratic's root)."""
-    c, c3 = effects.sensor_quadratic_per_um, effects.sensor_cubic_per_um2
+    """Displacement (um) whose reading is ``y``: ``w_c + v`` with ``v`` the root of
+    ``v + c v^2 + c3 v^3 = y - w_c`` nearest ``y - w_c`` (closed form without a cubic term; else
+    Newton from the quadratic's root)."""
+    c, c3, mid = effects.sensor_quadratic_per_um, effects.sensor_cubic_per_um2, \
+        effects.sensor_center_um
     if not c and not c3:
         return y
-    w = 2.0 * y / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * c * y, 0.0)))
+    t = y - mid
+    w = 2.0 * t / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * c * t, 0.0)))
     if not c3:
-        return w
+        return mid + w
     for _ in range(UNGAUGE_STEPS):
         slope = 1.0 + 2.0 * c * w + 3.0 * c3 * w * w
-        w = w - (w + c * w * w + c3 * w * w * w - y) / np.where(np.abs(slope) > 1e-3, slope, 1e-3)
-    return w
+        w = w - (w + c * w * w + c3 * w * w * w - t) / np.where(np.abs(slope) > 1e-3, slope, 1e-3)
+    return mid + w
 
 
 def delay(x: FloatArray, d: float, history: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -418,7 +428,7 @@ def sensor_part(e: Effects) -> Effects:
     """Only the effects that misreport the position (delay, gauge), not those that move it."""
     return Effects(sensor_delay_samples=e.sensor_delay_samples, sensor_delay_s=e.sensor_delay_s,
                    sensor_quadratic_per_um=e.sensor_quadratic_per_um,
-                   sensor_cubic_per_um2=e.sensor_cubic_per_um2)
+                   sensor_cubic_per_um2=e.sensor_cubic_per_um2, sensor_center_um=e.sensor_center_um)
 
 
 def sensor_correct(chain: Chain, reading_um: FloatArray) -> FloatArray:
