@@ -49,7 +49,7 @@ MEMO = 12
 #: the smooth limit of :func:`afmctl.effects.lag` lengthens the lag there by under 0.1 %.
 SLEW_OFF = 30.0
 #: Candidates whose multi-start result refits the paper's model through the effect (:func:`_rebase`).
-REBASED = ("amplifier-lag", "sensor-delay")
+REBASED = ("amplifier-lag", "sensor-delay", "sensor-nonlinearity")
 #: Grid of the thermal kernel, in the fit and in the extended model (N_i x N_j hysterons).
 THERMAL_GRID = (64, 48)
 
@@ -312,10 +312,13 @@ class ExtendedSpace:
     def through(self, phi: FloatArray) -> pz.LognormalSpace:
         """The base model's space on the fields the hysteresis sees with the input-side effect
         ``phi`` (the amplifier's output), or on the readings a sensor delay ``phi`` had made late
-        advanced back: the paper's model fitted through the effect."""
+        advanced back, or a gauge error ``phi`` undone: the paper's model fitted through the
+        effect."""
         if self.candidate.name == "sensor-delay":
             preps = [replace(p, y=fx.advance(p.y, float(phi[0]) * self.dt_min / p.dt))
                      for p in self.preps]
+        elif self.candidate.name == "sensor-nonlinearity":
+            preps = [replace(p, y=fx.ungauge(self._gauge(phi), p.y)) for p in self.preps]
         else:
             preps = [replace(p, field=e, keep=keep)
                      for p, (e, keep) in zip(self.preps, self._fields(phi), strict=True)]
@@ -380,10 +383,10 @@ def _rebase(space: ExtendedSpace, z: FloatArray,
     """``x`` and each sweep's start fitted afresh with the effect of ``z`` held
     (:meth:`ExtendedSpace.through`): the base fit had distorted ``x`` and the starts to absorb
     the effect (a rod slowed to a third of its resonance under a strong amplifier lag; loops
-    widened by a sensor's latency). Through an amplifier with identify's global fit (its grid of
-    starting points, restarts while a sweep stays off its noise): too far for a local fit to
-    come back from; through a sensor delay with identify's local round from ``x`` (solve,
-    re-choose the starts, solve again if one changed)."""
+    widened by a sensor's latency, bent by a gauge error). Through an amplifier with identify's
+    global fit (its grid of starting points, restarts while a sweep stays off its noise): too
+    far for a local fit to come back from; through a sensor effect with identify's local round
+    from ``x`` (solve, re-choose the starts, solve again if one changed)."""
     n_x = z.size - space.candidate.n_params
     base = space.through(z[n_x:])
     noise = np.array([max(ns.sensor_noise_um(p.y), 1e-12) for p in base.preps])
@@ -406,7 +409,7 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     ``phi`` (by cost) a short least-squares run moves ``phi`` (and the rod's two parameters, for
     a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
     columns); the best of those then starts the joint fit of ``(x, phi)``. The amplifier and the
-    sensor delay (:data:`REBASED`) first fit ``x`` and the starts afresh through their effect
+    sensor effects (:data:`REBASED`) first fit ``x`` and the starts afresh through their effect
     (:func:`_rebase`, with the ``identify`` settings; kept if it lowers the cost). The base
     model is in every candidate's family, so its own cost bounds the result's."""
     lo, hi = space.bounds()
