@@ -204,3 +204,14 @@ def test_sensor_correct_inverts_the_sensor_and_position_adds_the_mode() -> None:
     where = fx.position(chain, u)  # where the stage is: rod plus mode
     np.testing.assert_allclose(fx.sensor_correct(chain, read)[10:-10], where[10:-10], atol=1e-9)
     assert fx.sensor_part(e) == fx.Effects(sensor_delay_samples=3.0, sensor_quadratic_per_um=1e-3)
+
+
+def test_gauge_about_a_centre_is_inverted() -> None:
+    """``w + c (w - w_c)^2 + c3 (w - w_c)^3`` read back by :func:`afmctl.effects.ungauge` over a
+    range centred far from 0 (300-420 um about 360 um; 5 % and 2.7 % errors at the ends)."""
+    e = fx.Effects(sensor_quadratic_per_um=-1.5e-3, sensor_cubic_per_um2=-1.4e-5,
+                   sensor_center_um=360.0)
+    w = np.linspace(300.0, 420.0, 241)
+    reading = w - 1.5e-3 * (w - 360.0) ** 2 - 1.4e-5 * (w - 360.0) ** 3
+    np.testing.assert_allclose(fx.gauge(e, w), reading, rtol=1e-14)
+    np.testing.assert_allclose(fx.ungauge(e, reading), w, atol=1e-9)
