@@ -273,9 +273,12 @@ def _rate_drive(rate: FloatArray, slew: float | None) -> FloatArray:
     return slew * q / np.sqrt(1 - q * q)
 
 
-def unlag_limited(chain: Chain, v_app: FloatArray, v_prev: float, max_step: float) -> FloatArray:
+def unlag_limited(chain: Chain, v_app: FloatArray, v_prev: float, max_step: float,
+                  v_range: tuple[float, float] = (-math.inf, math.inf)) -> FloatArray:
     """Commands (V) whose amplifier output (:func:`lag`) follows ``v_app`` as closely as steps of
-    at most ``max_step`` (V per sample) allow, each step clamped.
+    at most ``max_step`` (V per sample) and the voltage range ``v_range`` (V) allow, each command
+    clamped (an inverse lag leads a corner by overshooting it: near the range's end that
+    overshoot is cut, and the output rounds the corner instead).
 
     The amplifier is inverted in continuous time on the target (known in advance; central
     differences): ``v + d / w`` for a first order, ``v + (d' + 2 zeta w d) / w^2`` for a second,
@@ -295,23 +298,24 @@ def unlag_limited(chain: Chain, v_app: FloatArray, v_prev: float, max_step: floa
         drive = _rate_drive(np.gradient(padded, chain.dt), e.amplifier_slew_v_per_s)
         ideal = padded + (drive / w if zeta is None
                           else (np.gradient(drive, chain.dt) + 2 * zeta * w * drive) / (w * w))
-        return _clamp_steps(ideal[1:-1], v_prev, max_step)
+        return _clamp_steps(ideal[1:-1], v_prev, max_step, v_range)
     a, c = chain.lag_a, float(chain.amp_ca[0])  # mean over a sample: c x[k] + (1 - c) v[k]
     out = np.empty_like(v_app)
     cmd = x = v_prev
     for k, target in enumerate(v_app):
         ideal = (target - c * x) / (1 - c)
-        cmd = min(max(ideal, cmd - max_step), cmd + max_step)
+        cmd = min(max(ideal, cmd - max_step, v_range[0]), cmd + max_step, v_range[1])
         x = a * x + (1 - a) * cmd
         out[k] = cmd
     return out
 
 
-def _clamp_steps(v: FloatArray, v_prev: float, max_step: float) -> FloatArray:
+def _clamp_steps(v: FloatArray, v_prev: float, max_step: float,
+                 v_range: tuple[float, float]) -> FloatArray:
     out = np.empty_like(v)
     cmd = v_prev
     for k, target in enumerate(v):
-        cmd = min(max(float(target), cmd - max_step), cmd + max_step)
+        cmd = min(max(float(target), cmd - max_step, v_range[0]), cmd + max_step, v_range[1])
         out[k] = cmd
     return out
 

@@ -256,7 +256,8 @@ def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: 
                              horizon=d, e_max=e_max)
         _reach(res, target.size, 0)
         v = fx.unlag_limited(chain, res.voltage(cm.model.thickness_um), start_v,
-                             LAG_STEP * limits.max_rate_v_per_ms * 1e3 * dt)
+                             LAG_STEP * limits.max_rate_v_per_ms * 1e3 * dt,
+                             (limits.v_min, limits.v_max))
         try:
             wf = build(v, (d,))
         except guard.LimitError as exc:

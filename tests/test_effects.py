@@ -215,3 +215,19 @@ def test_gauge_about_a_centre_is_inverted() -> None:
     reading = w - 1.5e-3 * (w - 360.0) ** 2 - 1.4e-5 * (w - 360.0) ** 3
     np.testing.assert_allclose(fx.gauge(e, w), reading, rtol=1e-14)
     np.testing.assert_allclose(fx.ungauge(e, reading), w, atol=1e-9)
+
+
+@pytest.mark.parametrize("zeta", [None, 0.7])
+def test_unlag_keeps_to_the_voltage_range(zeta: float | None) -> None:
+    """A triangle turning at 1 V through a 90 Hz amplifier: the exact inverse leads the corner
+    below 0 V; within a 0-150 V range the commands stay in it, and the output still turns."""
+    chain = fx.compile_chain(fx.Effects(amplifier_bandwidth_hz=90.0, amplifier_damping_ratio=zeta),
+                             DT)
+    t = np.arange(3000) * DT
+    v = 1.0 + 100 * np.abs(2 * ((t * 27.9 + 0.5) % 1.0) - 1)
+    free = fx.unlag_limited(chain, v, float(v[0]), np.inf)
+    kept = fx.unlag_limited(chain, v, float(v[0]), np.inf, (0.0, 150.0))
+    assert free.min() < -1.0
+    assert kept.min() >= 0.0 and kept.max() <= 150.0
+    out, _ = fx.lag(chain, kept, float(v[0]))
+    assert np.max(np.abs(out - v)[:-5]) < 0.5 * np.max(np.abs(fx.lag(chain, v, float(v[0]))[0] - v))
