@@ -50,6 +50,10 @@ MEMO = 12
 SLEW_OFF = 30.0
 #: Candidates whose multi-start result refits the paper's model through the effect (:func:`_rebase`).
 REBASED = ("amplifier-lag", "sensor-delay", "sensor-nonlinearity")
+#: The refit through the effect is tried only when the multi-start's effect has already brought
+#: the cost below this fraction of the base model's (on a clean stage it would cost a whole
+#: identification for nothing).
+REBASE_GAIN = 0.8
 #: Grid of the thermal kernel, in the fit and in the extended model (N_i x N_j hysterons).
 THERMAL_GRID = (64, 48)
 
@@ -409,8 +413,9 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     ``phi`` (by cost) a short least-squares run moves ``phi`` (and the rod's two parameters, for
     a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
     columns); the best of those then starts the joint fit of ``(x, phi)``. The amplifier and the
-    sensor effects (:data:`REBASED`) first fit ``x`` and the starts afresh through their effect
-    (:func:`_rebase`, with the ``identify`` settings; kept if it lowers the cost). The base
+    sensor effects (:data:`REBASED`) then fit ``x`` and the starts afresh through their effect
+    (:func:`_rebase`, with the ``identify`` settings; tried if the effect alone already brought
+    the cost below :data:`REBASE_GAIN` of the base model's, kept if it lowers the cost). The base
     model is in every candidate's family, so its own cost bounds the result's."""
     lo, hi = space.bounds()
     n_x = x_base.size
@@ -426,6 +431,7 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
         return space.residual(np.concatenate((x_base[:n_held], v)))
 
     starts = [clip(np.concatenate((x_base, s))) for s in space.candidate.starts]
+    cost_off = cost(starts[0])
     ranked = sorted(starts, key=cost)[:max(n_starts, 1)]
     nfev = len(starts)
     if n_x < ranked[0].size:
@@ -440,7 +446,7 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
             best = min(runs, key=lambda r: float(r.cost))
         nfev += sum(r.nfev for r in runs)
         ranked = [clip(np.concatenate((x_base[:n_held], best.x)))]
-        if space.candidate.name in REBASED:
+        if space.candidate.name in REBASED and 2 * float(best.cost) < REBASE_GAIN * cost_off:
             found, z = _rebase(space, ranked[0], identify or idf.Settings())
             if float(np.sum(found.residual(clip(z)) ** 2)) < cost(ranked[0]):
                 space, ranked = found, [clip(z)]
