@@ -123,13 +123,13 @@ def model_state(fitted: ext.Extended, sweeps: list[sw.Sweep]) -> td.StageState:
 def track_rms(stage: plant.Stage, state: plant.PlantState, fits: dict[str, ext.Extended],
               sweeps: list[sw.Sweep]) -> dict[str, float]:
     """RMS error (um) of the stage's true position (in the readings' frame) against a 27.9 Hz
-    triangle over 35-75 % of the recorded range, planned with each model from its state
-    after the sweeps, within the stage's drive range (inf: no waveform within it)."""
+    triangle over 15-55 % of the range the last sweep covered (the first sweep of a stage poled
+    the other way covers more, once), planned with each model from its state after the sweeps,
+    within the stage's drive range (inf: no waveform within it)."""
     prof = default_profile()
     limits = replace(prof.limits, v_min=0.0, v_max=150.0)
     dt = 1 / prof.sample_rate_hz
-    lo, hi = (float(np.percentile(np.concatenate([s.displacement_um for s in sweeps]), q))
-              for q in (2, 98))
+    lo, hi = (float(np.percentile(sweeps[-1].displacement_um, q)) for q in (2, 98))
     desired = track.triangle(27.9, 0.4 * (hi - lo), lo + 0.35 * (hi - lo), 3, dt)
     start_v = float(sweeps[-1].voltage_v[-1])
     out = {}
