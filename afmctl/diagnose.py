@@ -24,9 +24,9 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import os
+import signal
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -466,11 +466,19 @@ def _judge_all(names: Sequence[str], job: _Job, floor: float,
 
     if jobs <= 1:
         done = {n: said(n, _judge(n, job)) for n in order}
-    else:
-        with ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork")) as pool:
-            futures = {pool.submit(_judge, n, job): n for n in order}
-            done = {futures[f]: said(futures[f], f.result()) for f in as_completed(futures)}
+    else:  # leaving the pool (an error, Ctrl-C) terminates the workers; they ignore SIGINT
+        with mp.get_context("fork").Pool(jobs, _ignore_interrupt) as pool:
+            done = {n: said(n, j) for n, j in pool.imap_unordered(_named_judge,
+                                                                  [(n, job) for n in order])}
     return {n: done[n] for n in names}
+
+
+def _named_judge(task: tuple[str, _Job]) -> tuple[str, Judged]:
+    return task[0], _judge(*task)
+
+
+def _ignore_interrupt() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:
