@@ -11,8 +11,7 @@ name                     phi (internal)                                   acts o
 ``thermal-relaxation``   log E_th (MV/m), log nu0 (1/s)                   kernel (10) for (4)
 ``amplifier-lag``        log f_a (Hz), log zeta_a, log S (MV/m/s)          field, before (13)
 ``sensor-delay``         d (samples of the fastest sweep; a time)         design columns
-``sensor-nonlinearity``  c R, c3 R^2 (1/um, 1/um^2; R the range, um;     measured displacement
-                         about the middle of the readings)
+``sensor-nonlinearity``  c R, c3 R^2 (1/um, 1/um^2; R the range, um)     measured displacement
 ``second-mode``          log f_2 (Hz), log zeta_2, gain, rate gain        design columns
 ``voltage-gain-drift``   log g_s of every sweep but the last (mean 0)     field, per sweep
 =======================  ===============================================  =======================
@@ -171,18 +170,17 @@ def _log_gains(phi: FloatArray) -> FloatArray:
 class ExtendedSpace:
     """The residual of one candidate on prepared sweeps: ``z = (x, phi)``. Each sweep starts
     from the hysteresis state of ``base.starts`` and has its own sensor zero (as in
-    :func:`afmctl.identify.fit`)."""
+    :func:`afmctl.identify.fit`). ``gauge_frame``: centre and half width (um) of the readings a
+    gauge error is fitted about (default: those of ``preps``; :func:`afmctl.effects.gauge`)."""
 
     def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
                  field_step: float, range_um: float, dt_min: float | None = None,
-                 center_um: float | None = None) -> None:
+                 gauge_frame: tuple[float, float] | None = None) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
-        ys = np.concatenate([p.y for p in self.preps])
-        #: The gauge polynomial's centre: the middle of the readings (um)
-        self.center_um = (0.5 * float(np.min(ys) + np.max(ys)) if center_um is None
-                          else center_um)
         self.step_rel = field_step
         self.range_um = range_um
+        y = np.concatenate([p.y for p in self.preps])
+        self.gauge_frame = gauge_frame or (float(y.max() + y.min()) / 2, float(np.ptp(y)) / 2)
         self.dt_min = dt_min or min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
@@ -268,7 +266,8 @@ class ExtendedSpace:
             return fx.Effects()
         return fx.Effects(sensor_quadratic_per_um=float(phi[0]) / self.range_um,
                           sensor_cubic_per_um2=float(phi[1]) / self.range_um ** 2,
-                          sensor_center_um=self.center_um)
+                          sensor_center_um=self.gauge_frame[0],
+                          sensor_half_range_um=self.gauge_frame[1])
 
     def columns(self, z: FloatArray) -> list[FloatArray]:
         """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` after the output effects (the
@@ -306,12 +305,12 @@ class ExtendedSpace:
         a fit on their first halves is judged on)."""
         base = pz.LognormalSpace(preps, self.base.scales, self.base.n_coercive, self.base.starts)
         return ExtendedSpace(self.candidate, preps, base, self.step_rel, self.range_um,
-                             self.dt_min, self.center_um)
+                             self.dt_min, self.gauge_frame)
 
     def with_starts(self, starts: Sequence[str]) -> ExtendedSpace:
         """The same candidate with other initial hysteresis states (one per sweep)."""
         return ExtendedSpace(self.candidate, self.preps, self.base.with_starts(starts),
-                             self.step_rel, self.range_um, self.dt_min, self.center_um)
+                             self.step_rel, self.range_um, self.dt_min, self.gauge_frame)
 
     def through(self, phi: FloatArray) -> pz.LognormalSpace:
         """The base model's space on the fields the hysteresis sees with the input-side effect
@@ -372,7 +371,7 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
         return {"delay_s": e.sensor_delay_s}
     if name == "sensor-nonlinearity":
         return {"quadratic_per_um": e.sensor_quadratic_per_um,
-                "cubic_per_um2": e.sensor_cubic_per_um2, "center_um": e.sensor_center_um}
+                "cubic_per_um2": e.sensor_cubic_per_um2}
     if name == "second-mode" and e.second_mode is not None:
         m = e.second_mode
         return {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio, "gain": m.gain,
