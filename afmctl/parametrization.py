@@ -141,10 +141,14 @@ def unit_oscillator_zoh(fn: float, zeta: float, dt: float) -> rd.Discrete:
     w = 2 * math.pi * fn
     a = np.array([[0.0, 1.0], [-w * w, -2 * zeta * w]])
     mu = w * np.sqrt(complex(zeta * zeta - 1.0))
-    x = mu * dt
-    ch = float(np.cosh(x).real)
-    sh = float((np.sinh(x) / mu).real) if abs(x) > 1e-8 else dt * (1 + float((x * x).real) / 6)
-    phi = math.exp(-zeta * w * dt) * (ch * np.eye(2) + sh * (a + zeta * w * np.eye(2)))
+    x, decay = mu * dt, zeta * w * dt
+    # e^{-decay} cosh(x) and e^{-decay} sinh(x) / mu from e^{+-x - decay}: no overflow when a
+    # heavily overdamped rod makes both cosh(x) and sinh(x) huge
+    up, down = np.exp(x - decay), np.exp(-x - decay)
+    ch = float((0.5 * (up + down)).real)
+    sh = (float((0.5 * (up - down) / mu).real) if abs(x) > 1e-8
+          else dt * (1 + float((x * x).real) / 6) * math.exp(-decay))
+    phi = ch * np.eye(2) + sh * (a + zeta * w * np.eye(2))
     a_inv = np.array([[a[1, 1], -a[0, 1]], [-a[1, 0], a[0, 0]]]) / (w * w)
     gamma = a_inv @ (phi - np.eye(2)) @ np.array([0.0, 1.0])
     return rd.Discrete(phi, gamma, float(dt))
