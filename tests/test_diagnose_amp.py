@@ -93,12 +93,13 @@ def test_foreign_amplifier_stage_is_named_and_tracked() -> None:
     noise floor; diagnose names amplifier-lag within 2x the floor, and track plans with the
     extended model within the stage's 0-150 V and tracks the stage's true position better than
     with the base model."""
-    stage, sweeps, state, _ = bench.make_stage("amplifier-lag", 0.5, 201)
+    stage, sweeps, state, truth = bench.make_stage("amplifier-lag", 0.5, 201)
     d = dg.diagnose(sweeps, dg.Settings(candidates=("none", "amplifier-lag", "sensor-delay")))
     assert d.base_over_noise > 5.0, d.evidence()
     assert d.cause == "amplifier-lag", d.evidence()
     assert d.extended_over_noise < 2.0, d.evidence()
-    rms = bench.track_rms(stage, state, {"base": d.base, "extended": d.extended}, sweeps)
+    rms = bench.track_rms(stage, state, {"base": d.base, "extended": d.extended}, sweeps,
+                          truth["calibration_um"])
     assert math.isfinite(rms["extended"]) and rms["extended"] < rms["base"], rms
 
 
