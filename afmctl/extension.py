@@ -44,8 +44,16 @@ INPUT_SIDE = ("thermal-relaxation", "amplifier-lag", "voltage-gain-drift")
 MEMO = 12
 #: An amplifier slew limit this many times the data's fastest field rate is out of reach (off).
 SLEW_OFF = 3.0
-#: Grid of the thermal kernel, in the fit and in the extended model (N_i x N_j hysterons).
-THERMAL_GRID = (64, 48)
+#: Coercive rows of the thermal kernel's grid (quantile midpoints of nu_1), in the fit and the model.
+THERMAL_ROWS = 64
+#: Interaction columns of the thermal grid: uniform over +-THERMAL_SPAN sigma_I and at most
+#: ``field_scale / 1.5`` apart (the thermally smeared switching of neighbours overlaps, so the
+#: grid resolves kernel (10) at any field scale), between these counts (fit, and model for track).
+THERMAL_COLUMNS = (64, 8192, 512)
+THERMAL_SPAN = 4.5
+#: Field step (relative to the peak) of the samples kernel (10) is run on, each held for its time:
+#: the rates (7)-(8) change by e^(z dE / E_th) over a step, so it is finer than the relay's.
+THERMAL_STEP = 0.001
 
 
 @dataclass(frozen=True)
@@ -63,6 +71,22 @@ class Candidate:
     @property
     def n_params(self) -> int:
         return len(self.labels)
+
+
+def thermal_polarization(theta: FloatArray, thermal: hy.Thermal, n_max: int) -> hy.Polarization:
+    """The thermally activated model (10) of ``theta[:4]`` (median E_c, sigma_ln, sigma_I, r;
+    MV/m) on its grid: :data:`THERMAL_ROWS` coercive rows, interaction columns uniform over
+    ``+-THERMAL_SPAN sigma_I`` spaced at most ``field_scale / 1.5`` (at most ``n_max``), weighted
+    by the normal density nu_2 (``eta = 1``, ``p_r = r``: ``Q`` of (13))."""
+    median, sig, std, r = (float(v) for v in theta[:4])
+    n = int(np.clip(math.ceil(2 * THERMAL_SPAN * std * 1.5 / thermal.field_scale),
+                    THERMAL_COLUMNS[0], n_max))
+    u = THERMAL_SPAN * ((2 * np.arange(n) + 1) / n - 1)
+    dens = np.exp(-0.5 * u * u)
+    dens /= np.sum(dens) * (u[1] - u[0]) * std  # weights (value x cell width) sum to 1
+    return hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
+                           interaction=hy.Discrete(tuple(std * u), tuple(dens)),
+                           n_coercive=THERMAL_ROWS, thermal=thermal)
 
 
 def field_rate_max(preps: Sequence[pz.Prepared]) -> float:
@@ -129,6 +153,10 @@ class Extended:
     beta: FloatArray
 
 
+def _at_full_rate(e: FloatArray, keep: NDArray[np.intp], q: FloatArray) -> FloatArray:
+    return np.interp(np.arange(e.size), keep, q) if keep.size < e.size else q
+
+
 def _with_zeros(blocks: Sequence[FloatArray]) -> FloatArray:
     """Stack per-sweep blocks ``[g1 col, g2 col, zero col]`` into ``[L[Q], L[Q^2], 1_s]``: the
     zero column of each sweep in a column of its own."""
@@ -162,6 +190,8 @@ class ExtendedSpace:
         self.dt_min = dt_min or min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
+        self.thermal_keep = [pz.decimation(p.field, THERMAL_STEP * float(np.max(np.abs(p.field))))
+                             for p in self.preps]
         self._memo: dict[bytes, list[FloatArray]] = {}
 
     def bounds(self) -> tuple[FloatArray, FloatArray]:
@@ -202,22 +232,25 @@ class ExtendedSpace:
         q_keep = pz.hysteresis(theta, [e[keep] for e, keep in fields], self.base.n_coercive,
                                starts=self.base.starts)
         if self.candidate.name == "thermal-relaxation":
-            off = np.asarray(self.candidate.starts[0])
-            q_keep = [q + a - b for q, a, b in zip(q_keep, self._thermal(theta, phi, fields),
-                                                    self._thermal(theta, off, fields), strict=True)]
-        return [np.interp(np.arange(e.size), keep, q) if keep.size < e.size else q
-                for (e, keep), q in zip(fields, q_keep, strict=True)]
+            fine = [(p.field, k) for p, k in zip(self.preps, self.thermal_keep, strict=True)]
+            return [_at_full_rate(e, keep, q) + _at_full_rate(e, k, d) for (e, keep), q, (_, k), d
+                    in zip(fields, q_keep, fine, self._thermal(theta, phi, fine), strict=True)]
+        return [_at_full_rate(e, keep, q) for (e, keep), q in zip(fields, q_keep, strict=True)]
 
     def _thermal(self, theta: FloatArray, phi: FloatArray,
                  fields: list[tuple[FloatArray, NDArray[np.intp]]]) -> list[FloatArray]:
-        """``Q`` of kernel (10) on the :data:`THERMAL_GRID` at the kept samples, each held for
-        its time. Used as a difference to the relay limit (``starts[0]``): the grid's own error
-        (0.2 % of ``Q`` against the relay kernel's closed form) cancels."""
+        """Departure of kernel (10) from the relay kernel at the kept samples, each held for its
+        time: ``Q`` of (10) on the thermal grid (:func:`thermal_polarization`) minus the relay's
+        on the same rows with the interaction integrated in closed form, so the rows' quadrature
+        error cancels and the departure vanishes with the field scale."""
         holds = [np.diff(keep, append=p.field.size) * p.dt
                  for (_, keep), p in zip(fields, self.preps, strict=True)]
-        return pz.hysteresis(theta, [e[keep] for e, keep in fields], THERMAL_GRID[0],
-                             hy.Thermal(math.exp(phi[0]), math.exp(phi[1])), THERMAL_GRID[1],
-                             holds, self.base.starts)
+        kept = [e[keep] for e, keep in fields]
+        pol = thermal_polarization(theta, hy.Thermal(math.exp(phi[0]), math.exp(phi[1])),
+                                   THERMAL_COLUMNS[1])
+        hot = pz.run_from(pol, kept, self.base.starts, holds)
+        relay = pz.hysteresis(theta, kept, THERMAL_ROWS, starts=self.base.starts)
+        return [a - b for a, b in zip(hot, relay, strict=True)]
 
     def _output(self, phi: FloatArray) -> fx.Effects:
         if self.candidate.name == "sensor-delay":
@@ -295,9 +328,12 @@ class ExtendedSpace:
         phi, name = z[6:], self.candidate.name
         gains = tuple([1.0] * len(self.preps))
         if name == "thermal-relaxation":
-            pol = replace(model.polarization, thermal=hy.Thermal(math.exp(phi[0]), math.exp(phi[1])),
-                          n_coercive=THERMAL_GRID[0], n_interaction=THERMAL_GRID[1])
-            model = replace(model, polarization=pol)
+            grid = thermal_polarization(np.exp(z[:4]), hy.Thermal(math.exp(phi[0]),
+                                                                math.exp(phi[1])),
+                                        THERMAL_COLUMNS[2])
+            model = replace(model, polarization=replace(
+                model.polarization, thermal=grid.thermal, n_coercive=grid.n_coercive,
+                interaction=grid.interaction))
         elif name == "amplifier-lag":
             model = replace(model, effects=self._amplifier(phi, thickness_um))
         elif name == "sensor-nonlinearity":
