@@ -53,6 +53,8 @@ ArrayLike = FloatArray | list[float] | tuple[float, ...]
 KIND_NORMAL = 0
 KIND_GRID = 1
 KIND_THERMAL = 2
+#: Thermal kernel: a hysteron within this of a settled orientation is settled.
+SNAP = 1e-12
 
 
 @dataclass(frozen=True)
@@ -386,6 +388,10 @@ def _cell(st: np.ndarray, out: np.ndarray, idx: int, ee: float, ec: float, dt: f
         if not ((pm == 0.0 and x == 1.0) or (pp == 0.0 and x == 0.0)):
             xeq = pp / (pm + pp)
             x = xeq + (x - xeq) * math.exp(-(pm + pp) * dt)
+            if x > 1.0 - SNAP and pm == 0.0:  # settled up: a fraction below 1e-12 is none
+                x = 1.0
+            elif x < SNAP and pp == 0.0:
+                x = 0.0
     out[idx] = x
     return x
 
@@ -398,7 +404,7 @@ def _thermal_step(e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.n
     return the switched total ``sum w (2 x_+ - 1)``, kept in the state's last slot.
 
     A hysteron moves only near its switching fields ``E + E_I = +-E_c`` (rates (7)-(8) below
-    ``1e-18 / dt`` elsewhere), so each row (``ei`` increasing) is visited from ``zcut``
+    ``1e-12 / dt`` elsewhere), so each row (``ei`` increasing) is visited from ``zcut``
     field scales ahead of each switching field on, and on past it while x_+ is not yet
     exactly 1 (up) or 0 (down): a state made by this kernel from a relay state is monotone in
     ``E_I``, so past a hysteron that was and stays fully switched the rest of the row cannot
@@ -410,7 +416,7 @@ def _thermal_step(e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.n
     if out is not st:
         out[:] = st
     s = 1.0 / fscale
-    zcut = -math.sqrt(max(math.log(max(nu0 * dt, 1e-300) * 1e18), 1.0))
+    zcut = -math.sqrt(max(math.log(max(nu0 * dt, 1e-300) * 1e12), 1.0))
     band = -zcut * fscale
     acc = st[n]
     for i in range(ni):
