@@ -417,8 +417,8 @@ def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um
     cand = ext.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
                          float(np.exp(x_start[4])), ext.field_rate_max(data.preps))[name]
     space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um)
-    return (ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts),
-            cand.n_params, space)
+    fitted = ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts)
+    return fitted, cand.n_params, space.with_starts(fitted.starts)  # the states the fit chose
 
 
 def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:

@@ -60,13 +60,16 @@ THERMAL_STEP = 0.001
 class Candidate:
     """One candidate: its extra parameters' names, starting values and bounds (internal units).
 
-    ``starts[0]`` is the effect switched off (the base model)."""
+    ``starts[0]`` is the effect switched off (the base model). ``own_states``: the effect changes
+    how the hysteresis state evolves (relaxation), so each sweep's initial state is chosen again
+    with the effect on (the base fit's choice was made without it)."""
 
     name: str
     labels: tuple[str, ...]
     starts: tuple[tuple[float, ...], ...]
     lower: tuple[float, ...]
     upper: tuple[float, ...]
+    own_states: bool = False
 
     @property
     def n_params(self) -> int:
@@ -110,7 +113,7 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
                   ((lf(2e-4 * e_max), lf(1e6)),)  # close to the relay: the base model
                   + tuple((lf(f * e_max), lf(r)) for f in (0.003, 0.01, 0.03)
                           for r in (1e2, 1e4, 1e6)),
-                  (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7))),
+                  (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7)), own_states=True),
         Candidate("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio", "log_slew_MV_per_m_s"),
                   ((ln + 2.9, lf(0.7), slew_off),)  # far beyond the data: the base model
                   + tuple((lf(f * rod_hz), lf(0.7), slew) for f in (0.3, 1.0, 3.0)
@@ -306,6 +309,11 @@ class ExtendedSpace:
         return [fx.gauge(gauge, c[:, :2] @ beta[:2] + c[:, 2] * beta[2 + s])
                 for s, c in enumerate(self.columns(z))]
 
+    def with_starts(self, starts: Sequence[str]) -> ExtendedSpace:
+        """The same candidate with other initial states of the sweeps (:data:`pz.STARTS`)."""
+        return ExtendedSpace(self.candidate, self.preps, self.base.with_starts(starts),
+                             self.step_rel, self.range_um, self.dt_min)
+
     def on(self, preps: Sequence[pz.Prepared]) -> ExtendedSpace:
         """The same candidate, starts and node count on other prepared sweeps (the whole sweeps
         a fit on their first halves is judged on)."""
@@ -369,28 +377,36 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
     return {}
 
 
-def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
-        max_nfev: int, n_starts: int = 1) -> Extended:
-    """Fit ``(x, phi)`` from the base parameters ``x_base``.
+def state_choices(n: int) -> list[tuple[str, ...]]:
+    """Initial states of ``n`` sweeps recorded in sequence, each after the one before: the first
+    depoled or poled either way, the others where the previous left it (:data:`pz.STARTS`)."""
+    return [(first,) + ("previous",) * (n - 1) for first in pz.STARTS[:3]]
 
-    Multi-start on the effect alone: from each of the ``n_starts`` best of the candidate's starting
-    ``phi`` (by cost) a short least-squares run moves ``phi`` with the base model held (a
-    Jacobian of a few columns); the best of those then starts the joint fit of ``(x, phi)``. The
-    base model is in every candidate's family, so its own cost bounds the result's."""
+
+def _in_sequence(space: ExtendedSpace, z: FloatArray) -> ExtendedSpace | None:
+    """``space`` with the :func:`state_choices` that fits best at ``z``; None if it has them."""
+    if "previous" in space.base.starts[1:] or len(space.preps) < 2:
+        return None
+    return min((space.with_starts(c) for c in state_choices(len(space.preps))),
+               key=lambda s: float(np.sum(s.residual(z) ** 2)))
+
+
+def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int,
+              n_starts: int) -> tuple[optimize.OptimizeResult, int]:
+    """Multi-start on ``phi`` with ``x_base`` held, then the joint fit (see :func:`fit`);
+    the solution and the number of evaluations."""
     lo, hi = space.bounds()
     n_x = x_base.size
 
     def clip(z: FloatArray) -> FloatArray:
         return np.clip(z, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
 
-    def cost(z: FloatArray) -> float:
-        return float(np.sum(space.residual(z) ** 2))
-
     def with_phi(phi: FloatArray) -> FloatArray:
         return space.residual(np.concatenate((x_base, phi)))
 
     starts = [clip(np.concatenate((x_base, s))) for s in space.candidate.starts]
-    ranked = sorted(starts, key=cost)[:max(n_starts, 1)]
+    ranked = sorted(starts, key=lambda z: float(np.sum(space.residual(z) ** 2)))
+    ranked = ranked[:max(n_starts, 1)]
     nfev = len(starts)
     if n_x < ranked[0].size:
         runs = [optimize.least_squares(with_phi, z0[n_x:], bounds=(lo[n_x:], hi[n_x:]),
@@ -400,7 +416,30 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
         ranked = [clip(np.concatenate((x_base, best.x)))]
     sol = optimize.least_squares(space.residual, ranked[0], bounds=(lo, hi), diff_step=1e-6,
                                  max_nfev=max_nfev)
+    return sol, nfev + int(sol.nfev)
+
+
+def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
+        max_nfev: int, n_starts: int = 1) -> Extended:
+    """Fit ``(x, phi)`` from the base parameters ``x_base``.
+
+    Multi-start on the effect alone: from each of the ``n_starts`` best of the candidate's starting
+    ``phi`` (by cost) a short least-squares run moves ``phi`` with the base model held (a
+    Jacobian of a few columns); the best of those then starts the joint fit of ``(x, phi)``. The
+    base model is in every candidate's family, so its own cost bounds the result's.
+
+    An ``own_states`` candidate (relaxation: the state a sweep starts from has relaxed with the
+    sweeps before it) is also fitted with the sweeps in sequence (:func:`state_choices`, the
+    first state chosen at the best start) unless the base's states already are, each fit with
+    half the budget; the lower cost wins."""
+    spaces = [space]
+    if space.candidate.own_states:
+        z0 = np.concatenate((x_base, space.candidate.starts[0]))
+        spaces += [s for s in [_in_sequence(space, z0)] if s is not None]
+    fits = [(s, *_fit_from(s, x_base, max_nfev // len(spaces), n_starts)) for s in spaces]
+    space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
+    nfev = sum(f[2] for f in fits)
     model, gains, offsets = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
-                    bool(sol.success and sol.status > 0), nfev + int(sol.nfev), sol.x,
+                    bool(sol.success and sol.status > 0), nfev, sol.x,
                     space.base.starts, offsets, pz.project(*space.system(sol.x))[0])
