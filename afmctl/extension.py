@@ -111,7 +111,7 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
         Candidate("none", (), ((),), (), ()),
         Candidate("thermal-relaxation", ("log_field_scale_MV_per_m", "log_attempt_rate_per_s"),
                   ((lf(2e-4 * e_max), lf(1e6)),)  # close to the relay: the base model
-                  + tuple((lf(f * e_max), lf(r)) for f in (0.003, 0.01, 0.03)
+                  + tuple((lf(f * e_max), lf(r)) for f in (0.001, 0.003, 0.01, 0.03)
                           for r in (1e2, 1e4, 1e6)),
                   (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7)), own_states=True),
         Candidate("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio", "log_slew_MV_per_m_s"),
