@@ -408,8 +408,7 @@ def _thermal_step(e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.n
     field scales ahead of each switching field on, and on past it while x_+ is not yet
     exactly 1 (up) or 0 (down): a state made by this kernel from a relay state is monotone in
     ``E_I``, so past a hysteron that was and stays fully switched the rest of the row cannot
-    move. The result equals the full sweep of every
-    hysteron; the cost is that of the rows' switching bands.
+    move. The result equals the sweep of every hysteron (to 1e-12); the cost is the bands'.
     """
     ni, nj = ec.size, ei.size
     n = ni * nj
