@@ -46,6 +46,10 @@ MEMO = 12
 SLEW_OFF = 3.0
 #: Coercive rows of the thermal kernel's grid (quantile midpoints of nu_1), in the fit and the model.
 THERMAL_ROWS = 64
+#: Rows, samples' field step and most columns of the coarse grid the multi-start searches on.
+THERMAL_COARSE = (16, 0.004, 256)
+#: The polish on the fine grid gets this fraction (1/FINE_SHARE) of a fit's evaluations.
+FINE_SHARE = 6
 #: Interaction columns of the thermal grid: uniform over +-THERMAL_SPAN sigma_I and at most
 #: ``field_scale / 1.5`` apart (the thermally smeared switching of neighbours overlaps, so the
 #: grid resolves kernel (10) at any field scale), between these counts (fit, and model for track).
@@ -76,9 +80,10 @@ class Candidate:
         return len(self.labels)
 
 
-def thermal_polarization(theta: FloatArray, thermal: hy.Thermal, n_max: int) -> hy.Polarization:
+def thermal_polarization(theta: FloatArray, thermal: hy.Thermal, n_max: int,
+                         rows: int = THERMAL_ROWS) -> hy.Polarization:
     """The thermally activated model (10) of ``theta[:4]`` (median E_c, sigma_ln, sigma_I, r;
-    MV/m) on its grid: :data:`THERMAL_ROWS` coercive rows, interaction columns uniform over
+    MV/m) on its grid: ``rows`` coercive rows, interaction columns uniform over
     ``+-THERMAL_SPAN sigma_I`` spaced at most ``field_scale / 1.5`` (at most ``n_max``), weighted
     by the normal density nu_2 (``eta = 1``, ``p_r = r``: ``Q`` of (13))."""
     median, sig, std, r = (float(v) for v in theta[:4])
@@ -89,7 +94,7 @@ def thermal_polarization(theta: FloatArray, thermal: hy.Thermal, n_max: int) -> 
     dens /= np.sum(dens) * (u[1] - u[0]) * std  # weights (value x cell width) sum to 1
     return hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
                            interaction=hy.Discrete(tuple(std * u), tuple(dens)),
-                           n_coercive=THERMAL_ROWS, thermal=thermal)
+                           n_coercive=rows, thermal=thermal)
 
 
 def field_rate_max(preps: Sequence[pz.Prepared]) -> float:
@@ -185,7 +190,9 @@ class ExtendedSpace:
     :func:`afmctl.identify.fit`)."""
 
     def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
-                 field_step: float, range_um: float, dt_min: float | None = None) -> None:
+                 field_step: float, range_um: float, dt_min: float | None = None,
+                 thermal_grid: tuple[int, float, int] = (THERMAL_ROWS, THERMAL_STEP,
+                                                         THERMAL_COLUMNS[1])) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
         self.step_rel = field_step
         self.step = [field_step * float(np.max(np.abs(p.field))) for p in self.preps]
@@ -193,7 +200,8 @@ class ExtendedSpace:
         self.dt_min = dt_min or min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
-        self.thermal_keep = [pz.decimation(p.field, THERMAL_STEP * float(np.max(np.abs(p.field))))
+        self.thermal_grid = thermal_grid
+        self.thermal_keep = [pz.decimation(p.field, thermal_grid[1] * float(np.max(np.abs(p.field))))
                              for p in self.preps]
         self._memo: dict[bytes, list[FloatArray]] = {}
 
@@ -249,10 +257,11 @@ class ExtendedSpace:
         holds = [np.diff(keep, append=p.field.size) * p.dt
                  for (_, keep), p in zip(fields, self.preps, strict=True)]
         kept = [e[keep] for e, keep in fields]
-        pol = thermal_polarization(theta, hy.Thermal(math.exp(phi[0]), math.exp(phi[1])),
-                                   THERMAL_COLUMNS[1])
+        rows, _, n_max = self.thermal_grid
+        pol = thermal_polarization(theta, hy.Thermal(math.exp(phi[0]), math.exp(phi[1])), n_max,
+                                   rows)
         hot = pz.run_from(pol, kept, self.base.starts, holds)
-        relay = pz.hysteresis(theta, kept, THERMAL_ROWS, starts=self.base.starts)
+        relay = pz.hysteresis(theta, kept, rows, starts=self.base.starts)
         return [a - b for a, b in zip(hot, relay, strict=True)]
 
     def _output(self, phi: FloatArray) -> fx.Effects:
@@ -312,7 +321,12 @@ class ExtendedSpace:
     def with_starts(self, starts: Sequence[str]) -> ExtendedSpace:
         """The same candidate with other initial states of the sweeps (:data:`pz.STARTS`)."""
         return ExtendedSpace(self.candidate, self.preps, self.base.with_starts(starts),
-                             self.step_rel, self.range_um, self.dt_min)
+                             self.step_rel, self.range_um, self.dt_min, self.thermal_grid)
+
+    def with_grid(self, thermal_grid: tuple[int, float, int]) -> ExtendedSpace:
+        """The same candidate with another thermal grid (rows, field step, most columns)."""
+        return ExtendedSpace(self.candidate, self.preps, self.base, self.step_rel, self.range_um,
+                             self.dt_min, thermal_grid)
 
     def on(self, preps: Sequence[pz.Prepared]) -> ExtendedSpace:
         """The same candidate, starts and node count on other prepared sweeps (the whole sweeps
@@ -431,14 +445,23 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     An ``own_states`` candidate (relaxation: the state a sweep starts from has relaxed with the
     sweeps before it) is also fitted with the sweeps in sequence (:func:`state_choices`, the
     first state chosen at the best start) unless the base's states already are, each fit with
-    half the budget; the lower cost wins."""
+    half the budget; the lower cost wins. Both search on a coarse thermal grid
+    (:data:`THERMAL_COARSE`); the winner is polished on the fine one with 1/:data:`FINE_SHARE`
+    of the budget."""
     spaces = [space]
     if space.candidate.own_states:
+        spaces = [space.with_grid(THERMAL_COARSE)]
         z0 = np.concatenate((x_base, space.candidate.starts[0]))
-        spaces += [s for s in [_in_sequence(space, z0)] if s is not None]
+        spaces += [s for s in [_in_sequence(spaces[0], z0)] if s is not None]
     fits = [(s, *_fit_from(s, x_base, max_nfev // len(spaces), n_starts)) for s in spaces]
     space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
     nfev = sum(f[2] for f in fits)
+    if space.candidate.own_states:
+        space = space.with_grid((THERMAL_ROWS, THERMAL_STEP, THERMAL_COLUMNS[1]))
+        lo, hi = space.bounds()
+        sol = optimize.least_squares(space.residual, sol.x, bounds=(lo, hi), diff_step=1e-6,
+                                     max_nfev=max(max_nfev // FINE_SHARE, 1))
+        nfev += int(sol.nfev)
     model, gains, offsets = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
                     bool(sol.success and sol.status > 0), nfev, sol.x,
