@@ -49,7 +49,7 @@ THERMAL_ROWS = 64
 #: Rows, samples' field step and most columns of the coarse grid the multi-start searches on.
 THERMAL_COARSE = (16, 0.004, 256)
 #: The polish on the fine grid gets this fraction (1/FINE_SHARE) of a fit's evaluations.
-FINE_SHARE = 6
+FINE_SHARE = 12
 #: Interaction columns of the thermal grid: uniform over +-THERMAL_SPAN sigma_I and at most
 #: ``field_scale / 1.5`` apart (the thermally smeared switching of neighbours overlaps, so the
 #: grid resolves kernel (10) at any field scale), between these counts (fit, and model for track).
