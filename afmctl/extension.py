@@ -433,6 +433,15 @@ def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int,
     return sol, nfev + int(sol.nfev)
 
 
+def _polish(space: ExtendedSpace, z: FloatArray, max_nfev: int, nfev: int
+            ) -> tuple[ExtendedSpace, optimize.OptimizeResult, int]:
+    """A short joint fit from ``z``; the space, solution and evaluations so far."""
+    lo, hi = space.bounds()
+    sol = optimize.least_squares(space.residual, z, bounds=(lo, hi), diff_step=1e-6,
+                                 max_nfev=max_nfev)
+    return space, sol, nfev + int(sol.nfev)
+
+
 def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
         max_nfev: int, n_starts: int = 1) -> Extended:
     """Fit ``(x, phi)`` from the base parameters ``x_base``.
@@ -445,23 +454,20 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     An ``own_states`` candidate (relaxation: the state a sweep starts from has relaxed with the
     sweeps before it) is also fitted with the sweeps in sequence (:func:`state_choices`, the
     first state chosen at the best start) unless the base's states already are, each fit with
-    half the budget; the lower cost wins. Both search on a coarse thermal grid
-    (:data:`THERMAL_COARSE`); the winner is polished on the fine one with 1/:data:`FINE_SHARE`
-    of the budget."""
+    half the budget. Both search on a coarse thermal grid (:data:`THERMAL_COARSE`) and are then
+    polished on the fine one with 1/:data:`FINE_SHARE` of the budget; the lower cost wins."""
     spaces = [space]
     if space.candidate.own_states:
         spaces = [space.with_grid(THERMAL_COARSE)]
         z0 = np.concatenate((x_base, space.candidate.starts[0]))
         spaces += [s for s in [_in_sequence(spaces[0], z0)] if s is not None]
     fits = [(s, *_fit_from(s, x_base, max_nfev // len(spaces), n_starts)) for s in spaces]
+    if space.candidate.own_states:  # each polished on the fine grid
+        fine = (THERMAL_ROWS, THERMAL_STEP, THERMAL_COLUMNS[1])
+        fits = [_polish(s.with_grid(fine), sol.x, max(max_nfev // FINE_SHARE, 1), n)
+                for s, sol, n in fits]
     space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
     nfev = sum(f[2] for f in fits)
-    if space.candidate.own_states:
-        space = space.with_grid((THERMAL_ROWS, THERMAL_STEP, THERMAL_COLUMNS[1]))
-        lo, hi = space.bounds()
-        sol = optimize.least_squares(space.residual, sol.x, bounds=(lo, hi), diff_step=1e-6,
-                                     max_nfev=max(max_nfev // FINE_SHARE, 1))
-        nfev += int(sol.nfev)
     model, gains, offsets = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
                     bool(sol.success and sol.status > 0), nfev, sol.x,
