@@ -187,16 +187,20 @@ def _log_gains(phi: FloatArray) -> FloatArray:
 class ExtendedSpace:
     """The residual of one candidate on prepared sweeps: ``z = (x, phi)``. Each sweep starts
     from the hysteresis state of ``base.starts`` and has its own sensor zero (as in
-    :func:`afmctl.identify.fit`)."""
+    :func:`afmctl.identify.fit`). ``gauge_frame``: centre and half width (um) of the readings a
+    gauge error is fitted about (default: those of ``preps``; :func:`afmctl.effects.gauge`)."""
 
     def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
                  field_step: float, range_um: float, dt_min: float | None = None,
+                 gauge_frame: tuple[float, float] | None = None,
                  thermal_grid: tuple[int, float, int] = (THERMAL_ROWS, THERMAL_STEP,
                                                          THERMAL_COLUMNS[1])) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
         self.step_rel = field_step
         self.step = [field_step * float(np.max(np.abs(p.field))) for p in self.preps]
         self.range_um = range_um
+        y = np.concatenate([p.y for p in self.preps])
+        self.gauge_frame = gauge_frame or (float(y.max() + y.min()) / 2, float(np.ptp(y)) / 2)
         self.dt_min = dt_min or min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
@@ -285,7 +289,9 @@ class ExtendedSpace:
         if self.candidate.name != "sensor-nonlinearity":
             return fx.Effects()
         return fx.Effects(sensor_quadratic_per_um=float(phi[0]) / self.range_um,
-                          sensor_cubic_per_um2=float(phi[1]) / self.range_um ** 2)
+                          sensor_cubic_per_um2=float(phi[1]) / self.range_um ** 2,
+                          sensor_center_um=self.gauge_frame[0],
+                          sensor_half_range_um=self.gauge_frame[1])
 
     def columns(self, z: FloatArray) -> list[FloatArray]:
         """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` after the output effects (the
@@ -321,19 +327,20 @@ class ExtendedSpace:
     def with_starts(self, starts: Sequence[str]) -> ExtendedSpace:
         """The same candidate with other initial states of the sweeps (:data:`pz.STARTS`)."""
         return ExtendedSpace(self.candidate, self.preps, self.base.with_starts(starts),
-                             self.step_rel, self.range_um, self.dt_min, self.thermal_grid)
+                             self.step_rel, self.range_um, self.dt_min, self.gauge_frame,
+                             self.thermal_grid)
 
     def with_grid(self, thermal_grid: tuple[int, float, int]) -> ExtendedSpace:
         """The same candidate with another thermal grid (rows, field step, most columns)."""
         return ExtendedSpace(self.candidate, self.preps, self.base, self.step_rel, self.range_um,
-                             self.dt_min, thermal_grid)
+                             self.dt_min, self.gauge_frame, thermal_grid)
 
     def on(self, preps: Sequence[pz.Prepared]) -> ExtendedSpace:
         """The same candidate, starts and node count on other prepared sweeps (the whole sweeps
         a fit on their first halves is judged on)."""
         base = pz.LognormalSpace(preps, self.base.scales, self.base.n_coercive, self.base.starts)
         return ExtendedSpace(self.candidate, preps, base, self.step_rel, self.range_um,
-                             self.dt_min)
+                             self.dt_min, self.gauge_frame)
 
     def residual(self, z: FloatArray) -> FloatArray:
         a, y = self.system(z)
