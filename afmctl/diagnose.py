@@ -423,7 +423,7 @@ def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um
                          float(np.exp(x_start[4])), ext.field_rate_max(data.preps))[name]
     space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um)
     fitted, space = ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts,
-                           settings.identify)
+                            settings.identify)
     return fitted, cand.n_params, space
 
 

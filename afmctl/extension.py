@@ -53,8 +53,20 @@ REBASED = ("amplifier-lag", "sensor-delay", "sensor-nonlinearity")
 #: the cost below this fraction of the base model's (on a clean stage it would cost a whole
 #: identification for nothing).
 REBASE_GAIN = 0.8
-#: Grid of the thermal kernel, in the fit and in the extended model (N_i x N_j hysterons).
-THERMAL_GRID = (64, 48)
+#: Coercive rows of the thermal kernel's grid (quantile midpoints of nu_1), in the fit and the model.
+THERMAL_ROWS = 64
+#: Rows, samples' field step and most columns of the coarse grid the multi-start searches on.
+THERMAL_COARSE = (16, 0.004, 256)
+#: The polish on the fine grid gets this fraction (1/FINE_SHARE) of a fit's evaluations.
+FINE_SHARE = 12
+#: Interaction columns of the thermal grid: uniform over +-THERMAL_SPAN sigma_I and at most
+#: ``field_scale / 1.5`` apart (the thermally smeared switching of neighbours overlaps, so the
+#: grid resolves kernel (10) at any field scale), between these counts (fit, and model for track).
+THERMAL_COLUMNS = (64, 8192, 512)
+THERMAL_SPAN = 4.5
+#: Field step (relative to the peak) of the samples kernel (10) is run on, each held for its time:
+#: the rates (7)-(8) change by e^(z dE / E_th) over a step, so it is finer than the relay's.
+THERMAL_STEP = 0.001
 
 
 @dataclass(frozen=True)
@@ -66,7 +78,9 @@ class Candidate:
     damped rod; a sensor's latency by a slower, less damped one), so the multi-start moves the
     rod with the effect. ``switch``: the last parameter is a switch (the amplifier's slew limit
     off or on, which a local fit cannot turn): the multi-start's best run is run again with it at
-    each other value the starts give it."""
+    each other value the starts give it. ``own_states``: the effect changes how the hysteresis
+    state evolves (relaxation), so each sweep's initial state is chosen again with the effect on
+    (the base fit's choice was made without it)."""
 
     name: str
     labels: tuple[str, ...]
@@ -75,10 +89,28 @@ class Candidate:
     upper: tuple[float, ...]
     free_rod: bool = False
     switch: bool = False
+    own_states: bool = False
 
     @property
     def n_params(self) -> int:
         return len(self.labels)
+
+
+def thermal_polarization(theta: FloatArray, thermal: hy.Thermal, n_max: int,
+                         rows: int = THERMAL_ROWS) -> hy.Polarization:
+    """The thermally activated model (10) of ``theta[:4]`` (median E_c, sigma_ln, sigma_I, r;
+    MV/m) on its grid: ``rows`` coercive rows, interaction columns uniform over
+    ``+-THERMAL_SPAN sigma_I`` spaced at most ``field_scale / 1.5`` (at most ``n_max``), weighted
+    by the normal density nu_2 (``eta = 1``, ``p_r = r``: ``Q`` of (13))."""
+    median, sig, std, r = (float(v) for v in theta[:4])
+    n = int(np.clip(math.ceil(2 * THERMAL_SPAN * std * 1.5 / thermal.field_scale),
+                    THERMAL_COLUMNS[0], n_max))
+    u = THERMAL_SPAN * ((2 * np.arange(n) + 1) / n - 1)
+    dens = np.exp(-0.5 * u * u)
+    dens /= np.sum(dens) * (u[1] - u[0]) * std  # weights (value x cell width) sum to 1
+    return hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
+                           interaction=hy.Discrete(tuple(std * u), tuple(dens)),
+                           n_coercive=rows, thermal=thermal)
 
 
 def field_rate_max(preps: Sequence[pz.Prepared]) -> float:
@@ -101,9 +133,9 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
         Candidate("none", (), ((),), (), ()),
         Candidate("thermal-relaxation", ("log_field_scale_MV_per_m", "log_attempt_rate_per_s"),
                   ((lf(2e-4 * e_max), lf(1e6)),)  # close to the relay: the base model
-                  + tuple((lf(f * e_max), lf(r)) for f in (0.003, 0.01, 0.03)
+                  + tuple((lf(f * e_max), lf(r)) for f in (0.001, 0.003, 0.01, 0.03)
                           for r in (1e2, 1e4, 1e6)),
-                  (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7))),
+                  (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7)), own_states=True),
         Candidate("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio", "log_slew_MV_per_m_s"),
                   ((ln + 2.9, lf(0.7), slew_off),)  # far beyond the data: the base model
                   + tuple((lf(f * rod_hz), lf(0.7), slew) for f in (0.3, 1.0, 3.0)
@@ -148,6 +180,10 @@ class Extended:
     beta: FloatArray
 
 
+def _at_full_rate(e: FloatArray, keep: NDArray[np.intp], q: FloatArray) -> FloatArray:
+    return np.interp(np.arange(e.size), keep, q) if keep.size < e.size else q
+
+
 def _with_zeros(blocks: Sequence[FloatArray]) -> FloatArray:
     """Stack per-sweep blocks ``[g1 col, g2 col, zero col]`` into ``[L[Q], L[Q^2], 1_s]``: the
     zero column of each sweep in a column of its own."""
@@ -175,7 +211,9 @@ class ExtendedSpace:
 
     def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
                  field_step: float, range_um: float, dt_min: float | None = None,
-                 gauge_frame: tuple[float, float] | None = None) -> None:
+                 gauge_frame: tuple[float, float] | None = None,
+                 thermal_grid: tuple[int, float, int] = (THERMAL_ROWS, THERMAL_STEP,
+                                                         THERMAL_COLUMNS[1])) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
         self.step_rel = field_step
         self.range_um = range_um
@@ -184,6 +222,9 @@ class ExtendedSpace:
         self.dt_min = dt_min or min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
+        self.thermal_grid = thermal_grid
+        self.thermal_keep = [pz.decimation(p.field, thermal_grid[1] * float(np.max(np.abs(p.field))))
+                             for p in self.preps]
         self._memo: dict[bytes, list[FloatArray]] = {}
 
     def bounds(self) -> tuple[FloatArray, FloatArray]:
@@ -227,22 +268,26 @@ class ExtendedSpace:
         q_keep = pz.hysteresis(theta, [e[keep] for e, keep in fields], self.base.n_coercive,
                                starts=self.base.starts)
         if self.candidate.name == "thermal-relaxation":
-            off = np.asarray(self.candidate.starts[0])
-            q_keep = [q + a - b for q, a, b in zip(q_keep, self._thermal(theta, phi, fields),
-                                                    self._thermal(theta, off, fields), strict=True)]
-        return [np.interp(np.arange(e.size), keep, q) if keep.size < e.size else q
-                for (e, keep), q in zip(fields, q_keep, strict=True)]
+            fine = [(p.field, k) for p, k in zip(self.preps, self.thermal_keep, strict=True)]
+            return [_at_full_rate(e, keep, q) + _at_full_rate(e, k, d) for (e, keep), q, (_, k), d
+                    in zip(fields, q_keep, fine, self._thermal(theta, phi, fine), strict=True)]
+        return [_at_full_rate(e, keep, q) for (e, keep), q in zip(fields, q_keep, strict=True)]
 
     def _thermal(self, theta: FloatArray, phi: FloatArray,
                  fields: list[tuple[FloatArray, NDArray[np.intp]]]) -> list[FloatArray]:
-        """``Q`` of kernel (10) on the :data:`THERMAL_GRID` at the kept samples, each held for
-        its time. Used as a difference to the relay limit (``starts[0]``): the grid's own error
-        (0.2 % of ``Q`` against the relay kernel's closed form) cancels."""
+        """Departure of kernel (10) from the relay kernel at the kept samples, each held for its
+        time: ``Q`` of (10) on the thermal grid (:func:`thermal_polarization`) minus the relay's
+        on the same rows with the interaction integrated in closed form, so the rows' quadrature
+        error cancels and the departure vanishes with the field scale."""
         holds = [np.diff(keep, append=p.field.size) * p.dt
                  for (_, keep), p in zip(fields, self.preps, strict=True)]
-        return pz.hysteresis(theta, [e[keep] for e, keep in fields], THERMAL_GRID[0],
-                             hy.Thermal(math.exp(phi[0]), math.exp(phi[1])), THERMAL_GRID[1],
-                             holds, self.base.starts)
+        kept = [e[keep] for e, keep in fields]
+        rows, _, n_max = self.thermal_grid
+        pol = thermal_polarization(theta, hy.Thermal(math.exp(phi[0]), math.exp(phi[1])), n_max,
+                                   rows)
+        hot = pz.run_from(pol, kept, self.base.starts, holds)
+        relay = pz.hysteresis(theta, kept, rows, starts=self.base.starts)
+        return [a - b for a, b in zip(hot, relay, strict=True)]
 
     def _output(self, phi: FloatArray) -> fx.Effects:
         if self.candidate.name == "sensor-delay":
@@ -300,17 +345,23 @@ class ExtendedSpace:
         return [fx.gauge(gauge, c[:, :2] @ beta[:2] + c[:, 2] * beta[2 + s])
                 for s, c in enumerate(self.columns(z))]
 
+    def with_starts(self, starts: Sequence[str]) -> ExtendedSpace:
+        """The same candidate with other initial states of the sweeps (:data:`pz.STARTS`)."""
+        return ExtendedSpace(self.candidate, self.preps, self.base.with_starts(starts),
+                             self.step_rel, self.range_um, self.dt_min, self.gauge_frame,
+                             self.thermal_grid)
+
+    def with_grid(self, thermal_grid: tuple[int, float, int]) -> ExtendedSpace:
+        """The same candidate with another thermal grid (rows, field step, most columns)."""
+        return ExtendedSpace(self.candidate, self.preps, self.base, self.step_rel, self.range_um,
+                             self.dt_min, self.gauge_frame, thermal_grid)
+
     def on(self, preps: Sequence[pz.Prepared]) -> ExtendedSpace:
         """The same candidate, starts and node count on other prepared sweeps (the whole sweeps
         a fit on their first halves is judged on)."""
         base = pz.LognormalSpace(preps, self.base.scales, self.base.n_coercive, self.base.starts)
         return ExtendedSpace(self.candidate, preps, base, self.step_rel, self.range_um,
-                             self.dt_min, self.gauge_frame)
-
-    def with_starts(self, starts: Sequence[str]) -> ExtendedSpace:
-        """The same candidate with other initial hysteresis states (one per sweep)."""
-        return ExtendedSpace(self.candidate, self.preps, self.base.with_starts(starts),
-                             self.step_rel, self.range_um, self.dt_min, self.gauge_frame)
+                             self.dt_min, self.gauge_frame, self.thermal_grid)
 
     def through(self, phi: FloatArray) -> pz.LognormalSpace:
         """The base model's space on the fields the hysteresis sees with the input-side effect
@@ -342,9 +393,12 @@ class ExtendedSpace:
         phi, name = z[6:], self.candidate.name
         gains = tuple([1.0] * len(self.preps))
         if name == "thermal-relaxation":
-            pol = replace(model.polarization, thermal=hy.Thermal(math.exp(phi[0]), math.exp(phi[1])),
-                          n_coercive=THERMAL_GRID[0], n_interaction=THERMAL_GRID[1])
-            model = replace(model, polarization=pol)
+            grid = thermal_polarization(np.exp(z[:4]), hy.Thermal(math.exp(phi[0]),
+                                                                math.exp(phi[1])),
+                                        THERMAL_COLUMNS[2])
+            model = replace(model, polarization=replace(
+                model.polarization, thermal=grid.thermal, n_coercive=grid.n_coercive,
+                interaction=grid.interaction))
         elif name == "amplifier-lag":
             model = replace(model, effects=self._amplifier(phi, thickness_um))
         elif name == "sensor-nonlinearity":
@@ -402,20 +456,25 @@ def _rebase(space: ExtendedSpace, z: FloatArray,
     return space.with_starts(found.starts), np.concatenate((sol.x, z[n_x:]))
 
 
-def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
-        max_nfev: int, n_starts: int = 1,
-        identify: idf.Settings | None = None) -> tuple[Extended, ExtendedSpace]:
-    """Fit ``(x, phi)`` from the base parameters ``x_base``; returns the fit and its space (the
-    initial hysteresis states it chose).
+def state_choices(n: int) -> list[tuple[str, ...]]:
+    """Initial states of ``n`` sweeps recorded in sequence, each after the one before: the first
+    depoled or poled either way, the others where the previous left it (:data:`pz.STARTS`)."""
+    return [(first,) + ("previous",) * (n - 1) for first in pz.STARTS[:3]]
 
-    Multi-start on the effect alone: from each of the ``n_starts`` best of the candidate's starting
-    ``phi`` (by cost) a short least-squares run moves ``phi`` (and the rod's two parameters, for
-    a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
-    columns); the best of those then starts the joint fit of ``(x, phi)``. The amplifier and the
-    sensor effects (:data:`REBASED`) then fit ``x`` and the starts afresh through their effect
-    (:func:`_rebase`, with the ``identify`` settings; tried if the effect alone already brought
-    the cost below :data:`REBASE_GAIN` of the base model's, kept if it lowers the cost). The base
-    model is in every candidate's family, so its own cost bounds the result's."""
+
+def _in_sequence(space: ExtendedSpace, z: FloatArray) -> ExtendedSpace | None:
+    """``space`` with the :func:`state_choices` that fits best at ``z``; None if it has them."""
+    if "previous" in space.base.starts[1:] or len(space.preps) < 2:
+        return None
+    return min((space.with_starts(c) for c in state_choices(len(space.preps))),
+               key=lambda s: float(np.sum(s.residual(z) ** 2)))
+
+
+def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts: int,
+              identify: idf.Settings | None) -> tuple[ExtendedSpace, optimize.OptimizeResult, int]:
+    """Multi-start on ``phi`` with ``x_base`` held, then the joint fit (see :func:`fit`); the
+    space (with the starts a refit through the effect chose), the solution and the number of
+    evaluations."""
     lo, hi = space.bounds()
     n_x = x_base.size
     n_held = 4 if space.candidate.free_rod else n_x
@@ -451,7 +510,51 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
                 space, ranked = found, [clip(z)]
     sol = optimize.least_squares(space.residual, ranked[0], bounds=(lo, hi), diff_step=1e-6,
                                  max_nfev=max_nfev)
+    return space, sol, nfev + int(sol.nfev)
+
+
+def _polish(space: ExtendedSpace, z: FloatArray, max_nfev: int, nfev: int
+            ) -> tuple[ExtendedSpace, optimize.OptimizeResult, int]:
+    """A short joint fit from ``z``; the space, solution and evaluations so far."""
+    lo, hi = space.bounds()
+    sol = optimize.least_squares(space.residual, z, bounds=(lo, hi), diff_step=1e-6,
+                                 max_nfev=max_nfev)
+    return space, sol, nfev + int(sol.nfev)
+
+
+def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
+        max_nfev: int, n_starts: int = 1,
+        identify: idf.Settings | None = None) -> tuple[Extended, ExtendedSpace]:
+    """Fit ``(x, phi)`` from the base parameters ``x_base``; returns the fit and its space (the
+    initial hysteresis states and the grid it chose).
+
+    Multi-start on the effect alone: from each of the ``n_starts`` best of the candidate's starting
+    ``phi`` (by cost) a short least-squares run moves ``phi`` (and the rod's two parameters, for
+    a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
+    columns); the best of those then starts the joint fit of ``(x, phi)``. The amplifier and the
+    sensor effects (:data:`REBASED`) then fit ``x`` and the starts afresh through their effect
+    (:func:`_rebase`, with the ``identify`` settings; tried if the effect alone already brought
+    the cost below :data:`REBASE_GAIN` of the base model's, kept if it lowers the cost). The base
+    model is in every candidate's family, so its own cost bounds the result's.
+
+    An ``own_states`` candidate (relaxation: the state a sweep starts from has relaxed with the
+    sweeps before it) is also fitted with the sweeps in sequence (:func:`state_choices`, the
+    first state chosen at the best start) unless the base's states already are, each fit with
+    half the budget. Both search on a coarse thermal grid (:data:`THERMAL_COARSE`) and are then
+    polished on the fine one with 1/:data:`FINE_SHARE` of the budget; the lower cost wins."""
+    spaces = [space]
+    if space.candidate.own_states:
+        spaces = [space.with_grid(THERMAL_COARSE)]
+        z0 = np.concatenate((x_base, space.candidate.starts[0]))
+        spaces += [s for s in [_in_sequence(spaces[0], z0)] if s is not None]
+    fits = [_fit_from(s, x_base, max_nfev // len(spaces), n_starts, identify) for s in spaces]
+    if space.candidate.own_states:  # each polished on the fine grid
+        fine = (THERMAL_ROWS, THERMAL_STEP, THERMAL_COLUMNS[1])
+        fits = [_polish(s.with_grid(fine), sol.x, max(max_nfev // FINE_SHARE, 1), n)
+                for s, sol, n in fits]
+    space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
+    nfev = sum(f[2] for f in fits)
     model, gains, offsets = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
-                    bool(sol.success and sol.status > 0), nfev + int(sol.nfev), sol.x,
+                    bool(sol.success and sol.status > 0), nfev, sol.x,
                     space.base.starts, offsets, pz.project(*space.system(sol.x))[0]), space

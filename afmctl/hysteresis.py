@@ -53,6 +53,8 @@ ArrayLike = FloatArray | list[float] | tuple[float, ...]
 KIND_NORMAL = 0
 KIND_GRID = 1
 KIND_THERMAL = 2
+#: Thermal kernel: a hysteron within this of a settled orientation is settled.
+SNAP = 1e-12
 
 
 @dataclass(frozen=True)
@@ -217,7 +219,9 @@ class Kernel:
 
     @property
     def state_size(self) -> int:
-        return self.ec.size * (self.ei.size if self.kind == KIND_THERMAL else 1)
+        if self.kind == KIND_THERMAL:  # x_+ per hysteron and their switched total
+            return self.ec.size * self.ei.size + 1
+        return self.ec.size
 
 
 def build_kernel(params: Polarization) -> Kernel:
@@ -241,7 +245,8 @@ def build_kernel(params: Polarization) -> Kernel:
 @dataclass(frozen=True)
 class PolarizationState:
     """Memory of the model: play outputs (``normal``, MV/m), boundary indices (``grid``) or dipole
-    fractions x_+ (``thermal``, row-major N_i x N_j). Treat as immutable: every run returns a new one.
+    fractions x_+ (``thermal``, row-major N_i x N_j, then their switched total ``sum w (2 x_+ - 1)``).
+    Treat as immutable: every run returns a new one.
     """
 
     kind: int
@@ -277,11 +282,12 @@ def initial_state(params: Polarization, how: Initial | NDArray = "depoled") -> P
         delta = np.asarray(how, dtype=float)
         if delta.shape != (ni, nj) or not np.all(np.abs(delta) == 1):
             raise ValueError(f"Delta must be an {ni}x{nj} matrix of +-1")
-    if k.kind == KIND_THERMAL:
-        return PolarizationState(k.kind, ((delta + 1) / 2).ravel().copy())
-    bound = (delta < 0).sum(axis=1).astype(float)
     if not np.all(np.diff(delta, axis=1) >= 0):
         raise ValueError("each Delta row must be -1 below a boundary and +1 above it")
+    if k.kind == KIND_THERMAL:
+        total = float(np.sum(k.wc[:, None] * np.diff(k.cw)[None, :] * delta))
+        return PolarizationState(k.kind, np.append((delta + 1) / 2, total))
+    bound = (delta < 0).sum(axis=1).astype(float)
     if k.kind == KIND_GRID:
         return PolarizationState(k.kind, bound)
     # closed form: play output y with -y between the last down node and the first up node
@@ -365,28 +371,78 @@ def _step(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: n
             out[i] = b
             acc += wc[i] * (wi_tot - 2.0 * cw[b])
         return (e * wtot + mean) / eta + p_r * acc
-    # thermal kernel: x_+ per hysteron, exact exponential update with the field held over dt
+    return (e * wtot + mean) / eta + p_r * _thermal_step(e, dt, st, out, ec, wc, ei, cw, fscale, nu0)
+
+
+@nb.njit(cache=True)
+def _cell(st: np.ndarray, out: np.ndarray, idx: int, ee: float, ec: float, dt: float, s: float,
+          zcut: float, nu0: float) -> float:
+    """Advance hysteron ``idx`` (effective field ``ee``, coercive field ``ec``) by ``dt`` into
+    ``out`` (exact exponential update at frozen rates (7)-(8)); return its new x_+."""
+    x = st[idx]
+    zm = -s * (ee + ec)  # + -> - switching (7)-(8)
+    zp = s * (ee - ec)   # - -> + switching
+    if zm > zcut or zp > zcut:
+        pm = _rate(zm, nu0) if zm > zcut else 0.0
+        pp = _rate(zp, nu0) if zp > zcut else 0.0
+        if not ((pm == 0.0 and x == 1.0) or (pp == 0.0 and x == 0.0)):
+            xeq = pp / (pm + pp)
+            x = xeq + (x - xeq) * math.exp(-(pm + pp) * dt)
+            if x > 1.0 - SNAP and pm == 0.0:  # settled up: a fraction below 1e-12 is none
+                x = 1.0
+            elif x < SNAP and pp == 0.0:
+                x = 0.0
+    out[idx] = x
+    return x
+
+
+@nb.njit(cache=True)
+def _thermal_step(e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray,
+                  wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, fscale: float,
+                  nu0: float) -> float:
+    """Kernel (10) over the grid: advance x_+ of every hysteron at field ``e`` held ``dt`` s and
+    return the switched total ``sum w (2 x_+ - 1)``, kept in the state's last slot.
+
+    A hysteron moves only near its switching fields ``E + E_I = +-E_c`` (rates (7)-(8) below
+    ``1e-12 / dt`` elsewhere), so each row (``ei`` increasing) is visited from ``zcut``
+    field scales ahead of each switching field on, and on past it while x_+ is not yet
+    exactly 1 (up) or 0 (down): a state made by this kernel from a relay state is monotone in
+    ``E_I``, so past a hysteron that was and stays fully switched the rest of the row cannot
+    move. The result equals the sweep of every hysteron (to 1e-12); the cost is the bands'.
+    """
+    ni, nj = ec.size, ei.size
+    n = ni * nj
+    if out is not st:
+        out[:] = st
     s = 1.0 / fscale
-    zcut = -math.sqrt(max(math.log(max(nu0 * dt, 1e-300) * 1e18), 1.0))
+    zcut = -math.sqrt(max(math.log(max(nu0 * dt, 1e-300) * 1e12), 1.0))
+    band = -zcut * fscale
+    acc = st[n]
     for i in range(ni):
-        row = 0.0
-        for j in range(nj):
-            idx = i * nj + j
-            x = st[idx]
-            ee = e + ei[j]
-            zm = -s * (ee + ec[i])  # + -> - switching (7)-(8)
-            zp = s * (ee - ec[i])   # - -> + switching
-            if zm > zcut or zp > zcut:
-                pm = _rate(zm, nu0) if zm > zcut else 0.0
-                pp = _rate(zp, nu0) if zp > zcut else 0.0
-                lam = pm + pp
-                if not ((pm == 0.0 and x == 1.0) or (pp == 0.0 and x == 0.0)):
-                    xeq = pp / lam
-                    x = xeq + (x - xeq) * math.exp(-lam * dt)
-            out[idx] = x
-            row += (cw[j + 1] - cw[j]) * (2.0 * x - 1.0)
-        acc += wc[i] * row
-    return (e * wtot + mean) / eta + p_r * acc
+        base = i * nj
+        d_acc = 0.0
+        # up-switching: E_I >= ec - e - band, on while inside the band or not yet fully up
+        j = np.searchsorted(ei, ec[i] - e - band)
+        first_up = j
+        while j < nj:
+            old = st[base + j]
+            x = _cell(st, out, base + j, e + ei[j], ec[i], dt, s, zcut, nu0)
+            d_acc += (cw[j + 1] - cw[j]) * (x - old)
+            if old == 1.0 and x == 1.0 and ei[j] > ec[i] - e + band:
+                break
+            j += 1
+        # down-switching: E_I <= -ec - e + band, below the cells the up pass visited
+        j = min(np.searchsorted(ei, -ec[i] - e + band, side="right"), first_up) - 1
+        while j >= 0:
+            old = st[base + j]
+            x = _cell(st, out, base + j, e + ei[j], ec[i], dt, s, zcut, nu0)
+            d_acc += (cw[j + 1] - cw[j]) * (x - old)
+            if old == 0.0 and x == 0.0 and ei[j] < -ec[i] - e - band:
+                break
+            j -= 1
+        acc += 2.0 * wc[i] * d_acc
+    out[n] = acc
+    return acc
 
 
 @nb.njit(cache=True)
