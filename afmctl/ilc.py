@@ -179,6 +179,8 @@ class Tuning:
 
 #: Cut-off of the time-domain Q for the non-periodic part of the error, as a fraction of Q's.
 APERIODIC_FRACTION = 0.25
+#: Fewest runs whose gains give a spread (two runs give one difference, no scale to trust).
+MIN_RUNS_SPREAD = 3
 #: Fewest reliably measured harmonics for the per-harmonic inverse of ``G``.
 MIN_HARMONICS = 3
 #: A harmonic's G is measured when the reference's amplitude there exceeds this many standard
@@ -282,6 +284,26 @@ def next_reference(reference: FloatArray, error: FloatArray, desired: track.Desi
     aperiodic = e - synthesize(ce, t, f0)  # drift, creep, the first period's transient
     slow = q_filter(law.gain * aperiodic, dt, APERIODIC_FRACTION * tuning.cutoff_hz)
     return reference + fade * synthesize(dr, t, f0) + slow
+
+
+def gain_coefficient(x: FloatArray, s: FloatArray) -> float:
+    """Least-squares coefficient of ``x`` (um) along the gain direction ``s`` (um per unit gain)
+    with a free offset (NaN skipped): the change of the stage's gain that moves it by ``x``,
+    whatever constant shift (creep, drift) comes with it."""
+    k = np.isfinite(x) & np.isfinite(s)
+    sc = s[k] - s[k].mean() if k.any() else s[k]
+    ss = float(np.sum(sc**2))
+    return float(np.sum(x[k] * sc) / ss) if ss > 0 else 0.0
+
+
+def resolution(noise_um: float, gain_sigma: float, s_rms_um: float, runs: int) -> float:
+    """The smallest error (um) learning can tell apart: the sensor noise and, under a per-run
+    gain of spread ``gain_sigma`` (moving the stage ``s_rms_um`` per unit gain), the uncertainty
+    of the mean gain of ``runs`` runs, ``gain_sigma s_rms / sqrt(runs)``, added in quadrature
+    once there are :data:`MIN_RUNS_SPREAD` runs to measure a spread from."""
+    if runs < MIN_RUNS_SPREAD:
+        return noise_um
+    return float(np.hypot(noise_um, gain_sigma * s_rms_um / np.sqrt(runs)))
 
 
 def noise_estimate(error: FloatArray) -> float:

@@ -126,8 +126,8 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
         truth = prof.emulator.true_model if prof.emulator is not None else None
         it = learn.judge(wf, desired, 0, measured, out / "run_play.csv", sensor,
                          learn.between_error(wf, desired, truth))
-        data.update(it.as_dict())
-        del data["iteration"]
+        data.update({k: v for k, v in it.as_dict().items()
+                     if k not in ("iteration", "gain_change", "judged_um")})
         click.echo(f"play: steady RMS {it.steady_um:.4f} um, RMS {it.outcome.score.rms_um:.4f}"
                    f" um, imaging {it.rms_imaging_um:.4f} um", err=True)
     experiment.write_summary(data, out / "summary.json")
