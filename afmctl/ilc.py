@@ -42,17 +42,36 @@ With the plain law ``L = rho z^m`` (``G = 1`` assumed) it needs ``|1 - rho e^{j 
 G| < 1``: the phase of ``G e^{j omega m T}`` within 60 degrees for ``|G| = 1``, which an
 unmodelled lag or resonance breaks above some frequency (e.g. the paper's linear filter, which
 does not invert the rod: its phase passes 60 degrees at ~216 Hz on the default stage).
-Above the cut-off nothing is learned and the error stays what the model leaves. Run-to-run
-variation (a per-run gain) is not in ``G``: learning chases the last run's gain, so the error
-settles at about ``sqrt(2)`` times that variation's own floor, and the divergence stop ends it
-if an unlucky draw makes an iteration 1.2 times worse than the best.
+Above the cut-off nothing is learned and the error stays what the model leaves.
+
+**Run-to-run variation.** A per-run gain ``g_j = 1 + delta_j`` of the applied voltage is not in
+``G`` and no waveform can know the next run's: learning on ``e_j`` would chase each run's draw
+(``e_{j+1}`` then carries ``delta_j - delta_{j+1}``: variance twice the draw's, ``sqrt 2`` times
+its floor) and an unlucky draw would look like a divergence. So every iteration starts with the
+same conditioning excursion, on which two runs' readings differ by nothing but their gains (and
+noise): the coefficient of that difference along ``s = dy/dg`` (the model's position per unit
+gain, :func:`gain_coefficient`) is the run's gain relative to iteration 0, ``d_j``. The law uses
+the error the run would have made at the **mean gain** of the runs so far,
+
+    e~_j = e_j + (d_j - mean(d_0 .. d_j)) s
+
+in ``r_{j+1} = r_j + Q[L e~_j]``, and judges every iteration (best, divergence, floor) by its
+``e~`` at the same latest mean. The condition above is unchanged (``e~`` is the error of a fixed
+plant, the stage at the mean gain); the learned waveform converges to the one for the mean
+gain, whose estimate errs by ``sigma / sqrt(j+1)``: the expected error settles at ``sigma |s|
+sqrt(1 + 1/(j+1))``, the variation's floor ``sigma |s|`` (what a perfect waveform still makes)
+to within 10 % from 5 runs on. The stop rules use the resolution
+:func:`resolution`: the noise and that mean's uncertainty. Without the conditioning
+(``--no-condition``) no gain is measured (``d_j = 0``) and the law is the plain one.
 
 **Stopping** (:mod:`afmctl.learn` plays the iterations). Each waveform passes the guard
 (voltage, slew, current) before it is sent: one that would not (or a reference out of the
 stage's reach) is not sent, and learning ends with the best waveform so far. Learning also ends
 at the noise floor (the steady error of the readings within :attr:`Law.floor_factor` of the
-noise, estimated from the readings themselves) and on a diverging error (an iteration worse
-than :attr:`Law.diverge_factor` times the best so far).
+noise, estimated from the readings themselves, and of the mean gain's uncertainty under
+run-to-run variation: :func:`resolution`) and on a diverging error (an iteration worse than
+:attr:`Law.diverge_factor` times the best so far, the best counted no lower than that
+resolution: within it, iterations cannot be told apart).
 
 Judging is track's (at the samples and between them, the first period excluded) plus the imaging
 region of a raster line: the central 80 % of every ramp between turning points (:func:`imaging_mask`).
