@@ -292,7 +292,9 @@ def gain_change(it: Iteration, first: Iteration, s: FloatArray, prefix_v: FloatA
     excursion ``prefix_v`` that starts every iteration: the coefficient along ``s`` (with a free
     offset) of the difference of the two runs' readings (corrected for ``sensor``) from its peak
     on, where the same voltages have wiped out what came before, so that nothing but the gain
-    and the noise tells the two runs apart. 0 without conditioning."""
+    and the noise tells the two runs apart. 0 without conditioning. In units of the model's
+    ``s``: a stage that moves ``c`` times as far per volt as the model reads ``c`` times its gain
+    change, and ``d s`` is the stage's own movement, which is what learning removes."""
     if not prefix_v.size:
         return 0.0
     chain = fx.compile_chain(sensor, it.outcome.waveform.dt_s)

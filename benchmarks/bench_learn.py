@@ -191,12 +191,14 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
             "gain_sigma_true": prof.emulator.effects.voltage_gain_sigma,
             "gain_sigma_measured": res.gain_sigma,
             "gain_change_by_iteration": [it.gain_change for it in res.iterations],
-            "target": (f"settles: expected RMS (over the gain spread) within "
-                       f"{SETTLE_FACTOR:g} x variation_floor_um at every iteration from 1 on, "
-                       "of the kept one too, and learning not ended as diverging or refused")})
-        row["ok"] = bool(all(x <= SETTLE_FACTOR * floor for x in expected[1:])
-                         and expected[res.best] <= SETTLE_FACTOR * floor
-                         and len(expected) > 1
+            "target": (f"settles: the expected RMS (over the gain spread) of the kept and of "
+                       f"the last iteration within {SETTLE_FACTOR:g} x variation_floor_um; no "
+                       "divergence: no iteration's expected RMS above 1.2 x the best before it, "
+                       "learning not ended as diverging or refused")})
+        row["ok"] = bool(len(expected) > 1
+                         and max(expected[res.best], expected[-1]) <= SETTLE_FACTOR * floor
+                         and all(x <= 1.2 * min(expected[:i]) for i, x in enumerate(expected)
+                                 if i)
                          and not res.stop.startswith(("diverging", "refused")))
     else:
         row["target"] = "final_over_noise <= 2 within 5 iterations"

@@ -277,23 +277,40 @@ def test_ctrl_c_keeps_every_finished_iteration(profile: Profile, nominal: Transd
 
 def test_run_to_run_gain_variation_settles_at_its_floor(profile: Profile, nominal: Transducer,
                                                         tmp_path: Path) -> None:
-    """Each run draws its applied-voltage gain (sigma 2 %): learning cannot know the next run's
-    gain, so it must not chase it into divergence. The kept waveform's true error stays within
-    twice the error a 1-sigma gain change alone makes (the variation's floor)."""
+    """A stage whose rod is softer than the model's (the inverse alone misses by ~2 um) and whose
+    every run draws its own applied-voltage gain (sigma 2 %). The conditioning measures each
+    run's gain relative to iteration 0 (checked against the emulator's own draws); learning
+    learns and judges at the runs' mean gain, so it neither chases the draws nor takes one for
+    a divergence, and the kept waveform's expected true error over the gain spread (at gain
+    1 +- sigma) is within 1.5 x the variation's floor: the error a perfect waveform still makes
+    under that spread (the true plant's positions at 1 +- sigma against 1)."""
     from drivers.device.plant import Physics
     sigma = 0.02
-    stage = with_effects(profile, fx.Effects(voltage_gain_sigma=sigma))
-    res = learn_on(stage, nominal, tmp_path, 5)
-    steady = [it.steady_um for it in res.iterations]
-    assert all(x <= 1.2 * min(steady[:k + 1]) for k, x in enumerate(steady[:-1]))
+    prof = with_effects(softer_rod(profile), fx.Effects(voltage_gain_sigma=sigma))
+    assert prof.emulator is not None
+    desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / prof.sample_rate_hz)
+    with InProcessStage(prof, clock=accelerated(8.0)) as stage:
+        res = learn.run(stage, nominal, desired, prof.limits, tmp_path, {}, 6, ilc.Law(),
+                        prof.emulator.true_model)
+        gains = np.array([stage.emulator.physics.gain(j) for j in range(len(res.iterations))])
+    # measured along the model's s: the stage, whose rod is 1 / 0.8 as compliant, moves 1.25
+    # times as far per unit gain, so it reads 1.25 x the change (d s is its true movement)
+    measured = np.array([it.gain_change for it in res.iterations])
+    assert measured == pytest.approx(1.25 * (gains - gains[0]), abs=3e-4)
+    assert np.std(gains) > 0.005  # the draws did vary
+    assert not res.stop.startswith(("diverging", "refused")), res.stop
+    ph = Physics(dc.replace(prof.emulator, effects=fx.Effects()), prof.sample_rate_hz)
+    steady = ilc.steady_part(desired)
+
+    def error(wf: track.Waveform, g: float) -> np.ndarray:
+        return ph.respond(g * wf.voltage_v, ph.initial())[0][wf.tracking][steady]
+
     wf = res.best_iteration.outcome.waveform
-    ph = Physics(profile.emulator, profile.sample_rate_hz)  # type: ignore[arg-type]
-    pos = {g: ph.respond(g * wf.voltage_v, ph.initial())[0][wf.tracking][358:]
-           for g in (1.0, 1 + sigma, 1 - sigma)}
-    floor = np.sqrt(np.mean(np.concatenate([pos[1 + sigma] - pos[1.0],
-                                            pos[1 - sigma] - pos[1.0]]) ** 2))
-    kept = res.best_iteration.outcome.score.rms_between_um
-    assert kept is not None and kept <= 2 * floor, (kept, floor, steady)
+    spread = [error(wf, g) for g in (1 + sigma, 1 - sigma)]
+    floor = np.sqrt(np.mean(np.concatenate([x - error(wf, 1.0) for x in spread]) ** 2))
+    expected = np.sqrt(np.mean(np.concatenate([x - desired.u_um[steady] for x in spread]) ** 2))
+    first = res.iterations[0].outcome.score.rms_um
+    assert first > 5 * floor and expected <= 1.5 * floor, (first, expected, floor, res.stop)
 
 
 def test_learning_over_the_serial_protocol(profile: Profile, nominal: Transducer,
