@@ -46,9 +46,11 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
 
     def each(result: learn.Result) -> None:
         it = result.iterations[-1]
+        gain = (f", gain {100 * it.gain_change:+.2f} % (at the mean gain {it.judged_um:.4f} um)"
+                if abs(it.gain_change) >= 5e-5 else "")
         click.echo(f"iteration {it.index}: steady RMS {it.steady_um:.4f} um, imaging "
                    f"{it.rms_imaging_um:.4f} um, max slew "
-                   f"{it.outcome.waveform.max_slew_v_per_ms:.1f} V/ms", err=True)
+                   f"{it.outcome.waveform.max_slew_v_per_ms:.1f} V/ms{gain}", err=True)
         learn.write_outputs(result, desired, law, meta, out)
 
     click.echo(f"learning {desired.label}: up to {iterations} iterations after the {seed} "
@@ -58,7 +60,7 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
                        envelope=modelfile.read_envelope(model_name), extrapolate=how[1])
     data = learn.write_outputs(result, desired, law, meta, out)
     click.echo(f"stopped: {result.stop}; best iteration {result.best} "
-               f"({result.best_iteration.steady_um:.4f} um)", err=True)
+               f"({result.best_iteration.judged_um:.4f} um)", err=True)
     click.echo(f"wrote {out}/run_*_iterNN.csv, summary.json, waveform_learned.csv, learn.png",
                err=True)
     if as_json:
