@@ -76,6 +76,7 @@ class TruthProbe:
     def __init__(self, stage: InProcessStage) -> None:
         self.stage = stage
         self.positions: list[np.ndarray] = []
+        self.gains: list[float] = []  # each run's applied-voltage gain (the emulator's draw)
 
     def voltage(self) -> float:
         return self.stage.voltage()
@@ -83,6 +84,7 @@ class TruthProbe:
     def play(self, waveform_v: np.ndarray, on_block: Any = None, **kw: Any) -> Any:
         dev = self.stage.emulator
         before = dev.state
+        self.gains.append(dev.physics.gain(dev.run_count))
         rec = self.stage.play(waveform_v, on_block, **kw)
         n = len(waveform_v)
         applied = dev.rec_v[np.arange(n) % dev.rec_v.size].astype(float)  # gain and lag applied
@@ -112,7 +114,8 @@ def model_for(profile: Profile, cause: str, folder: Path
 
 def learn_on(profile: Profile, model: tr.Transducer, desired: track.Desired, out: Path,
              iterations: int, law: ilc.Law, seed: str = "inverse"
-             ) -> tuple[learn.Result, list[float]]:
+             ) -> tuple[learn.Result, list[float], list[float]]:
+    """Learning's result, the true RMS error of each iteration and each run's true gain."""
     assert profile.emulator is not None
     with InProcessStage(profile, clock=accelerated(SPEED)) as stage:
         probe = TruthProbe(stage)
@@ -120,7 +123,7 @@ def learn_on(profile: Profile, model: tr.Transducer, desired: track.Desired, out
                         profile.emulator.true_model, seed)  # type: ignore[arg-type]
     rms = [true_rms(p, it, desired) for p, it in zip(probe.positions, res.iterations,
                                                      strict=False)]
-    return res, rms
+    return res, rms, probe.gains
 
 
 def gain_spread(profile: Profile, res: learn.Result, desired: track.Desired
@@ -169,7 +172,7 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
     model, source, base_model = model_for(prof, cause, tmp / f"{cause}-sweeps")
     desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / prof.sample_rate_hz)
     n = GAIN_ITERATIONS if cause == "voltage-gain-drift" else 5
-    res, rms = learn_on(prof, model, desired, tmp / cause, n, ilc.Law())
+    res, rms, gains = learn_on(prof, model, desired, tmp / cause, n, ilc.Law())
     noise = prof.emulator.noise_um
     final = rms[res.best]
     row: dict[str, Any] = {
@@ -191,6 +194,7 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
             "gain_sigma_true": prof.emulator.effects.voltage_gain_sigma,
             "gain_sigma_measured": res.gain_sigma,
             "gain_change_by_iteration": [it.gain_change for it in res.iterations],
+            "gain_change_true_by_iteration": [g / gains[0] - 1 for g in gains],
             "target": (f"settles: the expected RMS (over the gain spread) of the kept and of "
                        f"the last iteration within {SETTLE_FACTOR:g} x variation_floor_um; no "
                        "divergence: no iteration's expected RMS above 1.2 x the best before it, "
@@ -204,7 +208,7 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
         row["target"] = "final_over_noise <= 2 within 5 iterations"
         row["ok"] = bool(final / noise <= 2)
     if base_model is not None:  # a sensor effect: what learning on the base model does
-        b_res, b_rms = learn_on(prof, base_model, desired, tmp / f"{cause}-base", 5,
+        b_res, b_rms, _ = learn_on(prof, base_model, desired, tmp / f"{cause}-base", 5,
                                 ilc.Law(floor_factor=1.0))
         row.update({"base_model_rms_um_by_iteration": b_rms,
                     "base_model_readings_rms_um_by_iteration":
@@ -281,7 +285,7 @@ def main() -> None:
         desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / base.sample_rate_hz)
         for seed, law in (("inverse", ilc.Law()), ("linear", ilc.Law()),
                           ("linear", ilc.Law(cutoff_hz=LINEAR_Q_HZ))):
-            res, rms = learn_on(base, model, desired, tmp / f"seed-{seed}-{law.cutoff_hz:g}",
+            res, rms, _ = learn_on(base, model, desired, tmp / f"seed-{seed}-{law.cutoff_hz:g}",
                                 SEED_ITERATIONS, dc.replace(law, floor_factor=1.0), seed)
             key = f"{seed}_seed_iterations" + ("" if law.cutoff_hz == 600 else "_q150")
             out[key] = iterations_to(rms, 2 * noise)
@@ -295,7 +299,7 @@ def main() -> None:
                 out["seconds_per_iteration_stage"] = run_s
                 out["compute_over_stage"] = out["seconds_per_iteration_compute"] / run_s
         fast = track.triangle(100.0, AMP_UM, 0.0, 3, 1 / base.sample_rate_hz)
-        res, rms = learn_on(base, model, fast, tmp / "100hz", 10, ilc.Law(region="imaging"))
+        res, rms, _ = learn_on(base, model, fast, tmp / "100hz", 10, ilc.Law(region="imaging"))
         img = [it.rms_imaging_between_um for it in res.iterations]
         out["rate_100hz_imaging_pct"] = 100 * img[res.best] / AMP_UM
         out["rate_100hz_imaging_um_by_iteration"] = img
