@@ -130,7 +130,7 @@ class Iteration:
     RMS at the samples and (with a plant model) between them, um.
 
     ``gain_change`` is the run's applied-voltage gain relative to iteration 0's, measured on the
-    conditioning excursion (the same voltages every iteration: :func:`without_gain_draw`);
+    conditioning excursion (the same voltages every iteration: :func:`gain_change`);
     ``learned_um`` is the error learning uses and judges, the error the run would have made at
     the mean gain of the runs so far (``error_um`` itself when the gain does not vary), and
     ``judged_um`` its RMS over the learned region (the steady part, or its imaging region)."""
@@ -233,9 +233,6 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     noise, best, stop = float("nan"), 0, "iterations done"
     tuning = ilc.Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex), np.zeros(0))
 
-    def judged(it: Iteration) -> float:  # what learning minimizes: its region's steady RMS
-        return it.judged_um
-
     plant = truth if truth is not None else model
     region = ilc.imaging_mask(desired, first_period=True) if law.region == "imaging" else None
     s_dir, sigma = np.zeros(0), 0.0
@@ -267,18 +264,18 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         done, sigma = at_mean_gain([*done, it], s_dir, desired, law)
         it = done[-1]
         compute.append(t_plan + time.perf_counter() - t1)
-        best = int(np.argmin([judged(x) for x in done]))
+        best = int(np.argmin([x.judged_um for x in done]))
         result = Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma)
         if on_iteration is not None:
             on_iteration(result)
         floor = ilc.resolution(noise, sigma, ilc.rms(s_dir[wf.tracking][ilc.steady_part(desired)]),
                                len(done))
-        if judged(it) > law.diverge_factor * max(judged(done[best]), floor):
-            stop = (f"diverging: iteration {j} ({judged(it):.4g} um) worse than "
-                    f"{law.diverge_factor:g} x the best ({judged(done[best]):.4g} um)")
+        if it.judged_um > law.diverge_factor * max(done[best].judged_um, floor):
+            stop = (f"diverging: iteration {j} ({it.judged_um:.4g} um) worse than "
+                    f"{law.diverge_factor:g} x the best ({done[best].judged_um:.4g} um)")
             break
-        if judged(it) <= law.floor_factor * floor:
-            stop = (f"noise floor: {judged(it):.4g} um within {law.floor_factor:g} x noise"
+        if it.judged_um <= law.floor_factor * floor:
+            stop = (f"noise floor: {it.judged_um:.4g} um within {law.floor_factor:g} x noise"
                     + ("" if floor == noise else
                        f" and the mean gain's uncertainty ({floor:.4g} um; gain spread "
                        f"{100 * sigma:.2g} %)"))
