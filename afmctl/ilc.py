@@ -106,9 +106,12 @@ class Law:
     max_lead_samples : int
         Largest phase lead ``m`` measured on iteration 0, samples.
     floor_factor : float
-        Stop once the readings' steady RMS error is within this factor of the noise.
+        Stop once the readings' steady RMS error (at the runs' mean gain) is within this
+        factor of the resolution (:func:`resolution`: the noise, and the mean gain's
+        uncertainty under run-to-run variation).
     diverge_factor : float
-        Stop once an iteration is worse than this factor times the best so far.
+        Stop once an iteration is worse than this factor times the best so far (the best
+        counted no lower than the resolution).
     region : str
         ``all``: learn from the error everywhere on the trajectory; ``imaging``: only from the
         imaging region of every ramp (:func:`imaging_mask`), leaving the turnarounds free, so a
