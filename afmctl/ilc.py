@@ -108,7 +108,8 @@ class Law:
     floor_factor : float
         Stop once the readings' steady RMS error (at the runs' mean gain) is within this
         factor of the resolution (:func:`resolution`: the noise, and the mean gain's
-        uncertainty under run-to-run variation).
+        uncertainty under run-to-run variation). 0: never stop there (to watch learning
+        past the floor).
     diverge_factor : float
         Stop once an iteration is worse than this factor times the best so far (the best
         counted no lower than the resolution).
@@ -134,10 +135,10 @@ class Law:
         if self.region not in ("all", "imaging"):
             raise ValueError(f"learning region must be 'all' or 'imaging', not {self.region!r}")
         if not (self.cutoff_hz > 0 and 0 < self.gain < 2 and self.max_lead_samples >= 0
-                and self.floor_factor >= 1 and self.diverge_factor > 1
+                and (self.floor_factor >= 1 or self.floor_factor == 0) and self.diverge_factor > 1
                 and self.max_boost >= 1):
             raise ValueError("learning law: need cutoff > 0, 0 < gain < 2, lead >= 0, "
-                             "floor factor >= 1, divergence factor > 1, max boost >= 1")
+                             "floor factor >= 1 (or 0), divergence factor > 1, max boost >= 1")
 
 
 # ----------------------------------------------------------------------------------------------

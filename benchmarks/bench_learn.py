@@ -9,6 +9,12 @@ for the sensor effects (delay, gauge) ``diagnose`` runs on the same sweeps and l
 extended model (readings cannot tell where the stage is without it). Then ``learn.run`` plays the
 27.9 Hz / 27.04 um triangle (3 periods) and up to 5 learning iterations.
 
+The stage with run-to-run gain variation (8 iterations) is judged against its variation's floor
+(``variation_floor_um``: the true error a perfect waveform still makes under the gain spread) by
+each iteration's expected error over the spread (``expected_rms_um_by_iteration``), and learning
+is run again past the floor (its stop off) to show it does not diverge there. For the sensor
+effects learning on diagnose's base model is run too (``base_model_rms_um_by_iteration``).
+
 Judged by the stage's **true position**: the emulator's own state (the applied voltage it
 recorded, run through its true plant, no sensor effects, no noise), at the samples, first period
 excluded. ``noise_um`` is the stage's sensor noise (1 sigma). ``seconds_per_iteration_compute``
@@ -22,7 +28,8 @@ Foreign stages (``--foreign``): the independently written plant of
 pty; its standard triangles recorded through the driver and the model from ``afmctl identify``
 on them (:mod:`foreign_learn`); sensor effects there would need ``diagnose`` and are left out.
 
-Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object).
+Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object); ``--stages
+voltage-gain-drift --foreign '' --no-earlier --stages-only`` for one stage alone.
 """
 
 from __future__ import annotations
@@ -188,6 +195,15 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
     }
     if cause == "voltage-gain-drift":
         floor, expected = gain_spread(prof, res, desired)
+        # learning continued past the floor (its stop off): does it stay there or diverge?
+        c_res, c_rms, _ = learn_on(prof, model, desired, tmp / f"{cause}-continued", n,
+                                   ilc.Law(floor_factor=0))
+        c_expected = gain_spread(prof, c_res, desired)[1]
+        row.update({"continued_rms_um_by_iteration": c_rms,
+                    "continued_expected_over_floor_by_iteration": [x / floor for x in c_expected],
+                    "continued_stop": c_res.stop})
+        log(f"{cause:20s} continued past the floor: expected / floor "
+            f"{' -> '.join(f'{x / floor:.2f}' for x in c_expected)}; {c_res.stop[:60]}")
         row.update({
             "variation_floor_um": floor, "expected_rms_um_by_iteration": expected,
             "expected_over_floor_by_iteration": [x / floor for x in expected],
@@ -198,12 +214,16 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
             "target": (f"settles: the expected RMS (over the gain spread) of the kept and of "
                        f"the last iteration within {SETTLE_FACTOR:g} x variation_floor_um; no "
                        "divergence: no iteration's expected RMS above 1.2 x the best before it, "
-                       "learning not ended as diverging or refused")})
+                       "learning not ended as diverging or refused, and continued past the "
+                       f"floor ({GAIN_ITERATIONS} iterations, floor stop off) every iteration "
+                       f"from 1 on within {SETTLE_FACTOR:g} x the floor")})
         row["ok"] = bool(len(expected) > 1
                          and max(expected[res.best], expected[-1]) <= SETTLE_FACTOR * floor
                          and all(x <= 1.2 * min(expected[:i]) for i, x in enumerate(expected)
                                  if i)
-                         and not res.stop.startswith(("diverging", "refused")))
+                         and not res.stop.startswith(("diverging", "refused"))
+                         and not c_res.stop.startswith(("diverging", "refused"))
+                         and max(c_expected[1:], default=np.inf) <= SETTLE_FACTOR * floor)
     else:
         row["target"] = "final_over_noise <= 2 within 5 iterations"
         row["ok"] = bool(final / noise <= 2)
@@ -247,6 +267,8 @@ def main() -> None:
                     help="comma-separated effects on the foreign plant ('' for none)")
     ap.add_argument("--no-earlier", dest="earlier", action="store_false",
                     help="leave out the earlier bench's clean foreign stage (116 Hz rod)")
+    ap.add_argument("--stages-only", action="store_true",
+                    help="only the stages (no seed comparison, no 100 Hz run)")
     args = ap.parse_args()
     base = default_profile()
     assert base.emulator is not None
@@ -280,6 +302,10 @@ def main() -> None:
                               "(drivers.device.foreign, [emulator.foreign] seed "
                               f"{FOREIGN_SEED}, over the serial protocol on a pty) clean and "
                               "with plant effects at strength 0.5")
+        if args.stages_only:
+            if args.json:
+                print(json.dumps(out))
+            return
         model, _, _ = model_for(base, "none", tmp / "default-sweeps")
         noise = base.emulator.noise_um
         desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / base.sample_rate_hz)
