@@ -22,6 +22,9 @@ Pure numerics and data: files and plots are written by the CLI (:mod:`afmctl.cli
 from __future__ import annotations
 
 import math
+import multiprocessing as mp
+import os
+import signal
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -65,13 +68,15 @@ CAUSES = {
 @dataclass(frozen=True)
 class Settings:
     """Options of :func:`diagnose`: identification settings of the fits, the solver budget per run,
-    the number of starts per candidate, the candidates and the verdict's thresholds."""
+    the number of starts per candidate, the candidates, the verdict's thresholds and the number of
+    candidates fitted at once (``jobs``, processes; None: one per core)."""
 
     identify: idf.Settings = idf.Settings()
     max_nfev: int = 60
     n_starts: int = 2
     candidates: tuple[str, ...] = ext.NAMES
     rule: vd.Rule = vd.Rule()
+    jobs: int | None = None
 
 
 def fitted_text(parameters: dict[str, float]) -> str:
@@ -421,6 +426,61 @@ def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um
             cand.n_params, space)
 
 
+@dataclass(frozen=True)
+class _Job:
+    """What every candidate's fit and judgement needs (sent to the worker processes)."""
+
+    data: _Data
+    x0: FloatArray
+    thickness: float
+    range_um: float
+    settings: Settings
+    whole: list[pz.Prepared]
+    sweeps: tuple[Sweep, ...]
+
+
+def _judge(name: str, job: _Job) -> Judged:
+    """Fit candidate ``name`` on the first halves and judge it on the second halves."""
+    t1 = time.perf_counter()
+    fitted, n_params, space = _fit(name, job.data, job.x0, job.thickness, job.range_um,
+                                   job.settings)
+    rms, per = heldout(space.on(job.whole), fitted, job.sweeps)
+    return Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
+
+
+#: Candidates by typical fit time, longest first (they are handed to the processes in this order).
+SLOWEST_FIRST = ("thermal-relaxation", "second-mode", "amplifier-lag")
+
+
+def _judge_all(names: Sequence[str], job: _Job, floor: float,
+               say: Callable[[str], None]) -> dict[str, Judged]:
+    """Every candidate judged, in ``names`` order; fitted ``job.settings.jobs`` at a time in
+    worker processes (the fits are independent and pure)."""
+    jobs = min(job.settings.jobs or os.cpu_count() or 1, len(names))
+    order = sorted(names, key=lambda n: SLOWEST_FIRST.index(n) if n in SLOWEST_FIRST else 9)
+
+    def said(name: str, j: Judged) -> Judged:
+        say(f"  {name:20s} held-out RMS {j.heldout_rms_um:.4f} um = "
+            f"{j.heldout_rms_um / floor:.2f}x noise ({j.fit_seconds:.1f} s)")
+        return j
+
+    if jobs <= 1:
+        done = {n: said(n, _judge(n, job)) for n in order}
+    else:  # leaving the pool (an error, Ctrl-C) terminates the workers; they ignore SIGINT
+        with mp.get_context("fork").Pool(jobs, _ignore_interrupt) as pool:
+            done = {n: said(n, j) for n, j in pool.imap_unordered(_named_judge,
+                                                                  [(n, job) for n in order])}
+    return {n: done[n] for n in names}
+
+
+def _named_judge(task: tuple[str, _Job]) -> tuple[str, Judged]:
+    return task[0], _judge(*task)
+
+
+def _ignore_interrupt() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:
     """The candidates tried on ``n_sweeps`` sweeps (gain drift needs two or more)."""
     return [n for n in settings.candidates if n != "voltage-gain-drift" or n_sweeps >= 2]
@@ -483,14 +543,8 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     range_um = max(float(np.ptp(s.displacement_um[s.mask(None)])) for s in sweeps)
     data, x0 = _base_fit(halves, thickness, settings, start, say)
     whole = [pz.prepare(s, thickness, settings.identify.field_step, None) for s in sweeps]
-    table: dict[str, Judged] = {}
-    for name in candidate_names(len(sweeps), settings):
-        t1 = time.perf_counter()
-        fitted, n_params, space = _fit(name, data, x0, thickness, range_um, settings)
-        rms, per = heldout(space.on(whole), fitted, sweeps)
-        table[name] = Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
-        say(f"  {name:20s} held-out RMS {rms:.4f} um = {rms / floor:.2f}x noise "
-            f"({time.perf_counter() - t1:.1f} s)")
+    table = _judge_all(candidate_names(len(sweeps), settings),
+                       _Job(data, x0, thickness, range_um, settings, whole, tuple(sweeps)), floor, say)
     cause = choose(table, floor, settings.rule)
     say(f"verdict: {cause}")
     named = cause if cause in table else "none"

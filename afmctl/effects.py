@@ -16,7 +16,8 @@ Chain of one run, sample period ``dt`` (all units: V, um, s, Hz):
    at most ``S dt`` per sample: an amplifier's current limit into the stack's capacitance);
 3. the transducer (the paper's model) gives the rod displacement ``u``;
 4. ``second_mode``: ``x'' + 2 zeta w x' + w^2 x = w^2 gain u``, ``w = 2 pi f_2``; ``w = u + x``;
-5. ``sensor_nonlinearity``: the gauge reads ``w + c w^2 + c3 w^3``;
+5. ``sensor_nonlinearity``: the gauge reads ``w + c w^2 + c3 w^3`` (about a centre, with the
+   linear trend taken out, for a fitted one: :func:`gauge`);
 6. ``sensor_delay``: the recorder holds the reading of ``d = d_samples + d_s / dt`` samples
    earlier (fractional ``d`` by linear interpolation): a latency counted in samples (a digital
    pipeline) and one in seconds (the gauge's electronics), the same at any sample rate.
@@ -70,10 +71,17 @@ class Effects:
     sensor_delay_s : float
         Latency of the sensor readback in time, s (adds ``sensor_delay_s / dt`` samples).
     sensor_quadratic_per_um : float
-        Gauge nonlinearity, quadratic term: measured = u + c u^2 + c3 u^3, c in 1/um.
+        Gauge nonlinearity, quadratic term ``c`` (1/um): measured = ``w + c ((w - m)^2 - R^2/3)
+        + c3 ((w - m)^3 - 3/5 R^2 (w - m))`` (:func:`gauge`).
     sensor_cubic_per_um2 : float
         Its cubic term c3, 1/um^2 (with ``c``, any smooth gauge error to third order about any
         point: the offset and the gain are the model's own).
+    sensor_center_um, sensor_half_range_um : float
+        Centre ``m`` and half width ``R`` (um) of the range the gauge was fitted on. The error terms
+        are Legendre polynomials there: over ``m +- R`` they have no mean and no linear trend, so
+        the best straight line through the readings against ``w`` is ``w`` itself (a lab's linear
+        calibration of its gauge), and ``w`` is the position in that calibration's frame. With
+        ``R = 0`` and ``m = 0``, ``w + c w^2 + c3 w^3``.
     second_mode : SecondMode or None
     voltage_gain_sigma : float
         Applied-voltage gain is ``1 + N(0, sigma)``, drawn once per run. A model cannot know the
@@ -89,6 +97,8 @@ class Effects:
     sensor_delay_s: float = 0.0
     sensor_quadratic_per_um: float = 0.0
     sensor_cubic_per_um2: float = 0.0
+    sensor_center_um: float = 0.0
+    sensor_half_range_um: float = 0.0
     second_mode: SecondMode | None = None
     voltage_gain_sigma: float = 0.0
 
@@ -270,10 +280,20 @@ def remove_mode(chain: Chain, w: FloatArray) -> FloatArray:
     return signal.lfilter(chain.mode_a, den, w, zi=zi)[0]
 
 
+def _gauge_terms(effects: Effects) -> tuple[float, float, float, float]:
+    """``(c, c3, m, r2)``: the gauge's coefficients, centre (um) and squared half range (um^2)."""
+    return (effects.sensor_quadratic_per_um, effects.sensor_cubic_per_um2,
+            effects.sensor_center_um, effects.sensor_half_range_um ** 2)
+
+
 def gauge(effects: Effects, w: FloatArray) -> FloatArray:
-    """Sensor reading of displacement ``w`` (um)."""
-    c, c3 = effects.sensor_quadratic_per_um, effects.sensor_cubic_per_um2
-    return w + c * w * w + c3 * w * w * w if c or c3 else w
+    """Sensor reading of displacement ``w`` (um):
+    ``w + c ((w - m)^2 - R^2/3) + c3 ((w - m)^3 - 3/5 R^2 (w - m))``."""
+    c, c3, m, r2 = _gauge_terms(effects)
+    if not c and not c3:
+        return w
+    x = w - m
+    return w + c * (x * x - r2 / 3) + c3 * x * (x * x - 0.6 * r2)
 
 
 #: Newton steps of :func:`ungauge` with a cubic term (quadratic convergence from the quadratic root).
@@ -281,18 +301,19 @@ UNGAUGE_STEPS = 6
 
 
 def ungauge(effects: Effects, y: FloatArray) -> FloatArray:
-    """Displacement (um) whose reading is ``y``: the root of ``w + c w^2 + c3 w^3 = y`` nearest
-    ``y`` (closed form without a cubic term; else Newton from the quadratic's root)."""
-    c, c3 = effects.sensor_quadratic_per_um, effects.sensor_cubic_per_um2
+    """Displacement (um) whose reading is ``y``: the root of :func:`gauge` ``= y`` nearest ``y``
+    (closed form without a cubic term; else Newton from the quadratic's root)."""
+    c, c3, m, r2 = _gauge_terms(effects)
     if not c and not c3:
         return y
-    w = 2.0 * y / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * c * y, 0.0)))
-    if not c3:
-        return w
-    for _ in range(UNGAUGE_STEPS):
-        slope = 1.0 + 2.0 * c * w + 3.0 * c3 * w * w
-        w = w - (w + c * w * w + c3 * w * w * w - y) / np.where(np.abs(slope) > 1e-3, slope, 1e-3)
-    return w
+    yc = y - m + c * r2 / 3
+    x = 2.0 * yc / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * c * yc, 0.0)))
+    if c3:
+        for _ in range(UNGAUGE_STEPS):
+            slope = 1.0 + 2.0 * c * x + c3 * (3.0 * x * x - 0.6 * r2)
+            x = x - (x + c * x * x + c3 * x * (x * x - 0.6 * r2) - yc) / np.where(
+                np.abs(slope) > 1e-3, slope, 1e-3)
+    return m + x
 
 
 def delay(x: FloatArray, d: float, history: FloatArray) -> tuple[FloatArray, FloatArray]:

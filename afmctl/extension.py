@@ -151,14 +151,18 @@ def _log_gains(phi: FloatArray) -> FloatArray:
 class ExtendedSpace:
     """The residual of one candidate on prepared sweeps: ``z = (x, phi)``. Each sweep starts
     from the hysteresis state of ``base.starts`` and has its own sensor zero (as in
-    :func:`afmctl.identify.fit`)."""
+    :func:`afmctl.identify.fit`). ``gauge_frame``: centre and half width (um) of the readings a
+    gauge error is fitted about (default: those of ``preps``; :func:`afmctl.effects.gauge`)."""
 
     def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
-                 field_step: float, range_um: float, dt_min: float | None = None) -> None:
+                 field_step: float, range_um: float, dt_min: float | None = None,
+                 gauge_frame: tuple[float, float] | None = None) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
         self.step_rel = field_step
         self.step = [field_step * float(np.max(np.abs(p.field))) for p in self.preps]
         self.range_um = range_um
+        y = np.concatenate([p.y for p in self.preps])
+        self.gauge_frame = gauge_frame or (float(y.max() + y.min()) / 2, float(np.ptp(y)) / 2)
         self.dt_min = dt_min or min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
@@ -240,7 +244,9 @@ class ExtendedSpace:
         if self.candidate.name != "sensor-nonlinearity":
             return fx.Effects()
         return fx.Effects(sensor_quadratic_per_um=float(phi[0]) / self.range_um,
-                          sensor_cubic_per_um2=float(phi[1]) / self.range_um ** 2)
+                          sensor_cubic_per_um2=float(phi[1]) / self.range_um ** 2,
+                          sensor_center_um=self.gauge_frame[0],
+                          sensor_half_range_um=self.gauge_frame[1])
 
     def columns(self, z: FloatArray) -> list[FloatArray]:
         """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` after the output effects (the
@@ -278,7 +284,7 @@ class ExtendedSpace:
         a fit on their first halves is judged on)."""
         base = pz.LognormalSpace(preps, self.base.scales, self.base.n_coercive, self.base.starts)
         return ExtendedSpace(self.candidate, preps, base, self.step_rel, self.range_um,
-                             self.dt_min)
+                             self.dt_min, self.gauge_frame)
 
     def residual(self, z: FloatArray) -> FloatArray:
         a, y = self.system(z)

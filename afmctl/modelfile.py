@@ -202,7 +202,9 @@ def effects_dict(e: Effects) -> dict[str, Any]:
         out["sensor_delay"] = {"samples": e.sensor_delay_samples, "seconds": e.sensor_delay_s}
     if e.sensor_quadratic_per_um or e.sensor_cubic_per_um2:
         out["sensor_nonlinearity"] = {"quadratic_per_um": e.sensor_quadratic_per_um,
-                                      "cubic_per_um2": e.sensor_cubic_per_um2}
+                                      "cubic_per_um2": e.sensor_cubic_per_um2,
+                                      "center_um": e.sensor_center_um,
+                                      "half_range_um": e.sensor_half_range_um}
     if e.second_mode is not None:
         m = e.second_mode
         out["second_mode"] = {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio,
@@ -247,6 +249,9 @@ def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
         sensor_delay_s=0.0 if dly is None else dly.number("seconds", 0.0, nonnegative=True),
         sensor_quadratic_per_um=0.0 if nl is None else nl.number("quadratic_per_um"),
         sensor_cubic_per_um2=0.0 if nl is None else nl.number("cubic_per_um2", 0.0),
+        sensor_center_um=0.0 if nl is None else nl.number("center_um", 0.0),
+        sensor_half_range_um=0.0 if nl is None else nl.number("half_range_um", 0.0,
+                                                               nonnegative=True),
         second_mode=mode,
         voltage_gain_sigma=0.0 if gd is None else gd.number("sigma", nonnegative=True),
     ), None if th is None else _thermal(th)

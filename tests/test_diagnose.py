@@ -145,7 +145,8 @@ def test_track_with_extended_model_beats_base_on_stage_with_effect(
     ("second-mode", fx.Effects(second_mode=fx.SecondMode(600.0, 0.03, 0.4)),
      [math.log(600.0), math.log(0.03), 0.4], (1.0, 1.0), 1e-4),
     ("voltage-gain-drift", fx.Effects(), [-math.log(1.015)], (1 / 1.015, 1.015), 1e-4),
-    ("sensor-nonlinearity", fx.Effects(sensor_quadratic_per_um=2e-3, sensor_cubic_per_um2=-2e-5),
+    ("sensor-nonlinearity", fx.Effects(sensor_quadratic_per_um=2e-3, sensor_cubic_per_um2=-2e-5,
+                                       sensor_center_um=40.0, sensor_half_range_um=35.0),
      None, (1.0, 1.0), 1e-4),
 ])
 def test_candidate_residual_vanishes_at_the_truth(name: str, effects: fx.Effects, phi: list | None,
@@ -167,7 +168,9 @@ def test_candidate_residual_vanishes_at_the_truth(name: str, effects: fx.Effects
     x = pz.internal(nominal)
     cand = extension.catalogue(2, *pz.extent(preps), float(np.exp(x[4])),
                                extension.field_rate_max(preps))[name]
-    space = extension.ExtendedSpace(cand, preps, base, 0.004, range_um)
+    frame = (effects.sensor_center_um, effects.sensor_half_range_um)
+    space = extension.ExtendedSpace(cand, preps, base, 0.004, range_um,
+                                    gauge_frame=frame if name == "sensor-nonlinearity" else None)
     z = np.concatenate((x, phi if phi is not None else [2e-3 * range_um, -2e-5 * range_um ** 2]))
     r = space.residual(z)
     assert np.sqrt(np.mean(r ** 2)) < tol_um

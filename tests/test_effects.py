@@ -126,12 +126,30 @@ def test_second_mode_static_gain_and_resonance() -> None:
 
 @pytest.mark.parametrize("e", [fx.Effects(sensor_quadratic_per_um=-2.5e-3),
                                fx.Effects(sensor_quadratic_per_um=1e-3, sensor_cubic_per_um2=-4e-5),
-                               fx.Effects(sensor_cubic_per_um2=6e-5)],
-                         ids=["quadratic", "quadratic+cubic", "cubic"])
+                               fx.Effects(sensor_cubic_per_um2=6e-5),
+                               fx.Effects(sensor_quadratic_per_um=3e-3, sensor_cubic_per_um2=-5e-5,
+                                          sensor_center_um=10.0, sensor_half_range_um=40.0)],
+                         ids=["quadratic", "quadratic+cubic", "cubic", "centred"])
 def test_ungauge_inverts_gauge(e: fx.Effects) -> None:
     w = np.linspace(-45, 50, 101)
     assert np.all(np.diff(fx.gauge(e, w)) > 0)  # a monotone gauge over this range
     np.testing.assert_allclose(fx.ungauge(e, fx.gauge(e, w)), w, atol=1e-10)
+
+
+def test_a_centred_gauge_has_the_identity_as_its_linear_calibration() -> None:
+    """Over the fitted range m +- R the error terms are Legendre polynomials: a straight line
+    fitted through the readings against the position is the identity (a lab's linear gauge
+    calibration), while the gauge is still curved (its error at the ends is c 2R^2/3 +- ...)."""
+    m, r, c, c3 = -120.0, 35.0, 4e-3, -6e-5
+    e = fx.Effects(sensor_quadratic_per_um=c, sensor_cubic_per_um2=c3, sensor_center_um=m,
+                   sensor_half_range_um=r)
+    w = np.linspace(m - r, m + r, 20001)
+    slope, intercept = np.polyfit(w, fx.gauge(e, w), 1)
+    assert slope == pytest.approx(1.0, abs=1e-4)  # uncentred: 1 + 3/5 c3 R^2 = 0.956
+    assert intercept - m * (1 - slope) == pytest.approx(0.0, abs=1e-2)  # uncentred: 1.6 um
+    ends = fx.gauge(e, np.array([m - r, m + r])) - np.array([m - r, m + r])
+    np.testing.assert_allclose(ends, [c * 2 * r * r / 3 - c3 * 0.4 * r ** 3,
+                                      c * 2 * r * r / 3 + c3 * 0.4 * r ** 3], rtol=1e-12)
 
 
 @pytest.mark.parametrize(("d", "tol"), [(0.0, 1e-12), (3.0, 1e-12), (2.4, 0.02)])

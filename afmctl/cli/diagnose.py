@@ -36,10 +36,13 @@ OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residua
 @click.option("--noise-um", "noise_um", type=Finite(0, open_min=True), default=None,
               help="Sensor noise (1 sigma, um) of every sweep: the floor the errors are read "
                    "against (default: estimated from each sweep's data).")
+@click.option("--jobs", type=click.IntRange(1, 256), default=None,
+              help="Candidates fitted at once, each in its own process (default: one per core).")
 @click.option("--json", "as_json", is_flag=True, help="Print diagnosis.json on stdout.")
 @click.option("--force", is_flag=True, help="Overwrite an earlier diagnosis in --out.")
 def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str | None,
-             out_dir: str | None, noise_um: float | None, as_json: bool, force: bool) -> None:
+             out_dir: str | None, noise_um: float | None, jobs: int | None, as_json: bool,
+             force: bool) -> None:
     """Find what the model gets wrong on SWEEP_FILES, name the physical cause, extend the model
     and measure the gain on held-out data.
 
@@ -50,7 +53,7 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     from afmctl import identify as idf
     from afmctl import modelfile, parametrization, sweeps
 
-    settings = dg.Settings(identify=fit_settings(profile))
+    settings = dg.Settings(identify=fit_settings(profile), jobs=jobs)
     data = [sweeps.read_complete(f) for f in sweep_files]
     start = None if model_path is None else modelfile.read(model_path)
     if start is not None:
