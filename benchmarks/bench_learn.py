@@ -119,17 +119,33 @@ def model_for(profile: Profile, cause: str, folder: Path
     return fit.model, "identify" + ("" if fit.success else " (fit did not converge)"), None
 
 
+def calibration_frame(profile: Profile, model: tr.Transducer) -> Any:
+    """The true position in the frame of a linear gauge calibration (for a gauge nonlinearity):
+    the least-squares line of the stage's gauge over the model's gauge range (centre +- half
+    range, uniform), the frame in which diagnose's extended model states positions (its gauge
+    error has no mean and no slope there). Identity without a gauge error."""
+    assert profile.emulator is not None
+    e, m = profile.emulator.effects, model.effects
+    if not (e.sensor_quadratic_per_um or e.sensor_cubic_per_um2) or not m.sensor_half_range_um:
+        return lambda u: u
+    u = np.linspace(m.sensor_center_um - m.sensor_half_range_um,
+                    m.sensor_center_um + m.sensor_half_range_um, 1001)
+    slope, offset = np.polyfit(u, fx.gauge(e, u), 1)
+    return lambda x: slope * x + offset
+
+
 def learn_on(profile: Profile, model: tr.Transducer, desired: track.Desired, out: Path,
-             iterations: int, law: ilc.Law, seed: str = "inverse"
+             iterations: int, law: ilc.Law, seed: str = "inverse", frame: Any = None
              ) -> tuple[learn.Result, list[float], list[float]]:
-    """Learning's result, the true RMS error of each iteration and each run's true gain."""
+    """Learning's result, the true RMS error of each iteration (in ``frame``, if given) and each
+    run's true gain."""
     assert profile.emulator is not None
     with InProcessStage(profile, clock=accelerated(SPEED)) as stage:
         probe = TruthProbe(stage)
         res = learn.run(probe, model, desired, profile.limits, out, {}, iterations, law,
                         profile.emulator.true_model, seed)  # type: ignore[arg-type]
-    rms = [true_rms(p, it, desired) for p, it in zip(probe.positions, res.iterations,
-                                                     strict=False)]
+    rms = [true_rms(p if frame is None else frame(p), it, desired)
+           for p, it in zip(probe.positions, res.iterations, strict=False)]
     return res, rms, probe.gains
 
 
@@ -179,7 +195,8 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
     model, source, base_model = model_for(prof, cause, tmp / f"{cause}-sweeps")
     desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / prof.sample_rate_hz)
     n = GAIN_ITERATIONS if cause == "voltage-gain-drift" else 5
-    res, rms, gains = learn_on(prof, model, desired, tmp / cause, n, ilc.Law())
+    frame = calibration_frame(prof, model)
+    res, rms, gains = learn_on(prof, model, desired, tmp / cause, n, ilc.Law(), frame=frame)
     noise = prof.emulator.noise_um
     final = rms[res.best]
     row: dict[str, Any] = {
@@ -189,6 +206,8 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
                                         for it in res.iterations],
         "readings_rms_um_by_iteration": [it.steady_um for it in res.iterations],
         "kept_iteration": res.best, "stop": res.stop, "lead_samples": res.lead,
+        "true_position_frame": ("linear gauge calibration over the model's gauge range"
+                                if cause == "sensor-nonlinearity" else "the stage's own"),
         "q_cutoff_Hz": res.tuning.cutoff_hz,
         "final_over_noise": final / noise,
         "seconds_per_iteration_compute": float(np.mean(res.compute_s)),
@@ -229,7 +248,7 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
         row["ok"] = bool(final / noise <= 2)
     if base_model is not None:  # a sensor effect: what learning on the base model does
         b_res, b_rms, _ = learn_on(prof, base_model, desired, tmp / f"{cause}-base", 5,
-                                ilc.Law(floor_factor=1.0))
+                                   ilc.Law(floor_factor=1.0), frame=frame)
         row.update({"base_model_rms_um_by_iteration": b_rms,
                     "base_model_readings_rms_um_by_iteration":
                         [it.steady_um for it in b_res.iterations],
