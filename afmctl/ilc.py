@@ -60,7 +60,8 @@ in ``r_{j+1} = r_j + Q[L e~_j]``, and judges every iteration (best, divergence, 
 plant, the stage at the mean gain); the learned waveform converges to the one for the mean
 gain, whose estimate errs by ``sigma / sqrt(j+1)``: the expected error settles at ``sigma |s|
 sqrt(1 + 1/(j+1))``, the variation's floor ``sigma |s|`` (what a perfect waveform still makes)
-to within 10 % from 5 runs on. The stop rules use the resolution
+to within 10 % from 5 runs on (to first order; the README gives what the bench measured). The
+stop rules use the resolution
 :func:`resolution`: the noise and that mean's uncertainty. Without the conditioning
 (``--no-condition``) no gain is measured (``d_j = 0``) and the law is the plain one.
 
