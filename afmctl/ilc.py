@@ -42,17 +42,37 @@ With the plain law ``L = rho z^m`` (``G = 1`` assumed) it needs ``|1 - rho e^{j 
 G| < 1``: the phase of ``G e^{j omega m T}`` within 60 degrees for ``|G| = 1``, which an
 unmodelled lag or resonance breaks above some frequency (e.g. the paper's linear filter, which
 does not invert the rod: its phase passes 60 degrees at ~216 Hz on the default stage).
-Above the cut-off nothing is learned and the error stays what the model leaves. Run-to-run
-variation (a per-run gain) is not in ``G``: learning chases the last run's gain, so the error
-settles at about ``sqrt(2)`` times that variation's own floor, and the divergence stop ends it
-if an unlucky draw makes an iteration 1.2 times worse than the best.
+Above the cut-off nothing is learned and the error stays what the model leaves.
+
+**Run-to-run variation.** A per-run gain ``g_j = 1 + delta_j`` of the applied voltage is not in
+``G`` and no waveform can know the next run's: learning on ``e_j`` would chase each run's draw
+(``e_{j+1}`` then carries ``delta_j - delta_{j+1}``: variance twice the draw's, ``sqrt 2`` times
+its floor) and an unlucky draw would look like a divergence. So every iteration starts with the
+same conditioning excursion, on which two runs' readings differ by nothing but their gains (and
+noise): the coefficient of that difference along ``s = dy/dg`` (the model's position per unit
+gain, :func:`gain_coefficient`) is the run's gain relative to iteration 0, ``d_j``. The law uses
+the error the run would have made at the **mean gain** of the runs so far,
+
+    e~_j = e_j + (d_j - mean(d_0 .. d_j)) s
+
+in ``r_{j+1} = r_j + Q[L e~_j]``, and judges every iteration (best, divergence, floor) by its
+``e~`` at the same latest mean. The condition above is unchanged (``e~`` is the error of a fixed
+plant, the stage at the mean gain); the learned waveform converges to the one for the mean
+gain, whose estimate errs by ``sigma / sqrt(j+1)``: the expected error settles at ``sigma |s|
+sqrt(1 + 1/(j+1))``, the variation's floor ``sigma |s|`` (what a perfect waveform still makes)
+to within 10 % from 5 runs on (to first order; the README gives what the bench measured). The
+stop rules use the resolution
+:func:`resolution`: the noise and that mean's uncertainty. Without the conditioning
+(``--no-condition``) no gain is measured (``d_j = 0``) and the law is the plain one.
 
 **Stopping** (:mod:`afmctl.learn` plays the iterations). Each waveform passes the guard
 (voltage, slew, current) before it is sent: one that would not (or a reference out of the
 stage's reach) is not sent, and learning ends with the best waveform so far. Learning also ends
 at the noise floor (the steady error of the readings within :attr:`Law.floor_factor` of the
-noise, estimated from the readings themselves) and on a diverging error (an iteration worse
-than :attr:`Law.diverge_factor` times the best so far).
+noise, estimated from the readings themselves, and of the mean gain's uncertainty under
+run-to-run variation: :func:`resolution`) and on a diverging error (an iteration worse than
+:attr:`Law.diverge_factor` times the best so far, the best counted no lower than that
+resolution: within it, iterations cannot be told apart).
 
 Judging is track's (at the samples and between them, the first period excluded) plus the imaging
 region of a raster line: the central 80 % of every ramp between turning points (:func:`imaging_mask`).
@@ -87,9 +107,13 @@ class Law:
     max_lead_samples : int
         Largest phase lead ``m`` measured on iteration 0, samples.
     floor_factor : float
-        Stop once the readings' steady RMS error is within this factor of the noise.
+        Stop once the readings' steady RMS error (at the runs' mean gain) is within this
+        factor of the resolution (:func:`resolution`: the noise, and the mean gain's
+        uncertainty under run-to-run variation). 0: never stop there (to watch learning
+        past the floor).
     diverge_factor : float
-        Stop once an iteration is worse than this factor times the best so far.
+        Stop once an iteration is worse than this factor times the best so far (the best
+        counted no lower than the resolution).
     region : str
         ``all``: learn from the error everywhere on the trajectory; ``imaging``: only from the
         imaging region of every ramp (:func:`imaging_mask`), leaving the turnarounds free, so a
@@ -112,10 +136,10 @@ class Law:
         if self.region not in ("all", "imaging"):
             raise ValueError(f"learning region must be 'all' or 'imaging', not {self.region!r}")
         if not (self.cutoff_hz > 0 and 0 < self.gain < 2 and self.max_lead_samples >= 0
-                and self.floor_factor >= 1 and self.diverge_factor > 1
+                and (self.floor_factor >= 1 or self.floor_factor == 0) and self.diverge_factor > 1
                 and self.max_boost >= 1):
             raise ValueError("learning law: need cutoff > 0, 0 < gain < 2, lead >= 0, "
-                             "floor factor >= 1, divergence factor > 1, max boost >= 1")
+                             "floor factor >= 1 (or 0), divergence factor > 1, max boost >= 1")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -179,6 +203,8 @@ class Tuning:
 
 #: Cut-off of the time-domain Q for the non-periodic part of the error, as a fraction of Q's.
 APERIODIC_FRACTION = 0.25
+#: Fewest runs whose gains give a spread (two runs give one difference, no scale to trust).
+MIN_RUNS_SPREAD = 3
 #: Fewest reliably measured harmonics for the per-harmonic inverse of ``G``.
 MIN_HARMONICS = 3
 #: A harmonic's G is measured when the reference's amplitude there exceeds this many standard
@@ -282,6 +308,26 @@ def next_reference(reference: FloatArray, error: FloatArray, desired: track.Desi
     aperiodic = e - synthesize(ce, t, f0)  # drift, creep, the first period's transient
     slow = q_filter(law.gain * aperiodic, dt, APERIODIC_FRACTION * tuning.cutoff_hz)
     return reference + fade * synthesize(dr, t, f0) + slow
+
+
+def gain_coefficient(x: FloatArray, s: FloatArray) -> float:
+    """Least-squares coefficient of ``x`` (um) along the gain direction ``s`` (um per unit gain)
+    with a free offset (NaN skipped): the change of the stage's gain that moves it by ``x``,
+    whatever constant shift (creep, drift) comes with it."""
+    k = np.isfinite(x) & np.isfinite(s)
+    sc = s[k] - s[k].mean() if k.any() else s[k]
+    ss = float(np.sum(sc**2))
+    return float(np.sum(x[k] * sc) / ss) if ss > 0 else 0.0
+
+
+def resolution(noise_um: float, gain_sigma: float, s_rms_um: float, runs: int) -> float:
+    """The smallest error (um) learning can tell apart: the sensor noise and, under a per-run
+    gain of spread ``gain_sigma`` (moving the stage ``s_rms_um`` per unit gain), the uncertainty
+    of the mean gain of ``runs`` runs, ``gain_sigma s_rms / sqrt(runs)``, added in quadrature
+    once there are :data:`MIN_RUNS_SPREAD` runs to measure a spread from."""
+    if runs < MIN_RUNS_SPREAD:
+        return noise_um
+    return float(np.hypot(noise_um, gain_sigma * s_rms_um / np.sqrt(runs)))
 
 
 def noise_estimate(error: FloatArray) -> float:

@@ -54,6 +54,7 @@ class Planner:
     v_range: tuple[float, float]
     envelope: Envelope | None = None
     extrapolate: bool = False
+    initial: tr.StageState | None = None
 
 
 def planner(model: tr.Transducer, desired: track.Desired, limits: guard.Limits,
@@ -75,7 +76,7 @@ def planner(model: tr.Transducer, desired: track.Desired, limits: guard.Limits,
     _, _, st = tr.simulate(cm, pre, st0)
     v_tr = inv.voltage_v[inv.tracking]
     p = Planner(cm, limits, start_v, st, pre, seed, inv.horizons,
-                (float(v_tr.min()), float(v_tr.max())), envelope, extrapolate)
+                (float(v_tr.min()), float(v_tr.max())), envelope, extrapolate, st0)
     return p, plans[seed]
 
 
@@ -102,6 +103,21 @@ def plan_reference(p: Planner, desired: track.Desired, reference: FloatArray
     return dc.replace(wf, desired_um=d)
 
 
+def gain_direction(p: Planner, wf: track.Waveform) -> FloatArray:
+    """``s = dy/dg`` (um per unit gain) over the whole of ``wf``: how the model's position (rod,
+    amplifier lag and second mode) moves when the stage applies ``g`` times the waveform, as a
+    per-run gain does (a central difference at ``g = 1 +- 1 %``, from the state before the
+    conditioning)."""
+    assert p.initial is not None
+    chain = fx.compile_chain(p.cm.model.effects, p.cm.dt)
+
+    def position(g: float) -> FloatArray:
+        v_app = fx.lag(chain, g * wf.voltage_v, g * p.start_v)[0]
+        return fx.position(chain, tr.simulate(p.cm, v_app, p.initial)[0])
+
+    return (position(1.01) - position(0.99)) / 0.02
+
+
 # ----------------------------------------------------------------------------------------------
 # the iterations on a stage
 # ----------------------------------------------------------------------------------------------
@@ -111,7 +127,13 @@ def plan_reference(p: Planner, desired: track.Desired, reference: FloatArray
 class Iteration:
     """One played iteration: its outcome (track's scores and run file), the true-position
     error estimate ``error_um`` (desired - corrected readings, tracking part), the imaging-region
-    RMS at the samples and (with a plant model) between them, um."""
+    RMS at the samples and (with a plant model) between them, um.
+
+    ``gain_change`` is the run's applied-voltage gain relative to iteration 0's, measured on the
+    conditioning excursion (the same voltages every iteration: :func:`gain_change`);
+    ``learned_um`` is the error learning uses and judges, the error the run would have made at
+    the mean gain of the runs so far (``error_um`` itself when the gain does not vary), and
+    ``judged_um`` its RMS over the learned region (the steady part, or its imaging region)."""
 
     index: int
     outcome: experiment.Outcome
@@ -119,6 +141,9 @@ class Iteration:
     rms_imaging_um: float
     rms_imaging_between_um: float | None
     steady_um: float
+    gain_change: float = 0.0
+    learned_um: FloatArray | None = None
+    judged_um: float = float("nan")
 
     def as_dict(self) -> dict[str, Any]:
         s = self.outcome.score
@@ -127,15 +152,17 @@ class Iteration:
                 "rms_imaging_between_um": self.rms_imaging_between_um,
                 "rms_steady_um": self.steady_um,
                 "max_slew_V_per_ms": self.outcome.waveform.max_slew_v_per_ms,
+                "gain_change": self.gain_change, "judged_um": self.judged_um,
                 "complete": self.outcome.complete, "run_file": self.outcome.run_file.name}
 
 
 @dataclass(frozen=True)
 class Result:
     """All finished iterations, the best one (smallest judged error), why learning stopped, the
-    noise estimate (um), the tuning of ``L`` and ``Q`` and the compute time per iteration (s:
+    noise estimate (um), the tuning of ``L`` and ``Q``, the compute time per iteration (s:
     correction, Algorithm 3, guard and judging at the samples; the simulation of the plant
-    between the samples, which only reports, is left out)."""
+    between the samples, which only reports, is left out) and the run-to-run spread of the
+    applied-voltage gain the conditioning measured (1 sigma of ``gain_change``, fraction)."""
 
     iterations: tuple[Iteration, ...]
     best: int
@@ -143,6 +170,7 @@ class Result:
     noise_um: float
     tuning: ilc.Tuning
     compute_s: tuple[float, ...]
+    gain_sigma: float = 0.0
 
     @property
     def lead(self) -> int:
@@ -173,8 +201,9 @@ def judge(wf: track.Waveform, desired: track.Desired, index: int, measured: tupl
     outcome = experiment.Outcome(wf, u, v, track.score(wf, desired, where, between), complete,
                                  path)
     err = desired.u_um - where[wf.tracking]
-    return Iteration(index, outcome, err, ilc.imaging_rms(desired, err), img_between,
-                     ilc.rms(err[ilc.steady_part(desired)]))
+    steady = ilc.rms(err[ilc.steady_part(desired)])
+    return Iteration(index, outcome, err, ilc.imaging_rms(desired, err), img_between, steady,
+                     learned_um=err, judged_um=steady)
 
 
 OnIteration = Callable[[Result], None]
@@ -204,15 +233,13 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     noise, best, stop = float("nan"), 0, "iterations done"
     tuning = ilc.Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex), np.zeros(0))
 
-    def judged(it: Iteration) -> float:  # what learning minimizes: its region's steady RMS
-        return it.rms_imaging_um if law.region == "imaging" else it.steady_um
-
     plant = truth if truth is not None else model
     region = ilc.imaging_mask(desired, first_period=True) if law.region == "imaging" else None
+    s_dir, sigma = np.zeros(0), 0.0
     for j in range(iterations + 1):
         if j:
             t0 = time.perf_counter()
-            ref = ilc.next_reference(ref, done[-1].error_um, desired, law, tuning, region)
+            ref = ilc.next_reference(ref, done[-1].learned_um, desired, law, tuning, region)
             try:
                 wf = plan_reference(p, desired, ref)
             except (guard.LimitError, track.EnvelopeError) as exc:
@@ -227,24 +254,70 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         between = between_error(wf, desired, plant)  # reporting only: not part of the compute
         t1 = time.perf_counter()
         it = judge(wf, desired, j, measured, path, model.effects, between)
-        done.append(it)
         if j == 0:
             noise = ilc.noise_estimate(it.error_um[ilc.steady_part(desired)])
             tuning = ilc.tune(ref, desired.u_um - it.error_um, desired, law, noise)
+            s_dir = gain_direction(p, wf)
+        if j:
+            it = dc.replace(it, gain_change=gain_change(it, done[0], s_dir, p.prefix_v,
+                                                        model.effects))
+        done, sigma = at_mean_gain([*done, it], s_dir, desired, law)
+        it = done[-1]
         compute.append(t_plan + time.perf_counter() - t1)
-        if judged(it) < judged(done[best]):
-            best = j
-        result = Result(tuple(done), best, stop, noise, tuning, tuple(compute))
+        best = int(np.argmin([x.judged_um for x in done]))
+        result = Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma)
         if on_iteration is not None:
             on_iteration(result)
-        if judged(it) > law.diverge_factor * judged(done[best]):
-            stop = (f"diverging: iteration {j} ({judged(it):.4g} um) worse than "
-                    f"{law.diverge_factor:g} x the best ({judged(done[best]):.4g} um)")
+        floor = ilc.resolution(noise, sigma, ilc.rms(s_dir[wf.tracking][ilc.steady_part(desired)]),
+                               len(done))
+        if it.judged_um > law.diverge_factor * max(done[best].judged_um, floor):
+            stop = (f"diverging: iteration {j} ({it.judged_um:.4g} um) worse than "
+                    f"{law.diverge_factor:g} x the best ({done[best].judged_um:.4g} um)")
             break
-        if judged(it) <= law.floor_factor * noise:
-            stop = f"noise floor: {judged(it):.4g} um within {law.floor_factor:g} x noise"
+        if it.judged_um <= law.floor_factor * floor:
+            stop = (f"noise floor: {it.judged_um:.4g} um within {law.floor_factor:g} x noise"
+                    + ("" if floor == noise else
+                       f" and the mean gain's uncertainty ({floor:.4g} um; gain spread "
+                       f"{100 * sigma:.2g} %)"))
             break
-    return Result(tuple(done), best, stop, noise, tuning, tuple(compute))
+    return Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma)
+
+
+def gain_change(it: Iteration, first: Iteration, s: FloatArray, prefix_v: FloatArray,
+                sensor: fx.Effects) -> float:
+    """The run's applied-voltage gain relative to iteration 0's (fraction), from the conditioning
+    excursion ``prefix_v`` that starts every iteration: the coefficient along ``s`` (with a free
+    offset) of the difference of the two runs' readings (corrected for ``sensor``) from its peak
+    on, where the same voltages have wiped out what came before, so that nothing but the gain
+    and the noise tells the two runs apart. 0 without conditioning. In units of the model's
+    ``s``: a stage that moves ``c`` times as far per volt as the model reads ``c`` times its gain
+    change, and ``d s`` is the stage's own movement, which is what learning removes."""
+    if not prefix_v.size:
+        return 0.0
+    chain = fx.compile_chain(sensor, it.outcome.waveform.dt_s)
+    part = slice(int(np.argmax(prefix_v)), prefix_v.size)
+    w = [fx.sensor_correct(chain, x.outcome.displacement_um)[part] for x in (first, it)]
+    return ilc.gain_coefficient(w[1] - w[0], s[part])
+
+
+def at_mean_gain(done: list[Iteration], s: FloatArray, desired: track.Desired, law: ilc.Law
+                 ) -> tuple[list[Iteration], float]:
+    """Every iteration judged at the mean gain of the runs so far, and the gain's spread (1 sigma).
+
+    A run whose gain was ``d_i - mean(d)`` above the mean moved the stage by that times ``s`` on
+    the trajectory: added back to its error, it leaves the error its waveform makes at the mean
+    gain (``learned_um``, what learning learns from; ``judged_um`` its RMS over the learned
+    region). All iterations are compared at the same gain, so a run's own draw neither makes
+    its waveform look best nor ends learning as a divergence.
+    """
+    d = np.array([x.gain_change for x in done])
+    out = []
+    for x in done:
+        learned = x.error_um + (x.gain_change - float(d.mean())) * s[x.outcome.waveform.tracking]
+        judged = (ilc.imaging_rms(desired, learned) if law.region == "imaging"
+                  else ilc.rms(learned[ilc.steady_part(desired)]))
+        out.append(dc.replace(x, learned_um=learned, judged_um=judged))
+    return out, float(np.std(d, ddof=1)) if d.size > 1 else 0.0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -262,7 +335,7 @@ def summary(result: Result, desired: track.Desired, law: ilc.Law,
     data.update({
         "iterations": [it.as_dict() for it in result.iterations],
         "best_iteration": best.index, "stop": result.stop,
-        "noise_estimate_um": result.noise_um,
+        "noise_estimate_um": result.noise_um, "gain_sigma_estimate": result.gain_sigma,
         "law": {"max_cutoff_Hz": law.cutoff_hz, "cutoff_Hz": result.tuning.cutoff_hz,
                 "gain": law.gain, "lead_samples": result.lead,
                 "per_harmonic": result.tuning.harmonic,

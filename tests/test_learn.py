@@ -223,20 +223,29 @@ def test_a_diverging_error_ends_learning(profile: Profile, nominal: Transducer,
     assert len(list(tmp_path.glob("run_*.csv"))) == len(steady) < 9
 
 
-def test_sensor_effects_learning_needs_the_extended_model(profile: Profile,
-                                                          nominal: Transducer,
+@pytest.mark.parametrize("effect", [fx.Effects(sensor_delay_samples=5),
+                                    fx.Effects(sensor_quadratic_per_um=2e-3)],
+                         ids=["delay-5-samples", "gauge-quadratic"])
+def test_sensor_effects_learning_needs_the_extended_model(profile: Profile, nominal: Transducer,
+                                                          effect: fx.Effects,
                                                           tmp_path: Path) -> None:
-    """A 5-sample sensor delay: on the base model, learning makes the delayed readings follow
-    the trajectory and moves the stage's true position away from it; with the delay in the
-    model (the readings corrected) the true position stays on it."""
-    stage = with_effects(profile, fx.Effects(sensor_delay_samples=5))
+    """A sensor effect (a 5-sample delay; a gauge reading ``w + 2e-3 w^2``): on the base model,
+    learning makes the readings follow the trajectory and moves the stage's true position away
+    from it; with the effect in the model (the readings corrected) the true position stays on
+    it, and ends far closer than on the base model.
+
+    The extended model here is the base model plus the known, true effect (a fast test);
+    ``benchmarks/bench_learn.py`` does the same with diagnose's fitted extended model and base
+    model on the stage's own sweeps (``base_model_rms_um_by_iteration``)."""
+    stage = with_effects(profile, effect)
     base = learn_on(stage, nominal, tmp_path / "base", 3, ilc.Law(floor_factor=1.0))
-    ext = learn_on(stage, dc.replace(nominal, effects=fx.Effects(sensor_delay_samples=5)),
-                   tmp_path / "ext", 3, ilc.Law(floor_factor=1.0))
+    ext = learn_on(stage, dc.replace(nominal, effects=effect), tmp_path / "ext", 3,
+                   ilc.Law(floor_factor=1.0))
     b, e = between(base), between(ext)
     assert base.iterations[-1].steady_um < 0.5 * base.iterations[0].steady_um  # readings: better
     assert b[-1] > 3 * b[0]  # the stage: worse
     assert max(e) < 2 * b[0]
+    assert b[-1] > 5 * e[-1]  # learning on the base model ends the stage further off
 
 
 def test_ctrl_c_keeps_every_finished_iteration(profile: Profile, nominal: Transducer,
@@ -268,23 +277,43 @@ def test_ctrl_c_keeps_every_finished_iteration(profile: Profile, nominal: Transd
 
 def test_run_to_run_gain_variation_settles_at_its_floor(profile: Profile, nominal: Transducer,
                                                         tmp_path: Path) -> None:
-    """Each run draws its applied-voltage gain (sigma 2 %): learning cannot know the next run's
-    gain, so it must not chase it into divergence. The kept waveform's true error stays within
-    twice the error a 1-sigma gain change alone makes (the variation's floor)."""
+    """A stage whose rod is softer than the model's (the inverse alone misses by ~2 um) and whose
+    every run draws its own applied-voltage gain (sigma 2 %). The conditioning measures each
+    run's gain relative to iteration 0 (checked against the emulator's own draws); learning
+    learns and judges at the runs' mean gain, so it neither chases the draws nor takes one for
+    a divergence: with the floor stop off (``floor_factor=0``) all 6 iterations play, and the
+    expected true error over the gain spread (at gain 1 +- sigma) of every iteration from 1 on
+    is within 1.5 x the variation's floor: the error a perfect waveform still makes under that
+    spread (the true plant's positions at 1 +- sigma against 1)."""
     from drivers.device.plant import Physics
     sigma = 0.02
-    stage = with_effects(profile, fx.Effects(voltage_gain_sigma=sigma))
-    res = learn_on(stage, nominal, tmp_path, 5)
-    steady = [it.steady_um for it in res.iterations]
-    assert all(x <= 1.2 * min(steady[:k + 1]) for k, x in enumerate(steady[:-1]))
+    prof = with_effects(softer_rod(profile), fx.Effects(voltage_gain_sigma=sigma))
+    assert prof.emulator is not None
+    desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / prof.sample_rate_hz)
+    with InProcessStage(prof, clock=accelerated(8.0)) as stage:
+        res = learn.run(stage, nominal, desired, prof.limits, tmp_path, {}, 6,
+                        ilc.Law(floor_factor=0), prof.emulator.true_model)
+        gains = np.array([stage.emulator.physics.gain(j) for j in range(len(res.iterations))])
+    # measured along the model's s: the stage, whose rod is 1 / 0.8 as compliant, moves 1.25
+    # times as far per unit gain, so it reads 1.25 x the change (d s is its true movement)
+    measured = np.array([it.gain_change for it in res.iterations])
+    assert measured == pytest.approx(1.25 * (gains - gains[0]), abs=3e-4)
+    assert np.std(gains) > 0.005  # the draws did vary
+    assert res.stop == "iterations done" and len(res.iterations) == 7, res.stop
+    ph = Physics(dc.replace(prof.emulator, effects=fx.Effects()), prof.sample_rate_hz)
+    steady = ilc.steady_part(desired)
+
+    def position(wf: track.Waveform, g: float) -> np.ndarray:
+        return ph.respond(g * wf.voltage_v, ph.initial())[0][wf.tracking][steady]
+
+    def rms(parts: list[np.ndarray]) -> float:
+        return float(np.sqrt(np.mean(np.concatenate(parts) ** 2)))
+
     wf = res.best_iteration.outcome.waveform
-    ph = Physics(profile.emulator, profile.sample_rate_hz)  # type: ignore[arg-type]
-    pos = {g: ph.respond(g * wf.voltage_v, ph.initial())[0][wf.tracking][358:]
-           for g in (1.0, 1 + sigma, 1 - sigma)}
-    floor = np.sqrt(np.mean(np.concatenate([pos[1 + sigma] - pos[1.0],
-                                            pos[1 - sigma] - pos[1.0]]) ** 2))
-    kept = res.best_iteration.outcome.score.rms_between_um
-    assert kept is not None and kept <= 2 * floor, (kept, floor, steady)
+    floor = rms([position(wf, g) - position(wf, 1.0) for g in (1 + sigma, 1 - sigma)])
+    expected = [rms([position(it.outcome.waveform, g) - desired.u_um[steady]
+                     for g in (1 + sigma, 1 - sigma)]) for it in res.iterations]
+    assert expected[0] > 5 * floor and max(expected[1:]) <= 1.5 * floor, (expected, floor)
 
 
 def test_learning_over_the_serial_protocol(profile: Profile, nominal: Transducer,

@@ -46,9 +46,11 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
 
     def each(result: learn.Result) -> None:
         it = result.iterations[-1]
+        gain = (f", gain {100 * it.gain_change:+.2f} % (at the mean gain {it.judged_um:.4f} um)"
+                if abs(it.gain_change) >= 5e-5 else "")
         click.echo(f"iteration {it.index}: steady RMS {it.steady_um:.4f} um, imaging "
                    f"{it.rms_imaging_um:.4f} um, max slew "
-                   f"{it.outcome.waveform.max_slew_v_per_ms:.1f} V/ms", err=True)
+                   f"{it.outcome.waveform.max_slew_v_per_ms:.1f} V/ms{gain}", err=True)
         learn.write_outputs(result, desired, law, meta, out)
 
     click.echo(f"learning {desired.label}: up to {iterations} iterations after the {seed} "
@@ -58,7 +60,7 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
                        envelope=modelfile.read_envelope(model_name), extrapolate=how[1])
     data = learn.write_outputs(result, desired, law, meta, out)
     click.echo(f"stopped: {result.stop}; best iteration {result.best} "
-               f"({result.best_iteration.steady_um:.4f} um)", err=True)
+               f"({result.best_iteration.judged_um:.4f} um)", err=True)
     click.echo(f"wrote {out}/run_*_iterNN.csv, summary.json, waveform_learned.csv, learn.png",
                err=True)
     if as_json:
@@ -126,8 +128,8 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
         truth = prof.emulator.true_model if prof.emulator is not None else None
         it = learn.judge(wf, desired, 0, measured, out / "run_play.csv", sensor,
                          learn.between_error(wf, desired, truth))
-        data.update(it.as_dict())
-        del data["iteration"]
+        data.update({k: v for k, v in it.as_dict().items()
+                     if k not in ("iteration", "gain_change", "judged_um")})
         click.echo(f"play: steady RMS {it.steady_um:.4f} um, RMS {it.outcome.score.rms_um:.4f}"
                    f" um, imaging {it.rms_imaging_um:.4f} um", err=True)
     experiment.write_summary(data, out / "summary.json")
