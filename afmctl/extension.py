@@ -22,6 +22,7 @@ only on the fast sweeps is not drowned by the long slow ones. Pure numerics: no 
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -67,6 +68,8 @@ THERMAL_SPAN = 4.5
 #: Field step (relative to the peak) of the samples kernel (10) is run on, each held for its time:
 #: the rates (7)-(8) change by e^(z dE / E_th) over a step, so it is finer than the relay's.
 THERMAL_STEP = 0.001
+#: The fine thermal grid (rows, field step, most columns): the fit's polish and the judgement.
+THERMAL_FINE = (THERMAL_ROWS, THERMAL_STEP, THERMAL_COLUMNS[1])
 
 
 @dataclass(frozen=True)
@@ -180,10 +183,6 @@ class Extended:
     beta: FloatArray
 
 
-def _at_full_rate(e: FloatArray, keep: NDArray[np.intp], q: FloatArray) -> FloatArray:
-    return np.interp(np.arange(e.size), keep, q) if keep.size < e.size else q
-
-
 def _with_zeros(blocks: Sequence[FloatArray]) -> FloatArray:
     """Stack per-sweep blocks ``[g1 col, g2 col, zero col]`` into ``[L[Q], L[Q^2], 1_s]``: the
     zero column of each sweep in a column of its own."""
@@ -212,8 +211,7 @@ class ExtendedSpace:
     def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
                  field_step: float, range_um: float, dt_min: float | None = None,
                  gauge_frame: tuple[float, float] | None = None,
-                 thermal_grid: tuple[int, float, int] = (THERMAL_ROWS, THERMAL_STEP,
-                                                         THERMAL_COLUMNS[1])) -> None:
+                 thermal_grid: tuple[int, float, int] = THERMAL_FINE) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
         self.step_rel = field_step
         self.range_um = range_um
@@ -223,9 +221,13 @@ class ExtendedSpace:
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
         self.thermal_grid = thermal_grid
-        self.thermal_keep = [pz.decimation(p.field, thermal_grid[1] * float(np.max(np.abs(p.field))))
-                             for p in self.preps]
         self._memo: dict[bytes, list[FloatArray]] = {}
+
+    @functools.cached_property
+    def thermal_keep(self) -> list[NDArray[np.intp]]:
+        """Per sweep: the samples kernel (10) is run on (field steps of the thermal grid's)."""
+        step = self.thermal_grid[1]
+        return [pz.decimation(p.field, step * float(np.max(np.abs(p.field)))) for p in self.preps]
 
     def bounds(self) -> tuple[FloatArray, FloatArray]:
         lo, hi = self.base.bounds()
@@ -269,9 +271,11 @@ class ExtendedSpace:
                                starts=self.base.starts)
         if self.candidate.name == "thermal-relaxation":
             fine = [(p.field, k) for p, k in zip(self.preps, self.thermal_keep, strict=True)]
-            return [_at_full_rate(e, keep, q) + _at_full_rate(e, k, d) for (e, keep), q, (_, k), d
+            return [pz.at_full_rate(e.size, keep, q) + pz.at_full_rate(e.size, k, d)
+                    for (e, keep), q, (_, k), d
                     in zip(fields, q_keep, fine, self._thermal(theta, phi, fine), strict=True)]
-        return [_at_full_rate(e, keep, q) for (e, keep), q in zip(fields, q_keep, strict=True)]
+        return [pz.at_full_rate(e.size, keep, q) for (e, keep), q in zip(fields, q_keep,
+                                                                           strict=True)]
 
     def _thermal(self, theta: FloatArray, phi: FloatArray,
                  fields: list[tuple[FloatArray, NDArray[np.intp]]]) -> list[FloatArray]:
@@ -345,23 +349,27 @@ class ExtendedSpace:
         return [fx.gauge(gauge, c[:, :2] @ beta[:2] + c[:, 2] * beta[2 + s])
                 for s, c in enumerate(self.columns(z))]
 
+    def _derived(self, preps: Sequence[pz.Prepared] | None = None,
+                 base: pz.LognormalSpace | None = None,
+                 thermal_grid: tuple[int, float, int] | None = None) -> ExtendedSpace:
+        """This space with the given parts replaced (the scales and the gauge frame kept)."""
+        return ExtendedSpace(self.candidate, self.preps if preps is None else preps,
+                             base or self.base, self.step_rel, self.range_um, self.dt_min,
+                             self.gauge_frame, thermal_grid or self.thermal_grid)
+
     def with_starts(self, starts: Sequence[str]) -> ExtendedSpace:
         """The same candidate with other initial states of the sweeps (:data:`pz.STARTS`)."""
-        return ExtendedSpace(self.candidate, self.preps, self.base.with_starts(starts),
-                             self.step_rel, self.range_um, self.dt_min, self.gauge_frame,
-                             self.thermal_grid)
+        return self._derived(base=self.base.with_starts(starts))
 
     def with_grid(self, thermal_grid: tuple[int, float, int]) -> ExtendedSpace:
         """The same candidate with another thermal grid (rows, field step, most columns)."""
-        return ExtendedSpace(self.candidate, self.preps, self.base, self.step_rel, self.range_um,
-                             self.dt_min, self.gauge_frame, thermal_grid)
+        return self._derived(thermal_grid=thermal_grid)
 
     def on(self, preps: Sequence[pz.Prepared]) -> ExtendedSpace:
         """The same candidate, starts and node count on other prepared sweeps (the whole sweeps
         a fit on their first halves is judged on)."""
-        base = pz.LognormalSpace(preps, self.base.scales, self.base.n_coercive, self.base.starts)
-        return ExtendedSpace(self.candidate, preps, base, self.step_rel, self.range_um,
-                             self.dt_min, self.gauge_frame, self.thermal_grid)
+        return self._derived(preps, pz.LognormalSpace(preps, self.base.scales,
+                                                      self.base.n_coercive, self.base.starts))
 
     def through(self, phi: FloatArray) -> pz.LognormalSpace:
         """The base model's space on the fields the hysteresis sees with the input-side effect
@@ -549,8 +557,7 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
         spaces += [s for s in [_in_sequence(spaces[0], z0)] if s is not None]
     fits = [_fit_from(s, x_base, max_nfev // len(spaces), n_starts, identify) for s in spaces]
     if space.candidate.own_states:  # each polished on the fine grid
-        fine = (THERMAL_ROWS, THERMAL_STEP, THERMAL_COLUMNS[1])
-        fits = [_polish(s.with_grid(fine), sol.x, max(max_nfev // FINE_SHARE, 1), n)
+        fits = [_polish(s.with_grid(THERMAL_FINE), sol.x, max(max_nfev // FINE_SHARE, 1), n)
                 for s, sol, n in fits]
     space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
     nfev = sum(f[2] for f in fits)

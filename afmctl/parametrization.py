@@ -106,10 +106,13 @@ def prepare(sweep: Sweep, thickness_um: float, field_step: float,
     return Prepared(e, keep, mask, sweep.displacement_um[mask], sweep.dt)
 
 
+def at_full_rate(n: int, keep: NDArray[np.intp], q_keep: FloatArray) -> FloatArray:
+    """``q_keep``, known at the samples ``keep`` of ``n``, interpolated to all ``n`` samples."""
+    return q_keep if keep.size == n else np.interp(np.arange(n), keep, q_keep)
+
+
 def _full_rate(prep: Prepared, q_keep: FloatArray) -> FloatArray:
-    if prep.keep.size == prep.field.size:
-        return q_keep
-    return np.interp(np.arange(prep.field.size), prep.keep, q_keep)
+    return at_full_rate(prep.field.size, prep.keep, q_keep)
 
 
 def unit_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
