@@ -74,7 +74,7 @@ def cases(n_clean: int = 4) -> list[tuple[str, float | None, int]]:
     return [(c, s, i if c == "none" else 100 + n) for n, (c, s, i) in enumerate(out)]
 
 
-def make_stage(cause: str, strength: float | None, index: int
+def make_stage(cause: str, strength: float | None, index: int, refit: bool = True
                ) -> tuple[plant.Stage, list[sw.Sweep], plant.PlantState, dict[str, Any]]:
     """A random foreign stage with the hidden effect, its three standard sweeps recorded in
     sequence from a random start, the plant state after them and the truth.
@@ -86,7 +86,8 @@ def make_stage(cause: str, strength: float | None, index: int
     every sweep, or the paper's model refitted to the readings within :data:`DETECTABLE` times
     the noise (the base fit absorbs it: e.g. a light second mass only adds to the rod's moving
     mass at the sweep rates). An effect not detectable even then gets new random parameters
-    (``effect_draw``), up to :data:`EFFECT_DRAWS` times."""
+    (``effect_draw``), up to :data:`EFFECT_DRAWS` times. ``refit=False`` skips the refit test
+    (the stages of the tests, drawn before it)."""
     rng = np.random.default_rng([SEED, index])
     clean = random_stage(rng, drive_range_V=(0.0, 150.0))
     start = foreign_sets.draw_start("random", rng, 0.0, 150.0)
@@ -96,8 +97,10 @@ def make_stage(cause: str, strength: float | None, index: int
             cause, np.random.default_rng([SEED, index, 1, *([draw] if draw else [])]), clean,
             used),))
         sweeps, recorded, seen = _recorded(stage, start, index)
-        base_misfit = None if used is None else detectable(seen, sweeps)
-        if used is None or base_misfit is not None:
+        if used is None or seen >= VISIBLE and not refit:
+            break
+        base_misfit = detectable(seen, sweeps)
+        if base_misfit is not None:
             break
     state, pairs = plant.initial_state(stage, start), []
     for p, _, _ in recorded:  # replay without noise for the state after the sweeps

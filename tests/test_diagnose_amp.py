@@ -95,7 +95,7 @@ def test_foreign_amplifier_stage_is_named_and_tracked() -> None:
     noise floor; diagnose names amplifier-lag within 2x the floor, and track plans with the
     extended model within the stage's 0-150 V and tracks the stage's true position better than
     with the base model."""
-    stage, sweeps, state, truth = bench.make_stage("amplifier-lag", 0.5, 201)
+    stage, sweeps, state, truth = bench.make_stage("amplifier-lag", 0.5, 201, refit=False)
     d = dg.diagnose(sweeps, dg.Settings(candidates=("none", "amplifier-lag", "sensor-delay")))
     assert d.base_over_noise > 5.0, d.evidence()
     assert d.cause == "amplifier-lag", d.evidence()
