@@ -116,6 +116,20 @@ def thermal_polarization(theta: FloatArray, thermal: hy.Thermal, n_max: int,
                            n_coercive=rows, thermal=thermal)
 
 
+def calibration_frame(preps: Sequence[pz.Prepared]) -> tuple[float, float, float, float]:
+    """The frame a gauge error is fitted in: the readings of the slowest sweep (the one a lab
+    calibrates its gauge on, quasi-statically): their mean ``m`` (um), ``R = sqrt(3 var)`` (um,
+    the half width of a uniform spread of that variance) and third and fourth central moments
+    (um^3, um^4). A gauge error orthogonal to a constant and a line over these readings leaves
+    the least-squares line of readings against position the identity: the model's position is
+    the one a lab's linear calibration of the gauge gives (:class:`afmctl.effects.Effects`)."""
+    y = max(preps, key=lambda p: p.dt).y
+    x = y - float(np.mean(y))
+    mu2 = max(float(np.mean(x * x)), 1e-12)
+    return (float(np.mean(y)), math.sqrt(3 * mu2), float(np.mean(x ** 3)),
+            float(np.mean(x ** 4)))
+
+
 def field_rate_max(preps: Sequence[pz.Prepared]) -> float:
     """Fastest rate of the field over the sweeps, MV/m/s."""
     return max(float(np.max(np.abs(np.diff(p.field)))) / p.dt for p in preps) or 1.0
@@ -206,17 +220,18 @@ class ExtendedSpace:
     """The residual of one candidate on prepared sweeps: ``z = (x, phi)``. Each sweep starts
     from the hysteresis state of ``base.starts`` and has its own sensor zero (as in
     :func:`afmctl.identify.fit`). ``gauge_frame``: centre and half width (um) of the readings a
-    gauge error is fitted about (default: those of ``preps``; :func:`afmctl.effects.gauge`)."""
+    gauge error is fitted about, and their third and fourth central moments (um^3, um^4; absent:
+    a uniform spread); default :func:`calibration_frame` of ``preps``
+    (:func:`afmctl.effects.gauge`)."""
 
     def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
                  field_step: float, range_um: float, dt_min: float | None = None,
-                 gauge_frame: tuple[float, float] | None = None,
+                 gauge_frame: tuple[float, ...] | None = None,
                  thermal_grid: tuple[int, float, int] = THERMAL_FINE) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
         self.step_rel = field_step
         self.range_um = range_um
-        y = np.concatenate([p.y for p in self.preps])
-        self.gauge_frame = gauge_frame or (float(y.max() + y.min()) / 2, float(np.ptp(y)) / 2)
+        self.gauge_frame = gauge_frame or calibration_frame(self.preps)
         self.dt_min = dt_min or min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
@@ -313,10 +328,12 @@ class ExtendedSpace:
     def _gauge(self, phi: FloatArray) -> fx.Effects:
         if self.candidate.name != "sensor-nonlinearity":
             return fx.Effects()
+        m, r, *moments = self.gauge_frame
+        mu3, mu4 = moments or (0.0, 0.0)
         return fx.Effects(sensor_quadratic_per_um=float(phi[0]) / self.range_um,
                           sensor_cubic_per_um2=float(phi[1]) / self.range_um ** 2,
-                          sensor_center_um=self.gauge_frame[0],
-                          sensor_half_range_um=self.gauge_frame[1])
+                          sensor_center_um=m, sensor_half_range_um=r,
+                          sensor_third_moment_um3=mu3, sensor_fourth_moment_um4=mu4)
 
     def columns(self, z: FloatArray) -> list[FloatArray]:
         """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` after the output effects (the
