@@ -335,6 +335,27 @@ class ExtendedSpace:
                           sensor_center_um=m, sensor_half_range_um=r,
                           sensor_third_moment_um3=mu3, sensor_fourth_moment_um4=mu4)
 
+    def gauge_seeds(self, x: FloatArray) -> list[tuple[float, float]]:
+        """Where else a refit through a gauge error starts (:func:`_fit_from`, from the model
+        ``x`` a first refit gave): the cubic error solved by least squares, the curvature at 0.
+        A strong gauge is out of reach of local runs from the base model, which bent its loops
+        and its rod term ``a2 L[Q^2]`` to take up the gauge's error. The readings are
+        ``y = w + c P2(w) + c3 P3(w)`` with ``w`` linear in the gains and zeros, so to first
+        order ``(c, c3)`` solve with them on ``[L[Q], L[Q^2], 1_s, P2(y), P3(y)]``. Only ``c3`` is
+        kept: quasi-statically the gauge's ``c w^2`` is the rod's ``a2 Q^2`` to first order
+        (``w`` is ``a1 Q``), so the ``c`` of that solve is ill-determined, while ``c3 w^3`` is the
+        one cubic in ``Q`` of the two; the refit and the joint fit find ``c``. Empty for other
+        candidates."""
+        if self.candidate.name != "sensor-nonlinearity":
+            return []
+        a, _ = self.system(np.concatenate((x, np.zeros(2))))
+        terms = np.concatenate([wt * fx.gauge_terms(self._gauge(np.ones(2)), p.y)
+                                for p, wt in zip(self.preps, self.weights, strict=True)])
+        y = np.concatenate([wt * p.y for p, wt in zip(self.preps, self.weights, strict=True)])
+        c3 = np.linalg.lstsq(np.column_stack((a, terms)), y, rcond=None)[0][-1]
+        return [(0.0, float(np.clip(c3 * self.range_um ** 2, self.candidate.lower[1],
+                                    self.candidate.upper[1])))]
+
     def columns(self, z: FloatArray) -> list[FloatArray]:
         """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` after the output effects (the
         sensor zero is the rod's, so it sees them too), shape (N, 3)."""
@@ -530,7 +551,12 @@ def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts:
         nfev += sum(r.nfev for r in runs)
         ranked = [clip(np.concatenate((x_base[:n_held], best.x)))]
         if space.candidate.name in REBASED and 2 * float(best.cost) < REBASE_GAIN * cost_off:
-            found, z = _rebase(space, ranked[0], identify or idf.Settings())
+            settings = identify or idf.Settings()
+            rebased = [_rebase(space, ranked[0], settings)]
+            first, z1 = rebased[0]
+            rebased += [_rebase(first, clip(np.concatenate((z1[:n_x], s))), settings)
+                        for s in first.gauge_seeds(z1[:n_x])]
+            found, z = min(rebased, key=lambda f: float(np.sum(f[0].residual(clip(f[1])) ** 2)))
             if float(np.sum(found.residual(clip(z)) ** 2)) < cost(ranked[0]):
                 space, ranked = found, [clip(z)]
     sol = optimize.least_squares(space.residual, ranked[0], bounds=(lo, hi), diff_step=1e-6,
