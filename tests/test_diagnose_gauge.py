@@ -97,3 +97,14 @@ def test_gauge_terms_are_orthogonal_to_a_line_over_the_frame_and_invert() -> Non
     proj = np.linalg.lstsq(design, terms, rcond=None)[0]
     assert np.max(np.abs(proj)) < 1e-9 * np.max(np.abs(terms))
     assert np.max(np.abs(fx.ungauge(e, fx.gauge(e, y)) - y)) < 1e-9
+
+
+def test_gauge_frame_moments_round_trip_in_a_model_file(nominal, tmp_path) -> None:  # noqa: ANN001
+    """A fitted gauge's frame (its moments) is written to and read back from the model file."""
+    from afmctl import modelfile
+    m = replace(nominal, effects=fx.Effects(
+        sensor_quadratic_per_um=1e-3, sensor_cubic_per_um2=-2e-5, sensor_center_um=31.0,
+        sensor_half_range_um=20.0, sensor_third_moment_um3=-850.0,
+        sensor_fourth_moment_um4=6.1e4))
+    modelfile.write(m, tmp_path / "m.toml", header="test")
+    assert modelfile.read(tmp_path / "m.toml") == m
