@@ -29,7 +29,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import optimize
+from scipy import optimize, special
 
 from afmctl import effects as fx
 from afmctl import hysteresis as hy
@@ -70,6 +70,9 @@ THERMAL_SPAN = 4.5
 THERMAL_STEP = 0.001
 #: The fine thermal grid (rows, field step, most columns): the fit's polish and the judgement.
 THERMAL_FINE = (THERMAL_ROWS, THERMAL_STEP, THERMAL_COLUMNS[1])
+#: Medians (fractions of the peak field) and log-widths of :func:`density_starts`.
+DENSITY_MEDIANS = (0.25, 0.45, 0.7)
+DENSITY_WIDTHS = (0.4, 0.8)
 
 
 @dataclass(frozen=True)
@@ -83,7 +86,11 @@ class Candidate:
     off or on, which a local fit cannot turn): the multi-start's best run is run again with it at
     each other value the starts give it. ``own_states``: the effect changes how the hysteresis
     state evolves (relaxation), so each sweep's initial state is chosen again with the effect on
-    (the base fit's choice was made without it)."""
+    (the base fit's choice was made without it). ``fresh_density``: the effect changes which
+    coercive fields the data show (thermally activated dipoles switch ahead of E_c, and the relay
+    model's fit absorbed that in a broader density with more weight beyond the peak field), so
+    the multi-start also starts the density afresh (:func:`density_starts`) and its short runs
+    move the whole model with the effect."""
 
     name: str
     labels: tuple[str, ...]
@@ -93,6 +100,7 @@ class Candidate:
     free_rod: bool = False
     switch: bool = False
     own_states: bool = False
+    fresh_density: bool = False
 
     @property
     def n_params(self) -> int:
@@ -114,6 +122,21 @@ def thermal_polarization(theta: FloatArray, thermal: hy.Thermal, n_max: int,
     return hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
                            interaction=hy.Discrete(tuple(std * u), tuple(dens)),
                            n_coercive=rows, thermal=thermal)
+
+
+def density_starts(x_base: FloatArray, e_max: float) -> list[FloatArray]:
+    """Coercive densities to start a relaxation fit from (``x`` with ``theta[:4]`` replaced):
+    medians 0.25-0.7 of the peak field ``e_max`` (MV/m) and two widths, each with the base fit's
+    interaction width and rod, and ``r`` scaled so that the weight of the hysterons that switch
+    below ``e_max`` (the loops' height) stays the base fit's."""
+    median, sig, std, r = np.exp(x_base[:4])
+
+    def below(m: float, s: float) -> float:
+        return float(special.ndtr(math.log(e_max / m) / s))
+
+    height = r * below(median, sig)
+    return [np.concatenate((np.log([f * e_max, s, std, height / below(f * e_max, s)]), x_base[4:]))
+            for f in DENSITY_MEDIANS for s in DENSITY_WIDTHS]
 
 
 def field_rate_max(preps: Sequence[pz.Prepared]) -> float:
@@ -138,7 +161,8 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
                   ((lf(2e-4 * e_max), lf(1e6)),)  # close to the relay: the base model
                   + tuple((lf(f * e_max), lf(r)) for f in (0.001, 0.003, 0.01, 0.03)
                           for r in (1e2, 1e4, 1e6)),
-                  (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7)), own_states=True),
+                  (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7)), own_states=True,
+                  fresh_density=True),
         Candidate("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio", "log_slew_MV_per_m_s"),
                   ((ln + 2.9, lf(0.7), slew_off),)  # far beyond the data: the base model
                   + tuple((lf(f * rod_hz), lf(0.7), slew) for f in (0.3, 1.0, 3.0)
@@ -485,7 +509,7 @@ def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts:
     evaluations."""
     lo, hi = space.bounds()
     n_x = x_base.size
-    n_held = 4 if space.candidate.free_rod else n_x
+    n_held = 0 if space.candidate.fresh_density else 4 if space.candidate.free_rod else n_x
 
     def clip(z: FloatArray) -> FloatArray:
         return np.clip(z, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
@@ -499,6 +523,12 @@ def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts:
     starts = [clip(np.concatenate((x_base, s))) for s in space.candidate.starts]
     cost_off = cost(starts[0])
     ranked = sorted(starts, key=cost)[:max(n_starts, 1)]
+    if space.candidate.fresh_density:  # the best of the effect's starts on a fresh density too
+        e_max = pz.extent(space.preps)[0]
+        fresh = [clip(np.concatenate((x, s))) for x in density_starts(x_base, e_max)
+                 for s in space.candidate.starts[1:]]
+        ranked = ranked[:max(n_starts - 1, 1)] + [min(fresh, key=cost)]
+        starts += fresh
     nfev = len(starts)
     if n_x < ranked[0].size:
         runs = [optimize.least_squares(with_free, z0[n_held:], bounds=(lo[n_held:], hi[n_held:]),
