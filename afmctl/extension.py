@@ -495,8 +495,10 @@ def state_choices(n: int) -> list[tuple[str, ...]]:
 
 
 def _in_sequence(space: ExtendedSpace, z: FloatArray) -> ExtendedSpace | None:
-    """``space`` with the :func:`state_choices` that fits best at ``z``; None if it has them."""
-    if "previous" in space.base.starts[1:] or len(space.preps) < 2:
+    """``space`` with the :func:`state_choices` that fits best at ``z``; None if every sweep
+    after the first already carries on from the one before (a base fit that restarted only
+    some of them from a poled state still gets the sequence)."""
+    if all(s == "previous" for s in space.base.starts[1:]) or len(space.preps) < 2:
         return None
     return min((space.with_starts(c) for c in state_choices(len(space.preps))),
                key=lambda s: float(np.sum(s.residual(z) ** 2)))
@@ -569,11 +571,14 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     Multi-start on the effect alone: from each of the ``n_starts`` best of the candidate's starting
     ``phi`` (by cost) a short least-squares run moves ``phi`` (and the rod's two parameters, for
     a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
-    columns); the best of those then starts the joint fit of ``(x, phi)``. The amplifier and the
-    sensor effects (:data:`REBASED`) then fit ``x`` and the starts afresh through their effect
-    (:func:`_rebase`, with the ``identify`` settings; tried if the effect alone already brought
-    the cost below :data:`REBASE_GAIN` of the base model's, kept if it lowers the cost). The base
-    model is in every candidate's family, so its own cost bounds the result's.
+    columns); the best of those then starts the joint fit of ``(x, phi)``. A ``fresh_density``
+    candidate (relaxation) runs one of its short runs from the best of its effect's starts on a
+    fresh density (:func:`density_starts`), and its short runs move the whole model. The
+    amplifier and the sensor effects (:data:`REBASED`) then fit ``x`` and the starts afresh
+    through their effect (:func:`_rebase`, with the ``identify`` settings; tried if the effect
+    alone already brought the cost below :data:`REBASE_GAIN` of the base model's, kept if it
+    lowers the cost). The base model is in every candidate's family, so its own cost bounds the
+    result's.
 
     An ``own_states`` candidate (relaxation: the state a sweep starts from has relaxed with the
     sweeps before it) is also fitted with the sweeps in sequence (:func:`state_choices`, the
