@@ -583,19 +583,19 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     An ``own_states`` candidate (relaxation: the state a sweep starts from has relaxed with the
     sweeps before it) is also fitted with the sweeps in sequence (:func:`state_choices`, the
     first state chosen at the best start) unless the base's states already are, each fit with
-    half the budget. Both search on a coarse thermal grid (:data:`THERMAL_COARSE`) and are then
-    polished on the fine one with 1/:data:`FINE_SHARE` of the budget; the lower cost wins."""
+    half the budget. Both search on a coarse thermal grid (:data:`THERMAL_COARSE`); the lower
+    cost wins and is polished on the fine one with 1/:data:`FINE_SHARE` of the budget."""
     spaces = [space]
     if space.candidate.own_states:
         spaces = [space.with_grid(THERMAL_COARSE)]
         z0 = np.concatenate((x_base, space.candidate.starts[0]))
         spaces += [s for s in [_in_sequence(spaces[0], z0)] if s is not None]
     fits = [_fit_from(s, x_base, max_nfev // len(spaces), n_starts, identify) for s in spaces]
-    if space.candidate.own_states:  # each polished on the fine grid
-        fits = [_polish(s.with_grid(THERMAL_FINE), sol.x, max(max_nfev // FINE_SHARE, 1), n)
-                for s, sol, n in fits]
-    space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
     nfev = sum(f[2] for f in fits)
+    space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
+    if space.candidate.own_states:  # the better polished on the fine grid
+        space, sol, nfev = _polish(space.with_grid(THERMAL_FINE), sol.x,
+                                   max(max_nfev // FINE_SHARE, 1), nfev)
     model, gains, offsets = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
                     bool(sol.success and sol.status > 0), nfev, sol.x,
