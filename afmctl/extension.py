@@ -86,11 +86,14 @@ class Candidate:
     off or on, which a local fit cannot turn): the multi-start's best run is run again with it at
     each other value the starts give it. ``own_states``: the effect changes how the hysteresis
     state evolves (relaxation), so each sweep's initial state is chosen again with the effect on
-    (the base fit's choice was made without it). ``fresh_density``: the effect changes which
-    coercive fields the data show (thermally activated dipoles switch ahead of E_c, and the relay
-    model's fit absorbed that in a broader density with more weight beyond the peak field), so
-    the multi-start also starts the density afresh (:func:`density_starts`) and its short runs
-    move the whole model with the effect."""
+    (the base fit's choice was made without it). ``sequenced``: the effect changes the field between sweeps
+    (a gain that differs from run to run), which the base fit could only absorb by giving a
+    sweep a start state of its own; the sweeps recorded in sequence (:func:`state_choices`) are
+    fitted as well, every choice of the first state, and the lowest cost wins.
+    ``fresh_density``: the effect changes which coercive fields the data show (thermally
+    activated dipoles switch ahead of E_c, and the relay model's fit absorbed that in a broader
+    density with more weight beyond the peak field), so the multi-start also starts the density
+    afresh (:func:`density_starts`) and its short runs move the whole model with the effect."""
 
     name: str
     labels: tuple[str, ...]
@@ -100,6 +103,7 @@ class Candidate:
     free_rod: bool = False
     switch: bool = False
     own_states: bool = False
+    sequenced: bool = False
     fresh_density: bool = False
 
     @property
@@ -186,7 +190,8 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
     if n_sweeps >= 2:
         k = n_sweeps - 1
         cands.append(Candidate("voltage-gain-drift", tuple(f"log_gain_{i + 1}" for i in range(k)),
-                               (tuple([0.0] * k),), tuple([-0.3] * k), tuple([0.3] * k)))
+                               (tuple([0.0] * k),), tuple([-0.3] * k), tuple([0.3] * k),
+                               sequenced=True))
     return {c.name: c for c in cands}
 
 
@@ -584,13 +589,19 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     sweeps before it) is also fitted with the sweeps in sequence (:func:`state_choices`, the
     first state chosen at the best start) unless the base's states already are, each fit with
     half the budget. Both search on a coarse thermal grid (:data:`THERMAL_COARSE`); the lower
-    cost wins and is polished on the fine one with 1/:data:`FINE_SHARE` of the budget."""
+    cost wins and is polished on the fine one with 1/:data:`FINE_SHARE` of the budget.
+    A ``sequenced`` candidate (a gain per run) is fitted, each with the whole budget, from the
+    base's states and from every first state of the sweeps in sequence; the lowest cost wins."""
     spaces = [space]
     if space.candidate.own_states:
         spaces = [space.with_grid(THERMAL_COARSE)]
         z0 = np.concatenate((x_base, space.candidate.starts[0]))
         spaces += [s for s in [_in_sequence(spaces[0], z0)] if s is not None]
-    fits = [_fit_from(s, x_base, max_nfev // len(spaces), n_starts, identify) for s in spaces]
+    elif space.candidate.sequenced and len(space.preps) > 1:
+        spaces += [space.with_starts(c) for c in state_choices(len(space.preps))
+                   if c != space.base.starts]
+    budget = max_nfev if space.candidate.sequenced else max_nfev // len(spaces)
+    fits = [_fit_from(s, x_base, budget, n_starts, identify) for s in spaces]
     nfev = sum(f[2] for f in fits)
     space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
     if space.candidate.own_states:  # the better polished on the fine grid
