@@ -6,6 +6,7 @@
   minus the closed-form relay) against the foreign plant's (``drivers.device.foreign_kernel``:
   Arrhenius switching integrated on its own hysteron grid, rates written as Gaussian hazards) on
   the same material and field history;
+* Algorithm 3 through kernel (10) against the forward model while dipoles creep;
 * diagnose on foreign stages with hidden thermal relaxation (slow).
 """
 
