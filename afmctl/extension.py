@@ -29,7 +29,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import optimize, special
+from scipy import optimize
 
 from afmctl import effects as fx
 from afmctl import hysteresis as hy
@@ -37,6 +37,13 @@ from afmctl import identify as idf
 from afmctl import noise as ns
 from afmctl import parametrization as pz
 from afmctl import transducer as td
+from afmctl.relaxation import (
+    THERMAL_COARSE,
+    THERMAL_COLUMNS,
+    THERMAL_FINE,
+    density_starts,
+    thermal_polarization,
+)
 
 FloatArray = NDArray[np.float64]
 NAMES = ("none", "thermal-relaxation", "amplifier-lag", "sensor-delay", "sensor-nonlinearity",
@@ -54,25 +61,8 @@ REBASED = ("amplifier-lag", "sensor-delay", "sensor-nonlinearity")
 #: the cost below this fraction of the base model's (on a clean stage it would cost a whole
 #: identification for nothing).
 REBASE_GAIN = 0.8
-#: Coercive rows of the thermal kernel's grid (quantile midpoints of nu_1), in the fit and the model.
-THERMAL_ROWS = 64
-#: Rows, samples' field step and most columns of the coarse grid the multi-start searches on.
-THERMAL_COARSE = (16, 0.004, 256)
 #: The polish on the fine grid gets this fraction (1/FINE_SHARE) of a fit's evaluations.
 FINE_SHARE = 12
-#: Interaction columns of the thermal grid: uniform over +-THERMAL_SPAN sigma_I and at most
-#: ``field_scale / 1.5`` apart (the thermally smeared switching of neighbours overlaps, so the
-#: grid resolves kernel (10) at any field scale), between these counts (fit, and model for track).
-THERMAL_COLUMNS = (64, 8192, 512)
-THERMAL_SPAN = 4.5
-#: Field step (relative to the peak) of the samples kernel (10) is run on, each held for its time:
-#: the rates (7)-(8) change by e^(z dE / E_th) over a step, so it is finer than the relay's.
-THERMAL_STEP = 0.001
-#: The fine thermal grid (rows, field step, most columns): the fit's polish and the judgement.
-THERMAL_FINE = (THERMAL_ROWS, THERMAL_STEP, THERMAL_COLUMNS[1])
-#: Medians (fractions of the peak field) and log-widths of :func:`density_starts`.
-DENSITY_MEDIANS = (0.25, 0.45, 0.7)
-DENSITY_WIDTHS = (0.4, 0.8)
 
 
 @dataclass(frozen=True)
@@ -111,23 +101,6 @@ class Candidate:
         return len(self.labels)
 
 
-def thermal_polarization(theta: FloatArray, thermal: hy.Thermal, n_max: int,
-                         rows: int = THERMAL_ROWS) -> hy.Polarization:
-    """The thermally activated model (10) of ``theta[:4]`` (median E_c, sigma_ln, sigma_I, r;
-    MV/m) on its grid: ``rows`` coercive rows, interaction columns uniform over
-    ``+-THERMAL_SPAN sigma_I`` spaced at most ``field_scale / 1.5`` (at most ``n_max``), weighted
-    by the normal density nu_2 (``eta = 1``, ``p_r = r``: ``Q`` of (13))."""
-    median, sig, std, r = (float(v) for v in theta[:4])
-    n = int(np.clip(math.ceil(2 * THERMAL_SPAN * std * 1.5 / thermal.field_scale),
-                    THERMAL_COLUMNS[0], n_max))
-    u = THERMAL_SPAN * ((2 * np.arange(n) + 1) / n - 1)
-    dens = np.exp(-0.5 * u * u)
-    dens /= np.sum(dens) * (u[1] - u[0]) * std  # weights (value x cell width) sum to 1
-    return hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
-                           interaction=hy.Discrete(tuple(std * u), tuple(dens)),
-                           n_coercive=rows, thermal=thermal)
-
-
 def calibration_frame(preps: Sequence[pz.Prepared]) -> tuple[float, float, float, float]:
     """The frame a gauge error is fitted in: the readings of the slowest sweep (the one a lab
     calibrates its gauge on, quasi-statically): their mean ``m`` (um), ``R = sqrt(3 var)`` (um,
@@ -140,21 +113,6 @@ def calibration_frame(preps: Sequence[pz.Prepared]) -> tuple[float, float, float
     mu2 = max(float(np.mean(x * x)), 1e-12)
     return (float(np.mean(y)), math.sqrt(3 * mu2), float(np.mean(x ** 3)),
             float(np.mean(x ** 4)))
-
-
-def density_starts(x_base: FloatArray, e_max: float) -> list[FloatArray]:
-    """Coercive densities to start a relaxation fit from (``x`` with ``theta[:4]`` replaced):
-    medians 0.25-0.7 of the peak field ``e_max`` (MV/m) and two widths, each with the base fit's
-    interaction width and rod, and ``r`` scaled so that the weight of the hysterons that switch
-    below ``e_max`` (the loops' height) stays the base fit's."""
-    median, sig, std, r = np.exp(x_base[:4])
-
-    def below(m: float, s: float) -> float:
-        return float(special.ndtr(math.log(e_max / m) / s))
-
-    height = r * below(median, sig)
-    return [np.concatenate((np.log([f * e_max, s, std, height / below(f * e_max, s)]), x_base[4:]))
-            for f in DENSITY_MEDIANS for s in DENSITY_WIDTHS]
 
 
 def field_rate_max(preps: Sequence[pz.Prepared]) -> float:

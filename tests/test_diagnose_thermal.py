@@ -2,7 +2,7 @@
 
 * the banded thermal kernel of :mod:`afmctl.hysteresis` against a slow oracle written here that
   updates every hysteron at every sample (rates (7)-(8) in the inflection-point form);
-* the candidate's departure from the relay model (:func:`afmctl.extension.thermal_polarization`
+* the candidate's departure from the relay model (:func:`afmctl.relaxation.thermal_polarization`
   minus the closed-form relay) against the foreign plant's (``drivers.device.foreign_kernel``:
   Arrhenius switching integrated on its own hysteron grid, rates written as Gaussian hazards) on
   the same material and field history;
@@ -22,10 +22,10 @@ import pytest
 from scipy import special
 
 from afmctl import diagnose as dg
-from afmctl import extension as ext
 from afmctl import hysteresis as hy
 from afmctl import inverse as inv
 from afmctl import parametrization as pz
+from afmctl import relaxation
 from afmctl import transducer as tr
 from afmctl.transducer import Transducer
 from drivers.device import foreign as plant
@@ -117,9 +117,9 @@ def test_candidate_departure_matches_the_foreign_kernel(ratio: float) -> None:
     theta = np.array([mat.coercive.median_MVm, mat.coercive.shape, mat.interaction.std_MVm, r])
     # the same physics in the candidate's units: E_th = sqrt(2) E_T, nu0 = sqrt(2/pi) nu0'
     th = hy.Thermal(math.sqrt(2) * e_t, math.sqrt(2 / math.pi) * 2e4)
-    hot = pz.run_from(ext.thermal_polarization(theta, th, ext.THERMAL_COLUMNS[1]), [field],
+    hot = pz.run_from(relaxation.thermal_polarization(theta, th, relaxation.THERMAL_COLUMNS[1]), [field],
                       ["positive"], [dt])[0]
-    ours = (hot - pz.hysteresis(theta, [field], ext.THERMAL_ROWS, starts=["positive"])[0]) / r
+    ours = (hot - pz.hysteresis(theta, [field], relaxation.THERMAL_ROWS, starts=["positive"])[0]) / r
     size = float(np.sqrt(np.mean(theirs ** 2)))
     assert size > 1e-3  # a departure worth comparing
     assert float(np.sqrt(np.mean((ours - theirs) ** 2))) < 0.03 * size  # a 64 x 48 grid: 4-10 %
@@ -131,11 +131,11 @@ def test_thermal_candidate_keeps_the_relay_limit_and_a_trackable_model() -> None
     theta = np.array([0.8, 0.7, 0.4, 6.0])
     field = np.concatenate((np.linspace(0, 1.9, 500), np.linspace(1.9, 0.1, 500)))
     th = hy.Thermal(1e-4 * 1.9, 1e6)
-    pol = ext.thermal_polarization(theta, th, ext.THERMAL_COLUMNS[1])
+    pol = relaxation.thermal_polarization(theta, th, relaxation.THERMAL_COLUMNS[1])
     departure = (pz.run_from(pol, [field], ["depoled"], [1e-4])[0]
-                 - pz.hysteresis(theta, [field], ext.THERMAL_ROWS)[0])
+                 - pz.hysteresis(theta, [field], relaxation.THERMAL_ROWS)[0])
     assert float(np.max(np.abs(departure))) < 2e-3 * float(np.ptp(field))
-    model_grid = ext.thermal_polarization(theta, hy.Thermal(0.02, 1e4), ext.THERMAL_COLUMNS[2])
+    model_grid = relaxation.thermal_polarization(theta, hy.Thermal(0.02, 1e4), relaxation.THERMAL_COLUMNS[2])
     assert model_grid.thermal is not None and len(model_grid.interaction.nodes) <= 512
 
 
