@@ -28,8 +28,9 @@ Foreign stages (``--foreign``): the independently written plant of
 pty; its standard triangles recorded through the driver and the model from ``afmctl identify``
 on them (:mod:`foreign_learn`); sensor effects there would need ``diagnose`` and are left out.
 
-Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object); ``--stages
-voltage-gain-drift --foreign '' --no-earlier --stages-only`` for one stage alone.
+Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object); ``--stage
+sensor-nonlinearity`` (any name of ``--stages``, or ``foreign:<effect>``, or ``foreign:earlier``)
+for one stage alone (the same row as in the whole bench; no seed comparison, no 100 Hz run).
 """
 
 from __future__ import annotations
@@ -277,6 +278,18 @@ def iterations_to(rms: list[float], level: float) -> int | None:
     return next((i for i, x in enumerate(rms) if x <= level), None)
 
 
+def one(args: argparse.Namespace, stage: str) -> None:
+    """Set ``args`` to run ``stage`` alone (see ``--stage``); ValueError on an unknown name."""
+    kind, _, name = stage.rpartition(":")
+    foreign = (*foreign_learn.PLANT_CAUSES, "earlier")
+    if not (kind == "" and name in ("none", *CAUSES) or kind == "foreign" and name in foreign):
+        raise ValueError(f"unknown stage {stage!r} (one of none, {', '.join(CAUSES)}, or "
+                         f"foreign:<{'|'.join(foreign)}>)")
+    args.stages_only, args.earlier = True, name == "earlier" and kind == "foreign"
+    args.stages = "" if kind else name
+    args.foreign = name if kind and name != "earlier" else ""
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--json", action="store_true", help="print the JSON object last")
@@ -288,7 +301,15 @@ def main() -> None:
                     help="leave out the earlier bench's clean foreign stage (116 Hz rod)")
     ap.add_argument("--stages-only", action="store_true",
                     help="only the stages (no seed comparison, no 100 Hz run)")
+    ap.add_argument("--stage", default="",
+                    help="one stage alone: an effect of --stages, foreign:<effect> or "
+                         "foreign:earlier (implies --stages-only)")
     args = ap.parse_args()
+    if args.stage:
+        try:
+            one(args, args.stage)
+        except ValueError as exc:
+            ap.error(str(exc))
     base = default_profile()
     assert base.emulator is not None
     out: dict[str, Any] = {}
