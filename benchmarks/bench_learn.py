@@ -54,6 +54,7 @@ from afmctl.guard import LimitError
 from afmctl.profile import Profile, default_profile
 from drivers.device import plant as em
 from drivers.inprocess import InProcessStage, accelerated
+from drivers.stage import StageError
 
 sys.path.insert(0, str(Path(__file__).parent))
 import foreign_learn  # noqa: E402
@@ -265,13 +266,25 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
 
 
 def refused_or(cause: str, row: Any) -> dict[str, Any]:
-    """``row()``, or a failed row when the planner refuses the trajectory (out of reach)."""
-    try:
-        return row()
-    except LimitError as exc:
-        log(f"{cause}: refused: {exc}")
+    """``row()``, or a failed row when the planner refuses the trajectory (out of reach) or the
+    stage stops a run twice (a real-time stream the loaded host underran: the watchdog ramps
+    the stage to 0 V; one retry, counted in ``stage_errors``)."""
+    errors: list[str] = []
+    while True:
+        try:
+            return {**row(), "stage_errors": errors}
+        except LimitError as exc:
+            log(f"{cause}: refused: {exc}")
+            stop = f"refused: {exc}"
+        except StageError as exc:
+            log(f"{cause}: stage error: {exc}")
+            errors.append(str(exc))
+            if len(errors) < 2:
+                continue
+            stop = f"stage error: {exc}"
         return {"effect": cause, "rms_um_by_iteration": [], "kept_iteration": None,
-                "stop": f"refused: {exc}", "final_over_noise": float("inf"), "ok": False}
+                "stop": stop, "final_over_noise": float("inf"), "ok": False,
+                "stage_errors": errors}
 
 
 def iterations_to(rms: list[float], level: float) -> int | None:
