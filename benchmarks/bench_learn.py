@@ -266,13 +266,14 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
 
 
 def refused_or(cause: str, row: Any) -> dict[str, Any]:
-    """``row()``, or a failed row when the planner refuses the trajectory (out of reach) or the
-    stage stops a run twice (a real-time stream the loaded host underran: the watchdog ramps
-    the stage to 0 V; one retry, counted in ``stage_errors``)."""
+    """``row(folder)`` (a fresh folder name each attempt), or a failed row when the planner
+    refuses the trajectory (out of reach) or the stage stops a run twice (a real-time stream
+    the loaded host underran: the watchdog ramps the stage to 0 V; one retry, counted in
+    ``stage_errors``)."""
     errors: list[str] = []
     while True:
         try:
-            return {**row(), "stage_errors": errors}
+            return {**row(f"try{len(errors)}"), "stage_errors": errors}
         except LimitError as exc:
             log(f"{cause}: refused: {exc}")
             stop = f"refused: {exc}"
@@ -330,8 +331,8 @@ def main() -> None:
         tmp = Path(td)
         rows = []
         for cause in args.foreign.split(",") if args.foreign else ():
-            row = refused_or(cause, lambda c=cause: foreign_learn.learn_foreign(
-                c, FOREIGN_SEED, tmp / f"foreign-{c}"))
+            row = refused_or(cause, lambda f, c=cause: foreign_learn.learn_foreign(
+                c, FOREIGN_SEED, tmp / f / f"foreign-{c}"))
             rows.append(row)
             log(f"foreign {cause:12s}: true RMS "
                 f"{' -> '.join(f'{x:.4f}' for x in row['rms_um_by_iteration'])} um, kept "
@@ -340,13 +341,15 @@ def main() -> None:
                 f"{row.get('identified_resonance_Hz', float('nan')):.0f} Hz identified, "
                 f"{row.get('true_resonance_Hz', float('nan')):.0f} Hz true")
         if args.earlier:
-            row = refused_or("none (earlier stage)", lambda: foreign_learn.learn_foreign(
-                "none", FOREIGN_SEED, tmp / "foreign-earlier", overrides=foreign_learn.EARLIER_CLEAN))
+            row = refused_or("none (earlier stage)", lambda f: foreign_learn.learn_foreign(
+                "none", FOREIGN_SEED, tmp / f / "foreign-earlier",
+                overrides=foreign_learn.EARLIER_CLEAN))
             rows.append({**row, "stage": "the earlier bench's clean foreign stage (116 Hz)"})
             log(f"foreign earlier clean stage: {row['stop'][:160]}")
         for cause in args.stages.split(",") if args.stages else ():
             index = 0 if cause == "none" else 2 * CAUSES.index(cause)
-            rows.append(refused_or(cause, lambda c=cause, i=index: stage_row(base, c, i, tmp)))
+            rows.append(refused_or(cause, lambda f, c=cause, i=index: stage_row(base, c, i,
+                                                                                 tmp / f)))
         out["stages"] = rows
         out["learn_ok"] = sum(r["ok"] for r in rows)
         out["stages_total"] = len(rows)
