@@ -57,7 +57,9 @@ TRACKABLE = set(IN_VOCABULARY) - {"voltage-gain-drift"}
 VISIBLE = 3.0
 #: ... and the paper's model, refitted, must miss the readings by this many noise RMS (held out).
 DETECTABLE = 2.0
-#: Draws of a stage's effect at rising strength before the case is taken as it is.
+#: Random parameter draws of an effect before the case is taken as it is.
+EFFECT_DRAWS = 3
+#: Rising strengths tried per draw of an effect.
 VISIBLE_TRIES = 4
 
 
@@ -72,7 +74,7 @@ def cases(n_clean: int = 4) -> list[tuple[str, float | None, int]]:
     return [(c, s, i if c == "none" else 100 + n) for n, (c, s, i) in enumerate(out)]
 
 
-def make_stage(cause: str, strength: float | None, index: int
+def make_stage(cause: str, strength: float | None, index: int, refit: bool = True
                ) -> tuple[plant.Stage, list[sw.Sweep], plant.PlantState, dict[str, Any]]:
     """A random foreign stage with the hidden effect, its three standard sweeps recorded in
     sequence from a random start, the plant state after them and the truth.
@@ -82,42 +84,63 @@ def make_stage(cause: str, strength: float | None, index: int
     parameters at a strength halfway to 1 (``strength_used``) while it is not detectable
     (:func:`detectable`): its RMS on the readings under :data:`VISIBLE` times the sensor noise on
     every sweep, or the paper's model refitted to the readings within :data:`DETECTABLE` times
-    the noise (the base fit absorbs it: e.g. a second mode far above the sweep rates only adds
-    compliance, which the rod's stiffness takes up)."""
+    the noise (the base fit absorbs it: e.g. a light second mass only adds to the rod's moving
+    mass at the sweep rates). An effect not detectable even then gets new random parameters
+    (``effect_draw``), up to :data:`EFFECT_DRAWS` times. ``refit=False`` skips the refit test
+    (the stages of the tests, drawn before it)."""
     rng = np.random.default_rng([SEED, index])
-    base_misfit = None
     clean = random_stage(rng, drive_range_V=(0.0, 150.0))
     start = foreign_sets.draw_start("random", rng, 0.0, 150.0)
-    used = strength
-    for _ in range(VISIBLE_TRIES):
-        stage = clean if cause == "none" else replace(clean, effects=(random_effect(
-            cause, np.random.default_rng([SEED, index, 1]), clean, used),))
-        run_rng = np.random.default_rng([SEED, index, 2])
-        plans = sweep_set("standard", 0.0, 150.0, run_rng)
-        recorded, log = foreign_sets.record(stage, plans, start, run_rng)
-        seen = max((e.get("effect_rms_um") or 0.0) for e in log) / clean.sensor.noise_um
-        sweeps = [sw.from_arrays(p.voltage_V, reading, p.sample_rate_hz,
-                                 {"frequency_hz": f"{p.frequency_hz:g}",
-                                  "layer_thickness_um": f"{stage.material.layer_thickness_um:.6g}"},
-                                 path=p.name)
-                  for p, reading, _ in recorded]
-        if cause == "none" or used is None:
+    stage, used, draw, base_misfit = clean, strength, 0, None
+    for draw, used in _schedule(cause, strength):
+        stage = clean if used is None else replace(clean, effects=(random_effect(
+            cause, np.random.default_rng([SEED, index, 1, *([draw] if draw else [])]), clean,
+            used),))
+        sweeps, recorded, seen = _recorded(stage, start, index)
+        if used is None or seen >= VISIBLE and not refit:
             break
         base_misfit = detectable(seen, sweeps)
         if base_misfit is not None:
             break
-        used += (1.0 - used) / 2
     state, pairs = plant.initial_state(stage, start), []
     for p, _, _ in recorded:  # replay without noise for the state after the sweeps
         true_um, reading, state = plant.run(stage, p.voltage_V, p.sample_rate_hz, state, None)
         pairs.append((true_um, reading))
-    truth = {"cause": cause, "strength": strength, "strength_used": used, "start": start,
-             "base_misfit_drawn": base_misfit if cause != "none" else None,
+    truth = {"cause": cause, "strength": strength, "strength_used": used, "effect_draw": draw,
+             "start": start, "base_misfit_drawn": base_misfit,
              "noise_um": stage.sensor.noise_um, "effects": plant.describe(stage).get("effects"),
-             "effect_rms_um": [e.get("effect_rms_um") for e in log],
-             "effect_over_noise": round(seen, 2) if cause != "none" else None,
+             "effect_over_noise": round(seen, 2) if used is not None else None,
              "calibration_um": calibration(*pairs[0])}
     return stage, sweeps, state, truth
+
+
+def _schedule(cause: str, strength: float | None) -> list[tuple[int, float | None]]:
+    """(effect draw, strength) to try in turn: :data:`VISIBLE_TRIES` rising strengths per draw."""
+    if cause == "none" or strength is None:
+        return [(0, None)]
+    out = []
+    for draw in range(EFFECT_DRAWS):
+        used = strength
+        for _ in range(VISIBLE_TRIES):
+            out.append((draw, used))
+            used += (1.0 - used) / 2
+    return out
+
+
+def _recorded(stage: plant.Stage, start: Any, index: int
+              ) -> tuple[list[sw.Sweep], list[Any], float]:
+    """The three standard sweeps recorded on ``stage`` (a fixed run seed per stage index), the
+    records, and the hidden effect's largest RMS on a sweep's readings in noise units."""
+    run_rng = np.random.default_rng([SEED, index, 2])
+    recorded, log = foreign_sets.record(stage, sweep_set("standard", 0.0, 150.0, run_rng), start,
+                                        run_rng)
+    seen = max((e.get("effect_rms_um") or 0.0) for e in log) / stage.sensor.noise_um
+    sweeps = [sw.from_arrays(p.voltage_V, reading, p.sample_rate_hz,
+                             {"frequency_hz": f"{p.frequency_hz:g}",
+                              "layer_thickness_um": f"{stage.material.layer_thickness_um:.6g}"},
+                             path=p.name)
+              for p, reading, _ in recorded]
+    return sweeps, recorded, seen
 
 
 def detectable(seen: float, sweeps: list[sw.Sweep]) -> float | None:
