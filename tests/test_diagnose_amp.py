@@ -90,8 +90,9 @@ _spec.loader.exec_module(bench)
 
 @pytest.mark.slow
 def test_foreign_amplifier_stage_is_named_and_tracked() -> None:
-    """A foreign stage made as the bench makes its stages (seed 201: a 1.6 kHz second-order
-    amplifier, damping 0.8, slewing at 20 V/ms, on a 540 Hz rod): the base model is far off its
+    """A foreign stage made as the bench makes its stages (seed 201: a 419 Hz second-order
+    amplifier, damping 0.8, slewing at 20 V/ms, on a 540 Hz rod; 36x the noise, named at 1.2x,
+    track 1.09 -> 0.08 um): the base model is far off its
     noise floor; diagnose names amplifier-lag within 2x the floor, and track plans with the
     extended model within the stage's 0-150 V and tracks the stage's true position better than
     with the base model."""
