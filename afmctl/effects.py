@@ -91,6 +91,13 @@ class Effects:
         the best straight line through the readings against ``w`` is ``w`` itself (a lab's linear
         calibration of its gauge), and ``w`` is the position in that calibration's frame. With
         ``R = 0`` and ``m = 0``, ``w + c w^2 + c3 w^3``.
+    sensor_third_moment_um3, sensor_fourth_moment_um4 : float
+        Third and fourth central moments (um^3, um^4) of the positions the gauge was calibrated
+        on, about ``m`` (their mean) with variance ``R^2/3``; ``0`` for the fourth: a uniform
+        spread over ``m +- R`` (the Legendre terms above). With them the error terms are
+        ``x^2 - mu2 - (mu3/mu2) x`` and ``x^3 - mu3 - (mu4/mu2) x`` (``x = w - m``): no mean and
+        no linear trend over that very spread, so ``w`` is the frame of a least-squares line of
+        the readings over the calibration sweep, whatever the sweep's distribution of positions.
     second_mode : SecondMode or None
     voltage_gain_sigma : float
         Applied-voltage gain is ``1 + N(0, sigma)``, drawn once per run. A model cannot know the
@@ -108,6 +115,8 @@ class Effects:
     sensor_cubic_per_um2: float = 0.0
     sensor_center_um: float = 0.0
     sensor_half_range_um: float = 0.0
+    sensor_third_moment_um3: float = 0.0
+    sensor_fourth_moment_um4: float = 0.0
     second_mode: SecondMode | None = None
     voltage_gain_sigma: float = 0.0
 
@@ -362,20 +371,34 @@ def remove_mode(chain: Chain, w: FloatArray) -> FloatArray:
     return signal.lfilter(chain.mode_a, den, w, zi=zi)[0]
 
 
-def _gauge_terms(effects: Effects) -> tuple[float, float, float, float]:
-    """``(c, c3, m, r2)``: the gauge's coefficients, centre (um) and squared half range (um^2)."""
+def _gauge_terms(effects: Effects) -> tuple[float, float, float, FloatArray]:
+    """``(c, c3, m, k)``: the gauge's coefficients, centre (um) and the frame's constants
+    ``k = (k2, l2, k3, l3)`` of its terms ``x^2 - k2 - l2 x`` and ``x^3 - k3 - l3 x``."""
+    r2 = effects.sensor_half_range_um ** 2
+    mu2, mu3 = r2 / 3, effects.sensor_third_moment_um3
+    mu4 = effects.sensor_fourth_moment_um4 or r2 * r2 / 5
+    k = (np.array([mu2, mu3 / mu2, mu3, mu4 / mu2]) if mu2 > 0 else np.zeros(4))
     return (effects.sensor_quadratic_per_um, effects.sensor_cubic_per_um2,
-            effects.sensor_center_um, effects.sensor_half_range_um ** 2)
+            effects.sensor_center_um, k)
+
+
+def gauge_terms(effects: Effects, w: FloatArray) -> FloatArray:
+    """The gauge's two error terms at displacement ``w`` (um), shape (N, 2): ``x^2 - k2 - l2 x``
+    (um^2) and ``x^3 - k3 - l3 x`` (um^3) with ``x = w - m``, orthogonal to a constant and to
+    ``x`` over the calibration's spread (Legendre polynomials for a uniform one), which
+    :func:`gauge` weighs by ``c`` and ``c3``."""
+    _, _, m, (k2, l2, k3, l3) = _gauge_terms(effects)
+    x = np.asarray(w, dtype=float) - m
+    return np.column_stack((x * x - k2 - l2 * x, x * x * x - k3 - l3 * x))
 
 
 def gauge(effects: Effects, w: FloatArray) -> FloatArray:
-    """Sensor reading of displacement ``w`` (um):
-    ``w + c ((w - m)^2 - R^2/3) + c3 ((w - m)^3 - 3/5 R^2 (w - m))``."""
-    c, c3, m, r2 = _gauge_terms(effects)
+    """Sensor reading of displacement ``w`` (um): ``w + c P2(w - m) + c3 P3(w - m)``
+    (:func:`gauge_terms`; for a uniform spread ``P2 = x^2 - R^2/3``, ``P3 = x^3 - 3/5 R^2 x``)."""
+    c, c3, _, _ = _gauge_terms(effects)
     if not c and not c3:
         return w
-    x = w - m
-    return w + c * (x * x - r2 / 3) + c3 * x * (x * x - 0.6 * r2)
+    return w + gauge_terms(effects, w) @ np.array([c, c3])
 
 
 #: Newton steps of :func:`ungauge` with a cubic term (quadratic convergence from the quadratic root).
@@ -385,15 +408,16 @@ UNGAUGE_STEPS = 6
 def ungauge(effects: Effects, y: FloatArray) -> FloatArray:
     """Displacement (um) whose reading is ``y``: the root of :func:`gauge` ``= y`` nearest ``y``
     (closed form without a cubic term; else Newton from the quadratic's root)."""
-    c, c3, m, r2 = _gauge_terms(effects)
+    c, c3, m, (k2, l2, k3, l3) = _gauge_terms(effects)
     if not c and not c3:
         return y
-    yc = y - m + c * r2 / 3
-    x = 2.0 * yc / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * c * yc, 0.0)))
+    yc = y - m + c * k2 + c3 * k3  # x + c (x^2 - l2 x) + c3 (x^3 - l3 x) = yc
+    b = 1.0 - c * l2
+    x = 2.0 * yc / (b + np.sqrt(np.maximum(b * b + 4.0 * c * yc, 0.0)))
     if c3:
         for _ in range(UNGAUGE_STEPS):
-            slope = 1.0 + 2.0 * c * x + c3 * (3.0 * x * x - 0.6 * r2)
-            x = x - (x + c * x * x + c3 * x * (x * x - 0.6 * r2) - yc) / np.where(
+            slope = b + 2.0 * c * x + c3 * (3.0 * x * x - l3)
+            x = x - (b * x + c * x * x + c3 * x * (x * x - l3) - yc) / np.where(
                 np.abs(slope) > 1e-3, slope, 1e-3)
     return m + x
 
@@ -444,7 +468,9 @@ def sensor_part(e: Effects) -> Effects:
     return Effects(sensor_delay_samples=e.sensor_delay_samples, sensor_delay_s=e.sensor_delay_s,
                    sensor_quadratic_per_um=e.sensor_quadratic_per_um,
                    sensor_cubic_per_um2=e.sensor_cubic_per_um2, sensor_center_um=e.sensor_center_um,
-                   sensor_half_range_um=e.sensor_half_range_um)
+                   sensor_half_range_um=e.sensor_half_range_um,
+                   sensor_third_moment_um3=e.sensor_third_moment_um3,
+                   sensor_fourth_moment_um4=e.sensor_fourth_moment_um4)
 
 
 def sensor_correct(chain: Chain, reading_um: FloatArray) -> FloatArray:

@@ -120,6 +120,20 @@ def thermal_polarization(theta: FloatArray, thermal: hy.Thermal, n_max: int,
                            n_coercive=rows, thermal=thermal)
 
 
+def calibration_frame(preps: Sequence[pz.Prepared]) -> tuple[float, float, float, float]:
+    """The frame a gauge error is fitted in: the readings of the slowest sweep (the one a lab
+    calibrates its gauge on, quasi-statically): their mean ``m`` (um), ``R = sqrt(3 var)`` (um,
+    the half width of a uniform spread of that variance) and third and fourth central moments
+    (um^3, um^4). A gauge error orthogonal to a constant and a line over these readings leaves
+    the least-squares line of readings against position the identity: the model's position is
+    the one a lab's linear calibration of the gauge gives (:class:`afmctl.effects.Effects`)."""
+    y = max(preps, key=lambda p: p.dt).y
+    x = y - float(np.mean(y))
+    mu2 = max(float(np.mean(x * x)), 1e-12)
+    return (float(np.mean(y)), math.sqrt(3 * mu2), float(np.mean(x ** 3)),
+            float(np.mean(x ** 4)))
+
+
 def field_rate_max(preps: Sequence[pz.Prepared]) -> float:
     """Fastest rate of the field over the sweeps, MV/m/s."""
     return max(float(np.max(np.abs(np.diff(p.field)))) / p.dt for p in preps) or 1.0
@@ -211,17 +225,18 @@ class ExtendedSpace:
     """The residual of one candidate on prepared sweeps: ``z = (x, phi)``. Each sweep starts
     from the hysteresis state of ``base.starts`` and has its own sensor zero (as in
     :func:`afmctl.identify.fit`). ``gauge_frame``: centre and half width (um) of the readings a
-    gauge error is fitted about (default: those of ``preps``; :func:`afmctl.effects.gauge`)."""
+    gauge error is fitted about, and their third and fourth central moments (um^3, um^4; absent:
+    a uniform spread); default :func:`calibration_frame` of ``preps``
+    (:func:`afmctl.effects.gauge`)."""
 
     def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
                  field_step: float, range_um: float, dt_min: float | None = None,
-                 gauge_frame: tuple[float, float] | None = None,
+                 gauge_frame: tuple[float, ...] | None = None,
                  thermal_grid: tuple[int, float, int] = THERMAL_FINE) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
         self.step_rel = field_step
         self.range_um = range_um
-        y = np.concatenate([p.y for p in self.preps])
-        self.gauge_frame = gauge_frame or (float(y.max() + y.min()) / 2, float(np.ptp(y)) / 2)
+        self.gauge_frame = gauge_frame or calibration_frame(self.preps)
         self.dt_min = dt_min or min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
@@ -318,10 +333,33 @@ class ExtendedSpace:
     def _gauge(self, phi: FloatArray) -> fx.Effects:
         if self.candidate.name != "sensor-nonlinearity":
             return fx.Effects()
+        m, r, *moments = self.gauge_frame
+        mu3, mu4 = moments or (0.0, 0.0)
         return fx.Effects(sensor_quadratic_per_um=float(phi[0]) / self.range_um,
                           sensor_cubic_per_um2=float(phi[1]) / self.range_um ** 2,
-                          sensor_center_um=self.gauge_frame[0],
-                          sensor_half_range_um=self.gauge_frame[1])
+                          sensor_center_um=m, sensor_half_range_um=r,
+                          sensor_third_moment_um3=mu3, sensor_fourth_moment_um4=mu4)
+
+    def gauge_seeds(self, x: FloatArray) -> list[tuple[float, float]]:
+        """Where else a refit through a gauge error starts (:func:`_fit_from`, from the model
+        ``x`` a first refit gave): the cubic error solved by least squares, the curvature at 0.
+        A strong gauge is out of reach of local runs from the base model, which bent its loops
+        and its rod term ``a2 L[Q^2]`` to take up the gauge's error. The readings are
+        ``y = w + c P2(w) + c3 P3(w)`` with ``w`` linear in the gains and zeros, so to first
+        order ``(c, c3)`` solve with them on ``[L[Q], L[Q^2], 1_s, P2(y), P3(y)]``. Only ``c3`` is
+        kept: quasi-statically the gauge's ``c w^2`` is the rod's ``a2 Q^2`` to first order
+        (``w`` is ``a1 Q``), so the ``c`` of that solve is ill-determined, while ``c3 w^3`` is the
+        one cubic in ``Q`` of the two; the refit and the joint fit find ``c``. Empty for other
+        candidates."""
+        if self.candidate.name != "sensor-nonlinearity":
+            return []
+        a, _ = self.system(np.concatenate((x, np.zeros(2))))
+        terms = np.concatenate([wt * fx.gauge_terms(self._gauge(np.ones(2)), p.y)
+                                for p, wt in zip(self.preps, self.weights, strict=True)])
+        y = np.concatenate([wt * p.y for p, wt in zip(self.preps, self.weights, strict=True)])
+        c3 = np.linalg.lstsq(np.column_stack((a, terms)), y, rcond=None)[0][-1]
+        return [(0.0, float(np.clip(c3 * self.range_um ** 2, self.candidate.lower[1],
+                                    self.candidate.upper[1])))]
 
     def columns(self, z: FloatArray) -> list[FloatArray]:
         """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` after the output effects (the
@@ -518,7 +556,12 @@ def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts:
         nfev += sum(r.nfev for r in runs)
         ranked = [clip(np.concatenate((x_base[:n_held], best.x)))]
         if space.candidate.name in REBASED and 2 * float(best.cost) < REBASE_GAIN * cost_off:
-            found, z = _rebase(space, ranked[0], identify or idf.Settings())
+            settings = identify or idf.Settings()
+            rebased = [_rebase(space, ranked[0], settings)]
+            first, z1 = rebased[0]
+            rebased += [_rebase(first, clip(np.concatenate((z1[:n_x], s))), settings)
+                        for s in first.gauge_seeds(z1[:n_x])]
+            found, z = min(rebased, key=lambda f: float(np.sum(f[0].residual(clip(f[1])) ** 2)))
             if float(np.sum(found.residual(clip(z)) ** 2)) < cost(ranked[0]):
                 space, ranked = found, [clip(z)]
     sol = optimize.least_squares(space.residual, ranked[0], bounds=(lo, hi), diff_step=1e-6,

@@ -205,6 +205,9 @@ def effects_dict(e: Effects) -> dict[str, Any]:
                                       "cubic_per_um2": e.sensor_cubic_per_um2,
                                       "center_um": e.sensor_center_um,
                                       "half_range_um": e.sensor_half_range_um}
+        if e.sensor_third_moment_um3 or e.sensor_fourth_moment_um4:
+            out["sensor_nonlinearity"] |= {"third_moment_um3": e.sensor_third_moment_um3,
+                                           "fourth_moment_um4": e.sensor_fourth_moment_um4}
     if e.second_mode is not None:
         m = e.second_mode
         out["second_mode"] = {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio,
@@ -254,6 +257,9 @@ def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
         sensor_center_um=0.0 if nl is None else nl.number("center_um", 0.0),
         sensor_half_range_um=0.0 if nl is None else nl.number("half_range_um", 0.0,
                                                                nonnegative=True),
+        sensor_third_moment_um3=0.0 if nl is None else nl.number("third_moment_um3", 0.0),
+        sensor_fourth_moment_um4=0.0 if nl is None else nl.number("fourth_moment_um4", 0.0,
+                                                                   nonnegative=True),
         second_mode=mode,
         voltage_gain_sigma=0.0 if gd is None else gd.number("sigma", nonnegative=True),
     ), None if th is None else _thermal(th)
