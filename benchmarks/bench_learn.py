@@ -123,16 +123,24 @@ def model_for(profile: Profile, cause: str, folder: Path
 
 def calibration_frame(profile: Profile, model: tr.Transducer) -> Any:
     """The true position in the frame of a linear gauge calibration (for a gauge nonlinearity):
-    the least-squares line of the stage's gauge over the model's gauge range (centre +- half
-    range, uniform), the frame in which diagnose's extended model states positions (its gauge
-    error has no mean and no slope there). Identity without a gauge error."""
+    the least-squares line of the stage's gauge over the positions the model's gauge was
+    calibrated on (their mean ``m``, variance ``R^2 / 3`` and third and fourth central moments,
+    :class:`afmctl.effects.Effects`), the frame in which diagnose's extended model states
+    positions (its gauge error has no mean and no slope there). Identity without a gauge
+    error."""
     assert profile.emulator is not None
     e, m = profile.emulator.effects, model.effects
     if not (e.sensor_quadratic_per_um or e.sensor_cubic_per_um2) or not m.sensor_half_range_um:
         return lambda u: u
-    u = np.linspace(m.sensor_center_um - m.sensor_half_range_um,
-                    m.sensor_center_um + m.sensor_half_range_um, 1001)
-    slope, offset = np.polyfit(u, fx.gauge(e, u), 1)
+    c, mu2 = m.sensor_center_um, m.sensor_half_range_um ** 2 / 3
+    mu3, mu4 = m.sensor_third_moment_um3, m.sensor_fourth_moment_um4 or 1.8 * mu2 * mu2
+    raw = [1.0, c, mu2 + c**2, mu3 + 3 * c * mu2 + c**3,
+           mu4 + 4 * c * mu3 + 6 * c**2 * mu2 + c**4]  # E[u^k], k = 0..4
+    pts = np.linspace(-50.0, 50.0, 7)
+    a = np.polyfit(pts, fx.gauge(e, pts), 3)[::-1]  # the stage's gauge: a cubic in u
+    mean_p = sum(a[k] * raw[k] for k in range(4))
+    slope = (sum(a[k] * raw[k + 1] for k in range(4)) - c * mean_p) / mu2
+    offset = mean_p - slope * c
     return lambda x: slope * x + offset
 
 
