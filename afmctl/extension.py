@@ -29,7 +29,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import optimize
+from scipy import optimize, special
 
 from afmctl import effects as fx
 from afmctl import hysteresis as hy
@@ -70,6 +70,9 @@ THERMAL_SPAN = 4.5
 THERMAL_STEP = 0.001
 #: The fine thermal grid (rows, field step, most columns): the fit's polish and the judgement.
 THERMAL_FINE = (THERMAL_ROWS, THERMAL_STEP, THERMAL_COLUMNS[1])
+#: Medians (fractions of the peak field) and log-widths of :func:`density_starts`.
+DENSITY_MEDIANS = (0.25, 0.45, 0.7)
+DENSITY_WIDTHS = (0.4, 0.8)
 
 
 @dataclass(frozen=True)
@@ -86,7 +89,11 @@ class Candidate:
     (the base fit's choice was made without it). ``sequenced``: the effect changes the field between sweeps
     (a gain that differs from run to run), which the base fit could only absorb by giving a
     sweep a start state of its own; the sweeps recorded in sequence (:func:`state_choices`) are
-    fitted as well, every choice of the first state, and the lowest cost wins."""
+    fitted as well, every choice of the first state, and the lowest cost wins.
+    ``fresh_density``: the effect changes which coercive fields the data show (thermally
+    activated dipoles switch ahead of E_c, and the relay model's fit absorbed that in a broader
+    density with more weight beyond the peak field), so the multi-start also starts the density
+    afresh (:func:`density_starts`) and its short runs move the whole model with the effect."""
 
     name: str
     labels: tuple[str, ...]
@@ -97,6 +104,7 @@ class Candidate:
     switch: bool = False
     own_states: bool = False
     sequenced: bool = False
+    fresh_density: bool = False
 
     @property
     def n_params(self) -> int:
@@ -134,6 +142,21 @@ def calibration_frame(preps: Sequence[pz.Prepared]) -> tuple[float, float, float
             float(np.mean(x ** 4)))
 
 
+def density_starts(x_base: FloatArray, e_max: float) -> list[FloatArray]:
+    """Coercive densities to start a relaxation fit from (``x`` with ``theta[:4]`` replaced):
+    medians 0.25-0.7 of the peak field ``e_max`` (MV/m) and two widths, each with the base fit's
+    interaction width and rod, and ``r`` scaled so that the weight of the hysterons that switch
+    below ``e_max`` (the loops' height) stays the base fit's."""
+    median, sig, std, r = np.exp(x_base[:4])
+
+    def below(m: float, s: float) -> float:
+        return float(special.ndtr(math.log(e_max / m) / s))
+
+    height = r * below(median, sig)
+    return [np.concatenate((np.log([f * e_max, s, std, height / below(f * e_max, s)]), x_base[4:]))
+            for f in DENSITY_MEDIANS for s in DENSITY_WIDTHS]
+
+
 def field_rate_max(preps: Sequence[pz.Prepared]) -> float:
     """Fastest rate of the field over the sweeps, MV/m/s."""
     return max(float(np.max(np.abs(np.diff(p.field)))) / p.dt for p in preps) or 1.0
@@ -156,7 +179,8 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
                   ((lf(2e-4 * e_max), lf(1e6)),)  # close to the relay: the base model
                   + tuple((lf(f * e_max), lf(r)) for f in (0.001, 0.003, 0.01, 0.03)
                           for r in (1e2, 1e4, 1e6)),
-                  (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7)), own_states=True),
+                  (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7)), own_states=True,
+                  fresh_density=True),
         Candidate("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio", "log_slew_MV_per_m_s"),
                   ((ln + 2.9, lf(0.7), slew_off),)  # far beyond the data: the base model
                   + tuple((lf(f * rod_hz), lf(0.7), slew) for f in (0.3, 1.0, 3.0)
@@ -514,8 +538,10 @@ def state_choices(n: int) -> list[tuple[str, ...]]:
 
 
 def _in_sequence(space: ExtendedSpace, z: FloatArray) -> ExtendedSpace | None:
-    """``space`` with the :func:`state_choices` that fits best at ``z``; None if it has them."""
-    if "previous" in space.base.starts[1:] or len(space.preps) < 2:
+    """``space`` with the :func:`state_choices` that fits best at ``z``; None if every sweep
+    after the first already carries on from the one before (a base fit that restarted only
+    some of them from a poled state still gets the sequence)."""
+    if all(s == "previous" for s in space.base.starts[1:]) or len(space.preps) < 2:
         return None
     return min((space.with_starts(c) for c in state_choices(len(space.preps))),
                key=lambda s: float(np.sum(s.residual(z) ** 2)))
@@ -528,7 +554,7 @@ def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts:
     evaluations."""
     lo, hi = space.bounds()
     n_x = x_base.size
-    n_held = 4 if space.candidate.free_rod else n_x
+    n_held = 0 if space.candidate.fresh_density else 4 if space.candidate.free_rod else n_x
 
     def clip(z: FloatArray) -> FloatArray:
         return np.clip(z, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
@@ -542,6 +568,12 @@ def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts:
     starts = [clip(np.concatenate((x_base, s))) for s in space.candidate.starts]
     cost_off = cost(starts[0])
     ranked = sorted(starts, key=cost)[:max(n_starts, 1)]
+    if space.candidate.fresh_density:  # the best of the effect's starts on a fresh density too
+        e_max = pz.extent(space.preps)[0]
+        fresh = [clip(np.concatenate((x, s))) for x in density_starts(x_base, e_max)
+                 for s in space.candidate.starts[1:]]
+        ranked = ranked[:max(n_starts - 1, 1)] + [min(fresh, key=cost)]
+        starts += fresh
     nfev = len(starts)
     if n_x < ranked[0].size:
         runs = [optimize.least_squares(with_free, z0[n_held:], bounds=(lo[n_held:], hi[n_held:]),
@@ -587,17 +619,20 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     Multi-start on the effect alone: from each of the ``n_starts`` best of the candidate's starting
     ``phi`` (by cost) a short least-squares run moves ``phi`` (and the rod's two parameters, for
     a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
-    columns); the best of those then starts the joint fit of ``(x, phi)``. The amplifier and the
-    sensor effects (:data:`REBASED`) then fit ``x`` and the starts afresh through their effect
-    (:func:`_rebase`, with the ``identify`` settings; tried if the effect alone already brought
-    the cost below :data:`REBASE_GAIN` of the base model's, kept if it lowers the cost). The base
-    model is in every candidate's family, so its own cost bounds the result's.
+    columns); the best of those then starts the joint fit of ``(x, phi)``. A ``fresh_density``
+    candidate (relaxation) runs one of its short runs from the best of its effect's starts on a
+    fresh density (:func:`density_starts`), and its short runs move the whole model. The
+    amplifier and the sensor effects (:data:`REBASED`) then fit ``x`` and the starts afresh
+    through their effect (:func:`_rebase`, with the ``identify`` settings; tried if the effect
+    alone already brought the cost below :data:`REBASE_GAIN` of the base model's, kept if it
+    lowers the cost). The base model is in every candidate's family, so its own cost bounds the
+    result's.
 
     An ``own_states`` candidate (relaxation: the state a sweep starts from has relaxed with the
     sweeps before it) is also fitted with the sweeps in sequence (:func:`state_choices`, the
     first state chosen at the best start) unless the base's states already are, each fit with
-    half the budget. Both search on a coarse thermal grid (:data:`THERMAL_COARSE`) and are then
-    polished on the fine one with 1/:data:`FINE_SHARE` of the budget; the lower cost wins.
+    half the budget. Both search on a coarse thermal grid (:data:`THERMAL_COARSE`); the lower
+    cost wins and is polished on the fine one with 1/:data:`FINE_SHARE` of the budget.
     A ``sequenced`` candidate (a gain per run) is fitted, each with the whole budget, from the
     base's states and from every first state of the sweeps in sequence; the lowest cost wins."""
     spaces = [space]
@@ -610,11 +645,11 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
                    if c != space.base.starts]
     budget = max_nfev if space.candidate.sequenced else max_nfev // len(spaces)
     fits = [_fit_from(s, x_base, budget, n_starts, identify) for s in spaces]
-    if space.candidate.own_states:  # each polished on the fine grid
-        fits = [_polish(s.with_grid(THERMAL_FINE), sol.x, max(max_nfev // FINE_SHARE, 1), n)
-                for s, sol, n in fits]
-    space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
     nfev = sum(f[2] for f in fits)
+    space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
+    if space.candidate.own_states:  # the better polished on the fine grid
+        space, sol, nfev = _polish(space.with_grid(THERMAL_FINE), sol.x,
+                                   max(max_nfev // FINE_SHARE, 1), nfev)
     model, gains, offsets = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
                     bool(sol.success and sol.status > 0), nfev, sol.x,

@@ -126,7 +126,10 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
         if lo < e < hi and abs(e) <= e_max:
             err[k] = 0.0
         else:
-            y0 = c0 + g1 * p_prev + g2 * p_prev * p_prev  # u~: field held at E_{k-1}
+            if kind == 2:  # u~ with the field held at E_{k-1}: thermally active dipoles go
+                y0 = _predict(kind, e_prev, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2)[0]
+            else:  # on switching (creep) while it is held; a relay's P stays put
+                y0 = c0 + g1 * p_prev + g2 * p_prev * p_prev
             e, p, err[k], slope = _solve(kind, target[k], e_prev, y0, slope, floor, e_max, dt, st,
                                          sc, ec, wc, ei, cw, scal, c0, g1, g2, tol)
             st[:] = sc  # commit the accepted trial's memory
