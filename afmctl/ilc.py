@@ -53,17 +53,31 @@ noise): the coefficient of that difference along ``s = dy/dg`` (the model's posi
 gain, :func:`gain_coefficient`) is the run's gain relative to iteration 0, ``d_j``. The law uses
 the error the run would have made at the **mean gain** of the runs so far,
 
-    e~_j = e_j + (d_j - mean(d_0 .. d_j)) s
+    e~_j = e_j + (d_j - mean(d_0 .. d_j)) s_j
 
 in ``r_{j+1} = r_j + Q[L e~_j]``, and judges every iteration (best, divergence, floor) by its
-``e~`` at the same latest mean. The condition above is unchanged (``e~`` is the error of a fixed
-plant, the stage at the mean gain); the learned waveform converges to the one for the mean
-gain, whose estimate errs by ``sigma / sqrt(j+1)``: the expected error settles at ``sigma |s|
-sqrt(1 + 1/(j+1))``, the variation's floor ``sigma |s|`` (what a perfect waveform still makes)
-to within 10 % from 5 runs on (to first order; the README gives what the bench measured). The
-stop rules use the resolution
-:func:`resolution`: the noise and that mean's uncertainty. Without the conditioning
-(``--no-condition``) no gain is measured (``d_j = 0``) and the law is the plain one.
+``e~`` at the same latest mean. ``s_j`` is the gain direction of iteration ``j``'s **own**
+waveform: ``dy/dg`` (roughly the local ``dy/dv`` times ``v``) depends on where on the
+hysteresis the waveform runs, and a learned waveform runs elsewhere than iteration 0's (with
+iteration 0's ``s`` the correction
+itself put ``(d_j - mean d) (s_j - s_0)`` into ``e~``: up to 0.13 um on a stage whose inverse
+was 3.6 um off, which drifted learning up past the floor and ended it as "diverging").
+
+*Convergence under the variation* (first order, ``L G = rho`` per harmonic, ``Q = 1``): with
+``x_j`` the waveform's error at the true mean gain, ``m_j`` the runs' mean gain's deviation from
+it and ``n_j`` the noise learned from, ``e~_j = x_j - m_j s - n_j`` and
+
+    x_{j+1} = (1 - rho) x_j + rho (m_j s + n_j):
+
+the deterministic part contracts under the condition above (``e~`` is the error of one fixed
+plant, the stage at the mean gain), and the random part neither chases the runs' draws (they are
+removed) nor accumulates: with ``rho = 1`` the waveform carries the latest mean's error
+(variance ``sigma^2 / (j + 1)``) and one run's noise (its variance ``rho / (2 - rho)`` = 1 times
+the noise's, after ``Q`` and the harmonics: small beside the variation). The expected error over
+future runs settles at ``sigma |s| sqrt(1 + 1/(j+1))`` (and the noise), the variation's floor
+``sigma |s|`` (what a perfect waveform still makes) within 10 % from 5 runs on. The stop rules
+use the resolution :func:`resolution`: the noise and that mean's uncertainty. Without the
+conditioning (``--no-condition``) no gain is measured (``d_j = 0``) and the law is the plain one.
 
 **Stopping** (:mod:`afmctl.learn` plays the iterations). Each waveform passes the guard
 (voltage, slew, current) before it is sent: one that would not (or a reference out of the

@@ -131,9 +131,11 @@ class Iteration:
 
     ``gain_change`` is the run's applied-voltage gain relative to iteration 0's, measured on the
     conditioning excursion (the same voltages every iteration: :func:`gain_change`);
-    ``learned_um`` is the error learning uses and judges, the error the run would have made at
-    the mean gain of the runs so far (``error_um`` itself when the gain does not vary), and
-    ``judged_um`` its RMS over the learned region (the steady part, or its imaging region)."""
+    ``gain_direction_um`` is ``s = dy/dg`` of this iteration's own waveform on the tracking part
+    (um per unit gain, :func:`gain_direction`); ``learned_um`` is the error learning uses and
+    judges, the error the run would have made at the mean gain of the runs so far
+    (``error_um`` itself when the gain does not vary), and ``judged_um`` its RMS over the
+    learned region (the steady part, or its imaging region)."""
 
     index: int
     outcome: experiment.Outcome
@@ -142,6 +144,7 @@ class Iteration:
     rms_imaging_between_um: float | None
     steady_um: float
     gain_change: float = 0.0
+    gain_direction_um: FloatArray | None = None
     learned_um: FloatArray | None = None
     judged_um: float = float("nan")
 
@@ -235,7 +238,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
 
     plant = truth if truth is not None else model
     region = ilc.imaging_mask(desired, first_period=True) if law.region == "imaging" else None
-    s_dir, sigma = np.zeros(0), 0.0
+    sigma = 0.0
     for j in range(iterations + 1):
         if j:
             t0 = time.perf_counter()
@@ -257,11 +260,14 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         if j == 0:
             noise = ilc.noise_estimate(it.error_um[ilc.steady_part(desired)])
             tuning = ilc.tune(ref, desired.u_um - it.error_um, desired, law, noise)
-            s_dir = gain_direction(p, wf)
+        # s of this waveform: the learned waveforms sit elsewhere on the hysteresis than
+        # iteration 0's (its offset alone moved s's mean by ~7 um per unit gain on a stage)
+        s_dir = gain_direction(p, wf)
+        it = dc.replace(it, gain_direction_um=s_dir[wf.tracking])
         if j:
             it = dc.replace(it, gain_change=gain_change(it, done[0], s_dir, p.prefix_v,
                                                         model.effects))
-        done, sigma = at_mean_gain([*done, it], s_dir, desired, law)
+        done, sigma = at_mean_gain([*done, it], desired, law)
         it = done[-1]
         compute.append(t_plan + time.perf_counter() - t1)
         best = int(np.argmin([x.judged_um for x in done]))
@@ -300,20 +306,22 @@ def gain_change(it: Iteration, first: Iteration, s: FloatArray, prefix_v: FloatA
     return ilc.gain_coefficient(w[1] - w[0], s[part])
 
 
-def at_mean_gain(done: list[Iteration], s: FloatArray, desired: track.Desired, law: ilc.Law
+def at_mean_gain(done: list[Iteration], desired: track.Desired, law: ilc.Law
                  ) -> tuple[list[Iteration], float]:
     """Every iteration judged at the mean gain of the runs so far, and the gain's spread (1 sigma).
 
-    A run whose gain was ``d_i - mean(d)`` above the mean moved the stage by that times ``s`` on
-    the trajectory: added back to its error, it leaves the error its waveform makes at the mean
-    gain (``learned_um``, what learning learns from; ``judged_um`` its RMS over the learned
-    region). All iterations are compared at the same gain, so a run's own draw neither makes
-    its waveform look best nor ends learning as a divergence.
+    A run whose gain was ``d_i - mean(d)`` above the mean moved the stage by that times its own
+    waveform's ``s`` (``gain_direction_um``) on the trajectory: added back to its error, it
+    leaves the error its waveform makes at the mean gain (``learned_um``, what learning learns
+    from; ``judged_um`` its RMS over the learned region). All iterations are compared at the
+    same gain, so a run's own draw neither makes its waveform look best nor ends learning as a
+    divergence.
     """
     d = np.array([x.gain_change for x in done])
     out = []
     for x in done:
-        learned = x.error_um + (x.gain_change - float(d.mean())) * s[x.outcome.waveform.tracking]
+        s = x.gain_direction_um if x.gain_direction_um is not None else 0.0
+        learned = x.error_um + (x.gain_change - float(d.mean())) * s
         judged = (ilc.imaging_rms(desired, learned) if law.region == "imaging"
                   else ilc.rms(learned[ilc.steady_part(desired)]))
         out.append(dc.replace(x, learned_um=learned, judged_um=judged))

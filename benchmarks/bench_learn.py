@@ -28,8 +28,9 @@ Foreign stages (``--foreign``): the independently written plant of
 pty; its standard triangles recorded through the driver and the model from ``afmctl identify``
 on them (:mod:`foreign_learn`); sensor effects there would need ``diagnose`` and are left out.
 
-Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object); ``--stages
-voltage-gain-drift --foreign '' --no-earlier --stages-only`` for one stage alone.
+Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object); ``--stage
+sensor-nonlinearity`` (any name of ``--stages``, or ``foreign:<effect>``, or ``foreign:earlier``)
+for one stage alone (the same row as in the whole bench; no seed comparison, no 100 Hz run).
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ from afmctl.guard import LimitError
 from afmctl.profile import Profile, default_profile
 from drivers.device import plant as em
 from drivers.inprocess import InProcessStage, accelerated
+from drivers.stage import StageError
 
 sys.path.insert(0, str(Path(__file__).parent))
 import foreign_learn  # noqa: E402
@@ -121,16 +123,24 @@ def model_for(profile: Profile, cause: str, folder: Path
 
 def calibration_frame(profile: Profile, model: tr.Transducer) -> Any:
     """The true position in the frame of a linear gauge calibration (for a gauge nonlinearity):
-    the least-squares line of the stage's gauge over the model's gauge range (centre +- half
-    range, uniform), the frame in which diagnose's extended model states positions (its gauge
-    error has no mean and no slope there). Identity without a gauge error."""
+    the least-squares line of the stage's gauge over the positions the model's gauge was
+    calibrated on (their mean ``m``, variance ``R^2 / 3`` and third and fourth central moments,
+    :class:`afmctl.effects.Effects`), the frame in which diagnose's extended model states
+    positions (its gauge error has no mean and no slope there). Identity without a gauge
+    error."""
     assert profile.emulator is not None
     e, m = profile.emulator.effects, model.effects
     if not (e.sensor_quadratic_per_um or e.sensor_cubic_per_um2) or not m.sensor_half_range_um:
         return lambda u: u
-    u = np.linspace(m.sensor_center_um - m.sensor_half_range_um,
-                    m.sensor_center_um + m.sensor_half_range_um, 1001)
-    slope, offset = np.polyfit(u, fx.gauge(e, u), 1)
+    c, mu2 = m.sensor_center_um, m.sensor_half_range_um ** 2 / 3
+    mu3, mu4 = m.sensor_third_moment_um3, m.sensor_fourth_moment_um4 or 1.8 * mu2 * mu2
+    raw = [1.0, c, mu2 + c**2, mu3 + 3 * c * mu2 + c**3,
+           mu4 + 4 * c * mu3 + 6 * c**2 * mu2 + c**4]  # E[u^k], k = 0..4
+    pts = np.linspace(-50.0, 50.0, 7)
+    a = np.polyfit(pts, fx.gauge(e, pts), 3)[::-1]  # the stage's gauge: a cubic in u
+    mean_p = sum(a[k] * raw[k] for k in range(4))
+    slope = (sum(a[k] * raw[k + 1] for k in range(4)) - c * mean_p) / mu2
+    offset = mean_p - slope * c
     return lambda x: slope * x + offset
 
 
@@ -264,17 +274,42 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
 
 
 def refused_or(cause: str, row: Any) -> dict[str, Any]:
-    """``row()``, or a failed row when the planner refuses the trajectory (out of reach)."""
-    try:
-        return row()
-    except LimitError as exc:
-        log(f"{cause}: refused: {exc}")
+    """``row(folder)`` (a fresh folder name each attempt), or a failed row when the planner
+    refuses the trajectory (out of reach) or the stage stops a run twice (a real-time stream
+    the loaded host underran: the watchdog ramps the stage to 0 V; one retry, counted in
+    ``stage_errors``)."""
+    errors: list[str] = []
+    while True:
+        try:
+            return {**row(f"try{len(errors)}"), "stage_errors": errors}
+        except LimitError as exc:
+            log(f"{cause}: refused: {exc}")
+            stop = f"refused: {exc}"
+        except StageError as exc:
+            log(f"{cause}: stage error: {exc}")
+            errors.append(str(exc))
+            if len(errors) < 2:
+                continue
+            stop = f"stage error: {exc}"
         return {"effect": cause, "rms_um_by_iteration": [], "kept_iteration": None,
-                "stop": f"refused: {exc}", "final_over_noise": float("inf"), "ok": False}
+                "stop": stop, "final_over_noise": float("inf"), "ok": False,
+                "stage_errors": errors}
 
 
 def iterations_to(rms: list[float], level: float) -> int | None:
     return next((i for i, x in enumerate(rms) if x <= level), None)
+
+
+def one(args: argparse.Namespace, stage: str) -> None:
+    """Set ``args`` to run ``stage`` alone (see ``--stage``); ValueError on an unknown name."""
+    kind, _, name = stage.rpartition(":")
+    foreign = (*foreign_learn.PLANT_CAUSES, "earlier")
+    if not (kind == "" and name in ("none", *CAUSES) or kind == "foreign" and name in foreign):
+        raise ValueError(f"unknown stage {stage!r} (one of none, {', '.join(CAUSES)}, or "
+                         f"foreign:<{'|'.join(foreign)}>)")
+    args.stages_only, args.earlier = True, name == "earlier" and kind == "foreign"
+    args.stages = "" if kind else name
+    args.foreign = name if kind and name != "earlier" else ""
 
 
 def main() -> None:
@@ -288,7 +323,15 @@ def main() -> None:
                     help="leave out the earlier bench's clean foreign stage (116 Hz rod)")
     ap.add_argument("--stages-only", action="store_true",
                     help="only the stages (no seed comparison, no 100 Hz run)")
+    ap.add_argument("--stage", default="",
+                    help="one stage alone: an effect of --stages, foreign:<effect> or "
+                         "foreign:earlier (implies --stages-only)")
     args = ap.parse_args()
+    if args.stage:
+        try:
+            one(args, args.stage)
+        except ValueError as exc:
+            ap.error(str(exc))
     base = default_profile()
     assert base.emulator is not None
     out: dict[str, Any] = {}
@@ -296,8 +339,8 @@ def main() -> None:
         tmp = Path(td)
         rows = []
         for cause in args.foreign.split(",") if args.foreign else ():
-            row = refused_or(cause, lambda c=cause: foreign_learn.learn_foreign(
-                c, FOREIGN_SEED, tmp / f"foreign-{c}"))
+            row = refused_or(cause, lambda f, c=cause: foreign_learn.learn_foreign(
+                c, FOREIGN_SEED, tmp / f / f"foreign-{c}"))
             rows.append(row)
             log(f"foreign {cause:12s}: true RMS "
                 f"{' -> '.join(f'{x:.4f}' for x in row['rms_um_by_iteration'])} um, kept "
@@ -306,13 +349,15 @@ def main() -> None:
                 f"{row.get('identified_resonance_Hz', float('nan')):.0f} Hz identified, "
                 f"{row.get('true_resonance_Hz', float('nan')):.0f} Hz true")
         if args.earlier:
-            row = refused_or("none (earlier stage)", lambda: foreign_learn.learn_foreign(
-                "none", FOREIGN_SEED, tmp / "foreign-earlier", overrides=foreign_learn.EARLIER_CLEAN))
+            row = refused_or("none (earlier stage)", lambda f: foreign_learn.learn_foreign(
+                "none", FOREIGN_SEED, tmp / f / "foreign-earlier",
+                overrides=foreign_learn.EARLIER_CLEAN))
             rows.append({**row, "stage": "the earlier bench's clean foreign stage (116 Hz)"})
             log(f"foreign earlier clean stage: {row['stop'][:160]}")
         for cause in args.stages.split(",") if args.stages else ():
             index = 0 if cause == "none" else 2 * CAUSES.index(cause)
-            rows.append(refused_or(cause, lambda c=cause, i=index: stage_row(base, c, i, tmp)))
+            rows.append(refused_or(cause, lambda f, c=cause, i=index: stage_row(base, c, i,
+                                                                                 tmp / f)))
         out["stages"] = rows
         out["learn_ok"] = sum(r["ok"] for r in rows)
         out["stages_total"] = len(rows)
