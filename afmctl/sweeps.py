@@ -577,7 +577,7 @@ def separating_sweep(v_range: tuple[float, float], sample_rate_hz: float,
       both branches are minor-loop turning points at three biases;
     * a **multisine** about mid-range (:func:`multisine`, up to ``sample_rate / 20``): gain and phase
       against frequency;
-    * ramp back to ``v0`` and hold.
+    * ramp to ``v_lo`` and hold (then back to ``v0`` if that is not ``v_lo``).
 
     Parameters
     ----------
@@ -597,7 +597,8 @@ def separating_sweep(v_range: tuple[float, float], sample_rate_hz: float,
     """
     lo, hi = v_range
     span, v0 = hi - lo, min(max(0.0, lo), hi)
-    slow, fast = 2 * span * 5.58, SLEW_USE * max_rate_v_per_s
+    fast = SLEW_USE * max_rate_v_per_s
+    slow = min(2 * span * 5.58, fast)
     hold = {"long": 0.1, "short": 0.04}
     plan: list[tuple[str, FloatArray]] = []
     v = v0
@@ -611,8 +612,10 @@ def separating_sweep(v_range: tuple[float, float], sample_rate_hz: float,
                      ("hold", np.full(int(hold[rest] * sample_rate_hz), target))]
             v = target
         plan.append(("multisine", multisine(v, 0.25 * span, fast, 0.2, sample_rate_hz)))
-        plan += [("ramp", _ramp(v, v0, slow, sample_rate_hz)),
-                 ("hold", np.full(int(hold["long"] * sample_rate_hz), v0))]
+        plan += [("ramp", _ramp(v, lo, slow, sample_rate_hz)),
+                 ("hold", np.full(int(hold["long"] * sample_rate_hz), lo))]
+        if v0 != lo:  # a bipolar range: back to the safe output
+            plan.append(("ramp", _ramp(lo, v0, slow, sample_rate_hz)))
         v = v0
     parts, segments, k = [np.full(1, v0)], [], 1
     for kind, samples in plan:
