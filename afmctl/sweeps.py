@@ -516,6 +516,8 @@ DESIGNS = ("standard", "separating")
 SEPARATING_NAME = "separating"
 #: Fraction of the usable slew rate the fast steps and the multisine may use (the guard's margin).
 SLEW_USE = 0.5
+#: The multisine's highest tone, as a fraction of the sample rate.
+MULTISINE_TOP = 1 / 20
 
 
 @dataclass(frozen=True)
@@ -536,7 +538,7 @@ def _ramp(v0: float, v1: float, rate_v_per_s: float, sample_rate_hz: float) -> F
 
 def multisine(bias_v: float, amplitude_v: float, max_rate_v_per_s: float, duration_s: float,
               sample_rate_hz: float, tones: int = 4) -> FloatArray:
-    """Sines at ``tones`` frequencies spaced by 3x up to a twentieth of the sample rate, each an
+    """Sines at ``tones`` frequencies spaced by 3x up to ``MULTISINE_TOP`` of the sample rate, each an
     integer number of cycles in ``duration_s`` (so it starts and ends at ``bias_v``), all with the
     same velocity amplitude (a lag, a delay or a mode's rate term shows equally in each), scaled so
     that the peak excursion is at most ``amplitude_v`` and the slew at most ``max_rate_v_per_s``.
@@ -551,7 +553,7 @@ def multisine(bias_v: float, amplitude_v: float, max_rate_v_per_s: float, durati
     """
     n = int(round(duration_s * sample_rate_hz))
     step = 1.0 / duration_s
-    f = np.array([max(1, round(sample_rate_hz / 20 / 3 ** k / step)) * step
+    f = np.array([max(1, round(sample_rate_hz * MULTISINE_TOP / 3 ** k / step)) * step
                   for k in range(tones)])
     t = np.arange(1, n + 1) / sample_rate_hz
     shape = np.sum(np.sin(2 * np.pi * f[:, None] * t) / f[:, None], axis=0)
