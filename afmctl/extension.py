@@ -83,7 +83,10 @@ class Candidate:
     off or on, which a local fit cannot turn): the multi-start's best run is run again with it at
     each other value the starts give it. ``own_states``: the effect changes how the hysteresis
     state evolves (relaxation), so each sweep's initial state is chosen again with the effect on
-    (the base fit's choice was made without it)."""
+    (the base fit's choice was made without it). ``sequenced``: the effect changes the field between sweeps
+    (a gain that differs from run to run), which the base fit could only absorb by giving a
+    sweep a start state of its own; the sweeps recorded in sequence (:func:`state_choices`) are
+    fitted as well, every choice of the first state, and the lowest cost wins."""
 
     name: str
     labels: tuple[str, ...]
@@ -93,6 +96,7 @@ class Candidate:
     free_rod: bool = False
     switch: bool = False
     own_states: bool = False
+    sequenced: bool = False
 
     @property
     def n_params(self) -> int:
@@ -162,7 +166,8 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
     if n_sweeps >= 2:
         k = n_sweeps - 1
         cands.append(Candidate("voltage-gain-drift", tuple(f"log_gain_{i + 1}" for i in range(k)),
-                               (tuple([0.0] * k),), tuple([-0.3] * k), tuple([0.3] * k)))
+                               (tuple([0.0] * k),), tuple([-0.3] * k), tuple([0.3] * k),
+                               sequenced=True))
     return {c.name: c for c in cands}
 
 
@@ -549,13 +554,19 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     sweeps before it) is also fitted with the sweeps in sequence (:func:`state_choices`, the
     first state chosen at the best start) unless the base's states already are, each fit with
     half the budget. Both search on a coarse thermal grid (:data:`THERMAL_COARSE`) and are then
-    polished on the fine one with 1/:data:`FINE_SHARE` of the budget; the lower cost wins."""
+    polished on the fine one with 1/:data:`FINE_SHARE` of the budget; the lower cost wins.
+    A ``sequenced`` candidate (a gain per run) is fitted, each with the whole budget, from the
+    base's states and from every first state of the sweeps in sequence; the lowest cost wins."""
     spaces = [space]
     if space.candidate.own_states:
         spaces = [space.with_grid(THERMAL_COARSE)]
         z0 = np.concatenate((x_base, space.candidate.starts[0]))
         spaces += [s for s in [_in_sequence(spaces[0], z0)] if s is not None]
-    fits = [_fit_from(s, x_base, max_nfev // len(spaces), n_starts, identify) for s in spaces]
+    elif space.candidate.sequenced and len(space.preps) > 1:
+        spaces += [space.with_starts(c) for c in state_choices(len(space.preps))
+                   if c != space.base.starts]
+    budget = max_nfev if space.candidate.sequenced else max_nfev // len(spaces)
+    fits = [_fit_from(s, x_base, budget, n_starts, identify) for s in spaces]
     if space.candidate.own_states:  # each polished on the fine grid
         fits = [_polish(s.with_grid(THERMAL_FINE), sol.x, max(max_nfev // FINE_SHARE, 1), n)
                 for s, sol, n in fits]

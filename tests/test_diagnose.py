@@ -33,7 +33,7 @@ _spec.loader.exec_module(bench)
 
 
 def stage_sweeps(cause: str, strength: float | None, index: int) -> list[sw.Sweep]:
-    return bench.make_stage(cause, strength, index)[1]
+    return bench.make_stage(cause, strength, index, refit=False)[1]
 
 
 @pytest.mark.slow

@@ -143,7 +143,7 @@ def test_diagnose_names_thermal_relaxation_on_foreign_stages(cause: str, strengt
     """Foreign stages (Arrhenius switching integrated on the plant's own grid): thermal
     relaxation is named near the floor, also when weak (not voltage-gain-drift, which the weak
     case was once named), and not on a clean stage; the extended model tracks no worse."""
-    stage, sweeps, state, truth = bench.make_stage(cause, strength, index)
+    stage, sweeps, state, truth = bench.make_stage(cause, strength, index, refit=False)
     settings = dg.Settings(candidates=("none", "thermal-relaxation", "voltage-gain-drift"))
     d = dg.diagnose(sweeps, settings)
     if cause == "none":

@@ -42,8 +42,9 @@ sensor-nonlinearity     1.9, 1.2    18
 sigma the sensor noise and ``tau_3`` the lag that shifts the fast standard triangle (27.9 Hz over
 the static span) by 3 sigma:
 
-- amplifier-lag: low-pass lag ``2 zeta / w`` from ``tau_3`` (bandwidth at most 25 kHz) to the
-  lag at 0.2x the rod's resonance; slew limit 300 -> 60 x the drive span per second;
+- amplifier-lag: low-pass lag ``2 zeta / w`` from ``tau_3`` or the lag at 3x the rod's
+  resonance, whichever is longer (the issue's bandwidths: 0.2-3x the resonance), to the lag at
+  0.2x the rod's resonance; slew limit 300 -> 60 x the drive span per second;
 - sensor-delay: total latency (filter + delay) from ``tau_3`` to 3 ms (30 samples at 10 kHz); the
   anti-alias cut-off takes half of it (1.5-100 kHz), the pure delay the rest;
 - thermal-relaxation: E_T from 0.002 to 0.08 x the median coercive field; attempt rate
@@ -258,8 +259,8 @@ def _weak_lag_s(stage: Stage) -> float:
 
 def _amplifier(rng, stage, s):
     zeta = float(rng.uniform(0.5, 0.9))
-    strong = 2 * zeta / (2 * math.pi * 0.2 * stage.rod.resonance_hz)  # 0.2x the resonance
-    lag = _span(_weak_lag_s(stage), strong, s)
+    strong, weak = (2 * zeta / (2 * math.pi * r * stage.rod.resonance_hz) for r in (0.2, 3.0))
+    lag = _span(max(_weak_lag_s(stage), weak), strong, s)  # bandwidth 3x -> 0.2x the resonance
     span = stage.drive_range_V[1] - stage.drive_range_V[0]
     return Amplifier(bandwidth_hz=min(MAX_AMPLIFIER_HZ, 2 * zeta / (2 * math.pi * lag)),
                      damping=zeta, slew_V_per_s=span * _span(300.0, 60.0, s))
