@@ -82,17 +82,23 @@ def turning_points(x: FloatArray) -> NDArray[np.intp]:
 
 
 def decimation(field: FloatArray, step: float) -> NDArray[np.intp]:
-    """Samples on which to evaluate the hysteresis: every turning point, and one whenever the
-    accumulated field variation has grown by ``step`` (same units as ``field``).
+    """Samples on which to evaluate the hysteresis: every turning point, both ends of every hold
+    (a constant field), and one whenever the accumulated field variation has grown by ``step``
+    (same units as ``field``).
 
     Model (13) depends only on the turning points; in between the output is a smooth function of
-    the field, so linear interpolation over steps ``step`` errs by O(step^2).
+    the field, so linear interpolation over steps ``step`` errs by O(step^2). A hold between two
+    moves the same way is no turning point, but interpolating across it in time would ramp the
+    output over the hold: its ends are kept.
     """
     if step <= 0:
         return np.arange(field.size)
-    travel = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(field)))))
+    diff = np.diff(field)
+    travel = np.concatenate(([0.0], np.cumsum(np.abs(diff))))
     new = np.flatnonzero(np.diff(np.floor(travel / step)) > 0) + 1
-    return np.unique(np.concatenate((new, turning_points(field))))
+    moving = diff != 0
+    holds = np.flatnonzero(moving[1:] != moving[:-1]) + 1
+    return np.unique(np.concatenate((new, holds, turning_points(field))))
 
 
 def prepare(sweep: Sweep, thickness_um: float, field_step: float,

@@ -46,7 +46,6 @@ from afmctl.profile import default_profile  # noqa: E402
 from drivers.device import foreign as plant  # noqa: E402
 from drivers.device.foreign_effects import OUT_OF_VOCABULARY, random_effect  # noqa: E402
 from drivers.device.foreign_stages import random_stage  # noqa: E402
-from drivers.device.foreign_sweeps import sweep_set  # noqa: E402
 
 SEED = 20261212
 IN_VOCABULARY = ("amplifier-lag", "sensor-delay", "thermal-relaxation", "second-mode",
@@ -61,6 +60,8 @@ DETECTABLE = 2.0
 EFFECT_DRAWS = 3
 #: Rising strengths tried per draw of an effect.
 VISIBLE_TRIES = 4
+#: Sweeps of the standard design (the separating design appends one).
+N_STANDARD = 3
 
 
 def cases(n_clean: int = 4) -> list[tuple[str, float | None, int]]:
@@ -74,9 +75,11 @@ def cases(n_clean: int = 4) -> list[tuple[str, float | None, int]]:
     return [(c, s, i if c == "none" else 100 + n) for n, (c, s, i) in enumerate(out)]
 
 
-def make_stage(cause: str, strength: float | None, index: int, refit: bool = True
+def make_stage(cause: str, strength: float | None, index: int, refit: bool = True,
+               design: str = "standard"
                ) -> tuple[plant.Stage, list[sw.Sweep], plant.PlantState, dict[str, Any]]:
-    """A random foreign stage with the hidden effect, its three standard sweeps recorded in
+    """A random foreign stage with the hidden effect, its three standard sweeps (``design``
+    ``separating``: and then afmctl's separating sweep, :func:`foreign_sets.plans_for`) recorded in
     sequence from a random start, the plant state after them and the truth.
 
     The issue's weakest effect is "barely detectable": a misfit of about 2x the noise. The
@@ -96,10 +99,10 @@ def make_stage(cause: str, strength: float | None, index: int, refit: bool = Tru
         stage = clean if used is None else replace(clean, effects=(random_effect(
             cause, np.random.default_rng([SEED, index, 1, *([draw] if draw else [])]), clean,
             used),))
-        sweeps, recorded, seen = _recorded(stage, start, index)
+        sweeps, recorded, seen = _recorded(stage, start, index, design)
         if used is None or seen >= VISIBLE and not refit:
             break
-        base_misfit = detectable(seen, sweeps)
+        base_misfit = detectable(seen, sweeps[:N_STANDARD])  # the triangles decide
         if base_misfit is not None:
             break
     state, pairs = plant.initial_state(stage, start), []
@@ -127,14 +130,16 @@ def _schedule(cause: str, strength: float | None) -> list[tuple[int, float | Non
     return out
 
 
-def _recorded(stage: plant.Stage, start: Any, index: int
+def _recorded(stage: plant.Stage, start: Any, index: int, design: str = "standard"
               ) -> tuple[list[sw.Sweep], list[Any], float]:
-    """The three standard sweeps recorded on ``stage`` (a fixed run seed per stage index), the
-    records, and the hidden effect's largest RMS on a sweep's readings in noise units."""
+    """The sweeps of ``design`` recorded on ``stage`` (a fixed run seed per stage index; the
+    three standard ones first, the same in either design), the records, and the hidden effect's
+    largest RMS on a standard sweep's readings in noise units (the triangles decide whether an
+    effect is visible, whatever the design)."""
     run_rng = np.random.default_rng([SEED, index, 2])
-    recorded, log = foreign_sets.record(stage, sweep_set("standard", 0.0, 150.0, run_rng), start,
-                                        run_rng)
-    seen = max((e.get("effect_rms_um") or 0.0) for e in log) / stage.sensor.noise_um
+    recorded, log = foreign_sets.record(stage, foreign_sets.plans_for(design, 0.0, 150.0, run_rng),
+                                        start, run_rng)
+    seen = max((e.get("effect_rms_um") or 0.0) for e in log[:N_STANDARD]) / stage.sensor.noise_um
     sweeps = [sw.from_arrays(p.voltage_V, reading, p.sample_rate_hz,
                              {"frequency_hz": f"{p.frequency_hz:g}",
                               "layer_thickness_um": f"{stage.material.layer_thickness_um:.6g}"},
@@ -200,9 +205,9 @@ def track_rms(stage: plant.Stage, state: plant.PlantState, fits: dict[str, ext.E
     return out
 
 
-def run_case(case: tuple[str, float | None, int]) -> dict[str, Any]:
+def run_case(case: tuple[str, float | None, int], design: str = "standard") -> dict[str, Any]:
     cause, strength, index = case
-    stage, sweeps, state, truth = make_stage(cause, strength, index)
+    stage, sweeps, state, truth = make_stage(cause, strength, index, design=design)
     d = dg.diagnose(sweeps)
     row: dict[str, Any] = {
         **truth, "index": index, "named": d.cause, "gain": d.gain, "base_rms_um": d.base_rms_um,
@@ -210,7 +215,7 @@ def run_case(case: tuple[str, float | None, int]) -> dict[str, Any]:
         "base_over_noise": d.base_over_noise, "extended_over_noise": d.extended_over_noise,
         "closest": d.closest.fitted.name,
         "fitted": d.table[d.cause].fitted.parameters if d.cause in d.table else {},
-        "seconds": round(d.seconds, 1)}
+        "seconds": round(d.seconds, 1), "design": design}
     if cause in TRACKABLE:
         rms = track_rms(stage, state, {"base": d.base, "extended": d.extended}, sweeps,
                         truth["calibration_um"])
@@ -255,11 +260,19 @@ def main() -> None:
     ap.add_argument("--clean", type=int, default=4, help="clean stages (default 4)")
     ap.add_argument("--rows", type=Path, default=None,
                     help="append every case's row to this JSON-lines file as it finishes")
+    ap.add_argument("--design", default="standard", choices=sw.DESIGNS,
+                    help="sweep set recorded on each stage (default standard: three triangles)")
+    ap.add_argument("--indices", default=None,
+                    help="run only the cases with these indices (comma-separated), e.g. 0,121")
     args = ap.parse_args()
+    chosen = cases(args.clean)
+    if args.indices:
+        keep = {int(i) for i in args.indices.split(",")}
+        chosen = [c for c in chosen if c[2] in keep]
     t0 = time.perf_counter()
     rows = []
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        for future in as_completed([pool.submit(run_case, c) for c in cases(args.clean)]):
+        for future in as_completed([pool.submit(run_case, c, args.design) for c in chosen]):
             row = future.result()
             rows.append(row)
             if args.rows is not None:

@@ -3,6 +3,10 @@
     python benchmarks/foreign_sets.py --out DIR --n N --seed S [--effect CAUSE] [--strength X]
         [--design D] [--start S] [--families default|random]
 
+``--design separating`` records the ``standard`` design and then afmctl's separating sweep
+(:func:`afmctl.sweeps.separating_sweep`: holds, fast steps, a multisine) at 10 kHz within the
+emulated profile's slew limit; ``random`` draws among the lab designs only.
+
 Each stage goes to its own folder ``DIR/stage_XX/``: one sweep CSV per sweep in afmctl's sweep
 format, recorded in sequence on one plant (its state carried from sweep to sweep, a random idle
 at the next sweep's first voltage in between), and ``truth.json`` with every true parameter, the
@@ -26,6 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from afmctl import sweeps as sw  # noqa: E402
+from afmctl.profile import default_profile  # noqa: E402
 from drivers.device import foreign as plant  # noqa: E402
 from drivers.device.foreign import COERCIVE_FAMILIES, INTERACTION_FAMILIES  # noqa: E402
 from drivers.device.foreign_effects import CAUSES, random_effect  # noqa: E402
@@ -33,6 +39,25 @@ from drivers.device.foreign_stages import random_stage  # noqa: E402
 from drivers.device.foreign_sweeps import DESIGNS, SweepPlan, sweep_set  # noqa: E402
 
 STARTS = ("poled+", "poled-", "depoled", "voltage")
+#: Sample rate of the separating sweep, Hz (the emulated profile's: the steps need it).
+SEPARATING_RATE_HZ = 10_000.0
+
+
+def separating_plan(lo: float, hi: float) -> SweepPlan:
+    """afmctl's separating sweep over ``max(lo, 0) .. hi`` V within the default profile's usable
+    slew rate, as a plan for the foreign plant."""
+    rate = default_profile().limits.max_rate_v_per_ms * 1e3
+    v, _ = sw.separating_sweep((max(lo, 0.0), hi), SEPARATING_RATE_HZ, rate)
+    return SweepPlan(f"sweep_4_{sw.SEPARATING_NAME}", 2 * SEPARATING_RATE_HZ / v.size,
+                     SEPARATING_RATE_HZ, v, sw.SEPARATING_NAME)
+
+
+def plans_for(design: str, lo: float, hi: float, rng: np.random.Generator) -> list[SweepPlan]:
+    """The sweeps of ``design``: a lab design of :mod:`drivers.device.foreign_sweeps`, or
+    ``separating`` (the ``standard`` design, then :func:`separating_plan`)."""
+    if design != sw.SEPARATING_NAME:
+        return sweep_set(design, lo, hi, rng)
+    return sweep_set("standard", lo, hi, rng) + [separating_plan(lo, hi)]
 
 
 def drive_range(design: str, rng: np.random.Generator) -> tuple[float, float]:
@@ -43,7 +68,7 @@ def drive_range(design: str, rng: np.random.Generator) -> tuple[float, float]:
         return 0.0, 120.0
     if design == "nested":
         return (0.0, 150.0) if rng.random() < 0.5 else (-30.0, 150.0)
-    if design == "standard":
+    if design in ("standard", sw.SEPARATING_NAME):
         return 0.0, 150.0
     return 0.0, float(rng.choice([100.0, 120.0, 150.0]))
 
@@ -107,7 +132,7 @@ def one_stage(folder: Path, seed: int, index: int, args) -> dict:
         strength = float(rng.uniform(0, 1)) if args.strength is None else args.strength
         stage = replace(stage, effects=(random_effect(args.effect, rng, stage, strength),))
     start = draw_start(args.start, rng, lo, hi)
-    plans = sweep_set(design, lo, hi, rng)
+    plans = plans_for(design, lo, hi, rng)
     recorded, log = record(stage, plans, start, rng)
     folder.mkdir(parents=True, exist_ok=False)
     for plan, reading, _ in recorded:
@@ -127,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--effect", default="none", choices=["none", *CAUSES])
     ap.add_argument("--strength", type=float, default=None, help="0 (barely) .. 1 (strong)")
-    ap.add_argument("--design", default="random", choices=["random", *DESIGNS])
+    ap.add_argument("--design", default="random",
+                    choices=["random", *DESIGNS, sw.SEPARATING_NAME])
     ap.add_argument("--start", default="random", choices=["random", *STARTS])
     ap.add_argument("--families", default="default", choices=["default", "random"],
                     help="density families: lognormal/normal, or drawn from all three each")

@@ -1,4 +1,4 @@
-"""``afmctl sweep``: record the standard identification set on a stage."""
+"""``afmctl sweep``: record the standard identification set (or the separating design) on a stage."""
 
 from __future__ import annotations
 
@@ -54,28 +54,36 @@ def _v_range(v_range: tuple[float, float] | None, prof) -> tuple[float, float]: 
               metavar="VMIN VMAX",
               help="Voltage range the sweeps cover, V (default: the profile's [v_min, v_max]; "
                    "must contain 0 V).")
+@click.option("--design", type=click.Choice(["standard", "separating"]), default="standard",
+              show_default=True,
+              help="standard: the paper's set; separating: the same and one more sweep of holds, "
+                   "fast steps and a multisine that tell causes apart for `afmctl diagnose`.")
 @click.option("--only", multiple=True, metavar="NAME",
               help="Record only this sweep of the set (repeatable), e.g. triangle_27.9hz.")
 @click.option("--resume", is_flag=True,
               help="Record only the sweeps missing from --out (an interrupted one again); the "
                    "files already there are kept.")
 def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] | None,
-          only: tuple[str, ...], resume: bool) -> None:
+          design: str, only: tuple[str, ...], resume: bool) -> None:
     """Record the standard identification set over the stage's voltage range: triangles at
-    0.279, 5.58 and 27.9 Hz (Fig. 2) and nested minor loops at 0.1 Hz (Fig. 1(b)).
+    0.279, 5.58 and 27.9 Hz (Fig. 2) and nested minor loops at 0.1 Hz (Fig. 1(b)); with
+    `--design separating` also a sweep of holds, fast steps and a multisine (`separating.csv`).
 
     Each sweep is written to --out as it arrives (NAME.incomplete.csv); an interrupted one stays
     there, marked, and `--resume` records what is missing. Measured files are never overwritten.
     """
-    from afmctl import experiment, sweeps
+    from afmctl import experiment, guard, sweeps
     prof = load_profile_or_exit(profile_path)
     lo, hi = _v_range(v_range, prof)
-    standard = sweeps.standard_set(sample_rate_hz=prof.sample_rate_hz, v_range=(lo, hi))
-    unknown = set(only) - {w[0] for w in standard}
+    designed = sweeps.design_set(design, prof.sample_rate_hz,
+                                 prof.limits.max_rate_v_per_ms * 1e3, (lo, hi))
+    unknown = set(only) - {w[0] for w in designed}
     if unknown:
-        names = ", ".join(w[0] for w in standard)
-        raise InputError(f"--only {sorted(unknown)[0]}: not in the standard set ({names})")
-    chosen = [w for w in standard if not only or w[0] in only]
+        names = ", ".join(w[0] for w in designed)
+        raise InputError(f"--only {sorted(unknown)[0]}: not in the {design} set ({names})")
+    chosen = [w for w in designed if not only or w[0] in only]
+    for name, _, v, _ in chosen:  # the stage refuses too; fail before anything is written
+        guard.check(v, 1.0 / prof.sample_rate_hz, prof.limits, what=name)
     out = Path(out_dir)
     done = [w[0] for w in chosen if (out / f"{w[0]}.csv").exists()]
     if done and not resume:
@@ -94,12 +102,12 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
         say(f"recording {len(chosen)} sweep(s) over [{lo:g}, {hi:g}] V ...")
         make_dir(out, "--out")
     with opened_stage(prof) as stage:
-        for name, freq, v in chosen:
+        for name, freq, v, kinds in chosen:
             path = out / f"{name}.csv"
             partial = experiment.incomplete_path(path)
             try:
-                experiment.record_sweep(stage, name, freq, v, prof.sample_rate_hz, meta, show,
-                                        path)
+                experiment.record_sweep(stage, name, freq, v, prof.sample_rate_hz,
+                                        {**meta, **kinds}, show, path)
             except KeyboardInterrupt:
                 fail(f"interrupted; the stage was sent to its safe state; the sweep in progress "
                      f"is kept in {partial}, marked incomplete; rerun with --resume to record "
