@@ -40,6 +40,7 @@ from afmctl import (
     guard,  # noqa: E402
     track,  # noqa: E402
 )
+from afmctl import sweepdesign as sd  # noqa: E402
 from afmctl import sweeps as sw  # noqa: E402
 from afmctl import transducer as td  # noqa: E402
 from afmctl.profile import default_profile  # noqa: E402
@@ -260,7 +261,7 @@ def main() -> None:
     ap.add_argument("--clean", type=int, default=4, help="clean stages (default 4)")
     ap.add_argument("--rows", type=Path, default=None,
                     help="append every case's row to this JSON-lines file as it finishes")
-    ap.add_argument("--design", default="standard", choices=sw.DESIGNS,
+    ap.add_argument("--design", default="standard", choices=sd.DESIGNS,
                     help="sweep set recorded on each stage (default standard: three triangles)")
     ap.add_argument("--indices", default=None,
                     help="run only the cases with these indices (comma-separated), e.g. 0,121")

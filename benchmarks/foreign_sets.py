@@ -4,7 +4,7 @@
         [--design D] [--start S] [--families default|random]
 
 ``--design separating`` records the ``standard`` design and then afmctl's separating sweep
-(:func:`afmctl.sweeps.separating_sweep`: holds, fast steps, a multisine) at 10 kHz within the
+(:func:`afmctl.sweepdesign.separating_sweep`: holds, fast steps, a multisine) at 10 kHz within the
 emulated profile's slew limit; ``random`` draws among the lab designs only.
 
 Each stage goes to its own folder ``DIR/stage_XX/``: one sweep CSV per sweep in afmctl's sweep
@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from afmctl import sweeps as sw  # noqa: E402
+from afmctl import sweepdesign as sd  # noqa: E402
 from afmctl.profile import default_profile  # noqa: E402
 from drivers.device import foreign as plant  # noqa: E402
 from drivers.device.foreign import COERCIVE_FAMILIES, INTERACTION_FAMILIES  # noqa: E402
@@ -47,15 +47,15 @@ def separating_plan(lo: float, hi: float) -> SweepPlan:
     """afmctl's separating sweep over ``max(lo, 0) .. hi`` V within the default profile's usable
     slew rate, as a plan for the foreign plant."""
     rate = default_profile().limits.max_rate_v_per_ms * 1e3
-    v, _ = sw.separating_sweep((max(lo, 0.0), hi), SEPARATING_RATE_HZ, rate)
-    return SweepPlan(f"sweep_4_{sw.SEPARATING_NAME}", 2 * SEPARATING_RATE_HZ / v.size,
-                     SEPARATING_RATE_HZ, v, sw.SEPARATING_NAME)
+    v, _ = sd.separating_sweep((max(lo, 0.0), hi), SEPARATING_RATE_HZ, rate)
+    return SweepPlan(f"sweep_4_{sd.SEPARATING_NAME}", 2 * SEPARATING_RATE_HZ / v.size,
+                     SEPARATING_RATE_HZ, v, sd.SEPARATING_NAME)
 
 
 def plans_for(design: str, lo: float, hi: float, rng: np.random.Generator) -> list[SweepPlan]:
     """The sweeps of ``design``: a lab design of :mod:`drivers.device.foreign_sweeps`, or
     ``separating`` (the ``standard`` design, then :func:`separating_plan`)."""
-    if design != sw.SEPARATING_NAME:
+    if design != sd.SEPARATING_NAME:
         return sweep_set(design, lo, hi, rng)
     return sweep_set("standard", lo, hi, rng) + [separating_plan(lo, hi)]
 
@@ -68,7 +68,7 @@ def drive_range(design: str, rng: np.random.Generator) -> tuple[float, float]:
         return 0.0, 120.0
     if design == "nested":
         return (0.0, 150.0) if rng.random() < 0.5 else (-30.0, 150.0)
-    if design in ("standard", sw.SEPARATING_NAME):
+    if design in ("standard", sd.SEPARATING_NAME):
         return 0.0, 150.0
     return 0.0, float(rng.choice([100.0, 120.0, 150.0]))
 
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--effect", default="none", choices=["none", *CAUSES])
     ap.add_argument("--strength", type=float, default=None, help="0 (barely) .. 1 (strong)")
     ap.add_argument("--design", default="random",
-                    choices=["random", *DESIGNS, sw.SEPARATING_NAME])
+                    choices=["random", *DESIGNS, sd.SEPARATING_NAME])
     ap.add_argument("--start", default="random", choices=["random", *STARTS])
     ap.add_argument("--families", default="default", choices=["default", "random"],
                     help="density families: lognormal/normal, or drawn from all three each")

@@ -14,6 +14,7 @@ from afmctl import diagnose as dg
 from afmctl import guard
 from afmctl import identify as idf
 from afmctl import parametrization as pz
+from afmctl import sweepdesign as sd
 from afmctl import sweeps as sw
 from afmctl.cli import main
 from afmctl.profile import default_profile
@@ -28,19 +29,19 @@ RANGES = [(0.0, 150.0), (-30.0, 150.0), (-150.0, 150.0), (0.0, 20.0)]
 def test_every_sample_passes_the_guard(v_range: tuple[float, float],
                                        slew_v_per_ms: float) -> None:
     limits = guard.Limits(v_range[0], v_range[1], slew_v_per_ms, 100.0, 2.0)
-    for name, _, v, meta in sw.design_set("separating", 10_000.0,
+    for name, _, v, meta in sd.design_set("separating", 10_000.0,
                                           limits.max_rate_v_per_ms * 1e3, v_range):
         if name != "separating" and slew_v_per_ms < 10:
             continue  # the paper's triangles have fixed rates (a slow amplifier refuses them)
         guard.check(v, 1e-4, limits, what=name)
         assert meta["design"] == "separating"
-    v, segs = sw.separating_sweep(v_range, 10_000.0, limits.max_rate_v_per_ms * 1e3)
+    v, segs = sd.separating_sweep(v_range, 10_000.0, limits.max_rate_v_per_ms * 1e3)
     assert v[0] == v[-1] == min(max(0.0, v_range[0]), v_range[1])  # from and to the safe output
     assert v.min() == v_range[0] and v.max() == v_range[1]  # the memory index is reached
 
 
 def test_each_half_holds_every_segment_and_the_file_says_which() -> None:
-    v, segs = sw.separating_sweep((0.0, 150.0), 10_000.0, 5e4)
+    v, segs = sd.separating_sweep((0.0, 150.0), 10_000.0, 5e4)
     half = v.size // 2
     first = {s.kind for s in segs if s.stop <= half}
     second = {s.kind for s in segs if s.start >= half}
@@ -49,7 +50,7 @@ def test_each_half_holds_every_segment_and_the_file_says_which() -> None:
     assert all(np.ptp(v[s.start:s.stop]) == 0 for s in held)
     assert segs[0].start == 1 and segs[-1].stop == v.size
     assert all(a.stop == b.start for a, b in zip(segs, segs[1:], strict=False))
-    name, f, v2, meta = sw.design_set("separating", 10_000.0, 5e4, (0.0, 150.0))[-1]
+    name, f, v2, meta = sd.design_set("separating", 10_000.0, 5e4, (0.0, 150.0))[-1]
     s = sw.parse(sw.format_text(sw.from_arrays(v2, 0 * v2, 10_000.0,
                                                {**meta, "frequency_hz": f"{f:g}"})))
     kinds = {part.split()[0] for part in s.meta["segments"].split("; ")}
@@ -58,7 +59,7 @@ def test_each_half_holds_every_segment_and_the_file_says_which() -> None:
 
 
 def test_multisine_tones_are_whole_cycles_within_amplitude_and_slew() -> None:
-    v = sw.multisine(10.0, 5.0, 2e4, 0.2, 10_000.0)
+    v = sd.multisine(10.0, 5.0, 2e4, 0.2, 10_000.0)
     assert np.max(np.abs(v - 10.0)) <= 5.0 and np.max(np.abs(np.diff(v))) * 1e4 <= 2e4
     spec = np.abs(np.fft.rfft(np.concatenate([[10.0], v[:-1]]) - 10.0))
     velocity = spec * np.arange(spec.size)  # equal velocity amplitudes: amplitude x frequency
@@ -71,7 +72,7 @@ def test_decimation_keeps_holds_so_q_is_exact_over_them() -> None:
     """A hold between two moves the same way is no turning point; the relay model (13) keeps Q
     constant at a constant field, so the decimated Q must be the full-rate one over every hold
     (it ramped across the hold before both ends were kept)."""
-    v, segs = sw.separating_sweep((0.0, 150.0), 2_000.0, 5e4)
+    v, segs = sd.separating_sweep((0.0, 150.0), 2_000.0, 5e4)
     e = v / 100.0
     keep = pz.decimation(e, 0.004 * float(e.max()))
     theta = np.array([0.6, 0.5, 0.1, 0.4, 300.0, 0.3])
@@ -95,7 +96,7 @@ def foreign_separating_set() -> list[sw.Sweep]:
     stage = random_stage(rng, drive_range_V=(0.0, 150.0))
     state, out = plant.initial_state(stage, "depoled"), []
     rate = default_profile().limits.max_rate_v_per_ms * 1e3
-    for name, f, v, meta in sw.design_set("separating", 10_000.0, rate, (0.0, 150.0)):
+    for name, f, v, meta in sd.design_set("separating", 10_000.0, rate, (0.0, 150.0)):
         if name in ("triangle_27.9hz", "separating"):
             _, reading, state = plant.run(stage, v, 10_000.0, state, rng)
             out.append(sw.from_arrays(v, reading, 10_000.0, {
@@ -135,10 +136,10 @@ def test_cli_sweep_separating_design_writes_the_extra_sweep(tmp_path: Path) -> N
 
 
 def test_standard_design_is_todays_set() -> None:
-    ours = sw.design_set("standard", 10_000.0, 5e4, (-150.0, 150.0))
+    ours = sd.design_set("standard", 10_000.0, 5e4, (-150.0, 150.0))
     today = sw.standard_set(sample_rate_hz=10_000.0, v_range=(-150.0, 150.0))
     assert [(n, f) for n, f, _, _ in ours] == [(n, f) for n, f, _ in today]
     for (_, _, a, _), (_, _, b) in zip(ours, today, strict=True):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="unknown sweep design"):
-        sw.design_set("chirp", 10_000.0, 5e4, (0.0, 1.0))
+        sd.design_set("chirp", 10_000.0, 5e4, (0.0, 1.0))

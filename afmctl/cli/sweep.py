@@ -72,10 +72,10 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
     Each sweep is written to --out as it arrives (NAME.incomplete.csv); an interrupted one stays
     there, marked, and `--resume` records what is missing. Measured files are never overwritten.
     """
-    from afmctl import experiment, guard, sweeps
+    from afmctl import experiment, guard, sweepdesign
     prof = load_profile_or_exit(profile_path)
     lo, hi = _v_range(v_range, prof)
-    designed = sweeps.design_set(design, prof.sample_rate_hz,
+    designed = sweepdesign.design_set(design, prof.sample_rate_hz,
                                  prof.limits.max_rate_v_per_ms * 1e3, (lo, hi))
     unknown = set(only) - {w[0] for w in designed}
     if unknown:
