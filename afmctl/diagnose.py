@@ -417,14 +417,14 @@ def _base_fit(halves: Sequence[Sweep], thickness: float, settings: Settings,
 
 
 def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um: float,
-         settings: Settings, whole: Sequence[pz.Prepared] | None = None
+         settings: Settings, whole: Sequence[pz.Prepared]
          ) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
     """Fit candidate ``name`` from the base parameters ``x_start``; a gauge error in the
-    calibration frame of the ``whole`` sweeps (default: of the fitted halves)."""
+    calibration frame of the ``whole`` sweeps."""
     cand = ext.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
                          float(np.exp(x_start[4])), ext.field_rate_max(data.preps))[name]
     space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um,
-                              gauge_frame=ext.calibration_frame(whole) if whole else None)
+                              gauge_frame=ext.calibration_frame(whole))
     fitted, space = ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts,
                             settings.identify)
     return fitted, cand.n_params, space

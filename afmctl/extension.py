@@ -551,9 +551,10 @@ def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts:
             first, z1 = rebased[0]
             rebased += [_rebase(first, clip(np.concatenate((z1[:n_x], s))), settings)
                         for s in first.gauge_seeds(z1[:n_x])]
-            found, z = min(rebased, key=lambda f: float(np.sum(f[0].residual(clip(f[1])) ** 2)))
-            if float(np.sum(found.residual(clip(z)) ** 2)) < cost(ranked[0]):
-                space, ranked = found, [clip(z)]
+            scored = [(float(np.sum(s.residual(clip(z)) ** 2)), s, clip(z)) for s, z in rebased]
+            found_cost, found, z = min(scored, key=lambda f: f[0])
+            if found_cost < cost(ranked[0]):
+                space, ranked = found, [z]
     sol = optimize.least_squares(space.residual, ranked[0], bounds=(lo, hi), diff_step=1e-6,
                                  max_nfev=max_nfev)
     return space, sol, nfev + int(sol.nfev)
