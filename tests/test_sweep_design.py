@@ -143,3 +143,11 @@ def test_standard_design_is_todays_set() -> None:
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="unknown sweep design"):
         sd.design_set("chirp", 10_000.0, 5e4, (0.0, 1.0))
+
+
+def test_cli_offers_every_design() -> None:
+    """``afmctl sweep --design`` lists its choices literally (the CLI imports no numerics at
+    start-up); they must be :data:`afmctl.sweepdesign.DESIGNS`."""
+    from afmctl.cli.sweep import sweep
+    option = next(p for p in sweep.params if p.name == "design")
+    assert tuple(option.type.choices) == sd.DESIGNS
