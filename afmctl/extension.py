@@ -41,6 +41,7 @@ from afmctl.relaxation import (
     THERMAL_COARSE,
     THERMAL_COLUMNS,
     THERMAL_FINE,
+    THERMAL_JOINT,
     density_starts,
     thermal_polarization,
 )
@@ -505,11 +506,10 @@ def _in_sequence(space: ExtendedSpace, z: FloatArray) -> ExtendedSpace | None:
                key=lambda s: float(np.sum(s.residual(z) ** 2)))
 
 
-def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts: int,
-              identify: idf.Settings | None) -> tuple[ExtendedSpace, optimize.OptimizeResult, int]:
-    """Multi-start on ``phi`` with ``x_base`` held, then the joint fit (see :func:`fit`); the
-    space (with the starts a refit through the effect chose), the solution and the number of
-    evaluations."""
+def _started(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts: int,
+             identify: idf.Settings | None) -> tuple[ExtendedSpace, FloatArray, int]:
+    """Multi-start on ``phi`` with ``x_base`` held (see :func:`fit`): the space (with the starts
+    a refit through the effect chose), the joint fit's start ``z`` and the evaluations spent."""
     lo, hi = space.bounds()
     n_x = x_base.size
     n_held = 0 if space.candidate.fresh_density else 4 if space.candidate.free_rod else n_x
@@ -555,14 +555,14 @@ def _fit_from(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts:
             found_cost, found, z = min(scored, key=lambda f: f[0])
             if found_cost < cost(ranked[0]):
                 space, ranked = found, [z]
-    sol = optimize.least_squares(space.residual, ranked[0], bounds=(lo, hi), diff_step=1e-6,
-                                 max_nfev=max_nfev)
-    return space, sol, nfev + int(sol.nfev)
+    return space, ranked[0], nfev
 
 
-def _polish(space: ExtendedSpace, z: FloatArray, max_nfev: int, nfev: int
-            ) -> tuple[ExtendedSpace, optimize.OptimizeResult, int]:
-    """A short joint fit from ``z``; the space, solution and evaluations so far."""
+def _joint(start: tuple[ExtendedSpace, FloatArray, int], max_nfev: int
+           ) -> tuple[ExtendedSpace, optimize.OptimizeResult, int]:
+    """The joint fit of ``(x, phi)`` in a space from ``z`` (``start``: the space, ``z`` and the
+    evaluations so far); the space, solution and evaluations."""
+    space, z, nfev = start
     lo, hi = space.bounds()
     sol = optimize.least_squares(space.residual, z, bounds=(lo, hi), diff_step=1e-6,
                                  max_nfev=max_nfev)
@@ -589,9 +589,10 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
 
     An ``own_states`` candidate (relaxation: the state a sweep starts from has relaxed with the
     sweeps before it) is also fitted with the sweeps in sequence (:func:`state_choices`, the
-    first state chosen at the best start) unless the base's states already are, each fit with
-    half the budget. Both search on a coarse thermal grid (:data:`THERMAL_COARSE`); the lower
-    cost wins and is polished on the fine one with 1/:data:`FINE_SHARE` of the budget.
+    first state chosen at the best start) unless the base's states already are, each
+    multi-start with half the budget on a coarse thermal grid (:data:`THERMAL_COARSE`); the
+    lower cost's start gets the whole joint fit on a grid that resolves small field scales
+    (:data:`THERMAL_JOINT`), polished on the fine one with 1/:data:`FINE_SHARE` of the budget.
     A ``sequenced`` candidate (a gain per run) is fitted, each with the whole budget, from the
     base's states and from every first state of the sweeps in sequence; the lowest cost wins."""
     spaces = [space]
@@ -602,13 +603,21 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     elif space.candidate.sequenced and len(space.preps) > 1:
         spaces += [space.with_starts(c) for c in state_choices(len(space.preps))
                    if c != space.base.starts]
-    budget = max_nfev if space.candidate.sequenced else max_nfev // len(spaces)
-    fits = [_fit_from(s, x_base, budget, n_starts, identify) for s in spaces]
-    nfev = sum(f[2] for f in fits)
-    space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
-    if space.candidate.own_states:  # the better polished on the fine grid
-        space, sol, nfev = _polish(space.with_grid(THERMAL_FINE), sol.x,
-                                   max(max_nfev // FINE_SHARE, 1), nfev)
+    if space.candidate.sequenced:
+        fits = [_joint(_started(s, x_base, max_nfev, n_starts, identify), max_nfev)
+                for s in spaces]
+        nfev = sum(f[2] for f in fits)
+        space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
+    else:  # the best start of every space gets the whole joint fit
+        started = [_started(s, x_base, max_nfev // len(spaces), n_starts, identify)
+                   for s in spaces]
+        space, z, _ = min(started, key=lambda f: float(np.sum(f[0].residual(f[1]) ** 2)))
+        if space.candidate.own_states:
+            space = space.with_grid(THERMAL_JOINT)
+        space, sol, nfev = _joint((space, z, sum(f[2] for f in started)), max_nfev)
+    if space.candidate.own_states:  # polished on the fine grid
+        space, sol, nfev = _joint((space.with_grid(THERMAL_FINE), sol.x, nfev),
+                                  max(max_nfev // FINE_SHARE, 1))
     model, gains, offsets = space.to_model(sol.x, thickness_um)
     return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
                     bool(sol.success and sol.status > 0), nfev, sol.x,

@@ -32,6 +32,10 @@ THERMAL_SPAN = 4.5
 #: Field step (relative to the peak) of the samples kernel (10) is run on, each held for its time:
 #: the rates (7)-(8) change by e^(z dE / E_th) over a step, so it is finer than the relay's.
 THERMAL_STEP = 0.001
+#: The grid of the joint fit after the multi-start (rows, field step, most columns): the coarse
+#: grid's few columns blur switching at small field scales (spaced wider than ``field_scale / 1.5``
+#: below 0.016 MV/m at sigma_I = 0.3 MV/m), where a fit on it settles at too small a scale.
+THERMAL_JOINT = (THERMAL_COARSE[0], THERMAL_COARSE[1], 1024)
 #: The fine thermal grid (rows, field step, most columns): the fit's polish and the judgement.
 THERMAL_FINE = (THERMAL_ROWS, THERMAL_STEP, THERMAL_COLUMNS[1])
 #: Medians (fractions of the peak field) and log-widths of :func:`density_starts`.
