@@ -35,7 +35,7 @@ Everything here is a pure function of its arguments; the emulator carries the fi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numba as nb
 import numpy as np
@@ -464,13 +464,10 @@ def measure(chain: Chain, u: FloatArray, mode_zi: FloatArray,
 
 
 def sensor_part(e: Effects) -> Effects:
-    """Only the effects that misreport the position (delay, gauge), not those that move it."""
-    return Effects(sensor_delay_samples=e.sensor_delay_samples, sensor_delay_s=e.sensor_delay_s,
-                   sensor_quadratic_per_um=e.sensor_quadratic_per_um,
-                   sensor_cubic_per_um2=e.sensor_cubic_per_um2, sensor_center_um=e.sensor_center_um,
-                   sensor_half_range_um=e.sensor_half_range_um,
-                   sensor_third_moment_um3=e.sensor_third_moment_um3,
-                   sensor_fourth_moment_um4=e.sensor_fourth_moment_um4)
+    """Only the effects that misreport the position (delay, gauge: the ``sensor_`` fields), not
+    those that move it."""
+    return Effects(**{f.name: getattr(e, f.name) for f in fields(Effects)
+                      if f.name.startswith("sensor_")})
 
 
 def sensor_correct(chain: Chain, reading_um: FloatArray) -> FloatArray:

@@ -132,7 +132,8 @@ class Iteration:
     ``gain_change`` is the run's applied-voltage gain relative to iteration 0's, measured on the
     conditioning excursion (the same voltages every iteration: :func:`gain_change`);
     ``gain_direction_um`` is ``s = dy/dg`` of this iteration's own waveform on the tracking part
-    (um per unit gain, :func:`gain_direction`); ``learned_um`` is the error learning uses and
+    (um per unit gain, :func:`gain_direction`; None without conditioning: no gain is measured
+    then); ``learned_um`` is the error learning uses and
     judges, the error the run would have made at the mean gain of the runs so far
     (``error_um`` itself when the gain does not vary), and ``judged_um`` its RMS over the
     learned region (the steady part, or its imaging region)."""
@@ -260,13 +261,14 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         if j == 0:
             noise = ilc.noise_estimate(it.error_um[ilc.steady_part(desired)])
             tuning = ilc.tune(ref, desired.u_um - it.error_um, desired, law, noise)
-        # s of this waveform: the learned waveforms sit elsewhere on the hysteresis than
-        # iteration 0's (its offset alone moved s's mean by ~7 um per unit gain on a stage)
-        s_dir = gain_direction(p, wf)
-        it = dc.replace(it, gain_direction_um=s_dir[wf.tracking])
-        if j:
-            it = dc.replace(it, gain_change=gain_change(it, done[0], s_dir, p.prefix_v,
-                                                        model.effects))
+        if p.prefix_v.size:  # the gain is measured on the conditioning: s is needed
+            # s of this waveform: the learned waveforms sit elsewhere on the hysteresis than
+            # iteration 0's (its offset alone moved s's mean by ~7 um per unit gain on a stage)
+            s_dir = gain_direction(p, wf)
+            it = dc.replace(it, gain_direction_um=s_dir[wf.tracking])
+            if j:
+                it = dc.replace(it, gain_change=gain_change(it, done[0], s_dir, p.prefix_v,
+                                                            model.effects))
         done, sigma = at_mean_gain([*done, it], desired, law)
         it = done[-1]
         compute.append(t_plan + time.perf_counter() - t1)
