@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl import candidates as cd
 from afmctl import extension as ext
 from afmctl import identify as idf
 from afmctl import noise as ns
@@ -74,7 +75,7 @@ class Settings:
     identify: idf.Settings = idf.Settings()
     max_nfev: int = 60
     n_starts: int = 2
-    candidates: tuple[str, ...] = ext.NAMES
+    candidates: tuple[str, ...] = cd.NAMES
     rule: vd.Rule = vd.Rule()
     jobs: int | None = None
 
@@ -421,10 +422,10 @@ def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um
          ) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
     """Fit candidate ``name`` from the base parameters ``x_start``; a gauge error in the
     calibration frame of the ``whole`` sweeps."""
-    cand = ext.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
-                         float(np.exp(x_start[4])), ext.field_rate_max(data.preps))[name]
+    cand = cd.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
+                         float(np.exp(x_start[4])), cd.field_rate_max(data.preps))[name]
     space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um,
-                              gauge_frame=ext.calibration_frame(whole))
+                              gauge_frame=cd.calibration_frame(whole))
     fitted, space = ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts,
                             settings.identify)
     return fitted, cand.n_params, space

@@ -19,9 +19,9 @@ import pytest
 from click.testing import CliRunner
 from conftest import PROFILE
 
+from afmctl import candidates, experiment, extension, track
 from afmctl import diagnose as dg
 from afmctl import effects as fx
-from afmctl import experiment, extension, track
 from afmctl import sweeps as sw
 from afmctl.cli import main
 
@@ -67,7 +67,7 @@ def test_cli_on_a_clean_foreign_stage_claims_nothing(tmp_path: Path) -> None:
     assert doc["base_rms_um"] == doc["extended_rms_um"]
     assert doc["base_over_noise"] == pytest.approx(doc["base_rms_um"] / doc["noise_um"])
     assert doc["base_over_noise"] < 1.5 and doc["extended_over_noise"] < 1.5
-    assert set(doc["candidates"]) == set(extension.NAMES)
+    assert set(doc["candidates"]) == set(candidates.NAMES)
     for row in doc["candidates"].values():
         assert {"heldout_rms_um", "gain", "required_gain", "parameters_added", "over_noise"} <= set(row)
     assert json.loads((out / "diagnosis.json").read_text()) == doc
@@ -166,8 +166,8 @@ def test_candidate_residual_vanishes_at_the_truth(name: str, effects: fx.Effects
     base = pz.LognormalSpace(preps, pz.Scales(), 256)
     range_um = max(float(np.ptp(p.y)) for p in preps)
     x = pz.internal(nominal)
-    cand = extension.catalogue(2, *pz.extent(preps), float(np.exp(x[4])),
-                               extension.field_rate_max(preps))[name]
+    cand = candidates.catalogue(2, *pz.extent(preps), float(np.exp(x[4])),
+                               candidates.field_rate_max(preps))[name]
     frame = (effects.sensor_center_um, effects.sensor_half_range_um)
     space = extension.ExtendedSpace(cand, preps, base, 0.004, range_um,
                                     gauge_frame=frame if name == "sensor-nonlinearity" else None)

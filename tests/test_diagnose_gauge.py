@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy import optimize
 
+from afmctl import candidates
 from afmctl import effects as fx
-from afmctl import extension
 from afmctl import parametrization as pz
 from afmctl import sweeps as sw
 from drivers.device import foreign as plant
@@ -63,7 +63,7 @@ def _fit_gauge(true_um: np.ndarray, reading: np.ndarray, frame: tuple[float, ...
 @pytest.mark.parametrize("seed", [3, 11])
 def test_fitted_gauge_position_is_the_labs_linear_calibration(seed: int) -> None:
     """On a foreign stage's nested loops (readings far from uniform over their span), the gauge
-    error fitted in :func:`extension.calibration_frame` explains the readings to well under the
+    error fitted in :func:`candidates.calibration_frame` explains the readings to well under the
     gauge error itself, and the position it gives is the lab's calibration ``(reading - a) / b``
     up to a small fraction of that error (offset and gain); a uniform Legendre frame over the
     readings' span is off by a clear fraction of it (the convention the track judge uses is not
@@ -74,7 +74,7 @@ def test_fitted_gauge_position_is_the_labs_linear_calibration(seed: int) -> None
     gauge_err = float(np.sqrt(np.mean((reading - lab) ** 2)))
     assert gauge_err > 0.05  # a gauge error far above any numerical tolerance
     prep = pz.prepare(sw.from_arrays(np.zeros_like(reading), reading, fs), 100.0, 0.004, None)
-    frame = extension.calibration_frame([prep])
+    frame = candidates.calibration_frame([prep])
     c, c3, alpha, beta, misfit = _fit_gauge(true_um, reading, frame)
     assert misfit < 0.02 * gauge_err
     w = alpha + beta * true_um
@@ -90,7 +90,7 @@ def test_gauge_terms_are_orthogonal_to_a_line_over_the_frame_and_invert() -> Non
     rng = np.random.default_rng(5)
     y = 20.0 + 30.0 * rng.beta(1.5, 4.0, 4000)  # skewed, bounded positions, um
     prep = pz.Prepared(np.zeros(y.size), np.arange(y.size), np.ones(y.size, bool), y, 1e-3)
-    frame = extension.calibration_frame([prep])
+    frame = candidates.calibration_frame([prep])
     e = _frame_effects(frame, 2e-3, -4e-5)
     terms = fx.gauge_terms(e, y)
     design = np.column_stack((np.ones_like(y), y - y.mean()))
