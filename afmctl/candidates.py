@@ -24,10 +24,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from afmctl import parametrization as pz
+
+FloatArray = NDArray[np.float64]
 
 NAMES = ("none", "thermal-relaxation", "amplifier-lag", "sensor-delay", "sensor-nonlinearity",
          "second-mode", "voltage-gain-drift")
@@ -73,18 +77,34 @@ class Candidate:
         return len(self.labels)
 
 
-def calibration_frame(preps: Sequence[pz.Prepared]) -> tuple[float, float, float, float]:
-    """The frame a gauge error is fitted in: the readings of the slowest sweep (the one a lab
-    calibrates its gauge on, quasi-statically): their mean ``m`` (um), ``R = sqrt(3 var)`` (um,
-    the half width of a uniform spread of that variance) and third and fourth central moments
-    (um^3, um^4). A gauge error orthogonal to a constant and a line over these readings leaves
-    the least-squares line of readings against position the identity: the model's position is
-    the one a lab's linear calibration of the gauge gives (:class:`afmctl.effects.Effects`)."""
-    y = max(preps, key=lambda p: p.dt).y
+def calibration_readings(preps: Sequence[pz.Prepared]) -> FloatArray:
+    """The readings a gauge is calibrated on (um) when no recorded sweep is given: the slowest
+    prepared sweep's (quasi-static)."""
+    return max(preps, key=lambda p: p.dt).y
+
+
+def recorded_calibration(sweeps: Sequence[Any]) -> FloatArray:
+    """The readings (um) a lab calibrates its gauge on: the slowest recorded sweep's, whole (the
+    longest in time of the :class:`afmctl.sweeps.Sweep` s)."""
+    return max(sweeps, key=lambda s: s.dt * s.displacement_um.size).displacement_um
+
+
+def reading_frame(readings_um: FloatArray) -> tuple[float, float, float, float]:
+    """The frame a gauge error is fitted in: the calibration readings' mean ``m`` (um),
+    ``R = sqrt(3 var)`` (um, the half width of a uniform spread of that variance) and third and
+    fourth central moments (um^3, um^4) (:class:`afmctl.effects.Effects`). The fitted gauge is
+    then stated in the frame of the positions of those readings, a lab's linear calibration
+    (:func:`afmctl.effects.position_frame`)."""
+    y = np.asarray(readings_um, dtype=float)
     x = y - float(np.mean(y))
     mu2 = max(float(np.mean(x * x)), 1e-12)
     return (float(np.mean(y)), math.sqrt(3 * mu2), float(np.mean(x ** 3)),
             float(np.mean(x ** 4)))
+
+
+def calibration_frame(preps: Sequence[pz.Prepared]) -> tuple[float, float, float, float]:
+    """:func:`reading_frame` of the :func:`calibration_readings` of ``preps``."""
+    return reading_frame(calibration_readings(preps))
 
 
 def field_rate_max(preps: Sequence[pz.Prepared]) -> float:

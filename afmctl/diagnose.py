@@ -418,14 +418,16 @@ def _base_fit(halves: Sequence[Sweep], thickness: float, settings: Settings,
 
 
 def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um: float,
-         settings: Settings, whole: Sequence[pz.Prepared]
+         settings: Settings, whole: Sequence[pz.Prepared], sweeps: Sequence[Sweep]
          ) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
-    """Fit candidate ``name`` from the base parameters ``x_start``; a gauge error in the
-    calibration frame of the ``whole`` sweeps."""
+    """Fit candidate ``name`` from the base parameters ``x_start``; a gauge error fitted in the
+    frame of the ``whole`` sweeps' slowest readings and stated in that of a lab's linear
+    calibration on the slowest of the recorded ``sweeps``."""
     cand = cd.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
                          float(np.exp(x_start[4])), cd.field_rate_max(data.preps))[name]
     space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um,
-                              gauge_frame=cd.calibration_frame(whole))
+                              gauge_frame=cd.calibration_frame(whole),
+                              calibration_um=cd.recorded_calibration(sweeps))
     fitted, space = ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts,
                             settings.identify)
     return fitted, cand.n_params, space
@@ -448,7 +450,7 @@ def _judge(name: str, job: _Job) -> Judged:
     """Fit candidate ``name`` on the first halves and judge it on the second halves."""
     t1 = time.perf_counter()
     fitted, n_params, space = _fit(name, job.data, job.x0, job.thickness, job.range_um,
-                                   job.settings, job.whole)
+                                   job.settings, job.whole, job.sweeps)
     rms, per = heldout(space.on(job.whole), fitted, job.sweeps)
     return Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
 

@@ -35,7 +35,7 @@ Everything here is a pure function of its arguments; the emulator carries the fi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numba as nb
 import numpy as np
@@ -399,6 +399,47 @@ def gauge(effects: Effects, w: FloatArray) -> FloatArray:
     if not c and not c3:
         return w
     return w + gauge_terms(effects, w) @ np.array([c, c3])
+
+
+def position_frame(effects: Effects, readings_um: FloatArray) -> tuple[float, float, Effects]:
+    """The gauge of ``effects`` restated in the frame of a lab's linear calibration.
+
+    A lab calibrates its gauge by the least-squares line of readings against position over a
+    sweep. A gauge whose error terms are orthogonal to a line over the *readings*
+    (:func:`gauge_terms` with the readings' moments, the frame a fit can state before it knows
+    the positions) is off that frame at first order in the error (the gauge skews the readings'
+    third moment). With the positions ``w = ungauge(y)`` of ``readings_um`` and the line
+    ``y = A + B w`` over them, the positions ``w' = A + B w`` are the calibrated ones: the same
+    readings come from ``gauge'(w') = gauge((w' - A) / B)``, a cubic whose error is orthogonal to
+    1 and ``w'`` over those positions, so it is ``w' + c' P2 + c3' P3`` with ``P2``, ``P3`` of
+    the positions' own moments and ``c'``, ``c3'`` its coefficients of ``x^2`` and ``x^3``.
+
+    Parameters
+    ----------
+    effects : Effects
+        With a gauge error.
+    readings_um : ndarray
+        The calibration sweep's readings, um.
+
+    Returns
+    -------
+    offset_um, gain : float
+        ``A`` (um) and ``B``: a displacement ``w`` of the old frame is ``A + B w`` in the new.
+    effects : Effects
+        ``effects`` with the gauge restated.
+    """
+    y = np.asarray(readings_um, dtype=float)
+    w = ungauge(effects, y)
+    gain, offset = (float(v) for v in np.polyfit(w, y, 1))
+    x = offset + gain * w
+    m = float(np.mean(x))
+    mu2, mu3, mu4 = (float(np.mean((x - m) ** k)) for k in (2, 3, 4))
+    pts = np.linspace(-2.0, 2.0, 9) * math.sqrt(mu2)  # a cubic: fitted exactly
+    k3, k2, _, _ = np.polyfit(pts, gauge(effects, (m + pts - offset) / gain), 3)
+    return offset, gain, replace(effects, sensor_quadratic_per_um=float(k2),
+                                 sensor_cubic_per_um2=float(k3), sensor_center_um=m,
+                                 sensor_half_range_um=math.sqrt(3 * mu2),
+                                 sensor_third_moment_um3=mu3, sensor_fourth_moment_um4=mu4)
 
 
 #: Newton steps of :func:`ungauge` with a cubic term (quadratic convergence from the quadratic root).

@@ -26,7 +26,7 @@ from afmctl import identify as idf
 from afmctl import noise as ns
 from afmctl import parametrization as pz
 from afmctl import transducer as td
-from afmctl.candidates import INPUT_SIDE, Candidate, calibration_frame
+from afmctl.candidates import INPUT_SIDE, Candidate, calibration_readings, reading_frame
 from afmctl.relaxation import (
     THERMAL_COARSE,
     THERMAL_COLUMNS,
@@ -88,19 +88,24 @@ def _log_gains(phi: FloatArray) -> FloatArray:
 class ExtendedSpace:
     """The residual of one candidate on prepared sweeps: ``z = (x, phi)``. Each sweep starts
     from the hysteresis state of ``base.starts`` and has its own sensor zero (as in
-    :func:`afmctl.identify.fit`). ``gauge_frame``: centre and half width (um) of the readings a
-    gauge error is fitted about, and their third and fourth central moments (um^3, um^4; absent:
-    a uniform spread); default :func:`afmctl.candidates.calibration_frame` of ``preps``
-    (:func:`afmctl.effects.gauge`)."""
+    :func:`afmctl.identify.fit`). ``calibration_um``: the readings a gauge is calibrated on, um
+    (default :func:`afmctl.candidates.calibration_readings` of ``preps``; diagnose gives the
+    slowest recorded sweep's, whole); ``gauge_frame``: centre and half width (um) of the readings
+    a gauge error is fitted about, and their third and fourth central moments (um^3, um^4;
+    absent: a uniform spread); default :func:`afmctl.candidates.reading_frame` of
+    ``calibration_um`` (:func:`afmctl.effects.gauge`)."""
 
     def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
                  field_step: float, range_um: float, dt_min: float | None = None,
                  gauge_frame: tuple[float, ...] | None = None,
-                 thermal_grid: tuple[int, float, int] = THERMAL_FINE) -> None:
+                 thermal_grid: tuple[int, float, int] = THERMAL_FINE,
+                 calibration_um: FloatArray | None = None) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
         self.step_rel = field_step
         self.range_um = range_um
-        self.gauge_frame = gauge_frame or calibration_frame(self.preps)
+        self.calibration_um = (calibration_readings(self.preps) if calibration_um is None
+                               else calibration_um)
+        self.gauge_frame = gauge_frame or reading_frame(self.calibration_um)
         self.dt_min = dt_min or min(p.dt for p in self.preps)
         n = np.array([p.mask.sum() for p in self.preps], dtype=float)
         self.weights = np.sqrt(n.mean() / n)
@@ -262,7 +267,8 @@ class ExtendedSpace:
         """This space with the given parts replaced (the scales and the gauge frame kept)."""
         return ExtendedSpace(self.candidate, self.preps if preps is None else preps,
                              base or self.base, self.step_rel, self.range_um, self.dt_min,
-                             self.gauge_frame, thermal_grid or self.thermal_grid)
+                             self.gauge_frame, thermal_grid or self.thermal_grid,
+                             self.calibration_um)
 
     def with_starts(self, starts: Sequence[str]) -> ExtendedSpace:
         """The same candidate with other initial states of the sweeps (:data:`pz.STARTS`)."""
@@ -300,12 +306,19 @@ class ExtendedSpace:
     def to_model(self, z: FloatArray, thickness_um: float
                  ) -> tuple[td.Transducer, tuple[float, ...], tuple[float, ...]]:
         """The physical model (effect included; the last sweep's sensor zero), the per-sweep
-        applied-voltage gains and sensor zeros (um)."""
+        applied-voltage gains and sensor zeros (um). A gauge error is fitted in the frame of the
+        slowest sweep's readings and stated in that of its positions (:func:`effects.position_frame`:
+        the rod's gains and zeros scaled and shifted with it), the frame of a lab's linear
+        calibration of the gauge on that sweep: the readings the model predicts are the same."""
         a, y = self.system(z)
         beta, _ = pz.project(a, y)
+        phi, name = z[6:], self.candidate.name
+        gauge = self._gauge(phi)
+        if name == "sensor-nonlinearity":  # positions in the frame of the gauge's calibration
+            shift, scale, gauge = fx.position_frame(gauge, self.calibration_um)
+            beta = np.concatenate((scale * beta[:2], shift + scale * beta[2:]))
         model = self.base.model(z[:6], np.array([beta[0], beta[1], beta[-1]]), thickness_um)
         offsets = tuple(float(b) for b in beta[2:])
-        phi, name = z[6:], self.candidate.name
         gains = tuple([1.0] * len(self.preps))
         if name == "thermal-relaxation":
             grid = thermal_polarization(np.exp(z[:4]), hy.Thermal(math.exp(phi[0]),
@@ -317,7 +330,7 @@ class ExtendedSpace:
         elif name == "amplifier-lag":
             model = replace(model, effects=self._amplifier(phi, thickness_um))
         elif name == "sensor-nonlinearity":
-            model = replace(model, effects=self._gauge(phi))
+            model = replace(model, effects=gauge)
         elif name == "voltage-gain-drift":
             gains = tuple(math.exp(v) for v in _log_gains(phi))
             model = replace(model, effects=fx.Effects(voltage_gain_sigma=float(np.std(gains,

@@ -109,39 +109,38 @@ def true_rms(position: np.ndarray, it: learn.Iteration, desired: track.Desired) 
 
 
 def model_for(profile: Profile, cause: str, folder: Path
-              ) -> tuple[tr.Transducer, str, tr.Transducer | None]:
+              ) -> tuple[tr.Transducer, str, tr.Transducer | None, Any]:
     """The model learning uses (identify's; diagnose's extended one for a sensor effect), its
-    source, and for a sensor effect diagnose's base model (what learning would have without)."""
+    source, for a sensor effect diagnose's base model (what learning would have without), and
+    the first sweep recorded (from power-on: the slowest triangle)."""
     with InProcessStage(profile, clock=accelerated(SPEED)) as stage:
         sweeps = calibration.record_standard(stage, profile, folder)
+    slowest = sweeps[0]
     if cause in SENSOR:
         d = dg.diagnose(sweeps)
-        return d.extended_model, f"diagnose extended ({d.cause})", d.base_model
+        return d.extended_model, f"diagnose extended ({d.cause})", d.base_model, slowest
     fit = identify.fit(sweeps)
-    return fit.model, "identify" + ("" if fit.success else " (fit did not converge)"), None
+    return (fit.model, "identify" + ("" if fit.success else " (fit did not converge)"), None,
+            slowest)
 
 
-def calibration_frame(profile: Profile, model: tr.Transducer) -> Any:
-    """The true position in the frame of a linear gauge calibration (for a gauge nonlinearity):
-    the least-squares line of the stage's gauge over the positions the model's gauge was
-    calibrated on (their mean ``m``, variance ``R^2 / 3`` and third and fourth central moments,
-    :class:`afmctl.effects.Effects`), the frame in which diagnose's extended model states
-    positions (its gauge error has no mean and no slope there). Identity without a gauge
+def calibration_frame(profile: Profile, slowest: Any) -> Any:
+    """The true position as a lab's linear calibration of the gauge reports it (for a gauge
+    nonlinearity): ``a + b x`` with ``reading = a + b x`` the least-squares line over the true
+    positions ``x`` of the slowest recorded sweep (``slowest``, from power-on, noise-free),
+    the frame bench_diagnose's track judge uses too. A gauge's offset and gain are a convention
+    (no reading tells them from the rod's gain and offset); its curvature is not. Diagnose's
+    extended model states positions in this frame to second order in the gauge error (its error
+    terms have no mean and no slope over that sweep's readings). Identity without a gauge
     error."""
     assert profile.emulator is not None
-    e, m = profile.emulator.effects, model.effects
-    if not (e.sensor_quadratic_per_um or e.sensor_cubic_per_um2) or not m.sensor_half_range_um:
+    e = profile.emulator.effects
+    if not (e.sensor_quadratic_per_um or e.sensor_cubic_per_um2):
         return lambda u: u
-    c, mu2 = m.sensor_center_um, m.sensor_half_range_um ** 2 / 3
-    mu3, mu4 = m.sensor_third_moment_um3, m.sensor_fourth_moment_um4 or 1.8 * mu2 * mu2
-    raw = [1.0, c, mu2 + c**2, mu3 + 3 * c * mu2 + c**3,
-           mu4 + 4 * c * mu3 + 6 * c**2 * mu2 + c**4]  # E[u^k], k = 0..4
-    pts = np.linspace(-50.0, 50.0, 7)
-    a = np.polyfit(pts, fx.gauge(e, pts), 3)[::-1]  # the stage's gauge: a cubic in u
-    mean_p = sum(a[k] * raw[k] for k in range(4))
-    slope = (sum(a[k] * raw[k + 1] for k in range(4)) - c * mean_p) / mu2
-    offset = mean_p - slope * c
-    return lambda x: slope * x + offset
+    ph = em.Physics(dc.replace(profile.emulator, effects=fx.Effects()), profile.sample_rate_hz)
+    x = ph.respond(slowest.voltage_v, ph.initial())[0]
+    b, a = np.polyfit(x, fx.gauge(e, x), 1)
+    return lambda u: a + b * u
 
 
 def learn_on(profile: Profile, model: tr.Transducer, desired: track.Desired, out: Path,
@@ -202,10 +201,10 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
     prof = base if cause == "none" else em.with_hidden_effect(base, cause, index)
     assert prof.emulator is not None
     t0 = time.perf_counter()
-    model, source, base_model = model_for(prof, cause, tmp / f"{cause}-sweeps")
+    model, source, base_model, slowest = model_for(prof, cause, tmp / f"{cause}-sweeps")
     desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / prof.sample_rate_hz)
     n = GAIN_ITERATIONS if cause == "voltage-gain-drift" else 5
-    frame = calibration_frame(prof, model)
+    frame = calibration_frame(prof, slowest)
     res, rms, gains = learn_on(prof, model, desired, tmp / cause, n, ilc.Law(), frame=frame)
     noise = prof.emulator.noise_um
     final = rms[res.best]
@@ -216,7 +215,7 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
                                         for it in res.iterations],
         "readings_rms_um_by_iteration": [it.steady_um for it in res.iterations],
         "kept_iteration": res.best, "stop": res.stop, "lead_samples": res.lead,
-        "true_position_frame": ("linear gauge calibration over the model's gauge range"
+        "true_position_frame": ("the gauge's linear calibration on the slowest sweep"
                                 if cause == "sensor-nonlinearity" else "the stage's own"),
         "q_cutoff_Hz": res.tuning.cutoff_hz,
         "final_over_noise": final / noise,
@@ -370,7 +369,7 @@ def main() -> None:
             if args.json:
                 print(json.dumps(out))
             return
-        model, _, _ = model_for(base, "none", tmp / "default-sweeps")
+        model = model_for(base, "none", tmp / "default-sweeps")[0]
         noise = base.emulator.noise_um
         desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / base.sample_rate_hz)
         for seed, law in (("inverse", ilc.Law()), ("linear", ilc.Law()),

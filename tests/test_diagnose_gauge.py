@@ -84,6 +84,26 @@ def test_fitted_gauge_position_is_the_labs_linear_calibration(seed: int) -> None
     assert np.sqrt(np.mean((a_u + b_u * true_um - lab) ** 2)) > 0.1 * gauge_err
 
 
+@pytest.mark.parametrize("seed", [3, 11, 17])
+def test_gauge_restated_in_its_positions_frame_is_the_labs_calibration(seed: int) -> None:
+    """The gauge fitted in the readings' frame, restated by :func:`fx.position_frame` over the
+    same readings, gives the lab's calibrated position exactly (the readings' frame alone is off
+    by up to ~5 % of the gauge error: the gauge skews the readings' third moment) and the same
+    readings."""
+    true_um, reading, _ = _slow_sweep(seed, 0.5)
+    b, a = np.polyfit(true_um, reading, 1)
+    lab = a + b * true_um
+    gauge_err = float(np.sqrt(np.mean((reading - lab) ** 2)))
+    frame = candidates.reading_frame(reading)
+    c, c3, alpha, beta, _ = _fit_gauge(true_um, reading, frame)
+    e = _frame_effects(frame, c, c3)
+    shift, scale, restated = fx.position_frame(e, reading)
+    w = shift + scale * fx.ungauge(e, reading)
+    assert np.sqrt(np.mean((w - lab) ** 2)) < 1e-9 * gauge_err
+    assert np.max(np.abs(fx.gauge(restated, w) - reading)) < 1e-9 * gauge_err
+    assert np.polyfit(w, reading, 1) == pytest.approx([1.0, 0.0], abs=1e-9)
+
+
 def test_gauge_terms_are_orthogonal_to_a_line_over_the_frame_and_invert() -> None:
     """Over skewed readings the frame's two error terms have no mean and no linear trend (the
     calibration line is unchanged by them), and :func:`fx.ungauge` inverts :func:`fx.gauge`."""
