@@ -505,7 +505,8 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     else:  # the best start of every space gets the whole joint fit
         started = [_started(s, x_base, max_nfev // len(spaces), n_starts, identify)
                    for s in spaces]
-        space, z, _ = min(started, key=lambda f: float(np.sum(f[0].residual(f[1]) ** 2)))
+        space, z, _ = started[0] if len(started) == 1 else min(
+            started, key=lambda f: float(np.sum(f[0].residual(f[1]) ** 2)))
         if space.candidate.own_states:
             space = space.with_grid(THERMAL_JOINT)
         space, sol, nfev = _joint((space, z, sum(f[2] for f in started)), max_nfev)
