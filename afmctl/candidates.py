@@ -41,6 +41,7 @@ INPUT_SIDE = ("thermal-relaxation", "amplifier-lag", "voltage-gain-drift")
 #: the smooth limit of :func:`afmctl.effects.lag` lengthens the lag there by under 0.1 %.
 SLEW_OFF = 30.0
 
+
 @dataclass(frozen=True)
 class Candidate:
     """One candidate: its extra parameters' names, starting values and bounds (internal units).

@@ -130,9 +130,8 @@ def calibration_frame(profile: Profile, slowest: Any) -> Any:
     positions ``x`` of the slowest recorded sweep (``slowest``, from power-on, noise-free),
     the frame bench_diagnose's track judge uses too. A gauge's offset and gain are a convention
     (no reading tells them from the rod's gain and offset); its curvature is not. Diagnose's
-    extended model states positions in this frame to second order in the gauge error (its error
-    terms have no mean and no slope over that sweep's readings). Identity without a gauge
-    error."""
+    extended model states positions in this frame (:func:`afmctl.effects.position_frame`, over
+    the readings of that sweep). Identity without a gauge error."""
     assert profile.emulator is not None
     e = profile.emulator.effects
     if not (e.sensor_quadratic_per_um or e.sensor_cubic_per_um2):
