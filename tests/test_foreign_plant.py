@@ -217,6 +217,20 @@ def test_start_states(stage):
 # ----------------------------------------------------------------- thermal kernel
 
 
+def test_mills_table_matches_the_normal_hazard():
+    """The tabulated phi/Phi of the thermal rates (8) against scipy's log-CDF, every regime."""
+    from scipy import special
+
+    z = np.concatenate([np.linspace(-45, 45, 90001), np.linspace(-30.01, -29.99, 41),
+                        np.linspace(5.99, 6.01, 41)])
+    exact = np.exp(-0.5 * z * z - special.log_ndtr(z)) / math.sqrt(2 * math.pi)
+    got = np.array([fk.mills(v) for v in z])
+    rel = np.abs(got - exact) / np.maximum(exact, 1e-300)
+    assert rel[z < 0].max() < 3e-6  # -z - 1/z below -30: 2/z^4
+    assert rel[(z > -30) & (z < 0)].max() < 1e-12
+    assert rel[(z >= 0) & (exact > 1e-290)].max() < 2e-9  # Phi(z) taken as 1 past z = 6
+
+
 def test_thermal_zero_temperature_limit_is_the_relay():
     """E_T -> 0 (any attempt rate): x_+ jumps exactly where the relay (4) switches."""
     ec = np.array([0.3, 0.5, 0.8])

@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 from numba import njit
+from scipy import special
 
 BIG = 1.0e9  # MV/m: a threshold beyond any field ("never switched")
 SQRT2 = math.sqrt(2.0)
@@ -114,14 +115,34 @@ def relay_step(b: np.ndarray, cdf: np.ndarray, ec: np.ndarray, vc: np.ndarray, f
     return p
 
 
+def _mills_table(z: np.ndarray) -> np.ndarray:
+    """phi/Phi and its slope at ``z`` (all in [-30, 6]): rows (m, dm/dz)."""
+    m = np.sqrt(2.0 / np.pi) * np.exp(-0.5 * z * z) / special.erfc(-z / SQRT2)
+    return np.stack([m, -m * (z + m)])  # (phi/Phi)' = -(phi/Phi) (z + phi/Phi)
+
+
+#: phi/Phi on [-30, 6] every ``MILLS_STEP`` for cubic Hermite interpolation with exact slopes
+#: (relative error below 1e-10, 3e-13 for z < 0). The thermal kernel spends most of its time in :func:`mills`;
+#: the table makes a stage with thermal activation run about three times faster than erfc and
+#: exp per call, which it needs to keep up with a 10 kHz stage clock.
+MILLS_STEP = 1.0 / 512.0
+MILLS_LO = -30.0
+MILLS = _mills_table(MILLS_LO + MILLS_STEP * np.arange(round(36.0 / MILLS_STEP) + 1))
+
+
 @njit(cache=True)
 def mills(z: float) -> float:
     """phi(z) / Phi(z) for the standard normal (the hazard of the lower tail), any z."""
-    if z < -30.0:
+    if z < MILLS_LO:
         return -z - 1.0 / z
-    if z > 6.0:  # Phi(z) = 1 within 1e-9
-        return math.exp(-0.5 * z * z) / SQRT2PI
-    return math.sqrt(2.0 / math.pi) * math.exp(-0.5 * z * z) / math.erfc(-z / SQRT2)
+    if z >= 6.0:  # Phi(z) = 1 within 1e-9
+        return math.exp(-0.5 * z * z) / SQRT2PI if z < 38.6 else 0.0  # exp underflows past 38.6
+    u = (z - MILLS_LO) / MILLS_STEP
+    i = int(u)
+    t = u - i
+    s = 1.0 - t
+    return (MILLS[0, i] * s * s * (1.0 + 2.0 * t) + MILLS[0, i + 1] * t * t * (3.0 - 2.0 * t)
+            + MILLS_STEP * t * s * (MILLS[1, i] * s - MILLS[1, i + 1] * t))
 
 
 @njit(cache=True)
@@ -393,7 +414,7 @@ def _substep(par, st, q, hist, fa, fb, h, t):
         _push(st, hist, t, s1, ds1 * vp)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # the device's thread simulates while the host's thread talks
 def simulate(volts, dt, n_sub, par, st, q, b, ec, vc, b2, ec2, v2, x, ei2, w2, hist, true_out,
              sens_out):
     """Run the plant over held voltage samples; state arrays are updated in place.
