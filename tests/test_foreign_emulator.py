@@ -63,6 +63,28 @@ def test_readings_over_the_serial_protocol_are_the_foreign_plants() -> None:
     np.testing.assert_array_equal(noisy, again)  # reproducible from the seed
 
 
+def test_run_state_replays_a_run_of_the_thermal_stage() -> None:
+    """The state an emulated device keeps for the start of its last run (what the benches'
+    truth probes re-simulate a run from) gives that run's readings again: on the quiet foreign
+    stage with thermal relaxation (it creeps while the device idles between runs), the second
+    run's readings over the pty equal ``foreign.run`` from ``run_state`` at that run's gain."""
+    base = _quiet(shipped_profile("emulated-foreign"))
+    spec = replace(base.emulator.foreign, effect="thermal-relaxation", strength=1.0)  # type: ignore[union-attr]
+    prof = replace(base, emulator=replace(base.emulator, foreign=spec))  # type: ignore[arg-type]
+    v = _waveform()
+    with EmulatedDevice(prof) as dev, SerialServer(dev, "pty") as ser:
+        wired = replace(prof, transport=SerialTransport(ser.url))
+        with open_stage(wired) as stage:
+            first = stage.play(v).displacement_um
+            second = stage.play(v).displacement_um
+        emu = dev.emulator
+        start = replace(emu.run_state, gain=emu.physics.gain(emu.run_count - 1))
+        _, again, _ = foreign.run(emu.physics.stage, v.astype(np.float32).astype(float),  # type: ignore[attr-defined]
+                                  10_000.0, start, None)
+    assert np.max(np.abs(second - first)) > 0.05  # the runs differ (the creep between them)
+    np.testing.assert_allclose(second, again, atol=1e-4)
+
+
 @pytest.mark.parametrize("line, says", [
     ("colour = 3", "colour: unknown key"),
     ('effect = "gremlins"', "effect: must be one of"),

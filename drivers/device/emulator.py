@@ -142,6 +142,9 @@ class Emulator:
         self.sample_rate_hz = profile.sample_rate_hz
         self.physics = plant(self.profile, self.sample_rate_hz)
         self.state = self.physics.initial()
+        #: The plant's state when the last run began (what a bench's truth probe re-simulates the
+        #: run's true position from; on no wire).
+        self.run_state = self.state
         self.table = np.zeros(self.config.table_capacity, dtype=np.float32)
         self.slot_global = np.full(self.config.table_capacity, -1, dtype=np.int64)
         self.table_length = 0
@@ -292,6 +295,7 @@ class Emulator:
     def _begin(self, total: int, stream: bool, now: float) -> None:
         """Start a run of ``total`` samples from ``now``, with an empty recorder."""
         self._catch_up(now)
+        self.run_state = self.state
         self.rec_u[:] = np.nan
         self.rec_v[:] = np.nan
         self.rec_global[:] = -1
