@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +25,13 @@ from afmctl import transducer as tr
 
 FloatArray = NDArray[np.float64]
 Progress = Callable[[str, int, int], None]
+
+#: Rest before every recorded sweep, s: the stage rings after the last sweep's end, so a sweep
+#: started at once began on a transient that depended on how soon the host started it (two
+#: recordings of one foreign stage differed by up to 1.3x its noise over the fast sweep's first
+#: 50 ms, and diagnose's verdict on it changed between recordings). Half a second is 20 decay
+#: times of a rod at 300 Hz with damping 0.02 (2 of one at 100 Hz with 0.005).
+SETTLE_S = 0.5
 
 
 class PlayingStage(Protocol):
@@ -203,8 +211,10 @@ def incomplete_path(path: Path) -> Path:
 
 def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v: FloatArray,
                  sample_rate_hz: float, meta: Mapping[str, str],
-                 progress: Progress | None = None, path: Path | None = None) -> Any:
-    """Play one identification waveform and return it as a :class:`afmctl.sweeps.Sweep`.
+                 progress: Progress | None = None, path: Path | None = None,
+                 settle_s: float = SETTLE_S) -> Any:
+    """Play one identification waveform, after ``settle_s`` at rest (:data:`SETTLE_S`), and
+    return it as a :class:`afmctl.sweeps.Sweep`.
 
     The sweep's ``voltage_V`` is the commanded voltage (what a filter controls); a sweep that lost
     samples is refused rather than patched. With ``path``, the samples are also streamed as they
@@ -240,6 +250,7 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
         if fh is not None:
             fh.write("".join(f"# {k}: {v}\n" for k, v in meta.items()))
             fh.write(",".join(sweeps.COLUMNS) + "\n")
+        time.sleep(settle_s)
         rec = stage.play(voltage_v, on_block)
         lost = int((~np.asarray(rec.valid)).sum())
         if lost:

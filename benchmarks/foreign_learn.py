@@ -117,7 +117,8 @@ def calibration_frame(true_um: np.ndarray, reading_um: np.ndarray) -> Any:
 def modelled(cause: str, files: list[str], folder: Path) -> dict[str, Any]:
     """``afmctl identify`` (plant causes) or ``afmctl diagnose`` (sensor causes) on ``files``:
     ``model``, ``envelope``, ``source``, ``at_noise_floor``, ``natural_Hz`` and, after diagnose,
-    ``base`` (its base model) and ``named`` (the cause it named)."""
+    ``base`` (its base model), ``named`` (the cause it named) and ``evidence`` (its one-line
+    account)."""
     if cause in SENSOR_CAUSES:
         args = ["diagnose", "--out", str(folder / "diagnosis"), "--jobs", "1", "--json", *files]
     else:
@@ -135,7 +136,8 @@ def modelled(cause: str, files: list[str], folder: Path) -> dict[str, Any]:
     return {"model": modelfile.read(ext), "envelope": modelfile.read_envelope(ext),
             "source": f"afmctl diagnose extended ({doc.get('cause')})",
             "base": modelfile.read(folder / "diagnosis" / "base.toml"),
-            "named": doc.get("cause"), "at_noise_floor": None, "natural_Hz": None}
+            "named": doc.get("cause"), "evidence": doc.get("evidence"), "at_noise_floor": None,
+            "natural_Hz": None}
 
 
 def learn_foreign(cause: str, seed: int, out: Path, iterations: int = 5,
@@ -223,6 +225,7 @@ def row_of(cause: str, seed: int, truth: Any, m: dict[str, Any], amp: float,
             "true_resonance_Hz": described["derived"]["resonance_hz"],
             "identified_resonance_Hz": m["natural_Hz"], "identify_at_noise_floor":
                 m["at_noise_floor"], "diagnose_named": m.get("named"),
+            "diagnose_evidence": m.get("evidence"),
             "model": m["source"] + " (3 standard triangles through the driver, 0..150 V)",
             "true_position_frame": "the gauge's linear calibration on the slowest sweep",
             "amplitude_um": amp, "noise_um": noise, "rms_um_by_iteration": rms,
