@@ -143,13 +143,41 @@ def serial_foreign_profile(tmp_path: Path, url: str) -> Path:
     return path
 
 
+class _Truth:
+    """A driver stage that also keeps the noise-free reading of every run it plays (um),
+    re-simulated from the device's state when the run began: on a stage with a linear gauge and
+    no latency, the true position in the readings' frame."""
+
+    def __init__(self, stage: object, device: EmulatedDevice) -> None:
+        self.stage, self.device = stage, device
+        self.clean: list[np.ndarray] = []
+
+    def voltage(self) -> float:
+        return self.stage.voltage()  # type: ignore[attr-defined]
+
+    def play(self, waveform_v: np.ndarray, on_block: object = None, **kw: object) -> object:
+        rec = self.stage.play(waveform_v, on_block, **kw)  # type: ignore[attr-defined]
+        with self.device.lock:
+            emu = self.device.emulator
+            start = replace(emu.run_state, gain=emu.physics.gain(emu.run_count - 1))
+        v = np.asarray(waveform_v, dtype=np.float32).astype(float)
+        self.clean.append(foreign.run(emu.physics.stage, v, emu.sample_rate_hz, start,  # type: ignore[attr-defined]
+                                      None)[1])
+        return rec
+
+
 @pytest.mark.slow
-def test_sweep_and_identify_over_a_pty_reach_the_foreign_stages_noise_floor(
-        tmp_path: Path) -> None:
+def test_sweep_identify_and_learn_over_a_pty_on_the_foreign_stage(tmp_path: Path) -> None:
     """`afmctl sweep` over the serial protocol, then `afmctl identify`: every sweep within 1.5x
     its sensor noise and the rod's resonance where the foreign stage has it (a stage afmctl's
-    model was not written for: other code, parameters drawn from seed 7)."""
+    model was not written for: other code, parameters drawn from seed 7). Then learning (issue
+    13) over the same wire from that model: a 27.9 Hz triangle's true error (first period out)
+    within 2x the noise, and no worse than iteration 0's (this clean stage starts within the
+    noise, 0.011 um, and learning took it to 0.007 um; bench_learn's stages with effects are
+    where learning has more to do)."""
     import json
+
+    from afmctl import ilc, learn, modelfile, sweeps, track
 
     with EmulatedDevice(load_profile(serial_foreign_profile(tmp_path, "/dev/null"))) as dev, \
             SerialServer(dev, "pty") as ser:
@@ -158,12 +186,28 @@ def test_sweep_and_identify_over_a_pty_reach_the_foreign_stages_noise_floor(
                                         str(tmp_path / "s")])
         assert res.exit_code == 0, res.output
         truth = dev.emulator.physics.stage  # type: ignore[attr-defined]
-    files = sorted(str(p) for p in (tmp_path / "s").glob("*.csv"))
-    assert len(files) == 4
-    res = CliRunner().invoke(main, ["identify", "--profile", str(prof), "-o",
-                                    str(tmp_path / "m.toml"), "--json", *files])
-    assert res.exit_code == 0, res.output
-    fit = json.loads(res.stdout)
-    assert fit["at_noise_floor"]
-    assert fit["parameters"]["natural_frequency"]["value"] == pytest.approx(
-        truth.rod.resonance_hz, rel=0.05)
+        files = sorted(str(p) for p in (tmp_path / "s").glob("*.csv"))
+        assert len(files) == 4
+        res = CliRunner().invoke(main, ["identify", "--profile", str(prof), "-o",
+                                        str(tmp_path / "m.toml"), "--json", *files])
+        assert res.exit_code == 0, res.output
+        fit = json.loads(res.stdout)
+        assert fit["at_noise_floor"]
+        assert fit["parameters"]["natural_frequency"]["value"] == pytest.approx(
+            truth.rod.resonance_hz, rel=0.05)
+        wired = load_profile(prof)
+        fast = sweeps.read(tmp_path / "s" / "triangle_27.9hz.csv").displacement_um
+        lo, hi = np.percentile(fast[fast.size // 2:], [0, 100])
+        desired = track.triangle(27.9, min(27.04, 0.6 * (hi - lo)), 0.5 * (lo + hi), 3,
+                                 1 / wired.sample_rate_hz)
+        with open_stage(wired) as stage:
+            probe = _Truth(stage, dev)
+            out = learn.run(probe, modelfile.read(tmp_path / "m.toml"), desired, wired.limits,
+                            tmp_path / "learn", {}, 3, ilc.Law(),
+                            envelope=modelfile.read_envelope(tmp_path / "m.toml"))
+    steady = ilc.steady_part(desired)
+    true_rms = [float(np.sqrt(np.mean((c[it.outcome.waveform.tracking] - desired.u_um)[steady]
+                                      ** 2)))
+                for c, it in zip(probe.clean, out.iterations, strict=True)]
+    assert true_rms[out.best] <= 2 * truth.sensor.noise_um, true_rms
+    assert true_rms[out.best] <= true_rms[0], true_rms
