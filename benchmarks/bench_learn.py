@@ -69,8 +69,6 @@ SENSOR = {"sensor-delay", "sensor-nonlinearity"}
 #: rod's phase lag, which the line does not invert, passes 60 degrees at ~216 Hz).
 LINEAR_Q_HZ = 150.0
 SEED_ITERATIONS = 15
-#: Iterations on the stage with run-to-run gain variation (to show it settles, not diverges).
-GAIN_ITERATIONS = 8
 FOREIGN_SEED = 1
 CAUSES = ("thermal-relaxation", "amplifier-lag", "second-mode", "voltage-gain-drift",
           "sensor-delay", "sensor-nonlinearity")
@@ -175,7 +173,7 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
     t0 = time.perf_counter()
     model, source, base_model, slowest = model_for(prof, cause, tmp / f"{cause}-sweeps")
     desired = track.triangle(FREQ_HZ, AMP_UM, 0.0, 3, 1 / prof.sample_rate_hz)
-    n = GAIN_ITERATIONS if cause == "voltage-gain-drift" else 5
+    n = learn_judge.GAIN_ITERATIONS if cause == "voltage-gain-drift" else 5
     frame = calibration_frame(prof, slowest)
     res, rms, gains = learn_on(prof, model, desired, tmp / cause, n, ilc.Law(), frame=frame)
     noise = prof.emulator.noise_um
@@ -199,7 +197,7 @@ def stage_row(base: Profile, cause: str, index: int, tmp: Path) -> dict[str, Any
         # learning continued past the floor (its stop off): does it stay there or diverge?
         c_res, c_rms, _ = learn_on(prof, model, desired, tmp / f"{cause}-continued", n,
                                    ilc.Law(floor_factor=0))
-        row.update(learn_judge.variation_row(spread, res, spread, c_res, GAIN_ITERATIONS))
+        row.update(learn_judge.variation_row(spread, res, spread, c_res))
         row.update({"continued_rms_um_by_iteration": c_rms, "gain_sigma_true": sigma,
                     "gain_sigma_measured": res.gain_sigma,
                     "gain_change_by_iteration": [it.gain_change for it in res.iterations],

@@ -48,8 +48,6 @@ PLANT_CAUSES = ("none", "amplifier-lag", "second-mode", "thermal-relaxation",
 SENSOR_CAUSES = ("sensor-delay", "sensor-nonlinearity")
 CAUSES = PLANT_CAUSES + SENSOR_CAUSES
 STRENGTH = 0.5
-#: Iterations on the stage with run-to-run gain variation (to show it settles, not diverges).
-GAIN_ITERATIONS = 8
 
 
 #: The clean stage the in-process bench used before (``random_stage`` of ``default_rng([1, 13])``:
@@ -147,7 +145,7 @@ def learn_foreign(cause: str, seed: int, out: Path, iterations: int = 5,
     prof = foreign_profile(cause, seed, overrides)
     t0 = time.perf_counter()
     gain_stage = cause == "voltage-gain-drift"
-    n = GAIN_ITERATIONS if gain_stage else iterations
+    n = learn_judge.GAIN_ITERATIONS if gain_stage else iterations
     with EmulatedDevice(prof) as dev, SerialServer(dev, "pty") as ser:
         truth = dev.emulator.physics.stage  # type: ignore[attr-defined]
         wired = dc.replace(prof, transport=SerialTransport(ser.url))
@@ -208,8 +206,7 @@ def variation(dev: EmulatedDevice, frame: Any, desired: track.Desired,
                        float(np.std(gains)) / center)
 
     (res, gains), (c_res, c_gains) = main, continued
-    return {**learn_judge.variation_row(spread(gains), res, spread(c_gains), c_res,
-                                        GAIN_ITERATIONS, trend=True),
+    return {**learn_judge.variation_row(spread(gains), res, spread(c_gains), c_res, trend=True),
             "gain_true_by_iteration": gains, "continued_gain_true_by_iteration": c_gains,
             "gain_sigma_runs": float(np.std(gains)) / float(np.mean(gains)),
             "gain_sigma_measured": res.gain_sigma}

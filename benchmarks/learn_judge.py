@@ -18,6 +18,8 @@ from afmctl import ilc, learn, track
 
 #: Settled: expected error within this factor of the gain variation's floor.
 SETTLE_FACTOR = 1.5
+#: Iterations on a stage with run-to-run gain variation (to show it settles, not diverges).
+GAIN_ITERATIONS = 8
 
 Respond = Callable[[np.ndarray, float], np.ndarray]
 Spread = Callable[[learn.Result], tuple[float, list[float]]]
@@ -57,11 +59,11 @@ def gain_spread(respond: Respond, desired: track.Desired, center: float, sigma: 
 
 
 def variation_row(spread: Spread, res: learn.Result, continued: Spread, c_res: learn.Result,
-                  iterations: int, trend: bool = False) -> dict[str, Any]:
+                  trend: bool = False) -> dict[str, Any]:
     """The row keys of a stage with run-to-run gain variation and its verdict ``ok``.
 
     ``res`` is learning as shipped, ``c_res`` learning continued past the floor (its floor stop
-    off) for ``iterations``; ``spread`` and ``continued`` give each one's floor and expected
+    off) for :data:`GAIN_ITERATIONS`; ``spread`` and ``continued`` give each one's floor and expected
     errors (:func:`gain_spread`). Settled: the kept and the last iteration's expected error
     within ``SETTLE_FACTOR`` x the floor; no divergence: no iteration's expected error above
     1.2 x the best before it and neither run ended as diverging or refused. Continued past the
@@ -96,7 +98,7 @@ def variation_row(spread: Spread, res: learn.Result, continued: Spread, c_res: l
                    f"last iteration within {SETTLE_FACTOR:g} x variation_floor_um; no "
                    "divergence: no iteration's expected RMS above 1.2 x the best before it, "
                    "learning not ended as diverging or refused, and continued past the floor "
-                   f"({iterations} iterations, floor stop off, not ended as diverging): "
+                   f"({GAIN_ITERATIONS} iterations, floor stop off, not ended as diverging): "
                    + continued_target),
         "ok": bool(ok)}
 
