@@ -131,8 +131,7 @@ def calibration_frame(profile: Profile, slowest: Any) -> Any:
         return lambda u: u
     ph = em.Physics(dc.replace(profile.emulator, effects=fx.Effects()), profile.sample_rate_hz)
     x = ph.respond(slowest.voltage_v, ph.initial())[0]
-    b, a = np.polyfit(x, fx.gauge(e, x), 1)
-    return lambda u: a + b * u
+    return foreign_learn.calibration_frame(x, fx.gauge(e, x))
 
 
 def learn_on(profile: Profile, model: tr.Transducer, desired: track.Desired, out: Path,
