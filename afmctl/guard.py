@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.tomlfile import InputError
+from afmctl.files.tomlfile import InputError
 
 
 class LimitError(InputError):

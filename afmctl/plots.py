@@ -18,7 +18,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from numpy.typing import NDArray  # noqa: E402
 
-from afmctl.sweeps import Sweep  # noqa: E402
+from afmctl.files.sweepfile import Sweep  # noqa: E402
 
 FloatArray = NDArray[np.float64]
 

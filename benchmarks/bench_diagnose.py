@@ -1,6 +1,6 @@
 """Issue 12 figures: afmctl diagnose on foreign stages whose hidden effects come from other physics.
 
-Every case is a random stage of the independent simulator (:mod:`drivers.device.foreign`, written
+Every case is a random stage of the independent simulator (:mod:`afmctl.drivers.device.foreign.stage`, written
 without afmctl's model code) carrying one hidden effect (or none) at a given strength, made by a
 formula family other than diagnose's candidate for it; three of its causes are outside diagnose's
 vocabulary (backlash, gauge saturation, interference on the sensor line) and must come out
@@ -30,23 +30,22 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+if __package__:  # python -m benchmarks.<name>, or imported by the tests
+    from benchmarks import foreign_sets
+else:  # python benchmarks/<name>.py: Python puts this folder on the path
+    import foreign_sets
 
-import foreign_sets  # noqa: E402
-
-from afmctl import diagnose as dg  # noqa: E402
-from afmctl import extension as ext  # noqa: E402
-from afmctl import (
-    guard,  # noqa: E402
-    track,  # noqa: E402
-)
-from afmctl import sweepdesign as sd  # noqa: E402
-from afmctl import sweeps as sw  # noqa: E402
-from afmctl import transducer as td  # noqa: E402
-from afmctl.profile import default_profile  # noqa: E402
-from drivers.device import foreign as plant  # noqa: E402
-from drivers.device.foreign_effects import OUT_OF_VOCABULARY, random_effect  # noqa: E402
-from drivers.device.foreign_stages import random_stage  # noqa: E402
+from afmctl import guard
+from afmctl.drivers.device.foreign import stage as plant  # noqa: E402
+from afmctl.drivers.device.foreign.effects import OUT_OF_VOCABULARY, random_effect  # noqa: E402
+from afmctl.drivers.device.foreign.stages import random_stage  # noqa: E402
+from afmctl.files import sweepfile as sw  # noqa: E402
+from afmctl.files.profile import default_profile  # noqa: E402
+from afmctl.fit import diagnose as dg  # noqa: E402
+from afmctl.fit import extension as ext  # noqa: E402
+from afmctl.model import transducer as td  # noqa: E402
+from afmctl.planning import sweepdesign as sd  # noqa: E402
+from afmctl.planning import track
 
 SEED = 20261212
 IN_VOCABULARY = ("amplifier-lag", "sensor-delay", "thermal-relaxation", "second-mode",

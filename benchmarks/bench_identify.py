@@ -36,11 +36,11 @@ from pathlib import Path
 
 import numpy as np
 
-from afmctl import baselines, identify
-from afmctl import hysteresis as hy
-from afmctl import rod as rd
-from afmctl import sweeps as sw
-from afmctl.transducer import Transducer
+from afmctl.files import sweepfile as sw
+from afmctl.fit import baselines, identify
+from afmctl.model import hysteresis as hy
+from afmctl.model import rod as rd
+from afmctl.model.transducer import Transducer
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "smarthysteresis_1hz.csv"

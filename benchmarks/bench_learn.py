@@ -1,10 +1,10 @@
 """Issue 13 figures: learning from repeated scans (iterative learning control on the inverse).
 
 Stages: the shipped emulated stage, and that stage carrying one hidden effect of ``afmctl
-diagnose``'s catalogue each (:func:`drivers.device.plant.with_hidden_effect`, case ``2 i`` of the
+diagnose``'s catalogue each (:func:`afmctl.drivers.device.plant.with_hidden_effect`, case ``2 i`` of the
 seeded diagnose batch: the first of each cause; true parameters printed). On each, the three
 standard triangles are recorded through the driver interface (device clock 4x real time) and the
-model is identified from them (:func:`afmctl.identify.fit`, never the stage's true parameters);
+model is identified from them (:func:`afmctl.fit.identify.fit`, never the stage's true parameters);
 for the sensor effects (delay, gauge) ``diagnose`` runs on the same sweeps and learning uses its
 extended model (readings cannot tell where the stage is without it). Then ``learn.run`` plays the
 27.9 Hz / 27.04 um triangle (3 periods) and up to 5 learning iterations.
@@ -23,7 +23,7 @@ default stage, ``compute_over_stage`` its ratio to the time the stage takes to p
 (conditioning included).
 
 Foreign stages (``--foreign``): the independently written plant of
-:mod:`drivers.device.foreign` (a random stage, 0 .. 150 V, ``[emulator.foreign]`` of the shipped
+:mod:`afmctl.drivers.device.foreign.stage` (a random stage, 0 .. 150 V, ``[emulator.foreign]`` of the shipped
 ``emulated-foreign`` profile) clean and with each hidden effect at strength 0.5, served over the
 serial protocol on a pty; its standard triangles recorded through the driver and the model from
 ``afmctl identify`` on them, or ``afmctl diagnose``'s extended model for the sensor effects;
@@ -48,19 +48,23 @@ from typing import Any
 
 import numpy as np
 
-from afmctl import calibration, identify, ilc, learn, track
-from afmctl import diagnose as dg
-from afmctl import effects as fx
-from afmctl import transducer as tr
+from afmctl.drivers.device import plant as em
+from afmctl.drivers.inprocess import InProcessStage, accelerated
+from afmctl.drivers.stage import StageError
+from afmctl.experiment import calibration, learn
+from afmctl.files.profile import Profile, default_profile
+from afmctl.fit import diagnose as dg
+from afmctl.fit import identify
 from afmctl.guard import LimitError
-from afmctl.profile import Profile, default_profile
-from drivers.device import plant as em
-from drivers.inprocess import InProcessStage, accelerated
-from drivers.stage import StageError
+from afmctl.model import effects as fx
+from afmctl.model import transducer as tr
+from afmctl.planning import ilc, track
 
-sys.path.insert(0, str(Path(__file__).parent))
-import foreign_learn  # noqa: E402
-import learn_judge  # noqa: E402
+if __package__:  # python -m benchmarks.<name>, or imported by the tests
+    from benchmarks import foreign_learn, learn_judge
+else:  # python benchmarks/<name>.py: Python puts this folder on the path
+    import foreign_learn
+    import learn_judge
 
 SPEED = 2.0  # device clock / real time (4 underran the sweep streams on a loaded host)
 FREQ_HZ, AMP_UM = 27.9, 27.04
@@ -123,7 +127,7 @@ def calibration_frame(profile: Profile, slowest: Any) -> Any:
     positions ``x`` of the slowest recorded sweep (``slowest``, from power-on, noise-free),
     the frame bench_diagnose's track judge uses too. A gauge's offset and gain are a convention
     (no reading tells them from the rod's gain and offset); its curvature is not. Diagnose's
-    extended model states positions in this frame (:func:`afmctl.effects.position_frame`, over
+    extended model states positions in this frame (:func:`afmctl.model.effects.position_frame`, over
     the readings of that sweep). Identity without a gauge error."""
     assert profile.emulator is not None
     e = profile.emulator.effects
@@ -314,7 +318,7 @@ def main() -> None:
         out["stages_total"] = len(rows)
         out["stages_used"] = ("afmctl's emulated stage, clean and with each of its hidden effects "
                               "(case 2i of the diagnose batch); the foreign plant "
-                              "(drivers.device.foreign, [emulator.foreign] seed "
+                              "(afmctl.drivers.device.foreign.stage, [emulator.foreign] seed "
                               f"{FOREIGN_SEED}, over the serial protocol on a pty) clean and "
                               "with each hidden effect at strength 0.5")
         if args.stages_only:

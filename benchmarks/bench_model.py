@@ -15,11 +15,12 @@ import time
 import numpy as np
 from scipy.signal import sawtooth
 
-from afmctl import hysteresis as hy
-from afmctl import inverse as inv
-from afmctl import modelfile, rod
-from afmctl import transducer as tr
-from afmctl.profile import default_profile
+from afmctl.files import modelfile
+from afmctl.files.profile import default_profile
+from afmctl.model import hysteresis as hy
+from afmctl.model import inverse as inv
+from afmctl.model import rod
+from afmctl.model import transducer as tr
 
 DT_S = 1e-4  # 10 kHz, the emulated stage's sample rate
 

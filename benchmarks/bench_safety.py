@@ -18,12 +18,11 @@ import json
 import logging
 import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the campaign harness
-
-import campaign  # noqa: E402
+if __package__:  # python -m benchmarks.<name>, or imported by the tests
+    from benchmarks import campaign
+else:  # python benchmarks/<name>.py: Python puts this folder on the path
+    import campaign
 
 
 def main() -> None:

@@ -21,9 +21,12 @@ from typing import Any
 
 import numpy as np
 
-from afmctl import calibration, experiment, identify, track
-from afmctl.profile import Profile, default_profile
-from drivers import open_stage
+from afmctl.drivers import open_stage
+from afmctl.experiment import calibration
+from afmctl.experiment import runner as experiment
+from afmctl.files.profile import Profile, default_profile
+from afmctl.fit import identify
+from afmctl.planning import track
 
 EXPERIMENTS = ((0.279, 40.56), (0.279, 27.04), (27.9, 27.04))  # (Hz, um peak-to-peak), Figs 9-11
 

@@ -19,19 +19,16 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile, default_profile  # noqa: E402
-from drivers import StageBase  # noqa: E402
-from drivers.device.emulated import EmulatedDevice  # noqa: E402
-from drivers.device.modbus_server import ModbusRtuServer, ModbusTcpServer  # noqa: E402
-from drivers.device.serial_server import SerialServer  # noqa: E402
-from drivers.modbus_link import ModbusStage  # noqa: E402
-from drivers.serial_link import SerialStage  # noqa: E402
+from afmctl.drivers import StageBase  # noqa: E402
+from afmctl.drivers.device.emulated import EmulatedDevice  # noqa: E402
+from afmctl.drivers.device.modbus_server import ModbusRtuServer, ModbusTcpServer  # noqa: E402
+from afmctl.drivers.device.serial_server import SerialServer  # noqa: E402
+from afmctl.drivers.modbus_link import ModbusStage  # noqa: E402
+from afmctl.drivers.serial_link import SerialStage  # noqa: E402
+from afmctl.files.profile import ModbusRtuTransport, ModbusTcpTransport, Profile, default_profile  # noqa: E402
 
 
 @contextmanager

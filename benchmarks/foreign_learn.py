@@ -1,10 +1,10 @@
-"""Learning on a foreign stage (:mod:`drivers.device.foreign`) behind the serial protocol.
+"""Learning on a foreign stage (:mod:`afmctl.drivers.device.foreign.stage`) behind the serial protocol.
 
 The stage is the emulated device of the shipped ``emulated-foreign`` profile with its
 ``[emulator.foreign]`` table set to a seed (and a hidden effect at strength 0.5), served on a
-pty (:class:`~drivers.device.serial_server.SerialServer`) and reached through the driver
+pty (:class:`~afmctl.drivers.device.serial_server.SerialServer`) and reached through the driver
 (``open_stage``, real pyserial), as a lab reaches its stage. Its three standard triangles are
-recorded through the driver (:func:`afmctl.calibration.record_standard`); the model comes from
+recorded through the driver (:func:`afmctl.experiment.calibration.record_standard`); the model comes from
 ``afmctl identify`` on them (with its validity envelope) for the clean stage and the plant
 effects, from ``afmctl diagnose`` (its extended model) for the sensor effects, where a reading
 cannot tell where the stage is; then ``learn.run`` plays the 27.9 Hz triangle (27.04 um, or 60 %
@@ -30,17 +30,22 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-import learn_judge  # benchmarks/ is on the path (bench_learn puts it there)
+if __package__:  # python -m benchmarks.<name>, or imported by the tests
+    from benchmarks import learn_judge
+else:  # python benchmarks/<name>.py: Python puts this folder on the path
+    import learn_judge
 import numpy as np
 from click.testing import CliRunner
 
-from afmctl import calibration, ilc, learn, modelfile, track
 from afmctl.cli import main as afmctl_main
-from afmctl.profile import Profile, SerialTransport, shipped_profile
-from drivers import open_stage
-from drivers.device import foreign as fp
-from drivers.device.emulated import EmulatedDevice
-from drivers.device.serial_server import SerialServer
+from afmctl.drivers import open_stage
+from afmctl.drivers.device.emulated import EmulatedDevice
+from afmctl.drivers.device.foreign import stage as fp
+from afmctl.drivers.device.serial_server import SerialServer
+from afmctl.experiment import calibration, learn
+from afmctl.files import modelfile
+from afmctl.files.profile import Profile, SerialTransport, shipped_profile
+from afmctl.planning import ilc, track
 
 #: Effects in the plant (learning from identify's model) and in the sensor (from diagnose's).
 PLANT_CAUSES = ("none", "amplifier-lag", "second-mode", "thermal-relaxation",
@@ -80,7 +85,7 @@ def foreign_profile(cause: str, seed: int, overrides: tuple[tuple[str, float], .
 class TruthProbe:
     """A driver stage that also keeps, of every run it plays, the foreign stage's true position,
     its noise-free reading (um) and the run's voltage gain: the run re-simulated from the
-    device's state when it began (:attr:`~drivers.device.emulator.Emulator.run_state`)."""
+    device's state when it began (:attr:`~afmctl.drivers.device.emulator.Emulator.run_state`)."""
 
     def __init__(self, stage: Any, device: EmulatedDevice) -> None:
         self.stage, self.device = stage, device

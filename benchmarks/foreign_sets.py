@@ -4,7 +4,7 @@
         [--design D] [--start S] [--families default|random]
 
 ``--design separating`` records the ``standard`` design and then afmctl's separating sweep
-(:func:`afmctl.sweepdesign.separating_sweep`: holds, fast steps, a multisine) at 10 kHz within the
+(:func:`afmctl.planning.sweepdesign.separating_sweep`: holds, fast steps, a multisine) at 10 kHz within the
 emulated profile's slew limit; ``random`` draws among the lab designs only.
 
 Each stage goes to its own folder ``DIR/stage_XX/``: one sweep CSV per sweep in afmctl's sweep
@@ -26,17 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from afmctl import sweepdesign as sd  # noqa: E402
-from afmctl.profile import default_profile  # noqa: E402
-from drivers.device import foreign as plant  # noqa: E402
-from drivers.device.foreign import COERCIVE_FAMILIES, INTERACTION_FAMILIES  # noqa: E402
-from drivers.device.foreign_effects import CAUSES, random_effect  # noqa: E402
-from drivers.device.foreign_stages import random_stage  # noqa: E402
-from drivers.device.foreign_sweeps import DESIGNS, SweepPlan, sweep_set  # noqa: E402
+from afmctl.drivers.device.foreign import stage as plant  # noqa: E402
+from afmctl.drivers.device.foreign.effects import CAUSES, random_effect  # noqa: E402
+from afmctl.drivers.device.foreign.stage import COERCIVE_FAMILIES, INTERACTION_FAMILIES  # noqa: E402
+from afmctl.drivers.device.foreign.stages import random_stage  # noqa: E402
+from afmctl.drivers.device.foreign.sweeps import DESIGNS, SweepPlan, sweep_set  # noqa: E402
+from afmctl.files.profile import default_profile  # noqa: E402
+from afmctl.planning import sweepdesign as sd  # noqa: E402
 
 STARTS = ("poled+", "poled-", "depoled", "voltage")
 #: Sample rate of the separating sweep, Hz (the emulated profile's: the steps need it).
@@ -53,7 +49,7 @@ def separating_plan(lo: float, hi: float) -> SweepPlan:
 
 
 def plans_for(design: str, lo: float, hi: float, rng: np.random.Generator) -> list[SweepPlan]:
-    """The sweeps of ``design``: a lab design of :mod:`drivers.device.foreign_sweeps`, or
+    """The sweeps of ``design``: a lab design of :mod:`afmctl.drivers.device.foreign.sweeps`, or
     ``separating`` (the ``standard`` design, then :func:`separating_plan`)."""
     if design != sd.SEPARATING_NAME:
         return sweep_set(design, lo, hi, rng)
@@ -74,7 +70,7 @@ def drive_range(design: str, rng: np.random.Generator) -> tuple[float, float]:
 
 
 def draw_start(kind: str, rng: np.random.Generator, lo: float, hi: float):
-    """A start state for :func:`drivers.device.foreign.initial_state`."""
+    """A start state for :func:`afmctl.drivers.device.foreign.stage.initial_state`."""
     if kind == "random":
         kind = str(rng.choice(STARTS, p=[0.4, 0.1, 0.2, 0.3]))
     return float(rng.uniform(lo, hi)) if kind == "voltage" else kind

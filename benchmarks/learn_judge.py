@@ -1,7 +1,7 @@
 """Learning judged under run-to-run gain variation (issue 13, point 7), for any plant.
 
 Shared by :mod:`bench_learn` (afmctl's emulated stage, gain ``1 + sigma N(0, 1)`` per run) and
-:mod:`foreign_learn` (the foreign plant's :class:`~drivers.device.foreign_effects.GainDrift`,
+:mod:`foreign_learn` (the foreign plant's :class:`~afmctl.drivers.device.foreign.effects.GainDrift`,
 a random gain per run on a systematic drift). The plant enters as ``respond(voltage_V, gain)``:
 its true position (um, in the frame learning is judged in) at every sample of a run from rest at
 the given applied-voltage gain.
@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from afmctl import ilc, learn, track
+from afmctl.experiment import learn
+from afmctl.planning import ilc, track
 
 #: Settled: expected error within this factor of the gain variation's floor.
 SETTLE_FACTOR = 1.5

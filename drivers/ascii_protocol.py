@@ -8,7 +8,7 @@ discards a reply whose CRC is wrong or whose tag is not the one it is waiting fo
 line, line noise, or a late reply to an earlier request). Commands without a CRC (typed by hand)
 are still accepted. Every command line gets exactly one reply line: ``OK`` for a set command, the
 value(s) for a query, or ``ERR <code> <text>`` when the device refuses (codes in
-:data:`drivers.protocol.ERRORS`; the last one also stays readable with ``ERR?``). Numbers are
+:data:`afmctl.drivers.protocol.ERRORS`; the last one also stays readable with ``ERR?``). Numbers are
 decimal; float32 values are written with 9 significant digits, which round-trips float32 exactly; a
 sample not yet recorded (or overwritten) is ``nan``. Version 2 adds streaming: ``WGS <n>`` plays
 ``n`` samples through the table as a ring while the host keeps writing ``WAV`` blocks at global
@@ -22,7 +22,7 @@ import zlib
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.protocol import Status
+from afmctl.drivers.protocol import Status
 
 PROTOCOL_VERSION = 3
 MAX_LINE = 8192

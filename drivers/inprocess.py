@@ -1,5 +1,6 @@
-"""The emulated stage in-process: the :class:`~drivers.StageBase` interface on an
-:class:`~drivers.device.emulator.Emulator`, with no wire (tests, and ``afmctl track`` without hardware)."""
+"""The emulated stage in-process: the :class:`~afmctl.drivers.StageBase` interface on an
+:class:`~afmctl.drivers.device.emulator.Emulator`, with no wire (tests, and ``afmctl track``
+without hardware)."""
 
 from __future__ import annotations
 
@@ -11,10 +12,10 @@ from contextlib import contextmanager
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.profile import Profile
-from drivers import StageBase, StageError
-from drivers.device.emulator import IDENTITY, DeviceError, Emulator
-from drivers.protocol import Status
+from afmctl.drivers import StageBase, StageError
+from afmctl.drivers.device.emulator import IDENTITY, DeviceError, Emulator
+from afmctl.drivers.protocol import Status
+from afmctl.files.profile import Profile
 
 
 @contextmanager

@@ -1,9 +1,9 @@
-"""Host side of the Modbus register map (``drivers.register_map``) on pymodbus (TCP and RTU).
+"""Host side of the Modbus register map (``afmctl.drivers.register_map``) on pymodbus (TCP and RTU).
 
 Every pymodbus client call of afmctl lives in this module (the emulated device's servers:
-``drivers.device.modbus_server``). One
+``afmctl.drivers.device.modbus_server``). One
 request is in flight at a time; the client has a timeout; a refused request (Modbus exception
-response) is turned into :class:`~drivers.StageError` carrying the device's own error code, read
+response) is turned into :class:`~afmctl.drivers.StageError` carrying the device's own error code, read
 from ``IR.LAST_ERROR``; a transport failure (no reply, a bad CRC on RTU, a stale transaction id on
 TCP, a dropped connection) becomes ``StageError(-1)``. pymodbus's own retries are off: afmctl
 retries idempotent requests itself (see :mod:`drivers`), after a resync that closes and reopens
@@ -22,12 +22,12 @@ from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
-from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile
-from drivers import StageBase, StageError
-from drivers import register_map as rm
-from drivers.protocol import Status
-from drivers.register_map import HR, IR
-from drivers.serial_link import is_uart
+from afmctl.drivers import StageBase, StageError
+from afmctl.drivers import register_map as rm
+from afmctl.drivers.protocol import Status
+from afmctl.drivers.register_map import HR, IR
+from afmctl.drivers.serial_link import is_uart
+from afmctl.files.profile import ModbusRtuTransport, ModbusTcpTransport, Profile
 
 
 def make_client(transport: ModbusTcpTransport | ModbusRtuTransport) -> Any:
@@ -108,7 +108,7 @@ class ModbusStage(StageBase):
 
     def uart_rates(self) -> tuple[float, float] | None:
         """Modbus RTU on a real UART: what its baud rate carries (10 bits per byte) with the
-        register map's blocks (:func:`~drivers.register_map.rtu_bytes_per_sample`). None for TCP,
+        register map's blocks (:func:`~afmctl.drivers.register_map.rtu_bytes_per_sample`). None for TCP,
         a socket or a pty."""
         t = self._transport
         if not isinstance(t, ModbusRtuTransport) or not is_uart(getattr(self._client, "socket", None)):

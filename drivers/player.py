@@ -1,6 +1,6 @@
-"""One :meth:`drivers.StageBase.play`: the host's side of a (possibly streamed) run.
+"""One :meth:`afmctl.drivers.StageBase.play`: the host's side of a (possibly streamed) run.
 
-Uploads the first table, checks that the link can carry the run (:class:`~drivers.stage.
+Uploads the first table, checks that the link can carry the run (:class:`~afmctl.drivers.stage.
 LinkCapacityError` if not), arms the device's watchdog, starts the run, refills the table as the
 generator plays it (double buffering), feeds the watchdog, reads the recorder back block by block
 and hands every sample to ``on_block`` exactly once, measured or missing.
@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.stage import BlockCallback, LinkCapacityError, Recording, StageError
+from afmctl.drivers.stage import BlockCallback, LinkCapacityError, Recording, StageError
 
 if TYPE_CHECKING:
-    from drivers.stage import StageBase
+    from afmctl.drivers.stage import StageBase
 
 #: Seconds a run may overrun its nominal duration before :meth:`StageBase.play` gives up.
 PLAY_MARGIN_S = 5.0

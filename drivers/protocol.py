@@ -1,7 +1,8 @@
 """What both wire protocols share: the device's error codes and its status record. No I/O.
 
-The host's links (:mod:`drivers.serial_link`, :mod:`drivers.modbus_link`) decode a device's replies
-into these; the emulated device (:mod:`drivers.device`) produces them. ``docs/protocol.md`` is the
+The host's links (:mod:`afmctl.drivers.serial_link`, :mod:`afmctl.drivers.modbus_link`) decode a
+device's replies into these; the emulated device (:mod:`afmctl.drivers.device`) produces them.
+``docs/protocol.md`` is the
 normative text.
 """
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.protocol import Status
+from afmctl.drivers.protocol import Status
 
 MAP_VERSION = 2
 
@@ -127,7 +127,7 @@ def rtu_bytes_per_sample() -> tuple[float, float]:
 
 
 def decode_status(regs: list[int]) -> Status:
-    """Input registers ``0 .. STATUS_END-1`` -> :class:`~drivers.protocol.Status`."""
+    """Input registers ``0 .. STATUS_END-1`` -> :class:`~afmctl.drivers.protocol.Status`."""
     if regs[IR.MAP_VERSION] != MAP_VERSION:
         raise ValueError(f"register map version {regs[IR.MAP_VERSION]}, this afmctl speaks "
                          f"{MAP_VERSION}")

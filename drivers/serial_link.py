@@ -1,8 +1,8 @@
-"""Host side of the ASCII protocol (``drivers.ascii_protocol``) on pyserial.
+"""Host side of the ASCII protocol (``afmctl.drivers.ascii_protocol``) on pyserial.
 
 Works on any pyserial URL: a real port, a pty path, ``socket://host:port``. Each command waits for
 its one reply line (protocol v3: matched by tag, checked by CRC); a read that times out, a reply
-without terminator or a malformed reply raises :class:`~drivers.StageError` (code -1) instead of
+without terminator or a malformed reply raises :class:`~afmctl.drivers.StageError` (code -1) instead of
 hanging, after the retries that are safe (see :mod:`drivers`).
 """
 
@@ -18,10 +18,10 @@ import serial
 from numpy.typing import NDArray
 from serial.urlhandler.protocol_socket import Serial as SocketSerial
 
-from afmctl.profile import Profile, SerialTransport
-from drivers import StageBase, StageError
-from drivers import ascii_protocol as ap
-from drivers.protocol import ERRORS, Status
+from afmctl.drivers import StageBase, StageError
+from afmctl.drivers import ascii_protocol as ap
+from afmctl.drivers.protocol import ERRORS, Status
+from afmctl.files.profile import Profile, SerialTransport
 
 #: Most bytes one non-blocking read drains from a ``socket://`` port.
 DRAIN_BYTES = 1 << 16
@@ -163,8 +163,8 @@ class SerialStage(StageBase):
 
     def uart_rates(self) -> tuple[float, float] | None:
         """At the baud rate of a real UART (10 bits per byte): upload at
-        :data:`~drivers.ascii_protocol.UPLOAD_BYTES_PER_SAMPLE`, readback at
-        :data:`~drivers.ascii_protocol.READBACK_BYTES_PER_SAMPLE` bytes per sample. None for a
+        :data:`~afmctl.drivers.ascii_protocol.UPLOAD_BYTES_PER_SAMPLE`, readback at
+        :data:`~afmctl.drivers.ascii_protocol.READBACK_BYTES_PER_SAMPLE` bytes per sample. None for a
         socket or a pty (no baud rate limits them)."""
         if not is_uart(self._port):
             return None

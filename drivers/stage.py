@@ -28,15 +28,15 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from afmctl import guard
-from afmctl.profile import (
+from afmctl.drivers.protocol import ERRORS, Status
+from afmctl.files.profile import (
     EmulatedTransport,
     ModbusRtuTransport,
     ModbusTcpTransport,
     Profile,
     SerialTransport,
 )
-from afmctl.tomlfile import InputError
-from drivers.protocol import ERRORS, Status
+from afmctl.files.tomlfile import InputError
 
 __all__ = ["StageError", "LinkCapacityError", "Recording", "Status", "Stage", "StageBase",
            "BlockCallback", "open_stage"]
@@ -47,7 +47,7 @@ T = TypeVar("T")
 
 
 class StageError(RuntimeError):
-    """The stage refused a command (``code`` from :data:`drivers.protocol.ERRORS`, or -1 for a
+    """The stage refused a command (``code`` from :data:`afmctl.drivers.protocol.ERRORS`, or -1 for a
     protocol or transport failure)."""
 
     def __init__(self, code: int, detail: str = "") -> None:
@@ -315,7 +315,7 @@ class StageBase(abc.ABC):
             Pause between polls when there is nothing to do, s.
         timeout_s : float, optional
             Longest time the call may take, s (default: the first table at
-            :data:`~drivers.player.UPLOAD_FLOOR`, then N / sample rate + 5 s + N at the measured
+            :data:`~afmctl.drivers.player.UPLOAD_FLOOR`, then N / sample rate + 5 s + N at the measured
             readback rate). No request is attempted after it; the call then ends within one
             request's timeout, plus the safe state's retries.
 
@@ -350,7 +350,7 @@ class StageBase(abc.ABC):
         v = np.asarray(waveform_v, dtype=np.float32).ravel()
         if v.size == 0:
             raise ValueError("empty waveform")
-        from drivers.player import Player
+        from afmctl.drivers.player import Player
         player = Player(self, v, on_block, poll_s)
         try:
             self._ensure_rate()
@@ -409,13 +409,13 @@ def open_stage(profile: Profile, **options: Any) -> StageBase:
     """
     t = profile.transport
     if isinstance(t, EmulatedTransport):
-        from drivers.inprocess import InProcessStage
+        from afmctl.drivers.inprocess import InProcessStage
         return InProcessStage(profile, **options)
     if isinstance(t, SerialTransport):
-        from drivers.serial_link import SerialStage
+        from afmctl.drivers.serial_link import SerialStage
         return SerialStage(profile, **options)
     if isinstance(t, ModbusTcpTransport | ModbusRtuTransport):
-        from drivers.modbus_link import ModbusStage
+        from afmctl.drivers.modbus_link import ModbusStage
         return ModbusStage(profile, **options)
     raise TypeError(f"unknown transport {t!r}")
 

@@ -7,27 +7,21 @@ from __future__ import annotations
 import dataclasses as dc
 import logging
 from collections.abc import Callable, Iterator
-from contextlib import ExitStack, contextmanager
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
 
-from afmctl import identify as idf
-from afmctl import sweeps as sw
-from afmctl.profile import ModbusRtuTransport, ModbusTcpTransport, Profile, default_profile
-from afmctl.transducer import Transducer
-from drivers.device import emulator, plant
+from afmctl.drivers.device import plant
+from afmctl.files import sweepfile as sw
+from afmctl.files.profile import Profile
+from afmctl.fit import identify as idf
+from afmctl.model.transducer import Transducer
+from tests.harness.emulated import NOISE_UM, PROFILE, SAMPLE_RATE_HZ, SENSOR_ZERO_UM, TRANSPORTS, stage_on  # noqa: F401
 
 if TYPE_CHECKING:
-    from drivers import StageBase
+    pass
 
-PROFILE = default_profile()
-assert PROFILE.emulator is not None
-SAMPLE_RATE_HZ = PROFILE.sample_rate_hz
-NOISE_UM = PROFILE.emulator.noise_um
-SENSOR_ZERO_UM = 2.0  # an arbitrary sensor zero the fits must find
-TRANSPORTS = ["modbus-tcp", "modbus-rtu", "serial-pty", "serial-socket", "inprocess"]
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -105,35 +99,6 @@ def waveform() -> np.ndarray:
 
 @pytest.fixture
 def device(profile: Profile) -> Iterator[object]:
-    from drivers.device.emulated import EmulatedDevice
+    from afmctl.drivers.device.emulated import EmulatedDevice
     with EmulatedDevice(profile) as dev:
         yield dev
-
-
-@contextmanager
-def stage_on(kind: str, profile: Profile, read_only: bool | None = None
-             ) -> Iterator[tuple[StageBase, emulator.Emulator]]:
-    """A host stage talking to a fresh emulated device over ``kind`` (see TRANSPORTS)."""
-    from drivers.device.emulated import EmulatedDevice
-    from drivers.device.modbus_server import ModbusRtuServer, ModbusTcpServer
-    from drivers.device.serial_server import SerialServer
-    from drivers.inprocess import InProcessStage
-    from drivers.modbus_link import ModbusStage
-    from drivers.serial_link import SerialStage
-
-    with ExitStack() as stack:
-        dev = stack.enter_context(EmulatedDevice(profile, read_only=read_only))
-        if kind == "modbus-tcp":
-            srv = stack.enter_context(ModbusTcpServer(dev))
-            stage: StageBase = ModbusStage(profile, ModbusTcpTransport("127.0.0.1", srv.port))
-        elif kind == "modbus-rtu":  # 921,600 baud: 115,200 cannot carry 10 kHz both ways
-            rtu = stack.enter_context(ModbusRtuServer(dev, baudrate=921_600))
-            stage = ModbusStage(profile, ModbusRtuTransport(rtu.url, baudrate=921_600))
-        elif kind.startswith("serial"):
-            where = "pty" if kind == "serial-pty" else "socket://127.0.0.1:0"
-            ser = stack.enter_context(SerialServer(dev, where))
-            stage = SerialStage(profile, ser.url)
-        else:
-            stage = InProcessStage(profile, emulator=dev.emulator, lock=dev.lock)
-        with stage:
-            yield stage, dev.emulator

@@ -21,7 +21,7 @@ from typing import Any, NoReturn
 import click
 
 from afmctl import __version__
-from afmctl.tomlfile import FileFormatError, InputError
+from afmctl.files.tomlfile import FileFormatError, InputError
 
 #: ``ctx.meta`` key set once a command has opened a stage (the Ctrl-C message depends on it).
 STAGE_OPENED = "afmctl.stage_opened"
@@ -111,8 +111,8 @@ class Finite(click.ParamType):
 
 @contextmanager
 def opened_stage(profile: Any) -> Iterator[Any]:
-    """``drivers.open_stage(profile)``, remembering that this command touched a stage."""
-    from drivers import open_stage
+    """``afmctl.drivers.open_stage(profile)``, remembering that this command touched a stage."""
+    from afmctl.drivers import open_stage
     ctx = click.get_current_context(silent=True)
     if ctx is not None:
         ctx.meta[STAGE_OPENED] = True
@@ -122,7 +122,7 @@ def opened_stage(profile: Any) -> Iterator[Any]:
 
 def load_profile_or_exit(path: str | None):  # noqa: ANN201 (Profile)
     """The profile at ``path`` (the shipped emulated one if None); one line and exit 2 if bad."""
-    from afmctl.profile import default_profile, load_profile
+    from afmctl.files.profile import default_profile, load_profile
     try:
         return default_profile() if path is None else load_profile(path)
     except FileFormatError as exc:
@@ -132,8 +132,8 @@ def load_profile_or_exit(path: str | None):  # noqa: ANN201 (Profile)
 def fit_settings(path: str | None):  # noqa: ANN201 (identify.Settings)
     """Identification settings from a profile: its ``[identify]`` table, and its ``[stack]``
     thickness for sweeps whose metadata gives none (defaults without a profile)."""
-    from afmctl import identify as idf
-    from afmctl import tomlfile
+    from afmctl.files import tomlfile
+    from afmctl.fit import identify as idf
     if path is None:
         return idf.Settings()
     prof = load_profile_or_exit(path)
@@ -171,7 +171,7 @@ def check_output_file(path: str | Path, option: str, force: bool) -> Path:
     An existing file is refused unless ``force``; a measured file (a sweep or run file) always.
     The folder must exist and be writable.
     """
-    from afmctl.sweeps import measured_kind
+    from afmctl.files.sweepfile import measured_kind
     p = Path(path)
     what = f"{option} {p}"
     if p.is_dir():
@@ -197,7 +197,7 @@ def check_output_dir(path: str | Path, option: str, names: Iterable[str], force:
     work. It is not created here. Files matching ``measured`` are never overwritten; other
     existing outputs are refused unless ``force``.
     """
-    from afmctl.sweeps import measured_kind
+    from afmctl.files.sweepfile import measured_kind
     p = Path(path)
     what = f"{option} {p}"
     if p.exists() and not p.is_dir():

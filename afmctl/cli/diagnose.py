@@ -18,7 +18,7 @@ from afmctl.cli.base import (
     timestamped,
     writing,
 )
-from afmctl.tomlfile import InputError
+from afmctl.files.tomlfile import InputError
 
 OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residuals.png")
 
@@ -49,9 +49,11 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     Writes diagnosis.json, base.toml and extended.toml (model files for track), report.md and
     residuals.png to --out.
     """
-    from afmctl import diagnose as dg
-    from afmctl import identify as idf
-    from afmctl import modelfile, parametrization, sweeps
+    from afmctl.files import modelfile
+    from afmctl.files import sweepfile as sweeps
+    from afmctl.fit import diagnose as dg
+    from afmctl.fit import identify as idf
+    from afmctl.fit import parametrization
 
     settings = dg.Settings(identify=fit_settings(profile), jobs=jobs)
     data = [sweeps.read_complete(f) for f in sweep_files]
@@ -85,9 +87,10 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
 
 def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:  # noqa: ANN001
     """Every file of a diagnosis, each atomic, ``diagnosis.json`` last (marks it complete)."""
-    from afmctl import diagnose as dg
-    from afmctl import modelfile, plots
-    from afmctl.experiment import atomic_write
+    from afmctl import plots
+    from afmctl.experiment.runner import atomic_write
+    from afmctl.files import modelfile
+    from afmctl.fit import diagnose as dg
     make_dir(out, "--out")
     header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
     modelfile.write(d.base_model, out / "base.toml", header=header + "\nthe paper's model")

@@ -74,8 +74,9 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
     reported against its sensor noise (estimated from the data), and sweeps left above 2x are
     named on stderr.
     """
-    from afmctl import identify as idf
-    from afmctl import modelfile, sweeps
+    from afmctl.files import modelfile
+    from afmctl.files import sweepfile as sweeps
+    from afmctl.fit import identify as idf
 
     settings = fit_settings(profile)
     data = [sweeps.read_complete(f) for f in sweep_files]

@@ -31,11 +31,13 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
                 iterations: int, law_args: dict[str, Any], seed: str, how: tuple[bool, bool],
                 out_dir: str | None, as_json: bool) -> None:
     """``afmctl track ... --learn N`` on an open ``stage``: iteration 0 is the ``seed`` filter's
-    waveform, then up to N learning iterations (:mod:`afmctl.learn`); files after every
+    waveform, then up to N learning iterations (:mod:`afmctl.experiment.learn`); files after every
     iteration. ``how`` = (condition, extrapolate): every iteration keeps to the model's validity
     envelope (read from ``model_name``) unless extrapolate."""
-    from afmctl import effects as fx
-    from afmctl import ilc, learn, modelfile
+    from afmctl.experiment import learn
+    from afmctl.files import modelfile
+    from afmctl.model import effects as fx
+    from afmctl.planning import ilc
     law = ilc.Law(**law_args)
     out = _out_dir(out_dir, "afmctl-track")
     meta = {"profile": prof.name, "model": model_name, "trajectory": desired.label,
@@ -95,9 +97,13 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     """
     import numpy as np
 
-    from afmctl import effects as fx
-    from afmctl import experiment, guard, learn, modelfile, track, waveformfile
-    from afmctl.tomlfile import FileFormatError
+    from afmctl import guard
+    from afmctl.experiment import learn
+    from afmctl.experiment import runner as experiment
+    from afmctl.files import modelfile, waveformfile
+    from afmctl.files.tomlfile import FileFormatError
+    from afmctl.model import effects as fx
+    from afmctl.planning import track
     prof = load_profile_or_exit(profile_path)
     try:
         w = waveformfile.read(wave)

@@ -34,7 +34,7 @@ def emulate(profile_path: str | None, modbus_port: int, serial_where: str, no_rt
     bind = "0.0.0.0" if bind_any else (host or "127.0.0.1")
     if serial_where.startswith("socket://") and not (host or bind_any):
         serial_where = serial_where.replace("socket://:", f"socket://{bind}:")
-    from drivers.device.emulated import serve_all
+    from afmctl.drivers.device.emulated import serve_all
     try:
         with serve_all(prof, host=bind, modbus_port=modbus_port, serial=serial_where,
                        rtu=not no_rtu, read_only=read_only or None) as where:
@@ -70,8 +70,8 @@ def conformance(profile_path: str | None, max_voltage: float | None, yes: bool,
     within +-max-voltage: pass --yes. On the emulated profile it serves the emulated device on
     every wire (serial on a pty and on socket://, Modbus TCP, Modbus RTU) and checks each."""
     prof = load_profile_or_exit(profile_path)
-    from afmctl.profile import EmulatedTransport
-    from drivers.device import conformance as cf
+    from afmctl.drivers import conformance as cf
+    from afmctl.files.profile import EmulatedTransport
     try:
         lo, hi = cf.bounds(prof, max_voltage)
     except ValueError as exc:
@@ -113,7 +113,7 @@ def _print_table(wire: str, results: list) -> None:  # noqa: ANN001 (list[confor
 def status(profile_path: str | None, as_json: bool) -> None:
     """Show the stage's state: identity, limits, output, run, watchdog, last error."""
     prof = load_profile_or_exit(profile_path)
-    from drivers import open_stage
+    from afmctl.drivers import open_stage
     with open_stage(prof) as stage:
         st, idn, (v_min, v_max, slew) = stage.status(), stage.identify(), stage.limits()
     fields = {"profile": prof.name, "identity": idn, "running": st.running,
@@ -136,7 +136,7 @@ def status(profile_path: str | None, as_json: bool) -> None:
 def safe(profile_path: str | None) -> None:
     """Stop the stage and ramp its output to 0 V (the safe state)."""
     prof = load_profile_or_exit(profile_path)
-    from drivers import open_stage
+    from afmctl.drivers import open_stage
     with open_stage(prof) as stage:
         stage.safe_state()
         st = stage.status()

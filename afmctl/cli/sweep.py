@@ -18,7 +18,7 @@ from afmctl.cli.base import (
     progress_printer,
     say,
 )
-from afmctl.tomlfile import InputError
+from afmctl.files.tomlfile import InputError
 
 #: The narrowest --v-range, as a fraction of the profile's span (below it the loops are lost in
 #: the sensor's noise and the amplifier's resolution).
@@ -72,7 +72,9 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
     Each sweep is written to --out as it arrives (NAME.incomplete.csv); an interrupted one stays
     there, marked, and `--resume` records what is missing. Measured files are never overwritten.
     """
-    from afmctl import experiment, guard, sweepdesign
+    from afmctl import guard
+    from afmctl.experiment import runner as experiment
+    from afmctl.planning import sweepdesign
     prof = load_profile_or_exit(profile_path)
     lo, hi = _v_range(v_range, prof)
     designed = sweepdesign.design_set(design, prof.sample_rate_hz,

@@ -22,7 +22,7 @@ from afmctl.cli.base import (
     timestamped,
     writing,
 )
-from afmctl.tomlfile import InputError
+from afmctl.files.tomlfile import InputError
 
 #: Fewest samples per period of a periodic trajectory (a triangle needs its corners sampled).
 MIN_SAMPLES_PER_PERIOD = 20
@@ -134,7 +134,7 @@ def check_duration(seconds: float, what: str) -> None:
 def track_triangle(freq: float, amplitude: float, offset: float, periods: float,
                    allow_short: bool, **kw: Any) -> None:
     """Track a triangle wave (the paper's Figs. 9-11)."""
-    from afmctl import track as trk
+    from afmctl.planning import track as trk
     _track(lambda dt: trk.triangle(freq, amplitude, offset, periods, dt),
            lambda rate: check_periodic(freq, amplitude, offset, periods, allow_short, rate), **kw)
 
@@ -145,7 +145,7 @@ def track_triangle(freq: float, amplitude: float, offset: float, periods: float,
 def track_sine(freq: float, amplitude: float, offset: float, periods: float, allow_short: bool,
                **kw: Any) -> None:
     """Track a sine wave."""
-    from afmctl import track as trk
+    from afmctl.planning import track as trk
     _track(lambda dt: trk.sine(freq, amplitude, offset, periods, dt),
            lambda rate: check_periodic(freq, amplitude, offset, periods, allow_short, rate), **kw)
 
@@ -155,8 +155,8 @@ def track_sine(freq: float, amplitude: float, offset: float, periods: float, all
 @track_options
 def track_file(wave: str, **kw: Any) -> None:
     """Track any trajectory: a CSV with columns time_s,desired_um."""
-    from afmctl import sweeps
-    from afmctl import track as trk
+    from afmctl.files import sweepfile as sweeps
+    from afmctl.planning import track as trk
     t, u = sweeps.read_trajectory(wave)
     check_duration(float(t[-1] - t[0]), wave)
     _track(lambda dt: trk.from_samples(t, u, dt, f"file {Path(wave).name}"), lambda rate: None,
@@ -165,9 +165,9 @@ def track_file(wave: str, **kw: Any) -> None:
 
 def _model(prof: Any, stage: Any | None, model_path: str | None, calibrate: bool,
            recalibrate: bool, profile_path: str | None) -> Any:
-    """The calibration (``afmctl.calibration.Calibration``) track uses."""
-    from afmctl import calibration
-    from afmctl.profile import EmulatedTransport
+    """The calibration (``afmctl.experiment.calibration.Calibration``) track uses."""
+    from afmctl.experiment import calibration
+    from afmctl.files.profile import EmulatedTransport
     if model_path is not None:
         return calibration.from_file(model_path)
     emulated = isinstance(prof.transport, EmulatedTransport)
@@ -226,15 +226,15 @@ def _plan(prof: Any, cal: Any, desired: Any, start_v: float, wanted: tuple[str, 
           how: tuple[bool, bool]) -> dict[str, Any]:
     """The waveforms, kept to the model's validity envelope (``how`` = (condition,
     extrapolate))."""
-    from afmctl import modelfile
-    from afmctl import track as trk
+    from afmctl.files import modelfile
+    from afmctl.planning import track as trk
     return trk.plan(cal.model, desired, prof.limits, start_v, wanted, condition=how[0],
                     envelope=modelfile.read_envelope(cal.path), extrapolate=how[1])
 
 
 def _dry_run(prof: Any, desired: Any, wanted: tuple[str, ...], out: Path,
              how: tuple[bool, bool], cal: Any) -> None:
-    from afmctl import experiment
+    from afmctl.experiment import runner as experiment
     plans = _plan(prof, cal, desired, 0.0, wanted, how)
     say(cal.describe())
     make_dir(out, "--out")
@@ -247,7 +247,7 @@ def _dry_run(prof: Any, desired: Any, wanted: tuple[str, ...], out: Path,
 
 def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...], out: Path,
          how: tuple[bool, bool]) -> tuple[dict[str, Any], dict[str, Any]]:
-    from afmctl import experiment
+    from afmctl.experiment import runner as experiment
     model = cal.model
     start_v = stage.voltage()
     say(f"planning {desired.label} from {start_v:.3f} V ...")
@@ -264,8 +264,9 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
 
 def _report(prof: Any, cal: Any, outcomes: dict[str, Any], desired: Any, out: Path,
             meta: dict[str, Any], as_json: bool) -> None:
-    from afmctl import effects as fx
-    from afmctl import experiment, modelfile
+    from afmctl.experiment import runner as experiment
+    from afmctl.files import modelfile
+    from afmctl.model import effects as fx
     estimate = prof.emulator is None
     data = experiment.summary(outcomes, desired, {
         **meta, "model": cal.as_dict(),

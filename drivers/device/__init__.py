@@ -2,26 +2,28 @@
 
 Modules, by concern:
 
-:mod:`~drivers.device.emulator`
+:mod:`~afmctl.drivers.device.emulator`
     The emulated device's logic (table, generator, recorder, DC output, limits, watchdog, safe
-    state), in device time, no I/O: :class:`~drivers.device.emulator.Emulator`,
-    :class:`~drivers.device.emulator.DeviceError`.
-:mod:`~drivers.device.plant`
+    state), in device time, no I/O: :class:`~afmctl.drivers.device.emulator.Emulator`,
+    :class:`~afmctl.drivers.device.emulator.DeviceError`.
+:mod:`~afmctl.drivers.device.plant`
     The plant it drives: afmctl's true model with the effects of a real stage
-    (:class:`~drivers.device.plant.Physics`, :func:`~drivers.device.plant.expected_readback`), and
-    the hidden effects of ``afmctl diagnose``'s catalogue (:func:`~drivers.device.plant.
-    hidden_effect`, :func:`~drivers.device.plant.with_hidden_effect`, :func:`~drivers.device.plant.
-    hidden_cases`; ``EmulatorConfig`` is re-exported there).
-:mod:`~drivers.device.ascii_device`, :mod:`~drivers.device.register_device`
+    (:class:`~afmctl.drivers.device.plant.Physics`,
+    :func:`~afmctl.drivers.device.plant.expected_readback`), and the hidden effects of
+    ``afmctl diagnose``'s catalogue (:func:`~afmctl.drivers.device.plant.hidden_effect`,
+    :func:`~afmctl.drivers.device.plant.with_hidden_effect`,
+    :func:`~afmctl.drivers.device.plant.hidden_cases`; ``EmulatorConfig`` is re-exported there).
+:mod:`~afmctl.drivers.device.ascii_device`, :mod:`~afmctl.drivers.device.register_device`
     The interpreters of the two protocols of ``docs/protocol.md`` (no I/O).
-:mod:`~drivers.device.serial_server`, :mod:`~drivers.device.modbus_server`, :mod:`~drivers.device.wire`
+:mod:`~afmctl.drivers.device.serial_server`, :mod:`~afmctl.drivers.device.modbus_server`,
+:mod:`~afmctl.drivers.device.wire`
     The wire servers (ASCII on a pty or socket; Modbus TCP and RTU: every pymodbus server call).
-:mod:`~drivers.device.emulated`
+:mod:`~afmctl.drivers.device.emulated`
     One emulated device (lock, clock, watchdog ticker) and ``serve_all`` on every wire.
-:mod:`~drivers.device.faults`
+:mod:`~afmctl.drivers.device.faults`
     Fault injection into what the device sends.
 
-:mod:`~drivers.device.conformance`
+:mod:`~afmctl.drivers.conformance`
     The conformance check: exercises any device (this one or a lab's own) against
     ``docs/protocol.md`` clause by clause, through the host's links (``afmctl conformance``).
 

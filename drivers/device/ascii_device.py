@@ -1,6 +1,6 @@
 """The device's interpreter of the serial (ASCII) protocol: command lines -> an
-:class:`~drivers.device.emulator.Emulator` -> framed reply lines. No I/O (the servers in
-:mod:`drivers.device.serial_server` move the bytes). Codec: :mod:`drivers.ascii_protocol`."""
+:class:`~afmctl.drivers.device.emulator.Emulator` -> framed reply lines. No I/O (the servers in
+:mod:`afmctl.drivers.device.serial_server` move the bytes). Codec: :mod:`afmctl.drivers.ascii_protocol`."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.ascii_protocol import (
+from afmctl.drivers.ascii_protocol import (
     MAX_CHUNK,
     MAX_LINE,
     PROTOCOL_VERSION,
@@ -18,12 +18,12 @@ from drivers.ascii_protocol import (
     status_line,
     unframe,
 )
-from drivers.device.emulator import IDENTITY, DeviceError, Emulator
-from drivers.protocol import ERRORS
+from afmctl.drivers.device.emulator import IDENTITY, DeviceError, Emulator
+from afmctl.drivers.protocol import ERRORS
 
 
 class AsciiDevice:
-    """Interpret command lines for an :class:`~drivers.device.emulator.Emulator`.
+    """Interpret command lines for an :class:`~afmctl.drivers.device.emulator.Emulator`.
 
     Parameters
     ----------
@@ -70,7 +70,7 @@ class AsciiDevice:
         return frame(self.handle(payload), tag) if payload.strip() else None
 
     def overlong(self) -> str:
-        """The framed reply to a line over :data:`~drivers.ascii_protocol.MAX_LINE` bytes (its tag
+        """The framed reply to a line over :data:`~afmctl.drivers.ascii_protocol.MAX_LINE` bytes (its tag
         cannot be trusted: untagged); error 2 becomes the last error."""
         self.em.last_error = 2
         return frame(f"ERR 2 {ERRORS[2]} (line over {MAX_LINE} bytes)", None)

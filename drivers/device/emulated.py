@@ -1,10 +1,10 @@
 """One emulated device behind its wires: the device's lock, clock and watchdog ticker, and
 :func:`serve_all`, which serves it on every wire at once.
 
-:class:`EmulatedDevice` owns one :class:`~drivers.device.emulator.Emulator`, the interpreters of
+:class:`EmulatedDevice` owns one :class:`~afmctl.drivers.device.emulator.Emulator`, the interpreters of
 both protocols, a lock that serializes every request from every server, the device clock
 (``time.monotonic``) and a ticker thread that lets the watchdog expire while nobody talks. The
-servers (:mod:`drivers.device.serial_server`, :mod:`drivers.device.modbus_server`) are context
+servers (:mod:`afmctl.drivers.device.serial_server`, :mod:`afmctl.drivers.device.modbus_server`) are context
 managers that start on entry and stop (joining their threads, closing every descriptor) on exit.
 """
 
@@ -15,14 +15,14 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 
-from afmctl.profile import Profile, WireFaults
-from drivers.device.ascii_device import AsciiDevice
-from drivers.device.emulator import Emulator
-from drivers.device.faults import FaultInjector
-from drivers.device.modbus_server import ModbusRtuServer, ModbusTcpServer
-from drivers.device.register_device import RegisterDevice
-from drivers.device.serial_server import SerialServer
-from drivers.device.wire import LOOPBACK
+from afmctl.drivers.device.ascii_device import AsciiDevice
+from afmctl.drivers.device.emulator import Emulator
+from afmctl.drivers.device.faults import FaultInjector
+from afmctl.drivers.device.modbus_server import ModbusRtuServer, ModbusTcpServer
+from afmctl.drivers.device.register_device import RegisterDevice
+from afmctl.drivers.device.serial_server import SerialServer
+from afmctl.drivers.device.wire import LOOPBACK
+from afmctl.files.profile import Profile, WireFaults
 
 TICK_S = 0.01
 

@@ -2,9 +2,9 @@
 
 No I/O, no clock, no device library: every method that depends on time takes ``now`` (s, any
 monotonic origin) explicitly, so tests step the clock by hand and the servers
-(:mod:`drivers.device.emulated`) pass ``time.monotonic()``. The plant it drives is
-:class:`~drivers.device.plant.Physics`, or the foreign stage of a profile's ``[emulator.foreign]``
-(:class:`~drivers.device.foreign_physics.ForeignPhysics`): :func:`plant`.
+(:mod:`afmctl.drivers.device.emulated`) pass ``time.monotonic()``. The plant it drives is
+:class:`~afmctl.drivers.device.plant.Physics`, or the foreign stage of a profile's ``[emulator.foreign]``
+(:class:`~afmctl.drivers.device.foreign.physics.ForeignPhysics`): :func:`plant`.
 
 Global sample ``k`` of a run is table slot ``k mod L`` (the table tiled over the cycles, or in a
 stream the ring the host refills while it plays). The generator plays lazily: advancing to ``now``
@@ -29,10 +29,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.profile import Limits, Profile
-from drivers.device.foreign_physics import ForeignPhysics
-from drivers.device.plant import Physics
-from drivers.protocol import ERRORS, Status
+from afmctl.drivers.device.foreign.physics import ForeignPhysics
+from afmctl.drivers.device.plant import Physics
+from afmctl.drivers.protocol import ERRORS, Status
+from afmctl.files.profile import Limits, Profile
 
 FloatArray = NDArray[np.float64]
 

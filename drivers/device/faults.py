@@ -19,8 +19,8 @@ from collections import Counter
 
 import numpy as np
 
-from afmctl.profile import WireFaults
-from drivers.device.wire import LOOPBACK, SelectLoop, open_pty, write_all
+from afmctl.drivers.device.wire import LOOPBACK, SelectLoop, open_pty, write_all
+from afmctl.files.profile import WireFaults
 
 
 class FaultInjector:

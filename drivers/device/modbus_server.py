@@ -1,7 +1,7 @@
 """The register map served on Modbus TCP and Modbus RTU (every pymodbus server call lives here).
 
-With wire faults configured, the TCP server sits behind a :class:`~drivers.device.faults.
-FaultyTcpProxy`; the RTU server always talks through a :class:`~drivers.device.faults.PtyBridge`
+With wire faults configured, the TCP server sits behind a :class:`~afmctl.drivers.device.faults.
+FaultyTcpProxy`; the RTU server always talks through a :class:`~afmctl.drivers.device.faults.PtyBridge`
 (a null-modem pair of ptys: pymodbus opens one end, the host the other), faulty if configured.
 """
 
@@ -17,12 +17,12 @@ from pymodbus.server import ModbusSerialServer
 from pymodbus.server import ModbusTcpServer as _PymodbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers import register_map as rm
-from drivers.device.faults import FaultyTcpProxy, PtyBridge
-from drivers.device.wire import LOOPBACK
+from afmctl.drivers import register_map as rm
+from afmctl.drivers.device.faults import FaultyTcpProxy, PtyBridge
+from afmctl.drivers.device.wire import LOOPBACK
 
 if TYPE_CHECKING:
-    from drivers.device.emulated import EmulatedDevice
+    from afmctl.drivers.device.emulated import EmulatedDevice
 
 
 def sim_device(device: EmulatedDevice, unit: int = 1) -> SimDevice:

@@ -5,7 +5,7 @@ Physics of one run (:meth:`Physics.respond`), sample by sample at the device's s
 1. commanded voltage ``v_cmd`` (float32 as on the wire);
 2. applied-voltage gain ``1 + N(0, sigma)`` drawn once per run (effect ``voltage_gain_drift``);
 3. first-order amplifier lag (``amplifier_lag``) -> the voltage actually on the stack, recorded;
-4. the true model: polarization (13) and rod (16) via :func:`afmctl.transducer.simulate`, with the
+4. the true model: polarization (13) and rod (16) via :func:`afmctl.model.transducer.simulate`, with the
    thermal kernel (10) if ``thermal_relaxation`` is on;
 5. a second mechanical mode driven by that displacement (``second_mode``), added;
 6. gauge nonlinearity ``u + c u^2`` (``sensor_nonlinearity``), pure latency (``sensor_delay``);
@@ -16,7 +16,7 @@ global sample index (blocks keyed ``(seed, r, 0, block)``), so :func:`expected_r
 a run exactly, whether it was played from the table or streamed.
 
 Hidden effects (``afmctl diagnose``'s catalogue): :func:`hidden_effect`, :func:`with_hidden_effect`,
-:func:`hidden_cases`, :data:`HIDDEN_RANGES`. :class:`~afmctl.profile.EmulatorConfig` (the plant's
+:func:`hidden_cases`, :data:`HIDDEN_RANGES`. :class:`~afmctl.files.profile.EmulatorConfig` (the plant's
 configuration, parsed from a profile's ``[emulator]`` table) is re-exported here.
 """
 
@@ -28,10 +28,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl import effects as fx
-from afmctl import hysteresis as hy
-from afmctl import transducer as td
-from afmctl.profile import EmulatorConfig, Profile
+from afmctl.files.profile import EmulatorConfig, Profile
+from afmctl.model import effects as fx
+from afmctl.model import hysteresis as hy
+from afmctl.model import transducer as td
 
 __all__ = ["EmulatorConfig", "Physics", "PhysicsState", "NOISE_BLOCK", "HIDDEN_RANGES",
            "HIDDEN_SEED", "hidden_effect", "hidden_cases", "with_hidden_effect",

@@ -1,14 +1,15 @@
 """The device's side of the Modbus register map: register reads and writes -> an
-:class:`~drivers.device.emulator.Emulator`. No I/O (:mod:`drivers.device.modbus_server` serves it).
-Addresses and encoding: :mod:`drivers.register_map`."""
+:class:`~afmctl.drivers.device.emulator.Emulator`. No I/O
+(:mod:`afmctl.drivers.device.modbus_server` serves it).
+Addresses and encoding: :mod:`afmctl.drivers.register_map`."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from drivers.device.emulator import DeviceError, Emulator
-from drivers.register_map import (
+from afmctl.drivers.device.emulator import DeviceError, Emulator
+from afmctl.drivers.register_map import (
     DEVICE_BUSY,
     HR,
     ILLEGAL_ADDRESS,
@@ -39,7 +40,7 @@ _HR_FIELDS = [_Field(a, s) for a, s in ((HR.COMMAND, 1), (HR.CYCLES, 2), (HR.TAB
 
 
 class RegisterDevice:
-    """Serve an :class:`~drivers.device.emulator.Emulator` as the register map.
+    """Serve an :class:`~afmctl.drivers.device.emulator.Emulator` as the register map.
 
     ``read`` and ``write`` return registers or a Modbus exception code (int); a refusal also sets
     the device's last error (``IR.LAST_ERROR``).

@@ -8,11 +8,11 @@ import socket
 import time
 from typing import TYPE_CHECKING
 
-from drivers import ascii_protocol as ap
-from drivers.device.wire import LOOPBACK, SelectLoop, open_pty, write_all
+from afmctl.drivers import ascii_protocol as ap
+from afmctl.drivers.device.wire import LOOPBACK, SelectLoop, open_pty, write_all
 
 if TYPE_CHECKING:
-    from drivers.device.emulated import EmulatedDevice
+    from afmctl.drivers.device.emulated import EmulatedDevice
 
 
 class SerialServer(SelectLoop):

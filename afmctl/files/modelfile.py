@@ -1,0 +1,361 @@
+"""TOML model files: the versioned, unit-carrying form of a :class:`~afmctl.model.transducer.Transducer`.
+
+``identify`` writes them, ``track`` and ``diagnose`` read them, and a profile's ``[emulator.model]``
+table uses the same schema. Every key carries its unit in its name. Example::
+
+    format = "afmctl-model"
+    format_version = 2
+
+    [transducer]
+    thickness_um = 100.0
+
+    [polarization]
+    eta_MVm_per_Cm2 = 3.0
+    p_r_C_per_m2 = 0.3
+    n_coercive = 128
+    n_interaction = 64
+    kernel = "auto"
+
+    [polarization.coercive]
+    type = "lognormal"
+    median_MV_per_m = 0.8
+    sigma_ln = 0.5
+
+    [polarization.interaction]
+    type = "normal"
+    std_MV_per_m = 0.3
+
+    [rod]
+    m_kg = 0.05
+    c_Ns_per_m = 56.5
+    k_N_per_m = 177653.0
+    a1_N_per_C_m2 = 12.0
+    a2_N_per_C2_m4 = 0.0
+    offset_um = 0.0
+
+Version 2 adds two optional tables that ``identify`` writes (version 1 files, without them, are
+still read). ``[envelope]``: where the model was identified, which ``track`` keeps to (see
+:class:`Envelope`)::
+
+    [envelope]
+    voltage_min_V = 0.0
+    voltage_max_V = 150.0
+    field_min_MV_per_m = 0.0
+    field_max_MV_per_m = 1.5
+    frequencies_Hz = [0.279, 5.58, 27.9]
+    sample_rates_Hz = [10000.0, 10000.0, 10000.0]
+
+``[uncertainty]``: the fit's internal parameters with their 1-sigma, correlations and the ones the
+data did not determine (:mod:`afmctl.fit.uncertainty`; informational, not read back into the model)::
+
+    [uncertainty]
+    method = "Gauss-Newton s^2 (J^T J)^+ at the solution (logs for log_ parameters)"
+    parameters = ["log_median_MV_per_m", ...]
+    value = [...]
+    stderr = [...]
+    correlation = [[1.0, ...], ...]
+    undetermined = []
+
+Optional ``[effects.*]`` tables (one per effect, as ``afmctl diagnose`` writes them; schema of
+:mod:`afmctl.model.effects`, the same as a profile's ``[emulator.effects.*]``)::
+
+    [effects.amplifier_lag]
+    bandwidth_Hz = 800.0
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from afmctl.files.tomlfile import FileFormatError, Table, dumps, load
+from afmctl.model import hysteresis as hy
+from afmctl.model.effects import Effects, SecondMode
+from afmctl.model.rod import Rod
+from afmctl.model.transducer import Transducer
+
+FORMAT = "afmctl-model"
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
+#: A waveform may leave the envelope's voltage range by this fraction of its span.
+ENVELOPE_TOLERANCE = 0.05
+
+__all__ = ["FileFormatError", "Envelope", "read", "read_envelope", "write", "to_dict",
+           "from_table", "FORMAT_VERSION"]
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """Where a model was identified: the range of its sweeps.
+
+    Parameters
+    ----------
+    voltage_min_v, voltage_max_v : float
+        Lowest and highest voltage of the sweeps, V.
+    field_min_mv_m, field_max_mv_m : float
+        The same as field, MV/m.
+    frequencies_hz : tuple of float
+        Fundamental frequency of each sweep, Hz.
+    sample_rates_hz : tuple of float
+        Sample rate of each sweep, Hz.
+    """
+
+    voltage_min_v: float
+    voltage_max_v: float
+    field_min_mv_m: float
+    field_max_mv_m: float
+    frequencies_hz: tuple[float, ...]
+    sample_rates_hz: tuple[float, ...]
+
+    @property
+    def span_v(self) -> float:
+        return self.voltage_max_v - self.voltage_min_v
+
+    def excess_v(self, v_min: float, v_max: float) -> float:
+        """How far (V) the voltage range ``[v_min, v_max]`` reaches outside the envelope's."""
+        return max(0.0, self.voltage_min_v - v_min, v_max - self.voltage_max_v)
+
+    def admits(self, v_min: float, v_max: float,
+               tolerance: float = ENVELOPE_TOLERANCE) -> bool:
+        """True if ``[v_min, v_max]`` leaves the envelope by at most ``tolerance`` of its span."""
+        return self.excess_v(v_min, v_max) <= tolerance * self.span_v
+
+    def describe(self) -> str:
+        return (f"{self.voltage_min_v:g} ... {self.voltage_max_v:g} V, "
+                f"{', '.join(f'{f:g}' for f in self.frequencies_hz)} Hz")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"voltage_min_V": self.voltage_min_v, "voltage_max_V": self.voltage_max_v,
+                "field_min_MV_per_m": self.field_min_mv_m,
+                "field_max_MV_per_m": self.field_max_mv_m,
+                "frequencies_Hz": list(self.frequencies_hz),
+                "sample_rates_Hz": list(self.sample_rates_hz)}
+
+
+def _envelope(t: Table) -> Envelope:
+    env = Envelope(t.number("voltage_min_V"), t.number("voltage_max_V"),
+                   t.number("field_min_MV_per_m"), t.number("field_max_MV_per_m"),
+                   t.numbers("frequencies_Hz"), t.numbers("sample_rates_Hz"))
+    if not env.voltage_max_v > env.voltage_min_v:
+        raise t.fail("voltage_max_V", "must be above voltage_min_V")
+    return env
+
+
+UNCERTAINTY_KEYS = ("method", "parameters", "value", "stderr", "correlation", "undetermined")
+
+
+def uncertainty_table(u: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``[uncertainty]`` table from :func:`afmctl.fit.uncertainty.summary` (NaN for unknown)."""
+    names = list(u["parameters"])
+
+    def num(v: float | None) -> float:
+        return float("nan") if v is None else float(v)
+
+    return {"method": u["method"], "parameters": names,
+            "value": [num(u["parameters"][n]["value"]) for n in names],
+            "stderr": [num(u["parameters"][n]["stderr"]) for n in names],
+            "correlation": [[num(v) for v in row] for row in u["correlation"]["matrix"]],
+            "undetermined": list(u["undetermined"])}
+
+
+def _density_dict(d: hy.Lognormal | hy.Normal | hy.Discrete) -> dict[str, Any]:
+    if isinstance(d, hy.Lognormal):
+        return {"type": "lognormal", "median_MV_per_m": d.median, "sigma_ln": d.sigma}
+    if isinstance(d, hy.Normal):
+        return {"type": "normal", "std_MV_per_m": d.std}
+    return {"type": "discrete", "nodes_MV_per_m": list(d.nodes),
+            "values_per_MV_per_m": list(d.values)}
+
+
+def to_dict(model: Transducer) -> dict[str, Any]:
+    """The model as nested dicts (the TOML tables)."""
+    pol = model.polarization
+    pd: dict[str, Any] = {
+        "eta_MVm_per_Cm2": pol.eta, "p_r_C_per_m2": pol.p_r, "n_coercive": pol.n_coercive,
+        "n_interaction": pol.n_interaction, "kernel": pol.kernel,
+        "coercive": _density_dict(pol.coercive), "interaction": _density_dict(pol.interaction)}
+    if pol.thermal is not None:
+        pd["thermal"] = {"field_scale_MV_per_m": pol.thermal.field_scale,
+                         "attempt_rate_per_s": pol.thermal.attempt_rate}
+    r = model.rod
+    out = {
+        "format": FORMAT, "format_version": FORMAT_VERSION,
+        "transducer": {"thickness_um": model.thickness_um, "initial_state": model.initial},
+        "polarization": pd,
+        "rod": {"m_kg": r.m, "c_Ns_per_m": r.c, "k_N_per_m": r.k, "a1_N_per_C_m2": r.a1,
+                "a2_N_per_C2_m4": r.a2, "offset_um": r.offset_um},
+    }
+    fx = effects_dict(model.effects)
+    return {**out, "effects": fx} if fx else out
+
+
+def effects_dict(e: Effects) -> dict[str, Any]:
+    """The ``[effects.*]`` tables of the effects that are on (empty if none)."""
+    out: dict[str, Any] = {}
+    if e.amplifier_bandwidth_hz is not None:
+        amp = {"bandwidth_Hz": e.amplifier_bandwidth_hz, "damping_ratio": e.amplifier_damping_ratio,
+               "slew_V_per_s": e.amplifier_slew_v_per_s}
+        out["amplifier_lag"] = {k: v for k, v in amp.items() if v is not None}
+    if e.sensor_delay_samples or e.sensor_delay_s:
+        out["sensor_delay"] = {"samples": e.sensor_delay_samples, "seconds": e.sensor_delay_s}
+    if e.sensor_quadratic_per_um or e.sensor_cubic_per_um2:
+        out["sensor_nonlinearity"] = {"quadratic_per_um": e.sensor_quadratic_per_um,
+                                      "cubic_per_um2": e.sensor_cubic_per_um2,
+                                      "center_um": e.sensor_center_um,
+                                      "half_range_um": e.sensor_half_range_um}
+        if e.sensor_third_moment_um3 or e.sensor_fourth_moment_um4:
+            out["sensor_nonlinearity"] |= {"third_moment_um3": e.sensor_third_moment_um3,
+                                           "fourth_moment_um4": e.sensor_fourth_moment_um4}
+    if e.second_mode is not None:
+        m = e.second_mode
+        out["second_mode"] = {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio,
+                              "gain": m.gain}
+        if m.rate_gain:
+            out["second_mode"]["rate_gain"] = m.rate_gain
+    if e.voltage_gain_sigma:
+        out["voltage_gain_drift"] = {"sigma": e.voltage_gain_sigma}
+    return out
+
+
+EFFECT_TABLES = ("thermal_relaxation", "amplifier_lag", "sensor_delay", "sensor_nonlinearity",
+                 "second_mode", "voltage_gain_drift")
+
+
+def _thermal(t: Table) -> hy.Thermal:
+    return hy.Thermal(t.number("field_scale_MV_per_m", positive=True),
+                      t.number("attempt_rate_per_s", positive=True))
+
+
+def _optional(t: Table | None, key: str) -> float | None:
+    """A positive number of ``t`` if the key is there, else None."""
+    return t.number(key, positive=True) if t is not None and t.has(key) else None
+
+
+def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
+    """Effects (and thermal relaxation, which belongs to the polarization kernel) from an
+    ``effects`` table: one sub-table per effect that is on, keys with units (see
+    :mod:`afmctl.model.effects`)."""
+    if t is None:
+        return Effects(), None
+    for key in t.data:
+        if key not in EFFECT_TABLES:
+            raise t.fail(key, f"unknown effect (known: {', '.join(sorted(EFFECT_TABLES))})")
+    th, lag, dly, nl, sm, gd = (t.table(k, required=False) for k in EFFECT_TABLES)
+    mode = None if sm is None else SecondMode(sm.number("frequency_Hz", positive=True),
+                                              sm.number("damping_ratio", positive=True),
+                                              sm.number("gain"), sm.number("rate_gain", 0.0))
+    return Effects(
+        amplifier_bandwidth_hz=None if lag is None else lag.number("bandwidth_Hz", positive=True),
+        amplifier_damping_ratio=_optional(lag, "damping_ratio"),
+        amplifier_slew_v_per_s=_optional(lag, "slew_V_per_s"),
+        sensor_delay_samples=0.0 if dly is None else dly.number("samples", 0.0, nonnegative=True),
+        sensor_delay_s=0.0 if dly is None else dly.number("seconds", 0.0, nonnegative=True),
+        sensor_quadratic_per_um=0.0 if nl is None else nl.number("quadratic_per_um"),
+        sensor_cubic_per_um2=0.0 if nl is None else nl.number("cubic_per_um2", 0.0),
+        sensor_center_um=0.0 if nl is None else nl.number("center_um", 0.0),
+        sensor_half_range_um=0.0 if nl is None else nl.number("half_range_um", 0.0,
+                                                               nonnegative=True),
+        sensor_third_moment_um3=0.0 if nl is None else nl.number("third_moment_um3", 0.0),
+        sensor_fourth_moment_um4=0.0 if nl is None else nl.number("fourth_moment_um4", 0.0,
+                                                                   nonnegative=True),
+        second_mode=mode,
+        voltage_gain_sigma=0.0 if gd is None else gd.number("sigma", nonnegative=True),
+    ), None if th is None else _thermal(th)
+
+
+def _density(t: Table, allowed: tuple[str, ...]) -> hy.Lognormal | hy.Normal | hy.Discrete:
+    kind = t.string("type", choices=allowed)
+    if kind == "lognormal":
+        return hy.Lognormal(t.number("median_MV_per_m", positive=True),
+                            t.number("sigma_ln", positive=True))
+    if kind == "normal":
+        return hy.Normal(t.number("std_MV_per_m", positive=True))
+    nodes, values = t.numbers("nodes_MV_per_m"), t.numbers("values_per_MV_per_m")
+    try:
+        return hy.Discrete(nodes, values)
+    except ValueError as exc:
+        raise t.fail("values_per_MV_per_m", str(exc)) from None
+
+
+def from_table(t: Table) -> Transducer:
+    """Build a model from the tables of a model file (or a profile's ``emulator.model``)."""
+    p = t.table("polarization")
+    assert p is not None
+    coercive = _density(p.table("coercive"), ("lognormal", "discrete"))  # type: ignore[arg-type]
+    if isinstance(coercive, hy.Discrete) and min(coercive.nodes) <= 0:
+        raise p.fail("coercive.nodes_MV_per_m", "coercive-field nodes must be > 0")
+    th = p.table("thermal", required=False)
+    effects, thermal = effects_from_table(t.table("effects", required=False))
+    if thermal is not None and th is not None:
+        raise t.fail("effects.thermal_relaxation", "thermal relaxation given twice (also as "
+                     "[polarization.thermal])")
+    thermal = thermal if th is None else _thermal(th)
+    pol = hy.Polarization(
+        eta=p.number("eta_MVm_per_Cm2", positive=True), p_r=p.number("p_r_C_per_m2", positive=True),
+        coercive=coercive,  # type: ignore[arg-type]
+        interaction=_density(p.table("interaction"), ("normal", "discrete")),  # type: ignore[arg-type,union-attr]
+        n_coercive=p.integer("n_coercive", 128, minimum=1),
+        n_interaction=p.integer("n_interaction", 64, minimum=1),
+        kernel=p.string("kernel", "auto", choices=("auto", "normal", "grid")),  # type: ignore[arg-type]
+        thermal=thermal)
+    r = t.table("rod")
+    assert r is not None
+    rod = Rod(m=r.number("m_kg", positive=True), c=r.number("c_Ns_per_m", nonnegative=True),
+              k=r.number("k_N_per_m", positive=True), a1=r.number("a1_N_per_C_m2"),
+              a2=r.number("a2_N_per_C2_m4", 0.0), offset_um=r.number("offset_um", 0.0))
+    tt = t.table("transducer")
+    assert tt is not None
+    return Transducer(pol, rod, tt.number("thickness_um", positive=True), effects,
+                      tt.string("initial_state", "depoled",  # type: ignore[arg-type]
+                                choices=("depoled", "positive", "negative")))
+
+
+def _load(path: str | Path) -> tuple[Transducer, Envelope | None]:
+    t = load(path)
+    fmt = t.string("format")
+    if fmt != FORMAT:
+        raise t.fail("format", f"expected {FORMAT!r}, got {fmt!r}")
+    ver = t.integer("format_version")
+    if ver not in READABLE_VERSIONS:
+        raise t.fail("format_version", f"this afmctl reads versions "
+                     f"{', '.join(map(str, READABLE_VERSIONS))}, got {ver}")
+    model = from_table(t)
+    env_t = t.table("envelope", required=False) if ver >= 2 else None
+    env = None if env_t is None else _envelope(env_t)
+    unc = t.table("uncertainty", required=False) if ver >= 2 else None
+    if unc is not None:
+        for key in UNCERTAINTY_KEYS:
+            unc.has(key)
+    t.reject_unknown()
+    return model, env
+
+
+def read(path: str | Path) -> Transducer:
+    """Read a model file (format version 1 or 2); FileFormatError (naming file and key) on
+    anything malformed."""
+    return _load(path)[0]
+
+
+def read_envelope(path: str | Path) -> Envelope | None:
+    """The ``[envelope]`` of a model file (None for version 1 files and models without one)."""
+    return _load(path)[1]
+
+
+def write(model: Transducer, path: str | Path, header: str = "",
+          envelope: Envelope | None = None,
+          uncertainty: Mapping[str, Any] | None = None) -> None:
+    """Write ``model`` atomically (temporary file then rename: never a half-written model), with
+    its validity ``envelope`` and the fit's ``uncertainty`` (:func:`afmctl.fit.uncertainty.summary`)
+    if given."""
+    p = Path(path)
+    data = to_dict(model)
+    if envelope is not None:
+        data["envelope"] = envelope.to_dict()
+    if uncertainty:
+        data["uncertainty"] = uncertainty_table(uncertainty)
+    text = "".join(f"# {line}\n" for line in header.splitlines()) + dumps(data)
+    tmp = p.with_name(p.name + ".partial")
+    tmp.write_text(text, encoding="utf-8")
+    tmp.replace(p)

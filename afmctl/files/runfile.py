@@ -1,0 +1,147 @@
+"""Run-data files: written as samples arrive, readable after any interruption.
+
+Layout::
+
+    # afmctl-run: 1
+    # software: afmctl 0.1.0
+    # profile: emulated
+    # ... (key: value metadata, written and flushed before the first sample)
+    seq,time_s,desired_um,voltage_V,displacement_um,status
+    0,0.0000000,,0.000000,0.012345,ok
+    ...
+    # end: complete
+
+Every block of rows is flushed and fsynced as it is written. A file whose last line is not
+``# end: complete`` is incomplete (the run was interrupted, or the process died); it still reads, and
+:func:`read` reports it. ``status`` is ``ok`` or ``missing`` (the sample never arrived: its
+displacement is left empty, never invented).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import IO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl import __version__
+from afmctl.files.tomlfile import FileFormatError
+
+FORMAT_VERSION = 1
+COLUMNS = ("seq", "time_s", "desired_um", "voltage_V", "displacement_um", "status")
+
+
+def _cell(x: float, digits: int) -> str:
+    return "" if not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+class RunWriter:
+    """Append-only writer of one run (context manager).
+
+    Parameters
+    ----------
+    path : Path
+        File to create (an existing file is refused: measured data is never overwritten).
+    meta : mapping
+        Metadata written first (profile, model, filter, ...); the software version is added.
+    """
+
+    def __init__(self, path: str | Path, meta: Mapping[str, object]) -> None:
+        self.path = Path(path)
+        self._fh: IO[str] = open(self.path, "x", encoding="utf-8")  # noqa: SIM115
+        self._closed = False
+        self.rows = 0
+        head = {"afmctl-run": FORMAT_VERSION, "software": f"afmctl {__version__}", **meta}
+        self._fh.write("".join(f"# {k}: {v}\n" for k, v in head.items()))
+        self._fh.write(",".join(COLUMNS) + "\n")
+        self._sync()
+
+    def _sync(self) -> None:
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+
+    def write(self, seq: NDArray[np.int64], time_s: NDArray[np.float64],
+              desired_um: NDArray[np.float64], voltage_v: NDArray[np.float64],
+              displacement_um: NDArray[np.float64]) -> None:
+        """Append a block of samples (NaN displacement = missing) and flush it to disk."""
+        lines = []
+        for s, t, d, v, u in zip(seq, time_s, desired_um, voltage_v, displacement_um, strict=True):
+            status = "ok" if math.isfinite(u) else "missing"
+            lines.append(f"{int(s)},{t:.7f},{_cell(d, 6)},{_cell(v, 6)},{_cell(u, 6)},{status}\n")
+        self._fh.write("".join(lines))
+        self.rows += len(lines)
+        self._sync()
+
+    def close(self, end: str = "complete") -> None:
+        """Write the trailer ``# end: <end>`` (anything but ``complete`` marks it incomplete)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._fh.write(f"# end: {end}\n")
+        self._sync()
+        self._fh.close()
+
+    def __enter__(self) -> RunWriter:
+        return self
+
+    def __exit__(self, typ: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if typ is None:
+            self.close("complete")
+        else:
+            self.close(f"interrupted ({typ.__name__}: {exc})".replace("\n", " "))
+
+
+@dataclass(frozen=True)
+class Run:
+    """A run file read back. ``complete`` is False for an interrupted or truncated run."""
+
+    meta: dict[str, str]
+    seq: NDArray[np.int64]
+    time_s: NDArray[np.float64]
+    desired_um: NDArray[np.float64]
+    voltage_v: NDArray[np.float64]
+    displacement_um: NDArray[np.float64]
+    complete: bool
+    end: str
+
+
+def _float(cell: str) -> float:
+    return float(cell) if cell else math.nan
+
+
+def read(path: str | Path) -> Run:
+    """Read a run file, complete or not (a torn last line from a crash is dropped)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FileFormatError(f"{p}: cannot read ({exc.__class__.__name__})") from None
+    meta: dict[str, str] = {}
+    rows: list[list[str]] = []
+    end = "missing (the run did not finish)"
+    header_seen = False
+    for line in text.splitlines(keepends=True):
+        if line.startswith("# end: "):
+            end = line[7:].strip()
+        elif line.startswith("#"):
+            key, _, val = line[1:].strip().partition(": ")
+            meta[key] = val
+        elif not header_seen:
+            if tuple(line.strip().split(",")) != COLUMNS:
+                raise FileFormatError(f"{p}: not an afmctl run file (header {line.strip()!r})")
+            header_seen = True
+        elif line.endswith("\n") and line.count(",") == len(COLUMNS) - 1:
+            rows.append(line.rstrip("\n").split(","))
+    if not header_seen:
+        raise FileFormatError(f"{p}: no column header")
+    cols = list(zip(*rows, strict=True)) if rows else [()] * len(COLUMNS)
+    return Run(meta, np.array(cols[0], dtype=np.int64),
+               *(np.array([_float(c) for c in col]) for col in cols[1:5]),
+               complete=(end == "complete"), end=end)

@@ -1,0 +1,160 @@
+"""The candidate causes of a model discrepancy: each one's parameters, starts and bounds.
+
+Each candidate cause of a model discrepancy (``afmctl diagnose``) is the identified model of
+:mod:`afmctl.fit.parametrization` (six nonlinear parameters ``x``, gains ``beta`` projected out) plus
+a few parameters ``phi`` of one effect of :mod:`afmctl.model.effects` or of the thermal kernel (10):
+
+=======================  ===============================================  =======================
+name                     phi (internal)                                   acts on
+=======================  ===============================================  =======================
+``none``                 --                                               --
+``thermal-relaxation``   log E_th (MV/m), log nu0 (1/s)                   kernel (10) for (4)
+``amplifier-lag``        log f_a (Hz), log zeta_a, log S (MV/m/s)          field, before (13)
+``sensor-delay``         d (samples of the fastest sweep; a time)         design columns
+``sensor-nonlinearity``  c R, c3 R^2 (1/um, 1/um^2; R the range, um)     measured displacement
+``second-mode``          log f_2 (Hz), log zeta_2, gain, rate gain        design columns
+``voltage-gain-drift``   log g_s of every sweep but the last (mean 0)     field, per sweep
+=======================  ===============================================  =======================
+
+:mod:`afmctl.fit.extension` fits them. Pure numerics: no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl.fit import parametrization as pz
+
+FloatArray = NDArray[np.float64]
+
+NAMES = ("none", "thermal-relaxation", "amplifier-lag", "sensor-delay", "sensor-nonlinearity",
+         "second-mode", "voltage-gain-drift")
+#: Candidates whose parameters change ``Q`` (they act on the field or in the kernel).
+INPUT_SIDE = ("thermal-relaxation", "amplifier-lag", "voltage-gain-drift")
+#: An amplifier slew limit this many times the data's fastest field rate is out of reach (off):
+#: the smooth limit of :func:`afmctl.model.effects.lag` lengthens the lag there by under 0.1 %.
+SLEW_OFF = 30.0
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One candidate: its extra parameters' names, starting values and bounds (internal units).
+
+    ``starts[0]`` is the effect switched off (the base model). ``free_rod``: the effect alters
+    what the base model's rod absorbed (an amplifier's lag is partly taken up by a slower, more
+    damped rod; a sensor's latency by a slower, less damped one), so the multi-start moves the
+    rod with the effect. ``switch``: the last parameter is a switch (the amplifier's slew limit
+    off or on, which a local fit cannot turn): the multi-start's best run is run again with it at
+    each other value the starts give it. ``own_states``: the effect changes how the hysteresis
+    state evolves (relaxation), so each sweep's initial state is chosen again with the effect on
+    (the base fit's choice was made without it). ``sequenced``: the effect changes the field between sweeps
+    (a gain that differs from run to run), which the base fit could only absorb by giving a
+    sweep a start state of its own; the sweeps recorded in sequence (:func:`state_choices`) are
+    fitted as well, every choice of the first state, and the lowest cost wins.
+    ``fresh_density``: the effect changes which coercive fields the data show (thermally
+    activated dipoles switch ahead of E_c, and the relay model's fit absorbed that in a broader
+    density with more weight beyond the peak field), so the multi-start also starts the density
+    afresh (:func:`density_starts`) and its short runs move the whole model with the effect."""
+
+    name: str
+    labels: tuple[str, ...]
+    starts: tuple[tuple[float, ...], ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    free_rod: bool = False
+    switch: bool = False
+    own_states: bool = False
+    sequenced: bool = False
+    fresh_density: bool = False
+
+    @property
+    def n_params(self) -> int:
+        return len(self.labels)
+
+
+def calibration_readings(preps: Sequence[pz.Prepared]) -> FloatArray:
+    """The readings a gauge is calibrated on (um) when no recorded sweep is given: the slowest
+    prepared sweep's (quasi-static)."""
+    return max(preps, key=lambda p: p.dt).y
+
+
+def recorded_calibration(sweeps: Sequence[Any]) -> FloatArray:
+    """The readings (um) a lab calibrates its gauge on: the slowest recorded sweep's, whole (the
+    longest in time of the :class:`afmctl.files.sweepfile.Sweep` s)."""
+    return max(sweeps, key=lambda s: s.dt * s.displacement_um.size).displacement_um
+
+
+def reading_frame(readings_um: FloatArray) -> tuple[float, float, float, float]:
+    """The frame a gauge error is fitted in: the calibration readings' mean ``m`` (um),
+    ``R = sqrt(3 var)`` (um, the half width of a uniform spread of that variance) and third and
+    fourth central moments (um^3, um^4) (:class:`afmctl.model.effects.Effects`). The fitted gauge is
+    then stated in the frame of the positions of those readings, a lab's linear calibration
+    (:func:`afmctl.model.effects.position_frame`)."""
+    y = np.asarray(readings_um, dtype=float)
+    x = y - float(np.mean(y))
+    mu2 = max(float(np.mean(x * x)), 1e-12)
+    return (float(np.mean(y)), math.sqrt(3 * mu2), float(np.mean(x ** 3)),
+            float(np.mean(x ** 4)))
+
+
+def calibration_frame(preps: Sequence[pz.Prepared]) -> tuple[float, float, float, float]:
+    """:func:`reading_frame` of the :func:`calibration_readings` of ``preps``."""
+    return reading_frame(calibration_readings(preps))
+
+
+def field_rate_max(preps: Sequence[pz.Prepared]) -> float:
+    """Fastest rate of the field over the sweeps, MV/m/s."""
+    return max(float(np.max(np.abs(np.diff(p.field)))) / p.dt for p in preps) or 1.0
+
+
+def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
+              rate_max: float) -> dict[str, Candidate]:
+    """The candidates for ``n_sweeps`` sweeps of peak field ``e_max`` (MV/m), Nyquist frequency
+    (Hz), identified rod resonance ``rod_hz`` (Hz) and fastest field rate ``rate_max`` (MV/m/s).
+    ``voltage-gain-drift`` needs two sweeps.
+
+    The amplifier is of second order (a first order is its overdamped limit) with a slew limit
+    that starts either out of reach (``SLEW_OFF`` times the fastest rate) or at 1.5 times it
+    (the smooth limit then lengthens the fastest ramp's lag by a third)."""
+    lf, ln = math.log, math.log(nyquist_hz)
+    slew_off = lf(SLEW_OFF * rate_max)
+    cands = [
+        Candidate("none", (), ((),), (), ()),
+        Candidate("thermal-relaxation", ("log_field_scale_MV_per_m", "log_attempt_rate_per_s"),
+                  ((lf(2e-4 * e_max), lf(1e6)),)  # close to the relay: the base model
+                  + tuple((lf(f * e_max), lf(r)) for f in (0.001, 0.003, 0.01, 0.03)
+                          for r in (1e2, 1e4, 1e6)),
+                  (lf(1e-4 * e_max), lf(0.1)), (lf(0.3 * e_max), lf(1e7)), own_states=True,
+                  fresh_density=True),
+        Candidate("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio", "log_slew_MV_per_m_s"),
+                  ((ln + 2.9, lf(0.7), slew_off),)  # far beyond the data: the base model
+                  + tuple((lf(f * rod_hz), lf(0.7), slew) for f in (0.3, 1.0, 3.0)
+                          for slew in (slew_off, lf(1.5 * rate_max))) + ((ln, lf(0.7), slew_off),),
+                  (lf(1.0), lf(0.05), lf(0.3 * rate_max)), (ln + 3, lf(10.0), slew_off + 1e-6),
+                  free_rod=True, switch=True),
+        Candidate("sensor-delay", ("delay_fastest_samples",),
+                  ((0.0,), (0.5,), (2.0,), (5.0,), (10.0,), (25.0,)), (0.0,), (60.0,),
+                  free_rod=True),
+        Candidate("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
+                  ((0.0, 0.0), (-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)),
+                  (-0.3, -0.3), (0.3, 0.3)),
+        Candidate("second-mode", ("log_frequency_Hz", "log_damping_ratio", "gain", "rate_gain"),
+                  ((lf(2.0 * rod_hz), lf(0.03), 1e-4, 0.0),)  # no mode: the base model
+                  + tuple((lf(f * rod_hz), lf(0.03), g, 0.0) for f in (1.5, 2.2, 3.0, 4.0, 6.0)
+                          for g in (0.1,)
+                        if f * rod_hz < 0.8 * nyquist_hz) or ((ln - 1, lf(0.03), 0.1, 0.0),),
+                  (lf(min(1.05 * rod_hz, 0.3 * nyquist_hz)), lf(0.002), -0.9, -1.0),
+                  (ln, lf(0.5), 3.0, 1.0), free_rod=True),
+    ]
+    if n_sweeps >= 2:
+        k = n_sweeps - 1
+        cands.append(Candidate("voltage-gain-drift", tuple(f"log_gain_{i + 1}" for i in range(k)),
+                               (tuple([0.0] * k),), tuple([-0.3] * k), tuple([0.3] * k),
+                               sequenced=True))
+    return {c.name: c for c in cands}

@@ -1,0 +1,599 @@
+"""What the model gets wrong, why, and what an extended model gains on data the fit did not see.
+
+Given measured sweeps, :func:`diagnose`
+
+1. splits every sweep in time: the first half is fitted, the second half judged (the model state
+   is carried from the sweep's start through both: held-out periods, not held-out samples);
+2. fits the paper's model (``none``) and every candidate extension of :mod:`afmctl.fit.extension`
+   on the first halves, each sweep weighing the same;
+3. measures each one's RMS error on the second halves (the root mean of the per-sweep mean squares)
+   and its *gain* = base / extended held-out RMS;
+4. reads every held-out RMS against the noise floor (the sensor noise of each sweep, as the
+   caller or :mod:`afmctl.fit.noise` gives it) and decides (:mod:`afmctl.fit.verdict`): a candidate that
+   brings the error near the floor, ``none`` when the paper's model is already there, or
+   ``unexplained`` when nothing is (with how far, the residual's signature and what to measure);
+5. analyses the base model's residuals against time, field, field rate, frequency, amplitude,
+   turning points, a tone that is no harmonic of the drive, and between sweeps
+   (:func:`residual_signature`). The model files are the fits on the first halves.
+
+Pure numerics and data: files and plots are written by the CLI (:mod:`afmctl.cli`).
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import os
+import signal
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl.files.sweepfile import Sweep
+from afmctl.files.tomlfile import InputError
+from afmctl.fit import candidates as cd
+from afmctl.fit import extension as ext
+from afmctl.fit import identify as idf
+from afmctl.fit import noise as ns
+from afmctl.fit import parametrization as pz
+from afmctl.fit import verdict as vd
+from afmctl.fit.verdict import ratio, required_gain
+from afmctl.model import transducer as td
+
+FloatArray = NDArray[np.float64]
+
+#: Physical reading of each cause, for the report.
+CAUSES = {
+    "none": "the paper's model explains the data to within what extensions can add",
+    "thermal-relaxation": "thermally activated switching (kernel (10)): dipoles switch before the "
+                          "coercive field and keep switching at constant field, so loops depend "
+                          "on the sweep rate",
+    "amplifier-lag": "the voltage amplifier's bandwidth: the stack voltage lags the command, "
+                     "more at higher frequency",
+    "sensor-delay": "latency of the displacement readback: the recorded displacement is late by a "
+                    "fixed time, an error proportional to the velocity",
+    "sensor-nonlinearity": "a quadratic gauge error of the displacement sensor: an error that "
+                           "depends on position only, the same at every frequency",
+    "second-mode": "a second mechanical mode of the stage, rung by the triangle's corners",
+    "voltage-gain-drift": "the true applied voltage differs between experiments (the paper's "
+                          "Section 6 hypothesis): each sweep has its own gain",
+    "unexplained": "neither the paper's model nor any candidate explains the data down to the "
+                   "sensor's noise: an effect outside the vocabulary (or several at once)",
+}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Options of :func:`diagnose`: identification settings of the fits, the solver budget per run,
+    the number of starts per candidate, the candidates, the verdict's thresholds and the number of
+    candidates fitted at once (``jobs``, processes; None: one per core)."""
+
+    identify: idf.Settings = idf.Settings()
+    max_nfev: int = 60
+    n_starts: int = 2
+    candidates: tuple[str, ...] = cd.NAMES
+    rule: vd.Rule = vd.Rule()
+    jobs: int | None = None
+
+
+def fitted_text(parameters: dict[str, float]) -> str:
+    return ", ".join(f"{k} = {v:.4g}" for k, v in parameters.items())
+
+
+@dataclass(frozen=True)
+class Judged:
+    """One candidate: its fit on the first halves, its RMS error (um) on the second halves
+    (overall and per sweep) and the fit's wall time (s)."""
+
+    fitted: ext.Extended
+    n_params: int
+    heldout_rms_um: float
+    heldout_per_sweep_um: tuple[float, ...]
+    fit_seconds: float
+
+    def as_dict(self, base_rms: float, noise_um: float) -> dict[str, Any]:
+        return {"heldout_rms_um": self.heldout_rms_um, "gain": ratio(base_rms, self.heldout_rms_um),
+                "over_noise": ratio(self.heldout_rms_um, noise_um),
+                "required_gain": required_gain(self.n_params), "parameters_added": self.n_params,
+                "heldout_rms_per_sweep_um": list(self.heldout_per_sweep_um),
+                "fitted": self.fitted.parameters, "fit_success": self.fitted.success,
+                "fit_evaluations": self.fitted.nfev, "fit_seconds": round(self.fit_seconds, 2)}
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """Outcome of :func:`diagnose`: the verdict, held-out RMS (um) of the base and the extended
+    model, the noise floor (um, overall and per sweep), the candidate table, both models fitted on
+    the first halves (the extended one with its per-sweep applied-voltage gains; the base again if no
+    cause is named), the residual signature and the wall time (s)."""
+
+    cause: str
+    base_rms_um: float
+    extended_rms_um: float
+    noise_um: float
+    noise_per_sweep_um: tuple[float, ...]
+    table: dict[str, Judged]
+    base: ext.Extended
+    extended: ext.Extended
+    signature: dict[str, Any]
+    seconds: float
+    files: tuple[str, ...]
+
+    @property
+    def gain(self) -> float:
+        return ratio(self.base_rms_um, self.extended_rms_um)
+
+    @property
+    def base_model(self) -> td.Transducer:
+        return self.base.model
+
+    @property
+    def extended_model(self) -> td.Transducer:
+        return self.extended.model
+
+    @property
+    def extended_gains(self) -> tuple[float, ...]:
+        return self.extended.gains
+
+    def predictions(self, sweeps: Sequence[Sweep]) -> tuple[list[FloatArray], list[FloatArray]]:
+        """Readings (um) the base and the extended model (fitted on the first halves) predict
+        for ``sweeps``, each sweep from its start, with its sensor zero and gain."""
+        return predicted(self.base, sweeps), predicted(self.extended, sweeps)
+
+    @property
+    def base_over_noise(self) -> float:
+        return ratio(self.base_rms_um, self.noise_um)
+
+    @property
+    def extended_over_noise(self) -> float:
+        return ratio(self.extended_rms_um, self.noise_um)
+
+    @property
+    def closest(self) -> Judged:
+        """The model (base or candidate) with the smallest held-out RMS."""
+        return min(self.table.values(), key=lambda j: j.heldout_rms_um)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The ``diagnosis.json`` object (and ``--json`` output); non-finite numbers are null."""
+        closest = self.closest
+        return json_safe({
+            "cause": self.cause, "explanation": CAUSES.get(self.cause, CAUSES["unexplained"]),
+            "base_rms_um": self.base_rms_um, "extended_rms_um": self.extended_rms_um,
+            "gain": self.gain, "noise_um": self.noise_um,
+            "noise_per_sweep_um": list(self.noise_per_sweep_um),
+            "base_over_noise": self.base_over_noise,
+            "extended_over_noise": self.extended_over_noise,
+            "closest": {"model": closest.fitted.name, "heldout_rms_um": closest.heldout_rms_um,
+                        "over_noise": ratio(closest.heldout_rms_um, self.noise_um)},
+            "evidence": self.evidence(),
+            "suggestions": vd.suggestions(self.signature) if self.cause == "unexplained" else [],
+            "candidates": {k: j.as_dict(self.base_rms_um, self.noise_um)
+                           for k, j in self.table.items()},
+            "extended_gains": list(self.extended_gains),
+            "residuals": self.signature, "sweeps": list(self.files),
+            "seconds": round(self.seconds, 2),
+            "method": "fit on the first half of every sweep, judged on the second half (state "
+                      "carried through); each sweep weighs the same; every held-out RMS read "
+                      "against the noise floor; the model files are the fits on the first "
+                      "halves"})
+
+    def evidence(self) -> str:
+        """One paragraph: why this cause (or none, or unexplained)."""
+        ranked = sorted(self.table.values(), key=lambda j: j.heldout_rms_um)
+        lines = [f"{j.fitted.name}: held-out {j.heldout_rms_um:.4f} um "
+                 f"({ratio(j.heldout_rms_um, self.noise_um):.2f}x noise), gain "
+                 f"{ratio(self.base_rms_um, j.heldout_rms_um):.2f} (needs "
+                 f"{required_gain(j.n_params):.2f})" for j in ranked[:3]]
+        floor = (f"noise floor {self.noise_um:.4f} um; base model at "
+                 f"{self.base_over_noise:.2f}x noise")
+        if self.cause == "unexplained":
+            c = self.closest
+            head = (f"unexplained: {floor}, the closest model ({c.fitted.name}) at "
+                    f"{ratio(c.heldout_rms_um, self.noise_um):.2f}x: nothing reaches the floor")
+        else:
+            fitted = fitted_text(self.table[self.cause].fitted.parameters)
+            head = (f"{self.cause}: {floor}, held-out RMS {self.base_rms_um:.4f} -> "
+                    f"{self.extended_rms_um:.4f} um (gain {self.gain:.2f}, "
+                    f"{self.extended_over_noise:.2f}x noise)" + (f" with {fitted}" if fitted else ""))
+        return head + "; best models: " + "; ".join(lines)
+
+
+def json_safe(obj: Any) -> Any:
+    """``obj`` with every non-finite float replaced by None (JSON has no NaN or inf)."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+# ----------------------------------------------------------------------------------------------
+# held-out split and scoring
+# ----------------------------------------------------------------------------------------------
+
+
+def first_half(s: Sweep) -> Sweep:
+    """The fitted part of a sweep: its first half in time."""
+    h = s.time_s.size // 2
+    return Sweep(s.time_s[:h], s.voltage_v[:h], s.displacement_um[:h], s.meta, s.path)
+
+
+def predicted(fitted: ext.Extended, sweeps: Sequence[Sweep]) -> list[FloatArray]:
+    """Readings (um) the fitted candidate predicts for ``sweeps`` recorded in sequence: each from
+    its start, with its sensor zero and applied-voltage gain (:func:`afmctl.fit.identify.predict_set`)."""
+    return idf.predict_set(fitted.model, sweeps, fitted.starts, fitted.offsets_um, fitted.gains)
+
+
+def heldout(space: ext.ExtendedSpace, fitted: ext.Extended,
+            sweeps: Sequence[Sweep]) -> tuple[float, tuple[float, ...]]:
+    """Error of a fitted candidate on the second half of every sweep, the part no fit saw.
+
+    Parameters
+    ----------
+    space : ExtendedSpace
+        The candidate on the whole sweeps (:meth:`~afmctl.fit.extension.ExtendedSpace.on`): its
+        readings are computed exactly as in the fit, the state carried from each sweep's start
+        through both halves.
+    fitted : Extended
+        The candidate fitted on the first halves (its parameters, gains and sensor zeros).
+    sweeps : sequence of Sweep
+
+    Returns
+    -------
+    rms_um : float
+        Root mean of the per-sweep mean squares, um (every sweep weighs the same).
+    per_sweep_um : tuple of float
+        RMS of each sweep's second half, um.
+    """
+    mse = []
+    for s, u in zip(sweeps, space.readings(fitted.x, fitted.beta), strict=True):
+        h = s.time_s.size // 2
+        err = s.displacement_um - u
+        judged = s.mask(None)
+        judged[:h] = False
+        mse.append(float(np.mean(err[judged] ** 2)))
+    return math.sqrt(float(np.mean(mse))), tuple(math.sqrt(m) for m in mse)
+
+
+# ----------------------------------------------------------------------------------------------
+# residual analysis
+# ----------------------------------------------------------------------------------------------
+
+
+def _corr(a: FloatArray, b: FloatArray) -> float:
+    if a.size < 3 or np.std(a) == 0 or np.std(b) == 0:
+        return 0.0
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def _after_turns(v: FloatArray, dt: float, window_s: float) -> NDArray[np.bool_]:
+    """Samples within ``window_s`` after a turning point of the voltage."""
+    near = np.zeros(v.size, dtype=bool)
+    width = max(1, int(window_s / dt))
+    for k in pz.turning_points(v)[1:-1]:
+        near[k:k + width] = True
+    return near
+
+
+def tone_fraction(r: FloatArray, dt: float, drive_hz: float | None) -> float:
+    """Fraction of the residual's power (mean removed, Hann window) in its strongest spectral line
+    that is no harmonic of the drive (five bins around the peak; bins within three of a harmonic
+    skipped). White noise gives about 5 ln(N) / N; interference at a fixed frequency approaches 1."""
+    spec = np.abs(np.fft.rfft((r - np.mean(r)) * np.hanning(r.size))) ** 2
+    spec[0] = 0.0
+    total = float(np.sum(spec))
+    if total == 0 or spec.size < 8:
+        return 0.0
+    f = np.fft.rfftfreq(r.size, dt)
+    free = np.ones(spec.size, dtype=bool)
+    if drive_hz:
+        df = f[1]
+        near = np.abs(f / drive_hz - np.round(f / drive_hz)) * drive_hz <= 3.5 * df
+        free &= ~near
+    if not free.any():
+        return 0.0
+    k = int(np.argmax(np.where(free, spec, 0.0)))
+    return float(np.sum(spec[max(k - 2, 1):k + 3]) / total)
+
+
+def residual_signature(fitted: ext.Extended, sweeps: Sequence[Sweep]) -> dict[str, Any]:
+    """How the model's residual (measured - predicted, um) depends on time, field, field rate,
+    frequency, amplitude, turning points, and how it differs between sweeps; the strongest tone
+    that is no harmonic of the drive (:func:`tone_fraction`)."""
+    per, r_all, e_all, rate_all = [], [], [], []
+    model = fitted.model
+    for s, u in zip(sweeps, predicted(fitted, sweeps), strict=True):
+        m = s.mask(None)
+        r = (s.displacement_um - u)[m]
+        e = (s.voltage_v / model.thickness_um)[m]
+        rate = np.gradient(s.voltage_v / model.thickness_um, s.dt)[m]
+        period = 1.0 / s.frequency_hz if s.frequency_hz else s.time_s[-1] - s.time_s[0]
+        turns = _after_turns(s.voltage_v, s.dt, 0.05 * period)[m]
+        rms_turn = float(np.sqrt(np.mean(r[turns] ** 2))) if turns.any() else float("nan")
+        per.append({
+            "file": s.path or s.name, "frequency_hz": s.frequency_hz,
+            "amplitude_pp_V": float(np.ptp(s.voltage_v)), "rms_um": float(np.sqrt(np.mean(r ** 2))),
+            "mean_um": float(np.mean(r)), "corr_time": _corr(r, s.time_s[m]),
+            "corr_field": _corr(r, e), "corr_field_squared": _corr(r, e * e),
+            "corr_field_rate": _corr(r, rate),
+            "rms_after_turning_points_um": rms_turn,
+            "tone_fraction": tone_fraction(r, s.dt, s.frequency_hz),
+            "rms_elsewhere_um": float(np.sqrt(np.mean(r[~turns] ** 2))) if (~turns).any()
+            else float("nan")})
+        r_all.append(r)
+        e_all.append(e)
+        rate_all.append(rate)
+    r, e, rate = (np.concatenate(a) for a in (r_all, e_all, rate_all))
+    means = [p["mean_um"] for p in per]
+    freq = [(p["frequency_hz"], p["rms_um"]) for p in per if p["frequency_hz"]]
+    turn = [p["rms_after_turning_points_um"] / p["rms_elsewhere_um"] for p in per
+            if p["rms_elsewhere_um"] > 0 and math.isfinite(p["rms_after_turning_points_um"])]
+    return {"sweeps": per, "rms_um": float(np.sqrt(np.mean(r ** 2))),
+            "corr_field": _corr(r, e), "corr_field_squared": _corr(r, e * e),
+            "corr_field_rate": _corr(r, rate),
+            "corr_time": float(np.mean([p["corr_time"] for p in per])),
+            "turning_point_ratio": max(turn, default=1.0),
+            "tone_fraction": max(p["tone_fraction"] for p in per),
+            "between_sweeps_mean_spread_um": float(np.ptp(means)) if len(means) > 1 else 0.0,
+            "rms_vs_frequency": sorted(freq, key=lambda t: t[0])}
+
+
+# ----------------------------------------------------------------------------------------------
+# the diagnosis
+# ----------------------------------------------------------------------------------------------
+
+
+class DiagnoseInputError(InputError):
+    """Sweeps that cannot be diagnosed (too short, no voltage excursion): exit 2 at the CLI."""
+
+
+#: Fewest judged samples a sweep needs in each half (after its memory index).
+MIN_SAMPLES = 50
+
+
+def check(sweeps: Sequence[Sweep]) -> None:
+    """DiagnoseInputError naming the first sweep that cannot be split into a fitted and a judged
+    half with a voltage excursion in each."""
+    if not sweeps:
+        raise DiagnoseInputError("no sweeps given")
+    for s in sweeps:
+        m, h = s.mask(None), s.time_s.size // 2
+        if np.ptp(s.voltage_v) == 0:
+            raise DiagnoseInputError(f"{s.path or s.name}: the voltage never changes")
+        if min(int(m[:h].sum()), int(m[h:].sum())) < MIN_SAMPLES:
+            raise DiagnoseInputError(
+                f"{s.path or s.name}: fewer than {MIN_SAMPLES} samples in a half after the first "
+                f"full excursion (sample {s.memory_index}); record a longer sweep")
+
+
+#: Most coercive nodes in the candidates' fits (the identification may ask for more; the held-out
+#: predictions use 256).
+MAX_COERCIVE = 256
+
+
+@dataclass(frozen=True)
+class _Data:
+    """Sweeps prepared once for every candidate's fit."""
+
+    preps: list[pz.Prepared]
+    base: pz.LognormalSpace
+    e_max: float
+    nyquist_hz: float
+
+
+def _prepare(sweeps: Sequence[Sweep], thickness: float, settings: idf.Settings,
+             starts: Sequence[str] | None = None, n_coercive: int | None = None) -> _Data:
+    """The sweeps prepared for the fits: each from its start (None: chosen later), the
+    hysteresis on ``n_coercive`` nodes (None: the identification's fitting count)."""
+    preps = [pz.prepare(s, thickness, settings.field_step, None) for s in sweeps]
+    space = pz.LognormalSpace(preps, settings.scales, n_coercive or settings.n_coercive_fit,
+                              starts)
+    return _Data(preps, space, *pz.extent(preps))
+
+
+def _base_fit(halves: Sequence[Sweep], thickness: float, settings: Settings,
+              start: td.Transducer | None, say: Callable[[str], None]) -> tuple[_Data, FloatArray]:
+    """The robust base fit on the first halves (:func:`afmctl.fit.identify.fit`: each sweep's start
+    state and sensor zero, the coercive node count), or ``start``'s parameters with the starts
+    chosen for them: the data prepared for every candidate, and ``x`` of the base model."""
+    if start is None:
+        say("identifying the base model on the first halves ...")
+        res = idf.fit(halves, settings.identify)
+        n_c = min(max(settings.identify.n_coercive_fit, res.model.polarization.n_coercive),
+                  MAX_COERCIVE)
+        say("  base fit: RMS / noise per half " + " / ".join(
+            f"{e.rms_over_noise:.2f}" for e in res.sweeps) + f"; N_c = {n_c}")
+        return _prepare(halves, thickness, settings.identify, [e.start for e in res.sweeps],
+                        n_c), res.x
+    x0 = pz.internal(start)
+    data = _prepare(halves, thickness, settings.identify)
+    y = np.concatenate([p.y for p in data.preps])
+    return replace(data, base=idf.choose_starts(data.base, x0, y)), x0
+
+
+def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um: float,
+         settings: Settings, whole: Sequence[pz.Prepared], sweeps: Sequence[Sweep]
+         ) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
+    """Fit candidate ``name`` from the base parameters ``x_start``; a gauge error fitted in the
+    frame of the ``whole`` sweeps' slowest readings and stated in that of a lab's linear
+    calibration on the slowest of the recorded ``sweeps``."""
+    cand = cd.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
+                         float(np.exp(x_start[4])), cd.field_rate_max(data.preps))[name]
+    space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um,
+                              gauge_frame=cd.calibration_frame(whole),
+                              calibration_um=cd.recorded_calibration(sweeps))
+    fitted, space = ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts,
+                            settings.identify)
+    return fitted, cand.n_params, space
+
+
+@dataclass(frozen=True)
+class _Job:
+    """What every candidate's fit and judgement needs (sent to the worker processes)."""
+
+    data: _Data
+    x0: FloatArray
+    thickness: float
+    range_um: float
+    settings: Settings
+    whole: list[pz.Prepared]
+    sweeps: tuple[Sweep, ...]
+
+
+def _judge(name: str, job: _Job) -> Judged:
+    """Fit candidate ``name`` on the first halves and judge it on the second halves."""
+    t1 = time.perf_counter()
+    fitted, n_params, space = _fit(name, job.data, job.x0, job.thickness, job.range_um,
+                                   job.settings, job.whole, job.sweeps)
+    rms, per = heldout(space.on(job.whole), fitted, job.sweeps)
+    return Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
+
+
+#: Candidates by typical fit time, longest first (they are handed to the processes in this order).
+SLOWEST_FIRST = ("thermal-relaxation", "second-mode", "amplifier-lag")
+
+
+def _judge_all(names: Sequence[str], job: _Job, floor: float,
+               say: Callable[[str], None]) -> dict[str, Judged]:
+    """Every candidate judged, in ``names`` order; fitted ``job.settings.jobs`` at a time in
+    worker processes (the fits are independent and pure)."""
+    jobs = min(job.settings.jobs or os.cpu_count() or 1, len(names))
+    order = sorted(names, key=lambda n: SLOWEST_FIRST.index(n) if n in SLOWEST_FIRST else 9)
+
+    def said(name: str, j: Judged) -> Judged:
+        say(f"  {name:20s} held-out RMS {j.heldout_rms_um:.4f} um = "
+            f"{j.heldout_rms_um / floor:.2f}x noise ({j.fit_seconds:.1f} s)")
+        return j
+
+    if jobs <= 1:
+        done = {n: said(n, _judge(n, job)) for n in order}
+    else:  # leaving the pool (an error, Ctrl-C) terminates the workers; they ignore SIGINT
+        with mp.get_context("fork").Pool(jobs, _ignore_interrupt) as pool:
+            done = {n: said(n, j) for n, j in pool.imap_unordered(_named_judge,
+                                                                  [(n, job) for n in order])}
+    return {n: done[n] for n in names}
+
+
+def _named_judge(task: tuple[str, _Job]) -> tuple[str, Judged]:
+    return task[0], _judge(*task)
+
+
+def _ignore_interrupt() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:
+    """The candidates tried on ``n_sweeps`` sweeps (gain drift needs two or more)."""
+    return [n for n in settings.candidates if n != "voltage-gain-drift" or n_sweeps >= 2]
+
+
+def choose(table: dict[str, Judged], floor_um: float, rule: vd.Rule) -> str:
+    """The verdict on the candidate table against the noise floor ``floor_um`` (um):
+    :func:`afmctl.fit.verdict.decide`."""
+    return vd.decide([vd.Scored(j.fitted.name, j.heldout_rms_um, j.n_params)
+                      for j in table.values()], floor_um, rule)
+
+
+def check_noise(sweeps: Sequence[Sweep], noise_um: Sequence[float]) -> tuple[float, ...]:
+    """The per-sweep noise (um) as floats; DiagnoseInputError unless one positive finite value
+    per sweep."""
+    noise = tuple(float(n) for n in noise_um)
+    if len(noise) != len(sweeps) or not all(math.isfinite(n) and n > 0 for n in noise):
+        raise DiagnoseInputError(f"need one positive sensor noise (um) per sweep, got {noise}")
+    return noise
+
+
+def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
+             start: td.Transducer | None = None,
+             progress: Callable[[str], None] | None = None,
+             noise_um: Sequence[float] | None = None) -> Diagnosis:
+    """Find what the model gets wrong on ``sweeps``, fit each candidate cause, give the verdict.
+
+    Parameters
+    ----------
+    sweeps : sequence of Sweep
+        Measured sweeps (at least one; ``voltage-gain-drift`` needs two).
+    settings : Settings
+    start : Transducer, optional
+        A model (lognormal/normal densities) to start the fits from instead of identifying one.
+    progress : callable, optional
+        One-line progress messages.
+    noise_um : sequence of float, optional
+        The sensor noise (1 sigma, um) of each sweep: the floor every held-out RMS is read
+        against. Default: estimated from each sweep's data (:func:`afmctl.fit.noise.sensor_noise_um`).
+
+    Returns
+    -------
+    Diagnosis
+        Verdict, base and extended held-out RMS (um), noise floor, the per-candidate table, and the
+        base model and the winner (fitted on the first halves).
+
+    Raises
+    ------
+    DiagnoseInputError
+        Sweeps too short to split, or without a voltage excursion; a noise that is not positive.
+    """
+    say = progress or (lambda _m: None)
+    t0 = time.perf_counter()
+    check(sweeps)
+    noise = check_noise(sweeps, noise_um if noise_um is not None else
+                        [ns.sensor_noise_um(s.displacement_um) for s in sweeps])
+    floor = vd.floor(noise)
+    thickness, _ = idf.resolve_thickness(sweeps, settings.identify)
+    halves = [first_half(s) for s in sweeps]
+    range_um = max(float(np.ptp(s.displacement_um[s.mask(None)])) for s in sweeps)
+    data, x0 = _base_fit(halves, thickness, settings, start, say)
+    whole = [pz.prepare(s, thickness, settings.identify.field_step, None) for s in sweeps]
+    table = _judge_all(candidate_names(len(sweeps), settings),
+                       _Job(data, x0, thickness, range_um, settings, whole, tuple(sweeps)), floor, say)
+    cause = choose(table, floor, settings.rule)
+    say(f"verdict: {cause}")
+    named = cause if cause in table else "none"
+    base, final = table["none"].fitted, table[named].fitted
+    return Diagnosis(cause, table["none"].heldout_rms_um, table[named].heldout_rms_um, floor,
+                     noise, table, base, final, residual_signature(base, sweeps),
+                     time.perf_counter() - t0,
+                     tuple(s.path or s.name for s in sweeps))
+
+
+def _suggestion_lines(d: Diagnosis) -> list[str]:
+    if d.cause != "unexplained":
+        return []
+    return ["", "What the residual shows, and what would tell more:", ""] + [
+        f"- {s['reading']}: {s['measure']}." for s in vd.suggestions(d.signature)]
+
+
+def report(d: Diagnosis, figure: str) -> str:
+    """A short Markdown report: the cause, its evidence, the candidate table, the residuals."""
+    lines = [f"# afmctl diagnose: {d.cause}", "", CAUSES[d.cause] + ".", "", d.evidence() + ".",
+             *_suggestion_lines(d),
+             "", "Held-out RMS: each candidate fitted on the first half of every sweep and judged "
+             "on the second half.", "",
+             "| candidate | parameters added | held-out RMS (um) | x noise | gain | needed | fitted |",
+             "|---|---:|---:|---:|---:|---:|---|"]
+    for name, j in sorted(d.table.items(), key=lambda kv: kv[1].heldout_rms_um):
+        fitted = fitted_text(j.fitted.parameters)
+        lines.append(f"| {name} | {j.n_params} | {j.heldout_rms_um:.4f} | "
+                     f"{ratio(j.heldout_rms_um, d.noise_um):.2f} | "
+                     f"{ratio(d.base_rms_um, j.heldout_rms_um):.2f} | "
+                     f"{required_gain(j.n_params):.2f} | {fitted} |")
+    sig = d.signature
+    lines += ["", "## Residuals of the paper's model", "",
+              "| sweep | frequency (Hz) | RMS (um) | mean (um) | corr. field | corr. field rate "
+              "| RMS after turning points (um) | elsewhere (um) |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for p in sig["sweeps"]:
+        lines.append(f"| {p['file']} | {p['frequency_hz'] or ''} | {p['rms_um']:.4f} | "
+                     f"{p['mean_um']:.4f} | {p['corr_field']:.2f} | {p['corr_field_rate']:.2f} | "
+                     f"{p['rms_after_turning_points_um']:.4f} | {p['rms_elsewhere_um']:.4f} |")
+    lines += ["", f"All sweeps: correlation with field {sig['corr_field']:.2f}, with field squared "
+              f"{sig['corr_field_squared']:.2f}, with field rate {sig['corr_field_rate']:.2f}; "
+              f"spread of the per-sweep mean residual {sig['between_sweeps_mean_spread_um']:.4f} um.",
+              "", f"![residuals before and after]({figure})", ""]
+    return "\n".join(lines)

@@ -1,0 +1,519 @@
+"""Candidate model extensions: the paper's model plus one physical effect, fitted by least squares.
+
+Each candidate cause of a model discrepancy (``afmctl diagnose``; the catalogue, its parameters
+and bounds are :mod:`afmctl.fit.candidates`) is the identified model of :mod:`afmctl.fit.parametrization`
+(six nonlinear parameters ``x``, gains ``beta`` projected out) plus a few parameters ``phi`` of
+one effect of :mod:`afmctl.model.effects` or of the thermal kernel (10).
+
+Every sweep weighs the same in the cost (rows scaled by ``sqrt(n_mean / n_s)``), so an effect seen
+only on the fast sweeps is not drowned by the long slow ones. Pure numerics: no I/O.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize
+
+from afmctl.fit import identify as idf
+from afmctl.fit import noise as ns
+from afmctl.fit import parametrization as pz
+from afmctl.fit.candidates import INPUT_SIDE, Candidate, calibration_readings, reading_frame
+from afmctl.fit.relaxation import (
+    THERMAL_COARSE,
+    THERMAL_COLUMNS,
+    THERMAL_FINE,
+    THERMAL_JOINT,
+    density_starts,
+    thermal_polarization,
+)
+from afmctl.model import effects as fx
+from afmctl.model import hysteresis as hy
+from afmctl.model import transducer as td
+
+FloatArray = NDArray[np.float64]
+#: ``Q`` of this many recent parameter sets is remembered (:meth:`ExtendedSpace._q`).
+MEMO = 12
+#: Candidates whose multi-start result refits the paper's model through the effect (:func:`_rebase`).
+REBASED = ("amplifier-lag", "sensor-delay", "sensor-nonlinearity")
+#: The refit through the effect is tried only when the multi-start's effect has already brought
+#: the cost below this fraction of the base model's (on a clean stage it would cost a whole
+#: identification for nothing).
+REBASE_GAIN = 0.8
+#: The polish on the fine grid gets this fraction (1/FINE_SHARE) of a fit's evaluations.
+FINE_SHARE = 12
+
+
+@dataclass(frozen=True)
+class Extended:
+    """A fitted candidate: the model (with its effect), per-sweep applied-voltage gains, initial
+    hysteresis states and sensor zeros (um), and the solver's word."""
+
+    name: str
+    model: td.Transducer
+    gains: tuple[float, ...]
+    parameters: dict[str, float]
+    success: bool
+    nfev: int
+    x: FloatArray
+    starts: tuple[str, ...]
+    offsets_um: tuple[float, ...]
+    beta: FloatArray
+
+
+def _with_zeros(blocks: Sequence[FloatArray]) -> FloatArray:
+    """Stack per-sweep blocks ``[g1 col, g2 col, zero col]`` into ``[L[Q], L[Q^2], 1_s]``: the
+    zero column of each sweep in a column of its own."""
+    n = len(blocks)
+    out = np.zeros((sum(b.shape[0] for b in blocks), 2 + n))
+    row = 0
+    for s, b in enumerate(blocks):
+        out[row:row + b.shape[0], :2] = b[:, :2]
+        out[row:row + b.shape[0], 2 + s] = b[:, 2]
+        row += b.shape[0]
+    return out
+
+
+def _log_gains(phi: FloatArray) -> FloatArray:
+    """Per-sweep log gains from the free ones: the last makes their mean 0, so the model keeps
+    the sweeps' average gain (a model for ``track``, which cannot know a future run's gain)."""
+    return np.concatenate((phi, [-float(np.sum(phi))]))
+
+
+class ExtendedSpace:
+    """The residual of one candidate on prepared sweeps: ``z = (x, phi)``. Each sweep starts
+    from the hysteresis state of ``base.starts`` and has its own sensor zero (as in
+    :func:`afmctl.fit.identify.fit`). ``calibration_um``: the readings a gauge is calibrated on, um
+    (default :func:`afmctl.fit.candidates.calibration_readings` of ``preps``; diagnose gives the
+    slowest recorded sweep's, whole); ``gauge_frame``: centre and half width (um) of the readings
+    a gauge error is fitted about, and their third and fourth central moments (um^3, um^4;
+    absent: a uniform spread); default :func:`afmctl.fit.candidates.reading_frame` of
+    ``calibration_um`` (:func:`afmctl.model.effects.gauge`)."""
+
+    def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
+                 field_step: float, range_um: float, dt_min: float | None = None,
+                 gauge_frame: tuple[float, ...] | None = None,
+                 thermal_grid: tuple[int, float, int] = THERMAL_FINE,
+                 calibration_um: FloatArray | None = None) -> None:
+        self.candidate, self.preps, self.base = candidate, list(preps), base
+        self.step_rel = field_step
+        self.range_um = range_um
+        self.calibration_um = (calibration_readings(self.preps) if calibration_um is None
+                               else calibration_um)
+        self.gauge_frame = gauge_frame or reading_frame(self.calibration_um)
+        self.dt_min = dt_min or min(p.dt for p in self.preps)
+        n = np.array([p.mask.sum() for p in self.preps], dtype=float)
+        self.weights = np.sqrt(n.mean() / n)
+        self.thermal_grid = thermal_grid
+        self._memo: dict[bytes, list[FloatArray]] = {}
+
+    @functools.cached_property
+    def thermal_keep(self) -> list[NDArray[np.intp]]:
+        """Per sweep: the samples kernel (10) is run on (field steps of the thermal grid's)."""
+        step = self.thermal_grid[1]
+        return [pz.decimation(p.field, step * float(np.max(np.abs(p.field)))) for p in self.preps]
+
+    def bounds(self) -> tuple[FloatArray, FloatArray]:
+        lo, hi = self.base.bounds()
+        return (np.concatenate((lo, self.candidate.lower)),
+                np.concatenate((hi, self.candidate.upper)))
+
+    def _fields(self, phi: FloatArray) -> list[tuple[FloatArray, NDArray[np.intp]]]:
+        """Per sweep: the field the hysteresis sees (MV/m, full rate) and the samples kept: the
+        command's (its turning points and field steps) and the amplifier output's own turning
+        points. Not re-decimated per ``phi``: samples that jump as ``phi`` moves would make the
+        cost a staircase in ``phi`` that finite differences cannot follow."""
+        name, out = self.candidate.name, []
+        for s, p in enumerate(self.preps):
+            e, keep = p.field, p.keep
+            if name == "voltage-gain-drift":
+                e = e * math.exp(_log_gains(phi)[s])
+            elif name == "amplifier-lag":
+                chain = fx.compile_chain(self._amplifier(phi, 1.0), p.dt)
+                e = fx.lag(chain, e, float(e[0]))[0]
+                keep = np.union1d(keep, pz.turning_points(e))
+            out.append((e, keep))
+        return out
+
+    def _q(self, theta: FloatArray, phi: FloatArray) -> list[FloatArray]:
+        """``Q`` at the full rate per sweep (eq. (13), or (10) for thermal relaxation).
+
+        Remembered for the last few arguments it depends on (``theta[:4]``, and ``phi`` for the
+        effects that act before or in the hysteresis): a finite-difference Jacobian moves one
+        parameter at a time, and the rod's and the output effects' parameters leave ``Q`` alone.
+        """
+        key = theta[:4].tobytes() + (phi.tobytes() if self.candidate.name in INPUT_SIDE else b"")
+        if key not in self._memo:
+            if len(self._memo) >= MEMO:
+                self._memo.pop(next(iter(self._memo)))
+            self._memo[key] = self._q_new(theta, phi)
+        return self._memo[key]
+
+    def _q_new(self, theta: FloatArray, phi: FloatArray) -> list[FloatArray]:
+        fields = self._fields(phi)
+        q_keep = pz.hysteresis(theta, [e[keep] for e, keep in fields], self.base.n_coercive,
+                               starts=self.base.starts)
+        if self.candidate.name == "thermal-relaxation":
+            fine = [(p.field, k) for p, k in zip(self.preps, self.thermal_keep, strict=True)]
+            return [pz.at_full_rate(e.size, keep, q) + pz.at_full_rate(e.size, k, d)
+                    for (e, keep), q, (_, k), d
+                    in zip(fields, q_keep, fine, self._thermal(theta, phi, fine), strict=True)]
+        return [pz.at_full_rate(e.size, keep, q) for (e, keep), q in zip(fields, q_keep,
+                                                                           strict=True)]
+
+    def _thermal(self, theta: FloatArray, phi: FloatArray,
+                 fields: list[tuple[FloatArray, NDArray[np.intp]]]) -> list[FloatArray]:
+        """Departure of kernel (10) from the relay kernel at the kept samples, each held for its
+        time: ``Q`` of (10) on the thermal grid (:func:`thermal_polarization`) minus the relay's
+        on the same rows with the interaction integrated in closed form, so the rows' quadrature
+        error cancels and the departure vanishes with the field scale."""
+        holds = [np.diff(keep, append=p.field.size) * p.dt
+                 for (_, keep), p in zip(fields, self.preps, strict=True)]
+        kept = [e[keep] for e, keep in fields]
+        rows, _, n_max = self.thermal_grid
+        pol = thermal_polarization(theta, hy.Thermal(math.exp(phi[0]), math.exp(phi[1])), n_max,
+                                   rows)
+        hot = pz.run_from(pol, kept, self.base.starts, holds)
+        relay = pz.hysteresis(theta, kept, rows, starts=self.base.starts)
+        return [a - b for a, b in zip(hot, relay, strict=True)]
+
+    def _output(self, phi: FloatArray) -> fx.Effects:
+        if self.candidate.name == "sensor-delay":
+            return fx.Effects(sensor_delay_s=float(phi[0]) * self.dt_min)
+        if self.candidate.name == "second-mode":
+            return fx.Effects(second_mode=fx.SecondMode(math.exp(phi[0]), math.exp(phi[1]),
+                                                        float(phi[2]), float(phi[3])))
+        return fx.Effects()
+
+    def _amplifier(self, phi: FloatArray, thickness_um: float) -> fx.Effects:
+        """The amplifier of ``phi`` (its slew in V/s for a stack ``thickness_um`` thick; none if
+        the slew stayed out of reach)."""
+        slew = math.exp(phi[2])
+        on = slew < math.exp(self.candidate.upper[2]) / 1.5
+        return fx.Effects(amplifier_bandwidth_hz=math.exp(phi[0]),
+                          amplifier_damping_ratio=math.exp(phi[1]),
+                          amplifier_slew_v_per_s=slew * thickness_um if on else None)
+
+    def _gauge(self, phi: FloatArray) -> fx.Effects:
+        if self.candidate.name != "sensor-nonlinearity":
+            return fx.Effects()
+        m, r, *moments = self.gauge_frame
+        mu3, mu4 = moments or (0.0, 0.0)
+        return fx.Effects(sensor_quadratic_per_um=float(phi[0]) / self.range_um,
+                          sensor_cubic_per_um2=float(phi[1]) / self.range_um ** 2,
+                          sensor_center_um=m, sensor_half_range_um=r,
+                          sensor_third_moment_um3=mu3, sensor_fourth_moment_um4=mu4)
+
+    def gauge_seeds(self, x: FloatArray) -> list[tuple[float, float]]:
+        """Where else a refit through a gauge error starts (:func:`_fit_from`, from the model
+        ``x`` a first refit gave): the cubic error solved by least squares, the curvature at 0.
+        A strong gauge is out of reach of local runs from the base model, which bent its loops
+        and its rod term ``a2 L[Q^2]`` to take up the gauge's error. The readings are
+        ``y = w + c P2(w) + c3 P3(w)`` with ``w`` linear in the gains and zeros, so to first
+        order ``(c, c3)`` solve with them on ``[L[Q], L[Q^2], 1_s, P2(y), P3(y)]``. Only ``c3`` is
+        kept: quasi-statically the gauge's ``c w^2`` is the rod's ``a2 Q^2`` to first order
+        (``w`` is ``a1 Q``), so the ``c`` of that solve is ill-determined, while ``c3 w^3`` is the
+        one cubic in ``Q`` of the two; the refit and the joint fit find ``c``. Empty for other
+        candidates."""
+        if self.candidate.name != "sensor-nonlinearity":
+            return []
+        a, _ = self.system(np.concatenate((x, np.zeros(2))))
+        terms = np.concatenate([wt * fx.gauge_terms(self._gauge(np.ones(2)), p.y)
+                                for p, wt in zip(self.preps, self.weights, strict=True)])
+        y = np.concatenate([wt * p.y for p, wt in zip(self.preps, self.weights, strict=True)])
+        c3 = np.linalg.lstsq(np.column_stack((a, terms)), y, rcond=None)[0][-1]
+        return [(0.0, float(np.clip(c3 * self.range_um ** 2, self.candidate.lower[1],
+                                    self.candidate.upper[1])))]
+
+    def columns(self, z: FloatArray) -> list[FloatArray]:
+        """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` after the output effects (the
+        sensor zero is the rod's, so it sees them too), shape (N, 3)."""
+        theta, phi = np.exp(z[:6]), z[6:]
+        out, blocks = self._output(phi), []
+        for q, p in zip(self._q(theta, phi), self.preps, strict=True):
+            cols = np.column_stack((pz.sweep_columns(q, theta[4], theta[5], p.dt)[:, :2],
+                                    np.ones(q.size)))
+            if out != fx.Effects():
+                chain = fx.compile_chain(out, p.dt)
+                cols = np.column_stack([fx.measure(chain, c, *fx.rest(chain, float(c[0])))[0]
+                                        for c in cols.T])
+            blocks.append(cols)
+        return blocks
+
+    def system(self, z: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Weighted design matrix ``[L[Q], L[Q^2], 1_s]`` (``1_s`` one sensor zero per sweep)
+        and target (the readings through the inverse gauge)."""
+        gauge = self._gauge(z[6:])
+        blocks = [w * c[p.mask] for c, p, w in zip(self.columns(z), self.preps, self.weights,
+                                                      strict=True)]
+        ys = [w * fx.ungauge(gauge, p.y) for p, w in zip(self.preps, self.weights, strict=True)]
+        return _with_zeros(blocks), np.concatenate(ys)
+
+    def readings(self, z: FloatArray, beta: FloatArray) -> list[FloatArray]:
+        """What the sensor reads (um) at every sample of every sweep for ``z`` and the linear
+        parameters ``beta = (g1, g2, zero_1, ..., zero_S)``."""
+        gauge = self._gauge(z[6:])
+        return [fx.gauge(gauge, c[:, :2] @ beta[:2] + c[:, 2] * beta[2 + s])
+                for s, c in enumerate(self.columns(z))]
+
+    def _derived(self, preps: Sequence[pz.Prepared] | None = None,
+                 base: pz.LognormalSpace | None = None,
+                 thermal_grid: tuple[int, float, int] | None = None) -> ExtendedSpace:
+        """This space with the given parts replaced (the scales and the gauge frame kept)."""
+        return ExtendedSpace(self.candidate, self.preps if preps is None else preps,
+                             base or self.base, self.step_rel, self.range_um, self.dt_min,
+                             self.gauge_frame, thermal_grid or self.thermal_grid,
+                             self.calibration_um)
+
+    def with_starts(self, starts: Sequence[str]) -> ExtendedSpace:
+        """The same candidate with other initial states of the sweeps (:data:`pz.STARTS`)."""
+        return self._derived(base=self.base.with_starts(starts))
+
+    def with_grid(self, thermal_grid: tuple[int, float, int]) -> ExtendedSpace:
+        """The same candidate with another thermal grid (rows, field step, most columns)."""
+        return self._derived(thermal_grid=thermal_grid)
+
+    def on(self, preps: Sequence[pz.Prepared]) -> ExtendedSpace:
+        """The same candidate, starts and node count on other prepared sweeps (the whole sweeps
+        a fit on their first halves is judged on)."""
+        return self._derived(preps, pz.LognormalSpace(preps, self.base.scales,
+                                                      self.base.n_coercive, self.base.starts))
+
+    def through(self, phi: FloatArray) -> pz.LognormalSpace:
+        """The base model's space on the fields the hysteresis sees with the input-side effect
+        ``phi`` (the amplifier's output), or on the readings a sensor delay ``phi`` had made late
+        advanced back, or a gauge error ``phi`` undone: the paper's model fitted through the
+        effect."""
+        if self.candidate.name == "sensor-delay":
+            preps = [replace(p, y=fx.advance(p.y, float(phi[0]) * self.dt_min / p.dt))
+                     for p in self.preps]
+        elif self.candidate.name == "sensor-nonlinearity":
+            preps = [replace(p, y=fx.ungauge(self._gauge(phi), p.y)) for p in self.preps]
+        else:
+            preps = [replace(p, field=e, keep=keep)
+                     for p, (e, keep) in zip(self.preps, self._fields(phi), strict=True)]
+        return pz.LognormalSpace(preps, self.base.scales, self.base.n_coercive, self.base.starts)
+
+    def residual(self, z: FloatArray) -> FloatArray:
+        a, y = self.system(z)
+        return pz.project(a, y)[1]
+
+    def to_model(self, z: FloatArray, thickness_um: float
+                 ) -> tuple[td.Transducer, tuple[float, ...], tuple[float, ...]]:
+        """The physical model (effect included; the last sweep's sensor zero), the per-sweep
+        applied-voltage gains and sensor zeros (um). A gauge error is fitted in the frame of the
+        slowest sweep's readings and stated in that of its positions (:func:`effects.position_frame`:
+        the rod's gains and zeros scaled and shifted with it), the frame of a lab's linear
+        calibration of the gauge on that sweep: the readings the model predicts are the same."""
+        a, y = self.system(z)
+        beta, _ = pz.project(a, y)
+        phi, name = z[6:], self.candidate.name
+        gauge = self._gauge(phi)
+        if name == "sensor-nonlinearity":  # positions in the frame of the gauge's calibration
+            shift, scale, gauge = fx.position_frame(gauge, self.calibration_um)
+            beta = np.concatenate((scale * beta[:2], shift + scale * beta[2:]))
+        model = self.base.model(z[:6], np.array([beta[0], beta[1], beta[-1]]), thickness_um)
+        offsets = tuple(float(b) for b in beta[2:])
+        gains = tuple([1.0] * len(self.preps))
+        if name == "thermal-relaxation":
+            grid = thermal_polarization(np.exp(z[:4]), hy.Thermal(math.exp(phi[0]),
+                                                                math.exp(phi[1])),
+                                        THERMAL_COLUMNS[2])
+            model = replace(model, polarization=replace(
+                model.polarization, thermal=grid.thermal, n_coercive=grid.n_coercive,
+                interaction=grid.interaction))
+        elif name == "amplifier-lag":
+            model = replace(model, effects=self._amplifier(phi, thickness_um))
+        elif name == "sensor-nonlinearity":
+            model = replace(model, effects=gauge)
+        elif name == "voltage-gain-drift":
+            gains = tuple(math.exp(v) for v in _log_gains(phi))
+            model = replace(model, effects=fx.Effects(voltage_gain_sigma=float(np.std(gains,
+                                                                                     ddof=1))))
+        else:
+            model = replace(model, effects=self._output(phi))
+        return model, gains, offsets
+
+
+def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[str, float]:
+    """The fitted effect's parameters with units in their names."""
+    e, th = model.effects, model.polarization.thermal
+    if name == "thermal-relaxation" and th is not None:
+        return {"field_scale_MV_per_m": th.field_scale, "attempt_rate_per_s": th.attempt_rate}
+    if name == "amplifier-lag" and e.amplifier_bandwidth_hz is not None:
+        return {"bandwidth_Hz": e.amplifier_bandwidth_hz,
+                "damping_ratio": e.amplifier_damping_ratio or math.nan,
+                "slew_V_per_s": e.amplifier_slew_v_per_s or math.inf}
+    if name == "sensor-delay":
+        return {"delay_s": e.sensor_delay_s}
+    if name == "sensor-nonlinearity":
+        return {"quadratic_per_um": e.sensor_quadratic_per_um,
+                "cubic_per_um2": e.sensor_cubic_per_um2}
+    if name == "second-mode" and e.second_mode is not None:
+        m = e.second_mode
+        return {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio, "gain": m.gain,
+                "rate_gain": m.rate_gain}
+    if name == "voltage-gain-drift":
+        return {f"gain_sweep_{i + 1}": g for i, g in enumerate(gains)}
+    return {}
+
+
+def _rebase(space: ExtendedSpace, z: FloatArray,
+            settings: idf.Settings) -> tuple[ExtendedSpace, FloatArray]:
+    """``x`` and each sweep's start fitted afresh with the effect of ``z`` held
+    (:meth:`ExtendedSpace.through`): the base fit had distorted ``x`` and the starts to absorb
+    the effect (a rod slowed to a third of its resonance under a strong amplifier lag; loops
+    widened by a sensor's latency, bent by a gauge error). Through an amplifier with identify's
+    global fit (its grid of starting points, restarts while a sweep stays off its noise): too
+    far for a local fit to come back from; through a sensor effect with identify's local round
+    from ``x`` (solve, re-choose the starts, solve again if one changed)."""
+    n_x = z.size - space.candidate.n_params
+    base = space.through(z[n_x:])
+    noise = np.array([max(ns.sensor_noise_um(p.y), 1e-12) for p in base.preps])
+    prob = idf.Problem((), base.preps, np.concatenate([p.y for p in base.preps]), noise,
+                       settings, lambda _m: None)
+    if space.candidate.name in INPUT_SIDE:
+        found, sol, _ = idf.global_fit(prob)
+    else:
+        found, sol = idf.solve_round(base, z[:n_x], prob)
+    return space.with_starts(found.starts), np.concatenate((sol.x, z[n_x:]))
+
+
+def state_choices(n: int) -> list[tuple[str, ...]]:
+    """Initial states of ``n`` sweeps recorded in sequence, each after the one before: the first
+    depoled or poled either way, the others where the previous left it (:data:`pz.STARTS`)."""
+    return [(first,) + ("previous",) * (n - 1) for first in pz.STARTS[:3]]
+
+
+def _in_sequence(space: ExtendedSpace, z: FloatArray) -> ExtendedSpace | None:
+    """``space`` with the :func:`state_choices` that fits best at ``z``; None if every sweep
+    after the first already carries on from the one before (a base fit that restarted only
+    some of them from a poled state still gets the sequence)."""
+    if all(s == "previous" for s in space.base.starts[1:]) or len(space.preps) < 2:
+        return None
+    return min((space.with_starts(c) for c in state_choices(len(space.preps))),
+               key=lambda s: float(np.sum(s.residual(z) ** 2)))
+
+
+def _started(space: ExtendedSpace, x_base: FloatArray, max_nfev: int, n_starts: int,
+             identify: idf.Settings | None) -> tuple[ExtendedSpace, FloatArray, int]:
+    """Multi-start on ``phi`` with ``x_base`` held (see :func:`fit`): the space (with the starts
+    a refit through the effect chose), the joint fit's start ``z`` and the evaluations spent."""
+    lo, hi = space.bounds()
+    n_x = x_base.size
+    n_held = 0 if space.candidate.fresh_density else 4 if space.candidate.free_rod else n_x
+
+    def clip(z: FloatArray) -> FloatArray:
+        return np.clip(z, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+
+    def cost(z: FloatArray) -> float:
+        return float(np.sum(space.residual(z) ** 2))
+
+    def with_free(v: FloatArray) -> FloatArray:
+        return space.residual(np.concatenate((x_base[:n_held], v)))
+
+    starts = [clip(np.concatenate((x_base, s))) for s in space.candidate.starts]
+    cost_off = cost(starts[0])
+    ranked = sorted(starts, key=cost)[:max(n_starts, 1)]
+    if space.candidate.fresh_density:  # the best of the effect's starts on a fresh density too
+        e_max = pz.extent(space.preps)[0]
+        fresh = [clip(np.concatenate((x, s))) for x in density_starts(x_base, e_max)
+                 for s in space.candidate.starts[1:]]
+        ranked = ranked[:max(n_starts - 1, 1)] + [min(fresh, key=cost)]
+        starts += fresh
+    nfev = len(starts)
+    if n_x < ranked[0].size:
+        runs = [optimize.least_squares(with_free, z0[n_held:], bounds=(lo[n_held:], hi[n_held:]),
+                                       diff_step=1e-6, max_nfev=max_nfev // 2) for z0 in ranked]
+        best = min(runs, key=lambda r: float(r.cost))
+        if space.candidate.switch:  # the switch (the slew limit) tried the other way too
+            other = {s[-1] for s in space.candidate.starts} - {float(best.x[-1])}
+            runs += [optimize.least_squares(
+                with_free, np.concatenate((best.x[:-1], [v])), bounds=(lo[n_held:], hi[n_held:]),
+                diff_step=1e-6, max_nfev=max_nfev // 2) for v in sorted(other)]
+            best = min(runs, key=lambda r: float(r.cost))
+        nfev += sum(r.nfev for r in runs)
+        ranked = [clip(np.concatenate((x_base[:n_held], best.x)))]
+        if space.candidate.name in REBASED and 2 * float(best.cost) < REBASE_GAIN * cost_off:
+            settings = identify or idf.Settings()
+            rebased = [_rebase(space, ranked[0], settings)]
+            first, z1 = rebased[0]
+            rebased += [_rebase(first, clip(np.concatenate((z1[:n_x], s))), settings)
+                        for s in first.gauge_seeds(z1[:n_x])]
+            scored = [(float(np.sum(s.residual(clip(z)) ** 2)), s, clip(z)) for s, z in rebased]
+            found_cost, found, z = min(scored, key=lambda f: f[0])
+            if found_cost < cost(ranked[0]):
+                space, ranked = found, [z]
+    return space, ranked[0], nfev
+
+
+def _joint(start: tuple[ExtendedSpace, FloatArray, int], max_nfev: int
+           ) -> tuple[ExtendedSpace, optimize.OptimizeResult, int]:
+    """The joint fit of ``(x, phi)`` in a space from ``z`` (``start``: the space, ``z`` and the
+    evaluations so far); the space, solution and evaluations."""
+    space, z, nfev = start
+    lo, hi = space.bounds()
+    sol = optimize.least_squares(space.residual, z, bounds=(lo, hi), diff_step=1e-6,
+                                 max_nfev=max_nfev)
+    return space, sol, nfev + int(sol.nfev)
+
+
+def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
+        max_nfev: int, n_starts: int = 1,
+        identify: idf.Settings | None = None) -> tuple[Extended, ExtendedSpace]:
+    """Fit ``(x, phi)`` from the base parameters ``x_base``; returns the fit and its space (the
+    initial hysteresis states and the grid it chose).
+
+    Multi-start on the effect alone: from each of the ``n_starts`` best of the candidate's starting
+    ``phi`` (by cost) a short least-squares run moves ``phi`` (and the rod's two parameters, for
+    a candidate with ``free_rod``) with the rest of the base model held (a Jacobian of a few
+    columns); the best of those then starts the joint fit of ``(x, phi)``. A ``fresh_density``
+    candidate (relaxation) runs one of its short runs from the best of its effect's starts on a
+    fresh density (:func:`density_starts`), and its short runs move the whole model. The
+    amplifier and the sensor effects (:data:`REBASED`) then fit ``x`` and the starts afresh
+    through their effect (:func:`_rebase`, with the ``identify`` settings; tried if the effect
+    alone already brought the cost below :data:`REBASE_GAIN` of the base model's, kept if it
+    lowers the cost). The base model is in every candidate's family, so its own cost bounds the
+    result's.
+
+    An ``own_states`` candidate (relaxation: the state a sweep starts from has relaxed with the
+    sweeps before it) is also fitted with the sweeps in sequence (:func:`state_choices`, the
+    first state chosen at the best start) unless the base's states already are, each
+    multi-start with half the budget on a coarse thermal grid (:data:`THERMAL_COARSE`); the
+    lower cost's start gets the whole joint fit on a grid that resolves small field scales
+    (:data:`THERMAL_JOINT`), polished on the fine one with 1/:data:`FINE_SHARE` of the budget.
+    A ``sequenced`` candidate (a gain per run) is fitted, each with the whole budget, from the
+    base's states and from every first state of the sweeps in sequence; the lowest cost wins."""
+    spaces = [space]
+    if space.candidate.own_states:
+        spaces = [space.with_grid(THERMAL_COARSE)]
+        z0 = np.concatenate((x_base, space.candidate.starts[0]))
+        spaces += [s for s in [_in_sequence(spaces[0], z0)] if s is not None]
+    elif space.candidate.sequenced and len(space.preps) > 1:
+        spaces += [space.with_starts(c) for c in state_choices(len(space.preps))
+                   if c != space.base.starts]
+    if space.candidate.sequenced:
+        fits = [_joint(_started(s, x_base, max_nfev, n_starts, identify), max_nfev)
+                for s in spaces]
+        nfev = sum(f[2] for f in fits)
+        space, sol, _ = min(fits, key=lambda f: float(f[1].cost))
+    else:  # the best start of every space gets the whole joint fit
+        started = [_started(s, x_base, max_nfev // len(spaces), n_starts, identify)
+                   for s in spaces]
+        space, z, _ = started[0] if len(started) == 1 else min(
+            started, key=lambda f: float(np.sum(f[0].residual(f[1]) ** 2)))
+        if space.candidate.own_states:
+            space = space.with_grid(THERMAL_JOINT)
+        space, sol, nfev = _joint((space, z, sum(f[2] for f in started)), max_nfev)
+    if space.candidate.own_states:  # polished on the fine grid
+        space, sol, nfev = _joint((space.with_grid(THERMAL_FINE), sol.x, nfev),
+                                  max(max_nfev // FINE_SHARE, 1))
+    model, gains, offsets = space.to_model(sol.x, thickness_um)
+    return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
+                    bool(sol.success and sol.status > 0), nfev, sol.x,
+                    space.base.starts, offsets, pz.project(*space.system(sol.x))[0]), space

@@ -1,0 +1,611 @@
+"""Joint least-squares identification of the stage model from sweeps (paper Sections 2.2 and 4).
+
+The model is the transducer of :mod:`afmctl.model.transducer`: field ``E = V / thickness`` drives the
+homogenized polarization (13), which forces the rod (16). The fit runs in the well-scaled
+internal parametrization of :mod:`afmctl.fit.parametrization` (``m`` and ``P_R`` fixed by convention
+and reported as fixed): the nonlinear parameters go to :func:`scipy.optimize.least_squares` (in
+logs, with bounds), the gains ``(g1, g2, offset)`` are projected out by linear least squares at
+every evaluation (variable projection). First a lognormal ``nu_1`` / normal ``nu_2`` fit (six
+nonlinear parameters); optionally (``density="discrete"``) a general nonnegative coercive density
+on fixed nodes, smoothed by a Tikhonov penalty, refined from it. The interaction density stays
+normal (the closed-form kernel; a discrete ``nu_2`` would need the much slower grid kernel).
+
+The state is carried through each sweep from its start: depoled, then the first voltage applied
+quasi-statically (:func:`afmctl.model.transducer.initial`). For speed the hysteresis is evaluated during
+the fit on a decimated copy of the field that keeps every turning point (the model (13) depends
+only on them) and interpolated back; the rod runs at the full rate. Per-sweep errors, however,
+are always those of the final model at the default node counts and the full rate.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize
+
+from afmctl.files import modelfile as mf
+from afmctl.files.sweepfile import Sweep
+from afmctl.files.tomlfile import InputError, Table
+from afmctl.fit import noise as ns
+from afmctl.fit import parametrization as pz
+from afmctl.fit import uncertainty as unc
+from afmctl.fit.uncertainty import Estimate
+from afmctl.model import effects as fx
+from afmctl.model import hysteresis as hy
+from afmctl.model import rod as rd
+from afmctl.model import transducer as td
+
+FloatArray = NDArray[np.float64]
+Window = tuple[float, float] | None
+#: A sweep is at the noise floor when its fit RMS is at most this many times its sensor noise.
+FLOOR = 1.5
+#: Above this many times its noise a sweep is named on stderr (``afmctl identify``).
+WARN = 2.0
+#: A different start state must lower the sum of squares by this many noise variances.
+START_MARGIN = 25.0
+#: Above this many times its noise on some sweep, the fit tries a general coercive density
+#: (kept if it lowers the sum of squares by more than 2 noise variances per added parameter).
+REFINE = 1.25
+#: The fit is polished with more coercive nodes if they change a sweep by this share of its noise.
+POLISH_SHARE = 0.3
+#: At most this many coercive nodes during the fit (the model itself gets N_c).
+POLISH_MAX_NODES = 512
+#: Largest error (um) the coercive-field discretization of an identified model may add.
+DISCRETIZATION_UM = 0.01
+
+__all__ = ["Estimate", "FitResult", "Settings", "SweepError", "fit", "predict", "predict_set",
+           "sweep_error", "envelope", "n_coercive_for", "resolve_thickness", "FLOOR", "WARN"]
+
+
+class FitInputError(InputError):
+    """The sweeps cannot be fitted as given (conflicting metadata, empty fit window)."""
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Options of :func:`fit`.
+
+    Parameters
+    ----------
+    mass_kg : float
+        Fixed effective mass ``m`` of (16), kg (a scale convention, see
+        :mod:`afmctl.fit.parametrization`).
+    p_r : float
+        Fixed remanence ``P_R``, C/m^2 (a scale convention).
+    thickness_um : float or None
+        Layer thickness, um. None: take it from the sweeps' metadata, else from
+        ``fallback_thickness_um`` (a profile's ``[stack]``), else fit in volts (thickness 1 um,
+        so the field in MV/m equals the voltage in V).
+    fallback_thickness_um : float or None
+        Layer thickness for sweeps whose metadata does not give one, um.
+    window_s : (float, float) or None
+        Only samples with ``t0 <= t < t1`` enter the residual; the model still runs from t = 0.
+    n_coercive_fit : int
+        Coercive nodes used during the fit (the identified model has 256).
+    field_step : float
+        During the fit the hysteresis is evaluated only where the field has moved by more than
+        ``field_step`` times its peak magnitude since the last evaluated sample, and at every
+        turning point; linear interpolation in between (0 evaluates every sample).
+    max_nfev : int
+        Budget of residual evaluations of the solver (per stage).
+    restarts : int
+        Further starts tried (the next-best points of the starting grid) while a sweep's fit
+        stays above :data:`FLOOR` times its sensor noise.
+    density : {"auto", "parametric", "discrete"}
+        ``discrete`` refines the lognormal fit with a general coercive density; ``auto`` tries
+        that refinement when a sweep stays above :data:`REFINE` times its noise and keeps it if
+        it lowers the sum of squares by more than 2 noise variances per added parameter;
+        ``parametric`` never does.
+    n_density_nodes : int
+        Nodes of the discrete coercive density.
+    smoothing : float
+        Tikhonov weight lambda of the discrete density's second differences (dimensionless).
+    """
+
+    mass_kg: float = 0.05
+    p_r: float = 0.3
+    thickness_um: float | None = None
+    fallback_thickness_um: float | None = None
+    window_s: Window = None
+    n_coercive_fit: int = 96
+    field_step: float = 0.004
+    max_nfev: int = 300
+    restarts: int = 3
+    density: Literal["auto", "parametric", "discrete"] = "auto"
+    n_density_nodes: int = 24
+    smoothing: float = 1e-6
+
+    @property
+    def scales(self) -> pz.Scales:
+        return pz.Scales(self.mass_kg, self.p_r)
+
+
+def settings_from_table(t: Table | None, base: Settings = Settings()) -> Settings:
+    """Settings from a profile's ``[identify]`` table (keys ``mass_kg``, ``p_r_C_per_m2``,
+    ``thickness_um``, ``n_coercive_fit``, ``field_step``, ``max_nfev``, ``restarts``, ``density``,
+    ``n_density_nodes``, ``smoothing``); missing keys keep ``base``."""
+    if t is None:
+        return base
+    thick = t.number("thickness_um", positive=True) if t.has("thickness_um") else base.thickness_um
+    settings = Settings(
+        fallback_thickness_um=base.fallback_thickness_um,
+        mass_kg=t.number("mass_kg", base.mass_kg, positive=True),
+        p_r=t.number("p_r_C_per_m2", base.p_r, positive=True), thickness_um=thick,
+        window_s=base.window_s, n_coercive_fit=t.integer("n_coercive_fit", base.n_coercive_fit,
+                                                         minimum=4),
+        field_step=t.number("field_step", base.field_step, nonnegative=True),
+        max_nfev=t.integer("max_nfev", base.max_nfev, minimum=1),
+        restarts=t.integer("restarts", base.restarts, minimum=0),
+        density=t.string("density", base.density,  # type: ignore[arg-type]
+                         choices=("auto", "parametric", "discrete")),
+        n_density_nodes=t.integer("n_density_nodes", base.n_density_nodes, minimum=3),
+        smoothing=t.number("smoothing", base.smoothing, nonnegative=True))
+    t.reject_unknown()
+    return settings
+
+
+@dataclass(frozen=True)
+class SweepError:
+    """Error of a model on one sweep (over its judged window), um, against its sensor noise.
+
+    ``noise_um`` is the sweep's sensor noise estimated from its data alone
+    (:func:`afmctl.fit.noise.sensor_noise_um`); ``start`` the hysteresis state the sweep was taken
+    to start from (one of :data:`afmctl.fit.parametrization.STARTS`) and ``offset_um`` its sensor zero.
+    """
+
+    file: str
+    rms_um: float
+    max_um: float
+    range_um: float
+    n_samples: int
+    noise_um: float = float("nan")
+    start: str = "depoled"
+    offset_um: float = float("nan")
+
+    @property
+    def rms_pct(self) -> float:
+        return 100.0 * self.rms_um / self.range_um
+
+    @property
+    def max_pct(self) -> float:
+        return 100.0 * self.max_um / self.range_um
+
+    @property
+    def rms_over_noise(self) -> float:
+        return self.rms_um / self.noise_um if self.noise_um > 0 else float("inf")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"file": self.file, "rms_um": self.rms_um, "max_um": self.max_um,
+                "range_um": self.range_um, "rms_pct": self.rms_pct, "max_pct": self.max_pct,
+                "n_samples": self.n_samples, "noise_um": _finite(self.noise_um),
+                "rms_over_noise": _finite(self.rms_over_noise), "start": self.start,
+                "offset_um": _finite(self.offset_um)}
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """Outcome of :func:`fit`: the model, parameters, per-sweep errors and the solver's status.
+
+    ``success`` is True only if the solver reports convergence (status > 0) and the result is
+    finite; a fit stopped by ``max_nfev`` or failing is reported as such. It says nothing about
+    how good the fit is: that is ``at_noise_floor`` (every sweep within :data:`FLOOR` times its
+    sensor noise).
+    """
+
+    model: td.Transducer
+    parameters: tuple[Estimate, ...]
+    sweeps: tuple[SweepError, ...]
+    success: bool
+    status: int
+    message: str
+    nfev: int
+    seconds: float
+    thickness_known: bool
+    x: FloatArray = field(repr=False)  # the lognormal fit's log(theta), also after a refinement
+    uncertainty: dict[str, Any] = field(default_factory=dict, repr=False)
+    envelope: mf.Envelope | None = None
+    restarts: int = 0
+
+    @property
+    def at_noise_floor(self) -> bool:
+        return all(s.rms_over_noise <= FLOOR for s in self.sweeps)
+
+    def above_floor(self, factor: float = WARN) -> list[SweepError]:
+        """The sweeps whose fit RMS exceeds ``factor`` times their sensor noise."""
+        return [s for s in self.sweeps if not s.rms_over_noise <= factor]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (the ``--json`` output of ``afmctl identify``)."""
+        return {
+            "success": self.success, "status": self.status, "message": self.message,
+            "nfev": self.nfev, "seconds": round(self.seconds, 3), "restarts": self.restarts,
+            "thickness_known": self.thickness_known, "at_noise_floor": self.at_noise_floor,
+            "n_coercive": self.model.polarization.n_coercive,
+            "parameters": {p.name: {"value": _finite(p.value), "stderr": _finite(p.stderr),
+                                    "unit": p.unit, "fixed": p.fixed} for p in self.parameters},
+            "sweeps": [s.to_dict() for s in self.sweeps],
+            "uncertainty": self.uncertainty,
+            "envelope": None if self.envelope is None else self.envelope.to_dict(),
+        }
+
+
+def _finite(v: float) -> float | None:
+    """JSON has no NaN/inf: non-finite values become null."""
+    return float(v) if np.isfinite(v) else None
+
+
+def resolve_thickness(sweeps: Sequence[Sweep], settings: Settings) -> tuple[float, bool]:
+    """Layer thickness (um) for the fit and whether it is known (else 1.0: fit in volts)."""
+    if settings.thickness_um is not None:
+        return settings.thickness_um, True
+    known = {s.thickness_um for s in sweeps if s.thickness_um is not None}
+    if len(known) > 1:
+        raise FitInputError(f"sweeps disagree on layer_thickness_um: {sorted(known)}")
+    if known:
+        return known.pop(), True
+    fallback = settings.fallback_thickness_um
+    return (fallback, True) if fallback is not None else (1.0, False)
+
+
+# ----------------------------------------------------------------------------------------------
+# predictions of a model on sweeps
+# ----------------------------------------------------------------------------------------------
+
+
+def _start_state(model: td.Transducer, start: str, v0: float,
+                 previous: hy.PolarizationState | None) -> td.StageState:
+    """Stage state before a sweep's first sample ``v0`` (V): the hysteresis ``start`` (one of
+    :data:`afmctl.fit.parametrization.STARTS`), then ``v0`` applied quasi-statically, rod at rest."""
+    if start == "previous" and previous is not None:
+        p, ps = hy.run(model.polarization, np.array([v0 / model.thickness_um]), previous)
+        return td.StageState(ps, rd.rest_state(model.rod, float(model.rod.force(p)[0])))
+    return td.initial(model, "depoled" if start == "previous" else start, v0)  # type: ignore[arg-type]
+
+
+def _reading(model: td.Transducer, voltage_v: FloatArray, dt: float, gain: float, start: str,
+             previous: hy.PolarizationState | None) -> tuple[FloatArray, hy.PolarizationState]:
+    chain = fx.compile_chain(model.effects, dt)
+    v = gain * np.asarray(voltage_v, dtype=float)
+    v, _ = fx.lag(chain, v, float(v[0]))
+    st = _start_state(model, start, float(v[0]), previous)
+    u, _, end = td.simulate(td.compile_model(model, dt), v, st)
+    return fx.measure(chain, u, *fx.rest(chain, float(u[0])))[0], end.polarization
+
+
+def predict(model: td.Transducer, voltage_v: FloatArray, dt: float, gain: float = 1.0,
+            start: str = "depoled") -> FloatArray:
+    """Displacement (um) the model predicts for a voltage history, as the sensor reads it.
+
+    From the hysteresis state ``start`` (default depoled) with the first voltage applied
+    quasi-statically, through the model's effects (:mod:`afmctl.model.effects`, none for a model of
+    the paper's form) with applied-voltage gain ``gain``.
+    """
+    return _reading(model, voltage_v, dt, gain, start, None)[0]
+
+
+def predict_set(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str],
+                offsets_um: Sequence[float] | None = None,
+                gains: Sequence[float] | None = None) -> list[FloatArray]:
+    """Predicted readings (um) of a set of sweeps recorded in sequence, each from its start
+    (``previous``: where the sweep before left the hysteresis), with its own sensor zero
+    ``offsets_um`` (default: the model's; it is the rod's zero, so the model's sensor effects see
+    it) and applied-voltage gain ``gains`` (default 1)."""
+    out, prev = [], None
+    offs = offsets_um if offsets_um is not None else [model.rod.offset_um] * len(sweeps)
+    for s, start, off, g in zip(sweeps, starts, offs, gains or [1.0] * len(sweeps), strict=True):
+        zeroed = replace(model, rod=replace(model.rod, offset_um=float(off)))
+        u, prev = _reading(zeroed, s.voltage_v, s.dt, g, start, prev)
+        out.append(u)
+    return out
+
+
+def _error(name: str, sweep: Sweep, predicted: FloatArray, window_s: Window, start: str,
+           offset_um: float) -> SweepError:
+    m = sweep.mask(window_s)
+    err = (sweep.displacement_um - predicted)[m]
+    return SweepError(name, float(np.sqrt(np.mean(err ** 2))), float(np.max(np.abs(err))),
+                      float(np.ptp(sweep.displacement_um[m])), int(m.sum()),
+                      ns.sensor_noise_um(sweep.displacement_um), start, offset_um)
+
+
+def sweep_error(model: td.Transducer, sweep: Sweep, window_s: Window = None,
+                start: str = "depoled") -> SweepError:
+    """RMS, max and range (um) of ``measured - predicted`` on ``sweep`` (within ``window_s``),
+    with the sweep's sensor noise."""
+    return _error(sweep.path or sweep.name, sweep, predict(model, sweep.voltage_v, sweep.dt,
+                                                           start=start),
+                  window_s, start, model.rod.offset_um)
+
+
+def n_coercive_for(model: td.Transducer, fields: Sequence[FloatArray],
+                   tol_um: float = DISCRETIZATION_UM,
+                   starts: Sequence[str] = ("depoled", "positive", "negative")) -> int:
+    """Coercive nodes for ``model`` so the discretization of (13) adds at most ``tol_um`` to the
+    displacement over the field histories ``fields`` (MV/m; the identified sweeps span the
+    envelope) from each of the ``starts``, from :func:`afmctl.model.hysteresis.n_coercive_for` with the
+    rod's static gain
+    ``1e6 |a1 + 2 a2 P| / k`` (um per C/m^2) at the largest polarization reached."""
+    pol, rod = model.polarization, model.rod
+    e_max = max(float(np.max(np.abs(e))) for e in fields)
+    p_max = float(np.max(np.abs(hy.run(pol, np.array([e_max, -e_max, e_max]),
+                                       hy.initial_state(pol))[0])))
+    gain = 1e6 * (abs(rod.a1) + 2 * abs(rod.a2) * p_max) / rod.k
+    hows = tuple(sorted({"depoled" if s == "previous" else s for s in starts}))
+    return hy.n_coercive_for(pol, list(fields), tol_um / max(gain, 1e-300),
+                             starts=hows)  # type: ignore[arg-type]
+
+
+def envelope(sweeps: Sequence[Sweep], thickness_um: float) -> mf.Envelope:
+    """The validity envelope of a model identified on ``sweeps``: their voltage and field range,
+    frequencies (metadata ``frequency_hz``, else turning points per second / 2) and sample rates."""
+    v_lo = min(float(np.min(s.voltage_v)) for s in sweeps)
+    v_hi = max(float(np.max(s.voltage_v)) for s in sweeps)
+
+    def freq(s: Sweep) -> float:
+        if s.frequency_hz is not None:
+            return s.frequency_hz
+        n_turns = pz.turning_points(s.voltage_v).size - 2
+        return 0.5 * n_turns / max(float(s.time_s[-1] - s.time_s[0]), s.dt)
+
+    return mf.Envelope(v_lo, v_hi, v_lo / thickness_um, v_hi / thickness_um,
+                       tuple(round(freq(s), 6) for s in sweeps),
+                       tuple(round(1.0 / s.dt, 6) for s in sweeps))
+
+
+# ----------------------------------------------------------------------------------------------
+# the fit
+# ----------------------------------------------------------------------------------------------
+
+
+Space = pz.LognormalSpace | pz.DiscreteSpace
+
+
+@dataclass
+class Problem:
+    """The sweeps prepared for the residual, their stacked measurements and noise floors."""
+
+    sweeps: Sequence[Sweep]
+    preps: list[pz.Prepared]
+    y: FloatArray
+    noise: FloatArray
+    settings: Settings
+    say: Callable[[str], None]
+    nfev: int = 0
+
+    def per_sweep(self, r: FloatArray) -> FloatArray:
+        """RMS of the stacked residual ``r`` per sweep over its sensor noise."""
+        ends = np.cumsum([int(p.mask.sum()) for p in self.preps])
+        parts = np.split(r[:ends[-1]], ends[:-1])
+        return np.array([np.sqrt(np.mean(q ** 2)) for q in parts]) / self.noise
+
+
+def _residual_fn(space: Space, y: FloatArray) -> Callable[[FloatArray], FloatArray]:
+    def residual(x: FloatArray) -> FloatArray:
+        return np.concatenate((pz.project(space.design(x), y)[1], space.penalty(x)))
+
+    return residual
+
+
+def _cost(space: Space, y: FloatArray, x: FloatArray) -> float:
+    return float(np.sum(_residual_fn(space, y)(x) ** 2))
+
+
+def _solve(space: Space, x0: FloatArray, prob: Problem) -> optimize.OptimizeResult:
+    lo, hi = space.bounds()
+    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    sol = optimize.least_squares(_residual_fn(space, prob.y), x0, bounds=(lo, hi),
+                                 x_scale=space.x_scale, diff_step=1e-6,
+                                 max_nfev=prob.settings.max_nfev)
+    prob.nfev += int(sol.nfev)
+    return sol
+
+
+def choose_starts(space: pz.LognormalSpace, x: FloatArray, y: FloatArray,
+                  margin: float = 0.0) -> pz.LognormalSpace:
+    """Each sweep's initial hysteresis state among :data:`afmctl.fit.parametrization.STARTS` at the
+    parameters ``x``: the best joint assignment (all sweeps alike, or the first alike and the
+    others each where the previous left it), then coordinate descent, one sweep at a time (two
+    passes). A change must lower the sum of squares by more than ``margin`` (um^2).
+
+    After a sweep has reached both of its voltage extremes only the hysterons it cannot switch
+    still remember the start; they shift ``Q`` by a constant, which the quadratic force term
+    turns into a gain: small, but at the noise floor it decides the fit. The gains are shared,
+    so sweeps that started alike must be switched together (one at a time, a shared gain fitted
+    to the others holds each back).
+    """
+    n = len(space.preps)
+    best, cost = space, _cost(space, y, x) - margin
+
+    def consider(starts: tuple[str, ...]) -> bool:
+        nonlocal best, cost
+        if starts == best.starts:
+            return False
+        trial = best.with_starts(starts)
+        c = _cost(trial, y, x)
+        if c < cost:
+            best, cost = trial, c - margin
+            return True
+        return False
+
+    for first in pz.STARTS[:3]:
+        consider((first,) * n)
+        consider((first,) + ("previous",) * (n - 1))
+    for _ in range(2):
+        changed = False
+        for i in range(n):
+            for cand in pz.STARTS[:3] if i == 0 else pz.STARTS:
+                changed |= consider(best.starts[:i] + (cand,) + best.starts[i + 1:])
+        if not changed:
+            break
+    return best
+
+
+def solve_round(space: pz.LognormalSpace, x0: FloatArray,
+           prob: Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult]:
+    """Solve, re-choose the starts, and solve again if they changed."""
+    sol = _solve(space, x0, prob)
+    chosen = choose_starts(space, sol.x, prob.y, START_MARGIN * float(np.mean(prob.noise ** 2)))
+    if chosen.starts != space.starts:
+        prob.say(f"  starts {', '.join(chosen.starts)}: refitting")
+        space, sol = chosen, _solve(chosen, sol.x, prob)
+    return space, sol
+
+
+def global_fit(prob: Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult, int]:
+    """The lognormal fit from data-driven starting values; more starts (the next-best distinct
+    points of the starting grid) while a sweep stays above :data:`FLOOR` times its noise.
+    Returns the best space, solution and the number of restarts."""
+    st = prob.settings
+    space = pz.LognormalSpace(prob.preps, st.scales, st.n_coercive_fit)
+    coarse = pz.LognormalSpace(prob.preps, st.scales, 24)
+    ranked = coarse.starts_ranked(lambda x: _cost(coarse, prob.y, x))
+    best: tuple[pz.LognormalSpace, optimize.OptimizeResult] | None = None
+    restarts = 0
+    for k, x_grid in enumerate(ranked[:1 + st.restarts]):
+        x0 = coarse.tune_rod(x_grid, lambda x: _cost(coarse, prob.y, x))
+        if not k:
+            prob.say("starting guess " + ", ".join(
+                f"{n}={v:.4g}" for n, v in zip(pz.THETA_NAMES, np.exp(x0), strict=True)))
+        else:
+            restarts += 1
+            prob.say(f"restart {k}: " + ", ".join(f"{v:.3g}" for v in np.exp(x0)))
+        space, sol = solve_round(space, x0, prob)
+        ratio = prob.per_sweep(sol.fun)
+        prob.say(f"  {sol.message} (status {sol.status}); RMS / noise per sweep "
+                 + " / ".join(f"{r:.2f}" for r in ratio))
+        if best is None or sol.cost < best[1].cost:
+            best = (space, sol)
+        if np.all(ratio <= FLOOR):
+            break
+    assert best is not None
+    return best[0], best[1], restarts
+
+
+def _discretization_matters(space: pz.LognormalSpace, x: FloatArray, n_c: int,
+                            prob: Problem) -> bool:
+    """True if the fit's own coercive nodes and ``n_c`` nodes differ, on some sweep, by more than
+    :data:`POLISH_SHARE` of its noise in RMS (then the fit is polished with more nodes)."""
+    a_fit, a_fine = space.design(x), space.with_starts(space.starts, n_c).design(x)
+    beta, _ = pz.project(a_fit, prob.y)
+    return bool(np.max(prob.per_sweep((a_fine - a_fit) @ beta))
+                > POLISH_SHARE)
+
+
+def _with_nodes(model: td.Transducer, n_c: int, space: pz.LognormalSpace,
+                sweeps: Sequence[Sweep], offsets: FloatArray,
+                say: Callable[[str], None]) -> tuple[td.Transducer, list[FloatArray]]:
+    """The model with ``n_c`` coercive nodes, unless it fits the sweeps worse than with the nodes
+    it was fitted with (then the parameters absorbed the fit's discretization, and the fitted
+    node count is kept and said)."""
+    pol = replace(model.polarization, n_coercive=space.n_coercive)
+    fitted = replace(model, polarization=pol)
+    if n_c <= space.n_coercive:
+        return fitted, predict_set(fitted, sweeps, space.starts, offsets)
+    fine = replace(model, polarization=replace(pol, n_coercive=n_c))
+    p_fine = predict_set(fine, sweeps, space.starts, offsets)
+    p_fit = predict_set(fitted, sweeps, space.starts, offsets)
+
+    def sse(pred: list[FloatArray]) -> float:
+        return sum(float(np.sum((s.displacement_um - u)[s.mask(None)] ** 2))
+                   for s, u in zip(sweeps, pred, strict=True))
+
+    if sse(p_fine) <= 1.1 * sse(p_fit):
+        return fine, p_fine
+    say(f"N_c = {n_c} fits worse than the fit's {space.n_coercive} nodes: keeping "
+        f"{space.n_coercive} (its discretization may exceed {DISCRETIZATION_UM} um)")
+    return fitted, p_fit
+
+
+def _model(space: Space, x: FloatArray, y: FloatArray, thickness_um: float) -> td.Transducer:
+    """The physical model at ``x`` (gains projected; the sensor zero of the last sweep)."""
+    beta, _ = pz.project(space.design(x), y)
+    return space.model(x, np.array([beta[0], beta[1], beta[-1]]), thickness_um)
+
+
+def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
+        progress: Callable[[str], None] | None = None) -> FitResult:
+    """Fit the transducer jointly to ``sweeps`` by least squares (variable projection).
+
+    Parameters
+    ----------
+    sweeps : sequence of Sweep
+        In the order they were recorded. Each starts from its own hysteresis state (chosen among
+        :data:`afmctl.fit.parametrization.STARTS`) and has its own sensor zero; each is judged from
+        its :attr:`~afmctl.files.sweepfile.Sweep.memory_index` on.
+    settings : Settings
+    progress : callable, optional
+        Receives one-line progress messages (the CLI prints them on stderr).
+
+    Returns
+    -------
+    FitResult
+        The model (its ``N_c`` chosen by :func:`n_coercive_for`), parameters with 1-sigma,
+        per-sweep errors of that model at the full rate against each sweep's sensor noise,
+        the uncertainty, the validity envelope and the solver's status.
+
+    Examples
+    --------
+    >>> from afmctl import sweeps as sw
+    >>> true = pz.to_model(np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25]),
+    ...                    np.array([10.0, 0.5, 0.0]), pz.Scales(), 100.0)
+    >>> v = sw.triangle(27.9, 150.0, 3, 5000.0)
+    >>> s = sw.from_arrays(v, predict(true, v, 2e-4), 5000.0, {"layer_thickness_um": "100"})
+    >>> fit([s]).sweeps[0].rms_um < 0.05
+    True
+    """
+    say = progress or (lambda _msg: None)
+    t0 = time.perf_counter()
+    thickness, known = resolve_thickness(sweeps, settings)
+    try:
+        preps = [pz.prepare(s, thickness, settings.field_step, settings.window_s) for s in sweeps]
+    except ValueError as exc:
+        raise FitInputError(str(exc)) from None
+    noise = np.array([max(ns.sensor_noise_um(s.displacement_um), 1e-12) for s in sweeps])
+    prob = Problem(sweeps, preps, np.concatenate([p.y for p in preps]), noise, settings, say)
+    space, sol, restarts = global_fit(prob)
+    ok = sol.success and sol.status > 0
+    fields = [p.field[p.keep] for p in preps]
+    n_c = n_coercive_for(_model(space, sol.x, prob.y, thickness), fields, starts=space.starts)
+    if n_c > space.n_coercive and _discretization_matters(space, sol.x, n_c, prob):
+        n_fit = min(n_c, POLISH_MAX_NODES)
+        say(f"polishing with {n_fit} coercive nodes (N_c = {n_c} for < {DISCRETIZATION_UM} um)")
+        space, sol = solve_round(space.with_starts(space.starts, n_fit), sol.x, prob)
+        ok = sol.success and sol.status > 0
+    final: Space = space
+    x_lognormal = sol.x
+    worst = float(np.max(prob.per_sweep(sol.fun)))
+    if settings.density == "discrete" or (settings.density == "auto" and worst > REFINE):
+        beta, _ = pz.project(space.design(sol.x), prob.y)
+        disc, x0 = pz.DiscreteSpace.around(np.exp(sol.x), preps, settings.scales,
+                                           settings.n_density_nodes, settings.smoothing,
+                                           float(beta[0]), space.starts)
+        say(f"general coercive density ({settings.n_density_nodes} nodes) ...")
+        dsol = _solve(disc, x0, prob)
+        gain = 2 * (sol.cost - dsol.cost) / float(np.mean(prob.noise ** 2))
+        say(f"  {dsol.message} (status {dsol.status}); RMS / noise per sweep "
+            + " / ".join(f"{r:.2f}" for r in prob.per_sweep(dsol.fun)))
+        if settings.density == "discrete" or gain > 2 * (x0.size - sol.x.size):
+            final, sol = disc, dsol
+            ok = ok and dsol.success and dsol.status > 0
+    beta, _ = pz.project(final.design(sol.x), prob.y)
+    offsets = beta[2:]
+    model = _model(final, sol.x, prob.y, thickness)
+    if isinstance(final, pz.LognormalSpace):
+        model, predicted = _with_nodes(model, n_c, space, sweeps, offsets, say)
+    else:
+        predicted = predict_set(model, sweeps, space.starts, offsets)
+    env = envelope(sweeps, thickness)
+    errors = tuple(_error(s.path or s.name, s, u, settings.window_s, start, float(off))
+                   for s, u, start, off in zip(sweeps, predicted, space.starts, offsets,
+                                               strict=True))
+    cov, names = unc.covariance(final, sol.x, beta, prob.y)
+    ok = bool(ok and np.all(np.isfinite(sol.x)) and np.all(np.isfinite(beta)))
+    return FitResult(model, unc.estimates(final, sol.x, beta, cov, settings.scales), errors, ok,
+                     int(sol.status), str(sol.message), prob.nfev, time.perf_counter() - t0,
+                     known, x_lognormal, unc.summary(names, np.concatenate((sol.x, beta)), cov),
+                     env, restarts)

@@ -1,0 +1,488 @@
+"""Well-scaled internal parametrizations of the transducer, used by :mod:`afmctl.fit.identify`.
+
+The physical parameters of the model (eqs. (13) and (16)) are not all identifiable from
+displacement alone:
+
+* ``(m, c, k, a1~, a2~)`` enter (16) only through ``c/m``, ``k/m``, ``a1~/m``, ``a2~/m``;
+* ``P -> s P`` (``eta -> eta/s``, ``P_R -> s P_R``) with ``a1~ -> a1~/s``, ``a2~ -> a2~/s^2``
+  leaves the force unchanged.
+
+So ``m`` and ``P_R`` are fixed by convention (:class:`Scales`) and the fit works with
+``Q = eta P = E + r H(E)``, ``r = eta P_R`` (MV/m), ``H = sum_i v_i erf(y_i / (sqrt(2) sigma_I))``
+in [-1, 1] (the closed-form ``normal`` kernel of :mod:`afmctl.model.hysteresis`, ``y_i`` the play output
+of half-width ``E_c,i``). The rod (16) then reads
+
+``u = g1 L[Q] + g2 L[Q^2] + offset``
+
+with ``L`` the unit-DC-gain second-order filter of natural frequency ``f_n`` and damping ratio
+``zeta``, ``g1 = 1e6 a1~ / (k eta)`` (um per MV/m) and ``g2 = 1e6 a2~ / (k eta^2)``. The gains
+``beta = (g1, g2, offset)`` enter linearly; a *space* maps the remaining vector ``x`` to the
+design matrix ``[L[Q], L[Q^2], 1]`` and, with ``beta``, to a :class:`~afmctl.model.transducer.Transducer`.
+
+Two spaces: :class:`LognormalSpace` (``nu_1`` lognormal, ``nu_2`` normal: six parameters) and
+:class:`DiscreteSpace` (``nu_1`` a general nonnegative density on fixed nodes, smoothed by a
+Tikhonov penalty on its second differences; ``nu_2`` normal), as in Section 2.2 of the paper.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl.files.sweepfile import Sweep
+from afmctl.model import hysteresis as hy
+from afmctl.model import rod as rd
+from afmctl.model import transducer as td
+
+FloatArray = NDArray[np.float64]
+THETA_NAMES = ("median_MV_per_m", "sigma_ln", "std_MV_per_m", "r_MV_per_m", "natural_hz",
+               "damping_ratio")
+#: Hysteresis states a sweep may start from: depoled, poled either way (by a field beyond every
+#: coercive field), or where the previous sweep of the set left it (sweeps recorded in sequence).
+STARTS = ("depoled", "positive", "negative", "previous")
+
+
+@dataclass(frozen=True)
+class Scales:
+    """The fixed scale conventions: effective mass ``m`` (kg) and remanence ``P_R`` (C/m^2)."""
+
+    mass_kg: float = 0.05
+    p_r: float = 0.3
+
+
+# ----------------------------------------------------------------------------------------------
+# data preparation
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """One sweep ready for the residual: field (MV/m, full rate), the samples on which the
+    hysteresis is evaluated, the residual mask, the measured displacement there (um), dt (s)."""
+
+    field: FloatArray
+    keep: NDArray[np.intp]
+    mask: NDArray[np.bool_]
+    y: FloatArray
+    dt: float
+
+
+def turning_points(x: FloatArray) -> NDArray[np.intp]:
+    """Indices of the local extrema of ``x`` (a plateau counts at its end), plus both ends."""
+    d = np.sign(np.diff(x))
+    nz = np.flatnonzero(d)
+    if nz.size < 2:
+        return np.array([0, x.size - 1])
+    flips = nz[1:][d[nz[1:]] != d[nz[:-1]]]
+    return np.unique(np.concatenate(([0, x.size - 1], flips)))
+
+
+def decimation(field: FloatArray, step: float) -> NDArray[np.intp]:
+    """Samples on which to evaluate the hysteresis: every turning point, both ends of every hold
+    (a constant field), and one whenever the accumulated field variation has grown by ``step``
+    (same units as ``field``).
+
+    Model (13) depends only on the turning points; in between the output is a smooth function of
+    the field, so linear interpolation over steps ``step`` errs by O(step^2). A hold between two
+    moves the same way is no turning point, but interpolating across it in time would ramp the
+    output over the hold: its ends are kept.
+    """
+    if step <= 0:
+        return np.arange(field.size)
+    diff = np.diff(field)
+    travel = np.concatenate(([0.0], np.cumsum(np.abs(diff))))
+    new = np.flatnonzero(np.diff(np.floor(travel / step)) > 0) + 1
+    moving = diff != 0
+    holds = np.flatnonzero(moving[1:] != moving[:-1]) + 1
+    return np.unique(np.concatenate((new, holds, turning_points(field))))
+
+
+def prepare(sweep: Sweep, thickness_um: float, field_step: float,
+            window_s: tuple[float, float] | None) -> Prepared:
+    """:class:`Prepared` for ``sweep``; ``field_step`` is relative to the peak field."""
+    e = sweep.voltage_v / thickness_um
+    keep = decimation(e, field_step * float(np.max(np.abs(e))))
+    mask = sweep.mask(window_s)
+    if not mask.any():
+        raise ValueError(f"{sweep.name}: no samples in the fit window {window_s}")
+    return Prepared(e, keep, mask, sweep.displacement_um[mask], sweep.dt)
+
+
+def at_full_rate(n: int, keep: NDArray[np.intp], q_keep: FloatArray) -> FloatArray:
+    """``q_keep``, known at the samples ``keep`` of ``n``, interpolated to all ``n`` samples."""
+    return q_keep if keep.size == n else np.interp(np.arange(n), keep, q_keep)
+
+
+def _full_rate(prep: Prepared, q_keep: FloatArray) -> FloatArray:
+    return at_full_rate(prep.field.size, prep.keep, q_keep)
+
+
+def unit_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
+    """``L[x]``: rod (16) normalized to unit DC gain (exact ZOH, (18)), at rest with ``x[0]``."""
+    w = 2 * math.pi * fn
+    rod = rd.Rod(m=1.0, c=2 * zeta * w, k=w * w, a1=1.0)
+    disc = _discretize(float(fn), float(zeta), float(dt))
+    u, _ = rd.simulate(rod, disc, x * (rod.k * 1e-6), np.array([x[0] * 1e-6, 0.0]))
+    return u
+
+
+_DISC_CACHE: dict[tuple[float, float, float], rd.Discrete] = {}
+
+
+def _discretize(fn: float, zeta: float, dt: float) -> rd.Discrete:
+    key = (fn, zeta, dt)
+    if key not in _DISC_CACHE:
+        if len(_DISC_CACHE) > 256:
+            _DISC_CACHE.clear()
+        _DISC_CACHE[key] = unit_oscillator_zoh(fn, zeta, dt)
+    return _DISC_CACHE[key]
+
+
+def unit_oscillator_zoh(fn: float, zeta: float, dt: float) -> rd.Discrete:
+    """Exact zero-order-hold discretization (18) of ``u'' + 2 zeta w u' + w^2 u = f`` in closed
+    form (the same as :func:`afmctl.model.rod.discretize` of a unit-mass rod, without a matrix
+    exponential): ``e^{A t} = e^{-zeta w t} (cosh(mu t) I + sinh(mu t)/mu (A + zeta w I))`` with
+    ``mu = w sqrt(zeta^2 - 1)`` (imaginary when underdamped), ``Gamma = A^-1 (Phi - I) B``."""
+    w = 2 * math.pi * fn
+    a = np.array([[0.0, 1.0], [-w * w, -2 * zeta * w]])
+    mu = w * np.sqrt(complex(zeta * zeta - 1.0))
+    x, decay = mu * dt, zeta * w * dt
+    # e^{-decay} cosh(x) and e^{-decay} sinh(x) / mu from e^{+-x - decay}: no overflow when a
+    # heavily overdamped rod makes both cosh(x) and sinh(x) huge
+    up, down = np.exp(x - decay), np.exp(-x - decay)
+    ch = float((0.5 * (up + down)).real)
+    sh = (float((0.5 * (up - down) / mu).real) if abs(x) > 1e-8
+          else dt * (1 + float((x * x).real) / 6) * math.exp(-decay))
+    phi = ch * np.eye(2) + sh * (a + zeta * w * np.eye(2))
+    a_inv = np.array([[a[1, 1], -a[0, 1]], [-a[1, 0], a[0, 0]]]) / (w * w)
+    gamma = a_inv @ (phi - np.eye(2)) @ np.array([0.0, 1.0])
+    return rd.Discrete(phi, gamma, float(dt))
+
+
+def sweep_columns(q: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
+    """``[L[Q], L[Q^2], 1]`` of one sweep at the full rate, shape (N, 3)."""
+    return np.column_stack((unit_filter(q, fn, zeta, dt), unit_filter(q * q, fn, zeta, dt),
+                            np.ones(q.size)))
+
+
+def offset_columns(preps: Sequence[Prepared]) -> FloatArray:
+    """One indicator column per sweep on the stacked residual samples: each sweep has its own
+    sensor zero (a gauge re-zeroed between sweeps, or drifting, costs nothing then)."""
+    sizes = [int(p.mask.sum()) for p in preps]
+    return np.repeat(np.eye(len(sizes)), sizes, axis=0)
+
+
+def columns(q_keep: Sequence[FloatArray], fn: float, zeta: float,
+            preps: Sequence[Prepared]) -> FloatArray:
+    """Design matrix ``[L[Q], L[Q^2], 1_s]`` on the residual samples of all sweeps, stacked
+    (``1_s``: :func:`offset_columns`)."""
+    gains = np.vstack([sweep_columns(_full_rate(prep, q_k), fn, zeta, prep.dt)[prep.mask, :2]
+                       for q_k, prep in zip(q_keep, preps, strict=True)])
+    return np.hstack((gains, offset_columns(preps)))
+
+
+def hysteresis(theta: FloatArray, fields: Sequence[FloatArray], n_coercive: int,
+               thermal: hy.Thermal | None = None, n_interaction: int = 16,
+               holds: Sequence[FloatArray] | None = None,
+               starts: Sequence[str] | None = None) -> list[FloatArray]:
+    """``Q = E + r H(E)`` (MV/m) of (13) for each field history (MV/m).
+
+    ``theta[:4]`` = (median E_c, sigma_ln, sigma_I, r). With ``thermal`` the kernel (10) runs on
+    an ``n_coercive`` x ``n_interaction`` grid, each sample held for ``holds`` (s). ``starts``
+    gives each history's initial state (one of :data:`STARTS`; default all depoled).
+    """
+    median, sig, std, r = (float(v) for v in theta[:4])
+    pol = hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
+                          interaction=hy.Normal(std), n_coercive=n_coercive,
+                          n_interaction=n_interaction, thermal=thermal)
+    dts: Sequence[FloatArray | float] = holds if holds is not None else [1e-4] * len(fields)
+    return run_from(pol, fields, starts, dts)
+
+
+QCache = dict[tuple[bytes, int, tuple[str, ...]], tuple[FloatArray, hy.PolarizationState]]
+
+
+def with_initial(model: td.Transducer, starts: Sequence[str]) -> td.Transducer:
+    """``model`` with its initial state (:attr:`afmctl.model.transducer.Transducer.initial`) the
+    start of the first sweep (depoled if that start is unknown, ``previous``): where the stage was
+    before the sweeps it was fitted to, so that track and learning start from it too."""
+    first = starts[0] if starts else "depoled"
+    return replace(model, initial=first if first != "previous" else "depoled")  # type: ignore[arg-type]
+
+
+def run_from(pol: hy.Polarization, fields: Sequence[FloatArray], starts: Sequence[str] | None,
+             dts: Sequence[FloatArray | float] | None = None, cache: QCache | None = None,
+             key: bytes = b"") -> list[FloatArray]:
+    """Polarization (13) of ``pol`` for each field history (MV/m), each from its start.
+
+    ``starts[i]`` is one of :data:`STARTS`; ``previous`` carries the state the history before
+    left (the first history has none before it: depoled). With a ``cache`` (and a ``key`` that
+    identifies ``pol``), each history's result is kept per start sequence up to it, so trying
+    other starts, or other rod parameters, re-runs only what changed.
+    """
+    starts = tuple(starts or ["depoled"] * len(fields))
+    kern: hy.Kernel | None = None
+    out, state = [], None
+    for i, (e, start, dt) in enumerate(zip(fields, starts, dts or [1e-4] * len(fields),
+                                          strict=True)):
+        ck = (key, pol.n_coercive, starts[:i + 1])
+        if cache is None or ck not in cache:
+            if start == "previous" and state is not None:
+                st = state
+            else:
+                st = hy.initial_state(pol, "depoled" if start == "previous" else start)  # type: ignore[arg-type]
+            kern = kern or hy.build_kernel(pol)
+            q, end = hy.run(kern, e, st, dt)
+            if cache is None:
+                out.append(q)
+                state = end
+                continue
+            if len(cache) > 256:
+                cache.clear()
+            cache[ck] = (q, end)
+        q, state = cache[ck]
+        out.append(q)
+    return out
+
+
+def project(a: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Linear least-squares gains ``beta`` and the residual ``y - A beta``."""
+    beta, *_ = np.linalg.lstsq(a.T @ a, a.T @ y, rcond=None)  # normal equations: 3 columns
+    return beta, y - a @ beta
+
+
+def extent(preps: Sequence[Prepared]) -> tuple[float, float]:
+    """Peak field (MV/m) and Nyquist frequency (Hz) over the sweeps."""
+    e_max = max(float(np.max(np.abs(p.field))) for p in preps) or 1.0
+    return e_max, 0.5 / min(p.dt for p in preps)
+
+
+# ----------------------------------------------------------------------------------------------
+# internal parameters -> physical model
+# ----------------------------------------------------------------------------------------------
+
+
+def build_model(polarization: hy.Polarization, r: float, fn: float, zeta: float,
+                beta: FloatArray, scales: Scales, thickness_um: float) -> td.Transducer:
+    """Physical transducer from the shape of ``polarization`` (its eta and P_R are replaced),
+    ``r`` (MV/m), rod ``f_n`` (Hz) and ``zeta``, and ``beta = (g1, g2, offset)``.
+
+    ``eta = r / P_R``, ``k = m (2 pi f_n)^2``, ``c = 2 zeta sqrt(k m)``, ``a1~ = g1 k eta / 1e6``,
+    ``a2~ = g2 k eta^2 / 1e6`` (eq. (16) with u in um).
+    """
+    g1, g2, off = (float(b) for b in beta)
+    eta, m = float(r) / scales.p_r, scales.mass_kg
+    k = m * (2 * math.pi * float(fn)) ** 2
+    rod = rd.Rod(m=m, c=2 * float(zeta) * math.sqrt(k * m), k=k, a1=g1 * k * eta / 1e6,
+                 a2=g2 * k * eta ** 2 / 1e6, offset_um=off)
+    pol = hy.Polarization(eta=eta, p_r=scales.p_r, coercive=polarization.coercive,
+                          interaction=polarization.interaction,
+                          n_coercive=polarization.n_coercive)
+    return td.Transducer(pol, rod, thickness_um)
+
+
+def to_model(theta: FloatArray, beta: FloatArray, scales: Scales, thickness_um: float,
+             n_coercive: int = 256) -> td.Transducer:
+    """Model for the lognormal/normal ``theta`` (values, order of :data:`THETA_NAMES`)."""
+    median, sig, std, r, fn, zeta = (float(v) for v in theta)
+    pol = hy.Polarization(1.0, 1.0, hy.Lognormal(median, sig), hy.Normal(std),
+                          n_coercive=n_coercive)
+    return build_model(pol, r, fn, zeta, beta, scales, thickness_um)
+
+
+def internal(model: td.Transducer) -> FloatArray:
+    """``log(theta)`` (order of :data:`THETA_NAMES`) of a lognormal/normal model: the inverse of
+    :func:`to_model` for the nonlinear parameters. ValueError for other densities."""
+    pol = model.polarization
+    if not isinstance(pol.coercive, hy.Lognormal) or not isinstance(pol.interaction, hy.Normal):
+        raise ValueError("needs a lognormal coercive-field and a normal interaction-field density")
+    return np.log([pol.coercive.median, pol.coercive.sigma, pol.interaction.std,
+                   pol.eta * pol.p_r, model.rod.natural_hz, model.rod.damping_ratio])
+
+
+def describe(model: td.Transducer) -> list[tuple[str, float, str]]:
+    """The free physical parameters of ``model`` as (name, value, unit)."""
+    pol, rod = model.polarization, model.rod
+    out = [("eta", pol.eta, "(MV/m)/(C/m^2)")]
+    if isinstance(pol.coercive, hy.Lognormal):
+        out += [("coercive_median", pol.coercive.median, "MV/m"),
+                ("coercive_sigma_ln", pol.coercive.sigma, "1")]
+    elif isinstance(pol.coercive, hy.Discrete):
+        out += [(f"coercive_density@{x:.4g}", v, "1/(MV/m)")
+                for x, v in zip(pol.coercive.nodes, pol.coercive.values, strict=True)]
+    std = pol.interaction.std if isinstance(pol.interaction, hy.Normal) else float("nan")
+    return out + [("interaction_std", std, "MV/m"), ("c", rod.c, "N s/m"), ("k", rod.k, "N/m"),
+                  ("a1", rod.a1, "N/(C/m^2)"), ("a2", rod.a2, "N/(C/m^2)^2"),
+                  ("offset", rod.offset_um, "um"), ("natural_frequency", rod.natural_hz, "Hz"),
+                  ("damping_ratio", rod.damping_ratio, "1")]
+
+
+# ----------------------------------------------------------------------------------------------
+# the spaces
+# ----------------------------------------------------------------------------------------------
+
+
+class LognormalSpace:
+    """``x = log(theta)``, theta = (median E_c, sigma_ln, sigma_I, r, f_n, zeta): criteria (12)
+    with a lognormal ``nu_1`` and a normal ``nu_2``."""
+
+    def __init__(self, preps: Sequence[Prepared], scales: Scales, n_coercive: int,
+                 starts: Sequence[str] | None = None, cache: QCache | None = None) -> None:
+        self.preps, self.scales, self.n_coercive = list(preps), scales, n_coercive
+        self.starts = tuple(starts or ["depoled"] * len(self.preps))
+        self._cache: QCache = {} if cache is None else cache
+        self.x_scale: str | float = 1.0  # logs: unit steps are natural
+        self.names = tuple(f"log_{n}" for n in THETA_NAMES)
+
+    def with_starts(self, starts: Sequence[str], n_coercive: int | None = None) -> LognormalSpace:
+        """The same space with other initial states (one of :data:`STARTS` per sweep) and
+        optionally another number of coercive nodes."""
+        return LognormalSpace(self.preps, self.scales, n_coercive or self.n_coercive, starts,
+                              self._cache)
+
+    def design(self, x: FloatArray) -> FloatArray:
+        theta = np.exp(x)
+        median, sig, std, r = (float(v) for v in theta[:4])
+        pol = hy.Polarization(eta=1.0, p_r=r, coercive=hy.Lognormal(median, sig),
+                              interaction=hy.Normal(std), n_coercive=self.n_coercive)
+        q = run_from(pol, [p.field[p.keep] for p in self.preps], self.starts,
+                     cache=self._cache, key=np.asarray(x[:4], dtype=float).tobytes())
+        return columns(q, theta[4], theta[5], self.preps)
+
+    def penalty(self, x: FloatArray) -> FloatArray:
+        return np.empty(0)
+
+    def bounds(self) -> tuple[FloatArray, FloatArray]:
+        e_max, nyq = extent(self.preps)
+        lo = np.log([1e-3 * e_max, 0.02, 1e-3 * e_max, 1e-4 * e_max, 0.5, 0.003])
+        hi = np.log([10 * e_max, 3.0, 10 * e_max, 100 * e_max, 20 * nyq, 5.0])
+        return lo, hi
+
+    def starts_ranked(self, cost: Callable[[FloatArray], float]) -> list[FloatArray]:
+        """Starting ``x`` from the data alone, best first: the peak field scales a grid over the
+        coercive median and the hysteretic weight (rod static at 0.45 of the Nyquist frequency);
+        see :meth:`tune_rod` for the rod."""
+        e_max, nyq = extent(self.preps)
+        grid = [np.log([mf * e_max, 0.5, 0.3 * mf * e_max, rf * e_max, 0.45 * nyq, 0.5])
+                for mf in (0.2, 0.5, 0.9) for rf in (0.05, 0.2, 0.6)]
+        costs = [cost(x) for x in grid]
+        return [grid[i] for i in np.argsort(costs)]
+
+    def tune_rod(self, x: FloatArray, cost: Callable[[FloatArray], float]) -> FloatArray:
+        """``x`` with the best natural frequency of a grid below the Nyquist frequency
+        (damping 0.3), or unchanged if none is better."""
+        _, nyq = extent(self.preps)
+        freqs = [f for f in (30.0, 100.0, 300.0, 1000.0, 3000.0) if f < 0.45 * nyq]
+        cands = [x] + [np.concatenate((x[:4], np.log([f, 0.3]))) for f in freqs]
+        return min(cands, key=cost)
+
+    def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
+        return with_initial(to_model(np.exp(x), beta, self.scales, thickness_um), self.starts)
+
+
+@dataclass(frozen=True)
+class _Basis:
+    field: FloatArray  # full rate (interpolated like Q), MV/m
+    h: FloatArray      # (N, K) per-node hysteresis columns, full rate
+    le: FloatArray     # L[field] on the mask
+    lh: FloatArray     # (M, K) L[h] on the mask
+
+
+class DiscreteSpace:
+    """``x = (c_1 ... c_K, log sigma_I, log f_n, log zeta)`` with ``c_i = r v_i >= 0`` the
+    weights (MV/m) of a general coercive density on fixed nodes ``E_c,i`` (Section 2.2: the
+    ``N_i`` discretized density values estimated by least squares), smoothed by the penalty
+    ``sqrt(lambda N) g1 D2 c`` (second differences, um) appended to the residual."""
+
+    def __init__(self, preps: Sequence[Prepared], scales: Scales, nodes: FloatArray,
+                 smoothing: float, g1: float, starts: Sequence[str] | None = None) -> None:
+        self.preps, self.scales, self.nodes = list(preps), scales, np.asarray(nodes, float)
+        self.starts = tuple(starts or ["depoled"] * len(self.preps))
+        self.names = tuple(f"c@{e:.4g}" for e in self.nodes) + (
+            "log_std_MV_per_m", "log_natural_hz", "log_damping_ratio")
+        n_obs = sum(int(p.mask.sum()) for p in self.preps)
+        self.weight = math.sqrt(smoothing * n_obs) * abs(g1)
+        self._h: dict[float, list[FloatArray]] = {}
+        self._b: dict[tuple[float, float, float], list[_Basis]] = {}
+        self.x_scale: str | float = "jac"  # weights (MV/m) and logs mixed
+
+    @classmethod
+    def around(cls, theta: FloatArray, preps: Sequence[Prepared], scales: Scales, n_nodes: int,
+               smoothing: float, g1: float,
+               starts: Sequence[str] | None = None) -> tuple[DiscreteSpace, FloatArray]:
+        """Nodes spanning +-3 sigma_ln of a lognormal fit ``theta`` (capped at twice the peak
+        field) and the starting ``x`` that reproduces it."""
+        median, sig, std, r, fn, zeta = theta
+        e_max, _ = extent(preps)
+        lo, hi = median * math.exp(-3 * sig), min(median * math.exp(3 * sig), 2 * e_max)
+        nodes = np.geomspace(lo, max(hi, 1.5 * lo), n_nodes)
+        dens = np.exp(-0.5 * (np.log(nodes / median) / sig) ** 2) / nodes
+        cells = hy.Discrete(tuple(nodes), tuple(np.ones(n_nodes))).nodes_weights()[1]
+        c = r * dens * cells / float(np.sum(dens * cells))
+        space = cls(preps, scales, nodes, smoothing, g1, starts)
+        return space, np.concatenate((c, np.log([std, fn, zeta])))
+
+    def _columns_h(self, std: float) -> list[FloatArray]:
+        """``erf(y_i / (sqrt(2) sigma_I))`` per node at the full rate (cached per sigma_I)."""
+        if std not in self._h:
+            if len(self._h) > 4:
+                self._h.clear()
+            fields = [p.field[p.keep] for p in self.preps]
+            per_node = [run_from(hy.Polarization(1.0, 1.0, hy.Discrete((float(n),), (1.0,)),
+                                                 hy.Normal(std)), fields, self.starts)
+                        for n in self.nodes]
+            self._h[std] = [np.column_stack([_full_rate(p, q[i] - fields[i]) for q in per_node])
+                            for i, p in enumerate(self.preps)]
+        return self._h[std]
+
+    def _basis(self, std: float, fn: float, zeta: float) -> list[_Basis]:
+        """Per sweep: field, ``H`` and their filtered ``L[E]``, ``L[H]`` on the mask. ``Q`` and
+        ``L[Q]`` are linear in the weights ``c``, so only ``L[Q^2]`` is filtered per evaluation."""
+        key = (std, fn, zeta)
+        if key not in self._b:
+            if len(self._b) > 4:
+                self._b.clear()
+            out = []
+            for p, h in zip(self.preps, self._columns_h(std), strict=True):
+                e = _full_rate(p, p.field[p.keep])
+                le = unit_filter(e, fn, zeta, p.dt)[p.mask]
+                lh = np.column_stack([unit_filter(col, fn, zeta, p.dt)[p.mask] for col in h.T])
+                out.append(_Basis(e, h, le, lh))
+            self._b[key] = out
+        return self._b[key]
+
+    def design(self, x: FloatArray) -> FloatArray:
+        k = self.nodes.size
+        c = x[:k]
+        std, fn, zeta = (float(v) for v in np.exp(x[k:]))
+        blocks = []
+        for p, b in zip(self.preps, self._basis(std, fn, zeta), strict=True):
+            q = b.field + b.h @ c
+            lq2 = unit_filter(q * q, fn, zeta, p.dt)[p.mask]
+            blocks.append(np.column_stack((b.le + b.lh @ c, lq2)))
+        return np.hstack((np.vstack(blocks), offset_columns(self.preps)))
+
+    def penalty(self, x: FloatArray) -> FloatArray:
+        return self.weight * np.diff(x[:self.nodes.size], 2)
+
+    def bounds(self) -> tuple[FloatArray, FloatArray]:
+        e_max, nyq = extent(self.preps)
+        k = self.nodes.size
+        lo = np.concatenate((np.zeros(k), np.log([1e-3 * e_max, 0.5, 0.003])))
+        hi = np.concatenate((np.full(k, 100 * e_max), np.log([10 * e_max, 20 * nyq, 5.0])))
+        return lo, hi
+
+    def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
+        k = self.nodes.size
+        c = np.maximum(x[:k], 0.0)
+        r = float(c.sum()) or 1e-12
+        cells = hy.Discrete(tuple(self.nodes), tuple(np.ones(k))).nodes_weights()[1]
+        dens = hy.Discrete(tuple(self.nodes), tuple(float(v) for v in c / r / cells))
+        std, fn, zeta = np.exp(x[k:])
+        pol = hy.Polarization(1.0, 1.0, dens, hy.Normal(float(std)))
+        return with_initial(build_model(pol, r, fn, zeta, beta, self.scales, thickness_um),
+                            self.starts)

@@ -1,0 +1,322 @@
+"""Inverse filters: Algorithm 2 (P -> E), Algorithm 3 (displacement -> field) and the linear filter.
+
+Both algorithms solve, sample by sample, a scalar monotone equation in the field ``E_k`` from the
+model's memory at ``k - 1``:
+
+* Algorithm 2: ``P(E_k) = P*_k``. The E-P relation of (13) is monotone (Section 3).
+* Algorithm 3: ``u_{k+d}(E_k) = u*_{k+d}``, the rod (16) advanced ``d`` samples with the force
+  ``a1 P(E_k) + a2 P(E_k)^2`` held (the second line of (18) for ``d = 1``). The paper's inequalities
+  (19) are what make this well posed: the (1,2) entry ``alpha_1`` of ``e^{A t}`` is positive, so the
+  prediction is increasing in the held force, hence (for ``a1 + 2 a2 P > 0``) in ``E_k``, even where
+  the E-u loop itself is not monotone. The sign of ``u* - u~`` (``u~`` with ``E`` held at ``E_{k-1}``)
+  gives the direction of the field step, exactly as in Algorithm 3.
+
+The solve marches ``E`` from ``E_{k-1}`` in that direction with an adaptive step (the first step from
+the last local slope, doubled until the target is passed), then narrows the bracket by safeguarded
+regula falsi (Illinois) and ends, as in the paper, with linear interpolation between the bracketing
+trials. Algorithm 2 is the same routine with the "plant" ``u = P``.
+
+``horizon = 1`` is Algorithm 3 as printed. A longer horizon inverts the rod ``d`` samples ahead with the
+field held, which moves the sampling zero of the discretized rod (near -1 at high sample rates) that
+makes the literal one-step inverse chatter; see :func:`algorithm3`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl.model import hysteresis as hy
+from afmctl.model import transducer as tr
+from afmctl.model.hysteresis import _quiet_band, _step
+
+FloatArray = NDArray[np.float64]
+
+
+@nb.njit(cache=True)
+def _predict(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray,
+             wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray, c0: float,
+             g1: float, g2: float) -> tuple[float, float]:
+    p = _step(kind, e, dt, st, out, ec, wc, ei, cw, scal)
+    return c0 + g1 * p + g2 * p * p, p
+
+
+@nb.njit(cache=True)
+def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: float,
+           e_max: float, dt: float, st: np.ndarray, sc: np.ndarray, ec: np.ndarray,
+           wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray, c0: float, g1: float, g2: float,
+           tol: float) -> tuple[float, float, float, float]:
+    """Field ``E`` with prediction ``c0 + g1 P(E) + g2 P(E)^2`` within ``tol`` of ``target``.
+
+    Trials start from memory ``st`` (left unchanged); the accepted trial's new memory is left in
+    ``sc``. Returns (E, P(E), |prediction - target|, local slope dy/dE). ``floor`` is a lower
+    bound of the slope (the reversible part alone), which keeps round-off out of the first step.
+    The march never leaves ``[-e_max, e_max]`` (MV/m): an unreachable target ends at the limit, and
+    the returned error says by how much it was missed.
+    """
+    fa = y0 - target
+    direction = -1.0 if fa > 0.0 else 1.0
+    ea = e0
+    eb = min(max(ea + direction * max(abs(fa) / slope, 1e-12), -e_max), e_max)
+    if abs(fa) <= tol:
+        eb = e0
+    yb, pb = _predict(kind, eb, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2)
+    fb = yb - target
+    bracketed = False
+    side = 0
+    for _ in range(300):
+        if abs(fb) <= tol or eb == ea:
+            break
+        if not bracketed and fb * fa > 0.0:  # not passed yet: march on (secant, at most x8)
+            step = eb - ea
+            sec = -fb * step / (fb - fa) if (fb - fa) * direction * step > 0.0 else 8.0 * step
+            ec_ = min(max(eb + (sec if 0.0 < sec / step <= 8.0 else 2.0 * step), -e_max), e_max)
+            ea, fa = eb, fb
+        else:  # bracketed: Illinois regula falsi, the paper's linear interpolation
+            bracketed = True
+            ec_ = eb - fb * (eb - ea) / (fb - fa)
+            if not (min(ea, eb) < ec_ < max(ea, eb)):
+                ec_ = 0.5 * (ea + eb)
+        yc, pc = _predict(kind, ec_, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2)
+        fc = yc - target
+        if bracketed:
+            if fc * fb < 0.0:
+                ea, fa, side = eb, fb, 0
+            else:
+                if side == 1:
+                    fa *= 0.5
+                side = 1
+        if abs(ec_ - eb) > 1e-9:
+            slope = max((fc - fb) / (ec_ - eb), floor)
+        eb, fb, pb = ec_, fc, pc
+    return eb, pb, abs(fb), slope
+
+
+@nb.njit(cache=True)
+def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: np.ndarray,
+                st: np.ndarray, dt: float, ec: np.ndarray, wc: np.ndarray, ei: np.ndarray,
+                cw: np.ndarray, scal: np.ndarray, phi: np.ndarray, gam: np.ndarray,
+                row: np.ndarray, gain: float, a1: float, a2: float, offset: float,
+                floor: float, e_max: float,
+                tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fields for targets ``target[k]`` = desired u at sample ``k + d`` (um), rod state ``x`` (m)."""
+    n = target.size
+    e_out = np.empty(n)
+    u_out = np.empty(n)
+    err = np.empty(n)
+    sc = np.empty_like(st)
+    e_prev, p_prev, slope = e_init, p_init, floor
+    g1, g2 = gain * a1 * 1e6, gain * a2 * 1e6
+    lin, off = scal[5] / scal[0], scal[6] / scal[0]
+    lo, hi = _quiet_band(kind, st, ec, ei) if kind != 2 else (0.0, -1.0)
+    p_switch = p_init - (e_init * lin + off)
+    for k in range(n):
+        u_out[k] = x[0] * 1e6 + offset
+        c0 = (row[0] * x[0] + row[1] * x[1]) * 1e6 + offset
+        # inside the quiet band P(E) = lin E + off + p_switch: solve the force law exactly
+        disc = g1 * g1 - 4.0 * g2 * (c0 - target[k])
+        e = math.nan
+        if disc >= 0.0:
+            p = (target[k] - c0) / g1 if g2 == 0.0 else (-g1 + math.sqrt(disc)) / (2.0 * g2)
+            e = (p - off - p_switch) / lin
+        if lo < e < hi and abs(e) <= e_max:
+            err[k] = 0.0
+        else:
+            if kind == 2:  # u~ with the field held at E_{k-1}: thermally active dipoles go
+                y0 = _predict(kind, e_prev, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2)[0]
+            else:  # on switching (creep) while it is held; a relay's P stays put
+                y0 = c0 + g1 * p_prev + g2 * p_prev * p_prev
+            e, p, err[k], slope = _solve(kind, target[k], e_prev, y0, slope, floor, e_max, dt, st,
+                                         sc, ec, wc, ei, cw, scal, c0, g1, g2, tol)
+            st[:] = sc  # commit the accepted trial's memory
+            if kind != 2:
+                lo, hi = _quiet_band(kind, st, ec, ei)
+                p_switch = p - (e * lin + off)
+        f = a1 * p + a2 * p * p
+        x0 = phi[0, 0] * x[0] + phi[0, 1] * x[1] + gam[0] * f
+        x[1] = phi[1, 0] * x[0] + phi[1, 1] * x[1] + gam[1] * f
+        x[0] = x0
+        e_out[k] = e
+        e_prev, p_prev = e, p
+    return e_out, u_out, err
+
+
+@dataclass(frozen=True)
+class Inversion:
+    """Result of an inverse filter.
+
+    Attributes
+    ----------
+    field_mv_m : ndarray, shape (N,)
+        Field to apply at each sample, MV/m.
+    predicted : ndarray, shape (N,)
+        The model's own response at each sample (Algorithm 2: P in C/m^2 after the sample; Algorithm 3:
+        displacement in um at the sample instant, before that sample's field acts).
+    error : ndarray, shape (N,)
+        ``|prediction - target|`` of the accepted field per sample (at most the tolerance unless
+        the target was out of reach).
+    state : transducer.StageState or hysteresis.PolarizationState
+        Model memory after the last sample.
+    """
+
+    field_mv_m: FloatArray
+    predicted: FloatArray
+    error: FloatArray
+    state: object
+
+    def voltage(self, thickness_um: float) -> FloatArray:
+        return self.field_mv_m * thickness_um
+
+
+def algorithm2(params: hy.Polarization, p_target: FloatArray, state: hy.PolarizationState,
+               e_init: float = 0.0, tol: float = 1e-10, dt: float = 1e-4,
+               e_max: float = 1e3) -> Inversion:
+    """Algorithm 2: fields whose forward polarization (13) follows ``p_target`` (C/m^2).
+
+    ``state`` must be the memory at field ``e_init`` (MV/m) before the first sample. The error
+    ``|P_in - P_out|`` per sample is returned as ``error``: at most ``tol`` (C/m^2).
+    """
+    k = hy.build_kernel(params)
+    st = state.copy_values()
+    p0, _ = hy.run(k, np.array([e_init]), state, dt)
+    x = np.zeros(2)
+    e, _, w = _algorithm3(k.kind, np.ascontiguousarray(p_target, dtype=float), e_init, p0[0], x, st,
+                          dt, k.ec, k.wc, k.ei, k.cw, k.scal, np.eye(2), np.zeros(2),
+                          np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.5 / params.eta, e_max, tol)
+    p_out, _ = hy.run(k, e, state, dt)
+    return Inversion(e, p_out, w, hy.PolarizationState(k.kind, st))
+
+
+def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
+               e_init: float = 0.0, horizon: int = 1, tol_um: float = 1e-7,
+               e_max: float = 1e3) -> Inversion:
+    """Algorithm 3: fields whose forward displacement (16)+(13) follows ``u_target_um``.
+
+    Parameters
+    ----------
+    cm : transducer.Compiled
+        Model at the sample period.
+    u_target_um : ndarray, shape (N,)
+        Desired displacement at samples ``1 ... N`` (the field of sample ``k`` acts over
+        ``[t_k, t_{k+1})``, so the first field can only influence ``u_1``), um.
+    state : transducer.StageState
+        Model state at sample 0, reached with field ``e_init`` (MV/m) held.
+    horizon : int
+        ``d``: the field of sample ``k`` is chosen so that the rod held ``d`` samples ahead reaches
+        ``u*_{k+d}``. 1 is the paper's Algorithm 3; the desired trajectory is extended by its last
+        value for the final ``d - 1`` targets.
+    tol_um : float
+        Accept a field once its predicted displacement is this close to the target, um.
+    e_max : float
+        Largest field magnitude the march may try, MV/m (e.g. the voltage limit / thickness).
+
+    Returns
+    -------
+    Inversion
+        ``predicted`` is the model's displacement at samples ``0 ... N-1``.
+    """
+    if horizon < 1:
+        raise ValueError("horizon must be >= 1")
+    u = np.ascontiguousarray(u_target_um, dtype=float)
+    target = np.concatenate([u[horizon - 1:], np.full(horizon - 1, u[-1])])
+    row, gain = cm.disc.horizon(horizon)
+    rod = cm.model.rod
+    ps = state.polarization
+    p0, _ = hy.run(cm.kernel, np.array([e_init]), ps, cm.dt)
+    x = np.array(state.rod, dtype=float)
+    st = ps.copy_values()
+    dfdp = abs(rod.a1 + 2 * rod.a2 * p0[0]) or abs(rod.a1)
+    floor = 0.5 * gain * dfdp * 1e6 / cm.model.polarization.eta
+    e, pred, w = _algorithm3(cm.kernel.kind, target, e_init, p0[0], x, st, cm.dt, cm.kernel.ec,
+                             cm.kernel.wc, cm.kernel.ei, cm.kernel.cw, cm.kernel.scal,
+                             cm.disc.phi, cm.disc.gamma, row, gain, rod.a1, rod.a2, rod.offset_um,
+                             floor, e_max, tol_um)
+    return Inversion(e, pred, w, tr.StageState(hy.PolarizationState(ps.kind, st), x))
+
+
+# ----------------------------------------------------------------------------------------------
+# literal algorithms (slow reference oracles)
+# ----------------------------------------------------------------------------------------------
+
+
+def _march(trial, e_prev: float, y_prev: float, target: float, e_step: float) -> float:
+    """Fixed-step march from ``e_prev`` until ``trial(E)`` passes ``target``, then interpolate."""
+    if y_prev == target:
+        return e_prev
+    d_e = math.copysign(e_step, target - y_prev)
+    e_a, y_a = e_prev, y_prev
+    while True:
+        e_b = e_a + d_e
+        y_b = trial(e_b)
+        if (target - y_b) * d_e <= 0:
+            return e_a + (target - y_a) * (e_b - e_a) / (y_b - y_a)
+        e_a, y_a = e_b, y_b
+
+
+def algorithm2_literal(params: hy.Polarization, p_target: FloatArray,
+                       state: hy.PolarizationState, e_step: float = 1e-3) -> FloatArray:
+    """Algorithm 2 as printed: fixed ``E_step`` march, then linear interpolation (slow)."""
+    e_prev, out = 0.0, []
+    p_prev = hy.run(params, [e_prev], state)[0][0]
+    for p_star in p_target:
+        e = _march(lambda x, s=state: hy.run(params, [x], s)[0][0], e_prev, p_prev, p_star, e_step)
+        (p_prev,), state = hy.run(params, [e], state)
+        e_prev = e
+        out.append(e)
+    return np.array(out)
+
+
+def algorithm3_literal(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
+                       e_step: float = 1e-3) -> FloatArray:
+    """Algorithm 3 as printed (horizon 1, fixed ``E_step``, linear interpolation); slow oracle.
+
+    ``u~_{k+1}`` holds the field at ``E_{k-1}``; the march direction is ``sgn(u*_{k+1} - u~_{k+1})``
+    (inequalities (19)); each trial advances the rod one sample from ``x_k`` with the trial force.
+    """
+    rod, disc = cm.model.rod, cm.disc
+    ps, x = state.polarization, np.array(state.rod, dtype=float)
+    e_prev, out = 0.0, []
+
+    def u_next(e: float) -> float:
+        p = hy.run(cm.kernel, [e], ps, cm.dt)[0][0]
+        return float((disc.phi[0] @ x + disc.gamma[0] * rod.force(np.array(p))) * 1e6
+                     + rod.offset_um)
+
+    for u_star in u_target_um:
+        e = _march(u_next, e_prev, u_next(e_prev), u_star, e_step)
+        (p,), ps = hy.run(cm.kernel, [e], ps, cm.dt)
+        x = disc.phi @ x + disc.gamma * rod.force(np.array(p))
+        e_prev = e
+        out.append(e)
+    return np.array(out)
+
+
+# ----------------------------------------------------------------------------------------------
+# linear filter (the paper's baseline)
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LinearFilter:
+    """The paper's linear filter: ``V = (u* - offset_um) / gain_um_per_v``.
+
+    A linear scaling of the field-displacement relation that accommodates the scale between input
+    and output but neglects hysteresis, nonlinearity and dynamics.
+    """
+
+    gain_um_per_v: float
+    offset_um: float
+
+    def voltage(self, u_target_um: FloatArray) -> FloatArray:
+        return (np.asarray(u_target_um, dtype=float) - self.offset_um) / self.gain_um_per_v
+
+
+def fit_linear(voltage_v: FloatArray, displacement_um: FloatArray) -> LinearFilter:
+    """Least-squares line through measured (or simulated) voltage-displacement pairs."""
+    a = np.column_stack([voltage_v, np.ones(len(voltage_v))])
+    (g, o), *_ = np.linalg.lstsq(a, displacement_um, rcond=None)
+    return LinearFilter(float(g), float(o))

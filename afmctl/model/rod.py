@@ -1,0 +1,157 @@
+"""Lumped model of the stacked PZT rod, eqs. (16)-(18) of Hatch, Smith et al.
+
+``m u'' + c u' + k u = a1 P(E) + a2 P(E)^2``  (16), written as ``x' = A x + B f`` (17) with
+``x = [u, u']``. The displacement ``u`` is returned in um; internally SI (m, kg, N, s).
+
+The forcing is held constant over each sample (the DAQ's zero-order hold), so the exact
+discretization is ``x_{k+1} = Phi x_k + Gamma f_k`` with ``Phi = e^{A dt}`` and
+``Gamma = int_0^dt e^{A s} ds B``, both from one matrix exponential of the augmented matrix
+``[[A, B], [0, 0]] dt`` (the semigroup form (18) with ``E`` held at ``E_k``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import expm
+
+FloatArray = NDArray[np.float64]
+UM_PER_M = 1e6
+
+
+@dataclass(frozen=True)
+class Rod:
+    """Parameters of the lumped rod (16).
+
+    Parameters
+    ----------
+    m : float
+        Effective mass, kg.
+    c : float
+        Effective damping, N s/m.
+    k : float
+        Effective stiffness, N/m.
+    a1 : float
+        Linear piezoelectric coupling ``A a_1``, N/(C/m^2).
+    a2 : float
+        Quadratic electrostrictive coupling ``A a_2``, N/(C/m^2)^2.
+    offset_um : float
+        Sensor zero: displacement reported when u = 0, um.
+    """
+
+    m: float
+    c: float
+    k: float
+    a1: float
+    a2: float = 0.0
+    offset_um: float = 0.0
+
+    @property
+    def natural_hz(self) -> float:
+        """Undamped resonance sqrt(k/m) / (2 pi), Hz."""
+        return float(np.sqrt(self.k / self.m) / (2 * np.pi))
+
+    @property
+    def damping_ratio(self) -> float:
+        return float(self.c / (2 * np.sqrt(self.k * self.m)))
+
+    def force(self, p: FloatArray) -> FloatArray:
+        """Right-hand side of (16), N, for polarization ``p`` in C/m^2."""
+        return self.a1 * p + self.a2 * p * p
+
+
+@dataclass(frozen=True)
+class Discrete:
+    """Exact zero-order-hold discretization of the rod at sample period ``dt`` (s).
+
+    ``phi`` (2x2) and ``gamma`` (2,) map ``x_k = [u_k (m), v_k (m/s)]`` and the force ``f_k`` (N) to
+    ``x_{k+1}``.
+    """
+
+    phi: FloatArray
+    gamma: FloatArray
+    dt: float
+
+    def horizon(self, d: int) -> tuple[FloatArray, float]:
+        """Row ``C Phi^d`` and gain ``C sum_{i<d} Phi^i Gamma`` (m/N): the displacement ``d``
+        samples ahead with the force held, used by Algorithm 3."""
+        row = np.array([1.0, 0.0])
+        gain = 0.0
+        for _ in range(d):
+            gain += float(row @ self.gamma)
+            row = row @ self.phi
+        return row, gain
+
+
+def smooth_horizon(disc: Discrete, d_max: int = 64) -> int:
+    """Smallest inversion horizon ``d`` whose inverse has no alternating (chattering) mode.
+
+    Inverting the rod ``d`` samples ahead with the force held (Algorithm 3, :mod:`afmctl.model.inverse`)
+    leaves the state to evolve with ``M_d = Phi - Gamma C Phi^d / g_d``. For ``d = 1`` one eigenvalue
+    of ``M_d`` is the sampling zero of the discretized rod, near -1 at high sample rates: the field
+    chatters between samples. Returns the first ``d`` whose eigenvalues all have positive real part
+    and lie inside the unit circle.
+    """
+    for d in range(1, d_max + 1):
+        row, gain = disc.horizon(d)
+        ev = np.linalg.eigvals(disc.phi - np.outer(disc.gamma, row) / gain)
+        if np.all(ev.real > 0) and np.all(np.abs(ev) < 1):
+            return d
+    return d_max
+
+
+def discretize(rod: Rod, dt: float) -> Discrete:
+    """Exact discretization (18) of the rod at sample period ``dt`` (s)."""
+    a = np.array([[0.0, 1.0], [-rod.k / rod.m, -rod.c / rod.m]])
+    aug = np.zeros((3, 3))
+    aug[:2, :2] = a
+    aug[1, 2] = 1.0 / rod.m
+    e = expm(aug * dt)
+    return Discrete(e[:2, :2].copy(), e[:2, 2].copy(), float(dt))
+
+
+@nb.njit(cache=True)
+def _simulate(phi: np.ndarray, gamma: np.ndarray, f: np.ndarray, x: np.ndarray) -> np.ndarray:
+    u = np.empty(f.size)
+    x0, x1 = x[0], x[1]
+    for k in range(f.size):
+        u[k] = x0
+        n0 = phi[0, 0] * x0 + phi[0, 1] * x1 + gamma[0] * f[k]
+        x1 = phi[1, 0] * x0 + phi[1, 1] * x1 + gamma[1] * f[k]
+        x0 = n0
+    x[0], x[1] = x0, x1
+    return u
+
+
+def simulate(rod: Rod, disc: Discrete, force_n: FloatArray,
+             state: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
+    """Displacement samples for a held force sequence.
+
+    Parameters
+    ----------
+    rod : Rod
+    disc : Discrete
+        From :func:`discretize` at the sample period.
+    force_n : ndarray, shape (N,)
+        Force ``f_k`` held over ``[t_k, t_{k+1})``, N.
+    state : ndarray, shape (2,), optional
+        ``[u (m), u' (m/s)]`` at ``t_0``; default at rest at 0.
+
+    Returns
+    -------
+    u_um : ndarray, shape (N,)
+        Displacement at ``t_0 ... t_{N-1}`` (before each force sample acts), um, including the offset.
+    state : ndarray, shape (2,)
+        State at ``t_N``.
+    """
+    x = np.zeros(2) if state is None else np.array(state, dtype=float)
+    u = _simulate(disc.phi, disc.gamma, np.ascontiguousarray(force_n, dtype=float), x)
+    return u * UM_PER_M + rod.offset_um, x
+
+
+def rest_state(rod: Rod, force_n: float) -> FloatArray:
+    """Static equilibrium ``[f/k, 0]`` for a constant force (the static gain 1/k)."""
+    return np.array([force_n / rod.k, 0.0])

@@ -1,0 +1,116 @@
+"""The stage model: voltage -> field -> polarization (13) -> rod (16) -> displacement.
+
+A :class:`Transducer` bundles the polarization model, the rod and the layer thickness that turns
+volts into field (``E [MV/m] = V [V] / thickness [um]``). Its memory is a :class:`StageState`
+that every call takes and returns, so hysteresis cannot be silently dropped between calls.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl.model import hysteresis as hy
+from afmctl.model import rod as rd
+from afmctl.model.effects import Effects
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Transducer:
+    """Polarization model + rod + electrode spacing.
+
+    Parameters
+    ----------
+    polarization : hysteresis.Polarization
+    rod : rod.Rod
+    thickness_um : float
+        Layer thickness, um; field (MV/m) = voltage (V) / thickness_um.
+    effects : Effects
+        What the stage adds around this model (amplifier, sensor, second mode; see
+        :mod:`afmctl.model.effects`); none by default. :func:`simulate` is the paper's model alone;
+        ``afmctl diagnose`` fits effects and ``afmctl track`` inverts them.
+    initial : {"depoled", "positive", "negative"}
+        The hysteresis state the stage was in before the voltages the model was identified on
+        (identify finds it from the data; a stage poled once keeps that state outside the
+        voltage range it is driven over, e.g. below 0 V on a unipolar stage): the default
+        state of :func:`initial`.
+    """
+
+    polarization: hy.Polarization
+    rod: rd.Rod
+    thickness_um: float
+    effects: Effects = field(default_factory=Effects)
+    initial: hy.Initial = "depoled"
+
+    def field(self, voltage_v: FloatArray) -> FloatArray:
+        return np.asarray(voltage_v, dtype=float) / self.thickness_um
+
+
+@dataclass(frozen=True)
+class StageState:
+    """Hysteresis memory and rod state ``[u (m), u' (m/s)]``."""
+
+    polarization: hy.PolarizationState
+    rod: FloatArray
+
+
+def initial(model: Transducer, how: hy.Initial | None = None,
+            voltage_v: float = 0.0) -> StageState:
+    """State at rest: the initial polarization ``how`` (default the model's own
+    :attr:`Transducer.initial`), then ``voltage_v`` applied quasi-statically."""
+    ps = hy.initial_state(model.polarization, model.initial if how is None else how)
+    p, ps = hy.run(model.polarization, np.array([voltage_v / model.thickness_um]), ps)
+    f = model.rod.force(p)[0]
+    return StageState(ps, rd.rest_state(model.rod, f))
+
+
+@dataclass(frozen=True)
+class Compiled:
+    """A model prepared for one sample period: kernel arrays and the rod's discretization."""
+
+    model: Transducer
+    kernel: hy.Kernel
+    disc: rd.Discrete
+
+    @property
+    def dt(self) -> float:
+        return self.disc.dt
+
+
+def compile_model(model: Transducer, dt: float) -> Compiled:
+    """Precompute quadrature nodes and the exact rod discretization at sample period ``dt`` (s)."""
+    return Compiled(model, hy.build_kernel(model.polarization), rd.discretize(model.rod, dt))
+
+
+def simulate(cm: Compiled, voltage_v: FloatArray,
+             state: StageState) -> tuple[FloatArray, FloatArray, StageState]:
+    """Forward model: displacement for a sampled (zero-order-held) voltage.
+
+    Parameters
+    ----------
+    cm : Compiled
+    voltage_v : ndarray, shape (N,)
+        Voltage held over each sample, V.
+    state : StageState
+        State at the first sample.
+
+    Returns
+    -------
+    u_um : ndarray, shape (N,)
+        Displacement at each sample instant (before that sample's voltage acts), um.
+    p : ndarray, shape (N,)
+        Polarization during each sample, C/m^2.
+    state : StageState
+        State after the last sample.
+    """
+    p, ps = hy.run(cm.kernel, cm.model.field(voltage_v), state.polarization, cm.dt)
+    u, x = rd.simulate(cm.model.rod, cm.disc, cm.model.rod.force(p), state.rod)
+    return u, p, StageState(ps, x)
+
+
+def with_rod(model: Transducer, **changes: float) -> Transducer:
+    return replace(model, rod=replace(model.rod, **changes))

@@ -1,0 +1,10 @@
+"""The foreign stage: a plant written independently of afmctl's model code.
+
+Other formulas, other parameters and other sweep designs than afmctl's own (its hysteresis kernel
+in :mod:`~afmctl.drivers.device.foreign.kernel`, the stage in
+:mod:`~afmctl.drivers.device.foreign.stage`, hidden effects of other physics in
+:mod:`~afmctl.drivers.device.foreign.effects`, random stages and sweep sets in
+:mod:`~afmctl.drivers.device.foreign.stages` and :mod:`~afmctl.drivers.device.foreign.sweeps`,
+and the emulator's physics on it in :mod:`~afmctl.drivers.device.foreign.physics`). Every numerical
+capability of afmctl is shown on these stages, so that no test fits data made by its own code.
+"""

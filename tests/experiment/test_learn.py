@@ -1,0 +1,435 @@
+"""Iterative learning on top of the model inverse: the law's pieces against analytic limits, and
+learning on emulated stages whose model is wrong (in-process, and over the serial protocol)."""
+
+from __future__ import annotations
+
+import dataclasses as dc
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from afmctl.cli import main
+from afmctl.drivers.inprocess import InProcessStage, accelerated
+from afmctl.experiment import learn
+from afmctl.files import modelfile, runfile
+from afmctl.files.profile import Profile
+from afmctl.model import effects as fx
+from afmctl.model.transducer import Transducer
+from afmctl.planning import ilc, track
+from tests.harness.emulated import stage_on
+
+DT = 1e-4
+
+
+# ----------------------------------------------------------------------------------------------
+# the law
+# ----------------------------------------------------------------------------------------------
+
+
+def test_q_filter_is_zero_phase_with_the_butterworth_magnitude_squared() -> None:
+    t = np.arange(20_000) * DT
+    fc = 500.0
+    for f in (50.0, 500.0):  # forward and backward: |H|^2 of a 2nd-order Butterworth
+        x = np.sin(2 * np.pi * f * t)
+        y = ilc.q_filter(x, DT, fc)
+        mid = slice(5000, 15000)
+        a = np.linalg.lstsq(np.column_stack([np.sin(2 * np.pi * f * t[mid]),
+                                             np.cos(2 * np.pi * f * t[mid])]), y[mid],
+                            rcond=None)[0]
+        assert np.hypot(*a) == pytest.approx(1 / (1 + (f / fc) ** 4), rel=2e-2)
+        assert abs(np.arctan2(a[1], a[0])) < 1e-3  # no phase: neither lag nor lead
+
+
+def test_lead_is_the_delay_of_the_stage_behind_the_reference() -> None:
+    d = track.triangle(27.9, 20.0, 0.0, 3, DT).u_um
+    delayed = np.concatenate([np.full(4, d[0]), d[:-4]])
+    assert ilc.lead_samples(d, delayed, 400, 10) == 4
+    assert ilc.lead_samples(d, d, 400, 10) == 0
+    assert np.array_equal(ilc.shift(delayed, 4)[:-4], d[:-4])
+
+
+def test_one_step_of_a_pure_delay_plant_is_exact_below_the_cutoff() -> None:
+    """Time-domain law, G = z^-m: r + Q[z^m e] makes the delayed output the desired one (a
+    slow sine: Q = 1 there)."""
+    t = np.arange(5000) * DT
+    want = 5 * np.sin(2 * np.pi * 10 * t)
+    m = 6
+
+    def plant(r: np.ndarray) -> np.ndarray:
+        return np.concatenate([np.full(m, r[0]), r[:-m]])
+
+    desired = track.Desired(DT, want, None, 10.0, "sine")
+    tuning = ilc.tune(want, plant(want), desired, ilc.Law(), 0.0)
+    assert tuning.lead == m and not tuning.harmonic
+    r1 = ilc.next_reference(want, want - plant(want), desired, ilc.Law(), tuning)
+    e1 = want - plant(r1)
+    assert np.sqrt(np.mean(e1[500:-500] ** 2)) < 1e-3 * np.sqrt(np.mean((want - plant(want)) ** 2))
+
+
+def test_per_harmonic_law_measures_g_and_inverts_it() -> None:
+    """A linear plant seen through the inverse, G = 1.3 z^-4 (a gain and delay error): tune()
+    measures G at the triangle's harmonics, and one learning step removes the error there."""
+    desired = track.triangle(27.9, 20.0, 0.0, 3, DT)
+    m, k = 4, 1.3
+
+    def plant(r: np.ndarray) -> np.ndarray:
+        return k * np.concatenate([np.full(m, r[0]), r[:-m]])
+
+    y0 = plant(desired.u_um)
+    tuning = ilc.tune(desired.u_um, y0, desired, ilc.Law(), 0.02)
+    assert tuning.harmonic and tuning.freqs_hz[0] == pytest.approx(27.9)
+    assert set(np.round(tuning.freqs_hz / 27.9).astype(int)) <= set(range(1, 200, 2))  # odd
+    want_g = k * np.exp(-2j * np.pi * tuning.freqs_hz * m * DT)
+    np.testing.assert_allclose(tuning.g, want_g, rtol=0.05)
+    r1 = ilc.next_reference(desired.u_um, desired.u_um - y0, desired, ilc.Law(), tuning)
+    steady = ilc.steady_part(desired)
+    e0 = (desired.u_um - y0)[steady]
+    e1 = (desired.u_um - plant(r1))[steady][m:]
+    assert np.sqrt(np.mean(e1**2)) < 0.05 * np.sqrt(np.mean(e0**2))
+
+
+def test_harmonics_round_trip_without_leakage() -> None:
+    t = np.arange(1234) * DT  # not a whole number of periods
+    c = np.array([0.5, 2 - 1j, 0, 0.3j])
+    x = ilc.synthesize(c, t, 27.9)
+    np.testing.assert_allclose(ilc.harmonics(x, t, 27.9, 3), c, atol=1e-10)
+
+
+def test_noise_estimate_recovers_gaussian_noise_on_a_triangle() -> None:
+    d = track.triangle(27.9, 27.0, 0.0, 3, DT).u_um
+    noisy = d + 0.02 * np.random.default_rng(1).standard_normal(d.size)
+    assert ilc.noise_estimate(noisy) == pytest.approx(0.02, rel=0.1)
+
+
+def test_imaging_mask_is_the_central_80_percent_of_every_ramp() -> None:
+    desired = track.triangle(10.0, 20.0, 0.0, 3, DT)  # 1000 samples a period, ramps of 500
+    mask = ilc.imaging_mask(desired)
+    assert not mask[:1000].any()  # first period excluded
+    assert mask[1000:].sum() == pytest.approx(0.8 * 2000, abs=6)
+    u = desired.u_um
+    assert np.all(np.abs(u[mask]) <= 0.8 * 10.0 + 0.05)  # turnarounds (|u| -> 10) left out
+    assert ilc.imaging_mask(desired, first_period=True)[:1000].sum() > 700
+
+
+# ----------------------------------------------------------------------------------------------
+# learning on stages
+# ----------------------------------------------------------------------------------------------
+
+
+def softer_rod(profile: Profile) -> Profile:
+    """The emulated stage with a 20 % softer rod (first resonance 224 instead of 250 Hz) than
+    the model the learning is given (the shipped truth)."""
+    assert profile.emulator is not None
+    m = profile.emulator.model
+    return dc.replace(profile, emulator=dc.replace(
+        profile.emulator, model=dc.replace(m, rod=dc.replace(m.rod, k=0.8 * m.rod.k))))
+
+
+def with_effects(profile: Profile, effects: fx.Effects) -> Profile:
+    assert profile.emulator is not None
+    return dc.replace(profile, emulator=dc.replace(profile.emulator, effects=effects))
+
+
+def learn_on(profile: Profile, model: Transducer, out: Path, iterations: int,
+             law: ilc.Law | None = None, limits: object = None,
+             seed: str = "inverse") -> learn.Result:
+    assert profile.emulator is not None
+    desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / profile.sample_rate_hz)
+    with InProcessStage(profile, clock=accelerated(8.0)) as stage:
+        return learn.run(stage, model, desired, limits or profile.limits, out, {}, iterations,
+                         law or ilc.Law(), profile.emulator.true_model, seed)
+
+
+def between(res: learn.Result) -> list[float]:
+    return [it.outcome.score.rms_between_um for it in res.iterations]  # type: ignore[misc]
+
+
+def test_learning_brings_a_wrong_model_to_the_noise_floor(profile: Profile, nominal: Transducer,
+                                                           tmp_path: Path) -> None:
+    """The model's rod is 25 % stiffer than the stage's: the inverse alone misses by ~2 um;
+    learning ends within twice the sensor noise, judged by the true plant between samples."""
+    res = learn_on(softer_rod(profile), nominal, tmp_path, 6)
+    b = between(res)
+    assert b[0] > 1.0
+    assert b[res.best] < 2 * profile.emulator.noise_um  # type: ignore[union-attr]
+    assert res.iterations[res.best].steady_um < 2 * res.noise_um
+    files = sorted(p.name for p in tmp_path.glob("run_*.csv"))
+    assert files == [f"run_inverse_iter{j:02d}.csv" for j in range(len(res.iterations))]
+    assert all(runfile.read(tmp_path / f).complete for f in files)
+
+
+def test_amplifier_lag_the_model_lacks_is_learned(profile: Profile, nominal: Transducer,
+                                                   tmp_path: Path) -> None:
+    """A 450 Hz amplifier the model lacks: G measured on iteration 0 lags; learning cuts the
+    error 5-fold, until the lead it needs at the corners reaches the slew limit."""
+    res = learn_on(with_effects(profile, fx.Effects(amplifier_bandwidth_hz=450.0)), nominal,
+                   tmp_path, 4)
+    readings = [it.steady_um for it in res.iterations]
+    assert res.tuning.harmonic and np.all(np.angle(res.tuning.g[:5]) < 0)
+    assert res.lead >= 2  # the lag: y0 is late
+    assert readings[0] > 0.3 and readings[res.best] < 0.2 * readings[0]
+    # at the corners the lead it needs meets the slew limit: the planner lengthens that
+    # stretch's horizon (or the guard refuses), the next iteration is worse and learning stops
+    assert res.stop == "iterations done" or "V/ms" in res.stop or "diverging" in res.stop
+
+
+def test_learning_stops_at_the_noise_floor(profile: Profile, nominal: Transducer,
+                                           tmp_path: Path) -> None:
+    """A stage whose rod is softer than the model's: learning brings the readings' error within
+    1.5 x the noise (estimated from the readings: the stage's 20 nm) and stops there."""
+    res = learn_on(softer_rod(profile), nominal, tmp_path, 8, ilc.Law(floor_factor=1.5))
+    assert res.noise_um == pytest.approx(profile.emulator.noise_um, rel=0.15)  # type: ignore[union-attr]
+    assert res.stop.startswith("noise floor") and len(res.iterations) < 7
+    assert res.iterations[-1].steady_um <= 1.5 * res.noise_um < res.iterations[0].steady_um
+
+
+def test_a_refused_waveform_ends_learning_with_the_best_so_far(
+        profile: Profile, nominal: Transducer, tmp_path: Path) -> None:
+    """A stage whose rod is 25 % stiffer than the model's, with the upper voltage limit just above
+    what iteration 0 needs: learning asks for more voltage than the limit, that waveform is not
+    sent and the best so far is kept."""
+    desired = track.triangle(27.9, 27.04, 0.0, 3, DT)
+    wf0 = track.plan(nominal, desired, profile.limits, 0.0, ("inverse",))["inverse"]
+    top = float(wf0.voltage_v[wf0.tracking].max())
+    tight = dc.replace(profile.limits, v_max=top + 0.5)
+    m = profile.emulator.model  # type: ignore[union-attr]
+    stiffer = dc.replace(profile, emulator=dc.replace(  # type: ignore[type-var]
+        profile.emulator, model=dc.replace(m, rod=dc.replace(m.rod, k=1.25 * m.rod.k))))
+    res = learn_on(stiffer, nominal, tmp_path, 5, limits=tight)
+    assert res.stop.startswith("refused"), res.stop
+    assert len(list(tmp_path.glob("run_*.csv"))) == len(res.iterations) < 6
+    for it in res.iterations:
+        assert it.outcome.waveform.voltage_v.max() <= tight.v_max
+    assert res.best == int(np.argmin([it.steady_um for it in res.iterations]))
+
+
+def test_a_diverging_error_ends_learning(profile: Profile, nominal: Transducer,
+                                         tmp_path: Path) -> None:
+    """Learning through the paper's linear filter (a line: no rod dynamics) with the
+    time-domain law (a trajectory given as a file has no period to measure G at) breaks the
+    convergence condition near the rod's resonance: the iteration worse than 1.2 x the best
+    ends learning, the best kept."""
+    tri = track.triangle(27.9, 27.04, 0.0, 3, DT)
+    desired = track.from_samples(np.arange(tri.u_um.size) * DT, tri.u_um, DT, "file")
+    with InProcessStage(profile, clock=accelerated(8.0)) as stage:
+        res = learn.run(stage, nominal, desired, profile.limits, tmp_path, {}, 8, ilc.Law(),
+                        nominal, "linear")
+    steady = [it.steady_um for it in res.iterations]
+    assert not res.tuning.harmonic
+    assert res.stop.startswith("diverging"), (res.stop, steady)
+    assert steady[-1] > 1.2 * min(steady[:-1])
+    assert res.best == int(np.argmin(steady)) < len(steady) - 1
+    assert len(list(tmp_path.glob("run_*.csv"))) == len(steady) < 9
+
+
+@pytest.mark.parametrize("effect", [fx.Effects(sensor_delay_samples=5),
+                                    fx.Effects(sensor_quadratic_per_um=2e-3)],
+                         ids=["delay-5-samples", "gauge-quadratic"])
+def test_sensor_effects_learning_needs_the_extended_model(profile: Profile, nominal: Transducer,
+                                                          effect: fx.Effects,
+                                                          tmp_path: Path) -> None:
+    """A sensor effect (a 5-sample delay; a gauge reading ``w + 2e-3 w^2``): on the base model,
+    learning makes the readings follow the trajectory and moves the stage's true position away
+    from it; with the effect in the model (the readings corrected) the true position stays on
+    it, and ends far closer than on the base model.
+
+    The extended model here is the base model plus the known, true effect (a fast test);
+    ``benchmarks/bench_learn.py`` does the same with diagnose's fitted extended model and base
+    model on the stage's own sweeps (``base_model_rms_um_by_iteration``)."""
+    stage = with_effects(profile, effect)
+    base = learn_on(stage, nominal, tmp_path / "base", 3, ilc.Law(floor_factor=1.0))
+    ext = learn_on(stage, dc.replace(nominal, effects=effect), tmp_path / "ext", 3,
+                   ilc.Law(floor_factor=1.0))
+    b, e = between(base), between(ext)
+    assert base.iterations[-1].steady_um < 0.5 * base.iterations[0].steady_um  # readings: better
+    assert b[-1] > 3 * b[0]  # the stage: worse
+    assert max(e) < 2 * b[0]
+    assert b[-1] > 5 * e[-1]  # learning on the base model ends the stage further off
+
+
+def test_ctrl_c_keeps_every_finished_iteration(profile: Profile, nominal: Transducer,
+                                               tmp_path: Path) -> None:
+    """An interrupt in the middle of iteration 2: iterations 0 and 1 keep their complete run
+    files and the summary, learned waveform and plot written after them; iteration 2's run file
+    is readable and marked interrupted; the stage is left at 0 V."""
+    desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / profile.sample_rate_hz)
+
+    def progress(what: str, done: int, total: int) -> None:
+        if what == "inverse_iter02" and done > total // 2:
+            raise KeyboardInterrupt
+
+    def each(res: learn.Result) -> None:
+        learn.write_outputs(res, desired, ilc.Law(), {"profile": "emulated"}, tmp_path)
+
+    with InProcessStage(profile, clock=accelerated(8.0)) as stage:
+        with pytest.raises(KeyboardInterrupt):
+            learn.run(stage, nominal, desired, profile.limits, tmp_path, {}, 4,
+                      ilc.Law(floor_factor=1.0), nominal, progress=progress, on_iteration=each)
+        assert stage.voltage() == 0.0
+    runs = [runfile.read(tmp_path / f"run_inverse_iter{j:02d}.csv") for j in range(3)]
+    assert [r.complete for r in runs] == [True, True, False] and "interrupted" in runs[2].end
+    doc = json.loads((tmp_path / "summary.json").read_text())
+    assert [r["iteration"] for r in doc["iterations"]] == [0, 1]
+    assert (tmp_path / "waveform_learned.csv").exists() and (tmp_path / "learn.png").exists()
+    assert not list(tmp_path.glob("*.partial"))
+
+
+def test_run_to_run_gain_variation_settles_at_its_floor(profile: Profile, nominal: Transducer,
+                                                        tmp_path: Path) -> None:
+    """A stage whose rod is softer than the model's (the inverse alone misses by ~2 um) and whose
+    every run draws its own applied-voltage gain (sigma 2 %). The conditioning measures each
+    run's gain relative to iteration 0 (checked against the emulator's own draws); learning
+    learns and judges at the runs' mean gain, so it neither chases the draws nor takes one for
+    a divergence: with the floor stop off (``floor_factor=0``) all 6 iterations play, and the
+    expected true error over the gain spread (at gain 1 +- sigma) of every iteration from 1 on
+    is within 1.5 x the variation's floor: the error a perfect waveform still makes under that
+    spread (the true plant's positions at 1 +- sigma against 1). The error learning learns from
+    (each run's, moved to the runs' mean gain along its own waveform's ``s``) is the true
+    plant's error at the mean of the true gains to within 1.5 x the noise (along iteration 0's
+    ``s`` it was 2.4 x off here, and ~6 x on the bench's gain stage)."""
+    from afmctl.drivers.device.plant import Physics
+    sigma = 0.02
+    prof = with_effects(softer_rod(profile), fx.Effects(voltage_gain_sigma=sigma))
+    assert prof.emulator is not None
+    desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / prof.sample_rate_hz)
+    with InProcessStage(prof, clock=accelerated(8.0)) as stage:
+        res = learn.run(stage, nominal, desired, prof.limits, tmp_path, {}, 6,
+                        ilc.Law(floor_factor=0), prof.emulator.true_model)
+        gains = np.array([stage.emulator.physics.gain(j) for j in range(len(res.iterations))])
+    # measured along the model's s: the stage, whose rod is 1 / 0.8 as compliant, moves 1.25
+    # times as far per unit gain, so it reads 1.25 x the change (d s is its true movement)
+    measured = np.array([it.gain_change for it in res.iterations])
+    assert measured == pytest.approx(1.25 * (gains - gains[0]), abs=3e-4)
+    assert np.std(gains) > 0.005  # the draws did vary
+    assert res.stop == "iterations done" and len(res.iterations) == 7, res.stop
+    ph = Physics(dc.replace(prof.emulator, effects=fx.Effects()), prof.sample_rate_hz)
+    steady = ilc.steady_part(desired)
+
+    def position(wf: track.Waveform, g: float) -> np.ndarray:
+        return ph.respond(g * wf.voltage_v, ph.initial())[0][wf.tracking][steady]
+
+    def rms(parts: list[np.ndarray]) -> float:
+        return float(np.sqrt(np.mean(np.concatenate(parts) ** 2)))
+
+    noise = prof.emulator.noise_um
+    for it in res.iterations:  # the conditioning wipes the memory: the power-on state will do
+        at_mean = desired.u_um[steady] - position(it.outcome.waveform, float(np.mean(gains)))
+        assert rms([it.learned_um[steady] - at_mean]) < 1.5 * noise, it.index  # type: ignore[index]
+    wf = res.best_iteration.outcome.waveform
+    floor = rms([position(wf, g) - position(wf, 1.0) for g in (1 + sigma, 1 - sigma)])
+    expected = [rms([position(it.outcome.waveform, g) - desired.u_um[steady]
+                     for g in (1 + sigma, 1 - sigma)]) for it in res.iterations]
+    assert expected[0] > 5 * floor and max(expected[1:]) <= 1.5 * floor, (expected, floor)
+
+
+def test_learning_over_the_serial_protocol(profile: Profile, nominal: Transducer,
+                                           tmp_path: Path) -> None:
+    """The same learning through the real serial driver on a pty."""
+    prof = softer_rod(profile)
+    desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / prof.sample_rate_hz)
+    with stage_on("serial-pty", prof) as (stage, _):
+        res = learn.run(stage, nominal, desired, prof.limits, tmp_path, {}, 2, ilc.Law(),
+                        prof.emulator.true_model)  # type: ignore[union-attr]
+    steady = [it.steady_um for it in res.iterations]
+    assert len(steady) == 3 and steady[2] < 0.2 * steady[0]
+    assert all(it.outcome.complete for it in res.iterations)
+
+
+# ----------------------------------------------------------------------------------------------
+# the command line: track --learn, play
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory: pytest.TempPathFactory, nominal: Transducer) -> Path:
+    path = tmp_path_factory.mktemp("model") / "model.toml"
+    modelfile.write(nominal, path)
+    return path
+
+
+def test_track_learn_writes_every_iteration_and_play_reproduces_it(model_file: Path,
+                                                                    tmp_path: Path) -> None:
+    out, rep = tmp_path / "learn", tmp_path / "play"
+    res = CliRunner().invoke(main, ["track", "triangle", "--freq", "27.9", "--amplitude",
+                                    "27.04", "--model", str(model_file), "--learn", "2",
+                                    "--out", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout.strip().splitlines()[-1])
+    assert json.loads((out / "summary.json").read_text()) == doc
+    rows = doc["iterations"]
+    assert [r["iteration"] for r in rows] == list(range(len(rows)))
+    for r in rows:
+        assert {"iteration", "rms_um", "max_um", "rms_between_um", "rms_imaging_um",
+                "max_slew_V_per_ms"} <= r.keys()
+        assert (out / r["run_file"]).exists()
+    assert (out / "learn.png").stat().st_size > 10_000
+    lines = (out / "waveform_learned.csv").read_text().splitlines()
+    meta = dict(ln[2:].split(": ", 1) for ln in lines if ln.startswith("# "))
+    assert meta["profile"] == "emulated" and meta["model"] == str(model_file)
+    assert meta["trajectory"].startswith("triangle 27.9 Hz")
+    assert int(meta["iteration"]) == doc["best_iteration"]
+    assert next(ln for ln in lines if not ln.startswith("#")) == "time_s,voltage_V,desired_um"
+
+    res = CliRunner().invoke(main, ["play", str(out / "waveform_learned.csv"), "--out", str(rep),
+                                    "--json"])
+    assert res.exit_code == 0, res.output
+    played = json.loads(res.stdout.strip().splitlines()[-1])
+    kept = rows[doc["best_iteration"]]
+    # the same waveform (to the file's 1 uV) on the same deterministic plant: the same true
+    # position; the readings differ by their noise draw
+    assert played["rms_between_um"] == pytest.approx(kept["rms_between_um"], rel=1e-5)
+    assert played["rms_steady_um"] == pytest.approx(kept["rms_steady_um"], rel=0.25)
+    assert runfile.read(rep / "run_play.csv").complete
+
+
+def test_play_refuses_a_waveform_outside_the_limits(tmp_path: Path) -> None:
+    t = np.arange(100) * DT
+    v = np.where(t > 0.005, 20.0, 0.0)  # a 20 V step: 200 V/ms
+    wave = tmp_path / "w.csv"
+    wave.write_text("time_s,voltage_V\n" + "".join(f"{a:.7f},{b}\n" for a, b in zip(t, v, strict=True)))
+    res = CliRunner().invoke(main, ["play", str(wave), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "V/ms" in res.stderr and res.stderr.count("\n") == 1
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    ("time_s,voltage_V\n0,0\n0.001,0\n0.002,0\n", "sampled every 1 ms"),
+    ("time_s,desired_um\n0,0\n0.0001,0\n", "missing column voltage_V"),
+    ("time_s,voltage_V\n0,0\n0.0001,x\n", "not a number"),
+    ("time_s,voltage_V\n0,0\n0.0001,0\n0.0003,0\n", "equal steps"),
+])
+def test_play_bad_files_are_one_line_exit_2(tmp_path: Path, content: str, message: str) -> None:
+    wave = tmp_path / "w.csv"
+    wave.write_text(content)
+    res = CliRunner().invoke(main, ["play", str(wave), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and message in res.stderr, res.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_learn_with_dry_run_is_refused(model_file: Path, tmp_path: Path) -> None:
+    res = CliRunner().invoke(main, ["track", "sine", "--freq", "5", "--amplitude", "10",
+                                    "--model", str(model_file), "--learn", "3", "--dry-run",
+                                    "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "--dry-run" in res.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_learning_keeps_to_the_models_envelope(profile: Profile, nominal: Transducer) -> None:
+    """The conditioning stays inside the envelope's voltage range, and a corrected reference that
+    would need voltages beyond it by more than 5 % of its span is refused (not sent) unless the
+    planner extrapolates."""
+    desired = track.triangle(27.9, 27.04, 0.0, 3, DT)
+    _, wf0 = learn.planner(nominal, desired, profile.limits)
+    v = wf0.voltage_v[wf0.tracking]
+    env = modelfile.Envelope(float(v.min()) - 20, float(v.max()) + 20, 0.0, 1.0, (27.9,), (1e4,))
+    p, wf = learn.planner(nominal, desired, profile.limits, envelope=env)
+    pre = wf.voltage_v[:p.prefix_v.size]
+    assert env.voltage_min_v - 1e-9 <= pre.min() and pre.max() <= env.voltage_max_v + 1e-9
+    assert pre.min() > profile.limits.v_min + 1  # narrower than the profile's full range
+    wider = 1.3 * (desired.u_um - desired.u_um.mean()) + desired.u_um.mean()
+    with pytest.raises(track.EnvelopeError):
+        learn.plan_reference(p, desired, wider)
+    learn.plan_reference(dc.replace(p, extrapolate=True), desired, wider)

@@ -1,0 +1,137 @@
+"""Algorithms 2 and 3 round trips, against their literal fixed-step forms, and the linear filter."""
+
+from __future__ import annotations
+
+import dataclasses as dc
+
+import numpy as np
+import pytest
+from scipy.signal import sawtooth
+
+from afmctl.model import hysteresis as hy
+from afmctl.model import inverse as inv
+from afmctl.model import rod as rd
+from afmctl.model import transducer as tr
+
+DT = 1e-4
+
+
+def figure5_input(n: int = 3000) -> np.ndarray:
+    """Symmetric and biased minor loops in P (C/m^2), like the paper's Fig. 5(c)."""
+    t = np.linspace(0, 1, n)
+    return 0.55 * np.sin(2 * np.pi * 2 * t) * np.exp(-1.2 * t) + 0.12 * np.sin(2 * np.pi * 11 * t)
+
+
+@pytest.mark.parametrize("kernel", ["auto", "grid"])
+def test_algorithm2_round_trip_error_is_bounded_by_the_step(nominal: tr.Transducer,
+                                                            kernel: str) -> None:
+    pol = dc.replace(nominal.polarization, kernel=kernel)
+    p_in = figure5_input()
+    tol = 1e-9
+    res = inv.algorithm2(pol, p_in, hy.initial_state(pol), tol=tol)
+    p_out, _ = hy.run(pol, res.field_mv_m, hy.initial_state(pol))
+    k = hy.build_kernel(pol)
+    # the grid's P(E) jumps by 2 P_R w_i w_j when a relay switches: no field lands between
+    step = tol if kernel == "auto" else 2 * pol.p_r * k.wc.max() * k.wi.max()
+    assert np.max(np.abs(p_in - p_out)) <= step
+    np.testing.assert_allclose(np.abs(p_in - p_out), res.error, atol=1e-15)
+    np.testing.assert_allclose(p_out, res.predicted, atol=1e-15)
+
+
+def test_algorithm2_fast_agrees_with_the_literal_march(nominal: tr.Transducer) -> None:
+    pol = nominal.polarization
+    p_in = figure5_input()[:400]
+    s0 = hy.initial_state(pol)
+    e_fast = inv.algorithm2(pol, p_in, s0).field_mv_m
+    e_step = 1e-3
+    e_lit = inv.algorithm2_literal(pol, p_in, s0, e_step=e_step)
+    p_lit, _ = hy.run(pol, e_lit, s0)
+    # linear interpolation over one step of a kinked curve: error well inside one step
+    assert np.max(np.abs(e_lit - e_fast)) < e_step
+    assert np.max(np.abs(p_lit - p_in)) < e_step * 1.0  # dP <= (dP/dE)_max * E_step
+
+
+def triangle(freq: float, amp_um: float, periods: float) -> np.ndarray:
+    t = np.arange(1, int(round(periods / freq / DT)) + 1) * DT
+    return 0.5 * amp_um * sawtooth(2 * np.pi * freq * t + np.pi / 2, 0.5)
+
+
+@pytest.mark.parametrize("freq", [0.279, 27.9])
+def test_algorithm2_round_trip_on_triangles(nominal: tr.Transducer, freq: float) -> None:
+    """P triangles over 80 % of the polarization the stage's +-150 V reach, 2 periods at 10 kHz."""
+    pol = nominal.polarization
+    p_max, _ = hy.saturation(pol, 150.0 / nominal.thickness_um)
+    p_in = triangle(freq, 1.6 * p_max, 2)
+    res = inv.algorithm2(pol, p_in, hy.initial_state(pol), tol=1e-9)
+    p_out, _ = hy.run(pol, res.field_mv_m, hy.initial_state(pol))
+    assert np.max(np.abs(p_in - p_out)) <= 1e-9
+    assert np.max(np.abs(res.field_mv_m)) < 1.5  # inside the stage's field range
+
+
+def tracking_error(model: tr.Transducer, ud: np.ndarray, res: inv.Inversion,
+                   skip: int) -> np.ndarray:
+    cm = tr.compile_model(model, DT)
+    u, _, _ = tr.simulate(cm, res.voltage(model.thickness_um), tr.initial(model))
+    np.testing.assert_allclose(u, res.predicted, atol=1e-9)  # the inverse's own prediction
+    return (u[1:] - ud[:-1])[skip:]
+
+
+def test_algorithm3_round_trip_at_0_279_hz_is_exact(nominal: tr.Transducer) -> None:
+    ud = triangle(0.279, 40.56, 1.5)
+    res = inv.algorithm3(tr.compile_model(nominal, DT), ud, tr.initial(nominal), tol_um=1e-7)
+    err = tracking_error(nominal, ud, res, 0)
+    assert np.max(np.abs(err)) < 1e-6
+
+
+def test_algorithm3_at_27_9_hz_with_smooth_horizon(nominal: tr.Transducer) -> None:
+    cm = tr.compile_model(nominal, DT)
+    d = rd.smooth_horizon(cm.disc)
+    ud = triangle(27.9, 27.04, 4)
+    res = inv.algorithm3(cm, ud, tr.initial(nominal), horizon=d, e_max=1.5)
+    period = int(1 / 27.9 / DT)
+    err = tracking_error(nominal, ud, res, period)
+    assert np.sqrt(np.mean(err**2)) / 27.04 < 0.005  # < 0.5 % of amplitude
+    v = res.voltage(nominal.thickness_um)[period:]
+    # no chatter: the field does not alternate sign of its increments sample after sample
+    flips = np.mean(np.diff(np.sign(np.diff(v))) != 0)
+    assert flips < 0.2
+
+
+def test_literal_one_step_algorithm3_chatters_at_27_9_hz(nominal: tr.Transducer) -> None:
+    """The failure the horizon fixes: as printed, the inverse alternates between samples."""
+    cm = tr.compile_model(nominal, DT)
+    ud = triangle(27.9, 27.04, 1.2)
+    v = inv.algorithm3(cm, ud, tr.initial(nominal), horizon=1, e_max=1.5).voltage(100.0)
+    assert np.mean(np.diff(np.sign(np.diff(v))) != 0) > 0.5
+
+
+def test_algorithm3_fast_agrees_with_the_literal_algorithm(nominal: tr.Transducer) -> None:
+    cm = tr.compile_model(nominal, DT)
+    ud = triangle(0.279, 40.56, 0.02)[:300] * 50  # a fast ramp within 300 samples
+    s0 = tr.initial(nominal)
+    e_fast = inv.algorithm3(cm, ud, s0).field_mv_m
+    e_lit = inv.algorithm3_literal(cm, ud, s0, e_step=1e-4)
+    np.testing.assert_allclose(e_lit, e_fast, atol=1e-5)
+
+
+def test_inequalities_19_on_the_ascending_branch(nominal: tr.Transducer) -> None:
+    """u_{k+1} >= u~_{k+1} while E rises (c_L) and <= while it falls (c_U)."""
+    cm = tr.compile_model(nominal, DT)
+    e = 1.2 * np.sin(2 * np.pi * 27.9 * np.arange(2000) * DT)
+    disc, rod = cm.disc, nominal.rod
+    p, _ = hy.run(cm.kernel, e, hy.initial_state(nominal.polarization), DT)
+    f = rod.force(p)
+    u, _ = rd.simulate(rod, disc, f)
+    x = np.zeros(2)
+    for k in range(1, e.size - 1):
+        x = disc.phi @ x + disc.gamma * f[k - 1]
+        u_true = disc.phi[0] @ x + disc.gamma[0] * f[k]
+        u_held = disc.phi[0] @ x + disc.gamma[0] * f[k - 1]
+        assert np.sign(e[k] - e[k - 1]) * (u_true - u_held) >= -1e-18
+
+
+def test_linear_filter_recovers_a_line() -> None:
+    v = np.linspace(-100, 100, 50)
+    lin = inv.fit_linear(v, 0.3 * v + 2.0)
+    assert lin.gain_um_per_v == pytest.approx(0.3)
+    np.testing.assert_allclose(lin.voltage(0.3 * v + 2.0), v, atol=1e-10)

@@ -1,0 +1,82 @@
+"""Planning and scoring of the tracking experiment (pure part; the streaming is tested with drivers)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from afmctl import guard
+from afmctl.experiment import runner as experiment
+from afmctl.files.profile import Profile
+from afmctl.model import transducer as tr
+from afmctl.planning import track
+from tests.harness.emulated import stage_on
+
+LIM = guard.Limits(v_min=-150, v_max=150, slew_v_per_ms=50, current_ma=100, capacitance_uf=2)
+DT = 1e-4
+
+
+def run_model(model: tr.Transducer, wf: track.Waveform) -> np.ndarray:
+    return tr.simulate(tr.compile_model(model, DT), wf.voltage_v, tr.initial(model))[0]
+
+
+def test_27_9_hz_inverse_is_smooth_within_limits_and_beats_linear(nominal: tr.Transducer) -> None:
+    desired = track.triangle(27.9, 27.04, 0.0, 3, DT)
+    plans = track.plan(nominal, desired, LIM)
+    inv_wf, lin_wf = plans["inverse"], plans["linear"]
+    for wf in (inv_wf, lin_wf):
+        guard.check(wf.voltage_v, DT, LIM, 0.0)
+        assert abs(wf.voltage_v[-1]) < 1e-9  # ramps back to the present output (0 V)
+        assert np.isnan(wf.desired_um[: wf.tracking.start]).all()
+        assert np.isnan(wf.desired_um[wf.tracking.stop:]).all()
+    assert inv_wf.horizon is not None and inv_wf.horizon > 1  # the literal one-step chatters
+    st = tr.initial(nominal)
+    s_inv = track.score(inv_wf, desired, run_model(nominal, inv_wf),
+                        track.between_samples(nominal, inv_wf, desired, st))
+    s_lin = track.score(lin_wf, desired, run_model(nominal, lin_wf),
+                        track.between_samples(nominal, lin_wf, desired, st))
+    assert s_inv.rms_pct < 0.5 and s_inv.rms_between_um is not None
+    assert s_inv.rms_between_um < 2 * s_inv.rms_um + 0.01  # no hidden ripple between samples
+    assert s_lin.rms_um > 10 * s_inv.rms_um
+
+
+def test_impossible_trajectory_is_refused_not_clipped(nominal: tr.Transducer) -> None:
+    desired = track.triangle(27.9, 120.0, 0.0, 2, DT)  # beyond the stage's range
+    with pytest.raises(guard.LimitError, match="out of the stage's reach"):
+        track.plan(nominal, desired, LIM)
+    fast = track.triangle(27.9, 27.04, 0.0, 2, DT)  # reachable, but not within 5 V/ms
+    slow_amp = guard.Limits(-150, 150, slew_v_per_ms=5, current_ma=100, capacitance_uf=2)
+    with pytest.raises(guard.LimitError, match="no inversion horizon"):
+        track.plan(nominal, fast, slow_amp)
+
+
+def test_score_leaves_missing_samples_out(nominal: tr.Transducer) -> None:
+    desired = track.sine(5.0, 10.0, 0.0, 1, DT)
+    wf = track.plan(nominal, desired, LIM, filters=("inverse",))["inverse"]
+    u = run_model(nominal, wf)
+    u_missing = u.copy()
+    u_missing[wf.tracking.start + 100: wf.tracking.start + 200] = np.nan
+    full, part = track.score(wf, desired, u), track.score(wf, desired, u_missing)
+    assert np.isfinite(part.rms_um) and part.rms_um == pytest.approx(full.rms_um, rel=0.5)
+
+
+def test_file_trajectory_is_resampled_on_the_stage_clock() -> None:
+    d = track.from_samples(np.array([0.0, 0.5, 1.0]), np.array([0.0, 5.0, 0.0]), 1e-3, "file")
+    assert d.u_um.size == 1001 and d.u_um[250] == pytest.approx(2.5)
+
+
+@pytest.mark.parametrize("kind", ["modbus-tcp", "serial-pty"])
+def test_track_over_the_wire_equals_in_process(kind: str, profile: Profile,
+                                               nominal: tr.Transducer, tmp_path: Path) -> None:
+    """The same plan on fresh devices with the same seed: identical errors on every transport."""
+    desired = track.triangle(27.9, 27.04, 0.0, 2, 1 / profile.sample_rate_hz)
+    plans = track.plan(nominal, desired, profile.limits)
+    scores = {}
+    for where in ("inprocess", kind):
+        with stage_on(where, profile) as (stage, _):
+            runs = experiment.run_all(stage, plans, desired, tmp_path / where, {}, None)
+        scores[where] = {k: (o.score.rms_um, o.score.max_um, o.complete) for k, o in runs.items()}
+    assert scores["inprocess"] == scores[kind]
+    assert scores[kind]["inverse"][0] < 0.1 < scores[kind]["linear"][0]
