@@ -12,11 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.files.tomlfile import InputError
-
-
-class LimitError(InputError):
-    """A waveform or set point violates the stage's limits; the message says where and how."""
+from afmctl.errors import LimitError
 
 
 @dataclass(frozen=True)

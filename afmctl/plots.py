@@ -1,24 +1,28 @@
-"""Figures for identification: measured vs fitted loops and the residual over time, per sweep.
+"""Every figure afmctl draws: identification fits, diagnosis residuals, tracking and learning.
 
-Matplotlib with the Agg backend (no display); every figure is closed after saving.
+Figures are :class:`matplotlib.figure.Figure` objects saved straight to a PNG: no pyplot, so the
+caller's matplotlib backend is never touched (a notebook's inline figures keep working) and no
+figure is left open. matplotlib is imported when this module is, and only the CLI imports it.
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
+from numpy.typing import NDArray
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from numpy.typing import NDArray  # noqa: E402
+from afmctl.files.sweepfile import Sweep
 
-from afmctl.files.sweepfile import Sweep  # noqa: E402
+if TYPE_CHECKING:
+    from afmctl.experiment.learn import Result
+    from afmctl.experiment.runner import Outcome
+    from afmctl.planning.track import Desired
 
 FloatArray = NDArray[np.float64]
 
@@ -30,15 +34,11 @@ def _stem(sweep: Sweep, index: int) -> str:
 
 @contextmanager
 def _saved(path: str | Path, dpi: int, *grid: int, **kw: Any) -> Iterator[Any]:
-    """``plt.subplots(*grid, **kw)``'s axes; the figure is saved to ``path`` when the block ends
-    without error, and closed in any case."""
-    fig, ax = plt.subplots(*grid, **kw)
-    try:
-        yield ax
-        fig.tight_layout()
-        fig.savefig(Path(path), dpi=dpi)
-    finally:
-        plt.close(fig)
+    """The axes of a new figure (``Figure.subplots(*grid, **kw)``); the figure is saved to ``path``
+    when the block ends without error. ``layout`` defaults to ``"constrained"``."""
+    fig = Figure(figsize=kw.pop("figsize", None), layout=kw.pop("layout", "constrained"))
+    yield fig.subplots(*grid, **kw)
+    fig.savefig(Path(path), dpi=dpi)
 
 
 def _excluded_spans(sweep: Sweep, judged: NDArray[np.bool_]) -> list[tuple[float, float]]:
@@ -133,3 +133,61 @@ def diagnosis_figure(sweeps: list[Sweep], before_um: list[FloatArray], after_um:
         ax[-1, 0].set(xlabel="time (s)")
         ax[-1, 1].set(xlabel="field (MV/m)")
     return Path(path)
+
+
+def track_figure(outcomes: Mapping[str, Outcome], desired: Desired, thickness_um: float,
+                 path: Path) -> None:
+    """``track.png``: desired and achieved trajectories, errors, and the field-displacement loop
+    (the paper's Figs. 9-11).
+
+    The desired trajectory is drawn last (dashed, on top) so the filters cannot hide it; the first
+    period, left out of the headline figures, is shaded, and each error's legend states its RMS.
+    """
+    t = np.arange(desired.u_um.size) * desired.dt_s
+    colors = {"inverse": "tab:blue", "linear": "tab:red"}
+    with _saved(path, 110, 3, 1, figsize=(8, 9.5)) as ax:
+        t0 = 0.0
+        for name, o in outcomes.items():
+            u = o.displacement_um[o.waveform.tracking]
+            v = o.waveform.voltage_v[o.waveform.tracking]
+            c = colors.get(name, None)
+            t0 = o.score.steady_from_s
+            ax[0].plot(t, u, color=c, lw=1.6, alpha=0.8, label=f"{name} filter")
+            part = "steady part" if o.score.steady else "whole run"
+            ax[1].plot(t, u - desired.u_um, color=c, lw=0.9,
+                       label=f"{name}: RMS {o.score.rms_um:.3g} um ({o.score.rms_pct:.2g} %, {part})")
+            ax[2].plot(v / thickness_um, u, color=c, lw=0.8, label=name)
+        ax[0].plot(t, desired.u_um, "k--", lw=1.0, label="desired", zorder=5)
+        for a in ax[:2]:
+            if t0 > 0:
+                a.axvspan(0, t0, color="0.9", zorder=0, label="first period (transient, not in RMS)")
+        ax[0].set(xlabel="time (s)", ylabel="displacement (um)", title=f"Tracking: {desired.label}")
+        ax[1].set(xlabel="time (s)", ylabel="error (um)")
+        ax[2].set(xlabel="field (MV/m)", ylabel="displacement (um)", title="field-displacement")
+        for a in ax:
+            a.grid(alpha=0.3)
+            a.legend(loc="best", fontsize=8)
+
+
+def learn_figure(result: Result, desired: Desired, path: Path) -> None:
+    """``learn.png``: error RMS against iteration, and the error of the first and last iteration
+    against time."""
+    its = result.iterations
+    with _saved(path, 100, 2, 1, figsize=(8, 7)) as ax:
+        idx = [it.index for it in its]
+        ax[0].semilogy(idx, [it.steady_um for it in its], "o-",
+                       label="steady RMS (readings, corrected)")
+        ax[0].semilogy(idx, [it.outcome.score.rms_between_um or np.nan for it in its], "s--",
+                       label="RMS between samples (plant)")
+        ax[0].semilogy(idx, [it.rms_imaging_um for it in its], "^:", label="imaging region RMS")
+        if np.isfinite(result.noise_um):
+            ax[0].axhline(result.noise_um, color="gray", lw=0.8, label="noise estimate")
+        ax[0].set(xlabel="iteration", ylabel="error (um)", title=f"Learning: {desired.label}")
+        t = np.arange(desired.u_um.size) * desired.dt_s
+        for it, c in ((its[0], "tab:red"), (its[-1], "tab:blue")):
+            ax[1].plot(t, -it.error_um, color=c, lw=0.8,
+                       label=f"iteration {it.index}: RMS {it.steady_um:.3g} um")
+        ax[1].set(xlabel="time (s)", ylabel="error (um)")
+        for a in ax:
+            a.grid(alpha=0.3)
+            a.legend(loc="best", fontsize=8)

@@ -41,6 +41,7 @@ from afmctl.drivers.device.foreign.effects import OUT_OF_VOCABULARY, random_effe
 from afmctl.drivers.device.foreign.stages import random_stage  # noqa: E402
 from afmctl.files import sweepfile as sw  # noqa: E402
 from afmctl.files.profile import default_profile  # noqa: E402
+from afmctl.fit import candidates as cd
 from afmctl.fit import diagnose as dg  # noqa: E402
 from afmctl.fit import extension as ext  # noqa: E402
 from afmctl.model import transducer as td  # noqa: E402
@@ -48,8 +49,8 @@ from afmctl.planning import sweepdesign as sd  # noqa: E402
 from afmctl.planning import track
 
 SEED = 20261212
-IN_VOCABULARY = ("amplifier-lag", "sensor-delay", "thermal-relaxation", "second-mode",
-                 "sensor-nonlinearity", "voltage-gain-drift")
+#: diagnose's vocabulary: every candidate of the catalogue but the paper's model alone.
+IN_VOCABULARY = tuple(n for n in cd.NAMES if n != "none")
 #: Causes track can invert or correct for (a per-run gain cannot be known before the run).
 TRACKABLE = set(IN_VOCABULARY) - {"voltage-gain-drift"}
 #: An effect must show on some sweep with at least this RMS, in multiples of the sensor noise.

@@ -50,12 +50,11 @@ import numpy as np
 
 from afmctl.drivers.device import plant as em
 from afmctl.drivers.inprocess import InProcessStage, accelerated
-from afmctl.drivers.stage import StageError
+from afmctl.errors import LimitError, StageError
 from afmctl.experiment import calibration, learn
 from afmctl.files.profile import Profile, default_profile
 from afmctl.fit import diagnose as dg
 from afmctl.fit import identify
-from afmctl.guard import LimitError
 from afmctl.model import effects as fx
 from afmctl.model import transducer as tr
 from afmctl.planning import ilc, track
@@ -74,6 +73,7 @@ SENSOR = {"sensor-delay", "sensor-nonlinearity"}
 LINEAR_Q_HZ = 150.0
 SEED_ITERATIONS = 15
 FOREIGN_SEED = 1
+#: One stage per cause of diagnose's catalogue, in the order the bench has always run them.
 CAUSES = ("thermal-relaxation", "amplifier-lag", "second-mode", "voltage-gain-drift",
           "sensor-delay", "sensor-nonlinearity")
 

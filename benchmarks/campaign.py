@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl import guard
-from afmctl.drivers import LinkCapacityError, StageBase, StageError
+from afmctl.drivers import StageBase
 from afmctl.drivers.device.emulated import EmulatedDevice
 from afmctl.drivers.device.emulator import Emulator, ramp_to_zero
 from afmctl.drivers.device.modbus_server import ModbusRtuServer, ModbusTcpServer
@@ -49,6 +49,7 @@ from afmctl.drivers.inprocess import InProcessStage
 from afmctl.drivers.modbus_link import ModbusStage
 from afmctl.drivers.player import Player
 from afmctl.drivers.serial_link import SerialStage
+from afmctl.errors import LinkCapacityError, StageError
 from afmctl.files.profile import ModbusRtuTransport, ModbusTcpTransport, Profile, WireFaults
 
 WIRES = ("serial-socket", "serial-pty", "modbus-tcp", "modbus-rtu")

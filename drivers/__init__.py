@@ -34,15 +34,8 @@ Test and benchmark harnesses (the safety campaign) live outside the shipped pack
 """
 
 from afmctl.drivers.protocol import Status
-from afmctl.drivers.stage import (
-    BlockCallback,
-    LinkCapacityError,
-    Recording,
-    Stage,
-    StageBase,
-    StageError,
-    open_stage,
-)
+from afmctl.drivers.stage import BlockCallback, Recording, StageBase, open_stage
+from afmctl.errors import LinkCapacityError, StageError
 
-__all__ = ["StageError", "LinkCapacityError", "Recording", "Status", "Stage", "StageBase",
+__all__ = ["StageError", "LinkCapacityError", "Recording", "Status", "StageBase",
            "BlockCallback", "open_stage"]

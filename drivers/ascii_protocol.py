@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl.drivers.protocol import Status
+from afmctl.errors import FrameError
 
 PROTOCOL_VERSION = 3
 MAX_LINE = 8192
@@ -36,10 +37,6 @@ READBACK_BYTES_PER_SAMPLE = 24.5
 
 STATUS_KEYS = ("running", "fill", "error", "out", "runs", "len", "complete", "wd", "expired", "ro",
                "rate", "pos", "total", "wdt")
-
-
-class FrameError(ValueError):
-    """A line whose CRC does not match (or that has none where one is required)."""
 
 
 def crc(text: str) -> str:

@@ -27,7 +27,8 @@ from afmctl.drivers import ascii_protocol as ap
 from afmctl.drivers import register_map as rm
 from afmctl.drivers.modbus_link import ModbusStage
 from afmctl.drivers.serial_link import SerialStage
-from afmctl.drivers.stage import StageBase, StageError
+from afmctl.drivers.stage import StageBase
+from afmctl.errors import StageError
 from afmctl.files.profile import ModbusRtuTransport, ModbusTcpTransport, Profile
 
 #: Sample rate for the stream, busy and table checks, Hz (slow enough for any link to refill).

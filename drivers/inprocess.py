@@ -12,9 +12,10 @@ from contextlib import contextmanager
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.drivers import StageBase, StageError
-from afmctl.drivers.device.emulator import IDENTITY, DeviceError, Emulator
+from afmctl.drivers import StageBase
+from afmctl.drivers.device.emulator import IDENTITY, Emulator
 from afmctl.drivers.protocol import Status
+from afmctl.errors import DeviceError, StageError
 from afmctl.files.profile import Profile
 
 

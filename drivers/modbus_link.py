@@ -22,11 +22,12 @@ from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
-from afmctl.drivers import StageBase, StageError
+from afmctl.drivers import StageBase
 from afmctl.drivers import register_map as rm
 from afmctl.drivers.protocol import Status
 from afmctl.drivers.register_map import HR, IR
 from afmctl.drivers.serial_link import is_uart
+from afmctl.errors import StageError
 from afmctl.files.profile import ModbusRtuTransport, ModbusTcpTransport, Profile
 
 

@@ -11,17 +11,45 @@ from __future__ import annotations
 import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.drivers.stage import BlockCallback, LinkCapacityError, Recording, StageError
+from afmctl.errors import LinkCapacityError, StageError, StageTimeoutError
 
 if TYPE_CHECKING:
     from afmctl.drivers.stage import StageBase
+
+#: ``on_block(first_index, voltage_v, displacement_um, valid)`` of :meth:`StageBase.play`.
+BlockCallback = Callable[[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]], None]
+
+
+@dataclass(frozen=True)
+class Recording:
+    """Recorder contents of one run.
+
+    Attributes
+    ----------
+    voltage_v : ndarray, shape (N,)
+        Voltage on the stack during each sample, V (NaN where missing).
+    displacement_um : ndarray, shape (N,)
+        Sensor displacement at each sample instant, um (NaN where missing).
+    valid : ndarray of bool, shape (N,)
+        False for samples the device had not recorded.
+    """
+
+    voltage_v: NDArray[np.float64]
+    displacement_um: NDArray[np.float64]
+    valid: NDArray[np.bool_]
+
+    @property
+    def complete(self) -> bool:
+        return bool(self.valid.all())
+
 
 #: Seconds a run may overrun its nominal duration before :meth:`StageBase.play` gives up.
 PLAY_MARGIN_S = 5.0
@@ -59,27 +87,23 @@ class Player:
     def run(self, timeout_s: float | None) -> Recording:
         stage, n = self.stage, self.v.size
         fs = stage.profile.sample_rate_hz
-        table, self.recorder_capacity = stage._capacities()
+        table, self.recorder_capacity = stage.capacities()
         self.table = min(table, n)
         self.half = max(1, self.table // 2)
         t0 = time.monotonic()
         limit = self.table / UPLOAD_FLOOR + PLAY_MARGIN_S if timeout_s is None else timeout_s
-        stage._deadline = t0 + limit
+        stage.set_deadline(t0 + limit)
         took = stage.upload(self.v[:self.table])
         up_rate = min(self.table, stage.upload_chunk) / max(float(np.median(took)), 1e-9)
         down_rate = self._readback_rate()
         self.read_along = self._plan(up_rate, down_rate)
         if timeout_s is None:
             limit = time.monotonic() - t0 + n / fs + PLAY_MARGIN_S + n / down_rate
-            stage._deadline = t0 + limit
+            stage.set_deadline(t0 + limit)
         self.written = self.table
         self._arm()
         self.started = True  # from here on the device may be playing this waveform
-        if n > self.table or n > self.recorder_capacity:
-            stage._start_checked(lambda: stage._start_stream(n))
-        else:
-            stage._start_checked(lambda: stage._start(1))
-        stage._last_run_samples = n
+        stage.start_run(n, streamed=n > self.table or n > self.recorder_capacity)
         while True:
             st = stage.status()
             if st.running and st.watchdog_s > 0:
@@ -91,8 +115,8 @@ class Player:
             busy |= self._deliver(st.play_position, st.running)
             if not st.running and self.delivered >= st.play_position:
                 break
-            if time.monotonic() > stage._deadline:
-                raise TimeoutError(f"run not done after {limit:.3g} s ({st.play_position} of {n} "
+            if stage.past_deadline():
+                raise StageTimeoutError(f"run not done after {limit:.3g} s ({st.play_position} of {n} "
                                    f"samples played, {self.delivered} read back)")
             if not busy:
                 time.sleep(self.poll_s)
@@ -214,7 +238,7 @@ class Player:
         end = min(n, self.written + self.half)
         chunk = self.stage.upload_chunk
         for first in range(self.written, end, chunk):
-            self.stage._write_chunk(first, self.v[first:min(end, first + chunk)])
+            self.stage.write_block(first, self.v[first:min(end, first + chunk)])
             self._feed()
         self.written = end
         return True

@@ -2,28 +2,18 @@
 
 The host's links (:mod:`afmctl.drivers.serial_link`, :mod:`afmctl.drivers.modbus_link`) decode a
 device's replies into these; the emulated device (:mod:`afmctl.drivers.device`) produces them.
-``docs/protocol.md`` is the
-normative text.
+``docs/protocol.md`` is the normative text.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-#: Error codes shared by both wire protocols (sticky until queried or cleared).
-ERRORS: dict[int, str] = {
-    0: "no error",
-    1: "unknown command",
-    2: "bad argument",
-    3: "voltage outside limits",
-    4: "slew limit exceeded",
-    5: "busy: generator running",
-    6: "index outside table or recorder",
-    7: "read-only device",
-    8: "watchdog expired: ramped to 0 V",
-    9: "waveform table incomplete",
-    10: "stream underrun: ramped to 0 V",
-}
+from afmctl.errors import DEVICE_ERRORS
+
+#: Error codes shared by both wire protocols (sticky until queried or cleared); the table lives
+#: in :mod:`afmctl.errors`, whose stage errors carry these codes.
+ERRORS = DEVICE_ERRORS
 
 
 @dataclass(frozen=True)

@@ -18,9 +18,10 @@ import serial
 from numpy.typing import NDArray
 from serial.urlhandler.protocol_socket import Serial as SocketSerial
 
-from afmctl.drivers import StageBase, StageError
+from afmctl.drivers import StageBase
 from afmctl.drivers import ascii_protocol as ap
 from afmctl.drivers.protocol import ERRORS, Status
+from afmctl.errors import StageError
 from afmctl.files.profile import Profile, SerialTransport
 
 #: Most bytes one non-blocking read drains from a ``socket://`` port.

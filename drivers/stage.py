@@ -21,14 +21,15 @@ import abc
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from afmctl import guard
-from afmctl.drivers.protocol import ERRORS, Status
+from afmctl.drivers.player import BlockCallback, Player, Recording
+from afmctl.drivers.protocol import Status
+from afmctl.errors import LinkCapacityError, StageError, StageTimeoutError
 from afmctl.files.profile import (
     EmulatedTransport,
     ModbusRtuTransport,
@@ -36,52 +37,11 @@ from afmctl.files.profile import (
     Profile,
     SerialTransport,
 )
-from afmctl.files.tomlfile import InputError
 
-__all__ = ["StageError", "LinkCapacityError", "Recording", "Status", "Stage", "StageBase",
-           "BlockCallback", "open_stage"]
+__all__ = ["StageError", "LinkCapacityError", "Recording", "Status", "StageBase", "BlockCallback",
+           "open_stage"]
 
-#: ``on_block(first_index, voltage_v, displacement_um, valid)`` of :meth:`StageBase.play`.
-BlockCallback = Callable[[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]], None]
 T = TypeVar("T")
-
-
-class StageError(RuntimeError):
-    """The stage refused a command (``code`` from :data:`afmctl.drivers.protocol.ERRORS`, or -1 for a
-    protocol or transport failure)."""
-
-    def __init__(self, code: int, detail: str = "") -> None:
-        what = ERRORS.get(code, "transport or protocol failure")
-        super().__init__(f"stage error {code}: {what}" + (f" ({detail})" if detail else ""))
-        self.code = code
-
-
-class LinkCapacityError(InputError):
-    """A streamed run the link cannot carry at the stage's sample rate, refused before it started
-    (nothing played; exit status 2 at the CLI). The message gives the needed and available rates."""
-
-
-@dataclass(frozen=True)
-class Recording:
-    """Recorder contents of one run.
-
-    Attributes
-    ----------
-    voltage_v : ndarray, shape (N,)
-        Voltage on the stack during each sample, V (NaN where missing).
-    displacement_um : ndarray, shape (N,)
-        Sensor displacement at each sample instant, um (NaN where missing).
-    valid : ndarray of bool, shape (N,)
-        False for samples the device had not recorded.
-    """
-
-    voltage_v: NDArray[np.float64]
-    displacement_um: NDArray[np.float64]
-    valid: NDArray[np.bool_]
-
-    @property
-    def complete(self) -> bool:
-        return bool(self.valid.all())
 
 
 class StageBase(abc.ABC):
@@ -109,6 +69,32 @@ class StageBase(abc.ABC):
         self.retries = 0
         self._deadline: float | None = None
 
+    # -- the run seam: what a :class:`~afmctl.drivers.player.Player` drives ------------------------
+    def capacities(self) -> tuple[int, int]:
+        """The device's waveform table and recorder capacities, samples."""
+        return self._capacities()
+
+    def set_deadline(self, at: float | None) -> None:
+        """The monotonic time (``time.monotonic``) after which no request of the run starts, or
+        None (no run: requests are bounded by their own timeouts only)."""
+        self._deadline = at
+
+    def past_deadline(self) -> bool:
+        """Whether the run's deadline (:meth:`set_deadline`) has passed."""
+        return self._deadline is not None and time.monotonic() > self._deadline
+
+    def write_block(self, first: int, values: NDArray[np.float32]) -> None:
+        """Write table samples from global index ``first`` (one request: at most
+        :attr:`upload_chunk` samples), already checked by the guard."""
+        self._write_chunk(first, values)
+
+    def start_run(self, n: int, streamed: bool) -> None:
+        """Start the generator on the uploaded table for an ``n``-sample run: streamed through the
+        table as a ring, or one pass of it. A start is not idempotent: after a transport failure
+        the run counter says whether it took effect before it is tried again."""
+        self._start_checked(lambda: self._start_stream(n) if streamed else self._start(1))
+        self._last_run_samples = n
+
     # -- reliability -----------------------------------------------------------------------------
     def _resync(self) -> None:
         """Bring the link back to a known state after a failed request (discard anything in
@@ -120,8 +106,8 @@ class StageBase(abc.ABC):
         :attr:`attempts` times if ``idempotent``; no attempt starts after a run's deadline."""
         tries = self.attempts if idempotent else 1
         for i in range(tries):
-            if self._deadline is not None and time.monotonic() > self._deadline:
-                raise TimeoutError("the run's deadline passed while the link was failing")
+            if self.past_deadline():
+                raise StageTimeoutError("the run's deadline passed while the link was failing")
             try:
                 return attempt()
             except StageError as exc:
@@ -256,7 +242,7 @@ class StageBase(abc.ABC):
                     self._last_run_samples / st.sample_rate_hz + 5.0)
                 deadline = time.monotonic() + limit
             elif time.monotonic() > deadline:
-                raise TimeoutError(f"stage still running after {limit:.3g} s")
+                raise StageTimeoutError(f"stage still running after {limit:.3g} s")
             time.sleep(poll_s)
         return st
 
@@ -350,7 +336,6 @@ class StageBase(abc.ABC):
         v = np.asarray(waveform_v, dtype=np.float32).ravel()
         if v.size == 0:
             raise ValueError("empty waveform")
-        from afmctl.drivers.player import Player
         player = Player(self, v, on_block, poll_s)
         try:
             self._ensure_rate()
@@ -394,7 +379,7 @@ class StageBase(abc.ABC):
 
 
 #: The stage interface (an abstract base class: implementations inherit the composed operations).
-Stage = StageBase
+
 
 
 def open_stage(profile: Profile, **options: Any) -> StageBase:
@@ -418,5 +403,3 @@ def open_stage(profile: Profile, **options: Any) -> StageBase:
         from afmctl.drivers.modbus_link import ModbusStage
         return ModbusStage(profile, **options)
     raise TypeError(f"unknown transport {t!r}")
-
-

@@ -2,9 +2,13 @@
 
 ``afmctl``. Composes the library; holds no numerics and no device I/O.
 
-Exit codes: 0 success (``--help`` and ``--version`` too); 1 the stage failed or a fit did not
-converge; 2 bad input or an output that cannot be written (one line on stderr naming the option or
-path, nothing written); 130 interrupted (the stage, if one was opened, was put in its safe state).
+Exit codes, by the class of what afmctl raised (:mod:`afmctl.errors`): 0 success (``--help`` and
+``--version`` too); 2 an :class:`~afmctl.errors.InputError` (bad input, a file that is not what it
+claims, an output that cannot be written, a waveform outside the limits or the envelope: one line
+on stderr naming the option or path, nothing written); 1 any other
+:class:`~afmctl.errors.AfmctlError` (the stage failed, a fit did not converge); 130 interrupted (the
+stage, if one was opened, was put in its safe state). Anything else is a bug: one line saying so
+and where the traceback was written, exit 1 (``afmctl --debug ...`` shows the traceback instead).
 """
 
 from __future__ import annotations
@@ -20,20 +24,18 @@ from typing import Any, NoReturn
 
 import click
 
-from afmctl import __version__
-from afmctl.files.tomlfile import FileFormatError, InputError
+from afmctl._version import __version__
+from afmctl.errors import AfmctlError, FileFormatError, InputError, OutputError, StageError
 
 #: ``ctx.meta`` key set once a command has opened a stage (the Ctrl-C message depends on it).
 STAGE_OPENED = "afmctl.stage_opened"
+#: ``ctx.meta`` key set by ``afmctl --debug``: an unexpected exception shows its traceback.
+DEBUG = "afmctl.debug"
 
 
 def fail(message: str, code: int = 2) -> NoReturn:
     click.echo(f"afmctl: error: {message}", err=True)
     sys.exit(code)
-
-
-class OutputError(InputError):
-    """An output path that cannot or must not be written (exit 2, one line naming it)."""
 
 
 def _interrupted() -> NoReturn:
@@ -71,21 +73,45 @@ class Group(click.Group):
         except (click.exceptions.Exit, click.ClickException, click.Abort):
             raise
         except InputError as exc:
-            fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+            fail(_first_line(exc))
+        except StageError as exc:
+            fail(f"stage: {_first_line(exc)}", 1)
+        except AfmctlError as exc:  # a fit that did not converge
+            fail(_first_line(exc), 1)
         except KeyboardInterrupt:
             _interrupted()
         except Exception as exc:
-            if type(exc).__name__ == "StageError" or isinstance(exc, TimeoutError | OSError):
-                fail(f"stage: {exc}", 1)
-            if isinstance(exc, RuntimeError):  # a failed calibration fit, a sweep that lost data
-                fail(str(exc), 1)
-            raise
+            if ctx.meta.get(DEBUG):
+                raise
+            _bug(exc)
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+
+def _bug(exc: Exception) -> NoReturn:
+    """An exception afmctl did not raise on purpose: one line saying so, the traceback to a file."""
+    import traceback
+    text = "".join(traceback.format_exception(exc))
+    try:
+        with tempfile.NamedTemporaryFile("w", prefix="afmctl-traceback-", suffix=".txt",
+                                         delete=False) as f:
+            f.write(text)
+        where = f"the traceback is in {f.name}"
+    except OSError:
+        where = "the traceback could not be written: run again with afmctl --debug to see it"
+    fail(f"unexpected {type(exc).__name__}: {_first_line(exc)} (a bug in afmctl, or in its "
+         f"surroundings; {where})", 1)
 
 
 @click.group(cls=Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="afmctl")
-def main() -> None:
+@click.option("--debug", is_flag=True, help="Show the traceback of an unexpected error (a bug).")
+@click.pass_context
+def main(ctx: click.Context, debug: bool) -> None:
     """Make a hysteretic piezo stage track what it is told (Hatch, Smith et al. inverse filter)."""
+    ctx.meta[DEBUG] = debug
 
 
 class Finite(click.ParamType):

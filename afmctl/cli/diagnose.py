@@ -7,18 +7,8 @@ from pathlib import Path
 
 import click
 
-from afmctl.cli.base import (
-    Finite,
-    OutputError,
-    check_output_dir,
-    fit_settings,
-    main,
-    make_dir,
-    say,
-    timestamped,
-    writing,
-)
-from afmctl.files.tomlfile import InputError
+from afmctl.cli.base import Finite, check_output_dir, fit_settings, main, make_dir, say, timestamped, writing
+from afmctl.errors import InputError, OutputError
 
 OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residuals.png")
 

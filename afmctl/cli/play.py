@@ -34,6 +34,7 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
     waveform, then up to N learning iterations (:mod:`afmctl.experiment.learn`); files after every
     iteration. ``how`` = (condition, extrapolate): every iteration keeps to the model's validity
     envelope (read from ``model_name``) unless extrapolate."""
+    from afmctl import plots
     from afmctl.experiment import learn
     from afmctl.files import modelfile
     from afmctl.model import effects as fx
@@ -46,6 +47,11 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
             "readings_corrected_for": modelfile.effects_dict(fx.sensor_part(model.effects))}
     truth = prof.emulator.true_model if prof.emulator is not None else model
 
+    def write(result: learn.Result) -> dict[str, Any]:
+        data = learn.write_outputs(result, desired, law, meta, out)
+        plots.learn_figure(result, desired, out / "learn.png")
+        return data
+
     def each(result: learn.Result) -> None:
         it = result.iterations[-1]
         gain = (f", gain {100 * it.gain_change:+.2f} % (at the mean gain {it.judged_um:.4f} um)"
@@ -53,14 +59,14 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
         click.echo(f"iteration {it.index}: steady RMS {it.steady_um:.4f} um, imaging "
                    f"{it.rms_imaging_um:.4f} um, max slew "
                    f"{it.outcome.waveform.max_slew_v_per_ms:.1f} V/ms{gain}", err=True)
-        learn.write_outputs(result, desired, law, meta, out)
+        write(result)
 
     click.echo(f"learning {desired.label}: up to {iterations} iterations after the {seed} "
                f"waveform ...", err=True)
     result = learn.run(stage, model, desired, prof.limits, out, meta, iterations, law, truth,
                        seed, how[0], progress_printer(True), each,
                        envelope=modelfile.read_envelope(model_name), extrapolate=how[1])
-    data = learn.write_outputs(result, desired, law, meta, out)
+    data = write(result)
     click.echo(f"stopped: {result.stop}; best iteration {result.best} "
                f"({result.best_iteration.judged_um:.4f} um)", err=True)
     click.echo(f"wrote {out}/run_*_iterNN.csv, summary.json, waveform_learned.csv, learn.png",
@@ -98,10 +104,10 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     import numpy as np
 
     from afmctl import guard
+    from afmctl.errors import FileFormatError
     from afmctl.experiment import learn
     from afmctl.experiment import runner as experiment
     from afmctl.files import modelfile, waveformfile
-    from afmctl.files.tomlfile import FileFormatError
     from afmctl.model import effects as fx
     from afmctl.planning import track
     prof = load_profile_or_exit(profile_path)

@@ -18,7 +18,7 @@ from afmctl.cli.base import (
     progress_printer,
     say,
 )
-from afmctl.files.tomlfile import InputError
+from afmctl.errors import InputError
 
 #: The narrowest --v-range, as a fraction of the profile's span (below it the loops are lost in
 #: the sensor's noise and the amplifier's resolution).

@@ -22,7 +22,7 @@ from afmctl.cli.base import (
     timestamped,
     writing,
 )
-from afmctl.files.tomlfile import InputError
+from afmctl.errors import InputError
 
 #: Fewest samples per period of a periodic trajectory (a triangle needs its corners sampled).
 MIN_SAMPLES_PER_PERIOD = 20
@@ -175,9 +175,13 @@ def _model(prof: Any, stage: Any | None, model_path: str | None, calibrate: bool
         lo, hi = prof.limits.v_min, prof.limits.v_max
         say(f"calibrating: recording {calibration.N_SWEEPS} standard sweeps over [{lo:g}, "
             f"{hi:g}] V, then identifying ...")
+    from afmctl.drivers import open_stage
     arg = f" --profile {profile_path}" if profile_path else ""
+    how = (f"run `afmctl sweep{arg} --out DIR` and `afmctl identify DIR/*.csv{arg} -o "
+           f"model.toml`, then track with --model model.toml; or add --calibrate to record, "
+           f"identify and track in one go")
     return calibration.for_track(prof, stage, progress_printer(False), calibrate, recalibrate,
-                                 arg)
+                                 open_stage=open_stage, how_to_calibrate=how)
 
 
 def _outputs(dry_run: bool, wanted: tuple[str, ...]) -> list[str]:
@@ -264,6 +268,7 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
 
 def _report(prof: Any, cal: Any, outcomes: dict[str, Any], desired: Any, out: Path,
             meta: dict[str, Any], as_json: bool) -> None:
+    from afmctl import plots
     from afmctl.experiment import runner as experiment
     from afmctl.files import modelfile
     from afmctl.model import effects as fx
@@ -277,7 +282,7 @@ def _report(prof: Any, cal: Any, outcomes: dict[str, Any], desired: Any, out: Pa
     with writing(out / "run.csv", "--out"):
         experiment.write_combined_csv(outcomes, desired, out / "run.csv")
         experiment.write_summary(data, out / "summary.json")
-        experiment.plot(outcomes, desired, cal.model.thickness_um, out / "track.png")
+        plots.track_figure(outcomes, desired, cal.model.thickness_um, out / "track.png")
     for name, o in outcomes.items():
         s = o.score
         part = (f"steady part, from {s.steady_from_s:.4g} s" if s.steady

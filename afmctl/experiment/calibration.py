@@ -21,13 +21,14 @@ import json
 import os
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from afmctl.errors import FitError, InputError
 from afmctl.files import modelfile
 from afmctl.files.profile import EmulatedTransport, Profile
-from afmctl.files.tomlfile import InputError
 from afmctl.model.transducer import Transducer
 
 Progress = Callable[[str, int, int], None]
@@ -131,7 +132,7 @@ def record_standard(stage: Any, profile: Profile, out: Path, progress: Progress 
 
 def calibrate(profile: Profile, stage: Any, progress: Progress | None = None) -> Calibration:
     """Record the standard sweeps on ``stage`` within the profile's range, identify, and keep
-    both in a new folder of the cache. RuntimeError if the fit does not converge."""
+    both in a new folder of the cache. FitError if the fit does not converge."""
     from afmctl.fit import identify
 
     when = time.strftime("%Y-%m-%dT%H:%M:%S%z")
@@ -141,7 +142,7 @@ def calibrate(profile: Profile, stage: Any, progress: Progress | None = None) ->
     recorded = record_standard(stage, profile, folder / "sweeps", progress)
     result = identify.fit(recorded)
     if not result.success:
-        raise RuntimeError(f"calibration fit did not converge: {result.message} (sweeps kept in "
+        raise FitError(f"calibration fit did not converge: {result.message} (sweeps kept in "
                            f"{folder / 'sweeps'})")
     names = tuple(s.path for s in recorded)
     path = folder / "model.toml"
@@ -156,24 +157,17 @@ def calibrate(profile: Profile, stage: Any, progress: Progress | None = None) ->
     return Calibration(result.model, path, when, names, new=True)
 
 
-def how_to_calibrate(profile: Profile, profile_arg: str) -> str:
-    """The message of a stage without a calibration: what to run."""
-    lo, hi = profile.limits.v_min, profile.limits.v_max
-    return (f"no calibration for profile {profile.name!r}, and calibrating moves the stage over "
-            f"its whole range [{lo:g}, {hi:g}] V: run `afmctl sweep{profile_arg} --out DIR` and "
-            f"`afmctl identify DIR/*.csv{profile_arg} -o model.toml`, then track with --model "
-            f"model.toml; or add --calibrate to record, identify and track in one go")
-
-
 def for_track(profile: Profile, stage: Any | None, progress: Progress | None = None,
-              calibrate_ok: bool = False, recalibrate: bool = False,
-              profile_arg: str = "") -> Calibration:
+              calibrate_ok: bool = False, recalibrate: bool = False, *,
+              open_stage: Callable[[Profile], AbstractContextManager[Any]] | None = None,
+              how_to_calibrate: str = "") -> Calibration:
     """The model ``track`` uses when given none.
 
     The cached calibration if there is one (unless ``recalibrate``); otherwise a new one: on an
     emulated stage always, on any other only with ``calibrate_ok`` or ``recalibrate``
-    (:class:`InputError` saying how to calibrate otherwise). ``stage`` None (``--dry-run``)
-    calibrates an emulated profile on a private in-process emulator.
+    (:class:`InputError` otherwise, with ``how_to_calibrate`` appended: the caller's words for
+    what to run). ``stage`` None (``--dry-run``) calibrates an emulated profile on a private
+    stage from ``open_stage`` (e.g. :func:`afmctl.drivers.open_stage`: an in-process emulator).
     """
     emulated = isinstance(profile.transport, EmulatedTransport)
     if not recalibrate:
@@ -181,13 +175,15 @@ def for_track(profile: Profile, stage: Any | None, progress: Progress | None = N
         if found is not None:
             return found
         if not (emulated or calibrate_ok):
-            raise InputError(how_to_calibrate(profile, profile_arg))
+            lo, hi = profile.limits.v_min, profile.limits.v_max
+            raise InputError(f"no calibration for profile {profile.name!r}, and calibrating "
+                             f"moves the stage over its whole range [{lo:g}, {hi:g}] V"
+                             + (f": {how_to_calibrate}" if how_to_calibrate else ""))
     if stage is not None:
         return calibrate(profile, stage, progress)
-    if not emulated:
+    if not emulated or open_stage is None:
         raise InputError(f"--dry-run sends nothing, so it cannot calibrate profile "
                          f"{profile.name!r}: run once without --dry-run, or pass --model")
-    from afmctl.drivers import open_stage
     with open_stage(profile) as private:
         return calibrate(profile, private, progress)
 

@@ -373,40 +373,11 @@ def waveform_text(it: Iteration, desired: track.Desired, meta: Mapping[str, obje
 
 def write_outputs(result: Result, desired: track.Desired, law: ilc.Law,
                   meta: Mapping[str, object], out: Path) -> dict[str, Any]:
-    """``summary.json``, ``waveform_learned.csv`` (the best iteration) and ``learn.png``, each
-    replaced atomically: called after every iteration, so an interrupt keeps what finished."""
+    """``summary.json`` and ``waveform_learned.csv`` (the best iteration), each replaced
+    atomically: called after every iteration, so an interrupt keeps what finished (the CLI draws
+    ``learn.png`` beside them: :func:`afmctl.plots.learn_figure`)."""
     data = summary(result, desired, law, meta)
     experiment.write_summary(data, out / "summary.json")
     experiment.atomic_write(out / "waveform_learned.csv",
                             waveform_text(result.best_iteration, desired, meta))
-    plot(result, desired, out / "learn.png")
     return data
-
-
-def plot(result: Result, desired: track.Desired, path: Path) -> None:
-    """Error RMS against iteration, and the error of the first and last iteration against time."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    its = result.iterations
-    fig, ax = plt.subplots(2, 1, figsize=(8, 7), constrained_layout=True)
-    idx = [it.index for it in its]
-    ax[0].semilogy(idx, [it.steady_um for it in its], "o-", label="steady RMS (readings, corrected)")
-    ax[0].semilogy(idx, [it.outcome.score.rms_between_um or np.nan for it in its], "s--",
-                   label="RMS between samples (plant)")
-    ax[0].semilogy(idx, [it.rms_imaging_um for it in its], "^:", label="imaging region RMS")
-    if np.isfinite(result.noise_um):
-        ax[0].axhline(result.noise_um, color="gray", lw=0.8, label="noise estimate")
-    ax[0].set(xlabel="iteration", ylabel="error (um)", title=f"Learning: {desired.label}")
-    t = np.arange(desired.u_um.size) * desired.dt_s
-    for it, c in ((its[0], "tab:red"), (its[-1], "tab:blue")):
-        ax[1].plot(t, -it.error_um, color=c, lw=0.8,
-                   label=f"iteration {it.index}: RMS {it.steady_um:.3g} um")
-    ax[1].set(xlabel="time (s)", ylabel="error (um)")
-    for a in ax:
-        a.grid(alpha=0.3)
-        a.legend(loc="best", fontsize=8)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)

@@ -19,6 +19,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl.errors import SamplesLostError
 from afmctl.files import runfile
 from afmctl.model import effects as fx
 from afmctl.model import transducer as tr
@@ -159,46 +160,6 @@ def write_summary(data: Mapping[str, Any], path: Path) -> None:
     atomic_write(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
 
 
-def plot(outcomes: Mapping[str, Outcome], desired: track.Desired, thickness_um: float,
-         path: Path) -> None:
-    """Desired and achieved trajectories, errors, and the field-displacement loop (Figs. 9-11).
-
-    The desired trajectory is drawn last (dashed, on top) so the filters cannot hide it; the first
-    period, left out of the headline figures, is shaded, and each error's legend states its RMS.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    t = np.arange(desired.u_um.size) * desired.dt_s
-    fig, ax = plt.subplots(3, 1, figsize=(8, 9.5), constrained_layout=True)
-    colors = {"inverse": "tab:blue", "linear": "tab:red"}
-    t0 = 0.0
-    for name, o in outcomes.items():
-        u = o.displacement_um[o.waveform.tracking]
-        v = o.waveform.voltage_v[o.waveform.tracking]
-        c = colors.get(name, None)
-        t0 = o.score.steady_from_s
-        ax[0].plot(t, u, color=c, lw=1.6, alpha=0.8, label=f"{name} filter")
-        part = "steady part" if o.score.steady else "whole run"
-        ax[1].plot(t, u - desired.u_um, color=c, lw=0.9,
-                   label=f"{name}: RMS {o.score.rms_um:.3g} um ({o.score.rms_pct:.2g} %, {part})")
-        ax[2].plot(v / thickness_um, u, color=c, lw=0.8, label=name)
-    ax[0].plot(t, desired.u_um, "k--", lw=1.0, label="desired", zorder=5)
-    for a in ax[:2]:
-        if t0 > 0:
-            a.axvspan(0, t0, color="0.9", zorder=0, label="first period (transient, not in RMS)")
-    ax[0].set(xlabel="time (s)", ylabel="displacement (um)", title=f"Tracking: {desired.label}")
-    ax[1].set(xlabel="time (s)", ylabel="error (um)")
-    ax[2].set(xlabel="field (MV/m)", ylabel="displacement (um)", title="field-displacement")
-    for a in ax:
-        a.grid(alpha=0.3)
-        a.legend(loc="best", fontsize=8)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 def incomplete_path(path: Path) -> Path:
     """Where a sweep bound for ``path`` is streamed while it records: ``<stem>.incomplete.csv``,
     numbered if an earlier interrupted one is there (measured data is never overwritten)."""
@@ -211,7 +172,7 @@ def incomplete_path(path: Path) -> Path:
 
 
 def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v: FloatArray,
-                 sample_rate_hz: float, meta: Mapping[str, str],
+                 sample_rate_hz: float, meta: Mapping[str, str] | None = None,
                  progress: Progress | None = None, path: Path | None = None,
                  settle_s: float = SETTLE_S) -> Any:
     """Play one identification waveform, after ``settle_s`` at rest (:data:`SETTLE_S`), and
@@ -225,7 +186,7 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
     """
     from afmctl.files import sweepfile as sweeps
 
-    meta = {**meta, "frequency_hz": f"{frequency_hz:g}"}
+    meta = {**(meta or {}), "frequency_hz": f"{frequency_hz:g}"}
     n = len(voltage_v)
     got = np.full(n, np.nan)
     streamed = incomplete_path(path) if path is not None else None
@@ -255,7 +216,7 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
         rec = stage.play(voltage_v, on_block)
         lost = int((~np.asarray(rec.valid)).sum())
         if lost:
-            raise RuntimeError(f"sweep {name}: {lost} samples were not received; record it again")
+            raise SamplesLostError(f"sweep {name}: {lost} samples were not received; record it again")
         sweep = sweeps.from_arrays(voltage_v, rec.displacement_um, sample_rate_hz, meta, name)
         if path is not None:
             sweeps.write(sweep, path)

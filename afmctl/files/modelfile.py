@@ -70,7 +70,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from afmctl.files.tomlfile import FileFormatError, Table, dumps, load
+from afmctl.errors import FileFormatError
+from afmctl.files.tomlfile import Table, dumps, load
 from afmctl.model import hysteresis as hy
 from afmctl.model.effects import Effects, SecondMode
 from afmctl.model.rod import Rod

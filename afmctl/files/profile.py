@@ -29,8 +29,9 @@ from importlib import resources
 from pathlib import Path
 from typing import ClassVar
 
+from afmctl.errors import FileFormatError
 from afmctl.files import modelfile
-from afmctl.files.tomlfile import FileFormatError, Table, load
+from afmctl.files.tomlfile import Table, load
 from afmctl.guard import Limits
 from afmctl.model.effects import Effects, SecondMode
 from afmctl.model.transducer import Transducer

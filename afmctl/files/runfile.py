@@ -30,8 +30,8 @@ from typing import IO
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl import __version__
-from afmctl.files.tomlfile import FileFormatError
+from afmctl._version import __version__
+from afmctl.errors import FileFormatError
 
 FORMAT_VERSION = 1
 COLUMNS = ("seq", "time_s", "desired_um", "voltage_V", "displacement_um", "status")

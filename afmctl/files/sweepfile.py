@@ -29,14 +29,14 @@ import io
 import math
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.files.tomlfile import FileFormatError
+from afmctl.errors import InputError, SweepFormatError
 
 FloatArray = NDArray[np.float64]
 COLUMNS = ("time_s", "voltage_V", "displacement_um")
@@ -45,10 +45,6 @@ STANDARD_FREQUENCIES_HZ = (0.279, 5.58, 27.9)
 JITTER_TOL = 0.1
 #: Fraction of a sweep's voltage range within which an extreme counts as reached (memory_index).
 MEMORY_REACH = 0.995
-
-
-class SweepFormatError(FileFormatError):
-    """A sweep file is malformed; the message is one line naming the file."""
 
 
 @dataclass(frozen=True)
@@ -325,6 +321,23 @@ def read_text(path: str | Path) -> str:
 def read(path: str | Path) -> Sweep:
     """Read and validate a sweep file; :class:`SweepFormatError` (one line) on anything wrong."""
     return parse(read_text(path), str(path))
+
+
+def read_all(paths: str | Path | Sequence[str | Path]) -> list[Sweep]:
+    """Read several sweep files, in the order given (the order they were recorded in matters to
+    identification), or every file matching a glob pattern such as ``"sweeps/*.csv"``, sorted.
+
+    Raises :class:`~afmctl.errors.SweepFormatError` for the first bad file, and
+    :class:`~afmctl.errors.InputError` for a pattern that matches nothing."""
+    if isinstance(paths, str | Path):
+        pattern = Path(paths)
+        if pattern.exists():
+            return [read(pattern)]
+        found = sorted(pattern.parent.glob(pattern.name))
+        if not found:
+            raise InputError(f"{paths}: no such file, and no sweep file matches it")
+        return [read(p) for p in found]
+    return [read(p) for p in paths]
 
 
 def read_complete(path: str | Path) -> Sweep:

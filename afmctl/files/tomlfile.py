@@ -15,13 +15,7 @@ from typing import Any
 
 import numpy as np
 
-
-class InputError(ValueError):
-    """Bad input from the user (file, option, trajectory): one line, exit code 2 at the CLI."""
-
-
-class FileFormatError(InputError):
-    """A file afmctl reads is malformed; the message names the file and key."""
+from afmctl.errors import FileFormatError
 
 
 @dataclass(frozen=True)

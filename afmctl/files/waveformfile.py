@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl.errors import FileFormatError
 from afmctl.files import sweepfile as sweeps
-from afmctl.files.tomlfile import FileFormatError
 
 FloatArray = NDArray[np.float64]
 FORMAT_VERSION = 1

@@ -33,8 +33,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl.errors import DiagnoseInputError
 from afmctl.files.sweepfile import Sweep
-from afmctl.files.tomlfile import InputError
 from afmctl.fit import candidates as cd
 from afmctl.fit import extension as ext
 from afmctl.fit import identify as idf
@@ -46,24 +46,6 @@ from afmctl.model import transducer as td
 
 FloatArray = NDArray[np.float64]
 
-#: Physical reading of each cause, for the report.
-CAUSES = {
-    "none": "the paper's model explains the data to within what extensions can add",
-    "thermal-relaxation": "thermally activated switching (kernel (10)): dipoles switch before the "
-                          "coercive field and keep switching at constant field, so loops depend "
-                          "on the sweep rate",
-    "amplifier-lag": "the voltage amplifier's bandwidth: the stack voltage lags the command, "
-                     "more at higher frequency",
-    "sensor-delay": "latency of the displacement readback: the recorded displacement is late by a "
-                    "fixed time, an error proportional to the velocity",
-    "sensor-nonlinearity": "a quadratic gauge error of the displacement sensor: an error that "
-                           "depends on position only, the same at every frequency",
-    "second-mode": "a second mechanical mode of the stage, rung by the triangle's corners",
-    "voltage-gain-drift": "the true applied voltage differs between experiments (the paper's "
-                          "Section 6 hypothesis): each sweep has its own gain",
-    "unexplained": "neither the paper's model nor any candidate explains the data down to the "
-                   "sensor's noise: an effect outside the vocabulary (or several at once)",
-}
 
 
 @dataclass(frozen=True)
@@ -161,7 +143,7 @@ class Diagnosis:
         """The ``diagnosis.json`` object (and ``--json`` output); non-finite numbers are null."""
         closest = self.closest
         return json_safe({
-            "cause": self.cause, "explanation": CAUSES.get(self.cause, CAUSES["unexplained"]),
+            "cause": self.cause, "explanation": cd.CAUSES.get(self.cause, cd.UNEXPLAINED),
             "base_rms_um": self.base_rms_um, "extended_rms_um": self.extended_rms_um,
             "gain": self.gain, "noise_um": self.noise_um,
             "noise_per_sweep_um": list(self.noise_per_sweep_um),
@@ -349,10 +331,6 @@ def residual_signature(fitted: ext.Extended, sweeps: Sequence[Sweep]) -> dict[st
 # ----------------------------------------------------------------------------------------------
 
 
-class DiagnoseInputError(InputError):
-    """Sweeps that cannot be diagnosed (too short, no voltage excursion): exit 2 at the CLI."""
-
-
 #: Fewest judged samples a sweep needs in each half (after its memory index).
 MIN_SAMPLES = 50
 
@@ -455,8 +433,6 @@ def _judge(name: str, job: _Job) -> Judged:
     return Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
 
 
-#: Candidates by typical fit time, longest first (they are handed to the processes in this order).
-SLOWEST_FIRST = ("thermal-relaxation", "second-mode", "amplifier-lag")
 
 
 def _judge_all(names: Sequence[str], job: _Job, floor: float,
@@ -464,7 +440,7 @@ def _judge_all(names: Sequence[str], job: _Job, floor: float,
     """Every candidate judged, in ``names`` order; fitted ``job.settings.jobs`` at a time in
     worker processes (the fits are independent and pure)."""
     jobs = min(job.settings.jobs or os.cpu_count() or 1, len(names))
-    order = sorted(names, key=lambda n: SLOWEST_FIRST.index(n) if n in SLOWEST_FIRST else 9)
+    order = sorted(names, key=lambda n: cd.SLOWEST_FIRST.index(n) if n in cd.SLOWEST_FIRST else 9)
 
     def said(name: str, j: Judged) -> Judged:
         say(f"  {name:20s} held-out RMS {j.heldout_rms_um:.4f} um = "
@@ -571,7 +547,8 @@ def _suggestion_lines(d: Diagnosis) -> list[str]:
 
 def report(d: Diagnosis, figure: str) -> str:
     """A short Markdown report: the cause, its evidence, the candidate table, the residuals."""
-    lines = [f"# afmctl diagnose: {d.cause}", "", CAUSES[d.cause] + ".", "", d.evidence() + ".",
+    lines = [f"# afmctl diagnose: {d.cause}", "", cd.CAUSES.get(d.cause, cd.UNEXPLAINED) + ".", "",
+             d.evidence() + ".",
              *_suggestion_lines(d),
              "", "Held-out RMS: each candidate fitted on the first half of every sweep and judged "
              "on the second half.", "",

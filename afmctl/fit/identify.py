@@ -28,9 +28,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize
 
+from afmctl.errors import FitInputError
 from afmctl.files import modelfile as mf
 from afmctl.files.sweepfile import Sweep
-from afmctl.files.tomlfile import InputError, Table
+from afmctl.files.tomlfile import Table
 from afmctl.fit import noise as ns
 from afmctl.fit import parametrization as pz
 from afmctl.fit import uncertainty as unc
@@ -60,10 +61,6 @@ DISCRETIZATION_UM = 0.01
 
 __all__ = ["Estimate", "FitResult", "Settings", "SweepError", "fit", "predict", "predict_set",
            "sweep_error", "envelope", "n_coercive_for", "resolve_thickness", "FLOOR", "WARN"]
-
-
-class FitInputError(InputError):
-    """The sweeps cannot be fitted as given (conflicting metadata, empty fit window)."""
 
 
 @dataclass(frozen=True)
@@ -550,7 +547,7 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
 
     Examples
     --------
-    >>> from afmctl import sweeps as sw
+    >>> from afmctl.files import sweepfile as sw
     >>> true = pz.to_model(np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25]),
     ...                    np.array([10.0, 0.5, 0.0]), pz.Scales(), 100.0)
     >>> v = sw.triangle(27.9, 150.0, 3, 5000.0)

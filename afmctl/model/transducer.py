@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from afmctl.model import hysteresis as hy
 from afmctl.model import rod as rd
@@ -110,6 +110,18 @@ def simulate(cm: Compiled, voltage_v: FloatArray,
     p, ps = hy.run(cm.kernel, cm.model.field(voltage_v), state.polarization, cm.dt)
     u, x = rd.simulate(cm.model.rod, cm.disc, cm.model.rod.force(p), state.rod)
     return u, p, StageState(ps, x)
+
+
+def displacement(model: Transducer, voltage_v: ArrayLike, dt_s: float,
+                 state: StageState | None = None) -> FloatArray:
+    """The model's displacement for a sampled voltage, um: (13) and (16) with the voltage held over
+    each sample of ``dt_s`` seconds, from ``state`` (default :func:`initial`: the model's initial
+    polarization at rest at the first sample's voltage). The same as :func:`simulate` on
+    :func:`compile_model`, for a caller that wants the displacement alone.
+    """
+    v = np.asarray(voltage_v, dtype=float)
+    st = state if state is not None else initial(model, voltage_v=float(v[0]) if v.size else 0.0)
+    return simulate(compile_model(model, dt_s), v, st)[0]
 
 
 def with_rod(model: Transducer, **changes: float) -> Transducer:

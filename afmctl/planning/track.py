@@ -39,8 +39,8 @@ from numpy.typing import NDArray
 from scipy.signal import sawtooth
 
 from afmctl import guard
+from afmctl.errors import EnvelopeError
 from afmctl.files.modelfile import Envelope
-from afmctl.files.tomlfile import InputError
 from afmctl.model import effects as fx
 from afmctl.model import inverse as inv
 from afmctl.model import rod as rd
@@ -353,10 +353,6 @@ def plan_linear(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v
     wf = _assemble("linear", desired, np.concatenate([prefix_v, ramp_in]), v_tr, ramp_out)
     guard.check(wf.voltage_v, dt, limits, start_v, "linear waveform")
     return wf
-
-
-class EnvelopeError(InputError):
-    """The waveform leaves the model's validity envelope (one line naming the envelope)."""
 
 
 def conditioning_limits(limits: guard.Limits, env: Envelope | None) -> guard.Limits:

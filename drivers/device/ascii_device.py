@@ -12,14 +12,14 @@ from afmctl.drivers.ascii_protocol import (
     MAX_CHUNK,
     MAX_LINE,
     PROTOCOL_VERSION,
-    FrameError,
     fmt,
     frame,
     status_line,
     unframe,
 )
-from afmctl.drivers.device.emulator import IDENTITY, DeviceError, Emulator
+from afmctl.drivers.device.emulator import IDENTITY, Emulator
 from afmctl.drivers.protocol import ERRORS
+from afmctl.errors import DeviceError, FrameError
 
 
 class AsciiDevice:

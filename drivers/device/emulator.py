@@ -31,7 +31,8 @@ from numpy.typing import NDArray
 
 from afmctl.drivers.device.foreign.physics import ForeignPhysics
 from afmctl.drivers.device.plant import Physics
-from afmctl.drivers.protocol import ERRORS, Status
+from afmctl.drivers.protocol import Status
+from afmctl.errors import DeviceError
 from afmctl.files.profile import Limits, Profile
 
 FloatArray = NDArray[np.float64]
@@ -46,13 +47,6 @@ MIN_RATE_HZ, MAX_RATE_HZ = 100.0, 100_000.0
 #: Longest stream, samples (2**29: what the 16-bit Modbus recorder page addresses; 14.9 h at 10 kHz).
 MAX_STREAM_SAMPLES = 1 << 29
 
-
-class DeviceError(Exception):
-    """A refused command; ``code`` is a key of :data:`ERRORS`."""
-
-    def __init__(self, code: int, detail: str = "") -> None:
-        super().__init__(f"error {code}: {ERRORS[code]}" + (f" ({detail})" if detail else ""))
-        self.code = code
 
 
 

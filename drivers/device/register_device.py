@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from afmctl.drivers.device.emulator import DeviceError, Emulator
+from afmctl.drivers.device.emulator import Emulator
 from afmctl.drivers.register_map import (
     DEVICE_BUSY,
     HR,
@@ -25,6 +25,7 @@ from afmctl.drivers.register_map import (
     regs_u32,
     u32_regs,
 )
+from afmctl.errors import DeviceError
 
 
 @dataclass(frozen=True)

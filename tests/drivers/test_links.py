@@ -11,14 +11,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from afmctl.drivers import LinkCapacityError
 from afmctl.drivers import register_map as rm
 from afmctl.drivers.device.emulated import EmulatedDevice
 from afmctl.drivers.device.modbus_server import ModbusTcpServer
 from afmctl.drivers.device.serial_server import SerialServer
 from afmctl.drivers.serial_link import SerialStage, is_uart
+from afmctl.errors import InputError, LinkCapacityError
 from afmctl.files.profile import Profile, WireFaults
-from afmctl.files.tomlfile import InputError
 from tests.harness.emulated import stage_on
 
 
@@ -186,8 +185,8 @@ def test_ctrl_c_inside_on_block_is_held_until_the_block_is_handed_over(profile: 
 def test_a_refill_refused_after_the_run_stopped_says_the_run_stopped(profile: Profile) -> None:
     """The device underruns between the host's status poll and its refill (a device clock that
     jumps 0.3 s per call): the error names the stopped run, not only the refused block."""
-    from afmctl.drivers import StageError
     from afmctl.drivers.inprocess import InProcessStage
+    from afmctl.errors import StageError
     t = [0.0]
 
     def jumpy() -> float:

@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from afmctl.drivers import StageError, open_stage
+from afmctl.drivers import open_stage
 from afmctl.drivers import register_map as rm
 from afmctl.drivers.device import emulator as em
 from afmctl.drivers.device import plant
@@ -23,6 +23,7 @@ from afmctl.drivers.device.wire import open_pty
 from afmctl.drivers.inprocess import InProcessStage
 from afmctl.drivers.modbus_link import ModbusStage
 from afmctl.drivers.serial_link import SerialStage
+from afmctl.errors import StageError
 from afmctl.files.profile import Profile
 from tests.harness.emulated import TRANSPORTS, ScriptedPort, long_waveform, small_buffers, stage_on
 

@@ -12,6 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from afmctl.cli import main
+from afmctl.drivers import open_stage
 from afmctl.experiment import calibration
 from afmctl.files import sweepfile as sweeps
 from afmctl.files.profile import Profile
@@ -24,7 +25,7 @@ EMULATED = (PROFILES / "emulated.toml").read_text()
 def test_cached_model_is_identified_from_recorded_sweeps_then_reused(
         profile: Profile, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    cal = calibration.for_track(profile, None)  # dry-run path: a private emulator
+    cal = calibration.for_track(profile, None, open_stage=open_stage)  # dry-run path: a private emulator
     assert cal.new and cal.path.parent.parent == calibration.cache_dir(profile)
     recorded = sorted(Path(p).name for p in cal.sweeps)
     assert recorded == ["triangle_0.279hz.csv", "triangle_27.9hz.csv", "triangle_5.58hz.csv"]
@@ -36,12 +37,12 @@ def test_cached_model_is_identified_from_recorded_sweeps_then_reused(
     assert model.rod.natural_hz == pytest.approx(truth.rod.natural_hz, rel=0.05)
     assert model.polarization.eta == pytest.approx(truth.polarization.eta, rel=0.1)
     stamp = cal.path.stat().st_mtime_ns
-    again = calibration.for_track(profile, None)
+    again = calibration.for_track(profile, None, open_stage=open_stage)
     assert again.model == model and not again.new  # from the cache, not refitted
     assert again.path == cal.path and again.path.stat().st_mtime_ns == stamp
     assert again.identified == cal.identified and again.sweeps == cal.sweeps
     time.sleep(1.1)
-    fresh = calibration.for_track(profile, None, recalibrate=True)
+    fresh = calibration.for_track(profile, None, recalibrate=True, open_stage=open_stage)
     assert fresh.new and fresh.path != cal.path and cal.path.exists()  # the old one is kept
     assert calibration.find(profile).path == fresh.path  # the latest is used
 

@@ -9,10 +9,10 @@ import pytest
 from click.testing import CliRunner
 
 from afmctl import cli
+from afmctl.errors import FileFormatError
 from afmctl.files import modelfile
 from afmctl.files.profile import (
     EmulatedTransport,
-    FileFormatError,
     ModbusTcpTransport,
     SerialTransport,
     default_profile,

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from afmctl.errors import FileFormatError
 from afmctl.files import runfile
-from afmctl.files.tomlfile import FileFormatError
 
 
 def block(start: int, n: int) -> tuple[np.ndarray, ...]:
@@ -57,7 +57,7 @@ def test_killed_writer_leaves_a_readable_incomplete_file(tmp_path: Path) -> None
     path = tmp_path / "run.csv"
     code = (
         "import sys, time, numpy as np\n"
-        "from afmctl import runfile\n"
+        "from afmctl.files import runfile\n"
         f"w = runfile.RunWriter({str(path)!r}, {{'profile': 'x'}})\n"
         "for b in range(1000):\n"
         "    s = np.arange(b * 10, b * 10 + 10)\n"

@@ -3,8 +3,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from afmctl.errors import FileFormatError
 from afmctl.files import sweepfile as sw
-from afmctl.files.tomlfile import FileFormatError
 
 GOOD = "# frequency_hz: 5.58\n# layer_thickness_um: 100\ntime_s,voltage_V,displacement_um\n" \
        "0.0,0.0,0.1\n0.001,1.0,0.2\n0.002,2.0,0.3\n"

@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 
 from afmctl import guard
-from afmctl.drivers import StageError
 from afmctl.drivers import ascii_protocol as ap
 from afmctl.drivers.device.emulated import EmulatedDevice
 from afmctl.drivers.device.modbus_server import ModbusTcpServer
 from afmctl.drivers.device.serial_server import SerialServer
 from afmctl.drivers.serial_link import SerialStage
+from afmctl.errors import StageError
 from afmctl.experiment import runner as experiment
 from afmctl.files import modelfile, runfile
 from afmctl.files.profile import Profile, WireFaults
