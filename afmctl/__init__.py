@@ -27,10 +27,7 @@ Rooms (subpackages), for what the front door does not cover: :mod:`afmctl.model`
 Units everywhere: um, V, s, Hz, MV/m (= V/um), C/m^2.
 """
 
-from __future__ import annotations
-
-import importlib
-from typing import Any
+from importlib import import_module as _import_module
 
 from afmctl._version import __version__  # noqa: F401 (in __all__)
 
@@ -90,13 +87,13 @@ _EXPORTS: dict[str, str] = {
 __all__ = sorted([*_EXPORTS, "__version__"], key=str.casefold)
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:
     """Import a public name on first use (PEP 562) and keep it in the module's namespace."""
     where = _EXPORTS.get(name)
     if where is None:
         raise AttributeError(f"module 'afmctl' has no attribute {name!r}")
     module, attr = where.split(":")
-    value = getattr(importlib.import_module(module), attr)
+    value = getattr(_import_module(module), attr)
     globals()[name] = value
     return value
 

@@ -12,7 +12,7 @@ stage with 0.03 um sensor noise; ``identify_seconds`` is the wall time of ``iden
 (``identify_cpu_seconds`` its CPU time: the wall time on a machine shared with other work).
 
 Foreign stages (issue 11): ``--foreign N`` sweep sets recorded on random stages of the independently
-written simulator (``benchmarks/foreign_sets.py``, ``drivers/device/foreign*.py``: other formulas,
+written simulator (``benchmarks/foreign_sets.py``, ``drivers/device/foreign/``: other formulas,
 parameters over wide ranges, lab sweep designs, sample rates, start states), each identified with
 default settings from its sweeps in recorded order. Every sweep's fit RMS is judged against the
 simulator's true sensor noise (``truth.json``): ``foreign_at_floor`` counts the stages with every
@@ -21,7 +21,7 @@ the median fit time; ``foreign_rows`` has one row per stage (design, start, rati
 estimated from the data beside the truth).
 
 The last line printed is one JSON object. Run from the repo root:
-``PYTHONPATH=. python benchmarks/bench_identify.py --json``
+``python -m benchmarks.bench_identify --json``
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ Run from the repository root::
 Plays thousands of random waveforms (good ones and ones beyond the voltage, slew or step-in limits,
 or not finite) in-process and over every real wire with faults injected by the servers (dropped,
 corrupted, delayed replies, disconnects, garbage), then 100 watchdog trials over real wires (see
-``tests/campaign.py`` for what each count means). Progress goes to stderr; the last line of
+``benchmarks/campaign.py`` for what each count means). Progress goes to stderr; the last line of
 stdout is one JSON object with ``out_of_limit``, ``hangs``, ``lost``, ``watchdog_ok`` and the rest.
 """
 

@@ -1,4 +1,4 @@
-"""Write sweep sets recorded on random foreign stages (drivers/device/foreign*.py).
+"""Write sweep sets recorded on random foreign stages (drivers/device/foreign/).
 
     python benchmarks/foreign_sets.py --out DIR --n N --seed S [--effect CAUSE] [--strength X]
         [--design D] [--start S] [--families default|random]

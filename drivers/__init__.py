@@ -30,7 +30,7 @@ Device side (:mod:`afmctl.drivers.device`)
     from it only to start an emulated stage.
 
 Test and benchmark harnesses (the safety campaign) live outside the shipped packages
-(``tests/campaign.py``).
+(``benchmarks/campaign.py``).
 """
 
 from afmctl.drivers.protocol import Status

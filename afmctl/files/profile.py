@@ -16,9 +16,9 @@ A wire's ``[transport]`` also gives ``timeout_s`` (per reply) and ``watchdog_s``
 watchdog's period the host arms for every run (default twice ``timeout_s``, which it must exceed;
 0: never armed).
 
-Every problem raises :class:`~afmctl.files.tomlfile.FileFormatError` naming the file and key, which the
-CLI prints as one line with exit status 2. Shipped profiles live in ``afmctl/profiles/`` (package
-data; ``profiles/`` at the top of the repository links to them) and are reachable by name
+Every problem raises :class:`~afmctl.errors.FileFormatError` naming the file and key, which the
+CLI prints as one line with exit status 2. Shipped profiles live in ``profiles/`` at the top of the
+checkout, installed as the package data of ``afmctl.profiles``, and are reachable by name
 (``--profile lab-modbus``) wherever a profile path is taken.
 """
 

@@ -1,8 +1,9 @@
 """Rough hands: every command's help, rough numbers on the command line, rough output paths, and
 sweep files as DAQs and spreadsheets write them.
 
-The README's table of rough inputs is generated from :data:`CASES` by this module (``python
-tests/test_cli_rough.py`` prints it) and a test checks that the README holds exactly that table:
+The command reference's table of rough inputs (``docs/reference/cli.md``) is generated from
+:data:`CASES` by this module (``python -m tests.cli.test_cli_rough`` prints it) and a test checks
+that the page holds exactly that table:
 every exit code and line in it is what afmctl really prints. A refused input exits 2 with one
 line and writes nothing.
 """
@@ -191,7 +192,8 @@ def run(case: Case, folder: Path) -> tuple[int, str, str, list[str]]:
 
 
 def table(folder: Path) -> str:
-    """The README's markdown table: every case, its exit code and the last line on stderr."""
+    """The command reference's markdown table: every case, its exit code and the last line on
+    stderr."""
     rows = ["| rough input | exit | what afmctl prints (last line on stderr) |", "|---|---|---|"]
     for i, case in enumerate(CASES):
         (folder / str(i)).mkdir()
@@ -213,9 +215,9 @@ def test_rough_input(case: Case, tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_readme_table_is_what_afmctl_prints(tmp_path: Path) -> None:
-    from tests.files.test_bad_inputs import readme_section
-    assert readme_section("rough-inputs") == table(tmp_path)
+def test_reference_table_is_what_afmctl_prints(tmp_path: Path) -> None:
+    from tests.files.test_bad_inputs import reference_section
+    assert reference_section("rough-inputs") == table(tmp_path)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 """Bad input files: each one exits 2 with one line naming the problem, and writes nothing.
 
-The README's table of bad inputs is generated from :data:`CASES` by this module (run it:
-``python tests/test_bad_inputs.py`` prints the table) and a test checks that the README holds
+The command reference's table of bad inputs (``docs/reference/cli.md``) is generated from
+:data:`CASES` by this module (``python -m tests.files.test_bad_inputs`` prints it) and a test
+checks that the page holds
 exactly that table, so every message in it is what afmctl really prints.
 """
 
@@ -140,7 +141,7 @@ def run(case: Case, folder: Path) -> tuple[int, str, str, list[str]]:
 
 
 def table(folder: Path) -> str:
-    """The README's markdown table: every case with the one line afmctl prints."""
+    """The command reference's markdown table: every case with the one line afmctl prints."""
     rows = ["| file | problem | what afmctl prints (exit 2, nothing written) |", "|---|---|---|"]
     for i, case in enumerate(CASES):
         (folder / str(i)).mkdir()
@@ -159,16 +160,16 @@ def test_bad_input_exits_2_with_one_line_and_writes_nothing(case: Case, tmp_path
     assert written == []
 
 
-def readme_section(tag: str) -> str:
-    """The README's text between ``<!-- TAG:begin -->`` and ``<!-- TAG:end -->``."""
-    readme = (ROOT / "README.md").read_text()
+def reference_section(tag: str) -> str:
+    """The command reference's text between ``<!-- TAG:begin -->`` and ``<!-- TAG:end -->``."""
+    readme = (ROOT / "docs" / "reference" / "cli.md").read_text()
     begin, end = f"<!-- {tag}:begin -->\n", f"<!-- {tag}:end -->"
     assert begin in readme and end in readme
     return readme[readme.index(begin) + len(begin):readme.index(end)]
 
 
-def test_readme_table_is_what_afmctl_prints(tmp_path: Path) -> None:
-    assert readme_section("bad-inputs") == table(tmp_path)
+def test_reference_table_is_what_afmctl_prints(tmp_path: Path) -> None:
+    assert reference_section("bad-inputs") == table(tmp_path)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""A 0-150 V stage written from docs/protocol.md alone (``tests/independent_stage.py``: no afmctl
+"""A 0-150 V stage written from docs/protocol.md alone (``tests/harness/independent_stage.py``: no afmctl
 code), reached over ``socket://``: afmctl's conformance check passes on it, and it sees the watchdog
 set, armed, fed and disarmed around every run afmctl plays on it."""
 

@@ -1,4 +1,4 @@
-"""The foreign stage (drivers/device/foreign*.py) against analytic limits and slow oracles.
+"""The foreign stage (drivers/device/foreign/) against analytic limits and slow oracles.
 
 A *linear* stage (coercive fields far above any drive field, a2 = 0) has P = P_sw + chi E exactly,
 so its displacement is a linear function of the field and the rod, amplifier and second mass can
