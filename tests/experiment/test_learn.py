@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from afmctl import plots
 from afmctl.cli import main
 from afmctl.drivers.inprocess import InProcessStage, accelerated
 from afmctl.experiment import learn
@@ -261,8 +262,9 @@ def test_ctrl_c_keeps_every_finished_iteration(profile: Profile, nominal: Transd
         if what == "inverse_iter02" and done > total // 2:
             raise KeyboardInterrupt
 
-    def each(res: learn.Result) -> None:
+    def each(res: learn.Result) -> None:  # what the CLI writes after every iteration
         learn.write_outputs(res, desired, ilc.Law(), {"profile": "emulated"}, tmp_path)
+        plots.learn_figure(res, desired, tmp_path / "learn.png")
 
     with InProcessStage(profile, clock=accelerated(8.0)) as stage:
         with pytest.raises(KeyboardInterrupt):
