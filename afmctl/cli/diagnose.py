@@ -93,9 +93,12 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     from afmctl.fit import diagnose as dg
     make_dir(out, "--out")
     header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
-    modelfile.write(d.base_model, out / "base.toml", header=header + "\nthe paper's model")
+    names = tuple(Path(f).name for f in sweep_files)
+    modelfile.write(d.base_model, out / "base.toml", header=header + "\nthe paper's model",
+                    fit=_record(d, names, extended=False))
     modelfile.write(d.extended_model, out / "extended.toml",
-                    header=header + f"\nextended with: {d.cause}")
+                    header=header + f"\nextended with: {d.cause}",
+                    fit=_record(d, names, extended=True))
     before, after = d.predictions(data)
     partial = out / "residuals.partial.png"
     plots.diagnosis_figure(data, before, after, d.base_model.thickness_um,
@@ -104,3 +107,20 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     atomic_write(out / "report.md", dg.report(d, "residuals.png"))
     atomic_write(out / "diagnosis.json", text)  # last: marks the folder complete
 
+
+
+def _record(d, names: tuple[str, ...], extended: bool):  # noqa: ANN001, ANN202 (Diagnosis -> FitRecord)
+    """The ``[fit]`` record of diagnose's base or extended model: flagged when it misses what the
+    held-out data show (a named cause the base lacks; no cause found; above 2x the noise)."""
+    from afmctl.files.modelfile import FitRecord
+    from afmctl.fit.identify import WARN
+    over = d.extended_over_noise if extended else d.base_over_noise
+    held = f"held-out RMS {over:.1f}x the noise"
+    if d.cause == "unexplained":
+        return FitRecord("diagnose", f"no candidate cause explains the residual ({held})", True,
+                         names)
+    if not extended and d.cause != "none":
+        return FitRecord("diagnose", f"misses {d.cause}, which diagnose named ({held}): track "
+                                     f"with extended.toml", True, names)
+    what = f"extended with {d.cause}" if extended and d.cause != "none" else "no cause named"
+    return FitRecord("diagnose", f"{what}, {held}", not over <= WARN, names)

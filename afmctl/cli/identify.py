@@ -93,7 +93,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
         header += " are identifiable)"
         with writing(output, "-o"):
             modelfile.write(result.model, output, header=header, envelope=result.envelope,
-                            uncertainty=result.uncertainty)
+                            uncertainty=result.uncertainty, fit=result.record())
         say(f"wrote {output}")
     if plots_dir is not None:
         fitted = idf.predict_set(result.model, data, [s.start for s in result.sweeps],

@@ -46,7 +46,10 @@ class PlayingStage(Protocol):
 
 @dataclass(frozen=True)
 class Outcome:
-    """One filter's run: measured displacement (NaN where missing) and its score."""
+    """One filter's run: measured displacement (NaN where missing) and its score.
+
+    ``corrected_um`` holds the readings corrected for the sensor effects the model knows (what is
+    scored), None when it knows none: the readings are then scored as they are."""
 
     waveform: track.Waveform
     displacement_um: FloatArray
@@ -54,6 +57,12 @@ class Outcome:
     score: track.Score
     complete: bool
     run_file: Path
+    corrected_um: FloatArray | None = None
+
+    @property
+    def scored_um(self) -> FloatArray:
+        """What the score is computed from: the corrected readings if any, else the readings."""
+        return self.displacement_um if self.corrected_um is None else self.corrected_um
 
     def as_dict(self) -> dict[str, Any]:
         missing = int(np.isnan(self.displacement_um).sum())
@@ -70,48 +79,115 @@ def stream(stage: PlayingStage, wf: track.Waveform, path: Path, meta: Mapping[st
 
     Returns (displacement_um, voltage_v, complete); samples never received are NaN. Any exception
     (including KeyboardInterrupt) leaves the run file readable and marked interrupted, and is
-    re-raised (the stage's ``play`` has already put it in its safe state).
+    re-raised (the stage's ``play`` has already put it in its safe state) with the samples so far
+    as its ``partial`` attribute (the same triple).
+
+    A row's ``voltage_V`` is the commanded voltage of a sample the stage played. The samples the
+    stage handed over unrecorded are held back until a recorded one follows (they were played,
+    only their reading was lost) or the run ends: normally, all played; after a failure, the
+    trailing ones were never played (or not known to have been) and are written without a
+    voltage, status ``not played``.
     """
     n = wf.voltage_v.size
     u = np.full(n, np.nan)
     v = np.full(n, np.nan)
     t = wf.time_s
+    held = [n]  # first sample of the unrecorded rows not yet written (n: none)
+
+    def write(writer: runfile.RunWriter, start: int, stop: int, played: bool) -> None:
+        sl = slice(start, stop)
+        volt = wf.voltage_v[sl] if played else np.full(stop - start, np.nan)
+        writer.write(np.arange(start, stop), t[sl], wf.desired_um[sl], volt, u[sl],
+                     None if played else "not played")
+
     with runfile.RunWriter(path, {**meta, "filter": wf.filter, "samples": n}) as writer:
 
         def on_block(first: int, volt: FloatArray, disp: FloatArray, valid: Any) -> None:
             sl = slice(first, first + len(disp))
             u[sl] = np.where(valid, disp, np.nan)
             v[sl] = volt
-            writer.write(np.arange(sl.start, sl.stop), t[sl], wf.desired_um[sl],
-                         wf.voltage_v[sl], u[sl])
+            recorded = np.flatnonzero(np.isfinite(volt))
+            start = min(held[0], first)
+            last = first + int(recorded[-1]) + 1 if recorded.size else start
+            if last > start:
+                write(writer, start, last, True)
+            held[0] = last if last < sl.stop else n
             if progress is not None and np.any(valid):  # an interrupt hands the rest as missing
                 progress(wf.filter, sl.stop, n)
 
-        stage.play(wf.voltage_v, on_block)
+        try:
+            stage.play(wf.voltage_v, on_block)
+        except BaseException as exc:
+            if held[0] < n:
+                write(writer, held[0], n, False)
+            exc.partial = (u, v, False)  # type: ignore[attr-defined]
+            raise
+        if held[0] < n:
+            write(writer, held[0], n, True)
     return u, v, bool(np.isfinite(u).all())
 
 
 def run_all(stage: PlayingStage, plans: Mapping[str, track.Waveform], desired: track.Desired,
             out: Path, meta: Mapping[str, object], between_model: tr.Transducer | None,
-            progress: Progress | None = None, sensor: fx.Effects | None = None
-            ) -> dict[str, Outcome]:
+            progress: Progress | None = None, sensor: fx.Effects | None = None,
+            done: dict[str, Outcome] | None = None) -> dict[str, Outcome]:
     """Run each plan in turn (inverse first) and score it; run files go to ``out`` (created).
 
     The readings are scored as the stage's position: corrected for the ``sensor`` effects the
     model knows (delay, gauge; none by default). The run files keep the raw readings.
+    ``between_model`` is the plant simulated between the samples (None: not judged there).
+    Each finished run is put in ``done`` (if given) as it ends; on an interrupt or a failure the
+    run in progress is scored on the samples it got, put there too, and the exception re-raised:
+    the caller can still report everything played.
     """
     out.mkdir(parents=True, exist_ok=True)
-    outcomes = {}
+    outcomes = {} if done is None else done
     for name, wf in plans.items():
         path = out / f"run_{name}.csv"
-        u, v, complete = stream(stage, wf, path, meta, progress)
-        where = fx.sensor_correct(fx.compile_chain(sensor or fx.Effects(), wf.dt_s), u)
+        try:
+            u, v, complete = stream(stage, wf, path, meta, progress)
+        except BaseException as exc:
+            if getattr(exc, "partial", None) is not None:
+                outcomes[name] = scored(wf, desired, exc.partial, path, sensor)  # type: ignore[attr-defined]
+            raise
         between = None
         if between_model is not None:
             between = track.between_samples(between_model, wf, desired, tr.initial(between_model))
-        outcomes[name] = Outcome(wf, u, v, track.score(wf, desired, where, between), complete,
-                                 path)
+        outcomes[name] = scored(wf, desired, (u, v, complete), path, sensor, between)
     return outcomes
+
+
+def scored(wf: track.Waveform, desired: track.Desired, measured: tuple[Any, ...], path: Path,
+           sensor: fx.Effects | None, between: FloatArray | None = None) -> Outcome:
+    """One run's :class:`Outcome` from :func:`stream`'s (displacement, voltage, complete): the
+    readings corrected for ``sensor`` (the model's sensor effects; none: scored as they are) and
+    scored, between the samples from ``between`` (:func:`afmctl.planning.track.between_samples`)
+    if given."""
+    u, v, complete = measured
+    sensor = fx.sensor_part(sensor or fx.Effects())
+    corrected = (None if sensor == fx.Effects()
+                 else fx.sensor_correct(fx.compile_chain(sensor, wf.dt_s), u))
+    where = u if corrected is None else corrected
+    return Outcome(wf, u, v, track.score(wf, desired, where, between), complete, path, corrected)
+
+
+#: Why a stage's error between samples is not judged (``between_samples_from`` of summary.json).
+NO_TRUTH_REAL = ("not judged: a real stage (between its samples there is only the model's own "
+                 "simulation, which shows the model inverting itself, not the stage)")
+NO_TRUTH_FOREIGN = ("not judged: the emulated device's plant is a foreign stage, not an afmctl "
+                    "model ([emulator.model] is not what it does)")
+
+
+def between_truth(profile: Any) -> tuple[tr.Transducer | None, str]:
+    """The plant to judge a run between its samples (:func:`afmctl.planning.track.between_samples`)
+    on ``profile``'s stage, and what it is: the emulated device's own model (``emulator truth``),
+    or None with the reason when there is no such plant (a real stage, a foreign one)."""
+    emu = profile.emulator
+    if emu is None:
+        return None, NO_TRUTH_REAL
+    if emu.plant_model is None:
+        return None, NO_TRUTH_FOREIGN
+    return emu.plant_model, "emulator truth"
 
 
 def atomic_write(path: Path, text: str) -> None:
@@ -120,20 +196,27 @@ def atomic_write(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def write_waveform_csv(wf: track.Waveform, path: Path) -> None:
-    """``time_s,desired_um,voltage_V`` (desired empty on the ramps), for ``--dry-run``."""
-    rows = [f"{t:.7f},{'' if np.isnan(d) else f'{d:.6f}'},{v:.6f}"
-            for t, d, v in zip(wf.time_s, wf.desired_um, wf.voltage_v, strict=True)]
-    atomic_write(path, "time_s,desired_um,voltage_V\n" + "\n".join(rows) + "\n")
+def write_waveform_csv(wf: track.Waveform, path: Path,
+                       meta: Mapping[str, object] | None = None) -> None:
+    """A waveform file (:mod:`afmctl.files.waveformfile`: ``time_s,voltage_V,desired_um``, the
+    desired trajectory empty on the conditioning and the ramps) with ``meta`` (profile, model,
+    trajectory, period) in its header, for ``--dry-run``; ``afmctl play`` replays it."""
+    from afmctl.files import waveformfile
+    atomic_write(path, waveformfile.format_text(wf.time_s, wf.voltage_v, wf.desired_um,
+                                                dict(meta or {})))
 
 
 def write_combined_csv(outcomes: Mapping[str, Outcome], desired: track.Desired,
                        path: Path) -> None:
-    """The tracking part of every filter side by side on one time axis (s from tracking start)."""
+    """The tracking part of every filter side by side on one time axis (s from tracking start):
+    the commanded voltage, the readings and, with a model that corrects them for a sensor
+    effect, the corrected readings that are scored (``corrected_displacement_um_<filter>``)."""
     cols = {"time_s": np.arange(desired.u_um.size) * desired.dt_s, "desired_um": desired.u_um}
     for name, o in outcomes.items():
         cols[f"voltage_V_{name}"] = o.waveform.voltage_v[o.waveform.tracking]
         cols[f"displacement_um_{name}"] = o.displacement_um[o.waveform.tracking]
+        if o.corrected_um is not None:
+            cols[f"corrected_displacement_um_{name}"] = o.corrected_um[o.waveform.tracking]
     lines = [",".join(cols)]
     for row in zip(*cols.values(), strict=True):
         lines.append(",".join("" if np.isnan(x) else f"{x:.7g}" for x in row))
@@ -155,16 +238,40 @@ def summary(outcomes: Mapping[str, Outcome], desired: track.Desired,
     return out
 
 
+def json_ready(data: Any) -> Any:
+    """``data`` with every non-finite float (a run with no samples scored) as None."""
+    if isinstance(data, Mapping):
+        return {k: json_ready(v) for k, v in data.items()}
+    if isinstance(data, list | tuple):
+        return [json_ready(v) for v in data]
+    if isinstance(data, float) and not np.isfinite(data):
+        return None
+    return data
+
+
 def write_summary(data: Mapping[str, Any], path: Path) -> None:
-    atomic_write(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
+    atomic_write(path, json.dumps(json_ready(data), indent=2, allow_nan=False) + "\n")
 
 
 def plot(outcomes: Mapping[str, Outcome], desired: track.Desired, thickness_um: float,
-         path: Path) -> None:
+         path: Path, corrected_for: str = "") -> None:
+    """:func:`track_figure` saved to ``path``."""
+    import matplotlib.pyplot as plt
+
+    fig = track_figure(outcomes, desired, thickness_um, corrected_for)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def track_figure(outcomes: Mapping[str, Outcome], desired: track.Desired, thickness_um: float,
+                 corrected_for: str = "") -> Any:
     """Desired and achieved trajectories, errors, and the field-displacement loop (Figs. 9-11).
 
-    The desired trajectory is drawn last (dashed, on top) so the filters cannot hide it; the first
-    period, left out of the headline figures, is shaded, and each error's legend states its RMS.
+    What is drawn is what is scored (:attr:`Outcome.scored_um`): the readings, or the readings
+    corrected for the sensor effects the model knows (``corrected_for`` names them in the
+    legend). The desired trajectory is drawn last (dashed, on top) so the filters cannot hide it;
+    the first period, left out of the headline figures, is shaded, and each error's legend states
+    its RMS. Returns the matplotlib figure (three axes).
     """
     import matplotlib
 
@@ -176,11 +283,13 @@ def plot(outcomes: Mapping[str, Outcome], desired: track.Desired, thickness_um: 
     colors = {"inverse": "tab:blue", "linear": "tab:red"}
     t0 = 0.0
     for name, o in outcomes.items():
-        u = o.displacement_um[o.waveform.tracking]
+        u = o.scored_um[o.waveform.tracking]
         v = o.waveform.voltage_v[o.waveform.tracking]
         c = colors.get(name, None)
         t0 = o.score.steady_from_s
-        ax[0].plot(t, u, color=c, lw=1.6, alpha=0.8, label=f"{name} filter")
+        what = (f" (readings corrected for {corrected_for})"
+                if o.corrected_um is not None and corrected_for else "")
+        ax[0].plot(t, u, color=c, lw=1.6, alpha=0.8, label=f"{name} filter{what}")
         part = "steady part" if o.score.steady else "whole run"
         ax[1].plot(t, u - desired.u_um, color=c, lw=0.9,
                    label=f"{name}: RMS {o.score.rms_um:.3g} um ({o.score.rms_pct:.2g} %, {part})")
@@ -195,8 +304,7 @@ def plot(outcomes: Mapping[str, Outcome], desired: track.Desired, thickness_um: 
     for a in ax:
         a.grid(alpha=0.3)
         a.legend(loc="best", fontsize=8)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
 def incomplete_path(path: Path) -> Path:

@@ -193,6 +193,12 @@ class EmulatorConfig:
         """The device's truth as one model: the transducer with the effects it carries."""
         return replace(self.model, effects=self.effects)
 
+    @property
+    def plant_model(self) -> Transducer | None:
+        """The model the device simulates (:attr:`true_model`), the truth between its samples;
+        None when its plant is a foreign stage: ``[emulator.model]`` is then not what it does."""
+        return None if self.foreign is not None else self.true_model
+
 
 @dataclass(frozen=True)
 class Profile:

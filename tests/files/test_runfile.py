@@ -57,7 +57,7 @@ def test_killed_writer_leaves_a_readable_incomplete_file(tmp_path: Path) -> None
     path = tmp_path / "run.csv"
     code = (
         "import sys, time, numpy as np\n"
-        "from afmctl import runfile\n"
+        "from afmctl.files import runfile\n"
         f"w = runfile.RunWriter({str(path)!r}, {{'profile': 'x'}})\n"
         "for b in range(1000):\n"
         "    s = np.arange(b * 10, b * 10 + 10)\n"
