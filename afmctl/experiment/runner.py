@@ -308,14 +308,10 @@ def track_figure(outcomes: Mapping[str, Outcome], desired: track.Desired, thickn
 
 
 def incomplete_path(path: Path) -> Path:
-    """Where a sweep bound for ``path`` is streamed while it records: ``<stem>.incomplete.csv``,
-    numbered if an earlier interrupted one is there (measured data is never overwritten)."""
-    candidate = path.with_name(f"{path.stem}.incomplete.csv")
-    k = 2
-    while candidate.exists():
-        candidate = path.with_name(f"{path.stem}.incomplete-{k}.csv")
-        k += 1
-    return candidate
+    """Where a sweep bound for ``path`` is streamed while it records: ``<stem>.incomplete.csv``
+    (one per sweep: a later attempt replaces an earlier interrupted one once it has received
+    samples; the whole sweep removes it)."""
+    return path.with_name(f"{path.stem}.incomplete.csv")
 
 
 def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v: FloatArray,
@@ -327,8 +323,10 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
 
     The sweep's ``voltage_V`` is the commanded voltage (what a filter controls); a sweep that lost
     samples is refused rather than patched. With ``path``, the samples are also streamed as they
-    arrive (flushed per block) into :func:`incomplete_path`; when the sweep completes it is written
-    to ``path`` and that file removed, otherwise (interrupt, lost samples, stage failure) it stays
+    arrive (flushed per block) into :func:`incomplete_path`, created with the first samples (a
+    start that received none leaves no file, and an earlier interrupted attempt's file stays until
+    then); when the sweep completes it is written to ``path`` and the incomplete file removed
+    (the whole sweep supersedes it), otherwise (interrupt, lost samples, stage failure) it stays
     as a valid sweep file of the samples received in order, ending ``# end: interrupted (...)``.
     """
     from afmctl.files import sweepfile as sweeps
@@ -337,7 +335,7 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
     n = len(voltage_v)
     got = np.full(n, np.nan)
     streamed = incomplete_path(path) if path is not None else None
-    fh = None if streamed is None else open(streamed, "x", encoding="utf-8")  # noqa: SIM115
+    fh: list[Any] = []  # the incomplete file, once samples arrived
     done = [0]  # samples received in order so far (what the incomplete file holds)
 
     def on_block(first: int, volt: FloatArray, disp: FloatArray, valid: Any) -> None:
@@ -346,19 +344,20 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
         while prefix < n and np.isfinite(got[prefix]):
             prefix += 1
         done[0] = prefix
-        if fh is not None and prefix > old:
+        if streamed is not None and prefix > old:
+            if not fh:  # the first samples: this attempt replaces an earlier interrupted one
+                fh.append(open(streamed, "w", encoding="utf-8"))  # noqa: SIM115
+                fh[0].write("".join(f"# {k}: {v}\n" for k, v in meta.items()))
+                fh[0].write(",".join(sweeps.COLUMNS) + "\n")
             rows = np.column_stack([np.arange(old, prefix) / sample_rate_hz,
                                     voltage_v[old:prefix], got[old:prefix]])
-            np.savetxt(fh, rows, delimiter=",", fmt=("%.7f", "%.6f", "%.6f"))
-            fh.flush()
-            os.fsync(fh.fileno())
+            np.savetxt(fh[0], rows, delimiter=",", fmt=("%.7f", "%.6f", "%.6f"))
+            fh[0].flush()
+            os.fsync(fh[0].fileno())
         if progress is not None and np.any(valid):
             progress(name, first + len(disp), n)
 
     try:
-        if fh is not None:
-            fh.write("".join(f"# {k}: {v}\n" for k, v in meta.items()))
-            fh.write(",".join(sweeps.COLUMNS) + "\n")
         time.sleep(settle_s)
         rec = stage.play(voltage_v, on_block)
         lost = int((~np.asarray(rec.valid)).sum())
@@ -368,12 +367,13 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
         if path is not None:
             sweeps.write(sweep, path)
     except BaseException as exc:
-        if fh is not None:
+        if fh:
             why = f"{type(exc).__name__}: {exc}".replace("\n", " ")
-            fh.write(f"# end: interrupted ({why})\n")
-            fh.close()
+            fh[0].write(f"# end: interrupted ({why})\n")
+            fh[0].close()
         raise
-    if fh is not None and streamed is not None:
-        fh.close()
-        streamed.unlink()
+    if fh:
+        fh[0].close()
+    if streamed is not None and streamed.exists():
+        streamed.unlink()  # superseded by the whole sweep (this attempt's or an earlier one's)
     return sweep

@@ -32,7 +32,7 @@ error at sample k is ``displacement[k] - desired[k]`` and sample k's voltage aim
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
@@ -228,17 +228,16 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
         for d in (h for h in HORIZONS if h >= (max(d0, fixed[i]) if fixed else d0)):
             res = inv.algorithm3(cm, target[s:e + d - 1], st, e_init=v_prev / thick, horizon=d,
                                  e_min=e_lim[0], e_max=e_lim[1])
-            _reach(res, e - s, s)
             v = res.voltage(thick)[:e - s]
-            try:
+            try:  # a longer horizon rounds a corner the limit cuts off
+                _reach(res, e - s, s)
                 guard.check(v, dt, limits, v_prev, "inverse waveform")
             except guard.LimitError as exc:
                 last = exc
                 continue
             break
         else:
-            raise guard.LimitError(f"no inversion horizon up to {HORIZONS[-1]} samples keeps the "
-                                   f"waveform within limits; last: {last}")
+            _no_horizon(last)
         parts.append(v)
         horizons.append(d)
         st = tr.simulate(cm, v, st)[2]
@@ -257,11 +256,11 @@ def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: 
     for d in (h for h in HORIZONS if h >= max((rd.smooth_horizon(cm.disc), *(fixed or ())))):
         res = inv.algorithm3(cm, target, state, e_init=start_v / cm.model.thickness_um,
                              horizon=d, e_min=e_lim[0], e_max=e_lim[1])
-        _reach(res, target.size, 0)
         v = fx.unlag_limited(chain, res.voltage(cm.model.thickness_um), start_v,
                              LAG_STEP * limits.max_rate_v_per_ms * 1e3 * dt,
                              (limits.v_min, limits.v_max))
         try:
+            _reach(res, target.size, 0)
             wf = build(v, (d,))
         except guard.LimitError as exc:
             last = exc
@@ -273,6 +272,14 @@ def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: 
         best = (err, wf)
     if best is not None:
         return best[1]
+    _no_horizon(last)
+
+
+def _no_horizon(last: guard.LimitError | None) -> NoReturn:
+    """Raise why no horizon gave a waveform: the reach if the last one fell short of it, else
+    the limit the last one broke."""
+    if isinstance(last, ReachError):
+        raise last
     raise guard.LimitError(f"no inversion horizon up to {HORIZONS[-1]} samples keeps the "
                            f"waveform within limits; last: {last}")
 
