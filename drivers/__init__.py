@@ -36,13 +36,15 @@ Test and benchmark harnesses (the safety campaign) live outside the shipped pack
 from afmctl.drivers.protocol import Status
 from afmctl.drivers.stage import (
     BlockCallback,
+    LimitMismatchError,
     LinkCapacityError,
     Recording,
     Stage,
     StageBase,
     StageError,
+    StoppedError,
     open_stage,
 )
 
-__all__ = ["StageError", "LinkCapacityError", "Recording", "Status", "Stage", "StageBase",
-           "BlockCallback", "open_stage"]
+__all__ = ["StageError", "StoppedError", "LinkCapacityError", "LimitMismatchError", "Recording",
+           "Status", "Stage", "StageBase", "BlockCallback", "open_stage"]

@@ -38,8 +38,8 @@ from afmctl.files.profile import (
 )
 from afmctl.files.tomlfile import InputError
 
-__all__ = ["StageError", "LinkCapacityError", "Recording", "Status", "Stage", "StageBase",
-           "BlockCallback", "open_stage"]
+__all__ = ["StageError", "StoppedError", "LinkCapacityError", "LimitMismatchError", "Recording",
+           "Status", "Stage", "StageBase", "BlockCallback", "open_stage"]
 
 #: ``on_block(first_index, voltage_v, displacement_um, valid)`` of :meth:`StageBase.play`.
 BlockCallback = Callable[[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]], None]
@@ -54,6 +54,26 @@ class StageError(RuntimeError):
         what = ERRORS.get(code, "transport or protocol failure")
         super().__init__(f"stage error {code}: {what}" + (f" ({detail})" if detail else ""))
         self.code = code
+
+
+class StoppedError(StageError):
+    """The device stopped a run without an error of its own: something else told it to (another
+    terminal's ``afmctl safe``, another host's stop or safe command). ``code`` is 0."""
+
+    def __init__(self, detail: str) -> None:
+        RuntimeError.__init__(
+            self, f"{detail}: the stage was stopped from elsewhere (another terminal's `afmctl "
+                  f"safe`, or another host's stop or safe command; no error on the device)")
+        self.code = 0
+
+
+class LimitMismatchError(InputError):
+    """The profile's ``[amplifier]`` limits go beyond the device's own (``LIM?``, the register
+    map's limits): refused before anything moves (exit status 2 at the CLI), naming both."""
+
+
+#: Slack when comparing the profile's limits with the device's (V, V/ms): float32 on the wire.
+LIMIT_SLACK = 1e-3
 
 
 class LinkCapacityError(InputError):
@@ -168,6 +188,34 @@ class StageBase(abc.ABC):
     def voltage(self) -> float:
         """Output voltage now, V."""
         return self.status().output_v
+
+    def check_limits(self) -> None:
+        """Compare the profile's voltage range and slew limit with the device's own (once per
+        opened stage; :meth:`play` does it before anything is sent).
+
+        Raises
+        ------
+        LimitMismatchError
+            The profile's range is not within the device's, or its slew limit above the
+            device's: a waveform the guard passes would be refused by the device mid-run.
+        """
+        if getattr(self, "_limits_checked", False):
+            return
+        lo, hi, slew = self.limits()
+        p = self.profile.limits
+        wrong = []
+        if p.v_min < lo - LIMIT_SLACK or p.v_max > hi + LIMIT_SLACK:
+            wrong.append(f"voltage range {p.v_min:g} ... {p.v_max:g} V (v_min_V, v_max_V) is not "
+                         f"within the device's {lo:g} ... {hi:g} V")
+        if p.slew_v_per_ms > slew + LIMIT_SLACK:
+            wrong.append(f"slew limit {p.slew_v_per_ms:g} V/ms (slew_V_per_ms) is above the "
+                         f"device's {slew:g} V/ms")
+        if wrong:
+            raise LimitMismatchError(
+                f"profile {self.profile.name!r}: its [amplifier] " + "; its ".join(wrong)
+                + " (the device's own limits, LIM?): set the profile's [amplifier] to the "
+                  "stage's; nothing was sent")
+        self._limits_checked = True
 
     @abc.abstractmethod
     def set_voltage(self, v: float) -> None:
@@ -353,17 +401,25 @@ class StageBase(abc.ABC):
         from afmctl.drivers.player import Player
         player = Player(self, v, on_block, poll_s)
         try:
+            self.check_limits()
             self._ensure_rate()
             guard.check(v.astype(float), 1.0 / self.profile.sample_rate_hz, self.profile.limits,
                         self.voltage(), "waveform")
             return player.run(timeout_s)
-        except (guard.LimitError, LinkCapacityError):
+        except (guard.LimitError, LinkCapacityError, LimitMismatchError):
             raise  # refused before anything played: the stage stays where it is
         except BaseException as exc:
             self._deadline = None
             self._safe_state_quietly(exc)
+            link = isinstance(exc, TimeoutError) or (isinstance(exc, StageError) and exc.code < 0)
+            expired = link and player.started and self._watchdog_expired_quietly()
             player.disarm_after(exc)
             player.abandon(exc)
+            if expired:
+                raise StageError(8, f"during the run, after the link failed ({exc}): the device "
+                                    f"had no heartbeat for {self.watchdog_s:g} s (the host fell "
+                                    f"behind, e.g. a loaded machine): raise [transport] "
+                                    f"watchdog_s, or lighten the load") from exc
             raise
         finally:
             self._deadline = None
@@ -378,6 +434,14 @@ class StageBase(abc.ABC):
         got = self.status().sample_rate_hz
         if not math.isclose(got, want, rel_tol=1e-6):
             raise StageError(-1, f"the device clocks {got:g} Hz; the profile says {want:g} Hz")
+
+    def _watchdog_expired_quietly(self) -> bool:
+        """Whether the device says its watchdog expired (False if the link cannot tell)."""
+        try:
+            st = self.status()
+        except (StageError, TimeoutError):
+            return False
+        return st.watchdog_expired or st.last_error == 8
 
     def _safe_state_quietly(self, cause: BaseException) -> None:
         """Best-effort safe state after ``cause``; never replaces it (a failure becomes a note)."""

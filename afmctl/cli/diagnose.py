@@ -29,8 +29,9 @@ OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residua
               help="Start the fits from this model (lognormal/normal densities) instead of "
                    "identifying one.")
 @click.option("--profile", "profile", default=None,
-              help="Stage profile: its [stack] thickness for sweeps without one; its [identify] "
-                   "table sets the fit options.")
+              help="Stage profile, a file or a shipped name (emulated, lab-serial, ...): its "
+                   "[stack] thickness for sweeps without one; its [identify] table sets the "
+                   "fit options.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output folder (default: ./afmctl-diagnose-<time>).")
 @click.option("--noise-um", "noise_um", type=Finite(0, open_min=True), default=None,

@@ -56,9 +56,11 @@ def _warn_above_floor(result: Any) -> None:
 
 @main.command()
 @click.argument("sweep_files", nargs=-1, required=True)
-@click.option("--profile", "profile", default=None, help="Stage profile: its [stack] thickness "
-              "for sweeps without layer_thickness_um; its [identify] table sets mass_kg, "
-              "p_r_C_per_m2, thickness_um, n_coercive_fit, field_step, max_nfev, restarts.")
+@click.option("--profile", "profile", default=None, help="Stage profile, a file or a shipped "
+              "name (emulated, lab-serial, ...): its [stack] thickness for sweeps without "
+              "layer_thickness_um; its [identify] table sets mass_kg, p_r_C_per_m2, "
+              "thickness_um, n_coercive_fit, field_step, max_nfev, restarts; and the model's "
+              "reach within its voltage limits is reported.")
 @click.option("-o", "--output", required=True,
               help="Model file to write (TOML); an existing file only with --force, a measured "
                    "file (sweep, run) never.")

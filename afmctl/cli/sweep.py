@@ -101,10 +101,10 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
             "sample_rate_hz": f"{prof.sample_rate_hz:g}", "v_range_V": f"{lo:g} {hi:g}",
             "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     show = progress_printer(False)
-    if chosen:
-        say(f"recording {len(chosen)} sweep(s) over [{lo:g}, {hi:g}] V ...")
-        make_dir(out, "--out")
     with opened_stage(prof) as stage:
+        if chosen:
+            say(f"recording {len(chosen)} sweep(s) over [{lo:g}, {hi:g}] V ...")
+            make_dir(out, "--out")
         for name, freq, v, kinds in chosen:
             path = out / f"{name}.csv"
             partial = experiment.incomplete_path(path)

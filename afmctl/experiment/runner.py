@@ -171,6 +171,39 @@ def scored(wf: track.Waveform, desired: track.Desired, measured: tuple[Any, ...]
     return Outcome(wf, u, v, track.score(wf, desired, where, between), complete, path, corrected)
 
 
+@dataclass(frozen=True)
+class Reading:
+    """The sensor at a held output: mean and standard deviation of ``samples`` readings, um, at
+    ``output_v`` V."""
+
+    output_v: float
+    mean_um: float
+    sd_um: float
+    samples: int
+
+
+def move_and_read(stage: PlayingStage, target_v: float, limits: Any, sample_rate_hz: float,
+                  hold_s: float = 0.1) -> Reading:
+    """Bring the output to ``target_v`` (V) along a raised-cosine ramp at a quarter of the usable
+    slew rate (as track's ramps), hold it ``hold_s`` seconds and read the sensor over the hold:
+    one waveform, checked by the guard and played as any run; the output then stays at
+    ``target_v``. With ``target_v`` the present output nothing moves: it only reads."""
+    from afmctl import guard
+    dt = 1.0 / sample_rate_hz
+    start = stage.voltage()
+    rate = 0.25 * limits.max_rate_v_per_ms * 1e3
+    ramp = (track.raised_cosine(start, target_v, track.ramp_samples(target_v - start, rate, dt))
+            if target_v != start else np.zeros(0))
+    n_hold = max(2, int(round(hold_s * sample_rate_hz)))
+    v = np.concatenate([ramp, np.full(n_hold, float(target_v))])
+    guard.check(v, dt, limits, start, "the move")
+    rec = stage.play(v)
+    held = rec.displacement_um[ramp.size:][rec.valid[ramp.size:]]
+    if held.size == 0:
+        return Reading(float(target_v), float("nan"), float("nan"), 0)
+    return Reading(float(target_v), float(np.mean(held)), float(np.std(held)), int(held.size))
+
+
 #: Why a stage's error between samples is not judged (``between_samples_from`` of summary.json).
 NO_TRUTH_REAL = ("not judged: a real stage (between its samples there is only the model's own "
                  "simulation, which shows the model inverting itself, not the stage)")

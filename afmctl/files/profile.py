@@ -361,6 +361,16 @@ def load_profile(path: str | Path) -> Profile:
     return profile
 
 
+def profile_table(path: str | Path) -> Table:
+    """The TOML tables of the profile ``path`` (a file, or a shipped profile's name as
+    :func:`load_profile` takes it), e.g. for its ``[identify]`` table."""
+    if not Path(path).exists() and str(path) in shipped_names():
+        ref = resources.files("afmctl.profiles").joinpath(f"{path}.toml")
+        with resources.as_file(ref) as shipped:
+            return load(Path(shipped))
+    return load(path)
+
+
 def shipped_profile(name: str) -> Profile:
     """A profile shipped with afmctl, by name (``emulated``, ``lab-serial``, ``lab-modbus``)."""
     ref = resources.files("afmctl.profiles").joinpath(f"{name}.toml")
