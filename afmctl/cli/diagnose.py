@@ -26,8 +26,8 @@ OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residua
 @main.command()
 @click.argument("sweep_files", nargs=-1, required=True)
 @click.option("--model", "model_path", type=click.Path(dir_okay=False), default=None,
-              help="Start the fits from this model (lognormal/normal densities) instead of "
-                   "identifying one.")
+              help="Start the fits from this model (any model identify writes; a general "
+                   "coercive density starts them as its lognormal) instead of identifying one.")
 @click.option("--profile", "profile", default=None,
               help="Stage profile, a file or a shipped name (emulated, lab-serial, ...): its "
                    "[stack] thickness for sweeps without one; its [identify] table sets the "
@@ -60,6 +60,13 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     data = [sweeps.read_complete(f) for f in sweep_files]
     start = None if model_path is None else modelfile.read(model_path)
     if start is not None:
+        equivalent = parametrization.lognormal_equivalent(start)
+        if equivalent != start:  # identify's general density: the fits start from its lognormal
+            c = equivalent.polarization.coercive
+            say(f"--model {model_path}: its general coercive-field density starts the fits as "
+                f"the lognormal of the same log-moments (median {c.median:.4g} MV/m, sigma_ln "
+                f"{c.sigma:.3g}): diagnose's candidates are fitted in the lognormal family")
+        start = equivalent
         try:
             parametrization.internal(start)
         except ValueError as exc:
