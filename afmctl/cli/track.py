@@ -46,6 +46,49 @@ class Offset(Finite):
         return super().convert(value, param, ctx)
 
 
+@main.command("reach")
+@click.option("--model", "model_path", type=click.Path(dir_okay=False), required=True,
+              help="Model file (identify's or diagnose's).")
+@click.option("--profile", "profile_path", type=click.Path(dir_okay=False),
+              help="Stage profile, a file or a shipped name: its voltage limits (default: the "
+                   "shipped emulated one).")
+@click.option("--amplitude", type=Finite(0, open_min=True), default=None,
+              help="Peak-to-peak amplitude, um: where a trajectory of it fits.")
+@click.option("--json", "as_json", is_flag=True, help="One JSON object on stdout.")
+def reach(model_path: str, profile_path: str | None, amplitude: float | None,
+          as_json: bool) -> None:
+    """Show the displacement range a model reaches on a profile: its quasi-static response
+    over the profile's voltage limits (within the model's validity envelope), in the sensor's
+    frame. A trajectory must stay inside it (at 27.9 Hz the rod's dynamics take a little more
+    near the corners); its centre is what `track --offset centre` uses."""
+    from afmctl.experiment import calibration
+    from afmctl.files import modelfile
+    from afmctl.planning import track as trk
+    prof = load_profile_or_exit(profile_path)
+    cal = calibration.from_file(model_path)
+    env = modelfile.read_envelope(cal.path)
+    lim = trk.conditioning_limits(prof.limits, env)
+    lo, hi = trk.reach(cal.model, prof.limits, env)
+    data: dict[str, Any] = {"model": model_path, "profile": prof.name, "reach_um": [lo, hi],
+                            "centre_um": 0.5 * (lo + hi), "span_um": hi - lo,
+                            "voltage_V": [lim.v_min, lim.v_max]}
+    lines = [f"reach: {lo:.4g} ... {hi:.4g} um (span {hi - lo:.4g} um) on {lim.v_min:.4g} ... "
+             f"{lim.v_max:.4g} V, profile {prof.name!r}, model {model_path} (quasi-static)",
+             f"centre: {0.5 * (lo + hi):.4g} um (track --offset centre)"]
+    if amplitude is not None:
+        fits = amplitude < hi - lo
+        data["offset_range_um"] = [lo + amplitude / 2, hi - amplitude / 2] if fits else None
+        lines.append(f"--amplitude {amplitude:g} fits with --offset {lo + amplitude / 2:.4g} ... "
+                     f"{hi - amplitude / 2:.4g} um (keep off the ends at high frequency)" if fits
+                     else f"--amplitude {amplitude:g} does not fit: at most {hi - lo:.4g} um "
+                          f"peak to peak on this profile")
+    if as_json:
+        click.echo(json.dumps(data))
+        return
+    for line in lines:
+        click.echo(line)
+
+
 @main.group(cls=Group)
 def track() -> None:
     """Open-loop tracking with the model-based inverse filter (and the linear one to compare)."""

@@ -133,8 +133,10 @@ class Envelope:
         return self.excess_v(v_min, v_max) <= tolerance * self.span_v
 
     def describe(self) -> str:
-        return (f"{self.voltage_min_v:g} ... {self.voltage_max_v:g} V, "
-                f"{', '.join(f'{f:g}' for f in self.frequencies_hz)} Hz")
+        """E.g. ``0 ... 150 V, 0.1, 0.279, 5.58, 27.9 Hz`` (4 significant digits: a sweep's
+        extreme is a float32 sample; frequencies sorted, each once)."""
+        return (f"{self.voltage_min_v:.4g} ... {self.voltage_max_v:.4g} V, "
+                f"{', '.join(f'{f:g}' for f in sorted(set(self.frequencies_hz)))} Hz")
 
     def to_dict(self) -> dict[str, Any]:
         return {"voltage_min_V": self.voltage_min_v, "voltage_max_V": self.voltage_max_v,
