@@ -107,11 +107,30 @@ def fit_figures(sweeps: list[Sweep], fitted_um: list[FloatArray], out_dir: str |
             for s, u, name in zip(sweeps, fitted_um, fit_names(sweeps), strict=True)]
 
 
+#: The binned means over the clouds of :func:`field_panel`: dark, outlined in white, on top.
+MEAN_STYLES = (dict(color="black", lw=1.8, ls="--"), dict(color="navy", lw=1.4, ls="-"))
+
+
+def field_panel(ax: Any, field: FloatArray, residuals: list[FloatArray],
+                labels: tuple[str, str]) -> None:
+    """Residuals (um) of the base and the extended model against field (MV/m): both noise clouds
+    faint in their colours (red, blue), then each binned mean over both clouds, dark and
+    outlined in white so that the mean stays visible inside a cloud of its own colour."""
+    from matplotlib import patheffects
+    for r, color in zip(residuals, ("tab:red", "tab:blue"), strict=True):
+        ax.plot(field, r, ".", ms=1, alpha=0.15, color=color, zorder=1)
+    outline = [patheffects.withStroke(linewidth=3.5, foreground="white")]
+    for r, lab, st in zip(residuals, labels, MEAN_STYLES, strict=True):
+        ax.plot(*_binned_mean(field, r), **st, zorder=5, path_effects=outline,
+                label=f"mean: {lab}")
+    ax.legend(loc="upper right", fontsize=7)
+
+
 def diagnosis_figure(sweeps: list[Sweep], before_um: list[FloatArray], after_um: list[FloatArray],
                      thickness_um: float, labels: tuple[str, str], path: str | Path) -> Path:
     """Residuals (measured - model, um) before and after the extension: per sweep against time
-    (left column; the judged second half shaded) and against field (MV/m, right column: the noise
-    cloud faint, its binned mean as a line). The base model is drawn over the extension, thicker
+    (left column; the judged second half shaded) and against field (MV/m, right column:
+    :func:`field_panel`). The base model is drawn over the extension, thicker
     and dashed, so that identical models (cause ``none``) still show both."""
     n = len(sweeps)
     styles = (dict(color="tab:red", lw=1.4, ls="--", zorder=3),
@@ -119,17 +138,15 @@ def diagnosis_figure(sweeps: list[Sweep], before_um: list[FloatArray], after_um:
     with _saved(path, 100, n, 2, figsize=(12, 2.6 * n + 0.6), squeeze=False) as ax:
         for i, (s, b, a) in enumerate(zip(sweeps, before_um, after_um, strict=True)):
             m = s.mask(None)
-            for u, lab, st in ((a, labels[1], styles[1]), (b, labels[0], styles[0])):
-                r = np.where(m, s.displacement_um - u, np.nan)
+            rs = [np.where(m, s.displacement_um - u, np.nan) for u in (b, a)]
+            for r, lab, st in ((rs[1], labels[1], styles[1]), (rs[0], labels[0], styles[0])):
                 rms = float(np.sqrt(np.nanmean(r[s.time_s.size // 2:] ** 2)))
                 ax[i, 0].plot(s.time_s, r, label=f"{lab} (held-out RMS {rms:.3g} um)", **st)
-                field = s.voltage_v / thickness_um
-                ax[i, 1].plot(field, r, ".", ms=1, alpha=0.15, color=st["color"])
-                ax[i, 1].plot(*_binned_mean(field, r), **st)
+            field_panel(ax[i, 1], s.voltage_v / thickness_um, rs, labels)
             ax[i, 0].axvspan(s.time_s[s.time_s.size // 2], s.time_s[-1], color="0.9", zorder=0)
             ax[i, 0].set(ylabel="residual (um)", title=f"{s.name}: held-out half shaded")
             ax[i, 0].legend(loc="upper right", fontsize=7)
-            ax[i, 1].set(ylabel="residual (um)", title=f"{s.name} against field (line: mean)")
+            ax[i, 1].set(ylabel="residual (um)", title=f"{s.name} against field")
         ax[-1, 0].set(xlabel="time (s)")
         ax[-1, 1].set(xlabel="field (MV/m)")
     return Path(path)

@@ -382,11 +382,22 @@ def write_outputs(result: Result, desired: track.Desired, law: ilc.Law,
 
 
 def plot(result: Result, desired: track.Desired, path: Path) -> None:
-    """Error RMS against iteration, and the error of the first and last iteration against time."""
+    """:func:`figure` saved to ``path``."""
+    import matplotlib.pyplot as plt
+
+    fig = figure(result, desired)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def figure(result: Result, desired: track.Desired) -> Any:
+    """Error RMS against iteration (whole iterations on the axis), and the error of the first and
+    last iteration against time. Returns the matplotlib figure."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     its = result.iterations
     fig, ax = plt.subplots(2, 1, figsize=(8, 7), constrained_layout=True)
@@ -398,6 +409,7 @@ def plot(result: Result, desired: track.Desired, path: Path) -> None:
     if np.isfinite(result.noise_um):
         ax[0].axhline(result.noise_um, color="gray", lw=0.8, label="noise estimate")
     ax[0].set(xlabel="iteration", ylabel="error (um)", title=f"Learning: {desired.label}")
+    ax[0].xaxis.set_major_locator(MaxNLocator(integer=True))
     t = np.arange(desired.u_um.size) * desired.dt_s
     for it, c in ((its[0], "tab:red"), (its[-1], "tab:blue")):
         ax[1].plot(t, -it.error_um, color=c, lw=0.8,
@@ -406,5 +418,4 @@ def plot(result: Result, desired: track.Desired, path: Path) -> None:
     for a in ax:
         a.grid(alpha=0.3)
         a.legend(loc="best", fontsize=8)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    return fig

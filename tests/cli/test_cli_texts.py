@@ -166,3 +166,28 @@ def test_emulate_refuses_a_bad_serial_address_in_one_line(where: str) -> None:
                                     "0"])
     assert res.exit_code == 2 and res.stderr.count("\n") == 1, res.output
     assert "'pty' or 'socket://HOST:PORT'" in res.stderr and "int()" not in res.stderr
+
+
+def test_the_mean_against_field_is_drawn_over_both_clouds() -> None:
+    """Issue 27 item 18: the base model's binned mean against field, red on its red cloud, could
+    not be seen; the means are drawn dark and outlined, above both clouds."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import to_rgb
+
+    from afmctl import plots
+    fig, ax = plt.subplots()
+    field = np.linspace(-1.5, 1.5, 3000)
+    rng = np.random.default_rng(0)
+    residuals = [0.2 * field + rng.normal(0, 0.3, field.size), rng.normal(0, 0.05, field.size)]
+    plots.field_panel(ax, field, residuals, ("paper's model", "extended"))
+    clouds = [ln for ln in ax.lines if ln.get_linestyle() == "None"]
+    means = [ln for ln in ax.lines if ln.get_linestyle() != "None"]
+    assert len(clouds) == 2 and len(means) == 2
+    assert min(m.get_zorder() for m in means) > max(c.get_zorder() for c in clouds)
+    for m, c in zip(means, clouds, strict=True):
+        assert np.abs(np.subtract(to_rgb(m.get_color()), to_rgb(c.get_color()))).sum() > 0.5
+        assert m.get_path_effects()  # outlined
+    assert means[0].get_label() == "mean: paper's model"
+    plt.close(fig)
