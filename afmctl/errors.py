@@ -14,6 +14,7 @@ kind                       what it means                                        
 :class:`StageError`        the stage or its link failed (a refusal, a timeout, a loss)  1
 :class:`StageTimeoutError` the stage did not finish or answer within its bound          1
 :class:`SamplesLostError`  a sweep lost samples (it is kept, marked; record it again)    1
+:class:`StoppedError`      the run was stopped from elsewhere (another terminal's safe)  1
 :class:`FitError`          a fit that did not converge                                  1
 =========================  ===========================================================  ====
 
@@ -108,6 +109,22 @@ class StageTimeoutError(StageFailure, TimeoutError):
 
 class SamplesLostError(StageFailure):
     """A recording that lost samples where none may be missing (a sweep: record it again)."""
+
+
+class StoppedError(StageError):
+    """The device stopped a run without an error of its own: something else told it to (another
+    terminal's ``afmctl safe``, another host's stop or safe command). ``code`` is 0."""
+
+    def __init__(self, detail: str) -> None:
+        Exception.__init__(
+            self, f"{detail}: the stage was stopped from elsewhere (another terminal's `afmctl "
+                  f"safe`, or another host's stop or safe command; no error on the device)")
+        self.code = 0
+
+
+class LimitMismatchError(InputError):
+    """The profile's ``[amplifier]`` limits go beyond the device's own (``LIM?``, the register
+    map's limits): refused before anything moves, naming both."""
 
 
 class FrameError(AfmctlError, ValueError):

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 from numpy.typing import NDArray
 
 from afmctl.files.sweepfile import Sweep
@@ -107,11 +108,30 @@ def fit_figures(sweeps: list[Sweep], fitted_um: list[FloatArray], out_dir: str |
             for s, u, name in zip(sweeps, fitted_um, fit_names(sweeps), strict=True)]
 
 
+#: The binned means over the clouds of :func:`field_panel`: dark, outlined in white, on top.
+MEAN_STYLES = (dict(color="black", lw=1.8, ls="--"), dict(color="navy", lw=1.4, ls="-"))
+
+
+def field_panel(ax: Any, field: FloatArray, residuals: list[FloatArray],
+                labels: tuple[str, str]) -> None:
+    """Residuals (um) of the base and the extended model against field (MV/m): both noise clouds
+    faint in their colours (red, blue), then each binned mean over both clouds, dark and
+    outlined in white so that the mean stays visible inside a cloud of its own colour."""
+    from matplotlib import patheffects
+    for r, color in zip(residuals, ("tab:red", "tab:blue"), strict=True):
+        ax.plot(field, r, ".", ms=1, alpha=0.15, color=color, zorder=1)
+    outline = [patheffects.withStroke(linewidth=3.5, foreground="white")]
+    for r, lab, st in zip(residuals, labels, MEAN_STYLES, strict=True):
+        ax.plot(*_binned_mean(field, r), **st, zorder=5, path_effects=outline,
+                label=f"mean: {lab}")
+    ax.legend(loc="upper right", fontsize=7)
+
+
 def diagnosis_figure(sweeps: list[Sweep], before_um: list[FloatArray], after_um: list[FloatArray],
                      thickness_um: float, labels: tuple[str, str], path: str | Path) -> Path:
     """Residuals (measured - model, um) before and after the extension: per sweep against time
-    (left column; the judged second half shaded) and against field (MV/m, right column: the noise
-    cloud faint, its binned mean as a line). The base model is drawn over the extension, thicker
+    (left column; the judged second half shaded) and against field (MV/m, right column:
+    :func:`field_panel`). The base model is drawn over the extension, thicker
     and dashed, so that identical models (cause ``none``) still show both."""
     n = len(sweeps)
     styles = (dict(color="tab:red", lw=1.4, ls="--", zorder=3),
@@ -119,75 +139,88 @@ def diagnosis_figure(sweeps: list[Sweep], before_um: list[FloatArray], after_um:
     with _saved(path, 100, n, 2, figsize=(12, 2.6 * n + 0.6), squeeze=False) as ax:
         for i, (s, b, a) in enumerate(zip(sweeps, before_um, after_um, strict=True)):
             m = s.mask(None)
-            for u, lab, st in ((a, labels[1], styles[1]), (b, labels[0], styles[0])):
-                r = np.where(m, s.displacement_um - u, np.nan)
+            rs = [np.where(m, s.displacement_um - u, np.nan) for u in (b, a)]
+            for r, lab, st in ((rs[1], labels[1], styles[1]), (rs[0], labels[0], styles[0])):
                 rms = float(np.sqrt(np.nanmean(r[s.time_s.size // 2:] ** 2)))
                 ax[i, 0].plot(s.time_s, r, label=f"{lab} (held-out RMS {rms:.3g} um)", **st)
-                field = s.voltage_v / thickness_um
-                ax[i, 1].plot(field, r, ".", ms=1, alpha=0.15, color=st["color"])
-                ax[i, 1].plot(*_binned_mean(field, r), **st)
+            field_panel(ax[i, 1], s.voltage_v / thickness_um, rs, labels)
             ax[i, 0].axvspan(s.time_s[s.time_s.size // 2], s.time_s[-1], color="0.9", zorder=0)
             ax[i, 0].set(ylabel="residual (um)", title=f"{s.name}: held-out half shaded")
             ax[i, 0].legend(loc="upper right", fontsize=7)
-            ax[i, 1].set(ylabel="residual (um)", title=f"{s.name} against field (line: mean)")
+            ax[i, 1].set(ylabel="residual (um)", title=f"{s.name} against field")
         ax[-1, 0].set(xlabel="time (s)")
         ax[-1, 1].set(xlabel="field (MV/m)")
     return Path(path)
 
 
-def track_figure(outcomes: Mapping[str, Outcome], desired: Desired, thickness_um: float,
-                 path: Path) -> None:
-    """``track.png``: desired and achieved trajectories, errors, and the field-displacement loop
-    (the paper's Figs. 9-11).
+def save_figure(fig: Figure, path: str | Path, dpi: int = 110) -> Path:
+    """Save ``fig`` (from one of the ``*_figure`` functions) as a PNG at ``path``."""
+    fig.savefig(Path(path), dpi=dpi)
+    return Path(path)
 
-    The desired trajectory is drawn last (dashed, on top) so the filters cannot hide it; the first
-    period, left out of the headline figures, is shaded, and each error's legend states its RMS.
+
+def track_figure(outcomes: Mapping[str, Outcome], desired: Desired, thickness_um: float,
+                 corrected_for: str = "") -> Figure:
+    """``track.png`` (and ``play.png``, ``afmctl score``'s): desired and achieved trajectories,
+    errors, and the field-displacement loop (the paper's Figs. 9-11).
+
+    What is drawn is what is scored (:attr:`~afmctl.experiment.runner.Outcome.scored_um`): the
+    readings, or the readings corrected for the sensor effects the model knows (``corrected_for``
+    names them in the legend). The desired trajectory is drawn last (dashed, on top) so the
+    filters cannot hide it; the first period, left out of the headline figures, is shaded, and
+    each error's legend states its RMS.
     """
     t = np.arange(desired.u_um.size) * desired.dt_s
     colors = {"inverse": "tab:blue", "linear": "tab:red"}
-    with _saved(path, 110, 3, 1, figsize=(8, 9.5)) as ax:
-        t0 = 0.0
-        for name, o in outcomes.items():
-            u = o.displacement_um[o.waveform.tracking]
-            v = o.waveform.voltage_v[o.waveform.tracking]
-            c = colors.get(name, None)
-            t0 = o.score.steady_from_s
-            ax[0].plot(t, u, color=c, lw=1.6, alpha=0.8, label=f"{name} filter")
-            part = "steady part" if o.score.steady else "whole run"
-            ax[1].plot(t, u - desired.u_um, color=c, lw=0.9,
-                       label=f"{name}: RMS {o.score.rms_um:.3g} um ({o.score.rms_pct:.2g} %, {part})")
-            ax[2].plot(v / thickness_um, u, color=c, lw=0.8, label=name)
-        ax[0].plot(t, desired.u_um, "k--", lw=1.0, label="desired", zorder=5)
-        for a in ax[:2]:
-            if t0 > 0:
-                a.axvspan(0, t0, color="0.9", zorder=0, label="first period (transient, not in RMS)")
-        ax[0].set(xlabel="time (s)", ylabel="displacement (um)", title=f"Tracking: {desired.label}")
-        ax[1].set(xlabel="time (s)", ylabel="error (um)")
-        ax[2].set(xlabel="field (MV/m)", ylabel="displacement (um)", title="field-displacement")
-        for a in ax:
-            a.grid(alpha=0.3)
-            a.legend(loc="best", fontsize=8)
+    fig = Figure(figsize=(8, 9.5), layout="constrained")
+    ax = fig.subplots(3, 1)
+    t0 = 0.0
+    for name, o in outcomes.items():
+        u = o.scored_um[o.waveform.tracking]
+        v = o.waveform.voltage_v[o.waveform.tracking]
+        c = colors.get(name, None)
+        t0 = o.score.steady_from_s
+        what = (f" (readings corrected for {corrected_for})"
+                if o.corrected_um is not None and corrected_for else "")
+        ax[0].plot(t, u, color=c, lw=1.6, alpha=0.8, label=f"{name} filter{what}")
+        part = "steady part" if o.score.steady else "whole run"
+        ax[1].plot(t, u - desired.u_um, color=c, lw=0.9,
+                   label=f"{name}: RMS {o.score.rms_um:.3g} um ({o.score.rms_pct:.2g} %, {part})")
+        ax[2].plot(v / thickness_um, u, color=c, lw=0.8, label=name)
+    ax[0].plot(t, desired.u_um, "k--", lw=1.0, label="desired", zorder=5)
+    for a in ax[:2]:
+        if t0 > 0:
+            a.axvspan(0, t0, color="0.9", zorder=0, label="first period (transient, not in RMS)")
+    ax[0].set(xlabel="time (s)", ylabel="displacement (um)", title=f"Tracking: {desired.label}")
+    ax[1].set(xlabel="time (s)", ylabel="error (um)")
+    ax[2].set(xlabel="field (MV/m)", ylabel="displacement (um)", title="field-displacement")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(loc="best", fontsize=8)
+    return fig
 
 
-def learn_figure(result: Result, desired: Desired, path: Path) -> None:
-    """``learn.png``: error RMS against iteration, and the error of the first and last iteration
-    against time."""
+def learn_figure(result: Result, desired: Desired) -> Figure:
+    """``learn.png``: error RMS against iteration (whole iterations on the axis), and the error of
+    the first and last iteration against time."""
     its = result.iterations
-    with _saved(path, 100, 2, 1, figsize=(8, 7)) as ax:
-        idx = [it.index for it in its]
-        ax[0].semilogy(idx, [it.steady_um for it in its], "o-",
-                       label="steady RMS (readings, corrected)")
-        ax[0].semilogy(idx, [it.outcome.score.rms_between_um or np.nan for it in its], "s--",
-                       label="RMS between samples (plant)")
-        ax[0].semilogy(idx, [it.rms_imaging_um for it in its], "^:", label="imaging region RMS")
-        if np.isfinite(result.noise_um):
-            ax[0].axhline(result.noise_um, color="gray", lw=0.8, label="noise estimate")
-        ax[0].set(xlabel="iteration", ylabel="error (um)", title=f"Learning: {desired.label}")
-        t = np.arange(desired.u_um.size) * desired.dt_s
-        for it, c in ((its[0], "tab:red"), (its[-1], "tab:blue")):
-            ax[1].plot(t, -it.error_um, color=c, lw=0.8,
-                       label=f"iteration {it.index}: RMS {it.steady_um:.3g} um")
-        ax[1].set(xlabel="time (s)", ylabel="error (um)")
-        for a in ax:
-            a.grid(alpha=0.3)
-            a.legend(loc="best", fontsize=8)
+    fig = Figure(figsize=(8, 7), layout="constrained")
+    ax = fig.subplots(2, 1)
+    idx = [it.index for it in its]
+    ax[0].semilogy(idx, [it.steady_um for it in its], "o-", label="steady RMS (readings, corrected)")
+    ax[0].semilogy(idx, [it.outcome.score.rms_between_um or np.nan for it in its], "s--",
+                   label="RMS between samples (plant)")
+    ax[0].semilogy(idx, [it.rms_imaging_um for it in its], "^:", label="imaging region RMS")
+    if np.isfinite(result.noise_um):
+        ax[0].axhline(result.noise_um, color="gray", lw=0.8, label="noise estimate")
+    ax[0].set(xlabel="iteration", ylabel="error (um)", title=f"Learning: {desired.label}")
+    ax[0].xaxis.set_major_locator(MaxNLocator(integer=True))
+    t = np.arange(desired.u_um.size) * desired.dt_s
+    for it, c in ((its[0], "tab:red"), (its[-1], "tab:blue")):
+        ax[1].plot(t, -it.error_um, color=c, lw=0.8,
+                   label=f"iteration {it.index}: RMS {it.steady_um:.3g} um")
+    ax[1].set(xlabel="time (s)", ylabel="error (um)")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(loc="best", fontsize=8)
+    return fig

@@ -35,7 +35,7 @@ Test and benchmark harnesses (the safety campaign) live outside the shipped pack
 
 from afmctl.drivers.protocol import Status
 from afmctl.drivers.stage import BlockCallback, Recording, StageBase, open_stage
-from afmctl.errors import LinkCapacityError, StageError
+from afmctl.errors import LimitMismatchError, LinkCapacityError, StageError, StoppedError
 
-__all__ = ["StageError", "LinkCapacityError", "Recording", "Status", "StageBase",
-           "BlockCallback", "open_stage"]
+__all__ = ["StageError", "StoppedError", "LinkCapacityError", "LimitMismatchError", "Recording",
+           "Status", "StageBase", "BlockCallback", "open_stage"]

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
-from pymodbus.exceptions import ModbusException
+from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
 from afmctl.drivers import StageBase
 from afmctl.drivers import register_map as rm
@@ -70,7 +70,11 @@ class ModbusStage(StageBase):
         if not self._client.connect():
             self._client.close()
             raise StageError(-1, f"cannot connect to {t}")
-        version = self._request("read_input_registers", IR.MAP_VERSION, count=1)[0]
+        try:
+            version = self._request("read_input_registers", IR.MAP_VERSION, count=1)[0]
+        except StageError:
+            self.close()  # nothing answers: leave no socket open behind the error
+            raise
         if version != rm.MAP_VERSION:
             self.close()
             raise StageError(-1, f"register map version {version}, afmctl speaks {rm.MAP_VERSION}")
@@ -90,7 +94,16 @@ class ModbusStage(StageBase):
             try:
                 return getattr(self._client, name)(*args, device_id=self.unit, **kwargs)
             except (ModbusException, OSError) as exc:
-                raise StageError(-1, f"{name}: {exc}") from None
+                raise StageError(-1, f"{name}: {self._said(exc)}") from None
+
+    def _said(self, exc: BaseException) -> str:
+        """A failed exchange in afmctl's words (pymodbus's speak of its own retries, which
+        afmctl turns off: it retries itself)."""
+        if isinstance(exc, ConnectionException):
+            return f"connection to {self._transport} failed or was lost"
+        if isinstance(exc, ModbusIOException) or "No response" in str(exc):
+            return f"no reply within {self.timeout_s:g} s"
+        return str(exc)
 
     def _device_error(self) -> int:
         """The device's own code for the refusal just answered (``IR.LAST_ERROR``)."""

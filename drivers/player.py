@@ -14,12 +14,12 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.errors import LinkCapacityError, StageError, StageTimeoutError
+from afmctl.errors import LinkCapacityError, StageError, StageTimeoutError, StoppedError
 
 if TYPE_CHECKING:
     from afmctl.drivers.stage import StageBase
@@ -121,9 +121,26 @@ class Player:
             if not busy:
                 time.sleep(self.poll_s)
         if st.play_position < n:
-            raise StageError(st.last_error if st.last_error else -1,
-                             f"the run stopped after {st.play_position} of {n} samples")
+            raise self._stopped(st)
         return Recording(self.volt, self.u, self.valid)
+
+    def _stopped(self, st: Any, refusal: StageError | None = None) -> StageError:
+        """Why the device stopped the run early (``st``: its status after it stopped): its
+        watchdog, an underrun, an error of its own, or, with none, something else stopped it
+        (:class:`StoppedError`). After a refused refill (``refusal``) the device's last error is
+        the refusal's own; the play position then tells: an underrun stops at the first sample
+        not yet written."""
+        played = f"the run stopped after {st.play_position} of {self.v.size} samples"
+        if st.watchdog_expired or st.last_error == 8:
+            return StageError(8, f"{played}: the device had no heartbeat for {self.stage.watchdog_s:g} s "
+                                 f"(the host fell behind, e.g. a loaded machine)")
+        streamed = self.v.size > self.table
+        if st.last_error == 10 or (refusal is not None and streamed
+                                   and st.play_position >= self.written):
+            return StageError(10, f"{played}: the host fell behind refilling the table")
+        if refusal is None and st.last_error:
+            return StageError(st.last_error, played)
+        return StoppedError(played)
 
     # -- link capacity ---------------------------------------------------------------------------
     def _readback_rate(self) -> float:
@@ -225,10 +242,7 @@ class Player:
             st = self.stage.status()
             if st.running:
                 raise
-            raise StageError(refusal.code, f"the run stopped after {st.play_position} of "
-                                           f"{self.v.size} samples before this block: the host "
-                                           f"fell behind (underrun) or the device stopped it"
-                             ) from refusal
+            raise self._stopped(st, refusal) from refusal
 
     def _refill(self, position: int) -> bool:
         """Send the next half-table if the generator has played the samples its slots held."""

@@ -69,7 +69,11 @@ class SerialStage(StageBase):
         self._port = port if self._open is None else self._open()
         #: The port's ``in_waiting`` says only whether bytes wait, not how many (``socket://``).
         self._counts_one = isinstance(self._port, SocketSerial)
-        version = self.query("VER?")
+        try:
+            version = self.query("VER?")
+        except StageError:
+            self.close()  # nothing answers: leave no port open behind the error
+            raise
         if version != str(ap.PROTOCOL_VERSION):
             self.close()
             raise StageError(-1, f"device speaks protocol {version!r}, afmctl speaks "

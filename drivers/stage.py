@@ -29,7 +29,13 @@ from numpy.typing import ArrayLike, NDArray
 from afmctl import guard
 from afmctl.drivers.player import BlockCallback, Player, Recording
 from afmctl.drivers.protocol import Status
-from afmctl.errors import LinkCapacityError, StageError, StageTimeoutError
+from afmctl.errors import (
+    LimitMismatchError,
+    LinkCapacityError,
+    StageError,
+    StageTimeoutError,
+    StoppedError,
+)
 from afmctl.files.profile import (
     EmulatedTransport,
     ModbusRtuTransport,
@@ -38,10 +44,12 @@ from afmctl.files.profile import (
     SerialTransport,
 )
 
-__all__ = ["StageError", "LinkCapacityError", "Recording", "Status", "StageBase", "BlockCallback",
-           "open_stage"]
+__all__ = ["StageError", "StoppedError", "LinkCapacityError", "LimitMismatchError", "Recording",
+           "Status", "StageBase", "BlockCallback", "open_stage"]
 
 T = TypeVar("T")
+#: Slack when comparing the profile's limits with the device's (V, V/ms): float32 on the wire.
+LIMIT_SLACK = 1e-3
 
 
 class StageBase(abc.ABC):
@@ -154,6 +162,34 @@ class StageBase(abc.ABC):
     def voltage(self) -> float:
         """Output voltage now, V."""
         return self.status().output_v
+
+    def check_limits(self) -> None:
+        """Compare the profile's voltage range and slew limit with the device's own (once per
+        opened stage; :meth:`play` does it before anything is sent).
+
+        Raises
+        ------
+        LimitMismatchError
+            The profile's range is not within the device's, or its slew limit above the
+            device's: a waveform the guard passes would be refused by the device mid-run.
+        """
+        if getattr(self, "_limits_checked", False):
+            return
+        lo, hi, slew = self.limits()
+        p = self.profile.limits
+        wrong = []
+        if p.v_min < lo - LIMIT_SLACK or p.v_max > hi + LIMIT_SLACK:
+            wrong.append(f"voltage range {p.v_min:g} ... {p.v_max:g} V (v_min_V, v_max_V) is not "
+                         f"within the device's {lo:g} ... {hi:g} V")
+        if p.slew_v_per_ms > slew + LIMIT_SLACK:
+            wrong.append(f"slew limit {p.slew_v_per_ms:g} V/ms (slew_V_per_ms) is above the "
+                         f"device's {slew:g} V/ms")
+        if wrong:
+            raise LimitMismatchError(
+                f"profile {self.profile.name!r}: its [amplifier] " + "; its ".join(wrong)
+                + " (the device's own limits, LIM?): set the profile's [amplifier] to the "
+                  "stage's; nothing was sent")
+        self._limits_checked = True
 
     @abc.abstractmethod
     def set_voltage(self, v: float) -> None:
@@ -338,17 +374,25 @@ class StageBase(abc.ABC):
             raise ValueError("empty waveform")
         player = Player(self, v, on_block, poll_s)
         try:
+            self.check_limits()
             self._ensure_rate()
             guard.check(v.astype(float), 1.0 / self.profile.sample_rate_hz, self.profile.limits,
                         self.voltage(), "waveform")
             return player.run(timeout_s)
-        except (guard.LimitError, LinkCapacityError):
+        except (guard.LimitError, LinkCapacityError, LimitMismatchError):
             raise  # refused before anything played: the stage stays where it is
         except BaseException as exc:
             self._deadline = None
             self._safe_state_quietly(exc)
+            link = isinstance(exc, TimeoutError) or (isinstance(exc, StageError) and exc.code < 0)
+            expired = link and player.started and self._watchdog_expired_quietly()
             player.disarm_after(exc)
             player.abandon(exc)
+            if expired:
+                raise StageError(8, f"during the run, after the link failed ({exc}): the device "
+                                    f"had no heartbeat for {self.watchdog_s:g} s (the host fell "
+                                    f"behind, e.g. a loaded machine): raise [transport] "
+                                    f"watchdog_s, or lighten the load") from exc
             raise
         finally:
             self._deadline = None
@@ -363,6 +407,14 @@ class StageBase(abc.ABC):
         got = self.status().sample_rate_hz
         if not math.isclose(got, want, rel_tol=1e-6):
             raise StageError(-1, f"the device clocks {got:g} Hz; the profile says {want:g} Hz")
+
+    def _watchdog_expired_quietly(self) -> bool:
+        """Whether the device says its watchdog expired (False if the link cannot tell)."""
+        try:
+            st = self.status()
+        except (StageError, TimeoutError):
+            return False
+        return st.watchdog_expired or st.last_error == 8
 
     def _safe_state_quietly(self, cause: BaseException) -> None:
         """Best-effort safe state after ``cause``; never replaces it (a failure becomes a note)."""

@@ -143,6 +143,7 @@ def opened_stage(profile: Any) -> Iterator[Any]:
     if ctx is not None:
         ctx.meta[STAGE_OPENED] = True
     with open_stage(profile) as stage:
+        stage.check_limits()  # the profile's limits against the device's, before anything moves
         yield stage
 
 
@@ -158,13 +159,13 @@ def load_profile_or_exit(path: str | None):  # noqa: ANN201 (Profile)
 def fit_settings(path: str | None):  # noqa: ANN201 (identify.Settings)
     """Identification settings from a profile: its ``[identify]`` table, and its ``[stack]``
     thickness for sweeps whose metadata gives none (defaults without a profile)."""
-    from afmctl.files import tomlfile
+    from afmctl.files.profile import profile_table
     from afmctl.fit import identify as idf
     if path is None:
         return idf.Settings()
     prof = load_profile_or_exit(path)
     base = idf.Settings(fallback_thickness_um=prof.thickness_um)
-    return idf.settings_from_table(tomlfile.load(path).table("identify", required=False), base)
+    return idf.settings_from_table(profile_table(path).table("identify", required=False), base)
 
 
 # ----------------------------------------------------------------------------------------------

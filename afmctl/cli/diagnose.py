@@ -16,11 +16,12 @@ OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residua
 @main.command()
 @click.argument("sweep_files", nargs=-1, required=True)
 @click.option("--model", "model_path", type=click.Path(dir_okay=False), default=None,
-              help="Start the fits from this model (lognormal/normal densities) instead of "
-                   "identifying one.")
+              help="Start the fits from this model (any model identify writes; a general "
+                   "coercive density starts them as its lognormal) instead of identifying one.")
 @click.option("--profile", "profile", default=None,
-              help="Stage profile: its [stack] thickness for sweeps without one; its [identify] "
-                   "table sets the fit options.")
+              help="Stage profile, a file or a shipped name (emulated, lab-serial, ...): its "
+                   "[stack] thickness for sweeps without one; its [identify] table sets the "
+                   "fit options.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output folder (default: ./afmctl-diagnose-<time>).")
 @click.option("--noise-um", "noise_um", type=Finite(0, open_min=True), default=None,
@@ -49,6 +50,13 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     data = [sweeps.read_complete(f) for f in sweep_files]
     start = None if model_path is None else modelfile.read(model_path)
     if start is not None:
+        equivalent = parametrization.lognormal_equivalent(start)
+        if equivalent != start:  # identify's general density: the fits start from its lognormal
+            c = equivalent.polarization.coercive
+            say(f"--model {model_path}: its general coercive-field density starts the fits as "
+                f"the lognormal of the same log-moments (median {c.median:.4g} MV/m, sigma_ln "
+                f"{c.sigma:.3g}): diagnose's candidates are fitted in the lognormal family")
+        start = equivalent
         try:
             parametrization.internal(start)
         except ValueError as exc:
@@ -83,9 +91,12 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     from afmctl.fit import diagnose as dg
     make_dir(out, "--out")
     header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
-    modelfile.write(d.base_model, out / "base.toml", header=header + "\nthe paper's model")
+    names = tuple(Path(f).name for f in sweep_files)
+    modelfile.write(d.base_model, out / "base.toml", header=header + "\nthe paper's model",
+                    fit=_record(d, names, extended=False))
     modelfile.write(d.extended_model, out / "extended.toml",
-                    header=header + f"\nextended with: {d.cause}")
+                    header=header + f"\nextended with: {d.cause}",
+                    fit=_record(d, names, extended=True))
     before, after = d.predictions(data)
     partial = out / "residuals.partial.png"
     plots.diagnosis_figure(data, before, after, d.base_model.thickness_um,
@@ -94,3 +105,20 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     atomic_write(out / "report.md", dg.report(d, "residuals.png"))
     atomic_write(out / "diagnosis.json", text)  # last: marks the folder complete
 
+
+
+def _record(d, names: tuple[str, ...], extended: bool):  # noqa: ANN001, ANN202 (Diagnosis -> FitRecord)
+    """The ``[fit]`` record of diagnose's base or extended model: flagged when it misses what the
+    held-out data show (a named cause the base lacks; no cause found; above 2x the noise)."""
+    from afmctl.files.modelfile import FitRecord
+    from afmctl.fit.identify import WARN
+    over = d.extended_over_noise if extended else d.base_over_noise
+    held = f"held-out RMS {over:.1f}x the noise"
+    if d.cause == "unexplained":
+        return FitRecord("diagnose", f"no candidate cause explains the residual ({held})", True,
+                         names)
+    if not extended and d.cause != "none":
+        return FitRecord("diagnose", f"misses {d.cause}, which diagnose named ({held}): track "
+                                     f"with extended.toml", True, names)
+    what = f"extended with {d.cause}" if extended and d.cause != "none" else "no cause named"
+    return FitRecord("diagnose", f"{what}, {held}", not over <= WARN, names)

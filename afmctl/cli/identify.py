@@ -19,9 +19,54 @@ from afmctl.cli.base import (
     writing,
 )
 
+#: Readable names of the fit's internal parameters (:mod:`afmctl.fit.uncertainty`).
+INTERNAL_NAMES = {"log_median_MV_per_m": "coercive median", "log_sigma_ln": "coercive sigma_ln",
+                  "log_std_MV_per_m": "interaction std", "log_r_MV_per_m": "eta p_r",
+                  "log_natural_hz": "natural frequency", "log_damping_ratio": "damping ratio",
+                  "g1_um_per_MV_per_m": "gain g1", "g2_um_per_MV2_per_m2": "gain g2"}
 
-def _report(result: Any) -> str:
-    """Human-readable fit report (``result`` is an ``identify.FitResult``)."""
+
+def _internal_name(name: str) -> str:
+    if name.startswith("c@"):  # a node of the general coercive density, not the damping c
+        return f"coercive density at {name[2:]} MV/m"
+    return INTERNAL_NAMES.get(name, name)
+
+
+def undetermined_text(result: Any) -> str:
+    """The parameters the data do not fix: the fit's own list (internal parameters whose 1-sigma
+    exceeds half their value, or that trade off with another along a valley), in words, and the
+    physical parameters whose 1-sigma exceeds half their value."""
+    from afmctl.fit.uncertainty import UNDETERMINED_REL
+    out = [_internal_name(n) for n in result.uncertainty.get("undetermined", [])]
+    for p in result.parameters:
+        if not p.fixed and p.value and p.stderr > UNDETERMINED_REL * abs(p.value):
+            out.append(f"{p.name} (+- {100 * p.stderr / abs(p.value):.0f} %)")
+    if not out:
+        return "undetermined by the data: none"
+    return ("undetermined by the data (1-sigma above half the value, or traded off with "
+            "another: the data fix a combination, not each): " + ", ".join(dict.fromkeys(out)))
+
+
+def start_notes(result: Any, data: Any) -> list[str]:
+    """What a start state means on sweeps that never reach the other polarity: fitted, it only
+    says which way the hysterons their field cannot switch point, not that the stage was driven
+    there."""
+    one_sided = [s for s, d in zip(result.sweeps, data, strict=True)
+                 if (s.start == "negative" and float(d.voltage_v.min()) >= 0)
+                 or (s.start == "positive" and float(d.voltage_v.max()) <= 0)]
+    if not one_sided:
+        return []
+    names = ", ".join(Path(s.file).name for s in one_sided)
+    return [f"start: the hysteresis state each sweep is fitted to start from. On {names}, which "
+            f"never change the voltage's sign, 'negative' or 'positive' only says which way the "
+            f"hysterons their field cannot switch point (a constant in the polarization, which "
+            f"the force's quadratic term turns into a small gain); it does not say the stage "
+            f"was driven there"]
+
+
+def _report(result: Any, data: Any = None, reach: str = "") -> str:
+    """Human-readable fit report (``result`` is an ``identify.FitResult``, ``data`` its
+    sweeps)."""
     state = "converged" if result.success else "NOT CONVERGED (fit failed)"
     lines = [f"fit {state}: {result.message} (status {result.status}, {result.nfev} evaluations, "
              f"{result.seconds:.2f} s)"]
@@ -35,14 +80,17 @@ def _report(result: Any) -> str:
     for s in result.sweeps:
         lines.append(f"{Path(s.file).name:32s} {s.start:>9s} {s.rms_um:9.4f} {s.noise_um:9.4f} "
                      f"{s.rms_over_noise:9.2f} {s.max_um:9.4f} {s.rms_pct:7.3f}")
+    if data is not None:
+        lines += start_notes(result, data)
     lines.append("parameters (1-sigma from the Jacobian):")
     for p in result.parameters:
         err = "fixed (scale convention)" if p.fixed else f"+- {p.stderr:.4g}"
         lines.append(f"  {p.name:20s} {p.value:14.6g} {err:>26s}  {p.unit}")
-    und = result.uncertainty.get("undetermined", [])
-    lines.append("undetermined by the data: " + (", ".join(und) if und else "none"))
+    lines.append(undetermined_text(result))
     if result.envelope is not None:
         lines.append(f"validity envelope: {result.envelope.describe()}")
+    if reach:
+        lines.append(reach)
     return "\n".join(lines)
 
 
@@ -56,9 +104,11 @@ def _warn_above_floor(result: Any) -> None:
 
 @main.command()
 @click.argument("sweep_files", nargs=-1, required=True)
-@click.option("--profile", "profile", default=None, help="Stage profile: its [stack] thickness "
-              "for sweeps without layer_thickness_um; its [identify] table sets mass_kg, "
-              "p_r_C_per_m2, thickness_um, n_coercive_fit, field_step, max_nfev, restarts.")
+@click.option("--profile", "profile", default=None, help="Stage profile, a file or a shipped "
+              "name (emulated, lab-serial, ...): its [stack] thickness for sweeps without "
+              "layer_thickness_um; its [identify] table sets mass_kg, p_r_C_per_m2, "
+              "thickness_um, n_coercive_fit, field_step, max_nfev, restarts; and the model's "
+              "reach within its voltage limits is reported.")
 @click.option("-o", "--output", required=True,
               help="Model file to write (TOML); an existing file only with --force, a measured "
                    "file (sweep, run) never.")
@@ -93,7 +143,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
         header += " are identifiable)"
         with writing(output, "-o"):
             modelfile.write(result.model, output, header=header, envelope=result.envelope,
-                            uncertainty=result.uncertainty)
+                            uncertainty=result.uncertainty, fit=result.record())
         say(f"wrote {output}")
     if plots_dir is not None:
         fitted = idf.predict_set(result.model, data, [s.start for s in result.sweeps],
@@ -103,7 +153,26 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
                                        settings.window_s):
                 say(f"wrote {p}")
     _warn_above_floor(result)
-    click.echo(json.dumps(result.to_dict()) if as_json else _report(result))
+    reach = _reach(result, profile) if result.success and profile is not None else None
+    if as_json:
+        doc = result.to_dict()
+        if reach is not None:
+            doc["reach_um"] = list(reach[:2])
+        click.echo(json.dumps(doc))
+    else:
+        click.echo(_report(result, data, "" if reach is None else reach[2]))
     if not result.success:
         sys.exit(1)
 
+
+
+def _reach(result: Any, profile: str) -> tuple[float, float, str]:
+    """The identified model's reach on ``profile`` (um) and its report line."""
+    from afmctl.cli.base import load_profile_or_exit
+    from afmctl.planning import track
+    prof = load_profile_or_exit(profile)
+    lo, hi = track.reach(result.model, prof.limits, result.envelope)
+    lim = track.conditioning_limits(prof.limits, result.envelope)
+    return lo, hi, (f"reach on profile {prof.name!r}: {lo:.4g} ... {hi:.4g} um on {lim.v_min:.4g} "
+                    f"... {lim.v_max:.4g} V (quasi-static; a trajectory's centre, `track --offset`,"
+                    f" and amplitude must keep inside it: `afmctl reach`)")

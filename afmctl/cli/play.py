@@ -22,42 +22,47 @@ from afmctl.cli.base import (
 
 def _out_dir(out_dir: str | None, prefix: str, force: bool = False) -> Path:
     path = check_output_dir(Path(out_dir) if out_dir else timestamped(prefix), "--out",
-                            ("run_*.csv", "summary.json", "waveform_learned.csv", "learn.png"),
+                            ("run_*.csv", "summary.json", "waveform_learned.csv", "learn.png", "play.png"),
                             force, measured=("run_*.csv",))
     return make_dir(path, "--out")
 
 
 def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any,
                 iterations: int, law_args: dict[str, Any], seed: str, how: tuple[bool, bool],
-                out_dir: str | None, as_json: bool) -> None:
+                out_dir: str | None, as_json: bool, cal: Any = None) -> None:
     """``afmctl track ... --learn N`` on an open ``stage``: iteration 0 is the ``seed`` filter's
     waveform, then up to N learning iterations (:mod:`afmctl.experiment.learn`); files after every
     iteration. ``how`` = (condition, extrapolate): every iteration keeps to the model's validity
-    envelope (read from ``model_name``) unless extrapolate."""
+    envelope (read from ``model_name``) unless extrapolate. ``cal`` (the model's calibration) goes
+    into summary.json, with the fit's flag if identify or diagnose raised one."""
     from afmctl import plots
     from afmctl.experiment import learn
+    from afmctl.experiment import runner as experiment
     from afmctl.files import modelfile
     from afmctl.model import effects as fx
     from afmctl.planning import ilc
     law = ilc.Law(**law_args)
     out = _out_dir(out_dir, "afmctl-track")
+    truth, between_from = experiment.between_truth(prof)
     meta = {"profile": prof.name, "model": model_name, "trajectory": desired.label,
-            "sample_rate_Hz": prof.sample_rate_hz,
-            "between_samples_model": "emulator truth" if prof.emulator else "model estimate",
+            "sample_rate_Hz": prof.sample_rate_hz, "between_samples_from": between_from,
             "readings_corrected_for": modelfile.effects_dict(fx.sensor_part(model.effects))}
-    truth = prof.emulator.true_model if prof.emulator is not None else model
+    if cal is not None and cal.fit is not None:
+        meta["model_fit"] = cal.fit.to_dict()
 
     def write(result: learn.Result) -> dict[str, Any]:
         data = learn.write_outputs(result, desired, law, meta, out)
-        plots.learn_figure(result, desired, out / "learn.png")
+        plots.save_figure(plots.learn_figure(result, desired), out / "learn.png", 100)
         return data
 
     def each(result: learn.Result) -> None:
         it = result.iterations[-1]
         gain = (f", gain {100 * it.gain_change:+.2f} % (at the mean gain {it.judged_um:.4f} um)"
                 if abs(it.gain_change) >= 5e-5 else "")
+        between = ("" if it.outcome.score.rms_between_um is None else
+                   f", between samples {it.outcome.score.rms_between_um:.4f} um (plant)")
         click.echo(f"iteration {it.index}: steady RMS {it.steady_um:.4f} um, imaging "
-                   f"{it.rms_imaging_um:.4f} um, max slew "
+                   f"{it.rms_imaging_um:.4f} um{between}, max slew "
                    f"{it.outcome.waveform.max_slew_v_per_ms:.1f} V/ms{gain}", err=True)
         write(result)
 
@@ -69,10 +74,12 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
     data = write(result)
     click.echo(f"stopped: {result.stop}; best iteration {result.best} "
                f"({result.best_iteration.judged_um:.4f} um)", err=True)
+    if truth is None:
+        click.echo(f"between samples: {between_from}", err=True)
     click.echo(f"wrote {out}/run_*_iterNN.csv, summary.json, waveform_learned.csv, learn.png",
                err=True)
     if as_json:
-        click.echo(json.dumps(data))
+        click.echo(json.dumps(experiment.json_ready(data)))
 
 
 def _tracking(desired_um: Any) -> slice:
@@ -90,7 +97,8 @@ def _tracking(desired_um: Any) -> slice:
 @click.option("--profile", "profile_path", type=click.Path(dir_okay=False),
               help="Stage profile (default: the embedded emulated stage).")
 @click.option("--model", "model_path", type=click.Path(dir_okay=False),
-              help="Model file whose sensor effects correct the readings before scoring.")
+              help="Model file whose sensor effects correct the readings before scoring (the "
+                   "one the waveform was made with, named in its header).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output folder (default: ./afmctl-play-<time>).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary JSON on stdout.")
@@ -99,11 +107,12 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     """Replay a saved waveform (time_s,voltage_V[,desired_um] CSV, e.g. a learned one).
 
     The waveform passes the same guard as track's (nothing is sent otherwise); its run file,
-    summary.json and scores (against desired_um, if the file has it) are track's.
+    summary.json, play.png and scores (against desired_um, if the file has it) are track's. A
+    waveform whose header names another profile or model is played with a warning.
     """
     import numpy as np
 
-    from afmctl import guard
+    from afmctl import guard, plots
     from afmctl.errors import FileFormatError
     from afmctl.experiment import learn
     from afmctl.experiment import runner as experiment
@@ -119,7 +128,10 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     if abs(w.dt_s - dt) > 1e-6 * dt + 1e-9:
         fail(f"the waveform is sampled every {w.dt_s * 1e3:.6g} ms; profile {prof.name!r} "
              f"plays every {dt * 1e3:.6g} ms")
-    sensor = modelfile.read(model_path).effects if model_path else fx.Effects()
+    model = modelfile.read(model_path) if model_path else None
+    for line in header_warnings(w.meta, prof.name, model_path, Path(wave).name):
+        click.echo(line, err=True)
+    sensor = model.effects if model is not None else fx.Effects()
     tracking = _tracking(w.desired_um)
     wf = track.Waveform("play", dt, w.voltage_v, w.desired_um, tracking)
     with opened_stage(prof) as stage:
@@ -133,18 +145,48 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     data: dict[str, Any] = {**meta, "samples": int(w.voltage_v.size),
                             "complete": measured[2],
                             "max_slew_V_per_ms": wf.max_slew_v_per_ms}
+    written = ["run_play.csv", "summary.json"]
     if tracking.stop > tracking.start:
         period = float(w.meta["period_s"]) if "period_s" in w.meta else None
         u = w.desired_um[tracking]
         desired = track.Desired(dt, u, period, float(np.ptp(u)), data["trajectory"])
-        truth = prof.emulator.true_model if prof.emulator is not None else None
+        truth, between_from = experiment.between_truth(prof)
         it = learn.judge(wf, desired, 0, measured, out / "run_play.csv", sensor,
                          learn.between_error(wf, desired, truth))
         data.update({k: v for k, v in it.as_dict().items()
                      if k not in ("iteration", "gain_change", "judged_um")})
-        click.echo(f"play: steady RMS {it.steady_um:.4f} um, RMS {it.outcome.score.rms_um:.4f}"
-                   f" um, imaging {it.rms_imaging_um:.4f} um", err=True)
+        data["between_samples_from"] = between_from
+        s = it.outcome.score
+        part = f"steady part, from {s.steady_from_s:.4g} s" if s.steady else "whole run"
+        between = ("" if s.rms_between_um is None
+                   else f"; between samples {s.rms_between_um:.4f} um (the emulator's plant)")
+        click.echo(f"play: RMS {s.rms_um:.4f} um ({s.rms_pct:.3f} %), max {s.max_um:.4f} um "
+                   f"({part}); imaging region {it.rms_imaging_um:.4f} um{between}", err=True)
+        thickness = model.thickness_um if model is not None else prof.thickness_um
+        corrected = modelfile.effects_dict(fx.sensor_part(sensor))
+        plots.save_figure(plots.track_figure({"play": it.outcome}, desired, thickness, ", ".join(
+            k.replace("_", " ") for k in corrected)), out / "play.png")
+        written.append("play.png")
     experiment.write_summary(data, out / "summary.json")
-    click.echo(f"wrote {out}/run_play.csv, summary.json", err=True)
+    click.echo(f"wrote {out}/" + ", ".join(written), err=True)
     if as_json:
-        click.echo(json.dumps(data))
+        click.echo(json.dumps(experiment.json_ready(data)))
+
+
+def header_warnings(meta: dict[str, str], profile: str, model_path: str | None,
+                    name: str) -> list[str]:
+    """Warnings for a waveform whose header names another profile or model than this replay's
+    (its voltages were planned for that stage and model)."""
+    out = []
+    made_for = meta.get("profile")
+    if made_for and made_for != profile:
+        out.append(f"warning: {name} was made for profile {made_for!r} (its header) and plays on "
+                   f"profile {profile!r}: its voltages were planned for that stage")
+    made_with = meta.get("model")
+    if made_with and (model_path is None or
+                      Path(made_with).resolve() != Path(model_path).resolve()):
+        given = f"--model {model_path}" if model_path else "no --model"
+        out.append(f"warning: {name} was made with model {made_with} (its header), and this "
+                   f"replay has {given}: the readings are corrected for that model's sensor "
+                   f"effects only when it is given")
+    return out

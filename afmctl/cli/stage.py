@@ -8,7 +8,7 @@ import time
 
 import click
 
-from afmctl.cli.base import fail, load_profile_or_exit, main
+from afmctl.cli.base import Finite, fail, load_profile_or_exit, main
 
 
 @main.command()
@@ -32,6 +32,7 @@ def emulate(profile_path: str | None, modbus_port: int, serial_where: str, no_rt
     if bind_any and host is not None:
         raise click.UsageError("give --host or --bind-any, not both")
     bind = "0.0.0.0" if bind_any else (host or "127.0.0.1")
+    _check_serial_where(serial_where)
     if serial_where.startswith("socket://") and not (host or bind_any):
         serial_where = serial_where.replace("socket://:", f"socket://{bind}:")
     from afmctl.drivers.device.emulated import serve_all
@@ -47,7 +48,21 @@ def emulate(profile_path: str | None, modbus_port: int, serial_where: str, no_rt
     except KeyboardInterrupt:
         click.echo("stopped", err=True)
     except (OSError, ValueError) as exc:
-        fail(f"cannot serve: {exc}", 1)
+        taken = f":{modbus_port}" in str(exc) and modbus_port != 0
+        fail(f"cannot serve: {exc}" + (f"; another program holds port {modbus_port}: give "
+                                       f"--modbus-port another port, or 0 for any free one"
+                                       if taken else ""), 1)
+
+
+def _check_serial_where(where: str) -> None:
+    """``--serial``: ``pty`` or ``socket://[HOST]:PORT`` (exit 2 naming it otherwise)."""
+    import re
+    if where == "pty":
+        return
+    m = re.fullmatch(r"socket://([^:/]*):(\d{1,5})", where)
+    if m is None or int(m.group(2)) > 65535:
+        raise click.BadParameter(f"{where!r}: 'pty' or 'socket://HOST:PORT' (PORT 0-65535, 0 for "
+                                 f"any free port; HOST may be left out)", param_hint="'--serial'")
 
 
 
@@ -109,13 +124,34 @@ def _print_table(wire: str, results: list) -> None:  # noqa: ANN001 (list[confor
 
 @main.command()
 @click.option("--profile", "profile_path", help=PROFILE_HELP)
+@click.option("--read/--no-read", default=True, show_default=True,
+              help="Read the sensor: a 10 ms run holding the present output (nothing moves).")
 @click.option("--json", "as_json", is_flag=True, help="One JSON object on stdout.")
-def status(profile_path: str | None, as_json: bool) -> None:
-    """Show the stage's state: identity, limits, output, run, watchdog, last error."""
+def status(profile_path: str | None, read: bool, as_json: bool) -> None:
+    """Show the stage's state: identity, limits, output, run, watchdog, last error and the
+    sensor's reading at the present output."""
     prof = load_profile_or_exit(profile_path)
     from afmctl.drivers import open_stage
+    from afmctl.drivers.protocol import ERRORS
+    from afmctl.errors import LimitMismatchError
+    mismatch = None
     with open_stage(prof) as stage:
         st, idn, (v_min, v_max, slew) = stage.status(), stage.identify(), stage.limits()
+        try:
+            stage.check_limits()
+        except LimitMismatchError as exc:
+            mismatch = str(exc)
+        reading, why = None, ""
+        if not read:
+            why = "not read (--no-read)"
+        elif mismatch or st.running or st.read_only:
+            why = ("not read: " + ("the profile's limits do not match the device's" if mismatch
+                                   else "a run is playing" if st.running
+                                   else "a read-only device plays no run"))
+        else:
+            from afmctl.experiment import runner
+            reading = runner.move_and_read(stage, st.output_v, prof.limits, prof.sample_rate_hz,
+                                           0.01)
     fields = {"profile": prof.name, "identity": idn, "running": st.running,
               "output_V": st.output_v, "sample_rate_Hz": st.sample_rate_hz,
               "v_min_V": v_min, "v_max_V": v_max, "slew_V_per_ms": slew,
@@ -123,12 +159,66 @@ def status(profile_path: str | None, as_json: bool) -> None:
               "runs": st.run_count, "table_length_samples": st.table_length,
               "recorder_fill_samples": st.recorder_fill, "watchdog_s": st.watchdog_s,
               "watchdog_armed": st.watchdog_armed, "watchdog_expired": st.watchdog_expired,
-              "read_only": st.read_only, "last_error": st.last_error}
+              "read_only": st.read_only, "last_error": st.last_error,
+              "last_error_text": ERRORS.get(st.last_error, "unknown code"),
+              "reading_um": None if reading is None else reading.mean_um,
+              "reading_sd_um": None if reading is None else reading.sd_um}
+    if mismatch:
+        click.echo(f"warning: {mismatch}", err=True)
     if as_json:
-        click.echo(json.dumps(fields))
+        click.echo(_json(fields))
         return
     for key, value in fields.items():
+        if key in ("last_error_text", "reading_sd_um"):
+            continue
+        if key == "last_error":
+            value = f"{value} ({fields['last_error_text']})"
+        elif key == "reading_um":
+            value = why if reading is None else (
+                f"{reading.mean_um:.4f} (mean of {reading.samples} samples at "
+                f"{reading.output_v:g} V, sd {reading.sd_um:.4f} um)")
         click.echo(f"{key}: {value}")
+
+
+def _json(fields: dict[str, object]) -> str:
+    """One JSON object, a reading that is not a number as null."""
+    from afmctl.experiment.runner import json_ready
+    return json.dumps(json_ready(fields))
+
+
+@main.command("set")
+@click.option("--profile", "profile_path", help=PROFILE_HELP)
+@click.option("--voltage", type=Finite(), required=True,
+              help="Output to bring the stage to and leave it at, V (within the profile's "
+                   "limits).")
+@click.option("--hold", "hold_s", type=Finite(0.001), default=0.1, show_default=True,
+              help="Time held at the voltage while the sensor is read, s.")
+@click.option("--json", "as_json", is_flag=True, help="One JSON object on stdout.")
+def set_voltage(profile_path: str | None, voltage: float, hold_s: float, as_json: bool) -> None:
+    """Bring the stage to a DC voltage by hand and read its sensor there.
+
+    The output ramps from where it is to VOLTAGE (a raised cosine at a quarter of the profile's
+    usable slew rate, checked like any waveform), holds it for --hold and prints the mean reading
+    over the hold; it then stays there (`afmctl safe` ramps it back to 0 V). For bringing a stage
+    up: find where the sensor reads at the ends of the range before anything else moves it."""
+    from afmctl.cli.base import opened_stage
+    from afmctl.experiment import runner
+    prof = load_profile_or_exit(profile_path)
+    lim = prof.limits
+    if not lim.v_min <= voltage <= lim.v_max:
+        fail(f"--voltage {voltage:g} V is outside profile {prof.name!r}'s limits "
+             f"[{lim.v_min:g}, {lim.v_max:g}] V")
+    if hold_s > 60:
+        fail(f"--hold {hold_s:g} s: at most 60 s")
+    with opened_stage(prof) as stage:
+        r = runner.move_and_read(stage, voltage, lim, prof.sample_rate_hz, hold_s)
+        out_v = stage.voltage()
+    if as_json:
+        click.echo(_json({"output_V": out_v, "reading_um": r.mean_um, "reading_sd_um": r.sd_um,
+                          "samples": r.samples}))
+        return
+    click.echo(f"output {out_v:g} V; reading {r.mean_um:.4f} um (mean of {r.samples} samples "
+               f"over {hold_s:g} s, sd {r.sd_um:.4f} um)")
 
 
 @main.command()

@@ -70,7 +70,8 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
     `--design separating` also a sweep of holds, fast steps and a multisine (`separating.csv`).
 
     Each sweep is written to --out as it arrives (NAME.incomplete.csv); an interrupted one stays
-    there, marked, and `--resume` records what is missing. Measured files are never overwritten.
+    there, marked, until `--resume` records what is missing (the whole sweep then replaces it).
+    Sweep files are never overwritten.
     """
     from afmctl import guard
     from afmctl.experiment import runner as experiment
@@ -100,18 +101,22 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
             "sample_rate_hz": f"{prof.sample_rate_hz:g}", "v_range_V": f"{lo:g} {hi:g}",
             "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     show = progress_printer(False)
-    if chosen:
-        say(f"recording {len(chosen)} sweep(s) over [{lo:g}, {hi:g}] V ...")
-        make_dir(out, "--out")
     with opened_stage(prof) as stage:
+        if chosen:
+            say(f"recording {len(chosen)} sweep(s) over [{lo:g}, {hi:g}] V ...")
+            make_dir(out, "--out")
         for name, freq, v, kinds in chosen:
             path = out / f"{name}.csv"
             partial = experiment.incomplete_path(path)
+            earlier = partial.exists()
             try:
                 experiment.record_sweep(stage, name, freq, v, prof.sample_rate_hz,
                                         {**meta, **kinds}, show, path)
             except KeyboardInterrupt:
-                fail(f"interrupted; the stage was sent to its safe state; the sweep in progress "
-                     f"is kept in {partial}, marked incomplete; rerun with --resume to record "
-                     f"what is missing", 130)
+                kept = (f"the sweep in progress is kept in {partial}, marked incomplete"
+                        if partial.exists() else "no sample of the sweep in progress had arrived")
+                fail(f"interrupted; the stage was sent to its safe state; {kept}; rerun with "
+                     f"--resume to record what is missing", 130)
+            if earlier:
+                say(f"{partial}: the interrupted attempt, superseded by {path}: removed")
             click.echo(str(path))

@@ -30,6 +30,63 @@ MIN_SAMPLES_PER_PERIOD = 20
 MAX_DURATION_S = 600.0
 #: Largest amplitude or offset accepted before the model judges the reach, um.
 MAX_UM = 1000.0
+#: ``--offset centre``: the middle of the model's reach on the profile.
+CENTRE = "centre"
+
+
+class Offset(Finite):
+    """A finite number (um), or ``centre`` (also ``center``)."""
+
+    name = "um|centre"
+
+    def convert(self, value: Any, param: click.Parameter | None,
+                ctx: click.Context | None) -> float | str:
+        if isinstance(value, str) and value.strip().lower() in ("centre", "center"):
+            return CENTRE
+        return super().convert(value, param, ctx)
+
+
+@main.command("reach")
+@click.option("--model", "model_path", type=click.Path(dir_okay=False), required=True,
+              help="Model file (identify's or diagnose's).")
+@click.option("--profile", "profile_path", type=click.Path(dir_okay=False),
+              help="Stage profile, a file or a shipped name: its voltage limits (default: the "
+                   "shipped emulated one).")
+@click.option("--amplitude", type=Finite(0, open_min=True), default=None,
+              help="Peak-to-peak amplitude, um: where a trajectory of it fits.")
+@click.option("--json", "as_json", is_flag=True, help="One JSON object on stdout.")
+def reach(model_path: str, profile_path: str | None, amplitude: float | None,
+          as_json: bool) -> None:
+    """Show the displacement range a model reaches on a profile: its quasi-static response
+    over the profile's voltage limits (within the model's validity envelope), in the sensor's
+    frame. A trajectory must stay inside it (at 27.9 Hz the rod's dynamics take a little more
+    near the corners); its centre is what `track --offset centre` uses."""
+    from afmctl.experiment import calibration
+    from afmctl.files import modelfile
+    from afmctl.planning import track as trk
+    prof = load_profile_or_exit(profile_path)
+    cal = calibration.from_file(model_path)
+    env = modelfile.read_envelope(cal.path)
+    lim = trk.conditioning_limits(prof.limits, env)
+    lo, hi = trk.reach(cal.model, prof.limits, env)
+    data: dict[str, Any] = {"model": model_path, "profile": prof.name, "reach_um": [lo, hi],
+                            "centre_um": 0.5 * (lo + hi), "span_um": hi - lo,
+                            "voltage_V": [lim.v_min, lim.v_max]}
+    lines = [f"reach: {lo:.4g} ... {hi:.4g} um (span {hi - lo:.4g} um) on {lim.v_min:.4g} ... "
+             f"{lim.v_max:.4g} V, profile {prof.name!r}, model {model_path} (quasi-static)",
+             f"centre: {0.5 * (lo + hi):.4g} um (track --offset centre)"]
+    if amplitude is not None:
+        fits = amplitude < hi - lo
+        data["offset_range_um"] = [lo + amplitude / 2, hi - amplitude / 2] if fits else None
+        lines.append(f"--amplitude {amplitude:g} fits with --offset {lo + amplitude / 2:.4g} ... "
+                     f"{hi - amplitude / 2:.4g} um (keep off the ends at high frequency)" if fits
+                     else f"--amplitude {amplitude:g} does not fit: at most {hi - lo:.4g} um "
+                          f"peak to peak on this profile")
+    if as_json:
+        click.echo(json.dumps(data))
+        return
+    for line in lines:
+        click.echo(line)
 
 
 @main.group(cls=Group)
@@ -51,7 +108,10 @@ def track_options(fn: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--recalibrate", is_flag=True,
                      help="Record and identify a new calibration even if one is cached."),
         click.option("--filter", "filters", type=click.Choice(["inverse", "linear", "both"]),
-                     default="both", show_default=True),
+                     default="both", show_default=True,
+                     help="Which waveforms to play: the model-based inverse (Algorithm 3), the "
+                          "paper's linear baseline (a line through the model's slow response), "
+                          "or both, inverse first (the ratio of their errors is printed)."),
         click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
                      help="Output folder (default: ./afmctl-track-<time>)."),
         click.option("--force", is_flag=True,
@@ -89,8 +149,11 @@ def periodic_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      help="Frequency, Hz."),
         click.option("--amplitude", type=Finite(0, open_min=True), required=True,
                      help="Peak-to-peak amplitude, um."),
-        click.option("--offset", type=Finite(), default=0.0, show_default=True,
-                     help="Centre of the trajectory, um."),
+        click.option("--offset", type=Offset(), default="0", show_default=True,
+                     help="Centre of the trajectory, um, in the sensor's frame (what the stage "
+                          "reads: the profile's scale * raw + offset_um; on a unipolar stage "
+                          "its reach starts above 0), or `centre`: the middle of what the model "
+                          "reaches on the profile (`afmctl reach` shows it)."),
         click.option("--periods", type=Finite(0, open_min=True), default=3.0,
                      show_default=True,
                      help="Periods to track (>= 1; the first is the transient, scored apart)."),
@@ -118,7 +181,7 @@ def check_periodic(freq: float, amplitude: float, offset: float, periods: float,
     if periods * per_period < 2:
         raise InputError(f"--periods {periods:g} at --freq {freq:g} Hz: fewer than 2 samples")
     for name, value in (("--amplitude", amplitude), ("--offset", offset)):
-        if abs(value) > MAX_UM:
+        if value != CENTRE and abs(value) > MAX_UM:
             raise InputError(f"{name} {value:g} um: beyond any piezo stage (at most "
                              f"{MAX_UM:g} um)")
 
@@ -128,39 +191,53 @@ def check_duration(seconds: float, what: str) -> None:
         raise InputError(f"{what} lasts {seconds:.3g} s; at most {MAX_DURATION_S:g} s per run")
 
 
-@track.command("triangle")
+@track.command("triangle", short_help="Track a triangle wave, as in the paper's Figs 9-11.")
 @periodic_options
 @track_options
-def track_triangle(freq: float, amplitude: float, offset: float, periods: float,
+def track_triangle(freq: float, amplitude: float, offset: float | str, periods: float,
                    allow_short: bool, **kw: Any) -> None:
-    """Track a triangle wave (the paper's Figs. 9-11)."""
+    """Track a triangle wave, as in the paper's Figs 9-11 (27.9 Hz, 27.04 um)."""
     from afmctl.planning import track as trk
-    _track(lambda dt: trk.triangle(freq, amplitude, offset, periods, dt),
-           lambda rate: check_periodic(freq, amplitude, offset, periods, allow_short, rate), **kw)
+    off = 0.0 if offset == CENTRE else float(offset)
+    _track(lambda dt: trk.triangle(freq, amplitude, off, periods, dt),
+           lambda rate: check_periodic(freq, amplitude, offset, periods, allow_short, rate),
+           centre=offset == CENTRE, **kw)
 
 
 @track.command("sine")
 @periodic_options
 @track_options
-def track_sine(freq: float, amplitude: float, offset: float, periods: float, allow_short: bool,
-               **kw: Any) -> None:
+def track_sine(freq: float, amplitude: float, offset: float | str, periods: float,
+               allow_short: bool, **kw: Any) -> None:
     """Track a sine wave."""
     from afmctl.planning import track as trk
-    _track(lambda dt: trk.sine(freq, amplitude, offset, periods, dt),
-           lambda rate: check_periodic(freq, amplitude, offset, periods, allow_short, rate), **kw)
+    off = 0.0 if offset == CENTRE else float(offset)
+    _track(lambda dt: trk.sine(freq, amplitude, off, periods, dt),
+           lambda rate: check_periodic(freq, amplitude, offset, periods, allow_short, rate),
+           centre=offset == CENTRE, **kw)
 
 
 @track.command("file")
 @click.argument("wave", type=click.Path(dir_okay=False))
 @track_options
 def track_file(wave: str, **kw: Any) -> None:
-    """Track any trajectory: a CSV with columns time_s,desired_um."""
+    """Track any trajectory: a CSV with columns time_s,desired_um (resampled linearly onto the
+    stage's sample clock, which is said when the file's own differs)."""
     from afmctl.files import sweepfile as sweeps
     from afmctl.planning import track as trk
     t, u = sweeps.read_trajectory(wave)
     check_duration(float(t[-1] - t[0]), wave)
-    _track(lambda dt: trk.from_samples(t, u, dt, f"file {Path(wave).name}"), lambda rate: None,
-           **kw)
+
+    def make(dt: float) -> Any:
+        import numpy as np
+        steps = np.diff(t)
+        if steps.size and (abs(float(np.median(steps)) - dt) > 1e-6 * dt
+                           or np.ptp(steps) > 1e-3 * dt):
+            say(f"{Path(wave).name}: {t.size} samples every {1e3 * float(np.median(steps)):.6g} ms"
+                f" (median), resampled linearly onto the stage's clock (every {1e3 * dt:.6g} ms)")
+        return trk.from_samples(t, u, dt, f"file {Path(wave).name}")
+
+    _track(make, lambda rate: None, **kw)
 
 
 def _model(prof: Any, stage: Any | None, model_path: str | None, calibrate: bool,
@@ -194,7 +271,7 @@ def _track(make_desired: Callable[[float], Any], check: Callable[[float], None],
            profile_path: str | None, model_path: str | None, calibrate: bool, recalibrate: bool,
            filters: str, out_dir: str | None, force: bool, dry_run: bool, as_json: bool,
            condition: bool, extrapolate: bool, learn: int = 0, learn_cutoff: float = 600.0,
-           learn_region: str = "all") -> None:
+           learn_region: str = "all", centre: bool = False) -> None:
     if model_path is not None and (calibrate or recalibrate):
         raise InputError("--model and --calibrate/--recalibrate exclude each other")
     if learn and dry_run:
@@ -207,23 +284,65 @@ def _track(make_desired: Callable[[float], Any], check: Callable[[float], None],
         desired = make_desired(1.0 / prof.sample_rate_hz)
         with opened_stage(prof) as stage:
             cal = _model(prof, stage, model_path, calibrate, recalibrate, profile_path)
-            learn_track(desired, prof, cal.model, str(cal.path), stage, learn,
-                        {"cutoff_hz": learn_cutoff, "region": learn_region},
+            _warn(cal, learning=True)
+            learn_track(_placed(desired, cal, prof, centre), prof, cal.model, str(cal.path),
+                        stage, learn, {"cutoff_hz": learn_cutoff, "region": learn_region},
                         "linear" if filters == "linear" else "inverse", (condition, extrapolate),
-                        out_dir, as_json)
+                        out_dir, as_json, cal)
         return
     wanted = ("inverse", "linear") if filters == "both" else (filters,)
     out = check_output_dir(Path(out_dir) if out_dir else timestamped("afmctl-track"), "--out",
                            _outputs(dry_run, wanted), force, measured=("run_*.csv",))
     desired = make_desired(1.0 / prof.sample_rate_hz)
     if dry_run:
-        _dry_run(prof, desired, wanted, out, (condition, extrapolate),
-                 _model(prof, None, model_path, calibrate, recalibrate, profile_path))
+        cal = _model(prof, None, model_path, calibrate, recalibrate, profile_path)
+        _warn(cal)
+        _dry_run(prof, _placed(desired, cal, prof, centre), wanted, out, (condition, extrapolate),
+                 cal)
         return
+    outcomes: dict[str, Any] = {}
     with opened_stage(prof) as stage:
         cal = _model(prof, stage, model_path, calibrate, recalibrate, profile_path)
-        outcomes, meta = _run(prof, stage, cal, desired, wanted, out, (condition, extrapolate))
+        _warn(cal)
+        desired = _placed(desired, cal, prof, centre)
+        meta = _meta(prof, cal, desired)
+        try:
+            _run(prof, stage, cal, desired, wanted, out, (condition, extrapolate), meta, outcomes)
+        except BaseException as exc:
+            if outcomes and not isinstance(exc, SystemExit):  # keep what was played
+                _report(prof, cal, outcomes, desired, out, meta, False, interrupted=exc)
+            raise
     _report(prof, cal, outcomes, desired, out, meta, as_json)
+
+
+def _warn(cal: Any, learning: bool = False) -> None:
+    """The model's flag (identify or diagnose found it missing something) and what it means."""
+    text = cal.warning(learning)
+    if text:
+        say(text)
+
+
+def _placed(desired: Any, cal: Any, prof: Any, centre: bool) -> Any:
+    """``desired`` moved to the middle of the model's reach on the profile (``--offset centre``)."""
+    if not centre:
+        return desired
+    import dataclasses as dc
+
+    from afmctl.files import modelfile
+    from afmctl.planning import track as trk
+    lo, hi = trk.reach(cal.model, prof.limits, modelfile.read_envelope(cal.path))
+    mid = 0.5 * (lo + hi)
+    say(f"--offset centre: {mid:.4g} um, the middle of the model's reach {lo:.4g} ... "
+        f"{hi:.4g} um on {prof.limits.v_min:g} ... {prof.limits.v_max:g} V")
+    return dc.replace(desired, u_um=desired.u_um + mid)
+
+
+def _meta(prof: Any, cal: Any, desired: Any) -> dict[str, Any]:
+    meta: dict[str, Any] = {"profile": prof.name, "model": str(cal.path),
+                            "trajectory": desired.label, "sample_rate_Hz": prof.sample_rate_hz}
+    if desired.period_s is not None:
+        meta["period_s"] = f"{desired.period_s:.9g}"
+    return meta
 
 
 def _plan(prof: Any, cal: Any, desired: Any, start_v: float, wanted: tuple[str, ...],
@@ -242,64 +361,78 @@ def _dry_run(prof: Any, desired: Any, wanted: tuple[str, ...], out: Path,
     plans = _plan(prof, cal, desired, 0.0, wanted, how)
     say(cal.describe())
     make_dir(out, "--out")
+    meta = _meta(prof, cal, desired)
     for name in wanted:
         path = out / f"waveform_{name}.csv"
         with writing(path, "--out"):
-            experiment.write_waveform_csv(plans[name], path)
+            experiment.write_waveform_csv(plans[name], path, {**meta, "filter": name})
         say(f"wrote {path}" + (f" ({plans[name].horizon_text()})" if name == "inverse" else ""))
 
 
 def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...], out: Path,
-         how: tuple[bool, bool]) -> tuple[dict[str, Any], dict[str, Any]]:
+         how: tuple[bool, bool], meta: dict[str, Any], outcomes: dict[str, Any]) -> None:
+    """Plan and play every wanted filter; each outcome goes to ``outcomes`` as it ends (the one
+    in progress too, scored on what it got, if the run is interrupted)."""
     from afmctl.experiment import runner as experiment
-    model = cal.model
     start_v = stage.voltage()
     say(f"planning {desired.label} from {start_v:.3f} V ...")
     plans = _plan(prof, cal, desired, start_v, wanted, how)
     say(cal.describe())
     make_dir(out, "--out")
-    meta = {"profile": prof.name, "model": str(cal.path), "trajectory": desired.label,
-            "sample_rate_Hz": prof.sample_rate_hz}
-    truth = prof.emulator.true_model if prof.emulator is not None else model
-    outcomes = experiment.run_all(stage, {k: plans[k] for k in wanted}, desired, out, meta,
-                                  truth, progress_printer(False), sensor=model.effects)
-    return outcomes, meta
+    truth, _ = experiment.between_truth(prof)
+    experiment.run_all(stage, {k: plans[k] for k in wanted}, desired, out, meta, truth,
+                       progress_printer(False), sensor=cal.model.effects, done=outcomes)
 
 
 def _report(prof: Any, cal: Any, outcomes: dict[str, Any], desired: Any, out: Path,
-            meta: dict[str, Any], as_json: bool) -> None:
+            meta: dict[str, Any], as_json: bool, interrupted: BaseException | None = None
+            ) -> None:
+    """Scores on stderr, run.csv, summary.json and track.png: what was played (all of it, or up
+    to an ``interrupted`` run, whose files are then written before the interrupt is reported)."""
     from afmctl import plots
     from afmctl.experiment import runner as experiment
     from afmctl.files import modelfile
     from afmctl.model import effects as fx
-    estimate = prof.emulator is None
-    data = experiment.summary(outcomes, desired, {
-        **meta, "model": cal.as_dict(),
-        "between_samples_from": "model estimate" if estimate else "emulator truth",
-        "readings_corrected_for": modelfile.effects_dict(fx.sensor_part(cal.model.effects))})
+    _, between_from = experiment.between_truth(prof)
+    corrected = modelfile.effects_dict(fx.sensor_part(cal.model.effects))
+    extra: dict[str, Any] = {
+        **meta, "model": cal.as_dict(), "between_samples_from": between_from,
+        "readings_corrected_for": corrected}
+    if interrupted is not None:
+        extra["interrupted"] = f"{type(interrupted).__name__}: {interrupted}".strip(": ")
+    data = experiment.summary(outcomes, desired, extra)
     written = [o.run_file.name for o in outcomes.values()] + ["run.csv", "summary.json",
                                                                 "track.png"]
     with writing(out / "run.csv", "--out"):
         experiment.write_combined_csv(outcomes, desired, out / "run.csv")
         experiment.write_summary(data, out / "summary.json")
-        plots.track_figure(outcomes, desired, cal.model.thickness_um, out / "track.png")
+        plots.save_figure(plots.track_figure(outcomes, desired, cal.model.thickness_um, ", ".join(
+            k.replace("_", " ") for k in corrected)), out / "track.png")
+    if interrupted is not None:
+        say("interrupted: the scores of what was played so far (a run cut short is scored on "
+            "the samples it got)")
+    if corrected:
+        say(f"readings corrected for {', '.join(corrected)} (the model's sensor effects) before "
+            f"scoring: run.csv's corrected_displacement_um_* columns, drawn in track.png")
     for name, o in outcomes.items():
         s = o.score
-        part = (f"steady part, from {s.steady_from_s:.4g} s" if s.steady
-                else "whole run: no full period after the first")
+        if s.steady:
+            part = f"steady part, from {s.steady_from_s:.4g} s"
+        elif desired.period_s is None:
+            part = "whole run"
+        else:
+            part = "whole run: no full period after the first"
+        cut = "" if o.complete else "; cut short" if interrupted is not None else "; incomplete"
         first = f"; first period {s.rms_transient_um:.4f} um" if s.rms_transient_um else ""
         horizon = f"; {o.waveform.horizon_text()}" if o.waveform.horizons else ""
         say(f"{name:8s} RMS {s.rms_um:.4f} um ({s.rms_pct:.3f} %), max {s.max_um:.4f} um "
-            f"({part}){first}{horizon}; max slew {o.waveform.max_slew_v_per_ms:.1f} V/ms")
-        if s.rms_between_um is not None and not estimate:
+            f"({part}){first}{horizon}; max slew {o.waveform.max_slew_v_per_ms:.1f} V/ms{cut}")
+        if s.rms_between_um is not None:
             say(f"{'':8s} between samples {s.rms_between_um:.4f} um (the emulator's true plant)")
     if "ratio_linear_over_inverse" in data:
         say(f"ratio linear / inverse RMS: {data['ratio_linear_over_inverse']:.1f} (steady part)")
-    if estimate:
-        for name, o in outcomes.items():
-            if o.score.rms_between_um is not None:
-                say(f"model estimate, not measured: {name} between samples "
-                    f"{o.score.rms_between_um:.4f} um (the model's own simulation)")
+    if between_from != "emulator truth":
+        say(f"between samples: {between_from}")
     say(f"wrote {out}/" + ", ".join(written))
     if as_json:
-        click.echo(json.dumps(data, allow_nan=False))
+        click.echo(json.dumps(experiment.json_ready(data), allow_nan=False))

@@ -51,6 +51,8 @@ class Calibration:
         The sweep files it was identified from (empty if unknown).
     new : bool
         True if the sweeps were recorded by this command.
+    fit : FitRecord or None
+        What identify or diagnose said of the fit (the model file's ``[fit]``), if it says.
     """
 
     model: Transducer
@@ -58,10 +60,30 @@ class Calibration:
     identified: str
     sweeps: tuple[str, ...] = ()
     new: bool = False
+    fit: modelfile.FitRecord | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"file": str(self.path), "identified": self.identified,
-                "sweeps": list(self.sweeps), "calibrated_now": self.new}
+                "sweeps": list(self.sweeps), "calibrated_now": self.new,
+                "fit": None if self.fit is None else self.fit.to_dict()}
+
+    def warning(self, learning: bool = False) -> str | None:
+        """What a flagged model means for the figures track (or learning) shows; None if the
+        model's writer did not flag it.
+
+        The readings are scored corrected for the sensor effects the model knows; an effect it
+        misses can make them better than the stage is, a sensor effect above all (a delay, a gauge
+        error): learning then drives the readings, not the stage, to the trajectory."""
+        if self.fit is None or not self.fit.flagged:
+            return None
+        from afmctl.model import effects as fx
+        known = ", ".join(modelfile.effects_dict(fx.sensor_part(self.model.effects))) or "nothing"
+        what = ("learning optimises the readings" if learning else "track scores the readings")
+        return (f"warning: {self.fit.by} flagged model {self.path}: {self.fit.verdict}. Here "
+                f"{what}, corrected for what the model knows ({known}); an effect it misses, a "
+                f"sensor effect above all, can make them look better than the stage is: readings "
+                f"that improve need not mean the stage does. Run `afmctl diagnose` on its sweeps "
+                f"and track with the extended model it writes")
 
     def describe(self) -> str:
         """One line: which model, identified when, on which sweeps."""
@@ -87,12 +109,13 @@ def _stamp(path: Path) -> str:
 def from_file(path: str | Path) -> Calibration:
     """A model file given by the user, with its ``calibration.json`` beside it if there is one."""
     p = Path(path)
-    model = modelfile.read(p)
+    model, fit = modelfile.read(p), modelfile.read_fit(p)
     info = p.with_name("calibration.json")
     if info.exists():
         doc = json.loads(info.read_text(encoding="utf-8"))
-        return Calibration(model, p, doc.get("identified", _stamp(p)), tuple(doc.get("sweeps", ())))
-    return Calibration(model, p, _stamp(p))
+        return Calibration(model, p, doc.get("identified", _stamp(p)),
+                           tuple(doc.get("sweeps", ())), fit=fit)
+    return Calibration(model, p, _stamp(p), fit=fit)
 
 
 def find(profile: Profile) -> Calibration | None:
@@ -149,12 +172,14 @@ def calibrate(profile: Profile, stage: Any, progress: Progress | None = None) ->
     modelfile.write(result.model, path,
                     header=f"afmctl calibration of profile {profile.name}: identified {when} from "
                            f"{', '.join(Path(n).name for n in names)}",
-                    envelope=result.envelope, uncertainty=result.uncertainty)
+                    envelope=result.envelope, uncertainty=result.uncertainty,
+                    fit=result.record("calibration"))
     (folder / "calibration.json").write_text(json.dumps(
         {"identified": when, "sweeps": list(names), "profile": profile.name,
          "v_range_V": [profile.limits.v_min, profile.limits.v_max]}, indent=2) + "\n",
         encoding="utf-8")
-    return Calibration(result.model, path, when, names, new=True)
+    return Calibration(result.model, path, when, names, new=True,
+                       fit=result.record("calibration"))
 
 
 def for_track(profile: Profile, stage: Any | None, progress: Progress | None = None,

@@ -201,12 +201,9 @@ def judge(wf: track.Waveform, desired: track.Desired, index: int, measured: tupl
 
     ``measured`` is :func:`afmctl.experiment.runner.stream`'s (displacement_um, voltage_v, complete).
     """
-    u, v, complete = measured
-    where = fx.sensor_correct(fx.compile_chain(sensor, wf.dt_s), u)
     img_between = None if between is None else ilc.imaging_rms(desired, between, track.FINE)
-    outcome = experiment.Outcome(wf, u, v, track.score(wf, desired, where, between), complete,
-                                 path)
-    err = desired.u_um - where[wf.tracking]
+    outcome = experiment.scored(wf, desired, measured, path, sensor, between)
+    err = desired.u_um - outcome.scored_um[wf.tracking]
     steady = ilc.rms(err[ilc.steady_part(desired)])
     return Iteration(index, outcome, err, ilc.imaging_rms(desired, err), img_between, steady,
                      learned_um=err, judged_um=steady)
@@ -225,8 +222,9 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
 
     Every iteration's run file goes to ``out`` (``run_<seed>_iterNN.csv``) as it plays;
     ``on_iteration`` is called with the result so far after each finished iteration (write the
-    summary there: an interrupt then loses nothing finished). ``truth`` (the plant, for judging
-    between the samples) defaults to the model. A refused waveform, the noise floor or a
+    summary there: an interrupt then loses nothing finished). ``truth`` is the plant the stage
+    simulates, for judging between the samples (None: not judged there; the model's own
+    simulation would only show the model inverting itself). A refused waveform, the noise floor or a
     diverging error end learning early (``Result.stop`` says which).
     """
     out.mkdir(parents=True, exist_ok=True)
@@ -239,7 +237,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     noise, best, stop = float("nan"), 0, "iterations done"
     tuning = ilc.Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex), np.zeros(0))
 
-    plant = truth if truth is not None else model
+    plant = truth
     region = ilc.imaging_mask(desired, first_period=True) if law.region == "imaging" else None
     sigma = 0.0
     for j in range(iterations + 1):

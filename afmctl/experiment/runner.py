@@ -47,7 +47,10 @@ class PlayingStage(Protocol):
 
 @dataclass(frozen=True)
 class Outcome:
-    """One filter's run: measured displacement (NaN where missing) and its score."""
+    """One filter's run: measured displacement (NaN where missing) and its score.
+
+    ``corrected_um`` holds the readings corrected for the sensor effects the model knows (what is
+    scored), None when it knows none: the readings are then scored as they are."""
 
     waveform: track.Waveform
     displacement_um: FloatArray
@@ -55,6 +58,12 @@ class Outcome:
     score: track.Score
     complete: bool
     run_file: Path
+    corrected_um: FloatArray | None = None
+
+    @property
+    def scored_um(self) -> FloatArray:
+        """What the score is computed from: the corrected readings if any, else the readings."""
+        return self.displacement_um if self.corrected_um is None else self.corrected_um
 
     def as_dict(self) -> dict[str, Any]:
         missing = int(np.isnan(self.displacement_um).sum())
@@ -71,48 +80,148 @@ def stream(stage: PlayingStage, wf: track.Waveform, path: Path, meta: Mapping[st
 
     Returns (displacement_um, voltage_v, complete); samples never received are NaN. Any exception
     (including KeyboardInterrupt) leaves the run file readable and marked interrupted, and is
-    re-raised (the stage's ``play`` has already put it in its safe state).
+    re-raised (the stage's ``play`` has already put it in its safe state) with the samples so far
+    as its ``partial`` attribute (the same triple).
+
+    A row's ``voltage_V`` is the commanded voltage of a sample the stage played. The samples the
+    stage handed over unrecorded are held back until a recorded one follows (they were played,
+    only their reading was lost) or the run ends: normally, all played; after a failure, the
+    trailing ones were never played (or not known to have been) and are written without a
+    voltage, status ``not played``.
     """
     n = wf.voltage_v.size
     u = np.full(n, np.nan)
     v = np.full(n, np.nan)
     t = wf.time_s
+    held = [n]  # first sample of the unrecorded rows not yet written (n: none)
+
+    def write(writer: runfile.RunWriter, start: int, stop: int, played: bool) -> None:
+        sl = slice(start, stop)
+        volt = wf.voltage_v[sl] if played else np.full(stop - start, np.nan)
+        writer.write(np.arange(start, stop), t[sl], wf.desired_um[sl], volt, u[sl],
+                     None if played else "not played")
+
     with runfile.RunWriter(path, {**meta, "filter": wf.filter, "samples": n}) as writer:
 
         def on_block(first: int, volt: FloatArray, disp: FloatArray, valid: Any) -> None:
             sl = slice(first, first + len(disp))
             u[sl] = np.where(valid, disp, np.nan)
             v[sl] = volt
-            writer.write(np.arange(sl.start, sl.stop), t[sl], wf.desired_um[sl],
-                         wf.voltage_v[sl], u[sl])
+            recorded = np.flatnonzero(np.isfinite(volt))
+            start = min(held[0], first)
+            last = first + int(recorded[-1]) + 1 if recorded.size else start
+            if last > start:
+                write(writer, start, last, True)
+            held[0] = last if last < sl.stop else n
             if progress is not None and np.any(valid):  # an interrupt hands the rest as missing
                 progress(wf.filter, sl.stop, n)
 
-        stage.play(wf.voltage_v, on_block)
+        try:
+            stage.play(wf.voltage_v, on_block)
+        except BaseException as exc:
+            if held[0] < n:
+                write(writer, held[0], n, False)
+            exc.partial = (u, v, False)  # type: ignore[attr-defined]
+            raise
+        if held[0] < n:
+            write(writer, held[0], n, True)
     return u, v, bool(np.isfinite(u).all())
 
 
 def run_all(stage: PlayingStage, plans: Mapping[str, track.Waveform], desired: track.Desired,
             out: Path, meta: Mapping[str, object], between_model: tr.Transducer | None,
-            progress: Progress | None = None, sensor: fx.Effects | None = None
-            ) -> dict[str, Outcome]:
+            progress: Progress | None = None, sensor: fx.Effects | None = None,
+            done: dict[str, Outcome] | None = None) -> dict[str, Outcome]:
     """Run each plan in turn (inverse first) and score it; run files go to ``out`` (created).
 
     The readings are scored as the stage's position: corrected for the ``sensor`` effects the
     model knows (delay, gauge; none by default). The run files keep the raw readings.
+    ``between_model`` is the plant simulated between the samples (None: not judged there).
+    Each finished run is put in ``done`` (if given) as it ends; on an interrupt or a failure the
+    run in progress is scored on the samples it got, put there too, and the exception re-raised:
+    the caller can still report everything played.
     """
     out.mkdir(parents=True, exist_ok=True)
-    outcomes = {}
+    outcomes = {} if done is None else done
     for name, wf in plans.items():
         path = out / f"run_{name}.csv"
-        u, v, complete = stream(stage, wf, path, meta, progress)
-        where = fx.sensor_correct(fx.compile_chain(sensor or fx.Effects(), wf.dt_s), u)
+        try:
+            u, v, complete = stream(stage, wf, path, meta, progress)
+        except BaseException as exc:
+            if getattr(exc, "partial", None) is not None:
+                outcomes[name] = scored(wf, desired, exc.partial, path, sensor)  # type: ignore[attr-defined]
+            raise
         between = None
         if between_model is not None:
             between = track.between_samples(between_model, wf, desired, tr.initial(between_model))
-        outcomes[name] = Outcome(wf, u, v, track.score(wf, desired, where, between), complete,
-                                 path)
+        outcomes[name] = scored(wf, desired, (u, v, complete), path, sensor, between)
     return outcomes
+
+
+def scored(wf: track.Waveform, desired: track.Desired, measured: tuple[Any, ...], path: Path,
+           sensor: fx.Effects | None, between: FloatArray | None = None) -> Outcome:
+    """One run's :class:`Outcome` from :func:`stream`'s (displacement, voltage, complete): the
+    readings corrected for ``sensor`` (the model's sensor effects; none: scored as they are) and
+    scored, between the samples from ``between`` (:func:`afmctl.planning.track.between_samples`)
+    if given."""
+    u, v, complete = measured
+    sensor = fx.sensor_part(sensor or fx.Effects())
+    corrected = (None if sensor == fx.Effects()
+                 else fx.sensor_correct(fx.compile_chain(sensor, wf.dt_s), u))
+    where = u if corrected is None else corrected
+    return Outcome(wf, u, v, track.score(wf, desired, where, between), complete, path, corrected)
+
+
+@dataclass(frozen=True)
+class Reading:
+    """The sensor at a held output: mean and standard deviation of ``samples`` readings, um, at
+    ``output_v`` V."""
+
+    output_v: float
+    mean_um: float
+    sd_um: float
+    samples: int
+
+
+def move_and_read(stage: PlayingStage, target_v: float, limits: Any, sample_rate_hz: float,
+                  hold_s: float = 0.1) -> Reading:
+    """Bring the output to ``target_v`` (V) along a raised-cosine ramp at a quarter of the usable
+    slew rate (as track's ramps), hold it ``hold_s`` seconds and read the sensor over the hold:
+    one waveform, checked by the guard and played as any run; the output then stays at
+    ``target_v``. With ``target_v`` the present output nothing moves: it only reads."""
+    from afmctl import guard
+    dt = 1.0 / sample_rate_hz
+    start = stage.voltage()
+    rate = 0.25 * limits.max_rate_v_per_ms * 1e3
+    ramp = (track.raised_cosine(start, target_v, track.ramp_samples(target_v - start, rate, dt))
+            if target_v != start else np.zeros(0))
+    n_hold = max(2, int(round(hold_s * sample_rate_hz)))
+    v = np.concatenate([ramp, np.full(n_hold, float(target_v))])
+    guard.check(v, dt, limits, start, "the move")
+    rec = stage.play(v)
+    held = rec.displacement_um[ramp.size:][rec.valid[ramp.size:]]
+    if held.size == 0:
+        return Reading(float(target_v), float("nan"), float("nan"), 0)
+    return Reading(float(target_v), float(np.mean(held)), float(np.std(held)), int(held.size))
+
+
+#: Why a stage's error between samples is not judged (``between_samples_from`` of summary.json).
+NO_TRUTH_REAL = ("not judged: a real stage (between its samples there is only the model's own "
+                 "simulation, which shows the model inverting itself, not the stage)")
+NO_TRUTH_FOREIGN = ("not judged: the emulated device's plant is a foreign stage, not an afmctl "
+                    "model ([emulator.model] is not what it does)")
+
+
+def between_truth(profile: Any) -> tuple[tr.Transducer | None, str]:
+    """The plant to judge a run between its samples (:func:`afmctl.planning.track.between_samples`)
+    on ``profile``'s stage, and what it is: the emulated device's own model (``emulator truth``),
+    or None with the reason when there is no such plant (a real stage, a foreign one)."""
+    emu = profile.emulator
+    if emu is None:
+        return None, NO_TRUTH_REAL
+    if emu.plant_model is None:
+        return None, NO_TRUTH_FOREIGN
+    return emu.plant_model, "emulator truth"
 
 
 def atomic_write(path: Path, text: str) -> None:
@@ -121,20 +230,27 @@ def atomic_write(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def write_waveform_csv(wf: track.Waveform, path: Path) -> None:
-    """``time_s,desired_um,voltage_V`` (desired empty on the ramps), for ``--dry-run``."""
-    rows = [f"{t:.7f},{'' if np.isnan(d) else f'{d:.6f}'},{v:.6f}"
-            for t, d, v in zip(wf.time_s, wf.desired_um, wf.voltage_v, strict=True)]
-    atomic_write(path, "time_s,desired_um,voltage_V\n" + "\n".join(rows) + "\n")
+def write_waveform_csv(wf: track.Waveform, path: Path,
+                       meta: Mapping[str, object] | None = None) -> None:
+    """A waveform file (:mod:`afmctl.files.waveformfile`: ``time_s,voltage_V,desired_um``, the
+    desired trajectory empty on the conditioning and the ramps) with ``meta`` (profile, model,
+    trajectory, period) in its header, for ``--dry-run``; ``afmctl play`` replays it."""
+    from afmctl.files import waveformfile
+    atomic_write(path, waveformfile.format_text(wf.time_s, wf.voltage_v, wf.desired_um,
+                                                dict(meta or {})))
 
 
 def write_combined_csv(outcomes: Mapping[str, Outcome], desired: track.Desired,
                        path: Path) -> None:
-    """The tracking part of every filter side by side on one time axis (s from tracking start)."""
+    """The tracking part of every filter side by side on one time axis (s from tracking start):
+    the commanded voltage, the readings and, with a model that corrects them for a sensor
+    effect, the corrected readings that are scored (``corrected_displacement_um_<filter>``)."""
     cols = {"time_s": np.arange(desired.u_um.size) * desired.dt_s, "desired_um": desired.u_um}
     for name, o in outcomes.items():
         cols[f"voltage_V_{name}"] = o.waveform.voltage_v[o.waveform.tracking]
         cols[f"displacement_um_{name}"] = o.displacement_um[o.waveform.tracking]
+        if o.corrected_um is not None:
+            cols[f"corrected_displacement_um_{name}"] = o.corrected_um[o.waveform.tracking]
     lines = [",".join(cols)]
     for row in zip(*cols.values(), strict=True):
         lines.append(",".join("" if np.isnan(x) else f"{x:.7g}" for x in row))
@@ -156,19 +272,26 @@ def summary(outcomes: Mapping[str, Outcome], desired: track.Desired,
     return out
 
 
+def json_ready(data: Any) -> Any:
+    """``data`` with every non-finite float (a run with no samples scored) as None."""
+    if isinstance(data, Mapping):
+        return {k: json_ready(v) for k, v in data.items()}
+    if isinstance(data, list | tuple):
+        return [json_ready(v) for v in data]
+    if isinstance(data, float) and not np.isfinite(data):
+        return None
+    return data
+
+
 def write_summary(data: Mapping[str, Any], path: Path) -> None:
-    atomic_write(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
+    atomic_write(path, json.dumps(json_ready(data), indent=2, allow_nan=False) + "\n")
 
 
 def incomplete_path(path: Path) -> Path:
-    """Where a sweep bound for ``path`` is streamed while it records: ``<stem>.incomplete.csv``,
-    numbered if an earlier interrupted one is there (measured data is never overwritten)."""
-    candidate = path.with_name(f"{path.stem}.incomplete.csv")
-    k = 2
-    while candidate.exists():
-        candidate = path.with_name(f"{path.stem}.incomplete-{k}.csv")
-        k += 1
-    return candidate
+    """Where a sweep bound for ``path`` is streamed while it records: ``<stem>.incomplete.csv``
+    (one per sweep: a later attempt replaces an earlier interrupted one once it has received
+    samples; the whole sweep removes it)."""
+    return path.with_name(f"{path.stem}.incomplete.csv")
 
 
 def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v: FloatArray,
@@ -180,8 +303,10 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
 
     The sweep's ``voltage_V`` is the commanded voltage (what a filter controls); a sweep that lost
     samples is refused rather than patched. With ``path``, the samples are also streamed as they
-    arrive (flushed per block) into :func:`incomplete_path`; when the sweep completes it is written
-    to ``path`` and that file removed, otherwise (interrupt, lost samples, stage failure) it stays
+    arrive (flushed per block) into :func:`incomplete_path`, created with the first samples (a
+    start that received none leaves no file, and an earlier interrupted attempt's file stays until
+    then); when the sweep completes it is written to ``path`` and the incomplete file removed
+    (the whole sweep supersedes it), otherwise (interrupt, lost samples, stage failure) it stays
     as a valid sweep file of the samples received in order, ending ``# end: interrupted (...)``.
     """
     from afmctl.files import sweepfile as sweeps
@@ -190,7 +315,7 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
     n = len(voltage_v)
     got = np.full(n, np.nan)
     streamed = incomplete_path(path) if path is not None else None
-    fh = None if streamed is None else open(streamed, "x", encoding="utf-8")  # noqa: SIM115
+    fh: list[Any] = []  # the incomplete file, once samples arrived
     done = [0]  # samples received in order so far (what the incomplete file holds)
 
     def on_block(first: int, volt: FloatArray, disp: FloatArray, valid: Any) -> None:
@@ -199,19 +324,20 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
         while prefix < n and np.isfinite(got[prefix]):
             prefix += 1
         done[0] = prefix
-        if fh is not None and prefix > old:
+        if streamed is not None and prefix > old:
+            if not fh:  # the first samples: this attempt replaces an earlier interrupted one
+                fh.append(open(streamed, "w", encoding="utf-8"))  # noqa: SIM115
+                fh[0].write("".join(f"# {k}: {v}\n" for k, v in meta.items()))
+                fh[0].write(",".join(sweeps.COLUMNS) + "\n")
             rows = np.column_stack([np.arange(old, prefix) / sample_rate_hz,
                                     voltage_v[old:prefix], got[old:prefix]])
-            np.savetxt(fh, rows, delimiter=",", fmt=("%.7f", "%.6f", "%.6f"))
-            fh.flush()
-            os.fsync(fh.fileno())
+            np.savetxt(fh[0], rows, delimiter=",", fmt=("%.7f", "%.6f", "%.6f"))
+            fh[0].flush()
+            os.fsync(fh[0].fileno())
         if progress is not None and np.any(valid):
             progress(name, first + len(disp), n)
 
     try:
-        if fh is not None:
-            fh.write("".join(f"# {k}: {v}\n" for k, v in meta.items()))
-            fh.write(",".join(sweeps.COLUMNS) + "\n")
         time.sleep(settle_s)
         rec = stage.play(voltage_v, on_block)
         lost = int((~np.asarray(rec.valid)).sum())
@@ -221,12 +347,13 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
         if path is not None:
             sweeps.write(sweep, path)
     except BaseException as exc:
-        if fh is not None:
+        if fh:
             why = f"{type(exc).__name__}: {exc}".replace("\n", " ")
-            fh.write(f"# end: interrupted ({why})\n")
-            fh.close()
+            fh[0].write(f"# end: interrupted ({why})\n")
+            fh[0].close()
         raise
-    if fh is not None and streamed is not None:
-        fh.close()
-        streamed.unlink()
+    if fh:
+        fh[0].close()
+    if streamed is not None and streamed.exists():
+        streamed.unlink()  # superseded by the whole sweep (this attempt's or an earlier one's)
     return sweep

@@ -56,6 +56,16 @@ data did not determine (:mod:`afmctl.fit.uncertainty`; informational, not read b
     correlation = [[1.0, ...], ...]
     undetermined = []
 
+``[fit]``: what the program that wrote the model said of its fit (:class:`FitRecord`; optional,
+informational): ``track`` warns when it flagged the model::
+
+    [fit]
+    by = "identify"
+    verdict = "triangle_27.9hz.csv left at 25.8x its sensor noise"
+    flagged = true
+    sweeps = ["triangle_0.279hz.csv", "triangle_27.9hz.csv"]
+    rms_over_noise = [1.01, 25.8]
+
 Optional ``[effects.*]`` tables (one per effect, as ``afmctl diagnose`` writes them; schema of
 :mod:`afmctl.model.effects`, the same as a profile's ``[emulator.effects.*]``)::
 
@@ -83,8 +93,8 @@ READABLE_VERSIONS = (1, 2)
 #: A waveform may leave the envelope's voltage range by this fraction of its span.
 ENVELOPE_TOLERANCE = 0.05
 
-__all__ = ["FileFormatError", "Envelope", "read", "read_envelope", "write", "to_dict",
-           "from_table", "FORMAT_VERSION"]
+__all__ = ["FileFormatError", "Envelope", "FitRecord", "read", "read_envelope", "read_fit",
+           "write", "to_dict", "from_table", "FORMAT_VERSION"]
 
 
 @dataclass(frozen=True)
@@ -124,8 +134,10 @@ class Envelope:
         return self.excess_v(v_min, v_max) <= tolerance * self.span_v
 
     def describe(self) -> str:
-        return (f"{self.voltage_min_v:g} ... {self.voltage_max_v:g} V, "
-                f"{', '.join(f'{f:g}' for f in self.frequencies_hz)} Hz")
+        """E.g. ``0 ... 150 V, 0.1, 0.279, 5.58, 27.9 Hz`` (4 significant digits: a sweep's
+        extreme is a float32 sample; frequencies sorted, each once)."""
+        return (f"{self.voltage_min_v:.4g} ... {self.voltage_max_v:.4g} V, "
+                f"{', '.join(f'{f:g}' for f in sorted(set(self.frequencies_hz)))} Hz")
 
     def to_dict(self) -> dict[str, Any]:
         return {"voltage_min_V": self.voltage_min_v, "voltage_max_V": self.voltage_max_v,
@@ -142,6 +154,50 @@ def _envelope(t: Table) -> Envelope:
     if not env.voltage_max_v > env.voltage_min_v:
         raise t.fail("voltage_max_V", "must be above voltage_min_V")
     return env
+
+
+@dataclass(frozen=True)
+class FitRecord:
+    """What the program that wrote a model said of its fit (the ``[fit]`` table).
+
+    Parameters
+    ----------
+    by : str
+        ``identify``, ``diagnose`` or ``calibration``.
+    verdict : str
+        One line: what the fit left unexplained, or that it reached the noise floor.
+    flagged : bool
+        True when the writer found the model missing something the data show (a sweep left
+        above twice its sensor noise, a cause diagnose named and the model lacks).
+    sweeps : tuple of str
+        The sweep files it was fitted on.
+    rms_over_noise : tuple of float
+        Each sweep's fit RMS over its sensor noise (empty if not known).
+    """
+
+    by: str
+    verdict: str
+    flagged: bool
+    sweeps: tuple[str, ...] = ()
+    rms_over_noise: tuple[float, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"by": self.by, "verdict": self.verdict, "flagged": self.flagged}
+        if self.sweeps:
+            out["sweeps"] = list(self.sweeps)
+        if self.rms_over_noise:
+            out["rms_over_noise"] = [round(float(x), 4) for x in self.rms_over_noise]
+        return out
+
+
+def _fit_record(t: Table) -> FitRecord:
+    sweeps = t.data.get("sweeps", [])
+    if not isinstance(sweeps, list) or not all(isinstance(x, str) for x in sweeps):
+        raise t.fail("sweeps", "expected an array of file names")
+    t.has("sweeps")
+    ratios = t.numbers("rms_over_noise") if t.has("rms_over_noise") else ()
+    return FitRecord(t.string("by"), t.string("verdict", ""), t.boolean("flagged"),
+                     tuple(sweeps), ratios)
 
 
 UNCERTAINTY_KEYS = ("method", "parameters", "value", "stderr", "correlation", "undetermined")
@@ -313,7 +369,7 @@ def from_table(t: Table) -> Transducer:
                                 choices=("depoled", "positive", "negative")))
 
 
-def _load(path: str | Path) -> tuple[Transducer, Envelope | None]:
+def _load(path: str | Path) -> tuple[Transducer, Envelope | None, FitRecord | None]:
     t = load(path)
     fmt = t.string("format")
     if fmt != FORMAT:
@@ -329,8 +385,10 @@ def _load(path: str | Path) -> tuple[Transducer, Envelope | None]:
     if unc is not None:
         for key in UNCERTAINTY_KEYS:
             unc.has(key)
+    fit_t = t.table("fit", required=False) if ver >= 2 else None
+    fit = None if fit_t is None else _fit_record(fit_t)
     t.reject_unknown()
-    return model, env
+    return model, env, fit
 
 
 def read(path: str | Path) -> Transducer:
@@ -344,18 +402,25 @@ def read_envelope(path: str | Path) -> Envelope | None:
     return _load(path)[1]
 
 
+def read_fit(path: str | Path) -> FitRecord | None:
+    """The ``[fit]`` record of a model file (None if it has none)."""
+    return _load(path)[2]
+
+
 def write(model: Transducer, path: str | Path, header: str = "",
           envelope: Envelope | None = None,
-          uncertainty: Mapping[str, Any] | None = None) -> None:
+          uncertainty: Mapping[str, Any] | None = None, fit: FitRecord | None = None) -> None:
     """Write ``model`` atomically (temporary file then rename: never a half-written model), with
-    its validity ``envelope`` and the fit's ``uncertainty`` (:func:`afmctl.fit.uncertainty.summary`)
-    if given."""
+    its validity ``envelope``, the fit's ``uncertainty`` (:func:`afmctl.fit.uncertainty.summary`)
+    and its writer's ``fit`` record if given."""
     p = Path(path)
     data = to_dict(model)
     if envelope is not None:
         data["envelope"] = envelope.to_dict()
     if uncertainty:
         data["uncertainty"] = uncertainty_table(uncertainty)
+    if fit is not None:
+        data["fit"] = fit.to_dict()
     text = "".join(f"# {line}\n" for line in header.splitlines()) + dumps(data)
     tmp = p.with_name(p.name + ".partial")
     tmp.write_text(text, encoding="utf-8")

@@ -194,6 +194,12 @@ class EmulatorConfig:
         """The device's truth as one model: the transducer with the effects it carries."""
         return replace(self.model, effects=self.effects)
 
+    @property
+    def plant_model(self) -> Transducer | None:
+        """The model the device simulates (:attr:`true_model`), the truth between its samples;
+        None when its plant is a foreign stage: ``[emulator.model]`` is then not what it does."""
+        return None if self.foreign is not None else self.true_model
+
 
 @dataclass(frozen=True)
 class Profile:
@@ -354,6 +360,16 @@ def load_profile(path: str | Path) -> Profile:
     profile = from_table(t)
     t.reject_unknown(ignore=("identify",))
     return profile
+
+
+def profile_table(path: str | Path) -> Table:
+    """The TOML tables of the profile ``path`` (a file, or a shipped profile's name as
+    :func:`load_profile` takes it), e.g. for its ``[identify]`` table."""
+    if not Path(path).exists() and str(path) in shipped_names():
+        ref = resources.files("afmctl.profiles").joinpath(f"{path}.toml")
+        with resources.as_file(ref) as shipped:
+            return load(Path(shipped))
+    return load(path)
 
 
 def shipped_profile(name: str) -> Profile:

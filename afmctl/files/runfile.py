@@ -13,8 +13,9 @@ Layout::
 
 Every block of rows is flushed and fsynced as it is written. A file whose last line is not
 ``# end: complete`` is incomplete (the run was interrupted, or the process died); it still reads, and
-:func:`read` reports it. ``status`` is ``ok`` or ``missing`` (the sample never arrived: its
-displacement is left empty, never invented).
+:func:`read` reports it. ``status`` is ``ok``, ``missing`` (the sample never arrived: its
+displacement is left empty, never invented) or ``not played`` (after an interrupt or a failure:
+the stage never played it, or is not known to have; its voltage is left empty too).
 """
 
 from __future__ import annotations
@@ -68,12 +69,16 @@ class RunWriter:
 
     def write(self, seq: NDArray[np.int64], time_s: NDArray[np.float64],
               desired_um: NDArray[np.float64], voltage_v: NDArray[np.float64],
-              displacement_um: NDArray[np.float64]) -> None:
-        """Append a block of samples (NaN displacement = missing) and flush it to disk."""
+              displacement_um: NDArray[np.float64], status: str | None = None) -> None:
+        """Append a block of samples (NaN displacement = missing; ``status`` for all of them
+        instead, e.g. ``not played``) and flush it to disk."""
         lines = []
         for s, t, d, v, u in zip(seq, time_s, desired_um, voltage_v, displacement_um, strict=True):
-            status = "ok" if math.isfinite(u) else "missing"
-            lines.append(f"{int(s)},{t:.7f},{_cell(d, 6)},{_cell(v, 6)},{_cell(u, 6)},{status}\n")
+            if status is None:
+                status_k = "ok" if math.isfinite(u) else "missing"
+            else:
+                status_k = status
+            lines.append(f"{int(s)},{t:.7f},{_cell(d, 6)},{_cell(v, 6)},{_cell(u, 6)},{status_k}\n")
         self._fh.write("".join(lines))
         self.rows += len(lines)
         self._sync()

@@ -464,7 +464,10 @@ def loop(frequency_hz: float, v_lo: float, v_hi: float, cycles: float, sample_ra
     phase = (np.arange(n + 1) * frequency_hz / sample_rate_hz) % 1.0
     up = (v_hi - v0) / (2 * span)  # fraction of a cycle spent rising to v_hi
     nodes = [0.0, up, up + 0.5, 1.0]
-    return np.interp(phase, nodes, [v0, v_hi, v_lo, v0])
+    v = np.interp(phase, nodes, [v0, v_hi, v_lo, v0])
+    if float(cycles).is_integer():  # n samples hold only about ``cycles`` periods: end at the
+        v[-1] = v0  # start exactly (27.9 Hz at 10 kHz ended 0.384 V short of 0 V)
+    return v
 
 
 def nested_loops(frequency_hz: float, amplitude_v: float | None, levels: int,

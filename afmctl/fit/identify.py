@@ -22,6 +22,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -215,6 +216,16 @@ class FitResult:
     def above_floor(self, factor: float = WARN) -> list[SweepError]:
         """The sweeps whose fit RMS exceeds ``factor`` times their sensor noise."""
         return [s for s in self.sweeps if not s.rms_over_noise <= factor]
+
+    def record(self, by: str = "identify") -> mf.FitRecord:
+        """The model file's ``[fit]`` record: flagged when a sweep is left above :data:`WARN`
+        times its sensor noise (the model misses something there)."""
+        above = self.above_floor()
+        verdict = ("; ".join(f"{Path(s.file).name} left at {s.rms_over_noise:.1f}x its sensor "
+                             f"noise" for s in above) + ": the model misses something there"
+                   if above else f"every sweep within {WARN:g}x its sensor noise")
+        return mf.FitRecord(by, verdict, bool(above), tuple(Path(s.file).name for s in self.sweeps),
+                            tuple(min(s.rms_over_noise, 1e9) for s in self.sweeps))
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (the ``--json`` output of ``afmctl identify``)."""

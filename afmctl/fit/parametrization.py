@@ -304,6 +304,39 @@ def internal(model: td.Transducer) -> FloatArray:
                    pol.eta * pol.p_r, model.rod.natural_hz, model.rod.damping_ratio])
 
 
+def lognormal_equivalent(model: td.Transducer) -> td.Transducer:
+    """``model`` in the lognormal/normal family :func:`internal` takes: a general (discrete)
+    coercive density, as identify writes one, replaced by the lognormal with the same mean and
+    standard deviation of ``ln E_c`` (weighted by its quadrature weights), a discrete interaction
+    density by the normal of the same second moment; everything else kept. A start for fits in
+    the lognormal space (``afmctl diagnose --model``), not the same model.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from afmctl.files.profile import default_profile
+    >>> m = default_profile().emulator.model
+    >>> x = np.geomspace(0.2, 5.0, 48)
+    >>> d = hy.Discrete(tuple(x), tuple(np.exp(-0.5 * (np.log(x) / 0.4) ** 2) / x))
+    >>> g = replace(m, polarization=replace(m.polarization, coercive=d))
+    >>> c = lognormal_equivalent(g).polarization.coercive
+    >>> round(c.median, 2), round(c.sigma, 2)
+    (1.0, 0.4)
+    """
+    pol = model.polarization
+    coercive, interaction = pol.coercive, pol.interaction
+    if isinstance(coercive, hy.Discrete):
+        x, w = coercive.nodes_weights()
+        w = w / float(np.sum(w))
+        mu = float(np.sum(w * np.log(x)))
+        sigma = math.sqrt(float(np.sum(w * (np.log(x) - mu) ** 2)))
+        coercive = hy.Lognormal(math.exp(mu), max(sigma, 0.05))
+    if isinstance(interaction, hy.Discrete):
+        x, w = interaction.nodes_weights()
+        interaction = hy.Normal(max(math.sqrt(float(np.sum(w * x ** 2) / np.sum(w))), 1e-3))
+    return replace(model, polarization=replace(pol, coercive=coercive, interaction=interaction))
+
+
 def describe(model: td.Transducer) -> list[tuple[str, float, str]]:
     """The free physical parameters of ``model`` as (name, value, unit)."""
     pol, rod = model.polarization, model.rod

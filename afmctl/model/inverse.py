@@ -47,7 +47,7 @@ def _predict(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec
 
 @nb.njit(cache=True)
 def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: float,
-           e_max: float, dt: float, st: np.ndarray, sc: np.ndarray, ec: np.ndarray,
+           e_lo: float, e_max: float, dt: float, st: np.ndarray, sc: np.ndarray, ec: np.ndarray,
            wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray, c0: float, g1: float, g2: float,
            tol: float) -> tuple[float, float, float, float]:
     """Field ``E`` with prediction ``c0 + g1 P(E) + g2 P(E)^2`` within ``tol`` of ``target``.
@@ -55,13 +55,13 @@ def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: 
     Trials start from memory ``st`` (left unchanged); the accepted trial's new memory is left in
     ``sc``. Returns (E, P(E), |prediction - target|, local slope dy/dE). ``floor`` is a lower
     bound of the slope (the reversible part alone), which keeps round-off out of the first step.
-    The march never leaves ``[-e_max, e_max]`` (MV/m): an unreachable target ends at the limit, and
+    The march never leaves ``[e_lo, e_max]`` (MV/m): an unreachable target ends at the limit, and
     the returned error says by how much it was missed.
     """
     fa = y0 - target
     direction = -1.0 if fa > 0.0 else 1.0
     ea = e0
-    eb = min(max(ea + direction * max(abs(fa) / slope, 1e-12), -e_max), e_max)
+    eb = min(max(ea + direction * max(abs(fa) / slope, 1e-12), e_lo), e_max)
     if abs(fa) <= tol:
         eb = e0
     yb, pb = _predict(kind, eb, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2)
@@ -74,7 +74,7 @@ def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: 
         if not bracketed and fb * fa > 0.0:  # not passed yet: march on (secant, at most x8)
             step = eb - ea
             sec = -fb * step / (fb - fa) if (fb - fa) * direction * step > 0.0 else 8.0 * step
-            ec_ = min(max(eb + (sec if 0.0 < sec / step <= 8.0 else 2.0 * step), -e_max), e_max)
+            ec_ = min(max(eb + (sec if 0.0 < sec / step <= 8.0 else 2.0 * step), e_lo), e_max)
             ea, fa = eb, fb
         else:  # bracketed: Illinois regula falsi, the paper's linear interpolation
             bracketed = True
@@ -101,7 +101,7 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
                 st: np.ndarray, dt: float, ec: np.ndarray, wc: np.ndarray, ei: np.ndarray,
                 cw: np.ndarray, scal: np.ndarray, phi: np.ndarray, gam: np.ndarray,
                 row: np.ndarray, gain: float, a1: float, a2: float, offset: float,
-                floor: float, e_max: float,
+                floor: float, e_lo: float, e_max: float,
                 tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fields for targets ``target[k]`` = desired u at sample ``k + d`` (um), rod state ``x`` (m)."""
     n = target.size
@@ -123,14 +123,15 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
         if disc >= 0.0:
             p = (target[k] - c0) / g1 if g2 == 0.0 else (-g1 + math.sqrt(disc)) / (2.0 * g2)
             e = (p - off - p_switch) / lin
-        if lo < e < hi and abs(e) <= e_max:
+        if lo < e < hi and e_lo <= e <= e_max:
             err[k] = 0.0
         else:
             if kind == 2:  # u~ with the field held at E_{k-1}: thermally active dipoles go
                 y0 = _predict(kind, e_prev, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2)[0]
             else:  # on switching (creep) while it is held; a relay's P stays put
                 y0 = c0 + g1 * p_prev + g2 * p_prev * p_prev
-            e, p, err[k], slope = _solve(kind, target[k], e_prev, y0, slope, floor, e_max, dt, st,
+            e, p, err[k], slope = _solve(kind, target[k], e_prev, y0, slope, floor, e_lo, e_max,
+                                         dt, st,
                                          sc, ec, wc, ei, cw, scal, c0, g1, g2, tol)
             st[:] = sc  # commit the accepted trial's memory
             if kind != 2:
@@ -186,14 +187,15 @@ def algorithm2(params: hy.Polarization, p_target: FloatArray, state: hy.Polariza
     x = np.zeros(2)
     e, _, w = _algorithm3(k.kind, np.ascontiguousarray(p_target, dtype=float), e_init, p0[0], x, st,
                           dt, k.ec, k.wc, k.ei, k.cw, k.scal, np.eye(2), np.zeros(2),
-                          np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.5 / params.eta, e_max, tol)
+                          np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.5 / params.eta, -e_max, e_max,
+                          tol)
     p_out, _ = hy.run(k, e, state, dt)
     return Inversion(e, p_out, w, hy.PolarizationState(k.kind, st))
 
 
 def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
                e_init: float = 0.0, horizon: int = 1, tol_um: float = 1e-7,
-               e_max: float = 1e3) -> Inversion:
+               e_max: float = 1e3, e_min: float | None = None) -> Inversion:
     """Algorithm 3: fields whose forward displacement (16)+(13) follows ``u_target_um``.
 
     Parameters
@@ -212,7 +214,11 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
     tol_um : float
         Accept a field once its predicted displacement is this close to the target, um.
     e_max : float
-        Largest field magnitude the march may try, MV/m (e.g. the voltage limit / thickness).
+        Largest field the march may try, MV/m (e.g. the upper voltage limit / thickness).
+    e_min : float, optional
+        Smallest field the march may try, MV/m (default ``-e_max``): a unipolar amplifier's
+        0 V makes it 0, so that a target below the stage's reach is found out of reach instead of
+        inverted with a voltage the stage cannot give.
 
     Returns
     -------
@@ -234,7 +240,7 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
     e, pred, w = _algorithm3(cm.kernel.kind, target, e_init, p0[0], x, st, cm.dt, cm.kernel.ec,
                              cm.kernel.wc, cm.kernel.ei, cm.kernel.cw, cm.kernel.scal,
                              cm.disc.phi, cm.disc.gamma, row, gain, rod.a1, rod.a2, rod.offset_um,
-                             floor, e_max, tol_um)
+                             floor, -e_max if e_min is None else e_min, e_max, tol_um)
     return Inversion(e, pred, w, tr.StageState(hy.PolarizationState(ps.kind, st), x))
 
 

@@ -32,7 +32,7 @@ error at sample k is ``displacement[k] - desired[k]`` and sample k's voltage aim
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
@@ -198,16 +198,19 @@ def _segments(desired: Desired, n_in: int, n: int) -> list[int]:
     return sorted({0, n_in, n, *(int(m) for m in marks if n_in < m < n)})
 
 
+class ReachError(guard.LimitError):
+    """The trajectory asks for a displacement the model cannot give within the voltage limits."""
+
+
 def _reach(res: inv.Inversion, n: int, first: int) -> None:
     short = int(np.argmax(res.error[:n]))
     if res.error[short] > REACH_TOL_UM:
-        raise guard.LimitError(
-            f"the trajectory is out of the stage's reach: at sample {first + short} the model falls "
-            f"{res.error[short]:.3f} um short at the voltage limit; reduce amplitude or offset")
+        raise ReachError(f"at sample {first + short} the model falls {res.error[short]:.3f} um "
+                         f"short at the voltage limit")
 
 
 def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState, start_v: float,
-                      limits: guard.Limits, bounds: list[int], e_max: float,
+                      limits: guard.Limits, bounds: list[int], e_lim: tuple[float, float],
                       fixed: tuple[int, ...] | None = None
                       ) -> tuple[FloatArray, tuple[int, ...]]:
     """Algorithm 3 stretch by stretch, each with the smallest horizon (from the smooth one up)
@@ -224,18 +227,17 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
         last: guard.LimitError | None = None
         for d in (h for h in HORIZONS if h >= (max(d0, fixed[i]) if fixed else d0)):
             res = inv.algorithm3(cm, target[s:e + d - 1], st, e_init=v_prev / thick, horizon=d,
-                                 e_max=e_max)
-            _reach(res, e - s, s)
+                                 e_min=e_lim[0], e_max=e_lim[1])
             v = res.voltage(thick)[:e - s]
-            try:
+            try:  # a longer horizon rounds a corner the limit cuts off
+                _reach(res, e - s, s)
                 guard.check(v, dt, limits, v_prev, "inverse waveform")
             except guard.LimitError as exc:
                 last = exc
                 continue
             break
         else:
-            raise guard.LimitError(f"no inversion horizon up to {HORIZONS[-1]} samples keeps the "
-                                   f"waveform within limits; last: {last}")
+            _no_horizon(last)
         parts.append(v)
         horizons.append(d)
         st = tr.simulate(cm, v, st)[2]
@@ -244,7 +246,7 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
 
 
 def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.StageState,
-                   start_v: float, limits: guard.Limits, e_max: float,
+                   start_v: float, limits: guard.Limits, e_lim: tuple[float, float],
                    build: Any, fixed: tuple[int, ...] | None = None) -> Waveform:
     """With an amplifier lag the slew limit clamps the lead at the corners: a longer horizon asks
     for less of it but rounds the corners; keep the (uniform) one the model says tracks best."""
@@ -253,12 +255,12 @@ def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: 
     best: tuple[float, Waveform] | None = None
     for d in (h for h in HORIZONS if h >= max((rd.smooth_horizon(cm.disc), *(fixed or ())))):
         res = inv.algorithm3(cm, target, state, e_init=start_v / cm.model.thickness_um,
-                             horizon=d, e_max=e_max)
-        _reach(res, target.size, 0)
+                             horizon=d, e_min=e_lim[0], e_max=e_lim[1])
         v = fx.unlag_limited(chain, res.voltage(cm.model.thickness_um), start_v,
                              LAG_STEP * limits.max_rate_v_per_ms * 1e3 * dt,
                              (limits.v_min, limits.v_max))
         try:
+            _reach(res, target.size, 0)
             wf = build(v, (d,))
         except guard.LimitError as exc:
             last = exc
@@ -270,6 +272,14 @@ def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: 
         best = (err, wf)
     if best is not None:
         return best[1]
+    _no_horizon(last)
+
+
+def _no_horizon(last: guard.LimitError | None) -> NoReturn:
+    """Raise why no horizon gave a waveform: the reach if the last one fell short of it, else
+    the limit the last one broke."""
+    if isinstance(last, ReachError):
+        raise last
     raise guard.LimitError(f"no inversion horizon up to {HORIZONS[-1]} samples keeps the "
                            f"waveform within limits; last: {last}")
 
@@ -300,7 +310,7 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
     target = np.concatenate([raised_cosine(u0, desired.u_um[0], n_in), desired.u_um[1:],
                              desired.u_um[-1:]])
     target = fx.remove_mode(chain, target)  # what the rod must do for the stage to be there
-    e_max = max(abs(limits.v_min), abs(limits.v_max)) / cm.model.thickness_um
+    e_lim = (limits.v_min / cm.model.thickness_um, limits.v_max / cm.model.thickness_um)
 
     def build(v: FloatArray, horizons: tuple[int, ...]) -> Waveform:
         v_in, v_tr = np.concatenate([prefix_v, v[:n_in]]), v[n_in:]
@@ -309,22 +319,71 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
         guard.check(wf.voltage_v, dt, limits, start_v, "inverse waveform")
         return wf
 
+    try:
+        return _inverted(cm, chain, target, state, start_v, limits, e_lim, build, horizons,
+                         _segments(desired, n_in, target.size))
+    except ReachError as exc:
+        lo, hi = reach(cm.model, limits)
+        raise ReachError(
+            f"the trajectory ({float(np.min(desired.u_um)):.4g} ... "
+            f"{float(np.max(desired.u_um)):.4g} um) is out of the stage's reach: the model "
+            f"reaches {lo:.4g} ... {hi:.4g} um on {limits.v_min:g} ... {limits.v_max:g} V "
+            f"(`afmctl reach`), and {exc}; reduce the amplitude or move the offset") from None
+
+
+def _inverted(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.StageState,
+              start_v: float, limits: guard.Limits, e_lim: tuple[float, float], build: Any,
+              horizons: tuple[int, ...] | None, bounds: list[int]) -> Waveform:
+    """:func:`plan_inverse`'s inversion: lagged, from given horizons, or stretch by stretch."""
     if chain.lag_a != 0.0:
-        return _invert_lagged(cm, chain, target, state, start_v, limits, e_max, build, horizons)
-    bounds = _segments(desired, n_in, target.size)
+        return _invert_lagged(cm, chain, target, state, start_v, limits, e_lim, build, horizons)
     if horizons:
         fixed = bounds if len(horizons) == len(bounds) - 1 else [0, target.size]
-        return build(*_invert_stretches(cm, target, state, start_v, limits, fixed, e_max,
+        return build(*_invert_stretches(cm, target, state, start_v, limits, fixed, e_lim,
                                         horizons))
     try:
-        v, horizons = _invert_stretches(cm, target, state, start_v, limits, bounds, e_max)
-    except guard.LimitError as exc:
-        if "out of the stage's reach" in str(exc):
-            raise
+        v, horizons = _invert_stretches(cm, target, state, start_v, limits, bounds, e_lim)
+    except ReachError:
+        raise
+    except guard.LimitError:
         # a stretch that no horizon fixes after the stretch before it: one horizon throughout
         v, horizons = _invert_stretches(cm, target, state, start_v, limits, [0, target.size],
-                                        e_max)
+                                        e_lim)
     return build(v, horizons)
+
+
+def reach(model: tr.Transducer, limits: guard.Limits, envelope: Envelope | None = None
+          ) -> tuple[float, float]:
+    """The displacements (um, the sensor's frame) the model reaches within the voltage limits:
+    the lowest and highest of its quasi-static response (0.279 Hz) to a triangle over
+    ``[v_min, v_max]`` (narrowed to ``envelope``'s voltages, where the model was identified),
+    after one period that wipes out the initial state. A trajectory must stay inside it; at
+    27.9 Hz the rod's dynamics take a little more near the corners.
+
+    Examples
+    --------
+    >>> from afmctl.files.profile import default_profile
+    >>> lim = guard.Limits(0.0, 150.0, 50.0, 100.0, 2.0)
+    >>> lo, hi = reach(default_profile().emulator.model, lim)
+    >>> round(lo, 1), round(hi, 1)
+    (6.5, 53.6)
+    """
+    lim = conditioning_limits(limits, envelope)
+    cm = tr.compile_model(model, 1e-3)
+    _, u = _quasi_static(cm, tr.initial(model, voltage_v=0.0), lim.v_min, lim.v_max)
+    return float(np.min(u)), float(np.max(u))
+
+
+def _quasi_static(cm: tr.Compiled, state: tr.StageState, lo: float, hi: float
+                  ) -> tuple[FloatArray, FloatArray]:
+    """Voltage and the model's displacement over the second period of a 0.279 Hz triangle over
+    ``[lo, hi]`` (V) from ``state`` (the first period settles it)."""
+    dt = 1e-3
+    t = np.arange(0, 2 / 0.279, dt)
+    v = 0.5 * (hi + lo) + 0.5 * (hi - lo) * sawtooth(2 * np.pi * 0.279 * t + np.pi / 2, 0.5)
+    u, _, _ = tr.simulate(tr.compile_model(cm.model, dt), v, state)
+    half = t >= 1 / 0.279  # the second, settled period
+    return v[half], u[half]
 
 
 def _linear_from_model(cm: tr.Compiled, state: tr.StageState, limits: guard.Limits,
@@ -332,13 +391,7 @@ def _linear_from_model(cm: tr.Compiled, state: tr.StageState, limits: guard.Limi
     """Line through the model's quasi-static (0.279 Hz) response over [v_lo, v_hi]."""
     lo = limits.v_min if v_lo is None else v_lo
     hi = limits.v_max if v_hi is None else v_hi
-    dt = 1e-3
-    t = np.arange(0, 2 / 0.279, dt)
-    v = 0.5 * (hi + lo) + 0.5 * (hi - lo) * sawtooth(2 * np.pi * 0.279 * t + np.pi / 2, 0.5)
-    slow = tr.compile_model(cm.model, dt)
-    u, _, _ = tr.simulate(slow, v, state)
-    half = t >= 1 / 0.279  # the second, settled period
-    return inv.fit_linear(v[half], u[half])
+    return inv.fit_linear(*_quasi_static(cm, state, lo, hi))
 
 
 def plan_linear(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v: float,

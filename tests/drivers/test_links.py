@@ -197,5 +197,6 @@ def test_a_refill_refused_after_the_run_stopped_says_the_run_stopped(profile: Pr
     stage = InProcessStage(prof, clock=jumpy)
     with pytest.raises(StageError) as info:
         stage.play(np.linspace(0.0, 5.0, 3 * 4096))
-    assert info.value.code == 6 and "the run stopped after 4096 of 12288 samples" in str(info.value)
+    assert info.value.code == 10 and "the run stopped after 4096 of 12288 samples" in str(info.value)
+    assert "the host fell behind refilling the table" in str(info.value)  # an underrun, named
     assert stage.status().output_v == 0.0

@@ -264,7 +264,7 @@ def test_ctrl_c_keeps_every_finished_iteration(profile: Profile, nominal: Transd
 
     def each(res: learn.Result) -> None:  # what the CLI writes after every iteration
         learn.write_outputs(res, desired, ilc.Law(), {"profile": "emulated"}, tmp_path)
-        plots.learn_figure(res, desired, tmp_path / "learn.png")
+        plots.save_figure(plots.learn_figure(res, desired), tmp_path / "learn.png")
 
     with InProcessStage(profile, clock=accelerated(8.0)) as stage:
         with pytest.raises(KeyboardInterrupt):
@@ -435,3 +435,14 @@ def test_learning_keeps_to_the_models_envelope(profile: Profile, nominal: Transd
     with pytest.raises(track.EnvelopeError):
         learn.plan_reference(p, desired, wider)
     learn.plan_reference(dc.replace(p, extrapolate=True), desired, wider)
+
+
+def test_learn_png_counts_iterations_in_whole_numbers(profile: Profile, nominal: Transducer,
+                                                      tmp_path: Path) -> None:
+    """Issue 27 item 18: learn.png's iteration axis had fractional ticks (0.25, 0.5, ...)."""
+    res = learn_on(profile, nominal, tmp_path, 1, ilc.Law(floor_factor=0))
+    desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / profile.sample_rate_hz)
+    fig = plots.learn_figure(res, desired)
+    lo, hi = fig.axes[0].get_xlim()
+    ticks = [t for t in fig.axes[0].get_xticks() if lo <= t <= hi]
+    assert len(ticks) >= 2 and all(float(t).is_integer() for t in ticks), ticks

@@ -150,3 +150,13 @@ def test_an_interrupted_sweep_reads_but_is_refused_for_fitting(tmp_path: Path) -
     np.testing.assert_array_equal(sw.read(partial).voltage_v, sw.read_complete(done).voltage_v)
     with pytest.raises(FileFormatError, match="interrupted sweep.*--resume"):
         sw.read_complete(partial)
+
+
+@pytest.mark.parametrize("v_range", [(-150.0, 150.0), (0.0, 150.0), (-30.0, 150.0)])
+def test_every_sweep_ends_exactly_where_it_started(v_range: tuple[float, float]) -> None:
+    """Issue 27 item 16: the 27.9 Hz sweep ended one sample short of 0 V (-0.384 V) and the next
+    track planned from there; every sweep of every design ends at its start (0 V here)."""
+    from afmctl.planning import sweepdesign
+    for name, _, v, _ in sweepdesign.design_set("separating", 10_000.0, 5e4, v_range):
+        assert v[0] == 0.0 and v[-1] == 0.0, (name, v[-1])
+        assert np.abs(np.diff(v)).max() <= 5.0, name  # no step: within 50 V/ms at 10 kHz

@@ -80,3 +80,31 @@ def test_track_over_the_wire_equals_in_process(kind: str, profile: Profile,
         scores[where] = {k: (o.score.rms_um, o.score.max_um, o.complete) for k, o in runs.items()}
     assert scores["inprocess"] == scores[kind]
     assert scores[kind]["inverse"][0] < 0.1 < scores[kind]["linear"][0]
+
+
+UNIPOLAR = guard.Limits(v_min=0, v_max=150, slew_v_per_ms=50, current_ma=100, capacitance_uf=2)
+
+
+@pytest.mark.parametrize("offset", [5.0, 15.0, 45.0])
+def test_unreachable_on_an_asymmetric_range_is_reported_as_reach(nominal: tr.Transducer,
+                                                                 offset: float) -> None:
+    """Issue 27 item 6: below a 0-150 V stage's reach the inverse used negative voltages the
+    stage cannot give and the plan failed as "no inversion horizon up to 64 samples"; it is
+    reported as reach, with the range the model reaches (below and above alike)."""
+    lo, hi = track.reach(nominal, UNIPOLAR)
+    desired = track.triangle(27.9, 27.04, offset, 2, DT)
+    assert desired.u_um.min() < lo or desired.u_um.max() > hi  # the case is out of reach
+    with pytest.raises(track.ReachError, match=r"out of the stage's reach: the model reaches "
+                       rf"{lo:.4g} \.\.\. {hi:.4g} um on 0 \.\.\. 150 V"):
+        track.plan(nominal, desired, UNIPOLAR)
+
+
+def test_a_triangle_centred_in_the_reach_plans_within_a_unipolar_range(
+        nominal: tr.Transducer) -> None:
+    lo, hi = track.reach(nominal, UNIPOLAR)
+    assert lo > 0 and hi - lo > 27.04  # a unipolar stage starts above 0 um
+    desired = track.triangle(27.9, 27.04, 0.5 * (lo + hi), 2, DT)
+    wf = track.plan(nominal, desired, UNIPOLAR)["inverse"]
+    assert wf.voltage_v.min() >= 0.0
+    u = run_model(nominal, wf)[wf.tracking]
+    assert np.sqrt(np.mean((u - desired.u_um) ** 2)) < 0.1  # the model tracks it (um)
