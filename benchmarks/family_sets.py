@@ -125,14 +125,14 @@ def profile_toml(case: Case, transport: str = 'kind = "emulated"') -> str:
     """``case`` as a profile file (``afmctl emulate --profile``), transport ``transport``."""
     from afmctl.profiles import __file__ as where
     text = (Path(where).parent / "emulated-foreign.toml").read_text()
-    head, _, rest = text.partition("[emulator.foreign]")
+    head, _, rest = text.partition("\n[emulator.foreign]\n")
     _, _, model = rest.partition("[emulator.model.transducer]")
     lo, hi = case.drive_V
     head = head.replace("v_min_V = 0.0", f"v_min_V = {lo}").replace("v_max_V = 150.0",
                                                                   f"v_max_V = {hi}")
     head = head.replace('kind = "emulated"', transport, 1)
     s = case.spec
-    table = (f'[emulator.family]\nfamily = "{s.family}"\nseed = {s.seed}\n'
+    table = (f'\n[emulator.family]\nfamily = "{s.family}"\nseed = {s.seed}\n'
              f"creep = {str(s.creep).lower()}\ndrift = {str(s.drift).lower()}\n"
              f'density = "{s.density}"\n' + (f'effect = "{s.effect}"\n' if s.effect else ""))
     return head + table + "\n[emulator.model.transducer]" + model
