@@ -121,21 +121,25 @@ def profile(case: Case) -> Profile:
                       limits=dc.replace(base.limits, v_min=lo, v_max=hi))
 
 
-def profile_toml(case: Case, transport: str = 'kind = "emulated"') -> str:
-    """``case`` as a profile file (``afmctl emulate --profile``), transport ``transport``."""
+def profile_text(table: str, v_min: float = 0.0, transport: str = 'kind = "emulated"') -> str:
+    """The shipped foreign profile's text with ``[emulator.family]`` (``table``: its lines)
+    instead of its ``[emulator.foreign]``, over ``v_min .. 150`` V, transport ``transport``."""
     from afmctl.profiles import __file__ as where
     text = (Path(where).parent / "emulated-foreign.toml").read_text()
     head, _, rest = text.partition("\n[emulator.foreign]\n")
     _, _, model = rest.partition("[emulator.model.transducer]")
-    lo, hi = case.drive_V
-    head = head.replace("v_min_V = 0.0", f"v_min_V = {lo}").replace("v_max_V = 150.0",
-                                                                  f"v_max_V = {hi}")
-    head = head.replace('kind = "emulated"', transport, 1)
+    head = head.replace("v_min_V = 0.0", f"v_min_V = {v_min}").replace('kind = "emulated"',
+                                                                      transport, 1)
+    return head + "\n[emulator.family]\n" + table + "\n[emulator.model.transducer]" + model
+
+
+def profile_toml(case: Case, transport: str = 'kind = "emulated"') -> str:
+    """``case`` as a profile file (``afmctl emulate --profile``), transport ``transport``."""
     s = case.spec
-    table = (f'\n[emulator.family]\nfamily = "{s.family}"\nseed = {s.seed}\n'
-             f"creep = {str(s.creep).lower()}\ndrift = {str(s.drift).lower()}\n"
-             f'density = "{s.density}"\n' + (f'effect = "{s.effect}"\n' if s.effect else ""))
-    return head + table + "\n[emulator.model.transducer]" + model
+    table = (f'family = "{s.family}"\nseed = {s.seed}\ncreep = {str(s.creep).lower()}\n'
+             f'drift = {str(s.drift).lower()}\ndensity = "{s.density}"\n'
+             + (f'effect = "{s.effect}"\n' if s.effect else ""))
+    return profile_text(table, case.drive_V[0], transport)
 
 
 class SteppedClock:

@@ -23,19 +23,11 @@ from afmctl.drivers.device.serial_server import SerialServer
 from afmctl.drivers.inprocess import InProcessStage
 from afmctl.files import sweepfile as sw
 from afmctl.files.profile import FamilySpec, Profile, SerialTransport, load_profile
+from benchmarks.family_sets import FAMILY_CASES, profile, profile_toml
+from benchmarks.family_sets import profile_text as _toml
 from tests.harness.paths import PROFILES
 
 FOREIGN = PROFILES / "emulated-foreign.toml"
-
-
-def _toml(table: str, v_min: float = 0.0, transport: str = 'kind = "emulated"') -> str:
-    """The shipped foreign profile with ``[emulator.family]`` (``table``'s lines) instead of its
-    foreign table, over ``v_min .. 150`` V."""
-    head, _, rest = FOREIGN.read_text().partition("\n[emulator.foreign]\n")
-    _, _, model = rest.partition("[emulator.model.transducer]")
-    head = head.replace("v_min_V = 0.0", f"v_min_V = {v_min}").replace('kind = "emulated"',
-                                                                      transport, 1)
-    return head + "\n[emulator.family]\n" + table + "\n[emulator.model.transducer]" + model
 
 
 def _profile(tmp_path: Path, table: str, v_min: float = 0.0) -> Profile:
@@ -63,6 +55,18 @@ def test_profile_keys_reach_the_stage(tmp_path: Path) -> None:
     assert stage.resonance_hz == 800.0 and stage.noise_um == 0.02
     assert stage.drift_um_per_s == -0.01 and stage.drive_range_V == (-150.0, 150.0)
     assert stage.extras.cause == "second-mode"
+
+
+def test_the_benches_stages_load_as_profile_files(tmp_path: Path) -> None:
+    """Every bench stage written as a profile file (for ``afmctl emulate --profile``) reads back
+    as the profile the benches build in-process."""
+    for case in FAMILY_CASES:
+        path = tmp_path / f"{case.name}.toml"
+        path.write_text(profile_toml(case))
+        prof = load_profile(path)
+        assert prof.emulator.family == case.spec  # type: ignore[union-attr]
+        assert (prof.limits.v_min, prof.limits.v_max) == case.drive_V
+        assert prof.limits == profile(case).limits
 
 
 @pytest.mark.parametrize("table, says", [
