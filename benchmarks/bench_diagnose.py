@@ -321,10 +321,7 @@ def main() -> None:
                     help="sweep set recorded on each stage (default standard: three triangles)")
     ap.add_argument("--indices", default=None,
                     help="run only the cases with these indices (comma-separated), e.g. 0,121")
-    ap.add_argument("--family-only", action="store_true",
-                    help="only the out-of-family and other-form stages (issue 23)")
-    ap.add_argument("--family", default="", help="comma-separated out-of-family stages "
-                                                 "(default: all; 'none': no such stage)")
+    family_sets.add_arguments(ap, cache=False)
     ap.add_argument("--other-form", default="", help="comma-separated other-form stages "
                                                      "(default: all; 'none': no such stage)")
     args = ap.parse_args()

@@ -191,13 +191,8 @@ def main() -> int:
     ap.add_argument("--foreign-seed", type=int, default=2026)
     ap.add_argument("--keep-foreign", type=Path, default=None,
                     help="write the foreign sweep sets here (must not exist) instead of a temp dir")
-    ap.add_argument("--family-only", action="store_true",
-                    help="only the out-of-family stages (issue 23)")
-    ap.add_argument("--family", default="", help="comma-separated stage names (default: all; "
-                                                 "'none' skips them)")
+    family_sets.add_arguments(ap)
     ap.add_argument("--family-jobs", type=int, default=1, help="stages fitted at once")
-    ap.add_argument("--family-cache", type=Path, default=None,
-                    help="keep (and reuse) each stage's fit in this folder")
     args = ap.parse_args()
     out: dict[str, object] = {}
     if args.family != "none":

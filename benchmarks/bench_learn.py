@@ -336,12 +336,7 @@ def main() -> None:
     ap.add_argument("--stage", default="",
                     help="one stage alone: an effect of --stages, foreign:<effect> or "
                          "foreign:earlier (implies --stages-only)")
-    ap.add_argument("--family-only", action="store_true",
-                    help="only the out-of-family stages (issue 23)")
-    ap.add_argument("--family", default="", help="comma-separated stage names (default: all; "
-                                                 "'none' skips them)")
-    ap.add_argument("--family-cache", type=Path, default=None,
-                    help="reuse (or keep) each stage's fit in this folder (bench_identify's)")
+    family_sets.add_arguments(ap)
     args = ap.parse_args()
     fam = {} if args.family == "none" or args.stage else family(args.family, args.family_cache)
     if args.family_only:

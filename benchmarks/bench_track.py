@@ -139,12 +139,7 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print the JSON object last")
     ap.add_argument("--periods", type=float, default=3.0,
                     help="periods per experiment (default: track's)")
-    ap.add_argument("--family-only", action="store_true",
-                    help="only the out-of-family stages (issue 23)")
-    ap.add_argument("--family", default="", help="comma-separated stage names (default: all; "
-                                                 "'none' skips them)")
-    ap.add_argument("--family-cache", type=Path, default=None,
-                    help="reuse (or keep) each stage's fit in this folder (bench_identify's)")
+    family_sets.add_arguments(ap)
     args = ap.parse_args()
     fam = {} if args.family == "none" else family(args.family, args.family_cache, args.periods)
     if args.family_only:

@@ -21,6 +21,7 @@ profile file for ``afmctl emulate --profile``.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses as dc
 import json
 import time
@@ -97,6 +98,18 @@ OTHER_FORMS = ("amplifier-lag", "thermal-relaxation", "second-mode", "sensor-del
 OTHER_FORM_CASES = tuple(Case(f"other-{c}-{k}", "preisach", seed=400 + 10 * i + k,
                               density="separable", effect=c)
                          for i, c in enumerate(OTHER_FORMS) for k in range(2))
+
+
+def add_arguments(ap: argparse.ArgumentParser, cache: bool = True) -> None:
+    """A bench's flags for its out-of-family part: ``--family-only``, ``--family NAMES`` and
+    (``cache``) ``--family-cache DIR``."""
+    ap.add_argument("--family-only", action="store_true",
+                    help="only the out-of-family stages (issue 23)")
+    ap.add_argument("--family", default="", help="comma-separated out-of-family stages "
+                                                 "(default: all; 'none': no such stage)")
+    if cache:
+        ap.add_argument("--family-cache", type=Path, default=None,
+                        help="reuse (or keep) each stage's fit in this folder")
 
 
 def cases_named(names: str, pool: tuple[Case, ...] = FAMILY_CASES) -> tuple[Case, ...]:
