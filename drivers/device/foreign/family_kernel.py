@@ -81,7 +81,7 @@ def output_map(P: FloatArray, y: float, w: float) -> float:
 
 @numba.njit(cache=True)
 def _gauge(P: FloatArray, x: float) -> float:
-    if P[I_GAP] <= 0.0:
+    if P[I_GAP] == 0.0:
         return x
     d = x - P[I_MID]
     return P[I_MID] + P[I_GAP] * d / (P[I_GAP] - d)

@@ -103,7 +103,7 @@ class FamilyPhysics(Physics):
         self.dt = 1.0 / self.sample_rate_hz
 
     def initial(self) -> fs.FamilyState:  # type: ignore[override]
-        """Power-on: the operator brought up to 0 V from its lower end, settled."""
+        """Power-on: poled (once over the drive range and back to 0 V), settled."""
         return fs.initial_state(self.stage)
 
     def gain(self, run_index: int) -> float:

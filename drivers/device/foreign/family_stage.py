@@ -16,7 +16,7 @@ of the span), the output map is convex (``g2, g3 >= 0``), the span 60-110 um.
 
 API
 ---
-``initial_state(stage)``, ``run(stage, voltage_V, rate_hz, state) -> (true_um, reading_um, state)``
+``initial_state(stage)`` (poled: once over the drive range and back to 0 V), ``run(stage, voltage_V, rate_hz, state) -> (true_um, reading_um, state)``
 (noise-free; the emulator adds the noise), ``idle(stage, state, seconds, voltage_V)`` (exact for
 any length of hold: creep relaxes, the drift grows), ``describe(stage)``.
 
@@ -146,7 +146,8 @@ class Extras:
     viscous_tau_s : the hysteresis sees the input through this lag, s (thermal-relaxation).
     mode2 : (frequency Hz, damping ratio, residue) of a second mode in modal sum (second-mode).
     adc_window_s : the gauge integrates the position over this window, s (sensor-delay).
-    gauge_gap_um, gauge_mid_um : capacitive gap law ``mid + G d / (G - d)`` (sensor-nonlinearity).
+    gauge_gap_um, gauge_mid_um : capacitive gap law ``mid + G d / (G - d)``, G of either sign
+    (the gap closes or opens as the stage extends) (sensor-nonlinearity).
     gain_delta, gain_tau_s : gain warm-up ``1 + delta (1 - exp(-t / tau))`` (voltage-gain-drift).
     """
 
@@ -166,7 +167,7 @@ class Extras:
                  ("thermal-relaxation", self.viscous_tau_s > 0),
                  ("second-mode", self.mode2 is not None),
                  ("sensor-delay", self.adc_window_s > 0),
-                 ("sensor-nonlinearity", self.gauge_gap_um > 0),
+                 ("sensor-nonlinearity", self.gauge_gap_um != 0),
                  ("voltage-gain-drift", self.gain_tau_s > 0)]
         on = [c for c, yes in named if yes]
         return on[0] if len(on) == 1 else "none" if not on else "+".join(on)
@@ -349,8 +350,14 @@ def _settle(stage: FamilyStage, state: FamilyState, voltage_V: float) -> FamilyS
 
 
 def initial_state(stage: FamilyStage) -> FamilyState:
-    """Power-on: the relays down (operator at its lower end), brought up to 0 V, settled."""
-    return _settle(stage, _state(stage, stage.w0, 0.0), 0.0)
+    """Power-on of a poled stage: the operator from its lower end up to 0 V, then once over the
+    top of the drive range and back to 0 V (as after its last use), settled there."""
+    st = _state(stage, stage.w0, 0.0)
+    c = compile_stage(stage, 1000.0)
+    s, mem = st.scalars.copy(), st.memory.copy()
+    for w in (1.0, stage.w0):
+        kn.core(c.P, c.F, c.r, c.p, s, mem, w)
+    return _settle(stage, FamilyState(s, mem, st.creep, st.ring), 0.0)
 
 
 def run(stage: FamilyStage, voltage_V: FloatArray, sample_rate_hz: float, state: FamilyState

@@ -181,3 +181,25 @@ def test_random_stages_have_stage_like_loops(family: str, drive: tuple[float, fl
         assert 0.095 <= width <= 0.185, (seed, width)
         half = n // 2
         assert asc[-1] - asc[half] > 1.15 * (asc[half] - asc[0]), seed
+
+
+def test_second_forms_of_the_sensor_causes_act_as_written() -> None:
+    """The integrating gauge reads a slow ramp half its window late; the capacitive gap law
+    reads ``mid + G d / (G - d)`` of the true position, nothing else."""
+    base = _stage("preisach", 8, density="separable")
+    v = np.linspace(20.0, 130.0, 4000)
+    window = fs.Extras(adc_window_s=0.0008)
+    stage = fs.replace(base, extras=window)
+    true_um, reading, _ = fs.run(stage, v, 1e4, fs.initial_state(stage))
+    pos = reading + stage.zero_um
+    mid = slice(1000, 3000)
+    slope = np.gradient(true_um, 1e-4)[mid]
+    lag_s = np.median((true_um[mid] - pos[mid]) / slope)
+    assert lag_s == pytest.approx(0.0004, rel=0.05)
+    gap = fs.Extras(gauge_gap_um=-900.0, gauge_mid_um=40.0)
+    stage = fs.replace(base, extras=gap)
+    true_um, reading, _ = fs.run(stage, v, 1e4, fs.initial_state(stage))
+    d = true_um - 40.0
+    np.testing.assert_allclose(reading + stage.zero_um, 40.0 + (-900.0) * d / (-900.0 - d),
+                               atol=1e-9)
+    assert np.max(np.abs(reading + stage.zero_um - true_um)) > 0.5  # a visible nonlinearity
