@@ -16,9 +16,10 @@ of the span), the output map is convex (``g2, g3 >= 0``), the span 60-110 um.
 
 API
 ---
-``initial_state(stage)`` (poled: once over the drive range and back to 0 V), ``run(stage, voltage_V, rate_hz, state) -> (true_um, reading_um, state)``
-(noise-free; the emulator adds the noise), ``idle(stage, state, seconds, voltage_V)`` (exact for
-any length of hold: creep relaxes, the drift grows), ``describe(stage)``.
+``initial_state(stage)`` (poled: once over the drive range and back to 0 V),
+``run(stage, voltage_V, rate_hz, state) -> (true_um, reading_um, state)`` (noise-free; the
+emulator adds the noise), ``idle(stage, state, seconds, voltage_V)`` (exact for any length of
+hold: creep relaxes, the drift grows), ``describe(stage)``.
 
 Example
 -------
