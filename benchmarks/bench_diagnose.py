@@ -11,6 +11,15 @@ invert (all in the vocabulary but a per-run gain), a 27.9 Hz triangle is tracked
 and with the extended model diagnose wrote, on the same foreign plant, and judged by the stage's
 true position.
 
+Out-of-family stages (issue 23, ``benchmarks/family_sets.py``; ``--family-only`` runs this part
+alone, ``--family`` / ``--other-form`` choose stages by name): the three standard triangles
+recorded through the driver on each, then ``diagnose``. ``family_wrong_cause`` counts the
+out-of-family stages (no vocabulary effect; creep on some) on which a cause they do not carry
+was named; ``family_creep_named`` of ``family_creep_stages`` the creep stages (without drift)
+named ``creep``; ``other_form_named`` of ``other_form_stages`` the in-family Preisach stages
+carrying a second form of one of diagnose's causes (:mod:`afmctl.drivers.device.foreign.family_physics`)
+on which that cause was named.
+
 Run: ``python benchmarks/bench_diagnose.py --json [--jobs 2]`` (last line one JSON object: ``cases``,
 ``correct``, ``false_alarms``, ``none_on_effect``, ``unexplained_right``, ``median_seconds``,
 ``track_extended_beats_base``, ``track_cases``, the confusion matrix and per-case rows).
@@ -22,6 +31,7 @@ import argparse
 import json
 import statistics
 import sys
+import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
@@ -31,8 +41,9 @@ from typing import Any
 import numpy as np
 
 if __package__:  # python -m benchmarks.<name>, or imported by the tests
-    from benchmarks import foreign_sets
+    from benchmarks import family_sets, foreign_sets
 else:  # python benchmarks/<name>.py: Python puts this folder on the path
+    import family_sets
     import foreign_sets
 
 from afmctl import guard
@@ -254,6 +265,52 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+def family_row(name: str) -> dict[str, Any]:
+    """Diagnose on one out-of-family or other-form stage's standard triangles."""
+    case = family_sets.cases_named(name, family_sets.FAMILY_CASES
+                                   + family_sets.OTHER_FORM_CASES)[0]
+    with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
+        sweeps = family_sets.record(s, Path(tmp) / "sweeps")
+        d = dg.diagnose(sweeps, dg.Settings(jobs=1))
+    present = {c for c in ("creep" if case.creep else None, case.effect) if c}
+    named = d.cause
+    return {"stage": case.name, "family": case.family, "creep": case.creep, "drift": case.drift,
+            "effect": case.effect, "want": case.cause, "named": named,
+            "wrong": named not in ("none", "unexplained") and named not in present,
+            "noise_um": s.noise_um, "base_over_noise": d.base_over_noise,
+            "extended_over_noise": d.extended_over_noise, "closest": d.closest.fitted.name,
+            "seconds": round(d.seconds, 1)}
+
+
+def family_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The ``family_*`` and ``other_form_*`` keys of the rows."""
+    fam = [r for r in rows if r["effect"] is None]
+    creep = [r for r in fam if r["creep"] and not r["drift"]]
+    other = [r for r in rows if r["effect"] is not None]
+    return {"family_stages": len(fam), "family_wrong_cause": sum(r["wrong"] for r in fam),
+            "family_creep_named": sum(r["named"] == "creep" for r in creep),
+            "family_creep_stages": len(creep),
+            "other_form_named": sum(r["named"] == r["effect"] for r in other),
+            "other_form_stages": len(other), "family_rows": rows}
+
+
+def family(names: str, other: str, jobs: int) -> dict[str, Any]:
+    """Diagnose on the chosen out-of-family and other-form stages (``none``: no such stage)."""
+    chosen = [] if names == "none" else [c.name for c in family_sets.cases_named(names)]
+    if other != "none":
+        chosen += [c.name for c in family_sets.cases_named(other, family_sets.OTHER_FORM_CASES)]
+    rows = []
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        for future in as_completed([pool.submit(family_row, n) for n in chosen]):
+            rows.append(future.result())
+            r = rows[-1]
+            log(f"  {r['stage']:30s} (want {r['want']}): named {r['named']:20s} base "
+                f"{r['base_over_noise']:.2f}x -> {r['extended_over_noise']:.2f}x noise, closest "
+                f"{r['closest']} ({r['seconds']} s)")
+    rows.sort(key=lambda r: chosen.index(r["stage"]))
+    return family_summary(rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print the JSON object last")
@@ -265,7 +322,14 @@ def main() -> None:
                     help="sweep set recorded on each stage (default standard: three triangles)")
     ap.add_argument("--indices", default=None,
                     help="run only the cases with these indices (comma-separated), e.g. 0,121")
+    family_sets.add_arguments(ap, cache=False)
+    ap.add_argument("--other-form", default="", help="comma-separated other-form stages "
+                                                     "(default: all; 'none': no such stage)")
     args = ap.parse_args()
+    fam = family(args.family, args.other_form, args.jobs)
+    if args.family_only:
+        print(json.dumps(dg.json_safe(fam)))
+        return
     chosen = cases(args.clean)
     if args.indices:
         keep = {int(i) for i in args.indices.split(",")}
@@ -284,7 +348,7 @@ def main() -> None:
             log(f"{row['cause']:20s} s={row['strength']}: named {row['named']:20s} base "
                 f"{row['base_over_noise']:.2f}x -> {row['extended_over_noise']:.2f}x noise "
                 f"({row['seconds']} s){extra}")
-    out = {**summary(rows), "seconds": round(time.perf_counter() - t0, 1), "rows": rows}
+    out = {**summary(rows), "seconds": round(time.perf_counter() - t0, 1), "rows": rows, **fam}
     log(f"{out['correct']}/{out['cases']} right, false alarms {out['false_alarms']}, none on an "
         f"effect {out['none_on_effect']}, unexplained right {out['unexplained_right']}, median "
         f"{out['median_seconds']} s, track {out['track_extended_beats_base']}/{out['track_cases']}")

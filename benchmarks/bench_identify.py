@@ -20,6 +20,15 @@ sweep within 1.5x, ``foreign_worst_over_noise`` is the largest ratio, ``foreign_
 the median fit time; ``foreign_rows`` has one row per stage (design, start, ratios, the noise
 estimated from the data beside the truth).
 
+Out-of-family stages (issue 23, ``benchmarks/family_sets.py``): Preisach (non-separable,
+off-centre density), modified Prandtl-Ishlinskii and Bouc-Wen stages, unipolar and bipolar, with
+and without creep, two with frame drift, served by the emulated device (``[emulator.family]``);
+their three standard triangles recorded through the driver and identified with default settings.
+``family_at_floor`` counts the stages whose every sweep is within 1.5x the true noise,
+``family_worst_over_noise`` the largest ratio, ``family_median_seconds`` the median fit time,
+``family_rows`` one row per stage. ``--family-only`` runs this part alone (``--family-jobs 2``
+fits two stages at once; ``--family-cache DIR`` keeps each fit for bench_track and bench_learn).
+
 The last line printed is one JSON object. Run from the repo root:
 ``python -m benchmarks.bench_identify --json``
 """
@@ -41,6 +50,11 @@ from afmctl.fit import baselines, identify
 from afmctl.model import hysteresis as hy
 from afmctl.model import rod as rd
 from afmctl.model.transducer import Transducer
+
+if __package__:  # python -m benchmarks.<name>
+    from benchmarks import family_sets
+else:  # python benchmarks/<name>.py
+    import family_sets
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "smarthysteresis_1hz.csv"
@@ -138,6 +152,37 @@ def foreign(n: int, seed: int, keep: Path | None) -> dict[str, object]:
             "foreign_seed": seed, "foreign_rows": rows}
 
 
+def family_stage(name: str, cache: Path | None) -> dict[str, object]:
+    """Record and identify one out-of-family stage (:mod:`family_sets`)."""
+    case = family_sets.cases_named(name)[0]
+    with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
+        sweeps = family_sets.record(s, Path(tmp) / "sweeps")
+        fit = family_sets.identified(case, sweeps, s.noise_um, cache)
+    ratios = fit["rms_over_noise"]
+    return {"stage": case.name, "family": case.family, "drive_V": list(case.drive_V),
+            "creep": case.creep, "drift": case.drift, "noise_um": s.noise_um,
+            "rms_over_noise": ratios, "at_floor": max(ratios) <= identify.FLOOR,
+            "success": fit["success"], "seconds": fit["seconds"], "cached": fit["cached"]}
+
+
+def family(names: str, jobs: int, cache: Path | None) -> dict[str, object]:
+    """``family_*`` figures over the out-of-family stages (all, or those ``names`` lists)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    cases = family_sets.cases_named(names)
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        rows = list(pool.map(family_stage, [c.name for c in cases], [cache] * len(cases)))
+    for r in rows:
+        print(f"  {r['stage']:18s}: RMS / noise "
+              + " / ".join(f"{x:.2f}" for x in r["rms_over_noise"])  # type: ignore[attr-defined]
+              + f" ({r['seconds']:.0f} s{', cached' if r['cached'] else ''})", file=sys.stderr)
+    worst = [max(r["rms_over_noise"]) for r in rows]  # type: ignore[type-var]
+    return {"family_stages": len(rows), "family_at_floor": sum(bool(r["at_floor"]) for r in rows),
+            "family_worst_over_noise": max(worst),
+            "family_median_seconds": float(np.median([r["seconds"] for r in rows])),
+            "family_rows": rows}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="end with one JSON line (always printed)")
@@ -146,8 +191,16 @@ def main() -> int:
     ap.add_argument("--foreign-seed", type=int, default=2026)
     ap.add_argument("--keep-foreign", type=Path, default=None,
                     help="write the foreign sweep sets here (must not exist) instead of a temp dir")
+    family_sets.add_arguments(ap)
+    ap.add_argument("--family-jobs", type=int, default=1, help="stages fitted at once")
     args = ap.parse_args()
     out: dict[str, object] = {}
+    if args.family != "none":
+        print("out-of-family stages ...", file=sys.stderr)
+        out.update(family(args.family, args.family_jobs, args.family_cache))
+    if args.family_only:
+        print(json.dumps(out))
+        return 0
     if args.data.is_file():
         print(f"real data: {args.data}", file=sys.stderr)
         out.update(real(args.data))

@@ -29,6 +29,14 @@ serial protocol on a pty; its standard triangles recorded through the driver and
 ``afmctl identify`` on them, or ``afmctl diagnose``'s extended model for the sensor effects;
 judged by its true position in the lab's calibration frame (:mod:`foreign_learn`).
 
+Out-of-family stages (issue 23, ``benchmarks/family_sets.py``; ``--family-only`` runs this part
+alone): on each, the model identify gives on its standard triangles (``--family-cache DIR``:
+bench_identify's fits) and ``learn.run`` on a 27.9 Hz triangle (27.04 um, or 60 % of the fast
+sweep's span if less, about its middle), 5 iterations, judged by the stage's true position;
+then the kept waveform is replayed after 60 s of device time (creep and drift go on).
+``family_learn_ok`` counts the stages within 2x the noise, ``family_replay_ok`` those whose
+replay still is.
+
 Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object); ``--stage
 sensor-nonlinearity`` (any name of ``--stages``, or ``foreign:<effect>``, or ``foreign:earlier``)
 for one stage alone (the same row as in the whole bench; no seed comparison, no 100 Hz run).
@@ -60,8 +68,9 @@ from afmctl.model import transducer as tr
 from afmctl.planning import ilc, track
 
 if __package__:  # python -m benchmarks.<name>, or imported by the tests
-    from benchmarks import foreign_learn, learn_judge
+    from benchmarks import family_sets, foreign_learn, learn_judge
 else:  # python benchmarks/<name>.py: Python puts this folder on the path
+    import family_sets
     import foreign_learn
     import learn_judge
 
@@ -251,6 +260,52 @@ def refused_or(cause: str, row: Any) -> dict[str, Any]:
                 "stage_errors": errors}
 
 
+#: Device time between learning and the replay of its kept waveform, s.
+REPLAY_AFTER_S = 60.0
+
+
+def family_row(case: family_sets.Case, cache: Path | None, tmp: Path) -> dict[str, Any]:
+    """Learning on one out-of-family stage, and the replay :data:`REPLAY_AFTER_S` later."""
+    with family_sets.session(case) as s:
+        sweeps = family_sets.record(s, tmp / "sweeps")
+        fit = family_sets.identified(case, sweeps, s.noise_um, cache)
+        lo, hi = family_sets.span_of(sweeps)
+        desired = track.triangle(FREQ_HZ, min(AMP_UM, 0.6 * (hi - lo)), 0.5 * (lo + hi), 3,
+                                 1 / s.profile.sample_rate_hz)
+        row: dict[str, Any] = {"stage": case.name, "family": case.family, "creep": case.creep,
+                               "drift": case.drift, "noise_um": s.noise_um}
+        first = len(s.probe.positions)
+        try:
+            res = learn.run(s.probe, fit["model"], desired, s.profile.limits, tmp / "learn", {},
+                            5, ilc.Law())
+        except (LimitError, StageError) as exc:
+            return {**row, "stop": f"refused: {exc}", "ok": False, "replay_ok": False}
+        rms = [learn_judge.true_rms(s.probe.positions[first + i], it, desired)
+               for i, it in enumerate(res.iterations)]
+        s.clock.skip(REPLAY_AFTER_S)
+        s.probe.play(res.best_iteration.outcome.waveform.voltage_v)
+        replay = learn_judge.true_rms(s.probe.positions[-1], res.best_iteration, desired)
+    noise = s.noise_um
+    row.update({"rms_um_by_iteration": rms, "kept_iteration": res.best, "stop": res.stop,
+                "final_over_noise": rms[res.best] / noise, "ok": rms[res.best] <= 2 * noise,
+                "replay_after_s": REPLAY_AFTER_S, "replay_rms_um": replay,
+                "replay_over_noise": replay / noise, "replay_ok": replay <= 2 * noise})
+    log(f"  {case.name:18s}: true RMS {' -> '.join(f'{x:.4f}' for x in rms)} um "
+        f"({rms[res.best] / noise:.2f}x noise, {res.stop[:40]}); replayed "
+        f"{REPLAY_AFTER_S:g} s later {replay / noise:.2f}x")
+    return row
+
+
+def family(names: str, cache: Path | None) -> dict[str, Any]:
+    """The ``family_*`` keys."""
+    rows = []
+    with tempfile.TemporaryDirectory() as td:
+        for case in family_sets.cases_named(names):
+            rows.append(family_row(case, cache, Path(td) / case.name))
+    return {"family_stages": len(rows), "family_learn_ok": sum(r["ok"] for r in rows),
+            "family_replay_ok": sum(r["replay_ok"] for r in rows), "family_rows": rows}
+
+
 def iterations_to(rms: list[float], level: float) -> int | None:
     return next((i for i, x in enumerate(rms) if x <= level), None)
 
@@ -281,7 +336,12 @@ def main() -> None:
     ap.add_argument("--stage", default="",
                     help="one stage alone: an effect of --stages, foreign:<effect> or "
                          "foreign:earlier (implies --stages-only)")
+    family_sets.add_arguments(ap)
     args = ap.parse_args()
+    fam = {} if args.family == "none" or args.stage else family(args.family, args.family_cache)
+    if args.family_only:
+        print(json.dumps(fam))
+        return
     if args.stage:
         try:
             one(args, args.stage)
@@ -289,7 +349,7 @@ def main() -> None:
             ap.error(str(exc))
     base = default_profile()
     assert base.emulator is not None
-    out: dict[str, Any] = {}
+    out: dict[str, Any] = dict(fam)
     with tempfile.TemporaryDirectory() as td:
         tmp = Path(td)
         rows = []

@@ -6,6 +6,16 @@ through the same driver interface a lab uses, and scored at the samples and, by 
 stage's true plant on a grid 8 times finer, between them. Errors are over the steady part (the
 first period, the transient of the ramp in, is reported apart), as ``afmctl track`` prints them.
 
+Out-of-family stages (issue 23, ``benchmarks/family_sets.py``, ``--family-only`` for this part
+alone): on every unipolar stage, the model identify gives on its three standard triangles
+(``--family-cache DIR``: the fits bench_identify kept) plans a 0.279 Hz triangle over 45 % and a
+27.9 Hz one over 30 % of the span the fast sweep covered, about its middle, with the inverse
+and the linear filter; each is played on the stage and judged by its TRUE position (the plant
+re-simulated, no gauge, no noise), first period out. ``family_open_loop_ratio_min`` is the
+smallest linear / inverse RMS ratio over both experiments and the Preisach and
+Prandtl-Ishlinskii stages, ``bouc_wen_open_loop_ratio_min`` the same over the Bouc-Wen ones
+(0 where the planner refused).
+
 Run: ``python benchmarks/bench_track.py --json`` (last line: one JSON object).
 """
 
@@ -21,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from afmctl import guard
 from afmctl.drivers import open_stage
 from afmctl.experiment import calibration
 from afmctl.experiment import runner as experiment
@@ -29,6 +40,13 @@ from afmctl.fit import identify
 from afmctl.planning import track
 
 EXPERIMENTS = ((0.279, 40.56), (0.279, 27.04), (27.9, 27.04))  # (Hz, um peak-to-peak), Figs 9-11
+#: The out-of-family experiments: (Hz, fraction of the span, peak to peak).
+FAMILY_EXPERIMENTS = ((0.279, 0.45), (27.9, 0.3))
+
+if __package__:  # python -m benchmarks.<name>
+    from benchmarks import family_sets
+else:  # python benchmarks/<name>.py
+    import family_sets
 
 
 def log(msg: str) -> None:
@@ -72,12 +90,61 @@ def run_experiment(stage: Any, model: Any, prof: Profile, freq: float, amp: floa
     return res
 
 
+def family_row(case: family_sets.Case, cache: Path | None, periods: float) -> dict[str, Any]:
+    """Both filters on one out-of-family stage, judged by its true position."""
+    with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
+        sweeps = family_sets.record(s, Path(tmp) / "sweeps")
+        fit = family_sets.identified(case, sweeps, s.noise_um, cache)
+        lo, hi = family_sets.span_of(sweeps)
+        row: dict[str, Any] = {"stage": case.name, "family": case.family, "noise_um": s.noise_um,
+                               "identify_worst_over_noise": max(fit["rms_over_noise"])}
+        ratios = []
+        for freq, frac in FAMILY_EXPERIMENTS:
+            desired = track.triangle(freq, frac * (hi - lo), 0.5 * (lo + hi), periods,
+                                     1 / s.profile.sample_rate_hz)
+            key = f"{freq:g}hz"
+            try:
+                plans = track.plan(fit["model"], desired, s.profile.limits, s.probe.voltage())
+            except guard.LimitError as exc:
+                row[f"{key}_refused"] = str(exc)
+                ratios.append(0.0)
+                continue
+            assert desired.period_s is not None
+            skip = int(round(desired.period_s / desired.dt_s))
+            for name, wf in plans.items():
+                s.probe.play(wf.voltage_v)
+                err = s.probe.positions[-1][wf.tracking] - desired.u_um
+                row[f"{key}_{name}_true_rms_um"] = family_sets.rms(err[skip:])
+            ratios.append(row[f"{key}_linear_true_rms_um"] / row[f"{key}_inverse_true_rms_um"])
+            row[f"{key}_ratio"] = ratios[-1]
+    row["ratio_min"] = min(ratios)
+    log(f"  {case.name:18s}: linear / inverse (true) " + ", ".join(
+        f"{row.get(f'{f:g}hz_ratio', 0.0):.1f} at {f:g} Hz" for f, _ in FAMILY_EXPERIMENTS))
+    return row
+
+
+def family(names: str, cache: Path | None, periods: float) -> dict[str, Any]:
+    """The ``family_*`` and ``bouc_wen_*`` keys over the unipolar out-of-family stages."""
+    cases = [c for c in family_sets.cases_named(names) if not c.bipolar]
+    rows = [family_row(c, cache, periods) for c in cases]
+    pp = [r["ratio_min"] for r in rows if r["family"] != "bouc-wen"]
+    bw = [r["ratio_min"] for r in rows if r["family"] == "bouc-wen"]
+    return {"family_open_loop_ratio_min": min(pp) if pp else None,
+            "bouc_wen_open_loop_ratio_min": min(bw) if bw else None,
+            "family_track_stages": len(rows), "family_track_rows": rows}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--json", action="store_true", help="print the JSON object last")
     ap.add_argument("--periods", type=float, default=3.0,
                     help="periods per experiment (default: track's)")
+    family_sets.add_arguments(ap)
     args = ap.parse_args()
+    fam = {} if args.family == "none" else family(args.family, args.family_cache, args.periods)
+    if args.family_only:
+        print(json.dumps(fam))
+        return
     prof = default_profile()
     assert prof.emulator is not None
     out: dict[str, object] = {}
@@ -100,6 +167,7 @@ def main() -> None:
     out["ratio_27.9hz"] = out["27.9hz_27.04um"]["ratio"]  # type: ignore[index]
     out["limit_slew_V_per_ms"] = prof.limits.max_rate_v_per_ms
     out["periods"] = args.periods
+    out.update(fam)
     if args.json:
         print(json.dumps(out))
 

@@ -10,7 +10,9 @@ faults its servers inject (``[emulator.faults]``, off unless present). ``[emulat
 (off unless present, :class:`ForeignStage`) replaces the plant by an independently written
 foreign stage (:mod:`afmctl.drivers.device.foreign.stage`) drawn from its ``seed``:
 ``[emulator.model]`` is then only what ``track``/``play`` take as the truth between samples, not what
-the device does.
+the device does. ``[emulator.family]`` (:class:`FamilySpec`) likewise replaces it by an
+out-of-family stage (Preisach, modified Prandtl-Ishlinskii or Bouc-Wen hysteresis, creep, drift:
+:mod:`afmctl.drivers.device.foreign.family_stage`); a profile carries at most one of the two.
 Every key carries its unit.
 A wire's ``[transport]`` also gives ``timeout_s`` (per reply) and ``watchdog_s``, the device
 watchdog's period the host arms for every run (default twice ``timeout_s``, which it must exceed;
@@ -39,7 +41,8 @@ from afmctl.model.transducer import Transducer
 FORMAT = "afmctl-profile"
 FORMAT_VERSION = 1
 
-__all__ = ["Effects", "SecondMode", "FileFormatError", "ForeignStage", "Profile", "load_profile",
+__all__ = ["Effects", "SecondMode", "FileFormatError", "FamilySpec", "ForeignStage", "Profile",
+           "load_profile",
            "default_profile", "shipped_profile", "shipped_names"]
 
 
@@ -173,6 +176,48 @@ class ForeignStage:
     overrides: tuple[tuple[str, float | str], ...] = ()
 
 
+#: Out-of-family stages (``[emulator.family]``, :mod:`afmctl.drivers.device.foreign.family_stage`):
+#: hysteresis families, Preisach densities, second forms of diagnose's causes, and the stage
+#: parameters a profile may fix (profile key: the name ``random_family_stage`` knows it by).
+FAMILY_NAMES = ("preisach", "prandtl-ishlinskii", "bouc-wen")
+FAMILY_DENSITIES = ("random", "separable")
+FAMILY_EFFECTS = ("amplifier-lag", "thermal-relaxation", "second-mode", "sensor-delay",
+                  "sensor-nonlinearity", "voltage-gain-drift")
+FAMILY_NUMBERS: dict[str, str] = {
+    "span_um": "span_um", "hysteresis": "hysteresis", "resonance_Hz": "resonance_hz",
+    "damping_ratio": "damping", "noise_um": "noise_um", "creep_per_decade": "creep_per_decade",
+    "drift_um_per_s": "drift_um_per_s"}
+
+
+@dataclass(frozen=True)
+class FamilySpec:
+    """An out-of-family stage as the emulated device's plant (``[emulator.family]``).
+
+    Parameters
+    ----------
+    family : str
+        ``preisach``, ``prandtl-ishlinskii`` (modified: cubic output map) or ``bouc-wen``.
+    seed : int
+        Draws the stage (and its effect) and seeds its sensor noise.
+    creep, drift : bool
+        Log-time creep (1-2 % per decade), frame drift linear in time.
+    density : str
+        A Preisach density: ``random`` (non-separable, off-centre) or ``separable``.
+    effect : str or None
+        A second form of one of diagnose's causes (:data:`FAMILY_EFFECTS`).
+    overrides : tuple of (str, float)
+        Fixed stage parameters (profile keys :data:`FAMILY_NUMBERS`).
+    """
+
+    family: str
+    seed: int = 0
+    creep: bool = False
+    drift: bool = False
+    density: str = "random"
+    effect: str | None = None
+    overrides: tuple[tuple[str, float], ...] = ()
+
+
 @dataclass(frozen=True)
 class EmulatorConfig:
     """The emulated device's truth: model, effects, noise (um, 1 sigma), seed, watchdog (s), and
@@ -188,6 +233,7 @@ class EmulatorConfig:
     table_capacity: int = 65536
     faults: WireFaults = field(default_factory=WireFaults)
     foreign: ForeignStage | None = None
+    family: FamilySpec | None = None
 
     @property
     def true_model(self) -> Transducer:
@@ -299,6 +345,23 @@ def _foreign(t: Table | None) -> ForeignStage | None:
     return ForeignStage(t.integer("seed", 0), start, effect, strength, tuple(over))
 
 
+def _family(t: Table | None) -> FamilySpec | None:
+    if t is None:
+        return None
+    known = {"family", "seed", "creep", "drift", "density", "effect", *FAMILY_NUMBERS}
+    for key in t.data:
+        if key not in known:
+            raise t.fail(key, f"unknown key (known: {', '.join(sorted(known))})")
+    signed = ("drift_um_per_s",)
+    over = tuple((name, t.number(key) if key in signed else t.number(key, positive=True))
+                 for key, name in FAMILY_NUMBERS.items() if t.has(key))
+    return FamilySpec(t.string("family", choices=FAMILY_NAMES), t.integer("seed", 0),
+                      t.boolean("creep"), t.boolean("drift"),
+                      t.string("density", "random", choices=FAMILY_DENSITIES),
+                      t.string("effect", choices=FAMILY_EFFECTS) if t.has("effect") else None,
+                      over)
+
+
 def _emulator(t: Table) -> EmulatorConfig:
     mt = t.table("model")
     assert mt is not None
@@ -306,6 +369,11 @@ def _emulator(t: Table) -> EmulatorConfig:
     if mt.has("effects"):
         raise mt.fail("effects", "put the emulator's effects in [emulator.effects]")
     effects, thermal = modelfile.effects_from_table(t.table("effects", required=False))
+    foreign = _foreign(t.table("foreign", required=False))
+    family = _family(t.table("family", required=False))
+    if foreign is not None and family is not None:
+        raise t.fail("family", "a stage is either [emulator.foreign] or [emulator.family], "
+                               "not both")
     if thermal is not None:
         model = replace(model, polarization=replace(model.polarization, thermal=thermal))
     return EmulatorConfig(
@@ -315,7 +383,7 @@ def _emulator(t: Table) -> EmulatorConfig:
         recorder_capacity=t.integer("recorder_capacity", 262144, minimum=1),
         table_capacity=t.integer("table_capacity", 65536, minimum=1),
         faults=_faults(t.table("faults", required=False)),
-        foreign=_foreign(t.table("foreign", required=False)))
+        foreign=foreign, family=family)
 
 
 def from_table(t: Table) -> Profile:

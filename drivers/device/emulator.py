@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl.drivers.device.foreign.family_physics import FamilyPhysics
 from afmctl.drivers.device.foreign.physics import ForeignPhysics
 from afmctl.drivers.device.plant import Physics
 from afmctl.drivers.protocol import Status
@@ -99,12 +100,16 @@ def first_steep(v: FloatArray, previous_v: float, limits: Limits, sample_rate_hz
 
 def plant(profile: Profile, sample_rate_hz: float) -> Physics:
     """The device's plant: afmctl's own model and effects, or the foreign stage of the profile's
-    ``[emulator.foreign]`` (driven over the profile's voltage range)."""
+    ``[emulator.foreign]``, or the out-of-family stage of its ``[emulator.family]`` (either driven
+    over the profile's voltage range)."""
     config = profile.emulator
     assert config is not None
+    drive = (profile.limits.v_min, profile.limits.v_max)
+    if config.family is not None:
+        return FamilyPhysics(config, sample_rate_hz, drive)
     if config.foreign is None:
         return Physics(config, sample_rate_hz)
-    return ForeignPhysics(config, sample_rate_hz, (profile.limits.v_min, profile.limits.v_max))
+    return ForeignPhysics(config, sample_rate_hz, drive)
 
 
 class Emulator:
@@ -192,7 +197,8 @@ class Emulator:
     def _catch_up(self, now: float) -> None:
         """Idle time: while no run plays, the plant goes on evolving at the held output (ringing
         decays, the thermal kernel relaxes) in device time, sample by sample up to ``now`` (the
-        first :data:`IDLE_HORIZON_S` of a longer hold). Lazy: done before the plant is driven
+        first :data:`IDLE_HORIZON_S` of a longer hold; a plant with an ``elapse`` method, e.g. one
+        that creeps or drifts, is told the rest). Lazy: done before the plant is driven
         again. Nothing is recorded or logged (the output does not change)."""
         if self._run is not None:
             return
@@ -204,6 +210,9 @@ class Emulator:
             return
         m = min(k, math.ceil(IDLE_HORIZON_S * self.sample_rate_hz))
         _, _, self.state = self.physics.respond(np.full(m, self.output_v), self.state)
+        elapse = getattr(self.physics, "elapse", None)  # a plant that goes on past the horizon
+        if k > m and elapse is not None:
+            self.state = elapse(self.state, (k - m) / self.sample_rate_hz, self.output_v)
         self.plant_time += k / self.sample_rate_hz
 
     def _hold(self, v: FloatArray, now: float) -> None:
