@@ -81,6 +81,7 @@ _EXPORTS: dict[str, str] = {
     "FitError": "afmctl.errors:FitError",
     "InputError": "afmctl.errors:InputError",
     "LimitError": "afmctl.errors:LimitError",
+    "ReachError": "afmctl.errors:ReachError",
     "StageError": "afmctl.errors:StageError",
 }
 

@@ -10,6 +10,7 @@ kind                       what it means                                        
 :class:`FileFormatError`   a file that is not what it claims (a sweep, a model ...)     2
 :class:`OutputError`       an output that cannot or must not be written                 2
 :class:`LimitError`        a waveform outside the stage's voltage, slew or current      2
+:class:`ReachError`       a trajectory beyond what the stage can reach                 2
 :class:`EnvelopeError`     a waveform outside the model's validity envelope             2
 :class:`StageError`        the stage or its link failed (a refusal, a timeout, a loss)  1
 :class:`StageTimeoutError` the stage did not finish or answer within its bound          1
@@ -67,6 +68,11 @@ class OutputError(InputError):
 
 class LimitError(InputError):
     """A waveform the stage's profile forbids: voltage range, slew or current limit."""
+
+
+class ReachError(LimitError):
+    """A trajectory that asks for a displacement the model cannot give within the voltage limits
+    (refused before anything moves, never clipped)."""
 
 
 class EnvelopeError(InputError):

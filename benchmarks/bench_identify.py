@@ -50,6 +50,7 @@ from afmctl.fit import baselines, identify
 from afmctl.model import hysteresis as hy
 from afmctl.model import rod as rd
 from afmctl.model.transducer import Transducer
+from afmctl.planning import sweepdesign as sd
 
 if __package__:  # python -m benchmarks.<name>
     from benchmarks import family_sets
@@ -101,12 +102,12 @@ def emulated() -> dict[str, object]:
         u = identify.predict(true, v, 1 / RATE_HZ) + NOISE_UM * rng.standard_normal(v.size)
         return sw.from_arrays(v, u, RATE_HZ, {"layer_thickness_um": "100"}, f"triangle_{f:g}hz")
 
-    std = [sweep(f, v) for _, f, v in sw.standard_set(150.0, RATE_HZ)[:3]]
+    std = [sweep(f, v) for _, f, v in sd.standard_set(150.0, RATE_HZ)[:3]]
     identify.fit(std[2:], identify.Settings(max_nfev=2))  # warm the JIT caches (not timed)
     t0, c0 = time.perf_counter(), time.process_time()
     res = identify.fit(std)
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
-    unseen = identify.sweep_error(res.model, sweep(13.95, sw.triangle(13.95, 150.0, 5, RATE_HZ)))
+    unseen = identify.sweep_error(res.model, sweep(13.95, sd.voltage_triangle(13.95, 150.0, 5, RATE_HZ)))
     return {"identify_seconds": seconds, "identify_cpu_seconds": cpu,
             "identify_success": res.success, "identify_at_noise_floor": res.at_noise_floor,
             "emulated_fit_rms_um": [s.rms_um for s in res.sweeps],

@@ -17,6 +17,7 @@ from afmctl.files import sweepfile as sw
 from afmctl.files.profile import Profile
 from afmctl.fit import identify as idf
 from afmctl.model.transducer import Transducer
+from afmctl.planning import sweepdesign as sd
 from tests.harness.emulated import NOISE_UM, PROFILE, SAMPLE_RATE_HZ, SENSOR_ZERO_UM, TRANSPORTS, stage_on  # noqa: F401
 
 if TYPE_CHECKING:
@@ -82,7 +83,7 @@ def emulate() -> Callable[..., sw.Sweep]:
 @pytest.fixture(scope="session")
 def standard_sweeps(emulate: Callable[..., sw.Sweep]) -> list[sw.Sweep]:
     return [emulate(v, f, seed) for seed, (_, f, v) in
-            enumerate(sw.standard_set(150.0, SAMPLE_RATE_HZ)[:3])]
+            enumerate(sd.standard_set(150.0, SAMPLE_RATE_HZ)[:3])]
 
 
 @pytest.fixture(scope="session")

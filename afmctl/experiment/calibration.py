@@ -1,8 +1,8 @@
 """The default model of a stage: identified from the stage's own standard sweeps, cached.
 
 ``afmctl track`` with no ``--model`` uses it. A calibration records the three standard triangle
-sweeps (0.279, 5.58, 27.9 Hz; :func:`afmctl.files.sweepfile.standard_set`) over the profile's voltage range
-[v_min, v_max] (unipolar, semi-bipolar or bipolar amplifiers alike), fits them with
+sweeps (0.279, 5.58, 27.9 Hz; :func:`afmctl.planning.sweepdesign.standard_set`) over the profile's
+voltage range [v_min, v_max] (unipolar, semi-bipolar or bipolar amplifiers alike), fits them with
 :func:`afmctl.fit.identify.fit`, and keeps the sweeps, the model and ``calibration.json`` (when, on
 which sweeps, over which range) in a folder of its own under the cache (``$XDG_CACHE_HOME/afmctl``
 or ``~/.cache/afmctl``), keyed by a hash of the profile: a changed profile gets a new calibration.
@@ -136,6 +136,7 @@ def record_standard(stage: Any, profile: Profile, out: Path, progress: Progress 
     profile's [v_min, v_max]) and write them to ``out``."""
     from afmctl.experiment import runner as experiment
     from afmctl.files import sweepfile as sweeps
+    from afmctl.planning import sweepdesign as sd
 
     lo, hi = v_range if v_range is not None else (profile.limits.v_min, profile.limits.v_max)
     meta = {"profile": profile.name, "layer_thickness_um": f"{profile.thickness_um:g}",
@@ -143,7 +144,7 @@ def record_standard(stage: Any, profile: Profile, out: Path, progress: Progress 
             "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     out.mkdir(parents=True, exist_ok=True)
     recorded = []
-    for name, freq, v in sweeps.standard_set(sample_rate_hz=profile.sample_rate_hz,
+    for name, freq, v in sd.standard_set(sample_rate_hz=profile.sample_rate_hz,
                                              v_range=(lo, hi))[:N_SWEEPS]:
         sweep = experiment.record_sweep(stage, name, freq, v, profile.sample_rate_hz, meta,
                                         progress)

@@ -40,7 +40,6 @@ from afmctl.errors import InputError, SweepFormatError
 
 FloatArray = NDArray[np.float64]
 COLUMNS = ("time_s", "voltage_V", "displacement_um")
-STANDARD_FREQUENCIES_HZ = (0.279, 5.58, 27.9)
 #: How far a sample's time may be off the uniform grid, as a fraction of the period.
 JITTER_TOL = 0.1
 #: Fraction of a sweep's voltage range within which an extreme counts as reached (memory_index).
@@ -405,120 +404,6 @@ def write(sweep: Sweep, path: str | Path) -> None:
     tmp = p.with_name(p.name + ".partial")
     tmp.write_text(format_text(sweep), encoding="utf-8")
     os.replace(tmp, p)
-
-
-# ----------------------------------------------------------------------------------------------
-# the standard identification set (pure waveforms)
-# ----------------------------------------------------------------------------------------------
-
-
-def triangle(frequency_hz: float, amplitude_v: float, cycles: float,
-             sample_rate_hz: float) -> FloatArray:
-    """Triangle wave 0 -> +A -> -A -> 0 per cycle, sampled at ``sample_rate_hz``.
-
-    Parameters
-    ----------
-    frequency_hz : float
-        Hz.
-    amplitude_v : float
-        Peak voltage, V.
-    cycles : float
-        Number of periods.
-    sample_rate_hz : float
-        Hz.
-
-    Returns
-    -------
-    ndarray, shape (round(cycles * sample_rate_hz / frequency_hz) + 1,)
-        Voltage, V.
-
-    Examples
-    --------
-    >>> v = triangle(1.0, 2.0, 1, 8.0)
-    >>> v.tolist()
-    [0.0, 1.0, 2.0, 1.0, 0.0, -1.0, -2.0, -1.0, 0.0]
-    """
-    n = int(round(cycles * sample_rate_hz / frequency_hz))
-    phase = (np.arange(n + 1) * frequency_hz / sample_rate_hz + 0.25) % 1.0
-    return amplitude_v * (1.0 - 4.0 * np.abs(phase - 0.5))
-
-
-def loop(frequency_hz: float, v_lo: float, v_hi: float, cycles: float, sample_rate_hz: float,
-         start_v: float = 0.0) -> FloatArray:
-    """Triangle cycles ``start -> v_hi -> v_lo -> start`` at one constant rate, any voltage range.
-
-    ``start_v`` (clipped into [v_lo, v_hi]) is where each cycle starts and ends: the stage's safe
-    output 0 V, so a sweep starts where the stage is, on a unipolar (0-150 V), semi-bipolar
-    (-30-150 V) or bipolar range alike. ``loop(f, -A, A, ...)`` is :func:`triangle`.
-
-    Returns the voltage, V, ``round(cycles * sample_rate_hz / frequency_hz) + 1`` samples.
-
-    Examples
-    --------
-    >>> loop(1.0, 0.0, 2.0, 1, 8.0).tolist()
-    [0.0, 0.5, 1.0, 1.5, 2.0, 1.5, 1.0, 0.5, 0.0]
-    """
-    v0 = min(max(start_v, v_lo), v_hi)
-    span = v_hi - v_lo
-    n = int(round(cycles * sample_rate_hz / frequency_hz))
-    phase = (np.arange(n + 1) * frequency_hz / sample_rate_hz) % 1.0
-    up = (v_hi - v0) / (2 * span)  # fraction of a cycle spent rising to v_hi
-    nodes = [0.0, up, up + 0.5, 1.0]
-    v = np.interp(phase, nodes, [v0, v_hi, v_lo, v0])
-    if float(cycles).is_integer():  # n samples hold only about ``cycles`` periods: end at the
-        v[-1] = v0  # start exactly (27.9 Hz at 10 kHz ended 0.384 V short of 0 V)
-    return v
-
-
-def nested_loops(frequency_hz: float, amplitude_v: float | None, levels: int,
-                 sample_rate_hz: float,
-                 v_range: tuple[float, float] | None = None) -> FloatArray:
-    """Nested minor loops (paper Fig. 1(b)): one loop per level, each from 0 V up, down and back,
-    the excursions shrinking linearly from the full range to ``1 / levels`` of it.
-
-    ``v_range`` (V) defaults to ``(-amplitude_v, amplitude_v)``. Returns the voltage, V, sampled
-    at ``sample_rate_hz``.
-    """
-    lo, hi = v_range if v_range is not None else (-float(amplitude_v), float(amplitude_v))
-    v0 = min(max(0.0, lo), hi)
-    parts = []
-    for i in range(levels):
-        s = (levels - i) / levels
-        parts.append(loop(frequency_hz, v0 + s * (lo - v0), v0 + s * (hi - v0), 1,
-                          sample_rate_hz, v0)[:-1])
-    return np.concatenate(parts + [np.full(1, v0)])
-
-
-def standard_set(amplitude_v: float = 150.0, sample_rate_hz: float = 10_000.0,
-                 minor_loop_hz: float = 0.1, minor_levels: int = 4,
-                 v_range: tuple[float, float] | None = None
-                 ) -> list[tuple[str, float, FloatArray]]:
-    """The standard identification set as (name, frequency_hz, voltage_v) triples.
-
-    Triangle sweeps at 0.279 Hz (2 cycles), 5.58 Hz (5 cycles) and 27.9 Hz (10 cycles), as in
-    Fig. 2 / Fig. 7 of the paper, then the nested minor loops of Fig. 1(b) at ``minor_loop_hz``.
-    They cover ``v_range`` = (v_min, v_max) V (default ``(-amplitude_v, amplitude_v)``): a
-    unipolar, semi-bipolar or bipolar amplifier's range, every sweep starting and ending at 0 V
-    (or the range's end nearest it). The first three are what :func:`afmctl.fit.identify.fit` is
-    benchmarked on.
-
-    Examples
-    --------
-    >>> [name for name, _, _ in standard_set(sample_rate_hz=1000.0)]
-    ['triangle_0.279hz', 'triangle_5.58hz', 'triangle_27.9hz', 'minor_loops_0.1hz']
-    >>> v = standard_set(v_range=(0.0, 150.0))[2][2]
-    >>> float(v[0]), float(v.min()), round(float(v.max()), 1)
-    (0.0, 0.0, 150.0)
-    """
-    lo, hi = v_range if v_range is not None else (-amplitude_v, amplitude_v)
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-        raise ValueError(f"the voltage range must be finite with v_min < v_max, got [{lo}, {hi}]")
-    cycles = {0.279: 2, 5.58: 5, 27.9: 10}
-    out = [(f"triangle_{f:g}hz", f, loop(f, lo, hi, cycles[f], sample_rate_hz))
-           for f in STANDARD_FREQUENCIES_HZ]
-    out.append((f"minor_loops_{minor_loop_hz:g}hz", minor_loop_hz,
-                nested_loops(minor_loop_hz, None, minor_levels, sample_rate_hz, (lo, hi))))
-    return out
 
 
 def from_arrays(voltage_v: FloatArray, displacement_um: FloatArray, sample_rate_hz: float,

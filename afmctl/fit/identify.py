@@ -559,9 +559,10 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     Examples
     --------
     >>> from afmctl.files import sweepfile as sw
+    >>> from afmctl.planning.sweepdesign import voltage_triangle
     >>> true = pz.to_model(np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25]),
     ...                    np.array([10.0, 0.5, 0.0]), pz.Scales(), 100.0)
-    >>> v = sw.triangle(27.9, 150.0, 3, 5000.0)
+    >>> v = voltage_triangle(27.9, 150.0, 3, 5000.0)
     >>> s = sw.from_arrays(v, predict(true, v, 2e-4), 5000.0, {"layer_thickness_um": "100"})
     >>> fit([s]).sweeps[0].rms_um < 0.05
     True

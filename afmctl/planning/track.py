@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from scipy.signal import sawtooth
 
 from afmctl import guard
-from afmctl.errors import EnvelopeError
+from afmctl.errors import EnvelopeError, ReachError
 from afmctl.files.modelfile import Envelope
 from afmctl.model import effects as fx
 from afmctl.model import inverse as inv
@@ -196,10 +196,6 @@ def _segments(desired: Desired, n_in: int, n: int) -> list[int]:
     else:
         marks = np.arange(n_in + BLOCK, n, BLOCK)
     return sorted({0, n_in, n, *(int(m) for m in marks if n_in < m < n)})
-
-
-class ReachError(guard.LimitError):
-    """The trajectory asks for a displacement the model cannot give within the voltage limits."""
 
 
 def _reach(res: inv.Inversion, n: int, first: int) -> None:

@@ -8,6 +8,7 @@ from click.testing import CliRunner
 from afmctl.cli import main
 from afmctl.files import modelfile
 from afmctl.files import sweepfile as sw
+from afmctl.planning import sweepdesign as sd
 from tests.harness.emulated import NOISE_UM, SAMPLE_RATE_HZ
 from tests.harness.paths import PROFILES
 
@@ -26,7 +27,7 @@ MALFORMED = {
 def good_file(tmp_path_factory: pytest.TempPathFactory,
               emulate: Callable[..., sw.Sweep]) -> Path:
     """A foreign-tool sweep: no metadata at all (so the fit is in volts)."""
-    s = emulate(sw.triangle(27.9, 150.0, 6, SAMPLE_RATE_HZ), 27.9, seed=11, meta=False)
+    s = emulate(sd.voltage_triangle(27.9, 150.0, 6, SAMPLE_RATE_HZ), 27.9, seed=11, meta=False)
     p = tmp_path_factory.mktemp("sweeps") / "foreign.csv"
     sw.write(s, p)
     return p
@@ -102,7 +103,7 @@ def test_profile_gives_the_thickness_of_sweeps_without_one(tmp_path: Path,
 
 
 def test_conflicting_thickness_exits_2(tmp_path: Path, emulate: Callable[..., sw.Sweep]) -> None:
-    a = emulate(sw.triangle(27.9, 150.0, 1, SAMPLE_RATE_HZ), 27.9, seed=3)
+    a = emulate(sd.voltage_triangle(27.9, 150.0, 1, SAMPLE_RATE_HZ), 27.9, seed=3)
     b = sw.Sweep(a.time_s, a.voltage_v, a.displacement_um, {"layer_thickness_um": "50"})
     sw.write(a, tmp_path / "a.csv")
     sw.write(b, tmp_path / "b.csv")

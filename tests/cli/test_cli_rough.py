@@ -25,8 +25,8 @@ from click.testing import CliRunner
 from afmctl.cli import main
 from afmctl.drivers.device import plant
 from afmctl.files import modelfile
-from afmctl.files import sweepfile as sw
 from afmctl.files.profile import default_profile
+from afmctl.planning import sweepdesign as sd
 
 RATE_HZ = 10_000.0
 TRACK = ["track", "triangle", "--model", "good.toml", "--dry-run"]
@@ -61,7 +61,7 @@ def base_sweep() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """3 cycles of the 27.9 Hz triangle (0.11 s at 10 kHz) on the emulated stage."""
     cfg = default_profile().emulator
     assert cfg is not None
-    v = sw.triangle(27.9, 150.0, 3, RATE_HZ)
+    v = sd.voltage_triangle(27.9, 150.0, 3, RATE_HZ)
     u, _ = plant.expected_readback(dc.replace(cfg, seed=5), RATE_HZ, v)
     return np.arange(v.size) / RATE_HZ, v, u
 

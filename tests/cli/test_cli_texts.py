@@ -18,6 +18,7 @@ from afmctl.files import sweepfile as sw
 from afmctl.files.profile import default_profile
 from afmctl.fit import identify as idf
 from afmctl.model.transducer import Transducer
+from afmctl.planning import sweepdesign as sd
 from tests.harness.paths import PROFILES
 
 FAST = "\n[identify]\nrestarts = 0\ndensity = \"parametric\"\nmax_nfev = 40\nn_coercive_fit = 32\n"
@@ -26,7 +27,7 @@ FAST = "\n[identify]\nrestarts = 0\ndensity = \"parametric\"\nmax_nfev = 40\nn_c
 def unipolar_sweep(folder: Path) -> Path:
     """3 cycles of 27.9 Hz over 0 ... 150 V on the emulated plant (never negative)."""
     from afmctl.drivers.device import plant
-    v = sw.loop(27.9, 0.0, 150.0, 3, 10_000.0)
+    v = sd.loop(27.9, 0.0, 150.0, 3, 10_000.0)
     u, _ = plant.expected_readback(dc.replace(default_profile().emulator, seed=4), 10_000.0, v)
     path = folder / "uni.csv"
     sw.write(sw.from_arrays(v, u, 10_000.0, {"frequency_hz": "27.9",

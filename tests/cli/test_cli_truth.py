@@ -30,6 +30,7 @@ from afmctl.files import sweepfile as sw
 from afmctl.files.modelfile import FitRecord
 from afmctl.model import effects as fx
 from afmctl.model.transducer import Transducer
+from afmctl.planning import sweepdesign as sd
 from tests.harness.paths import PROFILES, REPO
 
 DELAY = 5  # samples: the stage's hidden sensor delay
@@ -69,7 +70,7 @@ def test_identify_records_its_verdict_in_the_model_file(tmp_path: Path) -> None:
     from afmctl.files.profile import default_profile
     cfg = dc.replace(default_profile().emulator, effects=fx.Effects(sensor_delay_samples=DELAY),
                      seed=3)
-    v = sw.loop(27.9, -150.0, 150.0, 3, 10_000.0)
+    v = sd.loop(27.9, -150.0, 150.0, 3, 10_000.0)
     u, _ = plant.expected_readback(cfg, 10_000.0, v)
     sw.write(sw.from_arrays(v, u, 10_000.0, {"frequency_hz": "27.9", "layer_thickness_um": "100"},
                             "tri"), tmp_path / "tri.csv")

@@ -16,6 +16,7 @@ from afmctl.drivers import open_stage
 from afmctl.experiment import calibration
 from afmctl.files import sweepfile as sweeps
 from afmctl.files.profile import Profile
+from afmctl.planning import sweepdesign as sd
 from tests.harness.paths import PROFILES, REPO
 
 ROOT = REPO
@@ -203,7 +204,7 @@ def test_ctrl_c_in_identify_says_no_stage_was_touched(tmp_path: Path,
         raise KeyboardInterrupt
 
     sweep = tmp_path / "a.csv"
-    v = sweeps.triangle(27.9, 150.0, 2, 10_000.0)
+    v = sd.voltage_triangle(27.9, 150.0, 2, 10_000.0)
     sweeps.write(sweeps.from_arrays(v, 0.1 * v, 10_000.0), sweep)
     monkeypatch.setattr(identify, "fit", interrupted)
     res = CliRunner().invoke(main, ["identify", str(sweep), "-o", str(tmp_path / "m.toml")])

@@ -18,13 +18,14 @@ from afmctl.drivers.inprocess import InProcessStage
 from afmctl.experiment import runner as experiment
 from afmctl.files import sweepfile as sweeps
 from afmctl.files.profile import Profile
+from afmctl.planning import sweepdesign as sd
 
 RATE = 10_000.0
 META = {"profile": "emulated", "layer_thickness_um": "100"}
 
 
 def wave() -> np.ndarray:
-    return sweeps.loop(5.58, -150.0, 150.0, 5, RATE)
+    return sd.loop(5.58, -150.0, 150.0, 5, RATE)
 
 
 def interrupt_at(fraction: float):  # noqa: ANN201 (a progress callback)

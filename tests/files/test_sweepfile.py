@@ -5,6 +5,7 @@ import pytest
 
 from afmctl.errors import FileFormatError
 from afmctl.files import sweepfile as sw
+from afmctl.planning import sweepdesign as sd
 
 GOOD = "# frequency_hz: 5.58\n# layer_thickness_um: 100\ntime_s,voltage_V,displacement_um\n" \
        "0.0,0.0,0.1\n0.001,1.0,0.2\n0.002,2.0,0.3\n"
@@ -43,7 +44,7 @@ def test_bom_crlf_and_quoted_header_load(tmp_path: Path) -> None:
 
 
 def test_round_trip(tmp_path: Path) -> None:
-    s = sw.from_arrays(sw.triangle(5.0, 10.0, 1, 1000.0), np.linspace(0, 1, 201), 1000.0,
+    s = sw.from_arrays(sd.voltage_triangle(5.0, 10.0, 1, 1000.0), np.linspace(0, 1, 201), 1000.0,
                        {"frequency_hz": "5"})
     sw.write(s, tmp_path / "a.csv")
     back = sw.read(tmp_path / "a.csv")
@@ -71,18 +72,8 @@ def test_binary_and_missing_files_raise(tmp_path: Path) -> None:
         sw.read(tmp_path / "absent.csv")
 
 
-def test_triangle_and_standard_set() -> None:
-    v = sw.triangle(27.9, 150.0, 10, 10_000.0)
-    assert v[0] == 0 and v.max() == pytest.approx(150.0, rel=1e-3)
-    assert v.min() == pytest.approx(-150.0, rel=1e-3)
-    sets = sw.standard_set(150.0, 1000.0)
-    assert [f for _, f, _ in sets] == [0.279, 5.58, 27.9, 0.1]
-    loops = sets[3][2]
-    assert loops.max() == pytest.approx(150.0) and loops[-1] == 0.0
-
-
 def test_memory_index_is_the_first_full_excursion() -> None:
-    v = sw.triangle(1.0, 2.0, 2, 8.0)  # 0 1 2 1 0 -1 -2 -1 0 1 2 ...
+    v = sd.voltage_triangle(1.0, 2.0, 2, 8.0)  # 0 1 2 1 0 -1 -2 -1 0 1 2 ...
     s = sw.from_arrays(v, np.zeros(v.size), 8.0)
     assert s.memory_index == 6  # both extremes reached: +2 at sample 2, -2 at sample 6
     assert not s.mask(None)[:6].any() and s.mask(None)[6:].all()
@@ -150,13 +141,3 @@ def test_an_interrupted_sweep_reads_but_is_refused_for_fitting(tmp_path: Path) -
     np.testing.assert_array_equal(sw.read(partial).voltage_v, sw.read_complete(done).voltage_v)
     with pytest.raises(FileFormatError, match="interrupted sweep.*--resume"):
         sw.read_complete(partial)
-
-
-@pytest.mark.parametrize("v_range", [(-150.0, 150.0), (0.0, 150.0), (-30.0, 150.0)])
-def test_every_sweep_ends_exactly_where_it_started(v_range: tuple[float, float]) -> None:
-    """Issue 27 item 16: the 27.9 Hz sweep ended one sample short of 0 V (-0.384 V) and the next
-    track planned from there; every sweep of every design ends at its start (0 V here)."""
-    from afmctl.planning import sweepdesign
-    for name, _, v, _ in sweepdesign.design_set("separating", 10_000.0, 5e4, v_range):
-        assert v[0] == 0.0 and v[-1] == 0.0, (name, v[-1])
-        assert np.abs(np.diff(v)).max() <= 5.0, name  # no step: within 50 V/ms at 10 kHz

@@ -23,6 +23,7 @@ from afmctl.files import sweepfile as sw
 from afmctl.fit import candidates, extension
 from afmctl.fit import diagnose as dg
 from afmctl.model import effects as fx
+from afmctl.planning import sweepdesign as sd
 from afmctl.planning import track
 from benchmarks import bench_diagnose as bench
 from tests.harness.emulated import PROFILE
@@ -80,7 +81,7 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path: Path, nominal) -> None: 
     res = CliRunner().invoke(main, ["diagnose", str(bad), "--out", str(out)])
     assert res.exit_code == 2 and len(res.stderr.strip().splitlines()) == 1, res.output
     good = tmp_path / "good.csv"
-    v = sw.triangle(27.9, 150.0, 2, 10_000.0)
+    v = sd.voltage_triangle(27.9, 150.0, 2, 10_000.0)
     sw.write(sw.from_arrays(v, v / 5, 10_000.0), good)
     from afmctl.files import modelfile
     from afmctl.model import hysteresis as hy
@@ -155,7 +156,7 @@ def test_candidate_residual_vanishes_at_the_truth(name: str, effects: fx.Effects
     from afmctl.fit import parametrization as pz
     fs = 10_000.0
     truth = dc.replace(nominal, effects=effects)
-    volts = [sw.triangle(27.9, 150.0, 2, fs), sw.triangle(5.58, 150.0, 1, fs)]
+    volts = [sd.voltage_triangle(27.9, 150.0, 2, fs), sd.voltage_triangle(5.58, 150.0, 1, fs)]
     sweeps = [sw.from_arrays(v, idf.predict(truth, v, 1 / fs, g), fs)
               for v, g in zip(volts, gains, strict=True)]
     preps = [pz.prepare(s, nominal.thickness_um, 0.004, None) for s in sweeps]

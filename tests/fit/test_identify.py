@@ -11,6 +11,7 @@ from afmctl.files import modelfile
 from afmctl.files import sweepfile as sw
 from afmctl.fit import identify as idf
 from afmctl.model.transducer import Transducer
+from afmctl.planning import sweepdesign as sd
 from tests.harness.emulated import NOISE_UM, PROFILE, SAMPLE_RATE_HZ
 
 
@@ -23,7 +24,7 @@ def test_fit_rms_within_noise_on_every_standard_sweep(standard_fit: idf.FitResul
 
 def test_prediction_of_unseen_13_95_hz_sweep(standard_fit: idf.FitResult,
                                              emulate: Callable[..., sw.Sweep]) -> None:
-    s = emulate(sw.triangle(13.95, 150.0, 5, SAMPLE_RATE_HZ), 13.95, seed=99)
+    s = emulate(sd.voltage_triangle(13.95, 150.0, 5, SAMPLE_RATE_HZ), 13.95, seed=99)
     assert idf.sweep_error(standard_fit.model, s).rms_um <= 2.0 * NOISE_UM
 
 
@@ -38,33 +39,33 @@ def test_recovers_hidden_parameters(standard_fit: idf.FitResult, true_model: Tra
     model = standard_fit.model
     fine = dc.replace(model, polarization=dc.replace(
         model.polarization, n_coercive=8 * model.polarization.n_coercive))
-    v = sw.standard_set(150.0, SAMPLE_RATE_HZ)[2][2]  # its discretization: < 0.01 um
+    v = sd.standard_set(150.0, SAMPLE_RATE_HZ)[2][2]  # its discretization: < 0.01 um
     assert np.max(np.abs(idf.predict(model, v, 1e-4) - idf.predict(fine, v, 1e-4))) < 0.01
 
 
 def test_fit_in_volts_when_thickness_unknown(emulate: Callable[..., sw.Sweep]) -> None:
-    s = emulate(sw.triangle(27.9, 150.0, 6, SAMPLE_RATE_HZ), 27.9, seed=5, meta=False)
+    s = emulate(sd.voltage_triangle(27.9, 150.0, 6, SAMPLE_RATE_HZ), 27.9, seed=5, meta=False)
     res = idf.fit([s])
     assert res.success and not res.thickness_known and res.model.thickness_um == 1.0
     assert res.sweeps[0].rms_um <= 1.5 * NOISE_UM
 
 
 def test_window_limits_residual_but_state_runs_from_start(emulate: Callable[..., sw.Sweep]) -> None:
-    s = emulate(sw.triangle(27.9, 150.0, 6, SAMPLE_RATE_HZ), 27.9, seed=6)
+    s = emulate(sd.voltage_triangle(27.9, 150.0, 6, SAMPLE_RATE_HZ), 27.9, seed=6)
     res = idf.fit([s], idf.Settings(window_s=(0.0, 0.12)))
     assert res.success and res.sweeps[0].n_samples == int(np.sum(s.mask((0.0, 0.12))))
     assert idf.sweep_error(res.model, s, (0.12, 1.0)).rms_um <= 2.0 * NOISE_UM
 
 
 def test_thickness_conflict_is_an_error(emulate: Callable[..., sw.Sweep]) -> None:
-    a = emulate(sw.triangle(27.9, 150.0, 1, SAMPLE_RATE_HZ), 27.9, seed=1)
+    a = emulate(sd.voltage_triangle(27.9, 150.0, 1, SAMPLE_RATE_HZ), 27.9, seed=1)
     b = sw.Sweep(a.time_s, a.voltage_v, a.displacement_um, {"layer_thickness_um": "50"})
     with pytest.raises(ValueError, match="disagree"):
         idf.resolve_thickness([a, b], idf.Settings())
 
 
 def test_discrete_density_fit(emulate: Callable[..., sw.Sweep]) -> None:
-    s = emulate(sw.triangle(27.9, 150.0, 4, SAMPLE_RATE_HZ), 27.9, seed=8)
+    s = emulate(sd.voltage_triangle(27.9, 150.0, 4, SAMPLE_RATE_HZ), 27.9, seed=8)
     res = idf.fit([s], idf.Settings(density="discrete", n_density_nodes=24))
     assert res.success and res.sweeps[0].rms_um <= 1.5 * NOISE_UM
     dens = res.model.polarization.coercive
@@ -95,7 +96,7 @@ def test_sweeps_recorded_in_sequence_fit_within_noise(standard_fit: idf.FitResul
     assert cfg is not None
     ph = plant.Physics(cfg, SAMPLE_RATE_HZ)
     state, recorded = ph.initial(), []
-    for run, (name, _, v) in enumerate(sw.standard_set(150.0, SAMPLE_RATE_HZ)[:3]):
+    for run, (name, _, v) in enumerate(sd.standard_set(150.0, SAMPLE_RATE_HZ)[:3]):
         gain, noise = ph.draws(run, v.size)
         u, _, state = ph.respond(v, state, gain, noise)
         recorded.append(sw.from_arrays(v, u, SAMPLE_RATE_HZ, {"layer_thickness_um": "100"}, name))
@@ -125,7 +126,7 @@ def _semi_bipolar(start: str, seed: int) -> list[sw.Sweep]:
     for f, rate, cycles, lo in ((1.0, 1000.0, 2, -40.0), (10.0, 2000.0, 5, -40.0),
                                 (40.0, 5000.0, 8, -10.0)):
         mid, amp = (150.0 + lo) / 2, (150.0 - lo) / 2
-        v = mid + sw.triangle(f, amp, cycles, rate)
+        v = mid + sd.voltage_triangle(f, amp, cycles, rate)
         u = idf.predict(true, v, 1 / rate, start=start)
         u = u - u[0] + FAR_NOISE_UM * rng.standard_normal(v.size)
         out.append(sw.from_arrays(v, u, rate, {"layer_thickness_um": "100",
@@ -162,8 +163,8 @@ def test_start_state_is_chosen_from_the_data() -> None:
 
 
 def test_each_sweep_has_its_own_sensor_zero(emulate: Callable[..., sw.Sweep]) -> None:
-    a = emulate(sw.triangle(27.9, 150.0, 4, SAMPLE_RATE_HZ), 27.9, seed=21)
-    b = emulate(sw.triangle(5.58, 150.0, 2, SAMPLE_RATE_HZ), 5.58, seed=22)
+    a = emulate(sd.voltage_triangle(27.9, 150.0, 4, SAMPLE_RATE_HZ), 27.9, seed=21)
+    b = emulate(sd.voltage_triangle(5.58, 150.0, 2, SAMPLE_RATE_HZ), 5.58, seed=22)
     b = sw.Sweep(b.time_s, b.voltage_v, b.displacement_um - 7.5, b.meta, b.path)
     res = idf.fit([a, b])
     assert res.at_noise_floor
@@ -178,7 +179,7 @@ def test_narrow_interaction_field_gets_enough_coercive_nodes() -> None:
     true = pz.to_model(np.array([1.0, 0.3, 0.12, 1.0, 300.0, 0.3]),
                        np.array([40.0, 0.5, 0.0]),
                        pz.Scales(), 100.0)
-    fields = [sw.nested_loops(1.0, 150.0, 4, 2000.0) / 100.0, sw.triangle(1.0, 150.0, 1, 2000.0)
+    fields = [sd.nested_loops(1.0, 150.0, 4, 2000.0) / 100.0, sd.voltage_triangle(1.0, 150.0, 1, 2000.0)
               / 100.0 + 0.3]
     n_c = idf.n_coercive_for(true, fields)
 
@@ -227,8 +228,8 @@ def test_cli_names_a_sweep_above_twice_its_noise(tmp_path: Path,
     from click.testing import CliRunner
 
     from afmctl.cli import main
-    a = emulate(sw.triangle(27.9, 150.0, 4, SAMPLE_RATE_HZ), 27.9, seed=41)
-    b = emulate(sw.triangle(5.58, 150.0, 4, SAMPLE_RATE_HZ), 5.58, seed=42)
+    a = emulate(sd.voltage_triangle(27.9, 150.0, 4, SAMPLE_RATE_HZ), 27.9, seed=41)
+    b = emulate(sd.voltage_triangle(5.58, 150.0, 4, SAMPLE_RATE_HZ), 5.58, seed=42)
     b = sw.Sweep(b.time_s, b.voltage_v, b.displacement_um + 0.3 * np.sin(2 * np.pi * 3 * b.time_s),
                  b.meta)
     sw.write(a, tmp_path / "clean.csv")

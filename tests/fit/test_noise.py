@@ -9,13 +9,14 @@ import pytest
 
 from afmctl.files import sweepfile as sw
 from afmctl.fit import noise
+from afmctl.planning import sweepdesign as sd
 from tests.harness.paths import SHARED_DATA
 
 FOREIGN = SHARED_DATA / "foreign-stage"
 
 
 def _triangle_um(freq_hz: float, rate_hz: float, cycles: float, range_um: float) -> np.ndarray:
-    return range_um / 150.0 * sw.triangle(freq_hz, 150.0, cycles, rate_hz)
+    return range_um / 150.0 * sd.voltage_triangle(freq_hz, 150.0, cycles, rate_hz)
 
 
 def _ringing_um(rate_hz: float) -> np.ndarray:
@@ -30,7 +31,7 @@ def _ringing_um(rate_hz: float) -> np.ndarray:
 @pytest.mark.parametrize(("name", "signal"), [
     ("27.9 Hz triangle, 75 um, 10 kHz", _triangle_um(27.9, 1e4, 10, 75.0)),
     ("0.279 Hz triangle, 75 um, 1 kHz", _triangle_um(0.279, 1e3, 1, 75.0)),
-    ("nested loops, 90 um, 2 kHz", 0.6 * sw.nested_loops(0.5, 150.0, 4, 2e3)),
+    ("nested loops, 90 um, 2 kHz", 0.6 * sd.nested_loops(0.5, 150.0, 4, 2e3)),
     ("5 Hz sine, 120 um, 5 kHz", 60 * np.sin(2 * np.pi * 5 * np.arange(20000) / 5e3)),
 ])
 @pytest.mark.parametrize("sigma_um", [0.005, 0.02, 0.1])

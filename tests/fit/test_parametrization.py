@@ -5,12 +5,13 @@ from afmctl.files import sweepfile as sw
 from afmctl.fit import identify as idf
 from afmctl.fit import parametrization as pz
 from afmctl.model.transducer import Transducer
+from afmctl.planning import sweepdesign as sd
 from tests.harness.emulated import NOISE_UM, SAMPLE_RATE_HZ
 
 
 def test_fit_approximations_are_well_below_noise(true_model: Transducer) -> None:
     """Decimated hysteresis (turning points kept) and the fit's coercive nodes vs the exact model."""
-    v = sw.triangle(0.279, 150.0, 1, SAMPLE_RATE_HZ)
+    v = sd.voltage_triangle(0.279, 150.0, 1, SAMPLE_RATE_HZ)
     theta = np.array([1.0, 0.4, 0.3, 0.36])
     s = sw.from_arrays(v, np.zeros_like(v), SAMPLE_RATE_HZ)
     coarse = pz.prepare(s, 100.0, idf.Settings().field_step, None)
@@ -45,7 +46,7 @@ def test_decimation_keeps_turning_points_and_field_steps() -> None:
 
 
 def test_discrete_space_reproduces_its_lognormal_start(true_model: Transducer) -> None:
-    v = sw.triangle(5.58, 150.0, 1, 2000.0)
+    v = sd.voltage_triangle(5.58, 150.0, 1, 2000.0)
     s = sw.from_arrays(v, idf.predict(true_model, v, 5e-4), 2000.0)
     prep = pz.prepare(s, 100.0, 0.0, None)
     theta = np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25])
@@ -78,7 +79,7 @@ def test_every_space_gives_its_model_the_first_sweeps_start(starts: tuple[str, .
                                                              initial: str) -> None:
     """identify and diagnose build models through the spaces: each model starts where its
     sweeps did (track and learning start from Transducer.initial)."""
-    v = sw.triangle(5.58, 150.0, 1, 2000.0)
+    v = sd.voltage_triangle(5.58, 150.0, 1, 2000.0)
     prep = pz.prepare(sw.from_arrays(v, 0.1 * v, 2000.0), 100.0, 0.0, None)
     preps = [prep] * max(len(starts), 1)
     theta = np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25])
@@ -100,7 +101,7 @@ def test_a_general_density_model_starts_the_lognormal_fits_where_it_is(
 
     from afmctl.cli import main
     from afmctl.files import modelfile
-    v = sw.triangle(5.58, 150.0, 1, 2000.0)
+    v = sd.voltage_triangle(5.58, 150.0, 1, 2000.0)
     s = sw.from_arrays(v, idf.predict(true_model, v, 5e-4), 2000.0)
     prep = pz.prepare(s, 100.0, 0.0, None)
     theta = np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25])

@@ -82,7 +82,7 @@ def test_decimation_keeps_holds_so_q_is_exact_over_them() -> None:
     for s in segs:
         if s.kind == "hold":
             np.testing.assert_allclose(q[s.start:s.stop], q_full[s.start:s.stop], atol=1e-12)
-    triangle = sw.standard_set(sample_rate_hz=10_000.0, v_range=(0.0, 150.0))[2][2] / 100.0
+    triangle = sd.standard_set(sample_rate_hz=10_000.0, v_range=(0.0, 150.0))[2][2] / 100.0
     travel = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(triangle)))))
     step = 0.004 * float(triangle.max())
     old = np.unique(np.concatenate((np.flatnonzero(np.diff(np.floor(travel / step)) > 0) + 1,
@@ -137,7 +137,7 @@ def test_cli_sweep_separating_design_writes_the_extra_sweep(tmp_path: Path) -> N
 
 def test_standard_design_is_todays_set() -> None:
     ours = sd.design_set("standard", 10_000.0, 5e4, (-150.0, 150.0))
-    today = sw.standard_set(sample_rate_hz=10_000.0, v_range=(-150.0, 150.0))
+    today = sd.standard_set(sample_rate_hz=10_000.0, v_range=(-150.0, 150.0))
     assert [(n, f) for n, f, _, _ in ours] == [(n, f) for n, f, _ in today]
     for (_, _, a, _), (_, _, b) in zip(ours, today, strict=True):
         np.testing.assert_array_equal(a, b)
@@ -151,3 +151,22 @@ def test_cli_offers_every_design() -> None:
     from afmctl.cli.sweep import sweep
     option = next(p for p in sweep.params if p.name == "design")
     assert tuple(option.type.choices) == sd.DESIGNS
+
+
+def test_triangle_and_standard_set() -> None:
+    v = sd.voltage_triangle(27.9, 150.0, 10, 10_000.0)
+    assert v[0] == 0 and v.max() == pytest.approx(150.0, rel=1e-3)
+    assert v.min() == pytest.approx(-150.0, rel=1e-3)
+    sets = sd.standard_set(150.0, 1000.0)
+    assert [f for _, f, _ in sets] == [0.279, 5.58, 27.9, 0.1]
+    loops = sets[3][2]
+    assert loops.max() == pytest.approx(150.0) and loops[-1] == 0.0
+
+
+@pytest.mark.parametrize("v_range", [(-150.0, 150.0), (0.0, 150.0), (-30.0, 150.0)])
+def test_every_sweep_ends_exactly_where_it_started(v_range: tuple[float, float]) -> None:
+    """Issue 27 item 16: the 27.9 Hz sweep ended one sample short of 0 V (-0.384 V) and the next
+    track planned from there; every sweep of every design ends at its start (0 V here)."""
+    for name, _, v, _ in sd.design_set("separating", 10_000.0, 5e4, v_range):
+        assert v[0] == 0.0 and v[-1] == 0.0, (name, v[-1])
+        assert np.abs(np.diff(v)).max() <= 5.0, name  # no step: within 50 V/ms at 10 kHz

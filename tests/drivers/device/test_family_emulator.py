@@ -21,8 +21,8 @@ from afmctl.drivers.device.foreign import family_stage as fs
 from afmctl.drivers.device.foreign.family_physics import family_stage_of
 from afmctl.drivers.device.serial_server import SerialServer
 from afmctl.drivers.inprocess import InProcessStage
-from afmctl.files import sweepfile as sw
 from afmctl.files.profile import FamilySpec, Profile, SerialTransport, load_profile
+from afmctl.planning import sweepdesign as sd
 from benchmarks.family_sets import FAMILY_CASES, profile, profile_toml
 from benchmarks.family_sets import profile_text as _toml
 from tests.harness.paths import PROFILES
@@ -38,7 +38,7 @@ def _profile(tmp_path: Path, table: str, v_min: float = 0.0) -> Profile:
 
 def _triangle(lo: float, hi: float) -> np.ndarray:
     """The standard 27.9 Hz triangle over lo .. hi at 10 kHz (within the profile's slew)."""
-    return [v for name, _, v in sw.standard_set(sample_rate_hz=10_000.0, v_range=(lo, hi))
+    return [v for name, _, v in sd.standard_set(sample_rate_hz=10_000.0, v_range=(lo, hi))
             if name.startswith("triangle_27.9")][0]
 
 
