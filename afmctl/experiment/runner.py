@@ -315,7 +315,7 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
     n = len(voltage_v)
     got = np.full(n, np.nan)
     streamed = incomplete_path(path) if path is not None else None
-    fh: list[Any] = []  # the incomplete file, once samples arrived
+    stream = sweeps.SweepStream(streamed, meta, sample_rate_hz) if streamed is not None else None
     done = [0]  # samples received in order so far (what the incomplete file holds)
 
     def on_block(first: int, volt: FloatArray, disp: FloatArray, valid: Any) -> None:
@@ -324,16 +324,8 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
         while prefix < n and np.isfinite(got[prefix]):
             prefix += 1
         done[0] = prefix
-        if streamed is not None and prefix > old:
-            if not fh:  # the first samples: this attempt replaces an earlier interrupted one
-                fh.append(open(streamed, "w", encoding="utf-8"))  # noqa: SIM115
-                fh[0].write("".join(f"# {k}: {v}\n" for k, v in meta.items()))
-                fh[0].write(",".join(sweeps.COLUMNS) + "\n")
-            rows = np.column_stack([np.arange(old, prefix) / sample_rate_hz,
-                                    voltage_v[old:prefix], got[old:prefix]])
-            np.savetxt(fh[0], rows, delimiter=",", fmt=("%.7f", "%.6f", "%.6f"))
-            fh[0].flush()
-            os.fsync(fh[0].fileno())
+        if stream is not None and prefix > old:  # the first samples replace an earlier attempt's
+            stream.append(old, voltage_v[old:prefix], got[old:prefix])
         if progress is not None and np.any(valid):
             progress(name, first + len(disp), n)
 
@@ -347,13 +339,11 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
         if path is not None:
             sweeps.write(sweep, path)
     except BaseException as exc:
-        if fh:
-            why = f"{type(exc).__name__}: {exc}".replace("\n", " ")
-            fh[0].write(f"# end: interrupted ({why})\n")
-            fh[0].close()
+        if stream is not None:
+            stream.close(interrupted=f"{type(exc).__name__}: {exc}".replace("\n", " "))
         raise
-    if fh:
-        fh[0].close()
+    if stream is not None:
+        stream.close()
     if streamed is not None and streamed.exists():
         streamed.unlink()  # superseded by the whole sweep (this attempt's or an earlier one's)
     return sweep

@@ -32,6 +32,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -387,15 +388,52 @@ def measured_kind(path: str | Path) -> str:
     return ""
 
 
+def _header(meta: Mapping[str, str]) -> str:
+    return "".join(f"# {key}: {val}\n" for key, val in meta.items()) + ",".join(COLUMNS) + "\n"
+
+
+def _write_rows(fh: Any, time_s: FloatArray, voltage_v: FloatArray,
+                displacement_um: FloatArray) -> None:
+    np.savetxt(fh, np.column_stack([time_s, voltage_v, displacement_um]), delimiter=",",
+               fmt=("%.7f", "%.6f", "%.6f"))
+
+
 def format_text(sweep: Sweep) -> str:
     """The text of a sweep file for ``sweep``."""
     out = io.StringIO()
-    for key, val in sweep.meta.items():
-        out.write(f"# {key}: {val}\n")
-    out.write(",".join(COLUMNS) + "\n")
-    np.savetxt(out, np.column_stack([sweep.time_s, sweep.voltage_v, sweep.displacement_um]),
-               delimiter=",", fmt=("%.7f", "%.6f", "%.6f"))
+    out.write(_header(sweep.meta))
+    _write_rows(out, sweep.time_s, sweep.voltage_v, sweep.displacement_um)
     return out.getvalue()
+
+
+class SweepStream:
+    """A sweep file written as its samples arrive, in order: created with the first of them (a
+    sweep that received none leaves no file), flushed and fsynced per block, and ended
+    ``# end: interrupted (...)`` if the sweep is cut short (it then still reads as a sweep of the
+    samples it holds). The same format as :func:`write`."""
+
+    def __init__(self, path: Path, meta: Mapping[str, str], sample_rate_hz: float) -> None:
+        self.path, self.meta, self.sample_rate_hz = path, dict(meta), sample_rate_hz
+        self._fh: Any = None
+
+    def append(self, first: int, voltage_v: FloatArray, displacement_um: FloatArray) -> None:
+        """Samples ``first ...`` (their time from the sample rate), V and um."""
+        if self._fh is None:
+            self._fh = open(self.path, "w", encoding="utf-8")  # noqa: SIM115 (closed in close)
+            self._fh.write(_header(self.meta))
+        t = np.arange(first, first + len(voltage_v)) / self.sample_rate_hz
+        _write_rows(self._fh, t, voltage_v, displacement_um)
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+
+    def close(self, interrupted: str | None = None) -> None:
+        """Close the file (if samples arrived), ended as interrupted with the reason if given."""
+        if self._fh is None:
+            return
+        if interrupted is not None:
+            self._fh.write(f"# end: interrupted ({interrupted})\n")
+        self._fh.close()
+        self._fh = None
 
 
 def write(sweep: Sweep, path: str | Path) -> None:
