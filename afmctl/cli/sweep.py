@@ -105,6 +105,12 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
         if chosen:
             say(f"recording {len(chosen)} sweep(s) over [{lo:g}, {hi:g}] V ...")
             make_dir(out, "--out")
+            start_v = stage.voltage()
+            if chosen[0][2][0] != start_v:  # left elsewhere by hand (`afmctl set`)
+                say(f"the output is at {start_v:g} V: ramping it to {chosen[0][2][0]:g} V, where "
+                    f"every sweep starts")
+                experiment.move_and_read(stage, float(chosen[0][2][0]), prof.limits,
+                                         prof.sample_rate_hz, 0.01)
         for name, freq, v, kinds in chosen:
             path = out / f"{name}.csv"
             partial = experiment.incomplete_path(path)

@@ -198,10 +198,7 @@ def track_triangle(freq: float, amplitude: float, offset: float | str, periods: 
                    allow_short: bool, **kw: Any) -> None:
     """Track a triangle wave, as in the paper's Figs 9-11 (27.9 Hz, 27.04 um)."""
     from afmctl.planning import track as trk
-    off = 0.0 if offset == CENTRE else float(offset)
-    _track(lambda dt: trk.triangle(freq, amplitude, off, periods, dt),
-           lambda rate: check_periodic(freq, amplitude, offset, periods, allow_short, rate),
-           centre=offset == CENTRE, **kw)
+    _periodic(trk.triangle, freq, amplitude, offset, periods, allow_short, kw)
 
 
 @track.command("sine")
@@ -211,8 +208,15 @@ def track_sine(freq: float, amplitude: float, offset: float | str, periods: floa
                allow_short: bool, **kw: Any) -> None:
     """Track a sine wave."""
     from afmctl.planning import track as trk
+    _periodic(trk.sine, freq, amplitude, offset, periods, allow_short, kw)
+
+
+def _periodic(shape: Callable[..., Any], freq: float, amplitude: float, offset: float | str,
+              periods: float, allow_short: bool, kw: dict[str, Any]) -> None:
+    """Track ``shape(freq, amplitude, offset, periods, dt)`` (``--offset centre``: placed once
+    the model is known)."""
     off = 0.0 if offset == CENTRE else float(offset)
-    _track(lambda dt: trk.sine(freq, amplitude, off, periods, dt),
+    _track(lambda dt: shape(freq, amplitude, off, periods, dt),
            lambda rate: check_periodic(freq, amplitude, offset, periods, allow_short, rate),
            centre=offset == CENTRE, **kw)
 

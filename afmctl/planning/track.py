@@ -324,7 +324,7 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
             f"the trajectory ({float(np.min(desired.u_um)):.4g} ... "
             f"{float(np.max(desired.u_um)):.4g} um) is out of the stage's reach: the model "
             f"reaches {lo:.4g} ... {hi:.4g} um on {limits.v_min:g} ... {limits.v_max:g} V "
-            f"(`afmctl reach`), and {exc}; reduce the amplitude or move the offset") from None
+            f"(as afmctl reach shows), and {exc}; reduce the amplitude or move the offset") from None
 
 
 def _inverted(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.StageState,

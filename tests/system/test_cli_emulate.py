@@ -51,3 +51,5 @@ def test_emulate_on_a_port_in_use_names_the_port() -> None:
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and f"127.0.0.1:{port}" in lines[0], res.stderr
     assert lines[0].startswith("afmctl: error: cannot serve:")
+    assert lines[0].endswith(f"another program holds port {port}: give --modbus-port another "
+                             f"port, or 0 for any free one")  # issue 27 item 18: the way out
