@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
 
 from afmctl.errors import DiagnoseInputError
 from afmctl.files.sweepfile import Sweep
@@ -355,6 +356,30 @@ def check(sweeps: Sequence[Sweep]) -> None:
 MAX_COERCIVE = 256
 
 
+#: Most residual rows a sweep keeps in the candidates' fits (:func:`thinned`).
+FIT_ROWS = 20_000
+
+
+def thinned(prep: pz.Prepared, rows: int) -> pz.Prepared:
+    """``prep`` with its residual on every ``k``-th of its samples, ``k`` the smallest stride
+    that leaves at most ``rows`` (``prep`` itself when it has no more).
+
+    The model is still simulated at the full rate (hysteresis, rod, effects); only the samples
+    the misfit is summed over are fewer. The fitted half of the standard set's 40 s of nested
+    minor loops at 10 kHz has 200,000 samples of a 0.1 Hz triangle: every 10th (1 ms) still
+    resolves its loops and the rod's ringing after a corner (4 ms period at 250 Hz), the noise
+    stays white, and each sweep weighs the same in the cost whatever its row count
+    (:class:`afmctl.fit.extension.ExtendedSpace`). The held-out judgement uses every sample.
+    """
+    idx = np.flatnonzero(prep.mask)
+    k = -(-idx.size // rows)
+    if k <= 1:
+        return prep
+    mask = np.zeros_like(prep.mask)
+    mask[idx[::k]] = True
+    return replace(prep, mask=mask, y=prep.y[::k])
+
+
 @dataclass(frozen=True)
 class _Data:
     """Sweeps prepared once for every candidate's fit."""
@@ -367,9 +392,11 @@ class _Data:
 
 def _prepare(sweeps: Sequence[Sweep], thickness: float, settings: idf.Settings,
              starts: Sequence[str] | None = None, n_coercive: int | None = None) -> _Data:
-    """The sweeps prepared for the fits: each from its start (None: chosen later), the
-    hysteresis on ``n_coercive`` nodes (None: the identification's fitting count)."""
-    preps = [pz.prepare(s, thickness, settings.field_step, None) for s in sweeps]
+    """The sweeps prepared for the fits (their residual rows :func:`thinned` to
+    :data:`FIT_ROWS`): each from its start (None: chosen later), the hysteresis on
+    ``n_coercive`` nodes (None: the identification's fitting count)."""
+    preps = [thinned(pz.prepare(s, thickness, settings.field_step, None), FIT_ROWS)
+             for s in sweeps]
     space = pz.LognormalSpace(preps, settings.scales, n_coercive or settings.n_coercive_fit,
                               starts)
     return _Data(preps, space, *pz.extent(preps))
@@ -438,7 +465,13 @@ def _judge(name: str, job: _Job) -> Judged:
 def _judge_all(names: Sequence[str], job: _Job, floor: float,
                say: Callable[[str], None]) -> dict[str, Judged]:
     """Every candidate judged, in ``names`` order; fitted ``job.settings.jobs`` at a time in
-    worker processes (the fits are independent and pure)."""
+    worker processes (the fits are independent and pure).
+
+    :func:`diagnose` calls it with BLAS limited to one thread (the workers, forked, inherit
+    it): the fits' linear algebra is small (matrices of 4 x 4 in the amplifier's and the second
+    mode's discretization, tall ones of a few columns), the processes already take every core,
+    and OpenBLAS's threads waiting on a busy core made a 4 x 4 ``expm`` take 15-20 ms instead of
+    0.03 ms (second-mode candidate 52.6 -> 8.9 s of CPU, same fit, load 11 on 2 cores)."""
     jobs = min(job.settings.jobs or os.cpu_count() or 1, len(names))
     order = sorted(names, key=lambda n: cd.SLOWEST_FIRST.index(n) if n in cd.SLOWEST_FIRST else 9)
 
@@ -524,10 +557,12 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     thickness, _ = idf.resolve_thickness(sweeps, settings.identify)
     halves = [first_half(s) for s in sweeps]
     range_um = max(float(np.ptp(s.displacement_um[s.mask(None)])) for s in sweeps)
-    data, x0 = _base_fit(halves, thickness, settings, start, say)
-    whole = [pz.prepare(s, thickness, settings.identify.field_step, None) for s in sweeps]
-    table = _judge_all(candidate_names(len(sweeps), settings),
-                       _Job(data, x0, thickness, range_um, settings, whole, tuple(sweeps)), floor, say)
+    with threadpool_limits(limits=1, user_api="blas"):  # one BLAS thread: see _judge_all
+        data, x0 = _base_fit(halves, thickness, settings, start, say)
+        whole = [pz.prepare(s, thickness, settings.identify.field_step, None) for s in sweeps]
+        table = _judge_all(candidate_names(len(sweeps), settings),
+                           _Job(data, x0, thickness, range_um, settings, whole, tuple(sweeps)),
+                           floor, say)
     cause = choose(table, floor, settings.rule)
     say(f"verdict: {cause}")
     named = cause if cause in table else "none"

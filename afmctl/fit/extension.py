@@ -66,19 +66,6 @@ class Extended:
     beta: FloatArray
 
 
-def _with_zeros(blocks: Sequence[FloatArray]) -> FloatArray:
-    """Stack per-sweep blocks ``[g1 col, g2 col, zero col]`` into ``[L[Q], L[Q^2], 1_s]``: the
-    zero column of each sweep in a column of its own."""
-    n = len(blocks)
-    out = np.zeros((sum(b.shape[0] for b in blocks), 2 + n))
-    row = 0
-    for s, b in enumerate(blocks):
-        out[row:row + b.shape[0], :2] = b[:, :2]
-        out[row:row + b.shape[0], 2 + s] = b[:, 2]
-        row += b.shape[0]
-    return out
-
-
 def _log_gains(phi: FloatArray) -> FloatArray:
     """Per-sweep log gains from the free ones: the last makes their mean 0, so the model keeps
     the sweeps' average gain (a model for ``track``, which cannot know a future run's gain)."""
@@ -230,29 +217,47 @@ class ExtendedSpace:
         return [(0.0, float(np.clip(c3 * self.range_um ** 2, self.candidate.lower[1],
                                     self.candidate.upper[1])))]
 
-    def columns(self, z: FloatArray) -> list[FloatArray]:
-        """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` after the output effects (the
-        sensor zero is the rod's, so it sees them too), shape (N, 3)."""
+    def _filtered(self, z: FloatArray) -> list[tuple[FloatArray, FloatArray, FloatArray]]:
+        """Per sweep at the full rate: ``L[Q]``, ``L[Q^2]`` and ``1`` after the output effects
+        (the sensor zero is the rod's, so it sees them too)."""
         theta, phi = np.exp(z[:6]), z[6:]
         out, blocks = self._output(phi), []
         for q, p in zip(self._q(theta, phi), self.preps, strict=True):
-            cols = np.column_stack((pz.sweep_columns(q, theta[4], theta[5], p.dt)[:, :2],
-                                    np.ones(q.size)))
+            cols = (pz.unit_filter(q, theta[4], theta[5], p.dt),
+                    pz.unit_filter(q * q, theta[4], theta[5], p.dt), np.ones(q.size))
             if out != fx.Effects():
                 chain = fx.compile_chain(out, p.dt)
-                cols = np.column_stack([fx.measure(chain, c, *fx.rest(chain, float(c[0])))[0]
-                                        for c in cols.T])
+                cols = tuple(fx.measure(chain, c, *fx.rest(chain, float(c[0])))[0]
+                             for c in cols)
             blocks.append(cols)
         return blocks
 
+    def columns(self, z: FloatArray) -> list[FloatArray]:
+        """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` after the output effects (the
+        sensor zero is the rod's, so it sees them too), shape (N, 3)."""
+        return [np.column_stack(c) for c in self._filtered(z)]
+
+    @functools.cached_property
+    def _rows(self) -> list[NDArray[np.intp]]:
+        """Per sweep: the samples of its residual (its mask's)."""
+        return [np.flatnonzero(p.mask) for p in self.preps]
+
     def system(self, z: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Weighted design matrix ``[L[Q], L[Q^2], 1_s]`` (``1_s`` one sensor zero per sweep)
-        and target (the readings through the inverse gauge)."""
+        and target (the readings through the inverse gauge). Only the residual's rows are
+        gathered from the full-rate columns."""
         gauge = self._gauge(z[6:])
-        blocks = [w * c[p.mask] for c, p, w in zip(self.columns(z), self.preps, self.weights,
-                                                      strict=True)]
+        rows = self._rows
+        a = np.zeros((sum(r.size for r in rows), 2 + len(rows)))
+        start = 0
+        for s, (cols, r, w) in enumerate(zip(self._filtered(z), rows, self.weights, strict=True)):
+            stop = start + r.size
+            a[start:stop, 0] = w * cols[0][r]
+            a[start:stop, 1] = w * cols[1][r]
+            a[start:stop, 2 + s] = w * cols[2][r]
+            start = stop
         ys = [w * fx.ungauge(gauge, p.y) for p, w in zip(self.preps, self.weights, strict=True)]
-        return _with_zeros(blocks), np.concatenate(ys)
+        return a, np.concatenate(ys)
 
     def readings(self, z: FloatArray, beta: FloatArray) -> list[FloatArray]:
         """What the sensor reads (um) at every sample of every sweep for ``z`` and the linear

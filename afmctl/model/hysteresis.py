@@ -24,7 +24,8 @@ Two exact implementations of the relay kernel are provided, plus the thermally a
     it converges smoothly (no staircase) in the number of coercive nodes.
 ``thermal``
     Kernel (6)-(10) on the grid: every hysteron carries the fraction ``x_+`` of positively oriented
-    dipoles; see :func:`switching_rates` for the closed form of the likelihoods (7)-(8).
+    dipoles; see :func:`switching_rates` for the closed form of the likelihoods (7)-(8) and
+    :mod:`afmctl.model.thermal` for the compiled kernel.
 
 Tie rule (field exactly at a switching threshold, ``E + E_I = +-E_c``): the relay switches. This is
 the reading of kernel (4), whose switching set contains the times at which ``E = +-E_c`` holds; the
@@ -47,14 +48,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import special
 
+from afmctl.model.thermal import thermal_step
+
 FloatArray = NDArray[np.float64]
 ArrayLike = FloatArray | list[float] | tuple[float, ...]
 
 KIND_NORMAL = 0
 KIND_GRID = 1
 KIND_THERMAL = 2
-#: Thermal kernel: a hysteron within this of a settled orientation is settled.
-SNAP = 1e-12
 
 
 @dataclass(frozen=True)
@@ -306,22 +307,6 @@ def initial_state(params: Polarization, how: Initial | NDArray = "depoled") -> P
 
 
 @nb.njit(cache=True)
-def erfcx(z: float) -> float:
-    """Scaled complementary error function exp(z^2) erfc(z), stable for all real z."""
-    if z < 25.0:
-        if z < -26.0:
-            return math.inf
-        return math.exp(z * z) * math.erfc(z)
-    iz2 = 1.0 / (z * z)
-    return (1.0 - 0.5 * iz2 + 0.75 * iz2 * iz2 - 1.875 * iz2 * iz2 * iz2) / (z * math.sqrt(math.pi))
-
-
-@nb.njit(cache=True)
-def _rate(z: float, nu0: float) -> float:
-    return nu0 / erfcx(z)
-
-
-@nb.njit(cache=True)
 def _step(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray,
           wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray) -> float:
     """Advance the state ``st`` by one sample at field ``e`` (MV/m) held for ``dt`` s into ``out``
@@ -371,78 +356,7 @@ def _step(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: n
             out[i] = b
             acc += wc[i] * (wi_tot - 2.0 * cw[b])
         return (e * wtot + mean) / eta + p_r * acc
-    return (e * wtot + mean) / eta + p_r * _thermal_step(e, dt, st, out, ec, wc, ei, cw, fscale, nu0)
-
-
-@nb.njit(cache=True)
-def _cell(st: np.ndarray, out: np.ndarray, idx: int, ee: float, ec: float, dt: float, s: float,
-          zcut: float, nu0: float) -> float:
-    """Advance hysteron ``idx`` (effective field ``ee``, coercive field ``ec``) by ``dt`` into
-    ``out`` (exact exponential update at frozen rates (7)-(8)); return its new x_+."""
-    x = st[idx]
-    zm = -s * (ee + ec)  # + -> - switching (7)-(8)
-    zp = s * (ee - ec)   # - -> + switching
-    if zm > zcut or zp > zcut:
-        pm = _rate(zm, nu0) if zm > zcut else 0.0
-        pp = _rate(zp, nu0) if zp > zcut else 0.0
-        if not ((pm == 0.0 and x == 1.0) or (pp == 0.0 and x == 0.0)):
-            xeq = pp / (pm + pp)
-            x = xeq + (x - xeq) * math.exp(-(pm + pp) * dt)
-            if x > 1.0 - SNAP and pm == 0.0:  # settled up: a fraction below 1e-12 is none
-                x = 1.0
-            elif x < SNAP and pp == 0.0:
-                x = 0.0
-    out[idx] = x
-    return x
-
-
-@nb.njit(cache=True)
-def _thermal_step(e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray,
-                  wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, fscale: float,
-                  nu0: float) -> float:
-    """Kernel (10) over the grid: advance x_+ of every hysteron at field ``e`` held ``dt`` s and
-    return the switched total ``sum w (2 x_+ - 1)``, kept in the state's last slot.
-
-    A hysteron moves only near its switching fields ``E + E_I = +-E_c`` (rates (7)-(8) below
-    ``1e-12 / dt`` elsewhere), so each row (``ei`` increasing) is visited from ``zcut``
-    field scales ahead of each switching field on, and on past it while x_+ is not yet
-    exactly 1 (up) or 0 (down): a state made by this kernel from a relay state is monotone in
-    ``E_I``, so past a hysteron that was and stays fully switched the rest of the row cannot
-    move. The result equals the sweep of every hysteron (to 1e-12); the cost is the bands'.
-    """
-    ni, nj = ec.size, ei.size
-    n = ni * nj
-    if out is not st:
-        out[:] = st
-    s = 1.0 / fscale
-    zcut = -math.sqrt(max(math.log(max(nu0 * dt, 1e-300) * 1e12), 1.0))
-    band = -zcut * fscale
-    acc = st[n]
-    for i in range(ni):
-        base = i * nj
-        d_acc = 0.0
-        # up-switching: E_I >= ec - e - band, on while inside the band or not yet fully up
-        j = np.searchsorted(ei, ec[i] - e - band)
-        first_up = j
-        while j < nj:
-            old = st[base + j]
-            x = _cell(st, out, base + j, e + ei[j], ec[i], dt, s, zcut, nu0)
-            d_acc += (cw[j + 1] - cw[j]) * (x - old)
-            if old == 1.0 and x == 1.0 and ei[j] > ec[i] - e + band:
-                break
-            j += 1
-        # down-switching: E_I <= -ec - e + band, below the cells the up pass visited
-        j = min(np.searchsorted(ei, -ec[i] - e + band, side="right"), first_up) - 1
-        while j >= 0:
-            old = st[base + j]
-            x = _cell(st, out, base + j, e + ei[j], ec[i], dt, s, zcut, nu0)
-            d_acc += (cw[j + 1] - cw[j]) * (x - old)
-            if old == 0.0 and x == 0.0 and ei[j] < -ec[i] - e - band:
-                break
-            j -= 1
-        acc += 2.0 * wc[i] * d_acc
-    out[n] = acc
-    return acc
+    return (e * wtot + mean) / eta + p_r * thermal_step(e, dt, st, out, ec, wc, ei, cw, fscale, nu0)
 
 
 @nb.njit(cache=True)
