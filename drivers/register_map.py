@@ -95,6 +95,7 @@ class StatusBit:
     WATCHDOG_ARMED = 4
     WATCHDOG_EXPIRED = 8
     READ_ONLY = 16
+    RECORDS_COMMAND = 32  # the recorder's voltage is the command, not a measurement (doc v5)
 
 
 def f32_regs(values: NDArray[np.float32] | list[float]) -> list[int]:
