@@ -19,8 +19,9 @@ is one the device must refuse. Out-of-range samples are only written where the d
 them or into table slots that are overwritten before any start. The checks leave the device idle at
 0 V, with its error cleared, its watchdog off and its sample rate the profile's.
 
-The checks themselves: :mod:`~afmctl.drivers.conformance_device` (§1, §2 on every wire) and
-:mod:`~afmctl.drivers.conformance_wire` (§3 serial, §4 Modbus, §5 reply latency).
+The checks themselves: :mod:`~afmctl.drivers.conformance_device` (§1, §2 on every wire),
+:mod:`~afmctl.drivers.conformance_timed` (§2.4 streaming and §2.8 watchdog, judged on the host's
+clock) and :mod:`~afmctl.drivers.conformance_wire` (§3 serial, §4 Modbus, §5 reply latency).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from numpy.typing import NDArray
 
 from afmctl.drivers import register_map as rm
 from afmctl.drivers.modbus_link import ModbusStage
+from afmctl.drivers.protocol import Status
 from afmctl.drivers.serial_link import SerialStage
 from afmctl.drivers.stage import StageBase, StageError
 from afmctl.files.profile import ModbusRtuTransport, ModbusTcpTransport, Profile
@@ -223,6 +225,80 @@ def records_command(stage: StageBase) -> bool:
     return False
 
 
+# -- waveforms, polls and timing judgements shared by the checks ----------------------------------
+f32 = np.float32
+
+
+def same32(a: float, b: float) -> bool:
+    """Whether two voltages are the same float32 (a serial reply carries 9 digits, §3.3(d))."""
+    return bool(f32(a) == f32(b))
+
+
+def triangle(bench: Bench, rate_hz: float, end_v: float = 0.0) -> NDArray[np.float64]:
+    """One triangle between 0 V and the bound at ``rate_hz``: from its first step up to the bound
+    and down to ``end_v`` (at most 0.9 slew steps from 0 V, so periods tile and wrap within the
+    slew limit; consecutive samples differ)."""
+    up = bench.ramp(bench.top, rate_hz)
+    return np.concatenate([up, up[::-1][1:], [end_v]])
+
+
+def stream_wave(bench: Bench, n: int, rate_hz: float) -> NDArray[np.float64]:
+    """``n`` samples of triangles (:func:`triangle`), cut at ``n`` (for a stream: never wrapped)."""
+    return np.resize(triangle(bench, rate_hz), n)
+
+
+def table_wave(bench: Bench, n_max: int, rate_hz: float, end_v: float = 0.0) -> NDArray[np.float64]:
+    """Whole triangles, at most ``n_max`` samples (at least one period): a table that may be
+    played for several cycles."""
+    period = triangle(bench, rate_hz, end_v)
+    return np.tile(period, max(1, n_max // period.size))
+
+
+def wait_idle(stage: StageBase, timeout_s: float) -> tuple[Status, Stamp]:
+    """Poll until the generator stops: its status and the bracket of the poll that saw it."""
+    t_end = time.monotonic() + timeout_s
+    while True:
+        st, poll = stamped(stage.status)
+        if not st.running:
+            return st, poll
+        expect(poll.sent < t_end, "§2.2(d)", f"still running {timeout_s:g} s later")
+        time.sleep(0.005)
+
+
+def settled_position(stage: StageBase) -> Status:
+    """The status once the play position has stopped moving (the recorder latency, §2.2(c))."""
+    time.sleep(2 * LATENCY_S)
+    st = stage.status()
+    for _ in range(20):
+        time.sleep(LATENCY_S)
+        again = stage.status()
+        if again.play_position == st.play_position:
+            return again
+        st = again
+    return st
+
+
+def position_within(p: int, poll: Stamp, start: Stamp, n: int, dt: float, late: str) -> None:
+    """§2.2(a), (c): the position at a poll lies between the samples that can have been played
+    and recorded (start at most dt + 10 ms after the start's reply, 10 ms recorder latency) and
+    those that can have been played since the start was sent (§2.2(a)). ``late`` labels a
+    position behind."""
+    most = math.floor((poll.done - start.sent) / dt) + 1
+    expect(p <= min(n, most), "§2.2(a)", f"position {p} when at most {min(n, most)} samples can have "
+                                     f"been played since the start was sent (faster than dt)")
+    least = math.floor((poll.sent - start.done - dt - 2 * LATENCY_S) / dt) - 1
+    expect(p >= min(n, least), late,
+           f"position {p} when at least {min(n, least)} samples were due "
+           f"{(poll.sent - start.done) * 1000:.1f} ms after the start was answered (more than "
+           f"dt + 10 ms start slack + 10 ms recorder latency behind the clock)")
+
+
+def late_or_fail(label: str, proven: bool, message: str, late: str) -> None:
+    """Fail with ``label`` when the brackets prove the device wrong, else the host fell behind."""
+    expect(not proven, label, message)
+    raise HostLate(late)
+
+
 #: (clause, title, check, changes the output or table) in the document's order; filled by
 #: :func:`_clauses` from the check modules.
 CLAUSES: tuple[tuple[str, str, Callable[[Bench], str], bool], ...]
@@ -335,8 +411,9 @@ def __getattr__(name: str) -> object:
     if name == "CLAUSES":
         return _clauses()
     from afmctl.drivers import conformance_device as dev
+    from afmctl.drivers import conformance_timed as timed
     from afmctl.drivers import conformance_wire as wire
-    for module in (dev, wire):
+    for module in (dev, timed, wire):
         if hasattr(module, name):
             return getattr(module, name)
     raise AttributeError(name)

@@ -14,7 +14,6 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from numpy.typing import NDArray
 
 from afmctl.drivers import register_map as rm
 from afmctl.drivers.conformance import (
@@ -23,86 +22,25 @@ from afmctl.drivers.conformance import (
     Bench,
     HostLate,
     NotApplicable,
-    Stamp,
     clear_error,
     code_of,
     expect,
     expect_code,
+    late_or_fail,
     load,
+    position_within,
     rate,
+    same32,
+    settled_position,
     stamped,
+    table_wave,
+    wait_idle,
     write_blocks,
 )
+from afmctl.drivers.conformance_timed import check_stream, check_watchdog
 from afmctl.drivers.modbus_link import ModbusStage
-from afmctl.drivers.protocol import Status
 from afmctl.drivers.serial_link import SerialStage
 from afmctl.drivers.stage import StageBase, StageError
-
-f32 = np.float32
-
-
-def same32(a: float, b: float) -> bool:
-    """Whether two voltages are the same float32 (a serial reply carries 9 digits, §3.3(d))."""
-    return bool(f32(a) == f32(b))
-
-
-def _period(bench: Bench, rate_hz: float, end_v: float = 0.0) -> NDArray[np.float64]:
-    """One triangle between 0 V and the bound at ``rate_hz``: from its first step up to the bound
-    and down to ``end_v`` (at most 0.9 slew steps from 0 V, so periods tile and wrap within the
-    slew limit; consecutive samples differ)."""
-    up = bench.ramp(bench.top, rate_hz)
-    return np.concatenate([up, up[::-1][1:], [end_v]])
-
-
-def _wave(bench: Bench, n: int, rate_hz: float) -> NDArray[np.float64]:
-    """``n`` samples of triangles (:func:`_period`), cut at ``n`` (for a stream: never wrapped)."""
-    return np.resize(_period(bench, rate_hz), n)
-
-
-def _table(bench: Bench, n_max: int, rate_hz: float, end_v: float = 0.0) -> NDArray[np.float64]:
-    """Whole triangles, at most ``n_max`` samples (at least one period): a table that may be
-    played for several cycles."""
-    period = _period(bench, rate_hz, end_v)
-    return np.tile(period, max(1, n_max // period.size))
-
-
-def wait_idle(stage: StageBase, timeout_s: float) -> tuple[Status, Stamp]:
-    """Poll until the generator stops: its status and the bracket of the poll that saw it."""
-    t_end = time.monotonic() + timeout_s
-    while True:
-        st, poll = stamped(stage.status)
-        if not st.running:
-            return st, poll
-        expect(poll.sent < t_end, "§2.2(d)", f"still running {timeout_s:g} s later")
-        time.sleep(0.005)
-
-
-def settled_position(stage: StageBase) -> Status:
-    """The status once the play position has stopped moving (the recorder latency, §2.2(c))."""
-    time.sleep(2 * LATENCY_S)
-    st = stage.status()
-    for _ in range(20):
-        time.sleep(LATENCY_S)
-        again = stage.status()
-        if again.play_position == st.play_position:
-            return again
-        st = again
-    return st
-
-
-def position_within(p: int, poll: Stamp, start: Stamp, n: int, dt: float, late: str) -> None:
-    """§2.2(a), (c): the position at a poll lies between the samples that can have been played
-    and recorded (start at most dt + 10 ms after the start's reply, 10 ms recorder latency) and
-    those that can have been played since the start was sent (§2.2(a)). ``late`` labels a
-    position behind."""
-    most = math.floor((poll.done - start.sent) / dt) + 1
-    expect(p <= min(n, most), "§2.2(a)", f"position {p} when at most {min(n, most)} samples can have "
-                                     f"been played since the start was sent (faster than dt)")
-    least = math.floor((poll.sent - start.done - dt - 2 * LATENCY_S) / dt) - 1
-    expect(p >= min(n, least), late,
-           f"position {p} when at least {min(n, least)} samples were due "
-           f"{(poll.sent - start.done) * 1000:.1f} ms after the start was answered (more than "
-           f"dt + 10 ms start slack + 10 ms recorder latency behind the clock)")
 
 
 # -- §1, §2.6(a): what the device says of itself ------------------------------------------------
@@ -111,7 +49,7 @@ def check_power_on(bench: Bench) -> str:
     capacities at least the minimum, idle at 0 V after the safe state."""
     stage = bench.stage
     v_min, v_max, slew = bench.v_min, bench.v_max, bench.slew
-    expect(all(float(f32(x)) == x for x in (v_min, v_max, slew)), "§2.6(a)",
+    expect(all(float(np.float32(x)) == x for x in (v_min, v_max, slew)), "§2.6(a)",
            f"LIM? {v_min!r} {v_max!r} {slew!r} are not float32 values")
     expect(v_min <= 0.0 <= v_max and slew > 0, "§1(a)",
            f"limits {v_min:g}..{v_max:g} V, {slew:g} V/ms: 0 V (power-on, safe state) outside")
@@ -123,7 +61,7 @@ def check_power_on(bench: Bench) -> str:
     if st.table_length == 0:
         expect(not st.table_complete, "§2.1(c)", "complete with no table")
     lim = bench.profile.limits
-    prof = [float(f32(x)) for x in (lim.v_min, lim.v_max, lim.slew_v_per_ms)]
+    prof = [float(np.float32(x)) for x in (lim.v_min, lim.v_max, lim.slew_v_per_ms)]
     note = ("" if prof == [v_min, v_max, slew] else
             f" (the profile says {prof[0]:g}..{prof[1]:g} V, {prof[2]:g} V/ms: the checks use "
             f"the device's)")
@@ -164,9 +102,9 @@ def check_limits(bench: Bench) -> str:
     Samples beyond the bounds go only into slots that are overwritten before any start."""
     stage = bench.stage
     try:
-        for edge, beyond in ((bench.v_max, np.nextafter(f32(bench.v_max), f32(np.inf))),
-                             (bench.v_min, np.nextafter(f32(bench.v_min), f32(-np.inf))
-                              if bench.v_min else f32(-2.0 ** -126))):
+        for edge, beyond in ((bench.v_max, np.nextafter(np.float32(bench.v_max), np.float32(np.inf))),
+                             (bench.v_min, np.nextafter(np.float32(bench.v_min), np.float32(-np.inf))
+                              if bench.v_min else np.float32(-2.0 ** -126))):
             stage._set_table_length(2)
             expect_code(lambda e=edge: stage._write_chunk(1, np.array([e], np.float32)), 0,
                         "§2.6(c)", f"a table sample of exactly {edge:g} V (the limit)")
@@ -221,7 +159,7 @@ def check_table(bench: Bench) -> str:
     start; a run of N samples keeps its position within the brackets of its clock, ends at N,
     holds its last sample, and records N finite entries (NaN beyond), readable as counted."""
     stage, r = bench.stage, bench.rate
-    dt = 1.0 / float(f32(r))
+    dt = 1.0 / float(np.float32(r))
     runs = stage.status().run_count
     stage._set_table_length(4)
     expect(not stage.status().table_complete, "§2.1(a)", "a new table of 4 is complete")
@@ -230,7 +168,7 @@ def check_table(bench: Bench) -> str:
     expect(stage.status().run_count == runs, "§2.6(f)", "a refused start counted a run")
     table_cap, rec_cap = stage._capacities()
     end_v = math.copysign(bench.step() / 3, bench.top)
-    period = _table(bench, min(1000, table_cap), r, end_v)
+    period = table_wave(bench, min(1000, table_cap), r, end_v)
     m = period.size
     cycles = max(1, min(rec_cap // m, math.ceil(0.3 * r / m)))
     n = m * cycles
@@ -267,7 +205,7 @@ def check_table(bench: Bench) -> str:
     expect(not same32(st.output_v, 0.0), "§2.1(b)",
            "the run played the first value written to its last slot, not the last")
     expect(same32(st.output_v, v[-1]), "§2.2(d)",
-           f"output {st.output_v!r} V after the run, not its last sample {float(f32(v[-1]))!r}")
+           f"output {st.output_v!r} V after the run, not its last sample {float(np.float32(v[-1]))!r}")
     expect(st.recorder_fill == n, "§2.3(g)", f"recorder fill {st.recorder_fill}, not {n}")
     stage._last_run_samples = n
     rec = stage.read_recorder(n + 2)
@@ -295,130 +233,6 @@ def check_table(bench: Bench) -> str:
             f"{polls} polls, over after {(poll.done - start.sent) * 1000:.0f} ms; {voltage}")
 
 
-# -- §2.4 streaming --------------------------------------------------------------------------------
-STREAM_TABLE = 512
-STREAM_BLOCK = 64
-
-
-def _late_or_fail(label: str, proven: bool, message: str, late: str) -> None:
-    """Fail with ``label`` when the brackets prove the device wrong, else the host fell behind."""
-    expect(not proven, label, message)
-    raise HostLate(late)
-
-
-def check_stream(bench: Bench) -> str:
-    """§2.4(a)-(h), §2.1(c), (d), §5(f), (h): a stream refilled as it plays ends at N; a block a
-    table ahead is refused (6), a block already played is taken; stale slots refuse WGS and WGO
-    (9); WGS N < L plays N; an unfed stream underruns at L (10); a steep step between blocks
-    stops it at that sample (4)."""
-    stage = bench.stage
-    L, dt = STREAM_TABLE, 1.0 / SLOW_RATE_HZ
-    n = 3 * L
-    with rate(bench, SLOW_RATE_HZ):
-        v = _wave(bench, n, SLOW_RATE_HZ)
-        load(stage, v[:L])
-        _, start = stamped(lambda: stage._start_stream(n))
-        got, ahead = stamped(lambda: code_of(lambda: write_blocks(stage, n - 8, v[n - 8:])))
-        if got != 6:
-            _late_or_fail("§2.4(b)", ahead.done - start.sent < (n - L) * dt,
-                          f"a block ending {L} samples or more past the position: error {got}",
-                          "the host sent the too-far block after the position had moved on")
-        if stage.status().last_error == 6:  # not an underrun's 10: that one is judged below
-            clear_error(stage)
-        written, rewrote = L, False
-        done_at = {b: -math.inf for b in range(0, L, STREAM_BLOCK)}  # loaded before the start
-        while (st := stage.status()).running:
-            p = st.play_position
-            if not rewrote and p > STREAM_BLOCK:
-                expect_code(lambda: write_blocks(stage, 0, v[:STREAM_BLOCK]), 0, "§2.4(c)",
-                            "a block of samples already played")
-                rewrote = True
-            while written < n and written + STREAM_BLOCK <= p + L:
-                got = code_of(lambda w=written: done_at.update(
-                    {w: write_blocks(stage, w, v[w:w + STREAM_BLOCK])[-1].done}))
-                if got:
-                    st = stage.status()
-                    expect(not st.running and st.play_position < n, "§2.4(b)",
-                           f"a block ending within a table of the position {p}: error {got}")
-                    break  # the stream had stopped before the block came: judged below
-                written += STREAM_BLOCK
-            else:
-                expect(time.monotonic() - start.done < n * dt + 5.0, "§2.2(d)",
-                       "the stream never ended")
-                time.sleep(0.005)
-                continue
-            break
-        st = settled_position(stage)
-        p = st.play_position
-        if p < n:
-            at = done_at.get(p - p % STREAM_BLOCK, math.inf)
-            _late_or_fail("§2.4(d)", at < start.sent + p * dt,
-                          f"the stream stopped at sample {p} (error {st.last_error}), which was "
-                          f"written {(start.sent + p * dt - at) * 1000:.0f} ms before it could be "
-                          f"due", f"the host wrote sample {p} too late")
-        expect(st.last_error == 0, "§2.4(b)",
-               f"the refilled stream played {n} samples with error {st.last_error}")
-        rec = stage.read_recorder(n)
-        expect(bool(rec.valid.all()), "§2.4(g)", "a streamed run did not record every sample")
-        expect(not stage.status().table_complete, "§2.4(h)",
-               "the table counts as complete after a stream wrapped it")
-        expect_code(lambda: stage._start_stream(L), 9, "§2.4(h)", "a stream started on stale slots")
-        expect_code(lambda: stage._start(1), 9, "§2.1(d)", "a table run started on stale slots")
-        clear_error(stage)
-        stage._set_table_length(L)
-        write_blocks(stage, 0, v[:50])
-        stage._start_stream(50)
-        wait_idle(stage, 2.0)
-        st = settled_position(stage)
-        expect(st.play_position == 50 and st.last_error == 0, "§2.4(a)",
-               f"WGS 50 with L = {L}: stopped at {st.play_position}, error {st.last_error}")
-        short = 127  # its last sample is not 0 V: the ramp after the underrun shows
-        load(stage, v[:short])
-        _, start = stamped(lambda: stage._start_stream(2 * short))
-        _, poll = wait_idle(stage, 2.0)
-        st = settled_position(stage)
-        expect(st.play_position == short and st.last_error == 10,
-               "§2.4(d)", f"an unfed stream stopped at {st.play_position} (not {short}), error "
-                          f"{st.last_error}")
-        expect(st.output_v == 0.0, "§2.7(b)", f"output {st.output_v:g} V after an underrun")
-        expect(poll.done >= start.sent + short * dt, "§5(h)", "the underrun came early")
-    clear_error(stage)
-    return f"{n} samples through a {L}-sample table refilled as played; 6, 9, 10 as documented; " \
-           + _stream_slew(bench)
-
-
-def _stream_slew(bench: Bench) -> str:
-    """§2.4(e), (f): a steep first sample refuses the stream (4); a steep step into the first
-    refilled sample stops it there (4, ramp to 0 V)."""
-    stage = bench.stage
-    r = bench.rate_for(1.3)
-    if r is None:
-        return "the slew of a stream NOT checked (bounds too tight; raise --max-voltage)"
-    with rate(bench, r):
-        step = math.copysign(1.2 * bench.max_step(r), bench.top)
-        length = 1024
-        load(stage, np.full(length, step))
-        runs = stage.status().run_count
-        expect_code(lambda: stage._start_stream(2 * length), 4, "§2.4(f)",
-                    "a stream whose sample 0 is 1.2 slew steps from the output")
-        expect(stage.status().run_count == runs, "§2.6(f)", "a refused stream counted as a run")
-        load(stage, np.zeros(length))
-        _, start = stamped(lambda: stage._start_stream(length + 8))
-        while stage.status().play_position < 8:  # the block's slots are those of samples 0..7
-            time.sleep(0.0005)
-        (wrote,) = write_blocks(stage, length, np.full(8, step))
-        wait_idle(stage, 2.0)
-        st = settled_position(stage)
-        if st.last_error == 10:
-            _late_or_fail("§2.4(d)", wrote.done < start.sent + length / r,
-                          "underrun at a sample written before it was due",
-                          "the host wrote the steep block after it was due")
-        expect(st.play_position == length and st.last_error == 4 and st.output_v == 0.0,
-               "§2.4(e)", f"a step of 1.2 slew steps into sample {length}: stopped at "
-                          f"{st.play_position}, error {st.last_error}, output {st.output_v:g} V")
-    return f"at {r:g} Hz a steep sample 0 refused and a steep refill stopped at it (4)"
-
-
 # -- §2.7, §2.9-§2.12: safe state, busy, stop, read-only ---------------------------------------
 def check_safe_state(bench: Bench) -> str:
     """§2.7(a), (d): SAFE ramps to 0 V before it answers, stops a run without touching the last
@@ -432,7 +246,7 @@ def check_safe_state(bench: Bench) -> str:
     expect(stage.voltage() == 0.0, "§2.7(d)", f"output {stage.voltage():g} V when SAFE answered")
     expect_code(stage.safe_state, 0, "§2.7(d)", "SAFE at 0 V")
     with rate(bench, SLOW_RATE_HZ):
-        load(stage, _table(bench, 1000, SLOW_RATE_HZ))
+        load(stage, table_wave(bench, 1000, SLOW_RATE_HZ))
         stage._start(1)
         time.sleep(0.05)
         stage.safe_state()
@@ -470,7 +284,7 @@ def check_busy(bench: Bench) -> str:
     sample being held, the position ends at the samples played."""
     stage = bench.stage
     dt, cycles = 1.0 / SLOW_RATE_HZ, 4
-    period = _table(bench, 500, SLOW_RATE_HZ)
+    period = table_wave(bench, 500, SLOW_RATE_HZ)
     m = period.size
     n = m * cycles
     with rate(bench, SLOW_RATE_HZ):
@@ -483,7 +297,7 @@ def check_busy(bench: Bench) -> str:
         for what, action, want, label in _busy(stage):
             got, s = stamped(lambda action=action: code_of(action))
             if got != want:
-                _late_or_fail(label, s.done < over_at, f"{what} while running: error {got}, the "
+                late_or_fail(label, s.done < over_at, f"{what} while running: error {got}, the "
                               f"document says {want}", f"{what} was answered after the run "
                                                        "could have ended")
         expect(stage.status().last_error == 5, "§2.11(a)", "the last error is not sticky")
@@ -493,7 +307,7 @@ def check_busy(bench: Bench) -> str:
             expect_code(action, 0, "§2.9(b)", f"{what} while running")
         st, s = stamped(stage.status)
         if not st.running:
-            _late_or_fail("§2.2(d)", s.done < over_at, "the run stopped early",
+            late_or_fail("§2.2(d)", s.done < over_at, "the run stopped early",
                           "the run was over before the host stopped it")
         _, stop = stamped(stage.stop)
         expect(not stage.status().running, "§2.2(e)", "WGO 0 did not stop the run")
@@ -502,7 +316,7 @@ def check_busy(bench: Bench) -> str:
         if p >= n:
             raise HostLate("the run was over before the host stopped it")
         position_within(p, stop, start, n, dt, "§2.2(e)")
-        held = float(f32(period[p % m]))
+        held = float(np.float32(period[p % m]))
         expect(same32(st.output_v, held), "§2.2(e)",
                f"stopped at position {p}: output {st.output_v!r} V, not the sample being held "
                f"({held!r} V, sample {p})")
@@ -562,95 +376,6 @@ def check_error_codes(bench: Bench) -> str:
     clear_error(stage)
     return ", ".join(f"{what}: {want}" for what, _, want in cases) + \
         ", past the table: 6, cycles over the recorder: 6 (before 9)"
-
-
-# -- §2.8 watchdog -------------------------------------------------------------------------------
-WATCHDOG_S = 0.2
-
-
-def check_watchdog(bench: Bench) -> str:
-    """§2.8(b)-(g), §5(g): WDT disarms and clears the flag; HB arms; left alone it expires within
-    10 ms of its period, idle, ramping to 0 V with error 8; queries do not feed it; a heartbeat
-    re-arms it; the next start clears the flag. The expiry instant is bracketed by the last query
-    that saw it armed and the first that saw it expired."""
-    stage, period = bench.stage, WATCHDOG_S
-    writable = not stage.status().read_only
-    stage.set_watchdog(period / 2)
-    expect(not stage.status().watchdog_armed, "§2.8(b)", "armed by WDT alone")
-    if writable:
-        stage.set_voltage(math.copysign(bench.step() / 3, bench.top))
-    _, beat = stamped(stage.heartbeat)
-    expect(stage.status().watchdog_armed, "§2.8(c)", "not armed by a heartbeat")
-    time.sleep(max(0.0, beat.done + period / 2 + 0.015 - time.monotonic()))
-    st, look = stamped(stage.status)
-    expect(st.watchdog_expired, "§5(g)", f"still armed {(look.sent - beat.done - period / 2) * 1e3:.0f}"
-                                           f" ms after its {period / 2:g} s period ran out, left alone")
-    expect(st.output_v == 0.0 and st.last_error == 8 and not st.watchdog_armed, "§2.8(e)",
-           f"after expiry: output {st.output_v:g} V, error {st.last_error}, armed "
-           f"{st.watchdog_armed}")
-    stage.heartbeat()
-    st = stage.status()
-    expect(st.watchdog_armed, "§2.8(g)", "a heartbeat after an expiry did not re-arm it")
-    expect(st.watchdog_expired, "§2.8(f)", "a heartbeat cleared the expired flag")
-    stage.set_watchdog(0.0)
-    st = stage.status()
-    expect(not st.watchdog_expired and not st.watchdog_armed, "§2.8(b)",
-           "WDT did not clear the expired flag and disarm")
-    clear_error(stage)
-    lo, hi = _expiry_bracket(stage, period)
-    if writable:
-        load(stage, np.zeros(1))
-        stage._start(1)
-        expect(not stage.status().watchdog_expired, "§2.8(f)", "a start did not clear the flag")
-        wait_idle(stage, 2.0)
-    stage.set_watchdog(0.0)
-    clear_error(stage)
-    return (f"expired {lo * 1e3:.1f}-{hi * 1e3:.1f} ms after its {period:g} s period under "
-            f"queries (idle), ramped to 0 V")
-
-
-#: Expiries bracketed per attempt of the watchdog clause before the host is said to fall behind.
-BRACKET_TRIES = 5
-
-
-def _expired(stage: StageBase) -> bool:
-    """The expired flag, by the shortest query the wire has (Modbus: IR 1 alone)."""
-    if isinstance(stage, ModbusStage):
-        bits = stage._request("read_input_registers", rm.IR.STATUS, count=1)[0]
-        return bool(bits & rm.StatusBit.WATCHDOG_EXPIRED)
-    return stage.status().watchdog_expired
-
-
-def _expiry_bracket(stage: StageBase, period: float) -> tuple[float, float]:
-    """§2.8(d), (e), §5(g): arm the watchdog and query until it expires; the expiry's delay past
-    the period, bracketed (s). Tried :data:`BRACKET_TRIES` times for a bracket within the 10 ms
-    allowed; HostLate if none is."""
-    widest = (0.0, 0.0)
-    for _ in range(BRACKET_TRIES):
-        stage.set_watchdog(period)  # disarms and clears the flag of the try before
-        _, beat = stamped(stage.heartbeat)
-        armed_at: float | None = None
-        while True:
-            now = time.monotonic()
-            if now < beat.done + period - 0.02:
-                time.sleep(min(0.02, beat.done + period - 0.02 - now))
-            expired, poll = stamped(lambda: _expired(stage))
-            if expired:
-                expect(poll.done >= beat.sent + period, "§2.8(e)",
-                       f"expired {(beat.sent + period - poll.done) * 1e3:.1f} ms before its period")
-                break
-            armed_at = poll.sent
-            expect(poll.sent - beat.done <= period + LATENCY_S, "§2.8(d)",
-                   f"still armed {(poll.sent - beat.done - period) * 1e3:.1f} ms after its "
-                   "period, queried but without heartbeats (queries must not feed it)")
-            time.sleep(0.001)
-        lo = max(0.0, (armed_at - beat.done - period) if armed_at is not None else 0.0)
-        hi = poll.done - beat.sent - period
-        if hi <= LATENCY_S:
-            return lo, hi
-        widest = max(widest, (lo, hi), key=lambda b: b[1])
-    raise HostLate(f"{BRACKET_TRIES} expiries bracketed up to {widest[0] * 1e3:.1f}-"
-                   f"{widest[1] * 1e3:.1f} ms after the period: too wide to judge the 10 ms")
 
 
 #: (clause, title, check, changes the output or table) in the document's order.

@@ -177,23 +177,36 @@ def failed_rows(failures: list[Failure]) -> Failure:
     return Failure(labels, f"{len(failures)} rows fail: {shown}{more}")
 
 
-def _serial_rows(bench: Bench, clause: str) -> int:
-    stage = _serial(bench)
-    rows = _rows(SERIAL_ROWS, stage.status().read_only, clause)
+def run_rows(bench: Bench, table: tuple[Row, ...], clause: str,
+             run_row: Callable[[str, list[str], str, str], None]) -> int:
+    """Every row of ``table`` that ``clause`` runs, each from the state P; one failure naming
+    all the rows that fail. The number of rows run."""
+    rows = _rows(table, bench.stage.status().read_only, clause)
     failures = []
-    for row, lines, want, label in rows:
+    for row, sent, want, label in rows:
         state_p(bench)
         try:
-            run_serial_row(stage, row, lines, want, label)
+            run_row(row, sent, want, label)
         except Failure as exc:
             failures.append(exc)
-            time.sleep(0.05)  # let stray replies arrive, then forget them
-            stage._buf.clear()
-            stage._port.reset_input_buffer()
     state_p(bench)
     if failures:
         raise failed_rows(failures)
     return len(rows)
+
+
+def _serial_rows(bench: Bench, clause: str) -> int:
+    stage = _serial(bench)
+
+    def run_row(row: str, lines: list[str], want: str, label: str) -> None:
+        try:
+            run_serial_row(stage, row, lines, want, label)
+        except Failure:
+            time.sleep(0.05)  # let stray replies arrive, then forget them
+            stage._buf.clear()
+            stage._port.reset_input_buffer()
+            raise
+    return run_rows(bench, SERIAL_ROWS, clause, run_row)
 
 
 def row_clause(label: str, serial: bool) -> str:
@@ -312,20 +325,14 @@ def modbus_matches(stage: ModbusStage, res: object, want: str) -> bool:
 
 def _modbus_rows(bench: Bench, clause: str) -> int:
     stage = _modbus(bench)
-    rows = _rows(MODBUS_ROWS, stage.status().read_only, clause)
-    failures = []
-    for row, requests, want, label in rows:
-        state_p(bench)
+
+    def run_row(row: str, requests: list[str], want: str, label: str) -> None:
         res = None
         for text in requests:
             res = modbus_request(stage, text)
-        if not modbus_matches(stage, res, want):
-            failures.append(Failure(label, f"row {row} ({' then '.join(requests)}) answered "
-                                           f"{res}, the document says {want}"))
-    state_p(bench)
-    if failures:
-        raise failed_rows(failures)
-    return len(rows)
+        expect(modbus_matches(stage, res, want), label,
+               f"row {row} ({' then '.join(requests)}) answered {res}, the document says {want}")
+    return run_rows(bench, MODBUS_ROWS, clause, run_row)
 
 
 def check_fc6_echo(bench: Bench) -> str:

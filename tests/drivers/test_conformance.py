@@ -19,6 +19,7 @@ from afmctl.cli import main
 from afmctl.drivers import conformance as cf
 from afmctl.drivers import conformance_device as cfd
 from afmctl.drivers import conformance_rows as rows
+from afmctl.drivers import conformance_timed as cft
 from afmctl.drivers import conformance_wire as cfw
 from afmctl.drivers.device.emulated import serve_all
 from afmctl.drivers.device.emulator import Emulator
@@ -34,8 +35,8 @@ SERIAL_ONLY = {"§3.1", "§3.2", "§3.3", "§3.4", "§3.5"}
 MODBUS_ONLY = {"§4", "§4.1", "§4.3"}
 #: Clauses whose timing the host must resolve (the others cannot say the host fell behind).
 TIMED = {"§2.4", "§2.8", "§2.9 §2.11 §2.12", "§5(e)"}
-CHECK_SOURCES = ("conformance.py", "conformance_device.py", "conformance_wire.py",
-                 "conformance_rows.py")
+CHECK_SOURCES = ("conformance.py", "conformance_device.py", "conformance_timed.py",
+                 "conformance_wire.py", "conformance_rows.py")
 
 
 def defined_labels() -> list[str]:
@@ -156,13 +157,13 @@ def test_a_host_that_refills_late_is_not_a_failing_stream(profile: Profile, tmp_
     """Each refill block waits 0.6 s before it is written (longer than the half table of
     margin): the device underruns, rightly; the check finds the sample was written after it was
     due and says the host fell behind (issue 27, item 11). ``afmctl conformance`` exits 3."""
-    real = cfd.write_blocks
+    real = cft.write_blocks
 
     def late(stage, first, v):  # noqa: ANN001, ANN202
-        if cfd.STREAM_TABLE <= first < 3 * cfd.STREAM_TABLE - 8:  # the refills
+        if cft.STREAM_TABLE <= first < 3 * cft.STREAM_TABLE - 8:  # the refills
             time.sleep(0.6)
         return real(stage, first, v)
-    monkeypatch.setattr(cfd, "write_blocks", late)
+    monkeypatch.setattr(cft, "write_blocks", late)
     with stage_on("serial-socket", profile) as (stage, _):
         (result,) = cf.run(stage, profile, only={"§2.4"})
     assert result.passed is None and result.host_late, result

@@ -16,7 +16,7 @@ import numpy as np
 
 from afmctl.drivers.device.foreign import stage as foreign
 from afmctl.drivers.device.foreign.stages import random_stage
-from tests.harness.second_device import SecondStage
+from tests.harness.second_server import SecondStage
 
 TABLE, RECORDER = 16384, 65536
 

@@ -1,10 +1,11 @@
 """A second stage device, written from ``docs/protocol.md`` (version 5) alone: no afmctl import.
 
-It speaks the serial protocol on ``socket://127.0.0.1:PORT`` (one connection at a time, like a
-serial-to-Ethernet adapter) and keeps its own clock: a ticker thread advances it every 2 ms, so
-its watchdog acts with no command arriving. Its plant (:class:`Plant`) is its own: an amplifier
-with an optional first-order lag and gain error, whose mean output over each sample is what the
-recorder holds (§2.3(b)), driving a stack with play (backlash) hysteresis read by a noisy gauge.
+Served by :class:`~tests.harness.second_server.SecondStage` on ``socket://127.0.0.1:PORT`` (one
+connection at a time, like a serial-to-Ethernet adapter), it keeps its own clock: a ticker thread
+advances it every 2 ms, so its watchdog acts with no command arriving. Its plant (:class:`Plant`)
+is its own: an amplifier with an optional first-order lag and gain error, whose mean output over
+each sample is what the recorder holds (§2.3(b)), driving a stack with play (backlash) hysteresis
+read by a noisy gauge.
 Another plant can be plugged in (``plant=``: ``idle``, ``play`` and ``start_run``).
 
 Variants (keyword arguments of :class:`Device`): ``lag_hz`` (amplifier bandwidth), ``gain``,
@@ -19,7 +20,6 @@ from __future__ import annotations
 
 import math
 import re
-import socket
 import threading
 import time
 import zlib
@@ -579,70 +579,3 @@ def ints(args: list[str], n: int, defect: str | None = None) -> list[int]:
         except ValueError:
             raise Refused(2) from None
     return parsed(args, n, INT, int)
-
-
-class SecondStage:
-    """The device on ``socket://127.0.0.1:PORT`` (``url``), one connection at a time, with a 2 ms
-    ticker; a context manager. Keyword arguments go to :class:`Device`."""
-
-    def __init__(self, **device: object) -> None:
-        self.device = Device(**device)  # type: ignore[arg-type]
-        self.listener = socket.create_server(("127.0.0.1", 0))
-        self.url = f"socket://127.0.0.1:{self.listener.getsockname()[1]}"
-        self.stop = threading.Event()
-        self.threads = [threading.Thread(target=self.serve, daemon=True),
-                        threading.Thread(target=self.tick, daemon=True)]
-
-    def tick(self) -> None:
-        while not self.stop.wait(0.002):
-            with self.device.lock:
-                self.device.advance(self.device.clock())
-
-    def serve(self) -> None:
-        self.listener.settimeout(0.05)
-        while not self.stop.is_set():
-            try:
-                conn, _ = self.listener.accept()
-            except TimeoutError:
-                continue
-            with conn:
-                self.talk(conn)
-
-    def talk(self, conn: socket.socket) -> None:
-        conn.settimeout(0.05)
-        buf, skipping = b"", False
-        split = re.compile(b"[\r\n]") if self.device.defect == "cr-ends-line" else re.compile(b"\n")
-        while not self.stop.is_set():
-            try:
-                data = conn.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            if not data:
-                return
-            buf += data
-            while (m := split.search(buf)) is not None:
-                raw, buf = buf[:m.start()], buf[m.end():]
-                if skipping:
-                    skipping = False
-                    continue
-                reply = self.device.line(raw)
-                if reply is not None:
-                    conn.sendall(reply)
-            if len(buf) > MAX_LINE and not skipping and self.device.defect != "overlong-accepted":
-                buf, skipping = b"", True
-                conn.sendall(self.device.line(b"x" * (MAX_LINE + 1)) or b"")
-            elif skipping:
-                buf = b""
-
-    def __enter__(self) -> SecondStage:
-        for t in self.threads:
-            t.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop.set()
-        for t in self.threads:
-            t.join()
-        self.listener.close()
