@@ -2,7 +2,7 @@
 
 Served by :class:`~tests.harness.second_server.SecondStage` on ``socket://127.0.0.1:PORT`` (one
 connection at a time, like a serial-to-Ethernet adapter), it keeps its own clock: a ticker thread
-advances it every 2 ms, so its watchdog acts with no command arriving. Its plant (:class:`Plant`)
+looks at its watchdog every 2 ms, so it acts with no command arriving. Its plant (:class:`Plant`)
 is its own: an amplifier with an optional first-order lag and gain error, whose mean output over
 each sample is what the recorder holds (§2.3(b)), driving a stack with play (backlash) hysteresis
 read by a noisy gauge.
