@@ -59,7 +59,7 @@ FAKE_TICK_S = 0.002
 #: Per-request timeout of the hosts on faulty wires, s.
 WIRE_TIMEOUT_S = 0.15
 #: Faults per reply on each wire. RTU has no transaction id, so its delays stay below the timeout
-#: (a reply later than that could be taken for the next one: see docs/protocol.md).
+#: (a reply later than that could be taken for the next one: see docs/reference/protocol.md).
 WIRE_FAULTS = {
     "serial-socket": WireFaults(0.02, 0.02, 0.02, 0.01, 0.02, delay_s=0.2, seed=1),
     "serial-pty": WireFaults(0.02, 0.02, 0.02, 0.01, 0.02, delay_s=0.2, seed=2),

@@ -17,8 +17,9 @@ Links (host side)
     RTU (every pymodbus client call lives there); :mod:`afmctl.drivers.inprocess` calls an emulated device
     directly (the no-hardware default; same interface, no wire).
 Protocols (pure, no I/O)
-    :mod:`afmctl.drivers.protocol` (error codes, status record), :mod:`afmctl.drivers.ascii_protocol` and
-    :mod:`afmctl.drivers.register_map`: the codecs of ``docs/protocol.md``, shared by host and device.
+    :mod:`afmctl.drivers.protocol` (error codes, status record), :mod:`afmctl.drivers.ascii_protocol`
+    and :mod:`afmctl.drivers.register_map`: the codecs of ``docs/reference/protocol.md``, shared by
+    host and device.
 Device side (:mod:`afmctl.drivers.device`)
     The emulated device: its logic (:mod:`~afmctl.drivers.device.emulator`), plant and hidden effects
     (:mod:`~afmctl.drivers.device.plant`), protocol interpreters (:mod:`~afmctl.drivers.device.ascii_device`,
@@ -26,7 +27,7 @@ Device side (:mod:`afmctl.drivers.device`)
     (:mod:`~afmctl.drivers.device.serial_server`, :mod:`~afmctl.drivers.device.modbus_server`, every
     pymodbus server call; :mod:`~afmctl.drivers.device.emulated` serves one device on every wire),
     fault injection (:mod:`~afmctl.drivers.device.faults`), and the
-    conformance check that exercises any device against ``docs/protocol.md``. Host code imports
+    conformance check that exercises any device against ``docs/reference/protocol.md``. Host code imports
     from it only to start an emulated stage.
 
 Test and benchmark harnesses (the safety campaign) live outside the shipped packages

@@ -12,12 +12,14 @@ value(s) for a query, or ``ERR <code> <text>`` when the device refuses (codes in
 decimal; float32 values are written with 9 significant digits, which round-trips float32 exactly; a
 sample not yet recorded (or overwritten) is ``nan``. Version 2 adds streaming: ``WGS <n>`` plays
 ``n`` samples through the table as a ring while the host keeps writing ``WAV`` blocks at global
-indices; ``DRR?`` and ``POS?`` use global indices. See ``docs/protocol.md``.
+indices; ``DRR?`` and ``POS?`` use global indices. See ``docs/reference/protocol.md``.
 """
 
 from __future__ import annotations
 
+import re
 import zlib
+from fractions import Fraction
 
 import numpy as np
 from numpy.typing import NDArray
@@ -39,15 +41,72 @@ STATUS_KEYS = ("running", "fill", "error", "out", "runs", "len", "complete", "wd
                "rate", "pos", "total", "wdt")
 
 
+#: A float argument (docs/reference/protocol.md §3.3(a)) and an integer argument (§3.3(b)), ASCII digits.
+FLOAT_SYNTAX = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+INT_SYNTAX = re.compile(r"[+-]?[0-9]+")
+_CRC_DIGITS = re.compile(r"[0-9a-fA-F]{8}")
+_TAG = re.compile(r"#[0-9]{1,9}")
+#: Bytes a line may hold (§3.1(c)): printable ASCII and TAB.
+_PRINTABLE = re.compile(r"[\x20-\x7e\t]*")
+
+
 def crc(text: str) -> str:
-    """CRC-32 of ``text`` (ASCII), 8 lower-case hex digits."""
-    return f"{zlib.crc32(text.encode('ascii', errors='replace')):08x}"
+    """CRC-32 of ``text`` (its bytes: each character one byte, as received), 8 lower-case hex
+    digits."""
+    return f"{zlib.crc32(text.encode('latin-1', errors='replace')):08x}"
 
 
-def frame(payload: str, tag: int | None) -> str:
-    """``payload [#tag] *crc`` (no terminator)."""
+def frame(payload: str, tag: int | str | None) -> str:
+    """``payload [#tag] *crc`` (no terminator); a tag given as text is written as it is."""
     body = payload if tag is None else f"{payload} #{tag}"
     return f"{body} *{crc(body)}"
+
+
+def split_frame(line: str) -> tuple[str, str | None]:
+    """The device's reading of a received line (its CR LF taken off; one character per byte):
+    ``(payload, tag as received or None)``, by §3.2(a), (b). FrameError if it carries a CRC that
+    is wrong. The payload may still hold bytes §3.1(c) refuses (:func:`printable`)."""
+    body = line
+    if len(line) >= 10 and line[-10:-8] == " *" and _CRC_DIGITS.fullmatch(line[-8:]):
+        body = line[:-10]
+        if crc(body) != line[-8:].lower():
+            raise FrameError(f"CRC mismatch: {line[:40]!r}")
+    words = body.rstrip(" \t")
+    cut = max(words.rfind(" "), words.rfind("\t"))
+    if _TAG.fullmatch(words[cut + 1:]):
+        return words[:cut + 1], words[cut + 2:]
+    return body, None
+
+
+def printable(text: str) -> bool:
+    """Whether ``text`` holds only printable ASCII and TAB (§3.1(c))."""
+    return _PRINTABLE.fullmatch(text) is not None
+
+
+def parse_float32(text: str) -> float | None:
+    """A float argument (§3.3(a)) rounded to the nearest float32, ties to even, as C's ``strtof``
+    (±inf beyond float32); None if ``text`` is not one."""
+    if not FLOAT_SYNTAX.fullmatch(text):
+        return None
+    d = float(text)
+    with np.errstate(over="ignore"):
+        f = np.float32(d)
+        if float(f) == d or not np.isfinite(f):
+            return float(f)
+        other = np.nextafter(f, np.float32(np.inf) if d > float(f) else np.float32(-np.inf))
+    if (float(f) + float(other)) / 2 != d:  # not on a midpoint: one rounding is exact enough
+        return float(f)
+    exact = Fraction(text)  # the decimal sits within a double of a float32 midpoint: decide exactly
+    mid = (Fraction(float(f)) + Fraction(float(other))) / 2
+    if exact == mid:
+        even = f if int(f.view(np.uint32)) % 2 == 0 else other
+        return float(even)
+    return float(other if (exact > mid) == (float(other) > float(f)) else f)
+
+
+def parse_int(text: str) -> int | None:
+    """An integer argument (§3.3(b)), any number of digits; None if ``text`` is not one."""
+    return int(text) if INT_SYNTAX.fullmatch(text) else None
 
 
 def unframe(line: str, required: bool = True) -> tuple[str, int | None]:
@@ -58,7 +117,7 @@ def unframe(line: str, required: bool = True) -> tuple[str, int | None]:
         if required:
             raise FrameError(f"no CRC: {line[:40]!r}")
         body = line
-    elif crc(body) != check:
+    elif crc(body) != check.lower():  # hex digits in either case (docs/reference/protocol.md §3.2(a))
         raise FrameError(f"CRC mismatch: {line[:40]!r}")
     payload, sep, tag = body.rpartition(" #")
     if sep and tag.isdigit():

@@ -2,7 +2,7 @@
 
 The host's links (:mod:`afmctl.drivers.serial_link`, :mod:`afmctl.drivers.modbus_link`) decode a
 device's replies into these; the emulated device (:mod:`afmctl.drivers.device`) produces them.
-``docs/protocol.md`` is the normative text.
+``docs/reference/protocol.md`` is the normative text.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ Modbus write limit), so repeating a write is harmless. Recorder readback is page
 and voltage windows; recorder indices are global sample indices (the page is 16 bits: 2**29
 samples). Version 2 adds streaming: ``HR.STREAM_TOTAL`` then ``Cmd.START_STREAM``; blocks at a 32-bit
 global sample index through the stream window (``STREAM_FIRST`` then up to 60 float32 = 122
-registers); ``IR.PLAY_POSITION`` and ``IR.RUN_SAMPLES``. See ``docs/protocol.md`` for the table.
+registers); ``IR.PLAY_POSITION`` and ``IR.RUN_SAMPLES``. See ``docs/reference/protocol.md`` for the table.
 """
 
 from __future__ import annotations
@@ -95,6 +95,7 @@ class StatusBit:
     WATCHDOG_ARMED = 4
     WATCHDOG_EXPIRED = 8
     READ_ONLY = 16
+    RECORDS_COMMAND = 32  # the recorder's voltage is the command, not a measurement (doc v5)
 
 
 def f32_regs(values: NDArray[np.float32] | list[float]) -> list[int]:

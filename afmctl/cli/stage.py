@@ -79,7 +79,8 @@ PROFILE_HELP = ("Stage profile: a TOML file, or a shipped one by name (emulated,
 @click.option("--json", "as_json", is_flag=True, help="Results as one JSON object on stdout.")
 def conformance(profile_path: str | None, max_voltage: float | None, yes: bool,
                 as_json: bool) -> None:
-    """Check a stage against docs/protocol.md, clause by clause (exit 0 only if all pass).
+    """Check a stage against docs/reference/protocol.md, clause by clause (exit 0 only if all pass, 1 if
+    one fails, 3 if the host fell behind and could not judge a timing requirement).
 
     On a hardware profile it talks to the stage the profile names (serial or Modbus) and moves it
     within +-max-voltage: pass --yes. On the emulated profile it serves the emulated device on
@@ -101,25 +102,30 @@ def conformance(profile_path: str | None, max_voltage: float | None, yes: bool,
         with opened as stage:
             results = cf.run(stage, prof, max_voltage,
                              lambda what: click.echo(f"  checking {what}", err=True))
-        report[wire] = [dict(clause=r.clause, title=r.title, passed=r.passed, detail=r.detail)
-                        for r in results]
+        report[wire] = [dict(clause=r.clause, title=r.title, passed=r.passed, detail=r.detail,
+                             label=r.label, host_fell_behind=r.host_late) for r in results]
         if not as_json:
             _print_table(wire, results)
-    ok = all(r["passed"] is not False for rows in report.values() for r in rows)
+    rows = [r for rows in report.values() for r in rows]
+    ok = all(r["passed"] is not False for r in rows)
+    late = any(r["host_fell_behind"] for r in rows)
     if as_json:
         click.echo(json.dumps({"profile": prof.name, "max_voltage_V": max(abs(lo), abs(hi)),
-                               "passed": ok, "wires": report}))
-    if not ok:
-        sys.exit(1)
+                               "passed": ok and not late, "wires": report}))
+    if not ok or late:
+        sys.exit(1 if not ok else 3)
 
 
 def _print_table(wire: str, results: list) -> None:  # noqa: ANN001 (list[conformance.Result])
     click.echo(f"{wire}:")
     word = {True: "PASS", False: "FAIL", None: "n/a "}
     for r in results:
-        click.echo(f"  {word[r.passed]}  {r.clause:17s} {r.title:38s} {r.detail}")
-    counts = [sum(r.passed is v for r in results) for v in (True, False, None)]
-    click.echo("  {} passed, {} failed, {} not applicable".format(*counts))
+        click.echo(f"  {'LATE' if r.host_late else word[r.passed]}  {r.clause:17s} "
+                   f"{r.title:38s} {r.detail}")
+    counts = [sum(r.passed is v and not r.host_late for r in results) for v in (True, False, None)]
+    late = sum(r.host_late for r in results)
+    click.echo("  {} passed, {} failed, {} not applicable".format(*counts)
+               + (f", {late} not judged: the host fell behind" if late else ""))
 
 
 @main.command()

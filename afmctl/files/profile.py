@@ -271,7 +271,7 @@ def _transport(t: Table) -> Transport:
     if 0 < watchdog <= timeout:
         raise t.fail("watchdog_s", f"must exceed timeout_s ({timeout:g} s), or be 0 (never armed)")
     if watchdog > WATCHDOG_MAX_S:
-        raise t.fail("watchdog_s", f"at most {WATCHDOG_MAX_S:g} s (docs/protocol.md, WDT), "
+        raise t.fail("watchdog_s", f"at most {WATCHDOG_MAX_S:g} s (docs/reference/protocol.md, WDT), "
                                    f"got {watchdog:g}")
     if kind == "serial":
         return SerialTransport(t.string("url"), t.integer("baudrate", 115200, minimum=1), timeout,

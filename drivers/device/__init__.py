@@ -14,7 +14,7 @@ Modules, by concern:
     :func:`~afmctl.drivers.device.plant.with_hidden_effect`,
     :func:`~afmctl.drivers.device.plant.hidden_cases`; ``EmulatorConfig`` is re-exported there).
 :mod:`~afmctl.drivers.device.ascii_device`, :mod:`~afmctl.drivers.device.register_device`
-    The interpreters of the two protocols of ``docs/protocol.md`` (no I/O).
+    The interpreters of the two protocols of ``docs/reference/protocol.md`` (no I/O).
 :mod:`~afmctl.drivers.device.serial_server`, :mod:`~afmctl.drivers.device.modbus_server`,
 :mod:`~afmctl.drivers.device.wire`
     The wire servers (ASCII on a pty or socket; Modbus TCP and RTU: every pymodbus server call).
@@ -25,7 +25,7 @@ Modules, by concern:
 
 :mod:`~afmctl.drivers.conformance`
     The conformance check: exercises any device (this one or a lab's own) against
-    ``docs/protocol.md`` clause by clause, through the host's links (``afmctl conformance``).
+    ``docs/reference/protocol.md`` clause by clause, through the host's links (``afmctl conformance``).
 
 An independently written foreign plant with hidden effects (``foreign``) lives here too. Host code
 (``afmctl`` and the links in :mod:`drivers`) never imports from here except to start an emulated

@@ -14,8 +14,11 @@ from afmctl.drivers.ascii_protocol import (
     PROTOCOL_VERSION,
     fmt,
     frame,
+    parse_float32,
+    parse_int,
+    printable,
+    split_frame,
     status_line,
-    unframe,
 )
 from afmctl.drivers.device.emulator import IDENTITY, Emulator
 from afmctl.drivers.protocol import ERRORS
@@ -55,19 +58,24 @@ class AsciiDevice:
             "ERR?": lambda a, t: self._noargs(a, str(self.em.pop_error(t))),
             "LIM?": lambda a, t: self._noargs(a, " ".join(fmt(x) for x in (
                 self.em.limits.v_min, self.em.limits.v_max, self.em.limits.slew_v_per_ms))),
-            "SAFE": lambda a, t: self._ok(self.em.safe_state(t)),
-            "HB": lambda a, t: self._ok(self.em.heartbeat(t)),
+            "SAFE": lambda a, t: self._bare(a, lambda: self.em.safe_state(t)),
+            "HB": lambda a, t: self._bare(a, lambda: self.em.heartbeat(t)),
             "WDT": lambda a, t: self._ok(self.em.set_watchdog(_float(a, 0, 1), t)),
         }
 
     def handle_framed(self, line: str) -> str | None:
-        """One received line (framed or typed by hand) -> the framed reply, or None for a line
-        whose CRC is wrong (discarded unanswered) or that is blank."""
+        """One received line (framed or typed by hand; its CR LF taken off, one character per
+        byte) -> the framed reply, or None for a line whose CRC is wrong (discarded unanswered,
+        §3.2(c)) or whose payload is empty (§3.1(e)). A line with a byte outside printable ASCII
+        and TAB is refused with error 2 before its command word is read (§3.1(c))."""
         try:
-            payload, tag = unframe(line.strip(), required=False)
+            payload, tag = split_frame(line)
         except FrameError:
             return None
-        return frame(self.handle(payload), tag) if payload.strip() else None
+        if not printable(line):
+            self.em.last_error = 2
+            return frame(f"ERR 2 {ERRORS[2]} (a byte outside printable ASCII)", tag)
+        return frame(self.handle(payload), tag) if payload.strip(" \t") else None
 
     def overlong(self) -> str:
         """The framed reply to a line over :data:`~afmctl.drivers.ascii_protocol.MAX_LINE` bytes (its tag
@@ -89,6 +97,14 @@ class AsciiDevice:
 
     @staticmethod
     def _ok(_: None) -> str:
+        return "OK"
+
+    @staticmethod
+    def _bare(args: list[str], action: Callable[[], None]) -> str:
+        """A set command without arguments (error 2 if given any, before it acts)."""
+        if args:
+            raise DeviceError(2, "takes no arguments")
+        action()
         return "OK"
 
     @staticmethod
@@ -129,14 +145,16 @@ def _arg(args: list[str], i: int, count: int | None) -> str:
 
 
 def _float(args: list[str], i: int, count: int | None = None) -> float:
-    try:
-        return float(_arg(args, i, count))
-    except ValueError:
-        raise DeviceError(2, f"not a number: {args[i]!r}") from None
+    """Argument ``i`` as a float rounded to float32 (§3.3(a)); error 2 if it is not one."""
+    value = parse_float32(_arg(args, i, count))
+    if value is None:
+        raise DeviceError(2, f"not a number: {args[i]!r}")
+    return value
 
 
 def _int(args: list[str], i: int, count: int | None) -> int:
-    try:
-        return int(_arg(args, i, count))
-    except ValueError:
-        raise DeviceError(2, f"not an integer: {args[i]!r}") from None
+    """Argument ``i`` as an integer of any size (§3.3(b)); error 2 if it is not one."""
+    value = parse_int(_arg(args, i, count))
+    if value is None:
+        raise DeviceError(2, f"not an integer: {args[i]!r}")
+    return value

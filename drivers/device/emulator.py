@@ -19,6 +19,11 @@ are refused with an error code and nothing applied; a watchdog, armed by the fir
 period is set, ramps to 0 V if heartbeats stop; a read-only device refuses every output change.
 A stream whose next sample is not in the table when its time comes (the host fell behind) stops,
 sets error 10 and ramps to 0 V: it never plays stale table content.
+
+Sample ``k`` of a run goes on the DAC at ``t_k`` and counts as played at ``t_k + dt``
+(docs/reference/protocol.md §2.2): while a run plays, the output is the sample being held, which is checked
+(stale slot, slew) when its hold begins; stopping keeps it on the output without counting it.
+Limits and the sample rate are float32 values (§2.6).
 """
 
 from __future__ import annotations
@@ -51,19 +56,31 @@ MAX_STREAM_SAMPLES = 1 << 29
 
 
 
+def f32(x: float) -> float:
+    """``x`` rounded to the nearest float32 (docs/reference/protocol.md §2.6(b))."""
+    return float(np.float32(x))
+
+
+def max_step(limits: Limits, sample_rate_hz: float) -> float:
+    """The largest step one sample may take, V: ``slew × 1000 × dt`` with the float32 slew limit
+    (V/ms) and ``dt`` in s (§2.6(d); the 1e-6 tolerance is applied by the comparisons)."""
+    return f32(limits.slew_v_per_ms) * 1000.0 / sample_rate_hz
+
+
 def check_waveform(v: FloatArray, limits: Limits, sample_rate_hz: float,
                    previous_v: float | None = None) -> None:
     """Raise :class:`DeviceError` 3 or 4 if ``v`` leaves the voltage range or the slew limit.
 
     ``previous_v`` is the output before the first sample (the step into the waveform counts).
+    The limits are their float32 values, the range inclusive (§2.6(a), (c)).
     """
     v = np.asarray(v, dtype=float)
-    bad = not np.all(np.isfinite(v)) or (v.size > 0 and (v.min() < limits.v_min
-                                                        or v.max() > limits.v_max))
+    lo, hi = f32(limits.v_min), f32(limits.v_max)
+    bad = not np.all(np.isfinite(v)) or (v.size > 0 and (v.min() < lo or v.max() > hi))
     if bad:
-        raise DeviceError(3, f"range [{limits.v_min:g}, {limits.v_max:g}] V")
+        raise DeviceError(3, f"range [{lo:g}, {hi:g}] V")
     seq = v if previous_v is None else np.concatenate(([previous_v], v))
-    step = limits.max_step_v(sample_rate_hz)
+    step = max_step(limits, sample_rate_hz)
     if seq.size > 1 and np.max(np.abs(np.diff(seq))) > step * (1 + 1e-6):
         i = int(np.argmax(np.abs(np.diff(seq))))
         raise DeviceError(4, f"step {abs(seq[i + 1] - seq[i]):.4g} V > {step:.4g} V at {i}")
@@ -71,7 +88,7 @@ def check_waveform(v: FloatArray, limits: Limits, sample_rate_hz: float,
 
 def ramp_to_zero(v0: float, limits: Limits, sample_rate_hz: float) -> FloatArray:
     """Samples from ``v0`` to 0 V at 90 % of the slew limit (empty if already at 0)."""
-    step = 0.9 * limits.max_step_v(sample_rate_hz)
+    step = 0.9 * max_step(limits, sample_rate_hz)
     n = math.ceil(abs(v0) / step)
     return np.linspace(v0, 0.0, n + 1)[1:] if n else np.zeros(0)
 
@@ -80,20 +97,23 @@ def ramp_to_zero(v0: float, limits: Limits, sample_rate_hz: float) -> FloatArray
 class _Run:
     """A run in progress: global samples ``[0, total)`` clocked from device time ``start``, the first
     ``pos`` of them played. Global sample ``k`` is table slot ``k mod table_length``; a stream run
-    also requires that slot to hold global sample ``k`` (else: underrun)."""
+    also requires that slot to hold global sample ``k`` (else: underrun). ``last_v`` is the value
+    of the last sample played (the output before the start until one is): the slew check of the
+    next sample starts from it."""
 
     start: float
     total: int
     index: int
     gain: float
     stream: bool
+    last_v: float
     pos: int = 0
 
 
 def first_steep(v: FloatArray, previous_v: float, limits: Limits, sample_rate_hz: float) -> int:
     """Index of the first sample of ``v`` whose step from its predecessor (``previous_v`` before
     sample 0) exceeds the slew limit; ``v.size`` if none does."""
-    step = limits.max_step_v(sample_rate_hz) * (1 + 1e-6)
+    step = max_step(limits, sample_rate_hz) * (1 + 1e-6)
     bad = np.flatnonzero(np.abs(np.diff(v, prepend=previous_v)) > step)
     return int(bad[0]) if bad.size else v.size
 
@@ -138,7 +158,7 @@ class Emulator:
         self.config = profile.emulator
         self.limits = profile.limits
         self.read_only = self.config.read_only if read_only is None else read_only
-        self.sample_rate_hz = profile.sample_rate_hz
+        self.sample_rate_hz = f32(profile.sample_rate_hz)
         self.physics = plant(self.profile, self.sample_rate_hz)
         self.state = self.physics.initial()
         #: The plant's state when the last run began (what a bench's truth probe re-simulates the
@@ -168,6 +188,10 @@ class Emulator:
     def written(self) -> NDArray[np.bool_]:
         """Which table slots hold a sample."""
         return self.slot_global >= 0
+
+    def _holds_own(self, n: int) -> bool:
+        """Whether slots ``0 .. n-1`` hold global samples ``0 .. n-1`` (§2.1(c), §2.4(h))."""
+        return n > 0 and bool(np.array_equal(self.slot_global[:n], np.arange(n)))
 
     # -- bookkeeping ---------------------------------------------------------------------------
     def _fail(self, code: int, detail: str = "") -> DeviceError:
@@ -234,12 +258,15 @@ class Emulator:
         return max(run.pos, min(run.total, k))
 
     def _advance(self, now: float) -> None:
-        """Play the samples due by ``now``; stop at the first one that is stale (underrun, error 10)
-        or too steep (error 4), and ramp to 0 V: a wrong sample is never played."""
+        """Play the samples due by ``now``: those whose hold has ended are played (run through the
+        plant, recorded); the one whose hold has begun is the output. Each is checked when its hold
+        begins (§2.4(d), (e)): the first that is stale (underrun, error 10) or too steep (error 4)
+        stops the run before it goes on the DAC, and the output ramps to 0 V."""
         run = self._run
         if run is None:
             return
-        g = np.arange(run.pos, self._due(run, now))
+        due = self._due(run, now)
+        g = np.arange(run.pos, min(due + 1, run.total))  # played by now, and the one being held
         slots = g % self.table_length
         fault, n = 0, g.size
         if run.stream:
@@ -247,17 +274,20 @@ class Emulator:
             if stale.size:
                 fault, n = 10, int(stale[0])
         v = self.table[slots[:n]].astype(float)
-        steep = first_steep(v, self.output_v, self.limits, self.sample_rate_hz)
+        steep = first_steep(v, run.last_v, self.limits, self.sample_rate_hz)
         if steep < n:
             fault, n = 4, steep
-        self._play(run, v[:n])
-        if fault:
+        played = min(n, due - run.pos)
+        self._play(run, v[:played])
+        if fault:  # the faulty sample's hold has begun by now: it never goes on the DAC
             self._end(run)
             self._hold(ramp_to_zero(self.output_v, self.limits, self.sample_rate_hz),
                        self.plant_time)  # type: ignore[arg-type]
             self.last_error = fault
         elif run.pos == run.total:
             self._end(run)
+        elif played < n:
+            self.output_v = float(v[played])  # the sample being held is the output (§2.2(f))
 
     def _play(self, run: _Run, v: FloatArray) -> None:
         """Clock out ``v`` (the run's next samples) through the model into the recorder ring."""
@@ -273,6 +303,7 @@ class Emulator:
         self.rec_v[slots] = va[-cap:]
         self.rec_global[slots] = g
         self._apply(v)
+        run.last_v = float(v[-1])
         run.pos += v.size
         self.position = run.pos
 
@@ -290,9 +321,12 @@ class Emulator:
         self.last_error = 8
 
     def _halt(self, now: float) -> None:
-        """Stop the generator after the samples due by ``now`` (output holds the last one)."""
+        """Stop the generator at ``now``: the samples played by then stay played, the one being
+        held stays on the output without counting as played (§2.2(b), (e))."""
         self._advance(now)
         if self._run is not None:
+            if self._run.pos < self._run.total:
+                self._applied.append(np.array([self.output_v]))  # it reached the stack
             self._end(self._run)
 
     def _begin(self, total: int, stream: bool, now: float) -> None:
@@ -304,7 +338,8 @@ class Emulator:
         self.rec_global[:] = -1
         self.position = 0
         self.run_samples = total
-        self._run = _Run(now, total, self.run_count, self.physics.gain(self.run_count), stream)
+        self._run = _Run(now, total, self.run_count, self.physics.gain(self.run_count), stream,
+                         self.output_v)
         self.run_count += 1
         self.expired = False
 
@@ -316,7 +351,7 @@ class Emulator:
             running=self._run is not None, recorder_fill=min(self.position, self.rec_u.size),
             last_error=self.last_error, output_v=self.output_v,
             run_count=self.run_count, table_length=n,
-            table_complete=n > 0 and bool(self.written[:n].all()),
+            table_complete=self._holds_own(n),
             watchdog_armed=self.armed, watchdog_expired=self.expired, read_only=self.read_only,
             sample_rate_hz=self.sample_rate_hz, play_position=self.position,
             run_samples=self.run_samples, watchdog_s=self.watchdog_s)
@@ -338,12 +373,13 @@ class Emulator:
 
     def set_sample_rate(self, hz: float, now: float) -> None:
         self.tick(now)
+        hz = f32(hz)  # stored as float32 (§2.6(b))
         if not MIN_RATE_HZ <= hz <= MAX_RATE_HZ:  # a bad argument comes first (precedence)
             raise self._fail(2, f"sample rate must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz")
         self._writable()
         self._idle()
         self._catch_up(now)  # the idle time so far, at the old rate
-        self.sample_rate_hz = float(hz)
+        self.sample_rate_hz = hz
         self.physics = plant(self.profile, self.sample_rate_hz)
 
     def set_table_length(self, n: int, now: float) -> None:
@@ -363,7 +399,7 @@ class Emulator:
         Idle, global index = table slot and the block must lie in the table. While a stream runs,
         the block must lie in ``[0, N_total)`` and no sample may be a table length or more ahead of
         the play position (its slot's previous sample must have been played); samples already
-        played are ignored (a repeated write is harmless).
+        played, and the one being held, are ignored (a repeated write is harmless; §2.4(b), (c)).
         """
         self.tick(now)
         self._writable()
@@ -377,7 +413,7 @@ class Emulator:
             raise self._fail(6, f"samples {first}..{end - 1} outside [{pos}, "
                                 f"{min(total, pos + self.table_length)})")
         self._check(vals)
-        g = np.arange(max(first, pos), end)
+        g = np.arange(max(first, pos + (run is not None)), end)  # sample `pos` is on the DAC
         slots = g % self.table_length
         self.table[slots] = vals[g - first]
         self.slot_global[slots] = g
@@ -390,7 +426,7 @@ class Emulator:
         n = self.table_length
         if not 1 <= cycles or max(n, 1) * cycles > self.rec_u.size:
             raise self._fail(6, f"cycles x length must be in [1, {self.rec_u.size}]")
-        if n == 0 or not self.written[:n].all():
+        if not self._holds_own(n):  # the stale-slot rule binds WGO too (§2.1(d))
             raise self._fail(9)
         self._check(np.tile(self.table[:n].astype(float), min(cycles, 2))[:n + 1], self.output_v)
         self._begin(n * cycles, False, now)
@@ -408,7 +444,7 @@ class Emulator:
         if not 1 <= n_total <= MAX_STREAM_SAMPLES:
             raise self._fail(6, f"stream length must be in [1, {MAX_STREAM_SAMPLES}]")
         m = min(self.table_length, n_total)
-        if m == 0 or not np.array_equal(self.slot_global[:m], np.arange(m)):
+        if not self._holds_own(m):
             raise self._fail(9)
         self._check(self.table[:m].astype(float), self.output_v)
         self._begin(n_total, True, now)
@@ -433,9 +469,10 @@ class Emulator:
     def set_watchdog(self, period_s: float, now: float) -> None:
         """Set the watchdog period (s); 0 disarms. Armed by the next heartbeat."""
         self.tick(now)
-        if not 0 <= period_s <= 3600:
+        period_s = f32(period_s)
+        if not 0 <= period_s <= 3600:  # NaN too
             raise self._fail(2, "watchdog period must be in [0, 3600] s")
-        self.watchdog_s = float(period_s)
+        self.watchdog_s = period_s
         self.armed = False
         self.expired = False
 
@@ -446,6 +483,8 @@ class Emulator:
         self.tick(now)
         if first < 0 or n < 0:
             raise self._fail(6, "negative recorder index or count")
+        if first > 1 << 62:  # beyond any run: never recorded (§2.3(g))
+            return np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32)
         g = np.arange(first, first + n)
         slots = g % self.rec_u.size
         held = self.rec_global[slots] == g

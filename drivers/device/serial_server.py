@@ -88,8 +88,8 @@ class SerialServer(SelectLoop):
             if fd in self._skipping:  # the rest of an over-long line, already answered
                 self._skipping.discard(fd)
                 continue
-            reply = (self.device.overlong_line() if len(raw) > ap.MAX_LINE else
-                     self.device.handle_line(raw.decode("ascii", errors="replace").rstrip("\r")))
+            reply = (self.device.overlong_line() if len(raw) > ap.MAX_LINE else  # CR counted
+                     self.device.handle_line(raw.removesuffix(b"\r").decode("latin-1")))
             if reply is not None:
                 self._send(fd, reply.encode("ascii") + b"\n")
         if fd in self._fds and len(buf) > ap.MAX_LINE:

@@ -98,7 +98,7 @@ def test_stale_and_corrupted_replies_are_discarded(profile: Profile) -> None:
 
 
 # RTU replies delayed past the timeout are not in the matrix: RTU has no transaction id, so a late
-# reply could be taken for the next request's (docs/protocol.md); the campaign keeps RTU delays
+# reply could be taken for the next request's (docs/reference/protocol.md); the campaign keeps RTU delays
 # below the timeout.
 @pytest.mark.parametrize(("wire", "kind"), [
     (w, k) for w in ("serial-socket", "modbus-tcp", "modbus-rtu")

@@ -119,6 +119,8 @@ def test_every_applied_sample_is_within_limits(profile: Profile) -> None:
 
 
 def test_stop_keeps_what_was_applied(profile: Profile) -> None:
+    """docs/reference/protocol.md §2.2(b), (e): stopped at 0.25 s, 2500 samples are played and recorded;
+    sample 2500, whose hold began at 0.25 s, stays on the output without counting as played."""
     emu = em.Emulator(profile)
     v = sine(10_000)
     emu.set_table_length(v.size, 0.0)
@@ -126,8 +128,8 @@ def test_stop_keeps_what_was_applied(profile: Profile) -> None:
     emu.start(1, 0.0)
     emu.stop(0.25)
     st = emu.status(5.0)
-    assert not st.running and st.recorder_fill == 2500
-    assert emu.applied_log(5.0).size == 2500 and st.output_v == pytest.approx(v[2499], abs=1e-5)
+    assert not st.running and st.recorder_fill == 2500 and st.play_position == 2500
+    assert emu.applied_log(5.0).size == 2501 and st.output_v == float(np.float32(v[2500]))
 
 
 def test_watchdog_expires_and_ramps_to_zero(profile: Profile) -> None:
