@@ -37,7 +37,6 @@ from afmctl.fit import uncertainty as unc
 from afmctl.fit.uncertainty import Estimate
 from afmctl.model import effects as fx
 from afmctl.model import hysteresis as hy
-from afmctl.model import rod as rd
 from afmctl.model import transducer as td
 
 FloatArray = NDArray[np.float64]
@@ -263,7 +262,7 @@ def _start_state(model: td.Transducer, start: str, v0: float,
     :data:`afmctl.fit.parametrization.STARTS`), then ``v0`` applied quasi-statically, rod at rest."""
     if start == "previous" and previous is not None:
         p, ps = hy.run(model.polarization, np.array([v0 / model.thickness_um]), previous)
-        return td.StageState(ps, rd.rest_state(model.rod, float(model.rod.force(p)[0])))
+        return td.at_rest(model, ps, float(p[0]))
     return td.initial(model, "depoled" if start == "previous" else start, v0)  # type: ignore[arg-type]
 
 

@@ -198,25 +198,39 @@ def _segments(desired: Desired, n_in: int, n: int) -> list[int]:
     return sorted({0, n_in, n, *(int(m) for m in marks if n_in < m < n)})
 
 
+class ReachError(guard.LimitError):
+    """The model cannot follow the trajectory within the voltage limits at any horizon."""
+
+
 def _reach(res: inv.Inversion, n: int, first: int) -> None:
     short = int(np.argmax(res.error[:n]))
     if res.error[short] > REACH_TOL_UM:
-        raise guard.LimitError(
+        raise ReachError(
             f"the trajectory is out of the stage's reach: at sample {first + short} the model falls "
             f"{res.error[short]:.3f} um short at the voltage limit; reduce amplitude or offset")
 
 
+def field_range(cm: tr.Compiled, limits: guard.Limits) -> tuple[float, float]:
+    """The fields (MV/m) the inverse may use: the voltage limits over the layer thickness. (Not
+    symmetric: a unipolar stage is never asked for a negative field, where the model was never
+    identified and its force law (16) may even turn round.)"""
+    return limits.v_min / cm.model.thickness_um, limits.v_max / cm.model.thickness_um
+
+
 def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState, start_v: float,
-                      limits: guard.Limits, bounds: list[int], e_max: float,
+                      limits: guard.Limits, bounds: list[int],
                       fixed: tuple[int, ...] | None = None
                       ) -> tuple[FloatArray, tuple[int, ...]]:
     """Algorithm 3 stretch by stretch, each with the smallest horizon (from the smooth one up)
-    whose voltage passes the guard: one hard corner lengthens the horizon of its own stretch only.
-    ``fixed`` gives each stretch the horizon to start the search from instead.
+    whose voltage passes the guard and reaches the targets within the voltage limits: one hard
+    corner (a corner the rod cannot turn within a few samples without a voltage beyond the
+    limits) lengthens the horizon of its own stretch only. ``fixed`` gives each stretch the
+    horizon to start the search from instead.
 
     Returns the voltage (V) and the horizon of each stretch.
     """
     thick, dt = cm.model.thickness_um, cm.dt
+    e_lo, e_hi = field_range(cm, limits)
     d0 = rd.smooth_horizon(cm.disc)
     parts, horizons = [], []
     st, v_prev = state, start_v
@@ -224,16 +238,18 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
         last: guard.LimitError | None = None
         for d in (h for h in HORIZONS if h >= (max(d0, fixed[i]) if fixed else d0)):
             res = inv.algorithm3(cm, target[s:e + d - 1], st, e_init=v_prev / thick, horizon=d,
-                                 e_max=e_max)
-            _reach(res, e - s, s)
+                                 e_min=e_lo, e_max=e_hi)
             v = res.voltage(thick)[:e - s]
             try:
+                _reach(res, e - s, s)
                 guard.check(v, dt, limits, v_prev, "inverse waveform")
             except guard.LimitError as exc:
                 last = exc
                 continue
             break
         else:
+            if isinstance(last, ReachError):
+                raise last
             raise guard.LimitError(f"no inversion horizon up to {HORIZONS[-1]} samples keeps the "
                                    f"waveform within limits; last: {last}")
         parts.append(v)
@@ -244,7 +260,7 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
 
 
 def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.StageState,
-                   start_v: float, limits: guard.Limits, e_max: float,
+                   start_v: float, limits: guard.Limits,
                    build: Any, fixed: tuple[int, ...] | None = None) -> Waveform:
     """With an amplifier lag the slew limit clamps the lead at the corners: a longer horizon asks
     for less of it but rounds the corners; keep the (uniform) one the model says tracks best."""
@@ -252,9 +268,14 @@ def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: 
     last: guard.LimitError | None = None
     best: tuple[float, Waveform] | None = None
     for d in (h for h in HORIZONS if h >= max((rd.smooth_horizon(cm.disc), *(fixed or ())))):
+        e_lo, e_hi = field_range(cm, limits)
         res = inv.algorithm3(cm, target, state, e_init=start_v / cm.model.thickness_um,
-                             horizon=d, e_max=e_max)
-        _reach(res, target.size, 0)
+                             horizon=d, e_min=e_lo, e_max=e_hi)
+        try:
+            _reach(res, target.size, 0)
+        except ReachError as exc:
+            last = exc
+            continue
         v = fx.unlag_limited(chain, res.voltage(cm.model.thickness_um), start_v,
                              LAG_STEP * limits.max_rate_v_per_ms * 1e3 * dt,
                              (limits.v_min, limits.v_max))
@@ -300,7 +321,6 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
     target = np.concatenate([raised_cosine(u0, desired.u_um[0], n_in), desired.u_um[1:],
                              desired.u_um[-1:]])
     target = fx.remove_mode(chain, target)  # what the rod must do for the stage to be there
-    e_max = max(abs(limits.v_min), abs(limits.v_max)) / cm.model.thickness_um
 
     def build(v: FloatArray, horizons: tuple[int, ...]) -> Waveform:
         v_in, v_tr = np.concatenate([prefix_v, v[:n_in]]), v[n_in:]
@@ -310,21 +330,36 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
         return wf
 
     if chain.lag_a != 0.0:
-        return _invert_lagged(cm, chain, target, state, start_v, limits, e_max, build, horizons)
+        return _invert_lagged(cm, chain, target, state, start_v, limits, build, horizons)
     bounds = _segments(desired, n_in, target.size)
     if horizons:
         fixed = bounds if len(horizons) == len(bounds) - 1 else [0, target.size]
-        return build(*_invert_stretches(cm, target, state, start_v, limits, fixed, e_max,
-                                        horizons))
+        return build(*_invert_stretches(cm, target, state, start_v, limits, fixed, horizons))
     try:
-        v, horizons = _invert_stretches(cm, target, state, start_v, limits, bounds, e_max)
-    except guard.LimitError as exc:
-        if "out of the stage's reach" in str(exc):
-            raise
-        # a stretch that no horizon fixes after the stretch before it: one horizon throughout
-        v, horizons = _invert_stretches(cm, target, state, start_v, limits, [0, target.size],
-                                        e_max)
+        v, horizons = _invert_stretches(cm, target, state, start_v, limits, bounds)
+    except guard.LimitError:
+        # a stretch that no horizon fixes after the stretch before it (committed with a short
+        # horizon, it may leave the rod moving too fast to turn the next corner in reach): one
+        # horizon throughout; if that fails too, its error is the one to report
+        try:
+            v, horizons = _invert_stretches(cm, target, state, start_v, limits, [0, target.size])
+        except ReachError as exc:
+            lo, hi = static_range(cm.model, state, limits)
+            raise ReachError(f"{exc} (the model spans {lo:.2f} ... {hi:.2f} um quasi-statically "
+                             f"over {limits.v_min:g} ... {limits.v_max:g} V)") from None
     return build(v, horizons)
+
+
+def static_range(model: tr.Transducer, state: tr.StageState,
+                 limits: guard.Limits) -> tuple[float, float]:
+    """Lowest and highest displacement (um) of the model on a slow (1 s a leg) excursion from
+    ``state`` to the upper voltage limit, down to the lower one and back up."""
+    dt = 1e-3
+    legs = [np.linspace(a, b, 1000) for a, b in ((limits.v_min, limits.v_max),
+                                                  (limits.v_max, limits.v_min),
+                                                  (limits.v_min, limits.v_max))]
+    u = tr.simulate(tr.compile_model(model, dt), np.concatenate(legs), state)[0]
+    return float(u.min()), float(u.max())
 
 
 def _linear_from_model(cm: tr.Compiled, state: tr.StageState, limits: guard.Limits,
