@@ -193,7 +193,7 @@ class FitResult:
     ``success`` is True only if the solver reports convergence (status > 0) and the result is
     finite; a fit stopped by ``max_nfev`` or failing is reported as such. It says nothing about
     how good the fit is: that is ``at_noise_floor`` (every sweep within :data:`FLOOR` times its
-    sensor noise).
+    sensor noise). ``finite`` says the model is usable at all (its best point, converged or not).
     """
 
     model: td.Transducer
@@ -209,6 +209,7 @@ class FitResult:
     uncertainty: dict[str, Any] = field(default_factory=dict, repr=False)
     envelope: mf.Envelope | None = None
     restarts: int = 0
+    finite: bool = True
 
     @property
     def at_noise_floor(self) -> bool:
@@ -603,8 +604,8 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
                    for s, u, start, off in zip(sweeps, predicted, space.starts, offsets,
                                                strict=True))
     cov, names = unc.covariance(final, sol.x, beta, prob.y)
-    ok = bool(ok and np.all(np.isfinite(sol.x)) and np.all(np.isfinite(beta)))
-    return FitResult(model, unc.estimates(final, sol.x, beta, cov, settings.scales), errors, ok,
-                     int(sol.status), str(sol.message), prob.nfev, time.perf_counter() - t0,
-                     known, x_lognormal, unc.summary(names, np.concatenate((sol.x, beta)), cov),
-                     env, restarts)
+    finite = bool(np.all(np.isfinite(sol.x)) and np.all(np.isfinite(beta)))
+    return FitResult(model, unc.estimates(final, sol.x, beta, cov, settings.scales), errors,
+                     bool(ok and finite), int(sol.status), str(sol.message), prob.nfev,
+                     time.perf_counter() - t0, known, x_lognormal,
+                     unc.summary(names, np.concatenate((sol.x, beta)), cov), env, restarts, finite)
