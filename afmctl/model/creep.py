@@ -126,7 +126,7 @@ def run(creep: Creep | None, p_h: FloatArray, dt: float,
     --------
     >>> c = Creep((1.0,), (0.1,))
     >>> p, z = run(c, np.ones(3), 1.0, rest_state(c, 0.0))
-    >>> [round(v, 4) for v in p]
+    >>> [round(float(v), 4) for v in p]
     [1.0, 1.0632, 1.0865]
     """
     p_h = np.ascontiguousarray(p_h, dtype=float)
