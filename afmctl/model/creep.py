@@ -25,6 +25,7 @@ offset of the polarization at each sample.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numba as nb
@@ -143,13 +144,47 @@ def step_response(creep: Creep, t_s: FloatArray) -> FloatArray:
     return np.sum(np.asarray(creep.weights) * -np.expm1(-t / np.asarray(creep.tau_s)), axis=-1)
 
 
-def lagged(x: FloatArray, tau_s: FloatArray, dt: float, z0: FloatArray) -> FloatArray:
-    """Each element's state ``z_j`` before every sample for the input ``x`` (one element per
-    time constant, unit weight), shape (N, n_elements): ``z_{j,k+1} = a_j z_{j,k} + (1 - a_j) x_k``
-    from ``z_{j,0} = z0[j]``. The columns whose combination ``sum c_j z_j`` the fit weighs."""
+def lag(x: FloatArray, tau_s: float, dt: float, z0: FloatArray | float | None = None) -> FloatArray:
+    """One creep element's state before every sample, along axis 0 of ``x`` (unit weight):
+    ``z_{k+1} = a z_k + (1 - a) x_k``, ``a = exp(-dt / tau)``, from ``z_0 = z0`` (default ``x[0]``:
+    at rest)."""
     x = np.asarray(x, float)
-    a = np.exp(-float(dt) / np.asarray(tau_s, float))
-    out = np.empty((x.size, a.size))
-    for j, aj in enumerate(a):
-        out[:, j] = signal.lfilter([0.0, 1.0 - aj], [1.0, -aj], x, zi=[float(z0[j])])[0]
+    a = math.exp(-float(dt) / float(tau_s))
+    zi = (x[:1] if z0 is None else np.broadcast_to(np.asarray(z0, float), x[:1].shape)).copy()
+    return signal.lfilter([0.0, 1.0 - a], [1.0, -a], x, axis=0, zi=zi)[0]
+
+
+def lagged(x: FloatArray, tau_s: FloatArray, dt: float, z0: FloatArray) -> FloatArray:
+    """Each element's state ``z_j`` before every sample for the input ``x`` (N,) (one element per
+    time constant, unit weight), shape (N, n_elements), from ``z_{j,0} = z0[j]``: the columns whose
+    combination ``sum c_j z_j`` the fit weighs."""
+    x = np.asarray(x, float)
+    out = np.empty((x.size, len(tau_s)))
+    for j, tau in enumerate(tau_s):
+        out[:, j] = lag(x, tau, dt, float(z0[j]))
     return out
+
+
+@nb.njit(cache=True)
+def _columns(x: np.ndarray, a: np.ndarray, c: np.ndarray) -> np.ndarray:
+    n, k = x.shape
+    out = np.empty((n, k))
+    z = np.empty((a.size, k))
+    for j in range(a.size):
+        z[j] = x[0]
+    for t in range(n):
+        for i in range(k):
+            acc = x[t, i]
+            for j in range(a.size):
+                acc += c[j] * z[j, i]
+                z[j, i] = a[j] * z[j, i] + (1.0 - a[j]) * x[t, i]
+            out[t, i] = acc
+    return out
+
+
+def apply_columns(creep: Creep, x: FloatArray, dt: float) -> FloatArray:
+    """:func:`run` on every column of ``x`` (N, K) at once, each from rest at its first sample
+    (the creep of every basis column of a fit)."""
+    x2 = np.ascontiguousarray(x, dtype=float).reshape(x.shape[0], -1)
+    out = _columns(x2, creep.factors(dt), np.asarray(creep.weights, dtype=float))
+    return out.reshape(x.shape)
