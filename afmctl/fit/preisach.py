@@ -61,6 +61,8 @@ FOLDS = 4
 #: A Gauss-Newton fit has converged once a step lowers the cost by less than this share of the
 #: noise's sum of squares.
 TOL_SHARE = 2e-4
+#: A sweep's creep transient is fitted for the elements up to this many times its length.
+TRANSIENT_SPAN = 3.0
 #: Largest change of log f_n or log zeta in one Gauss-Newton step (a trust region).
 MAX_LOG_STEP = 0.5
 #: Bounds of the rod's damping ratio (those of the parametric fit).
@@ -217,7 +219,8 @@ def rod_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
 @dataclass
 class Theta:
     """A point of the fit: weights (um), reversible slope (um per MV/m), creep weights, the
-    quadratic ``s`` (1/um), rod ``log f_n``, ``log zeta`` and one offset per sweep (um)."""
+    quadratic ``s`` (1/um), rod ``log f_n``, ``log zeta``, one offset per sweep (um) and, with
+    creep, each sweep's creep transients ``d`` (um; see :class:`Problem`)."""
 
     w: FloatArray
     r: float
@@ -226,18 +229,34 @@ class Theta:
     log_fn: float
     log_zeta: float
     offsets: FloatArray
+    d: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def copy(self) -> Theta:
         return Theta(self.w.copy(), self.r, self.c.copy(), self.s, self.log_fn, self.log_zeta,
-                     self.offsets.copy())
+                     self.offsets.copy(), self.d.copy())
 
 
 class Problem:
-    """The basis of one start assignment and the exact model and its linearization."""
+    """The basis of one start assignment and the exact model and its linearization.
+
+    A sweep need not start with the creep at rest: recorded after others (or after poling), its
+    slow elements still remember them. So with creep each sweep has free transients: the
+    elements' departure from rest decays as ``exp(-t / tau_j)``, one amplitude per element whose
+    time constant is at most :data:`TRANSIENT_SPAN` times the sweep's length (a slower one would
+    only add a straight line in time over the sweep: a drift, which the fit must not absorb).
+    They belong to the sweeps' history, not to the model.
+    """
 
     def __init__(self, data: Data, grid: Grid, starts: Sequence[str], taus: Sequence[float]):
         self.data, self.grid, self.starts = data, grid, tuple(starts)
         self.taus = np.asarray(taus, float)
+        self.trans = []
+        for e, dt in zip(data.fields, data.dts, strict=True):
+            t = np.arange(e.size) * dt
+            self.trans.append(np.column_stack([np.exp(-t / tau) for tau in self.taus
+                                               if tau <= TRANSIENT_SPAN * t[-1]])
+                              .reshape(e.size, -1))
+        self.n_trans = [a.shape[1] for a in self.trans]
         self.fn_bounds = (0.5, 10.0 / min(data.dts))  # up to 20x the Nyquist frequency
         self.noise_sse = float(sum(y.size * n * n for y, n in zip(data.y, data.noise,
                                                                    strict=True)))
@@ -257,14 +276,22 @@ class Problem:
     def lags(self, q: FloatArray, dt: float) -> FloatArray:
         return cr.lagged(q, self.taus, dt, np.full(self.taus.size, q[0]))
 
-    def predict(self, th: Theta) -> list[FloatArray]:
-        """Readings on each sweep's judged samples, um."""
+    def transients(self, th: Theta) -> list[FloatArray]:
+        """Each sweep's creep transient (um, full rate; zeros without)."""
+        if not th.d.size:
+            return [np.zeros(a.shape[0]) for a in self.trans]
+        parts = np.split(th.d, np.cumsum(self.n_trans)[:-1])
+        return [a @ d for a, d in zip(self.trans, parts, strict=True)]
+
+    def predict(self, th: Theta, full: bool = False) -> list[FloatArray]:
+        """Readings on each sweep's judged samples (``full``: on all its samples), um."""
         out = []
         fn, zeta = math.exp(th.log_fn), math.exp(th.log_zeta)
-        for q, dt, m, off in zip(self.hysteretic(th), self.data.dts, self.data.masks, th.offsets,
-                                 strict=True):
-            qt = q + self.lags(q, dt) @ th.c if th.c.any() else q
-            out.append(rod_filter(qt + th.s * qt * qt, fn, zeta, dt)[m] + off)
+        for q, dt, m, off, tr in zip(self.hysteretic(th), self.data.dts, self.data.masks,
+                                     th.offsets, self.transients(th), strict=True):
+            qt = q + self.lags(q, dt) @ th.c + tr if th.c.any() else q
+            u = rod_filter(qt + th.s * qt * qt, fn, zeta, dt) + off
+            out.append(u if full else u[m])
         return out
 
     def ratios(self, th: Theta) -> FloatArray:
@@ -278,16 +305,20 @@ class Problem:
         return res + lam * float(np.sum((pen @ th.w) ** 2))
 
     def linearize(self, th: Theta, creep: bool) -> tuple[list[FloatArray], list[FloatArray]]:
-        """Per sweep: the design ``[w | r | c | s | log f_n | log zeta | offsets]`` on the judged
-        samples and the known term ``y - b0`` (see the module docstring)."""
+        """Per sweep: the design ``[w | r | c | s | log f_n | log zeta | offsets | d]`` on the
+        judged samples and the known term ``y - b0`` (see the module docstring)."""
         fn, zeta = math.exp(th.log_fn), math.exp(th.log_zeta)
         n_s, step = len(self.phi), 1e-4
+        n_d = sum(self.n_trans) if creep else 0
+        d_at = np.concatenate(([0], np.cumsum(self.n_trans)))
         designs, rhs = [], []
-        for i, (p, e, dt, m, y) in enumerate(zip(self.phi, self.data.fields, self.data.dts,
-                                                 self.data.masks, self.data.y, strict=True)):
+        for i, (p, e, dt, m, y, tr) in enumerate(zip(self.phi, self.data.fields, self.data.dts,
+                                                     self.data.masks, self.data.y,
+                                                     self.transients(th), strict=True)):
             q = p @ th.w + th.r * e
             z = self.lags(q, dt) if creep else np.zeros((q.size, 0))
-            qt = q + z @ th.c if creep else q
+            tr = tr if creep else np.zeros(q.size)
+            qt = q + z @ th.c + tr if creep else q
             m0 = 1.0 + 2.0 * th.s * qt
             cp, ce = p, e
             if creep and th.c.any():
@@ -303,10 +334,13 @@ class Problem:
             cols += [rod_filter(qt * qt, fn, zeta, dt)[m, None],
                      ((rod_filter(g, fn * math.exp(step), zeta, dt) - lg) / step)[m, None],
                      ((rod_filter(g, fn, zeta * math.exp(step), dt) - lg) / step)[m, None]]
-            ind = np.zeros((int(m.sum()), n_s))
+            ind = np.zeros((int(m.sum()), n_s + n_d))
             ind[:, i] = 1.0
+            if creep and self.n_trans[i]:
+                ind[:, n_s + d_at[i]:n_s + d_at[i + 1]] = rod_filter(
+                    m0[:, None] * self.trans[i], fn, zeta, dt)[m]
             designs.append(np.hstack(cols + [ind]))
-            rhs.append(y - rod_filter(qt - m0 * (2 * qt - q), fn, zeta, dt)[m])
+            rhs.append(y - rod_filter(qt - m0 * (2 * qt - q - tr), fn, zeta, dt)[m])
         return designs, rhs
 
 
@@ -348,8 +382,15 @@ def bounded_solve(g: FloatArray, h: FloatArray, n_bounded: int) -> FloatArray:
     hred = gs[b, b] - gs[b, f] @ sol_h[:, :-1]
     dred = hs[b] - gs[b, f] @ sol_h[:, -1]
     hred = 0.5 * (hred + hred.T) + 1e-10 * np.eye(n_bounded)
-    r = np.linalg.cholesky(hred).T
-    xb, _ = optimize.nnls(r, np.linalg.solve(r.T, dred), maxiter=50 * n_bounded)
+    try:
+        r = np.linalg.cholesky(hred).T
+        rhs = np.linalg.solve(r.T, dred)
+    except np.linalg.LinAlgError:  # round-off made it indefinite: its PSD part, by eigenvalues
+        lam, vec = np.linalg.eigh(hred)
+        lam = np.maximum(lam, 1e-12 * max(float(lam[-1]), 1e-300))
+        r = np.sqrt(lam)[:, None] * vec.T
+        rhs = (vec.T @ dred) / np.sqrt(lam)
+    xb, _ = optimize.nnls(r, rhs, maxiter=50 * n_bounded)
     xf = sol_h[:, -1] - sol_h[:, :-1] @ xb
     return np.concatenate((xb, xf)) / d
 
@@ -363,7 +404,9 @@ def _unpack(x: FloatArray, th: Theta, creep: bool, rod: bool) -> Theta:
     if rod:
         out.log_fn, out.log_zeta = float(x[i]), float(x[i + 1])
         i += 2
-    out.offsets = x[i:].copy()
+    n_s = th.offsets.size
+    out.offsets = x[i:i + n_s].copy()
+    out.d = x[i + n_s:].copy()
     return out
 
 
@@ -412,6 +455,8 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
     dtd = pen.T @ pen
     k = th.w.size
     n_bounded = k + 1 + (th.c.size if creep else 0)
+    th = th.copy()
+    th.d = np.zeros(sum(prob.n_trans)) if creep else np.zeros(0)
     lam = 0.0
     cost = math.inf
     mu, it, converged = 1e-4, 0, False
@@ -457,7 +502,7 @@ def _pack(th: Theta, creep: bool, rod: bool) -> FloatArray:
     """The inverse of :func:`_unpack`."""
     parts = [th.w, [th.r], th.c if creep else [], [th.s]]
     parts += [[th.log_fn, th.log_zeta]] if rod else []
-    return np.concatenate(parts + [th.offsets]).astype(float)
+    return np.concatenate(parts + [th.offsets, th.d]).astype(float)
 
 
 def _clamp(new: float, old: float, bounds: tuple[float, float]) -> float:
@@ -470,15 +515,18 @@ def heldout(prob: Problem, th: Theta, pen: FloatArray, lam_rel: Sequence[float],
             creep: bool) -> dict[float, FloatArray]:
     """Held-out RMS per sweep (um) at each relative smoothing in ``lam_rel``: the weights, the
     reversible slope and the offsets fitted on all folds but one, judged on that one with the
-    exact model, each fold in turn. The few scalars (``s``, creep weights, rod) stay at the full
-    fit's ``th``: refitted without the damping of :func:`gauss_newton` they would slide along the
-    valleys they share with the weights, and their own optimism is that of a handful of
-    parameters. The problem is linearized at ``th`` (a step of the size of the folds' difference)."""
+    exact model, each fold in turn. The few scalars (``s``, creep weights and transients, rod)
+    stay at the full fit's ``th``: refitted without the damping of :func:`gauss_newton` they
+    would slide along the valleys they share with the weights, and their own optimism is that
+    of a handful of parameters. The problem is linearized at ``th`` (a step of the size of the
+    folds' difference)."""
     designs, rhs = prob.linearize(th, creep)
     k, nc, n_s = th.w.size, th.c.size if creep else 0, len(prob.phi)
     fixed = np.concatenate((th.c if creep else [], [th.s]))
-    keep = np.r_[np.arange(k + 1), np.arange(k + 1 + nc + 3, k + 1 + nc + 3 + n_s)]
-    rhs = [b - a[:, k + 1:k + 2 + nc] @ fixed for a, b in zip(designs, rhs, strict=True)]
+    at_d = k + 1 + nc + 3 + n_s
+    keep = np.r_[np.arange(k + 1), np.arange(k + 1 + nc + 3, at_d)]
+    rhs = [b - a[:, k + 1:k + 2 + nc] @ fixed - a[:, at_d:] @ th.d[:a.shape[1] - at_d]
+           for a, b in zip(designs, rhs, strict=True)]
     designs = [a[:, keep] for a in designs]
     folds = prob.data.folds
     parts = []
@@ -546,6 +594,9 @@ class PreisachFit:
         weights, ``s``, rod, offsets), the density's weights held.
     p_scale : float
         The polarization scale convention, C/m^2.
+    predicted : list of ndarray
+        The fit's readings on every sample of each sweep (um): the model's, with the sweep's
+        sensor zero and its creep transient (the history before the sweep).
     """
 
     model: td.Transducer
@@ -562,6 +613,7 @@ class PreisachFit:
     n_coefficients: int
     uncertainty: dict[str, Any]
     p_scale: float
+    predicted: list[FloatArray]
 
 
 def build(th: Theta, prob: Problem, scales_mass: float, thickness_um: float,
@@ -682,7 +734,8 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     return PreisachFit(model, prob.starts, final.theta.offsets, per, lam, creep, scores,
                        final.iterations, final.converged, time.perf_counter() - t0,
                        prob.ratios(final.theta), grid.active.size,
-                       scalar_uncertainty(prob, final.theta, creep), settings.p_scale)
+                       scalar_uncertainty(prob, final.theta, creep), settings.p_scale,
+                       prob.predict(final.theta, full=True))
 
 
 def scalar_uncertainty(prob: Problem, th: Theta, creep: bool) -> dict[str, Any]:
@@ -695,9 +748,11 @@ def scalar_uncertainty(prob: Problem, th: Theta, creep: bool) -> dict[str, Any]:
     names = (["reversible_um_per_MV_per_m"]
              + ([f"creep_c@{t:g}s" for t in prob.taus] if creep else [])
              + ["s_per_um", "log_fn", "log_zeta"]
-             + [f"offset_{i + 1}_um" for i in range(len(prob.phi))])
+             + [f"offset_{i + 1}_um" for i in range(len(prob.phi))]
+             + ([f"offset_{i + 1}_creep_transient@{t:g}s_um" for i, n in enumerate(prob.n_trans)
+                 for t in prob.taus[:n]] if creep else []))
     p = np.concatenate(([th.r], th.c if creep else [], [th.s, th.log_fn, th.log_zeta],
-                        th.offsets))
+                        th.offsets, th.d if creep else []))
     s2 = float(res @ res) / max(1, res.size - k - p.size)
     cov = s2 * np.linalg.pinv(a.T @ a)
     out = unc.summary(names, p, cov)

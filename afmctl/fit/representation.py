@@ -123,11 +123,10 @@ class Grid:
                 figures: dict[str, Any]) -> idf.FitResult:
         from afmctl.fit import identify as idf
 
-        model = fit.model
-        predicted = idf.predict_set(model, self.sweeps, fit.starts, fit.offsets)
+        model = fit.model  # judged with each sweep's own history: sensor zero, creep transient
         errors = tuple(idf._error(s.path or s.name, s, u, self.settings.window_s, st, float(off))
-                       for s, u, st, off in zip(self.sweeps, predicted, fit.starts, fit.offsets,
-                                                strict=True))
+                       for s, u, st, off in zip(self.sweeps, fit.predicted, fit.starts,
+                                                fit.offsets, strict=True))
         how = "converged" if fit.converged else "stopped on its budget"
         msg = f"Preisach grid: Gauss-Newton {how} after {fit.iterations} steps"
         return idf.FitResult(
