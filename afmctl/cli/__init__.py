@@ -3,7 +3,7 @@
 One module per command (or family); :mod:`afmctl.cli.base` holds the group, the mapping of
 afmctl's own errors to exit codes, and the helpers they share.
 
-Exit codes: 0 success; 1 the stage failed or a fit did not converge; 2 bad input (one line on
+Exit codes: 0 success; 1 the stage failed or a fit gave no finite model; 2 bad input (one line on
 stderr, nothing written); 130 interrupted (the stage was put in its safe state).
 """
 

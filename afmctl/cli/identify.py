@@ -67,7 +67,7 @@ def start_notes(result: Any, data: Any) -> list[str]:
 def _report(result: Any, data: Any = None, reach: str = "") -> str:
     """Human-readable fit report (``result`` is an ``identify.FitResult``, ``data`` its
     sweeps)."""
-    state = "converged" if result.success else "NOT CONVERGED (fit failed)"
+    state = "converged" if result.success else "NOT CONVERGED (its best point is kept)"
     lines = [f"fit {state}: {result.message} (status {result.status}, {result.nfev} evaluations, "
              f"{result.seconds:.2f} s)"]
     if not result.thickness_known:
@@ -119,10 +119,11 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
              plots_dir: str | None, force: bool) -> None:
     """Fit the stage model jointly to SWEEP_FILES and write it to the model file OUTPUT.
 
-    Sweeps in the order they were recorded. Exit status: 0 converged, 1 the solver did not
-    converge (no model written), 2 bad input. Converged is not good: each sweep's fit RMS is
-    reported against its sensor noise (estimated from the data), and sweeps left above 2x are
-    named on stderr.
+    Sweeps in the order they were recorded. Exit status: 0 a model was written, 1 the fit gave
+    no finite model (nothing written), 2 bad input. The model written is the best the fit found,
+    converged or not (``success``) and at its sensor noise or not (``at_noise_floor``): each
+    sweep's fit RMS is reported against its sensor noise (estimated from the data), and a fit
+    that stopped early or sweeps left above 2x are named on stderr.
     """
     from afmctl.files import modelfile
     from afmctl.files import sweepfile as sweeps
@@ -137,7 +138,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
     idf.resolve_thickness(data, settings)  # validate before any progress output
     say(f"fitting {len(data)} sweep(s) ...")
     result = idf.fit(data, settings, progress=say)
-    if result.success:  # the model first: a figure that fails must not cost the fit
+    if result.finite:  # the model first: a figure that fails must not cost the fit
         header = "afmctl identify: " + ", ".join(Path(f).name for f in sweep_files)
         header += "\nm and p_r are fixed by convention (only their ratios to c, k, a1, a2, eta"
         header += " are identifiable)"
@@ -153,7 +154,11 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
                                        settings.window_s):
                 say(f"wrote {p}")
     _warn_above_floor(result)
-    reach = _reach(result, profile) if result.success and profile is not None else None
+    if result.finite and not result.success:
+        click.echo(f"warning: the solver stopped before converging ({result.message}); the "
+                   f"model written is its best point (at_noise_floor: "
+                   f"{str(result.at_noise_floor).lower()})", err=True)
+    reach = _reach(result, profile) if result.finite and profile is not None else None
     if as_json:
         doc = result.to_dict()
         if reach is not None:
@@ -161,7 +166,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
         click.echo(json.dumps(doc))
     else:
         click.echo(_report(result, data, "" if reach is None else reach[2]))
-    if not result.success:
+    if not result.finite:
         sys.exit(1)
 
 

@@ -156,7 +156,8 @@ def record_standard(stage: Any, profile: Profile, out: Path, progress: Progress 
 
 def calibrate(profile: Profile, stage: Any, progress: Progress | None = None) -> Calibration:
     """Record the standard sweeps on ``stage`` within the profile's range, identify, and keep
-    both in a new folder of the cache. FitError if the fit does not converge."""
+    both in a new folder of the cache: the fit's best model, converged or not (its verdict is
+    identify's to report). FitError if the fit gives no finite model."""
     from afmctl.fit import identify
 
     when = time.strftime("%Y-%m-%dT%H:%M:%S%z")
@@ -165,9 +166,9 @@ def calibrate(profile: Profile, stage: Any, progress: Progress | None = None) ->
         folder = folder.with_name(folder.name + "b")
     recorded = record_standard(stage, profile, folder / "sweeps", progress)
     result = identify.fit(recorded)
-    if not result.success:
-        raise FitError(f"calibration fit did not converge: {result.message} (sweeps kept in "
-                           f"{folder / 'sweeps'})")
+    if not result.finite:
+        raise FitError(f"calibration fit gave no finite model: {result.message} (sweeps kept in "
+                       f"{folder / 'sweeps'})")
     names = tuple(s.path for s in recorded)
     path = folder / "model.toml"
     modelfile.write(result.model, path,

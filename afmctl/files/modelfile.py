@@ -71,10 +71,30 @@ Optional ``[effects.*]`` tables (one per effect, as ``afmctl diagnose`` writes t
 
     [effects.amplifier_lag]
     bandwidth_Hz = 800.0
+
+Version 3 adds a Preisach grid in place of the densities (:mod:`afmctl.model.preisach`: a general
+weight matrix on the (coercive, interaction) grid, as ``identify`` may choose it) and log-time
+creep (:mod:`afmctl.model.creep`)::
+
+    [polarization]
+    type = "preisach"
+    coercive_MV_per_m = [0.0, 0.024, ...]        # N_i rows (play half-widths)
+    interaction_MV_per_m = [-1.57, -1.53, ...]    # N_j columns
+    spread_MV_per_m = 0.035
+    reversible_C_per_m2_per_MV_per_m = 0.01
+    weights_C_per_m2 = [[0.0, 0.0012, ...], ...]  # N_i x N_j, >= 0
+
+    [creep]
+    tau_s = [0.01, 0.0316, ...]
+    weights = [0.004, 0.003, ...]
+
+``identify`` writes version 3 only for a model that needs it (versions 1 and 2 are still read, and
+a model of the paper's form is still written as version 2).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,13 +103,15 @@ from typing import Any
 from afmctl.errors import FileFormatError
 from afmctl.files.tomlfile import Table, dumps, load
 from afmctl.model import hysteresis as hy
+from afmctl.model.creep import Creep
 from afmctl.model.effects import Effects, SecondMode
+from afmctl.model.preisach import PreisachGrid
 from afmctl.model.rod import Rod
 from afmctl.model.transducer import Transducer
 
 FORMAT = "afmctl-model"
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 #: A waveform may leave the envelope's voltage range by this fraction of its span.
 ENVELOPE_TOLERANCE = 0.05
 
@@ -226,9 +248,18 @@ def _density_dict(d: hy.Lognormal | hy.Normal | hy.Discrete) -> dict[str, Any]:
             "values_per_MV_per_m": list(d.values)}
 
 
-def to_dict(model: Transducer) -> dict[str, Any]:
-    """The model as nested dicts (the TOML tables)."""
-    pol = model.polarization
+def version_for(model: Transducer) -> int:
+    """The lowest format version that holds ``model`` (3 for a Preisach grid or creep)."""
+    return 3 if isinstance(model.polarization, PreisachGrid) or model.creep is not None else 2
+
+
+def _polarization_dict(pol: hy.Polarization | PreisachGrid) -> dict[str, Any]:
+    if isinstance(pol, PreisachGrid):
+        return {"type": "preisach", "coercive_MV_per_m": list(pol.coercive),
+                "interaction_MV_per_m": list(pol.interaction),
+                "spread_MV_per_m": pol.spread,
+                "reversible_C_per_m2_per_MV_per_m": pol.reversible,
+                "weights_C_per_m2": [list(row) for row in pol.weights]}
     pd: dict[str, Any] = {
         "eta_MVm_per_Cm2": pol.eta, "p_r_C_per_m2": pol.p_r, "n_coercive": pol.n_coercive,
         "n_interaction": pol.n_interaction, "kernel": pol.kernel,
@@ -236,14 +267,22 @@ def to_dict(model: Transducer) -> dict[str, Any]:
     if pol.thermal is not None:
         pd["thermal"] = {"field_scale_MV_per_m": pol.thermal.field_scale,
                          "attempt_rate_per_s": pol.thermal.attempt_rate}
+    return pd
+
+
+def to_dict(model: Transducer) -> dict[str, Any]:
+    """The model as nested dicts (the TOML tables)."""
+    pd = _polarization_dict(model.polarization)
     r = model.rod
     out = {
-        "format": FORMAT, "format_version": FORMAT_VERSION,
+        "format": FORMAT, "format_version": version_for(model),
         "transducer": {"thickness_um": model.thickness_um, "initial_state": model.initial},
         "polarization": pd,
         "rod": {"m_kg": r.m, "c_Ns_per_m": r.c, "k_N_per_m": r.k, "a1_N_per_C_m2": r.a1,
                 "a2_N_per_C2_m4": r.a2, "offset_um": r.offset_um},
     }
+    if model.creep is not None:
+        out["creep"] = {"tau_s": list(model.creep.tau_s), "weights": list(model.creep.weights)}
     fx = effects_dict(model.effects)
     return {**out, "effects": fx} if fx else out
 
@@ -336,10 +375,50 @@ def _density(t: Table, allowed: tuple[str, ...]) -> hy.Lognormal | hy.Normal | h
         raise t.fail("values_per_MV_per_m", str(exc)) from None
 
 
+def _matrix(t: Table, key: str) -> tuple[tuple[float, ...], ...]:
+    """A non-empty array of equally long, non-empty arrays of finite numbers."""
+    t.has(key)
+    rows = t.data.get(key)
+    if not isinstance(rows, list) or not rows or not all(isinstance(r, list) and r for r in rows):
+        raise t.fail(key, "expected a non-empty array of non-empty arrays of numbers")
+    if len({len(r) for r in rows}) != 1:
+        raise t.fail(key, "rows of different lengths")
+    for i, r in enumerate(rows):
+        for j, x in enumerate(r):
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+                raise t.fail(key, f"element [{i}][{j}] is not a finite number: {x!r}")
+    return tuple(tuple(float(x) for x in r) for r in rows)
+
+
+def _preisach(p: Table) -> PreisachGrid:
+    try:
+        return PreisachGrid(p.numbers("coercive_MV_per_m"), p.numbers("interaction_MV_per_m"),
+                            p.number("spread_MV_per_m", positive=True),
+                            _matrix(p, "weights_C_per_m2"),
+                            p.number("reversible_C_per_m2_per_MV_per_m", nonnegative=True))
+    except ValueError as exc:
+        if isinstance(exc, FileFormatError):
+            raise
+        raise p.fail("weights_C_per_m2", str(exc)) from None
+
+
+def _creep(t: Table | None) -> Creep | None:
+    if t is None:
+        return None
+    try:
+        return Creep(t.numbers("tau_s"), t.numbers("weights"))
+    except ValueError as exc:
+        if isinstance(exc, FileFormatError):
+            raise
+        raise t.fail("weights", str(exc)) from None
+
+
 def from_table(t: Table) -> Transducer:
     """Build a model from the tables of a model file (or a profile's ``emulator.model``)."""
     p = t.table("polarization")
     assert p is not None
+    if p.string("type", "hem", choices=("hem", "preisach")) == "preisach":
+        return _transducer(t, _preisach(p), None)
     coercive = _density(p.table("coercive"), ("lognormal", "discrete"))  # type: ignore[arg-type]
     if isinstance(coercive, hy.Discrete) and min(coercive.nodes) <= 0:
         raise p.fail("coercive.nodes_MV_per_m", "coercive-field nodes must be > 0")
@@ -357,6 +436,16 @@ def from_table(t: Table) -> Transducer:
         n_interaction=p.integer("n_interaction", 64, minimum=1),
         kernel=p.string("kernel", "auto", choices=("auto", "normal", "grid")),  # type: ignore[arg-type]
         thermal=thermal)
+    return _transducer(t, pol, effects)
+
+
+def _transducer(t: Table, pol: hy.Polarization | PreisachGrid,
+                effects: Effects | None) -> Transducer:
+    """The rest of the model around its polarization: rod, thickness, effects, creep."""
+    if effects is None:
+        effects, thermal = effects_from_table(t.table("effects", required=False))
+        if thermal is not None:
+            raise t.fail("effects.thermal_relaxation", "a Preisach grid has no thermal kernel")
     r = t.table("rod")
     assert r is not None
     rod = Rod(m=r.number("m_kg", positive=True), c=r.number("c_Ns_per_m", nonnegative=True),
@@ -364,9 +453,10 @@ def from_table(t: Table) -> Transducer:
               a2=r.number("a2_N_per_C2_m4", 0.0), offset_um=r.number("offset_um", 0.0))
     tt = t.table("transducer")
     assert tt is not None
-    return Transducer(pol, rod, tt.number("thickness_um", positive=True), effects,
+    return Transducer(pol, rod, tt.number("thickness_um", positive=True), effects,  # type: ignore[arg-type]
                       tt.string("initial_state", "depoled",  # type: ignore[arg-type]
-                                choices=("depoled", "positive", "negative")))
+                                choices=("depoled", "positive", "negative")),
+                      _creep(t.table("creep", required=False)))
 
 
 def _load(path: str | Path) -> tuple[Transducer, Envelope | None, FitRecord | None]:
@@ -379,6 +469,8 @@ def _load(path: str | Path) -> tuple[Transducer, Envelope | None, FitRecord | No
         raise t.fail("format_version", f"this afmctl reads versions "
                      f"{', '.join(map(str, READABLE_VERSIONS))}, got {ver}")
     model = from_table(t)
+    if ver < 3 <= version_for(model):
+        raise t.fail("format_version", f"a Preisach grid or creep needs version 3, got {ver}")
     env_t = t.table("envelope", required=False) if ver >= 2 else None
     env = None if env_t is None else _envelope(env_t)
     unc = t.table("uncertainty", required=False) if ver >= 2 else None
@@ -392,7 +484,7 @@ def _load(path: str | Path) -> tuple[Transducer, Envelope | None, FitRecord | No
 
 
 def read(path: str | Path) -> Transducer:
-    """Read a model file (format version 1 or 2); FileFormatError (naming file and key) on
+    """Read a model file (format version 1, 2 or 3); FileFormatError (naming file and key) on
     anything malformed."""
     return _load(path)[0]
 

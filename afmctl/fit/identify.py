@@ -35,11 +35,11 @@ from afmctl.files.sweepfile import Sweep
 from afmctl.files.tomlfile import Table
 from afmctl.fit import noise as ns
 from afmctl.fit import parametrization as pz
+from afmctl.fit import representation as rep
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.uncertainty import Estimate
 from afmctl.model import effects as fx
 from afmctl.model import hysteresis as hy
-from afmctl.model import rod as rd
 from afmctl.model import transducer as td
 
 FloatArray = NDArray[np.float64]
@@ -103,6 +103,10 @@ class Settings:
         Nodes of the discrete coercive density.
     smoothing : float
         Tikhonov weight lambda of the discrete density's second differences (dimensionless).
+    representation : {"auto", "hem", "preisach"}
+        ``auto``: when the parametric HEM stays above the noise floor, also fit the Preisach grid
+        with creep (:mod:`afmctl.fit.preisach`) and keep whichever has the lower held-out error
+        (:mod:`afmctl.fit.representation`); ``hem`` never; ``preisach`` always keeps the grid.
     """
 
     mass_kg: float = 0.05
@@ -117,6 +121,7 @@ class Settings:
     density: Literal["auto", "parametric", "discrete"] = "auto"
     n_density_nodes: int = 24
     smoothing: float = 1e-6
+    representation: Literal["auto", "hem", "preisach"] = "auto"
 
     @property
     def scales(self) -> pz.Scales:
@@ -126,7 +131,7 @@ class Settings:
 def settings_from_table(t: Table | None, base: Settings = Settings()) -> Settings:
     """Settings from a profile's ``[identify]`` table (keys ``mass_kg``, ``p_r_C_per_m2``,
     ``thickness_um``, ``n_coercive_fit``, ``field_step``, ``max_nfev``, ``restarts``, ``density``,
-    ``n_density_nodes``, ``smoothing``); missing keys keep ``base``."""
+    ``n_density_nodes``, ``smoothing``, ``representation``); missing keys keep ``base``."""
     if t is None:
         return base
     thick = t.number("thickness_um", positive=True) if t.has("thickness_um") else base.thickness_um
@@ -142,7 +147,9 @@ def settings_from_table(t: Table | None, base: Settings = Settings()) -> Setting
         density=t.string("density", base.density,  # type: ignore[arg-type]
                          choices=("auto", "parametric", "discrete")),
         n_density_nodes=t.integer("n_density_nodes", base.n_density_nodes, minimum=3),
-        smoothing=t.number("smoothing", base.smoothing, nonnegative=True))
+        smoothing=t.number("smoothing", base.smoothing, nonnegative=True),
+        representation=t.string("representation", base.representation,  # type: ignore[arg-type]
+                                choices=("auto", "hem", "preisach")))
     t.reject_unknown()
     return settings
 
@@ -192,7 +199,7 @@ class FitResult:
     ``success`` is True only if the solver reports convergence (status > 0) and the result is
     finite; a fit stopped by ``max_nfev`` or failing is reported as such. It says nothing about
     how good the fit is: that is ``at_noise_floor`` (every sweep within :data:`FLOOR` times its
-    sensor noise).
+    sensor noise). ``finite`` says the model is usable at all (its best point, converged or not).
     """
 
     model: td.Transducer
@@ -208,6 +215,9 @@ class FitResult:
     uncertainty: dict[str, Any] = field(default_factory=dict, repr=False)
     envelope: mf.Envelope | None = None
     restarts: int = 0
+    finite: bool = True
+    representation: str = "hem"
+    representations: dict[str, Any] = field(default_factory=dict)
 
     @property
     def at_noise_floor(self) -> bool:
@@ -239,6 +249,8 @@ class FitResult:
             "sweeps": [s.to_dict() for s in self.sweeps],
             "uncertainty": self.uncertainty,
             "envelope": None if self.envelope is None else self.envelope.to_dict(),
+            "finite": self.finite, "representation": self.representation,
+            "representations": self.representations,
         }
 
 
@@ -271,7 +283,7 @@ def _start_state(model: td.Transducer, start: str, v0: float,
     :data:`afmctl.fit.parametrization.STARTS`), then ``v0`` applied quasi-statically, rod at rest."""
     if start == "previous" and previous is not None:
         p, ps = hy.run(model.polarization, np.array([v0 / model.thickness_um]), previous)
-        return td.StageState(ps, rd.rest_state(model.rod, float(model.rod.force(p)[0])))
+        return td.at_rest(model, ps, float(p[0]))
     return td.initial(model, "depoled" if start == "previous" else start, v0)  # type: ignore[arg-type]
 
 
@@ -464,9 +476,12 @@ def solve_round(space: pz.LognormalSpace, x0: FloatArray,
     return space, sol
 
 
-def global_fit(prob: Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResult, int]:
+def global_fit(prob: Problem, enough: Callable[[pz.LognormalSpace, optimize.OptimizeResult,
+                                                FloatArray], bool] | None = None
+               ) -> tuple[pz.LognormalSpace, optimize.OptimizeResult, int]:
     """The lognormal fit from data-driven starting values; more starts (the next-best distinct
-    points of the starting grid) while a sweep stays above :data:`FLOOR` times its noise.
+    points of the starting grid) while a sweep stays above :data:`FLOOR` times its noise, unless
+    ``enough(space, solution, ratio)`` says after the first that no start will do.
     Returns the best space, solution and the number of restarts."""
     st = prob.settings
     space = pz.LognormalSpace(prob.preps, st.scales, st.n_coercive_fit)
@@ -488,7 +503,7 @@ def global_fit(prob: Problem) -> tuple[pz.LognormalSpace, optimize.OptimizeResul
                  + " / ".join(f"{r:.2f}" for r in ratio))
         if best is None or sol.cost < best[1].cost:
             best = (space, sol)
-        if np.all(ratio <= FLOOR):
+        if np.all(ratio <= FLOOR) or (not k and enough is not None and enough(space, sol, ratio)):
             break
     assert best is not None
     return best[0], best[1], restarts
@@ -576,7 +591,11 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
         raise FitInputError(str(exc)) from None
     noise = np.array([max(ns.sensor_noise_um(s.displacement_um), 1e-12) for s in sweeps])
     prob = Problem(sweeps, preps, np.concatenate([p.y for p in preps]), noise, settings, say)
-    space, sol, restarts = global_fit(prob)
+    other = rep.Grid(sweeps, thickness, settings, noise, say, t0)
+    space, sol, restarts = global_fit(prob, other.early if settings.representation != "hem" else None)
+    if other.decided:  # the grid left the HEM far behind after its first start: no polishing
+        return other.choose(_hem_result(prob, space, sol, thickness, known, restarts, t0), prob,
+                            space, sol)
     ok = sol.success and sol.status > 0
     fields = [p.field[p.keep] for p in preps]
     n_c = n_coercive_for(_model(space, sol.x, prob.y, thickness), fields, starts=space.starts)
@@ -613,8 +632,27 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
                    for s, u, start, off in zip(sweeps, predicted, space.starts, offsets,
                                                strict=True))
     cov, names = unc.covariance(final, sol.x, beta, prob.y)
-    ok = bool(ok and np.all(np.isfinite(sol.x)) and np.all(np.isfinite(beta)))
-    return FitResult(model, unc.estimates(final, sol.x, beta, cov, settings.scales), errors, ok,
-                     int(sol.status), str(sol.message), prob.nfev, time.perf_counter() - t0,
-                     known, x_lognormal, unc.summary(names, np.concatenate((sol.x, beta)), cov),
-                     env, restarts)
+    finite = bool(np.all(np.isfinite(sol.x)) and np.all(np.isfinite(beta)))
+    hem = FitResult(model, unc.estimates(final, sol.x, beta, cov, settings.scales), errors,
+                    bool(ok and finite), int(sol.status), str(sol.message), prob.nfev,
+                    time.perf_counter() - t0, known, x_lognormal,
+                    unc.summary(names, np.concatenate((sol.x, beta)), cov), env, restarts, finite)
+    if settings.representation == "preisach" or (settings.representation == "auto"
+                                                  and not hem.at_noise_floor):
+        return other.choose(hem, prob, space, sol)
+    return hem
+
+
+def _hem_result(prob: Problem, space: pz.LognormalSpace, sol: optimize.OptimizeResult,
+                thickness: float, known: bool, restarts: int, t0: float) -> FitResult:
+    """The HEM's result at its first start, unpolished (when the grid wins outright)."""
+    beta, _ = pz.project(space.design(sol.x), prob.y)
+    model = _model(space, sol.x, prob.y, thickness)
+    predicted = predict_set(model, prob.sweeps, space.starts, beta[2:])
+    errors = tuple(_error(s.path or s.name, s, u, prob.settings.window_s, st, float(off))
+                   for s, u, st, off in zip(prob.sweeps, predicted, space.starts, beta[2:],
+                                            strict=True))
+    return FitResult(model, (), errors, bool(sol.success and sol.status > 0), int(sol.status),
+                     str(sol.message), prob.nfev, time.perf_counter() - t0, known, sol.x,
+                     {}, envelope(prob.sweeps, model.thickness_um), restarts,
+                     bool(np.all(np.isfinite(sol.x))))

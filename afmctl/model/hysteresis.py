@@ -56,6 +56,8 @@ ArrayLike = FloatArray | list[float] | tuple[float, ...]
 KIND_NORMAL = 0
 KIND_GRID = 1
 KIND_THERMAL = 2
+#: A non-separable weight matrix on a (coercive, interaction) grid (:mod:`afmctl.model.preisach`).
+KIND_MATRIX = 3
 
 
 @dataclass(frozen=True)
@@ -226,7 +228,10 @@ class Kernel:
 
 
 def build_kernel(params: Polarization) -> Kernel:
-    """Quadrature nodes, weights and packed scalars for ``params`` (pure)."""
+    """Quadrature nodes, weights and packed scalars for ``params`` (pure). Any other polarization
+    model (e.g. :class:`afmctl.model.preisach.PreisachGrid`) builds its own."""
+    if not isinstance(params, Polarization):
+        return params.build_kernel()
     ec, wc = _density_nodes(params.coercive, params.n_coercive)
     if np.any(ec <= 0):
         raise ValueError("coercive-field nodes must be positive")
@@ -277,7 +282,7 @@ def initial_state(params: Polarization, how: Initial | NDArray = "depoled") -> P
                  "positive": np.ones((ni, nj)), "negative": -np.ones((ni, nj))}.get(how)
         if delta is None:
             raise ValueError(f"unknown initial state {how!r}")
-        if how == "depoled" and k.kind == KIND_NORMAL:
+        if how == "depoled" and k.kind in (KIND_NORMAL, KIND_MATRIX):
             return PolarizationState(k.kind, np.zeros(ni))
     else:
         delta = np.asarray(how, dtype=float)
@@ -329,6 +334,8 @@ def _step(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: n
             out[i] = y
             acc += wc[i] * math.erf(y * inv)
         return (e * wtot + mean) / eta + p_r * acc
+    if kind == 3:
+        return (e * wtot + mean) / eta + p_r * _matrix_step(e, st, out, ec, ei, cw, sigma)
     if kind == 1:
         wi_tot = cw[nj]
         for i in range(ni):
@@ -360,6 +367,36 @@ def _step(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: n
 
 
 @nb.njit(cache=True)
+def _matrix_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray, ei: np.ndarray,
+                 cw: np.ndarray, sigma: float) -> float:
+    """Kernel of a weight matrix on the grid (:mod:`afmctl.model.preisach`): per coercive row the
+    play output ``y_i``, then ``sum_j w_ij erf((y_i + E_I,j) / (sqrt(2) sigma))``. ``cw`` packs per
+    row the ``N_j`` weights then their ``N_j + 1`` cumulative sums; cells more than 6 sigma from
+    switching count as +-1 (erf(6) = 1 - 2e-17)."""
+    ni, nj = ec.size, ei.size
+    stride = 2 * nj + 1
+    inv = 1.0 / (math.sqrt(2.0) * sigma)
+    cut = 6.0 * math.sqrt(2.0) * sigma
+    acc = 0.0
+    for i in range(ni):
+        y = st[i]
+        lo = e - ec[i]
+        hi = e + ec[i]
+        if y < lo:
+            y = lo
+        elif y > hi:
+            y = hi
+        out[i] = y
+        base = i * stride
+        jlo = np.searchsorted(ei, -y - cut)
+        jhi = np.searchsorted(ei, -y + cut)
+        acc += cw[base + 2 * nj] - cw[base + nj + jhi] - cw[base + nj + jlo]
+        for j in range(jlo, jhi):
+            acc += cw[base + j] * math.erf((y + ei[j]) * inv)
+    return acc
+
+
+@nb.njit(cache=True)
 def _quiet_band(kind: int, st: np.ndarray, ec: np.ndarray, ei: np.ndarray) -> tuple[float, float]:
     """Open field interval (MV/m) inside which no relay of the state ``st`` can switch.
 
@@ -369,7 +406,7 @@ def _quiet_band(kind: int, st: np.ndarray, ec: np.ndarray, ei: np.ndarray) -> tu
     lo, hi = -math.inf, math.inf
     nj = ei.size
     for i in range(ec.size):
-        if kind == 0:
+        if kind != 1:  # play outputs (normal and matrix kernels)
             up, dn = st[i] + ec[i], st[i] - ec[i]
         else:
             b = int(st[i])

@@ -30,41 +30,47 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl.model import creep as cr
 from afmctl.model import hysteresis as hy
 from afmctl.model import transducer as tr
 from afmctl.model.hysteresis import _quiet_band, _step
 
 FloatArray = NDArray[np.float64]
+_NONE = np.zeros(0)  # no creep elements
 
 
 @nb.njit(cache=True)
 def _predict(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray,
              wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray, c0: float,
-             g1: float, g2: float) -> tuple[float, float]:
+             g1: float, g2: float, creep: float) -> tuple[float, float]:
+    """Prediction for field ``e`` and the hysteretic output ``P_h(e)`` (the force sees
+    ``P_h + creep``, the creep part of this sample)."""
     p = _step(kind, e, dt, st, out, ec, wc, ei, cw, scal)
-    return c0 + g1 * p + g2 * p * p, p
+    pt = p + creep
+    return c0 + g1 * pt + g2 * pt * pt, p
 
 
 @nb.njit(cache=True)
 def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: float,
-           e_lo: float, e_max: float, dt: float, st: np.ndarray, sc: np.ndarray, ec: np.ndarray,
+           e_min: float, e_max: float, dt: float, st: np.ndarray, sc: np.ndarray, ec: np.ndarray,
            wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray, c0: float, g1: float, g2: float,
-           tol: float) -> tuple[float, float, float, float]:
-    """Field ``E`` with prediction ``c0 + g1 P(E) + g2 P(E)^2`` within ``tol`` of ``target``.
+           creep: float, tol: float) -> tuple[float, float, float, float]:
+    """Field ``E`` with prediction ``c0 + g1 P(E) + g2 P(E)^2`` within ``tol`` of ``target``,
+    ``P = P_h(E) + creep``.
 
     Trials start from memory ``st`` (left unchanged); the accepted trial's new memory is left in
     ``sc``. Returns (E, P(E), |prediction - target|, local slope dy/dE). ``floor`` is a lower
     bound of the slope (the reversible part alone), which keeps round-off out of the first step.
-    The march never leaves ``[e_lo, e_max]`` (MV/m): an unreachable target ends at the limit, and
+    The march never leaves ``[e_min, e_max]`` (MV/m): an unreachable target ends at the limit, and
     the returned error says by how much it was missed.
     """
     fa = y0 - target
     direction = -1.0 if fa > 0.0 else 1.0
     ea = e0
-    eb = min(max(ea + direction * max(abs(fa) / slope, 1e-12), e_lo), e_max)
+    eb = min(max(ea + direction * max(abs(fa) / slope, 1e-12), e_min), e_max)
     if abs(fa) <= tol:
         eb = e0
-    yb, pb = _predict(kind, eb, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2)
+    yb, pb = _predict(kind, eb, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2, creep)
     fb = yb - target
     bracketed = False
     side = 0
@@ -74,14 +80,14 @@ def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: 
         if not bracketed and fb * fa > 0.0:  # not passed yet: march on (secant, at most x8)
             step = eb - ea
             sec = -fb * step / (fb - fa) if (fb - fa) * direction * step > 0.0 else 8.0 * step
-            ec_ = min(max(eb + (sec if 0.0 < sec / step <= 8.0 else 2.0 * step), e_lo), e_max)
+            ec_ = min(max(eb + (sec if 0.0 < sec / step <= 8.0 else 2.0 * step), e_min), e_max)
             ea, fa = eb, fb
         else:  # bracketed: Illinois regula falsi, the paper's linear interpolation
             bracketed = True
             ec_ = eb - fb * (eb - ea) / (fb - fa)
             if not (min(ea, eb) < ec_ < max(ea, eb)):
                 ec_ = 0.5 * (ea + eb)
-        yc, pc = _predict(kind, ec_, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2)
+        yc, pc = _predict(kind, ec_, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2, creep)
         fc = yc - target
         if bracketed:
             if fc * fb < 0.0:
@@ -101,9 +107,13 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
                 st: np.ndarray, dt: float, ec: np.ndarray, wc: np.ndarray, ei: np.ndarray,
                 cw: np.ndarray, scal: np.ndarray, phi: np.ndarray, gam: np.ndarray,
                 row: np.ndarray, gain: float, a1: float, a2: float, offset: float,
-                floor: float, e_lo: float, e_max: float,
-                tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Fields for targets ``target[k]`` = desired u at sample ``k + d`` (um), rod state ``x`` (m)."""
+                floor: float, e_min: float, e_max: float, tol: float, ca: np.ndarray,
+                cc: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fields for targets ``target[k]`` = desired u at sample ``k + d`` (um), rod state ``x`` (m).
+
+    ``ca``, ``cc``, ``z``: creep factors ``a_j``, weights ``c_j`` and state (updated in place;
+    empty without creep, :mod:`afmctl.model.creep`). ``p_init`` is the hysteretic output ``P_h``.
+    """
     n = target.size
     e_out = np.empty(n)
     u_out = np.empty(n)
@@ -117,30 +127,38 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
     for k in range(n):
         u_out[k] = x[0] * 1e6 + offset
         c0 = (row[0] * x[0] + row[1] * x[1]) * 1e6 + offset
+        creep = 0.0
+        for j in range(cc.size):
+            creep += cc[j] * z[j]
         # inside the quiet band P(E) = lin E + off + p_switch: solve the force law exactly
         disc = g1 * g1 - 4.0 * g2 * (c0 - target[k])
         e = math.nan
         if disc >= 0.0:
             p = (target[k] - c0) / g1 if g2 == 0.0 else (-g1 + math.sqrt(disc)) / (2.0 * g2)
+            p -= creep
             e = (p - off - p_switch) / lin
-        if lo < e < hi and e_lo <= e <= e_max:
+        if lo < e < hi and e_min <= e <= e_max:
             err[k] = 0.0
         else:
             if kind == 2:  # u~ with the field held at E_{k-1}: thermally active dipoles go
-                y0 = _predict(kind, e_prev, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2)[0]
+                y0 = _predict(kind, e_prev, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2,
+                              creep)[0]
             else:  # on switching (creep) while it is held; a relay's P stays put
-                y0 = c0 + g1 * p_prev + g2 * p_prev * p_prev
-            e, p, err[k], slope = _solve(kind, target[k], e_prev, y0, slope, floor, e_lo, e_max,
-                                         dt, st,
-                                         sc, ec, wc, ei, cw, scal, c0, g1, g2, tol)
+                pt = p_prev + creep
+                y0 = c0 + g1 * pt + g2 * pt * pt
+            e, p, err[k], slope = _solve(kind, target[k], e_prev, y0, slope, floor, e_min, e_max,
+                                         dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2, creep, tol)
             st[:] = sc  # commit the accepted trial's memory
             if kind != 2:
                 lo, hi = _quiet_band(kind, st, ec, ei)
                 p_switch = p - (e * lin + off)
-        f = a1 * p + a2 * p * p
+        pt = p + creep
+        f = a1 * pt + a2 * pt * pt
         x0 = phi[0, 0] * x[0] + phi[0, 1] * x[1] + gam[0] * f
         x[1] = phi[1, 0] * x[0] + phi[1, 1] * x[1] + gam[1] * f
         x[0] = x0
+        for j in range(cc.size):
+            z[j] = ca[j] * z[j] + (1.0 - ca[j]) * p
         e_out[k] = e
         e_prev, p_prev = e, p
     return e_out, u_out, err
@@ -175,11 +193,12 @@ class Inversion:
 
 def algorithm2(params: hy.Polarization, p_target: FloatArray, state: hy.PolarizationState,
                e_init: float = 0.0, tol: float = 1e-10, dt: float = 1e-4,
-               e_max: float = 1e3) -> Inversion:
+               e_max: float = 1e3, e_min: float | None = None) -> Inversion:
     """Algorithm 2: fields whose forward polarization (13) follows ``p_target`` (C/m^2).
 
     ``state`` must be the memory at field ``e_init`` (MV/m) before the first sample. The error
-    ``|P_in - P_out|`` per sample is returned as ``error``: at most ``tol`` (C/m^2).
+    ``|P_in - P_out|`` per sample is returned as ``error``: at most ``tol`` (C/m^2). The fields stay
+    in ``[e_min, e_max]`` (MV/m; ``e_min`` defaults to ``-e_max``).
     """
     k = hy.build_kernel(params)
     st = state.copy_values()
@@ -187,8 +206,8 @@ def algorithm2(params: hy.Polarization, p_target: FloatArray, state: hy.Polariza
     x = np.zeros(2)
     e, _, w = _algorithm3(k.kind, np.ascontiguousarray(p_target, dtype=float), e_init, p0[0], x, st,
                           dt, k.ec, k.wc, k.ei, k.cw, k.scal, np.eye(2), np.zeros(2),
-                          np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.5 / params.eta, -e_max, e_max,
-                          tol)
+                          np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.5 / params.eta,
+                          -e_max if e_min is None else e_min, e_max, tol, _NONE, _NONE, _NONE)
     p_out, _ = hy.run(k, e, state, dt)
     return Inversion(e, p_out, w, hy.PolarizationState(k.kind, st))
 
@@ -197,6 +216,11 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
                e_init: float = 0.0, horizon: int = 1, tol_um: float = 1e-7,
                e_max: float = 1e3, e_min: float | None = None) -> Inversion:
     """Algorithm 3: fields whose forward displacement (16)+(13) follows ``u_target_um``.
+
+    With creep (:attr:`afmctl.model.transducer.Transducer.creep`) the creep part of each sample
+    is known from the samples before it (:mod:`afmctl.model.creep`): the inverse solves for the
+    hysteretic output that, with it, gives the force the target needs, and carries the creep state,
+    so a held or slow trajectory does not drift.
 
     Parameters
     ----------
@@ -216,9 +240,8 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
     e_max : float
         Largest field the march may try, MV/m (e.g. the upper voltage limit / thickness).
     e_min : float, optional
-        Smallest field the march may try, MV/m (default ``-e_max``): a unipolar amplifier's
-        0 V makes it 0, so that a target below the stage's reach is found out of reach instead of
-        inverted with a voltage the stage cannot give.
+        Lowest field the march may try, MV/m (default ``-e_max``; e.g. the lower voltage limit /
+        thickness: a unipolar stage is never asked for a negative field).
 
     Returns
     -------
@@ -235,13 +258,18 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
     p0, _ = hy.run(cm.kernel, np.array([e_init]), ps, cm.dt)
     x = np.array(state.rod, dtype=float)
     st = ps.copy_values()
-    dfdp = abs(rod.a1 + 2 * rod.a2 * p0[0]) or abs(rod.a1)
+    creep = cm.model.creep
+    z = (np.array(state.creep, dtype=float) if state.creep.size
+         else cr.rest_state(creep, float(p0[0])))
+    ca = _NONE if creep is None else creep.factors(cm.dt)
+    cc = _NONE if creep is None else np.asarray(creep.weights, dtype=float)
+    dfdp = abs(rod.a1 + 2 * rod.a2 * (p0[0] + cr.offset(creep, z))) or abs(rod.a1)
     floor = 0.5 * gain * dfdp * 1e6 / cm.model.polarization.eta
     e, pred, w = _algorithm3(cm.kernel.kind, target, e_init, p0[0], x, st, cm.dt, cm.kernel.ec,
                              cm.kernel.wc, cm.kernel.ei, cm.kernel.cw, cm.kernel.scal,
                              cm.disc.phi, cm.disc.gamma, row, gain, rod.a1, rod.a2, rod.offset_um,
-                             floor, -e_max if e_min is None else e_min, e_max, tol_um)
-    return Inversion(e, pred, w, tr.StageState(hy.PolarizationState(ps.kind, st), x))
+                             floor, -e_max if e_min is None else e_min, e_max, tol_um, ca, cc, z)
+    return Inversion(e, pred, w, tr.StageState(hy.PolarizationState(ps.kind, st), x, z))
 
 
 # ----------------------------------------------------------------------------------------------

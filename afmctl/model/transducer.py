@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from afmctl.model import creep as cr
 from afmctl.model import hysteresis as hy
 from afmctl.model import rod as rd
 from afmctl.model.effects import Effects
@@ -33,6 +34,9 @@ class Transducer:
         What the stage adds around this model (amplifier, sensor, second mode; see
         :mod:`afmctl.model.effects`); none by default. :func:`simulate` is the paper's model alone;
         ``afmctl diagnose`` fits effects and ``afmctl track`` inverts them.
+    creep : creep.Creep or None
+        Log-time creep of the polarization (:mod:`afmctl.model.creep`) between the hysteresis and
+        the rod; none by default.
     initial : {"depoled", "positive", "negative"}
         The hysteresis state the stage was in before the voltages the model was identified on
         (identify finds it from the data; a stage poled once keeps that state outside the
@@ -45,6 +49,7 @@ class Transducer:
     thickness_um: float
     effects: Effects = field(default_factory=Effects)
     initial: hy.Initial = "depoled"
+    creep: cr.Creep | None = None
 
     def field(self, voltage_v: FloatArray) -> FloatArray:
         return np.asarray(voltage_v, dtype=float) / self.thickness_um
@@ -52,20 +57,30 @@ class Transducer:
 
 @dataclass(frozen=True)
 class StageState:
-    """Hysteresis memory and rod state ``[u (m), u' (m/s)]``."""
+    """Hysteresis memory, rod state ``[u (m), u' (m/s)]`` and creep state (C/m^2 per element;
+    empty without creep)."""
 
     polarization: hy.PolarizationState
     rod: FloatArray
+    creep: FloatArray = field(default_factory=lambda: np.zeros(0))
 
 
 def initial(model: Transducer, how: hy.Initial | None = None,
             voltage_v: float = 0.0) -> StageState:
     """State at rest: the initial polarization ``how`` (default the model's own
-    :attr:`Transducer.initial`), then ``voltage_v`` applied quasi-statically."""
+    :attr:`Transducer.initial`), then ``voltage_v`` applied quasi-statically (and held long
+    enough for any creep to settle)."""
     ps = hy.initial_state(model.polarization, model.initial if how is None else how)
     p, ps = hy.run(model.polarization, np.array([voltage_v / model.thickness_um]), ps)
-    f = model.rod.force(p)[0]
-    return StageState(ps, rd.rest_state(model.rod, f))
+    return at_rest(model, ps, float(p[0]))
+
+
+def at_rest(model: Transducer, ps: hy.PolarizationState, p_h: float) -> StageState:
+    """The stage settled at hysteretic output ``p_h`` (C/m^2) with memory ``ps``: creep elements
+    settled, rod in static equilibrium."""
+    z = cr.rest_state(model.creep, p_h)
+    p = p_h + cr.offset(model.creep, z)
+    return StageState(ps, rd.rest_state(model.rod, float(model.rod.force(np.array([p]))[0])), z)
 
 
 @dataclass(frozen=True)
@@ -103,13 +118,17 @@ def simulate(cm: Compiled, voltage_v: FloatArray,
     u_um : ndarray, shape (N,)
         Displacement at each sample instant (before that sample's voltage acts), um.
     p : ndarray, shape (N,)
-        Polarization during each sample, C/m^2.
+        Polarization during each sample (with creep, if the model has it), C/m^2.
     state : StageState
         State after the last sample.
     """
     p, ps = hy.run(cm.kernel, cm.model.field(voltage_v), state.polarization, cm.dt)
+    z = state.creep
+    if cm.model.creep is not None:
+        z = z if z.size else cr.rest_state(cm.model.creep, float(p[0]) if p.size else 0.0)
+        p, z = cr.run(cm.model.creep, p, cm.dt, z)
     u, x = rd.simulate(cm.model.rod, cm.disc, cm.model.rod.force(p), state.rod)
-    return u, p, StageState(ps, x)
+    return u, p, StageState(ps, x, z)
 
 
 def displacement(model: Transducer, voltage_v: ArrayLike, dt_s: float,

@@ -52,6 +52,35 @@ def test_impossible_trajectory_is_refused_not_clipped(nominal: tr.Transducer) ->
         track.plan(nominal, fast, slow_amp)
 
 
+def test_a_trajectory_the_models_forward_simulation_reaches_is_planned() -> None:
+    """Issue 23: a unipolar stage whose model (fitted off its family) has a force law (16) that
+    turns round at negative fields. At the corners of a 27.9 Hz triangle the first trial field of
+    Algorithm 3 used to jump to -150 V (the march was bounded by +-max|V| / thickness), where the
+    force is no longer monotone, and the plan was refused "out of reach" at offsets the model's
+    own forward simulation of a 0-150 V triangle at the same frequency spans."""
+    from scipy.signal import sawtooth
+
+    from afmctl.model import hysteresis as hy
+    from afmctl.model import rod as rd
+    pol = hy.Polarization(eta=1657.0, p_r=0.3, coercive=hy.Lognormal(0.02, 1.0),
+                          interaction=hy.Normal(2.0))
+    model = tr.Transducer(pol, rd.Rod(m=0.05, c=5812.0, k=6.4e7, a1=15960.0, a2=165000.0,
+                                      offset_um=1.0), 100.0)
+    unipolar = guard.Limits(0.0, 150.0, slew_v_per_ms=50, current_ma=100, capacitance_uf=2)
+    t = np.arange(0, 3 / 27.9, DT)
+    v = 75 + 75 * sawtooth(2 * np.pi * 27.9 * t - np.pi / 2, 0.5)
+    u = tr.simulate(tr.compile_model(model, DT), v, tr.initial(model))[0][t > 1 / 27.9]
+    for offset in (20.0, 30.0, 45.0):
+        desired = track.triangle(27.9, 27.04, offset, 3, DT)
+        assert u.min() < desired.u_um.min() and desired.u_um.max() < u.max()  # reachable
+        wf = track.plan(model, desired, unipolar, filters=("inverse",))["inverse"]
+        assert wf.voltage_v.min() >= 0.0  # never a negative field on a unipolar stage
+        err = (run_model(model, wf)[wf.tracking] - desired.u_um)[track.steady_start(desired):]
+        assert np.sqrt(np.mean(err ** 2)) < 0.01 * desired.amplitude_um  # and it gets there
+    with pytest.raises(track.ReachError, match="out of the stage's reach"):
+        track.plan(model, track.triangle(27.9, 27.04, u.min(), 3, DT), unipolar)  # below it
+
+
 def test_score_leaves_missing_samples_out(nominal: tr.Transducer) -> None:
     desired = track.sine(5.0, 10.0, 0.0, 1, DT)
     wf = track.plan(nominal, desired, LIM, filters=("inverse",))["inverse"]

@@ -1,0 +1,186 @@
+"""Which representation ``identify`` keeps: the paper's parametric HEM, or the Preisach grid.
+
+The homogenized energy model with lognormal/normal densities (six nonlinear parameters) is fitted
+first: on a stage of its family it reaches the sensor noise and nothing more is done. When it stays
+above the noise floor, the Preisach grid with creep (:mod:`afmctl.fit.preisach`: a non-separable
+density on a grid, fitted as a regularized non-negative least-squares problem) is fitted too, and
+the two are compared by their **held-out** error against each sweep's sensor noise:
+
+* the grid's is measured: it is fitted on three of four folds of residual blocks and judged on
+  the fourth, each in turn;
+* the HEM's is its error on the same samples from the full fit: with about ten parameters
+  against thousands of samples its optimism is of order ``p / N`` (well below 1 %), which favours
+  the HEM slightly. The grid must also beat it by :data:`MARGIN`: the HEM is cheaper to run,
+  smaller to store, and extrapolates beyond the identified range by its physics; the grid
+  knows nothing outside the cells the sweeps switched.
+
+Speed: after the HEM's first start, if some sweep is more than :data:`EARLY` times its noise
+(the HEM's family does not describe the stage), the grid is fitted at once; if it then reaches
+the noise floor on every sweep in-sample and its worst held-out error is :data:`DECISIVE` times
+below the HEM's, the HEM's restarts and refinements are skipped.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl.files.sweepfile import Sweep
+from afmctl.fit import preisach as pf
+from afmctl.fit import uncertainty as unc
+from afmctl.model import preisach as pr
+
+if TYPE_CHECKING:
+    from scipy import optimize
+
+    from afmctl.fit import identify as idf
+    from afmctl.fit import parametrization as pz
+
+FloatArray = NDArray[np.float64]
+#: The HEM's first start this many times above some sweep's noise: fit the grid at once.
+EARLY = 5.0
+#: The grid's worst held-out error this many times below the HEM's: the HEM's restarts are moot.
+DECISIVE = 3.0
+#: The grid is kept only if its worst held-out error is below this share of the HEM's.
+MARGIN = 0.9
+
+
+class Grid:
+    """The Preisach grid as identify's alternative: fitted at most once, then compared."""
+
+    def __init__(self, sweeps: Sequence[Sweep], thickness_um: float, settings: idf.Settings,
+                 noise: FloatArray, say: Callable[[str], None], t0: float) -> None:
+        self.sweeps, self.thickness, self.settings = list(sweeps), thickness_um, settings
+        self.noise, self.say, self.t0 = noise, say, t0
+        self.fit: pf.PreisachFit | None = None
+        self.decided = False
+
+    def data(self) -> pf.Data:
+        w = self.settings.window_s
+        return pf.Data([s.voltage_v / self.thickness for s in self.sweeps],
+                       [s.mask(w) for s in self.sweeps],
+                       [s.displacement_um[s.mask(w)] for s in self.sweeps],
+                       [s.dt for s in self.sweeps], np.asarray(self.noise, float))
+
+    def run(self, starts: Sequence[str], x_hem: FloatArray) -> pf.PreisachFit:
+        """Fit the grid once: the start assignments tried are the HEM's and every sweep alike."""
+        if self.fit is None:
+            self.say("fitting the Preisach grid with creep (the paper's model is above its "
+                     "noise floor) ...")
+            n = len(self.sweeps)
+            cands = [tuple(starts)] + [(s,) * n for s in ("positive", "depoled", "negative")]
+            fn, zeta = math.exp(float(x_hem[4])), math.exp(float(x_hem[5]))
+            self.fit = pf.fit(self.data(), cands, (fn, zeta), self.thickness,
+                              self.settings.mass_kg, say=self.say)
+        return self.fit
+
+    def early(self, space: pz.LognormalSpace, sol: optimize.OptimizeResult,
+              ratio: FloatArray) -> bool:
+        """After the HEM's first start: True if the grid makes its restarts moot."""
+        if self.settings.representation == "hem" or float(np.max(ratio)) <= EARLY:
+            return False
+        fit = self.run(space.starts, sol.x)
+        self.decided = bool(np.max(fit.insample_over_noise) <= _floor()
+                            and DECISIVE * np.max(fit.heldout_rms_um / self.noise)
+                            < float(np.max(ratio)))
+        if self.decided:
+            self.say("  the grid is at the noise floor far below the paper's model: no restarts")
+        return self.decided
+
+    def choose(self, hem: idf.FitResult, prob: idf.Problem, space: pz.LognormalSpace,
+               sol: optimize.OptimizeResult) -> idf.FitResult:
+        """``hem``, or the grid's result if its held-out error is lower (by :data:`MARGIN`), with
+        both representations' figures under ``representations``."""
+        from dataclasses import replace
+
+        fit = self.run(space.starts, sol.x)
+        hem_worst = max(s.rms_over_noise for s in hem.sweeps)
+        grid_worst = float(np.max(fit.heldout_rms_um / self.noise))
+        forced = self.settings.representation == "preisach"
+        keep_grid = forced or grid_worst < MARGIN * hem_worst
+        why = ("asked for (--profile [identify] representation)" if forced else
+               f"held-out worst {grid_worst:.2f}x the noise against the paper's model's "
+               f"{hem_worst:.2f}x")
+        figures = {
+            "chosen": "preisach" if keep_grid else "hem",
+            "why": why,
+            "hem": {"worst_over_noise": hem_worst, "heldout_note": "error on the held-out "
+                    "blocks from the full fit (about ten parameters: optimism ~ p/N)",
+                    "per_sweep_over_noise": [s.rms_over_noise for s in hem.sweeps]},
+            "preisach": _grid_figures(fit, self.noise),
+        }
+        self.say(f"representation: {figures['chosen']} ({why})")
+        if not keep_grid:
+            return replace(hem, representations=figures)
+        return self._result(hem, prob, fit, figures)
+
+    def _result(self, hem: idf.FitResult, prob: idf.Problem, fit: pf.PreisachFit,
+                figures: dict[str, Any]) -> idf.FitResult:
+        from afmctl.fit import identify as idf
+
+        model = fit.model  # judged with each sweep's own history: sensor zero, creep transient
+        errors = tuple(idf._error(s.path or s.name, s, u, self.settings.window_s, st, float(off))
+                       for s, u, st, off in zip(self.sweeps, fit.predicted, fit.starts,
+                                                fit.offsets, strict=True))
+        how = "converged" if fit.converged else "stopped on its budget"
+        msg = f"Preisach grid: Gauss-Newton {how} after {fit.iterations} steps"
+        return idf.FitResult(
+            model, estimates(model, fit), errors, fit.converged, 1 if fit.converged else 0, msg,
+            prob.nfev + fit.iterations, time.perf_counter() - self.t0, hem.thickness_known, hem.x,
+            fit.uncertainty, hem.envelope, hem.restarts, bool(np.isfinite(fit.offsets).all()),
+            "preisach", figures)
+
+
+def _floor() -> float:
+    from afmctl.fit import identify as idf
+
+    return idf.FLOOR
+
+
+def _grid_figures(fit: pf.PreisachFit, noise: FloatArray) -> dict[str, Any]:
+    grid = fit.model.polarization
+    assert isinstance(grid, pr.PreisachGrid)
+    return {"worst_heldout_over_noise": float(np.max(fit.heldout_rms_um / noise)),
+            "heldout_over_noise": [float(v) for v in fit.heldout_rms_um / noise],
+            "insample_over_noise": [float(v) for v in fit.insample_over_noise],
+            "grid": [grid.n_coercive, grid.n_interaction], "coefficients": fit.n_coefficients,
+            "smoothing": fit.smoothing, "creep": fit.creep,
+            "creep_per_decade": None if fit.model.creep is None else
+            fit.model.creep.per_decade(), "seconds": round(fit.seconds, 3),
+            "candidates_heldout_sse_over_noise": fit.candidates}
+
+
+def estimates(model: Any, fit: pf.PreisachFit) -> tuple[unc.Estimate, ...]:
+    """The grid model's scalar parameters: the rod (16), the grid, creep (no intervals for the
+    density's weights: they are non-negative, judged by held-out error instead)."""
+    rod, grid = model.rod, model.polarization
+    sd = fit.uncertainty.get("parameters", {})
+
+    def rel(name: str) -> float:
+        v = sd.get(name, {}).get("stderr")
+        return float("nan") if v is None else float(v)
+
+    out = [unc.Estimate("natural_frequency", rod.natural_hz, rod.natural_hz * rel("log_fn"), "Hz"),
+           unc.Estimate("damping_ratio", rod.damping_ratio, rod.damping_ratio * rel("log_zeta"),
+                        "1"),
+           unc.Estimate("k", rod.k, float("nan"), "N/m"), unc.Estimate("c", rod.c, float("nan"),
+                                                                        "N s/m"),
+           unc.Estimate("a1", rod.a1, float("nan"), "N/(C/m^2)"),
+           unc.Estimate("a2", rod.a2, float("nan"), "N/(C/m^2)^2"),
+           unc.Estimate("offset", rod.offset_um, float("nan"), "um"),
+           unc.Estimate("reversible_slope", grid.reversible, float("nan"), "(C/m^2)/(MV/m)"),
+           unc.Estimate("hysteretic_range", grid.hysteretic_range(), float("nan"), "C/m^2")]
+    if model.creep is not None:
+        out.append(unc.Estimate("creep_per_decade", model.creep.per_decade(), float("nan"), "1"))
+        out += [unc.Estimate(f"creep@{t:g}s", c, float("nan"), "1")
+                for t, c in zip(model.creep.tau_s, model.creep.weights, strict=True)]
+    return tuple(out + [unc.Estimate("m", rod.m, 0.0, "kg", fixed=True),
+                        unc.Estimate("p_scale", fit.p_scale, 0.0, "C/m^2", fixed=True)])
+
+
+__all__ = ["Grid", "EARLY", "DECISIVE", "MARGIN", "estimates"]

@@ -1,0 +1,190 @@
+"""Log-time creep of the polarization: linear Krejci-Kuhnen creep operators.
+
+A piezo stack held at a constant voltage keeps moving in the direction of its last motion, by about
+1-2 % of the step per decade of time (PI's tutorial; Kuhnen's creep operators). afmctl describes it
+as a bank of first-order creep elements driven by the hysteretic output ``P_h`` of the polarization
+model ((13) or the Preisach grid of :mod:`afmctl.model.preisach`)::
+
+    P(t) = P_h(t) + sum_j c_j z_j(t),      tau_j z_j' = P_h - z_j,      c_j >= 0,
+
+with time constants ``tau_j`` log-spaced over the decades the stage creeps over (10 ms ... 1000 s
+by default). ``P`` then forces the rod (16) in place of ``P_h``. After a step ``Delta P_h`` from rest,
+``P(t) - P_h = Delta P_h sum_j c_j (1 - exp(-t / tau_j))``: with equal ``c`` per element and ``n``
+elements per decade, each element settles in turn, so between the first and the last time constant
+this grows by close to ``n c`` per decade, a straight line against log time (:func:`step_response`).
+A thermal relaxation (kernel (10)) instead settles with an exponential knee.
+
+The weights enter the displacement linearly once the hysteretic output is known, so they are fitted
+by non-negative least squares together with the Preisach weights (:mod:`afmctl.fit.preisach`).
+
+Discretization (zero-order hold, sample period ``dt``): ``z_{j,k+1} = a_j z_{j,k} + (1 - a_j) P_{h,k}``
+with ``a_j = exp(-dt / tau_j)``, and ``P_k = P_{h,k} + sum_j c_j z_{j,k}``: the creep part of sample
+``k`` depends only on the samples before it, so the inverse (Algorithm 3) sees it as a known
+offset of the polarization at each sample.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+from scipy import signal
+
+FloatArray = NDArray[np.float64]
+
+#: Default creep time constants: two per decade from 10 ms to 1000 s.
+DEFAULT_TAUS_S = tuple(float(t) for t in np.logspace(-2, 3, 11))
+
+
+@dataclass(frozen=True)
+class Creep:
+    """Linear creep operators on the polarization.
+
+    Parameters
+    ----------
+    tau_s : tuple of float
+        Time constants of the creep elements, s (> 0).
+    weights : tuple of float
+        Weight ``c_j`` of each element (dimensionless, >= 0): the share of a step in ``P_h``
+        that element ``j`` adds once settled.
+    """
+
+    tau_s: tuple[float, ...]
+    weights: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        t, c = np.asarray(self.tau_s, float), np.asarray(self.weights, float)
+        if t.ndim != 1 or t.shape != c.shape or t.size < 1:
+            raise ValueError("creep needs equally long, non-empty tau_s and weights")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(c))):
+            raise ValueError("creep time constants and weights must be finite")
+        if np.any(t <= 0) or np.any(c < 0):
+            raise ValueError("creep time constants must be > 0 and weights >= 0")
+
+    @property
+    def total(self) -> float:
+        """``sum c_j``: the share of a step added once every element has settled."""
+        return float(np.sum(self.weights))
+
+    def factors(self, dt: float) -> FloatArray:
+        """``a_j = exp(-dt / tau_j)`` for sample period ``dt`` (s)."""
+        return np.exp(-float(dt) / np.asarray(self.tau_s, float))
+
+    def per_decade(self, t_lo: float = 0.1, t_hi: float = 100.0) -> float:
+        """Mean creep per decade of time between ``t_lo`` and ``t_hi`` (s) after a unit step."""
+        lo, hi = step_response(self, np.array([t_lo, t_hi]))
+        return float((hi - lo) / np.log10(t_hi / t_lo))
+
+
+def rest_state(creep: Creep | None, p_h: float) -> FloatArray:
+    """Creep state after a long rest at hysteretic output ``p_h``: every element settled."""
+    return np.zeros(0) if creep is None else np.full(len(creep.tau_s), float(p_h))
+
+
+def offset(creep: Creep | None, z: FloatArray) -> float:
+    """Creep part ``sum c_j z_j`` of the polarization in state ``z``."""
+    return 0.0 if creep is None or z.size == 0 else float(np.dot(creep.weights, z))
+
+
+@nb.njit(cache=True)
+def _run(p_h: np.ndarray, a: np.ndarray, c: np.ndarray, z: np.ndarray) -> np.ndarray:
+    out = np.empty(p_h.size)
+    for k in range(p_h.size):
+        acc = 0.0
+        for j in range(a.size):
+            acc += c[j] * z[j]
+            z[j] = a[j] * z[j] + (1.0 - a[j]) * p_h[k]
+        out[k] = p_h[k] + acc
+    return out
+
+
+def run(creep: Creep | None, p_h: FloatArray, dt: float,
+        z: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Polarization with creep for the hysteretic output ``p_h`` (held ``dt`` s per sample).
+
+    Parameters
+    ----------
+    creep : Creep or None
+        None: no creep (``p_h`` is returned as it is).
+    p_h : ndarray, shape (N,)
+        Hysteretic output per sample, C/m^2.
+    dt : float
+        Sample period, s.
+    z : ndarray, shape (n_elements,)
+        Creep state before the first sample (:func:`rest_state`); not modified.
+
+    Returns
+    -------
+    p : ndarray, shape (N,)
+        ``P_k = P_{h,k} + sum_j c_j z_{j,k}``, C/m^2.
+    z : ndarray
+        State after the last sample.
+
+    Examples
+    --------
+    >>> c = Creep((1.0,), (0.1,))
+    >>> p, z = run(c, np.ones(3), 1.0, rest_state(c, 0.0))
+    >>> [round(float(v), 4) for v in p]
+    [1.0, 1.0632, 1.0865]
+    """
+    p_h = np.ascontiguousarray(p_h, dtype=float)
+    if creep is None:
+        return p_h.copy(), np.zeros(0)
+    zz = np.array(z, dtype=float)
+    out = _run(p_h, creep.factors(dt), np.asarray(creep.weights, float), zz)
+    return out, zz
+
+
+def step_response(creep: Creep, t_s: FloatArray) -> FloatArray:
+    """Creep after a unit step of ``P_h`` from rest: ``sum_j c_j (1 - exp(-t / tau_j))``."""
+    t = np.asarray(t_s, float)[..., None]
+    return np.sum(np.asarray(creep.weights) * -np.expm1(-t / np.asarray(creep.tau_s)), axis=-1)
+
+
+def lag(x: FloatArray, tau_s: float, dt: float, z0: FloatArray | float | None = None) -> FloatArray:
+    """One creep element's state before every sample, along axis 0 of ``x`` (unit weight):
+    ``z_{k+1} = a z_k + (1 - a) x_k``, ``a = exp(-dt / tau)``, from ``z_0 = z0`` (default ``x[0]``:
+    at rest)."""
+    x = np.asarray(x, float)
+    a = math.exp(-float(dt) / float(tau_s))
+    zi = (x[:1] if z0 is None else np.broadcast_to(np.asarray(z0, float), x[:1].shape)).copy()
+    return signal.lfilter([0.0, 1.0 - a], [1.0, -a], x, axis=0, zi=zi)[0]
+
+
+def lagged(x: FloatArray, tau_s: FloatArray, dt: float, z0: FloatArray) -> FloatArray:
+    """Each element's state ``z_j`` before every sample for the input ``x`` (N,) (one element per
+    time constant, unit weight), shape (N, n_elements), from ``z_{j,0} = z0[j]``: the columns whose
+    combination ``sum c_j z_j`` the fit weighs."""
+    x = np.asarray(x, float)
+    out = np.empty((x.size, len(tau_s)))
+    for j, tau in enumerate(tau_s):
+        out[:, j] = lag(x, tau, dt, float(z0[j]))
+    return out
+
+
+@nb.njit(cache=True)
+def _columns(x: np.ndarray, a: np.ndarray, c: np.ndarray) -> np.ndarray:
+    n, k = x.shape
+    out = np.empty((n, k))
+    z = np.empty((a.size, k))
+    for j in range(a.size):
+        z[j] = x[0]
+    for t in range(n):
+        for i in range(k):
+            acc = x[t, i]
+            for j in range(a.size):
+                acc += c[j] * z[j, i]
+                z[j, i] = a[j] * z[j, i] + (1.0 - a[j]) * x[t, i]
+            out[t, i] = acc
+    return out
+
+
+def apply_columns(creep: Creep, x: FloatArray, dt: float) -> FloatArray:
+    """:func:`run` on every column of ``x`` (N, K) at once, each from rest at its first sample
+    (the creep of every basis column of a fit)."""
+    x2 = np.ascontiguousarray(x, dtype=float).reshape(x.shape[0], -1)
+    out = _columns(x2, creep.factors(dt), np.asarray(creep.weights, dtype=float))
+    return out.reshape(x.shape)

@@ -1,0 +1,169 @@
+"""A Preisach-type polarization with a general (non-separable) density on a grid.
+
+The homogenized energy model with relay hysterons and no thermal activation is a Preisach model
+(Section 2.2 of the paper): the relay (4) of coercive field ``E_c`` and interaction field ``E_I``
+switches up at ``E = E_c - E_I`` and down at ``E = -E_c - E_I``, and (11) averages it over the
+separable density ``nu_1(E_c) nu_2(E_I)``; Algorithm 1 writes the discretized (13) as
+``P_k = V^T Pbar_k W``, an outer product of the two densities' weights. A stage whose hysteresis
+is of the Preisach family but whose density is not separable (or not centred) is out of reach of
+that product. :class:`PreisachGrid` replaces it by a full weight matrix on the grid::
+
+    P_k = E_k / eta_r + sum_ij w_ij  Pbar_ij(E_k),       w_ij >= 0,
+
+that is Algorithm 1 with a matrix ``w`` in place of ``V W^T`` (and the reversible part ``E / eta``
+as its own term). Each cell's relays are spread normally in ``E_I`` about the node ``E_I,j`` with
+the grid's ``spread`` (the closed form of the ``normal`` kernel of :mod:`afmctl.model.hysteresis`,
+per cell): all relays of a coercive row ``i`` see the same play operator of half-width ``E_c,i``,
+whose output ``y_i`` turns the row into ``sum_j w_ij erf((y_i + E_I,j) / (sqrt(2) spread))``. So the
+output is smooth in the field (no staircase of a bare relay grid) while keeping the Preisach
+properties exactly: wiping-out (a play operator forgets every reversal a larger one wipes out) and
+congruency of minor loops between the same input extremes (every row's output depends only on the
+reversal points).
+
+The state is the play output per row, as for the ``normal`` kernel; the compiled kernel is
+:data:`afmctl.model.hysteresis.KIND_MATRIX`, so :func:`afmctl.model.hysteresis.run`, the transducer,
+Algorithm 3 (:mod:`afmctl.model.inverse`) and everything built on them take it as they take (13).
+The weights are fitted by non-negative least squares (:mod:`afmctl.fit.preisach`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl.model import hysteresis as hy
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PreisachGrid:
+    """A general non-negative density on a (coercive, interaction) grid.
+
+    Parameters
+    ----------
+    coercive : tuple of float
+        Coercive-field nodes ``E_c,i`` (play half-widths), MV/m, increasing, >= 0 (0: a row
+        without hysteresis, the anhysteretic part).
+    interaction : tuple of float
+        Interaction-field nodes ``E_I,j``, MV/m, strictly increasing.
+    spread : float
+        Standard deviation of each cell's interaction field about its node, MV/m (> 0; about
+        the node spacing).
+    weights : tuple of tuple of float
+        ``w_ij >= 0``, C/m^2: polarization switched by the cell's relays (row ``i`` = coercive
+        node, column ``j`` = interaction node).
+    reversible : float
+        Slope of the reversible part ``E / eta``, (C/m^2)/(MV/m), >= 0.
+
+    Examples
+    --------
+    >>> g = PreisachGrid((0.2, 0.5), (-0.5, 0.0, 0.5), 0.25, ((0.1, 0.2, 0.1), (0.0, 0.3, 0.0)),
+    ...                  0.05)
+    >>> p, s = hy.run(g, [0.0, 1.0, 0.0], hy.initial_state(g))  # remanence after poling
+    >>> bool(p[1] > p[2] > p[0])
+    True
+    """
+
+    coercive: tuple[float, ...]
+    interaction: tuple[float, ...]
+    spread: float
+    weights: tuple[tuple[float, ...], ...]
+    reversible: float
+
+    #: The Preisach grid has no thermal activation (kernel (4) spread, not (10)).
+    thermal = None
+    kernel: Literal["preisach"] = "preisach"
+
+    def __post_init__(self) -> None:
+        ec, ei = np.asarray(self.coercive, float), np.asarray(self.interaction, float)
+        w = np.asarray(self.weights, float)
+        if ec.ndim != 1 or ei.ndim != 1 or ec.size < 1 or ei.size < 1:
+            raise ValueError("the Preisach grid needs at least one coercive and one interaction node")
+        if w.shape != (ec.size, ei.size):
+            raise ValueError(f"Preisach weights must be {ec.size} x {ei.size} (coercive x "
+                             f"interaction), got {w.shape}")
+        values = np.concatenate((ec, ei, w.ravel(), [self.spread, self.reversible]))
+        if not np.all(np.isfinite(values)):
+            raise ValueError("Preisach grid nodes, weights, spread and slope must be finite")
+        if np.any(ec < 0) or np.any(np.diff(ec) < 0):
+            raise ValueError("coercive nodes must be >= 0 and increasing")
+        if np.any(np.diff(ei) <= 0):
+            raise ValueError("interaction nodes must be strictly increasing")
+        if np.any(w < 0) or self.reversible < 0:
+            raise ValueError("Preisach weights and the reversible slope must be >= 0")
+        if not self.spread > 0:
+            raise ValueError("the interaction spread must be > 0")
+
+    @property
+    def matrix(self) -> FloatArray:
+        """The weights as an (N_i, N_j) array, C/m^2."""
+        return np.asarray(self.weights, float)
+
+    @property
+    def n_coercive(self) -> int:
+        return len(self.coercive)
+
+    @property
+    def n_interaction(self) -> int:
+        return len(self.interaction)
+
+    @property
+    def kind(self) -> int:
+        return hy.KIND_MATRIX
+
+    @property
+    def eta(self) -> float:
+        """Reciprocal of the smallest slope dP/dE the model can have, (MV/m)/(C/m^2): that of the
+        reversible part, or (without one) a thousandth of the mean hysteretic slope over the
+        grid's field range (Algorithm 3 uses it as a lower bound of the slope)."""
+        span = float(np.ptp(self.interaction) + 2 * max(self.coercive) + 6 * self.spread)
+        mean = 2.0 * float(self.matrix.sum()) / max(span, 1e-12)
+        return 1.0 / max(self.reversible, 1e-3 * mean, 1e-300)
+
+    def build_kernel(self) -> hy.Kernel:
+        """Packed arrays of the ``KIND_MATRIX`` kernel (see
+        :func:`afmctl.model.hysteresis._matrix_step`)."""
+        w = self.matrix
+        cum = np.concatenate((np.zeros((w.shape[0], 1)), np.cumsum(w, axis=1)), axis=1)
+        cw = np.ascontiguousarray(np.hstack((w, cum)).ravel())
+        scal = np.array([1.0, 1.0, self.spread, 0.0, 0.0, self.reversible, 0.0])
+        return hy.Kernel(hy.KIND_MATRIX, np.asarray(self.coercive, float),
+                         np.ones(len(self.coercive)), np.asarray(self.interaction, float),
+                         np.ones(len(self.interaction)), cw, scal)
+
+    def hysteretic_range(self) -> float:
+        """Polarization between the states all down and all up, ``2 sum w``, C/m^2."""
+        return 2.0 * float(self.matrix.sum())
+
+
+@nb.njit(cache=True)
+def _play(e: np.ndarray, r: np.ndarray, y: np.ndarray) -> np.ndarray:
+    out = np.empty((e.size, r.size))
+    for k in range(e.size):
+        for i in range(r.size):
+            if y[i] < e[k] - r[i]:
+                y[i] = e[k] - r[i]
+            elif y[i] > e[k] + r[i]:
+                y[i] = e[k] + r[i]
+            out[k, i] = y[i]
+    return out
+
+
+def play(field_mv_m: FloatArray, half_widths: FloatArray, y0: FloatArray) -> FloatArray:
+    """Play (backlash) operators of half-widths ``half_widths`` (MV/m) from outputs ``y0``: each
+    output stays put until the field is more than its half-width away, then follows it. Returns
+    the outputs after each sample, shape (N, n_rows): the rows of the grid, for the fit."""
+    return _play(np.ascontiguousarray(field_mv_m, dtype=float),
+                 np.ascontiguousarray(half_widths, dtype=float), np.array(y0, dtype=float))
+
+
+def start_outputs(half_widths: FloatArray, how: str) -> FloatArray:
+    """Play outputs of the initial states of :func:`afmctl.model.hysteresis.initial_state`:
+    depoled (0), poled positive (+inf: every relay up) or negative (-inf)."""
+    value = {"depoled": 0.0, "positive": np.inf, "negative": -np.inf}[how]
+    return np.full(np.asarray(half_widths).size, value)

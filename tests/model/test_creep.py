@@ -1,0 +1,78 @@
+"""Log-time creep (afmctl.model.creep): analytic limits, the transducer and its inverse."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from afmctl.model import creep as cr
+from afmctl.model import hysteresis as hy
+from afmctl.model import inverse as inv
+from afmctl.model import rod as rd
+from afmctl.model import transducer as tr
+
+TAUS = cr.DEFAULT_TAUS_S  # two per decade, 10 ms ... 1000 s
+
+
+def test_step_response_is_the_exact_sum_of_exponentials() -> None:
+    c = cr.Creep(TAUS, tuple(np.linspace(0.001, 0.01, len(TAUS))))
+    dt = 0.003
+    k = np.arange(2000)
+    p, _ = cr.run(c, np.ones(k.size), dt, cr.rest_state(c, 0.0))
+    exact = 1.0 + cr.step_response(c, k * dt)  # z_k = 1 - exp(-k dt / tau): the ZOH is exact
+    np.testing.assert_allclose(p, exact, rtol=0, atol=1e-14)
+
+
+def test_equal_weights_creep_a_straight_line_in_log_time() -> None:
+    """Equal weights, two elements per decade: between the first and last time constants the
+    step response is a straight line against log t with slope ~ 2 c per decade; one element
+    (an exponential, like thermal relaxation) has a knee."""
+    c = 0.0075
+    creep = cr.Creep(TAUS, (c,) * len(TAUS))
+    t = np.logspace(-1, 2, 31)
+    y = cr.step_response(creep, t)
+    slope, icpt = np.polyfit(np.log10(t), y, 1)
+    assert slope == pytest.approx(2 * c, rel=0.1)
+    assert np.max(np.abs(y - (slope * np.log10(t) + icpt))) < 0.03 * slope
+    one = cr.Creep((1.0,), (3 * 2 * c,))  # the same total change over the 3 decades, at once
+    y1 = cr.step_response(one, t)
+    s1, i1 = np.polyfit(np.log10(t), y1, 1)
+    assert np.max(np.abs(y1 - (s1 * np.log10(t) + i1))) > 0.2 * s1
+
+
+def model(creep: cr.Creep | None) -> tr.Transducer:
+    pol = hy.Polarization(eta=2.5, p_r=0.3, coercive=hy.Lognormal(0.6, 0.4),
+                          interaction=hy.Normal(0.25), n_coercive=64)
+    return tr.Transducer(pol, rd.Rod(m=0.05, c=60.0, k=2.0e5, a1=3.0e4, a2=1.0e4), 100.0,
+                         creep=creep)
+
+
+def test_a_held_step_creeps_and_the_inverse_holds_it() -> None:
+    creep = cr.Creep(TAUS, (0.0075,) * len(TAUS))
+    m, dt = model(creep), 2e-3
+    cm = tr.compile_model(m, dt)
+    st = tr.initial(m)
+    n = int(60 / dt)
+    v = np.full(n, 100.0)
+    u, _, _ = tr.simulate(cm, v, st)
+    u_plain = tr.simulate(tr.compile_model(model(None), dt), v, tr.initial(model(None)))[0]
+    step = u_plain[-1] - u_plain[0]
+    t = np.arange(n) * dt
+    late = (t > 0.3) & (t < 30)
+    slope = np.polyfit(np.log10(t[late]), u[late] - u_plain[late], 1)[0]
+    assert 0.01 * step < slope < 0.03 * step  # ~1.5 % of the step per decade, as set
+    # the inverse of "go to the step's first value and stay": the field backs off as it creeps
+    target = np.full(n, u[20])
+    res = inv.algorithm3(cm, target, st, horizon=1, e_min=0.0, e_max=1.5)
+    held = tr.simulate(cm, res.field_mv_m * 100.0, st)[0]
+    assert np.max(np.abs(held[200:] - u[20])) < 1e-5  # no drift over the minute
+    assert res.field_mv_m[-1] < res.field_mv_m[200] - 0.01  # the creep is compensated
+
+
+def test_rejects_malformed_creep() -> None:
+    with pytest.raises(ValueError, match="equally long"):
+        cr.Creep((1.0, 2.0), (0.1,))
+    with pytest.raises(ValueError, match="> 0"):
+        cr.Creep((0.0,), (0.1,))
+    with pytest.raises(ValueError, match=">= 0"):
+        cr.Creep((1.0,), (-0.1,))

@@ -1,0 +1,119 @@
+"""The Preisach grid (afmctl.model.preisach) against analytic limits and an independent relay sum."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from afmctl.model import hysteresis as hy
+from afmctl.model import inverse as inv
+from afmctl.model import preisach as pr
+from afmctl.model import rod as rd
+from afmctl.model import transducer as tr
+
+
+def grid(seed: int = 3) -> pr.PreisachGrid:
+    """A non-separable, off-centre density: rank > 1, weights favouring negative E_I at low E_c."""
+    rng = np.random.default_rng(seed)
+    ec = np.linspace(0.0, 0.7, 8)
+    ei = np.linspace(-1.4, 0.2, 9)
+    w = rng.uniform(0.0, 1.0, (8, 9)) * np.exp(-((ei[None, :] + 0.6 + 0.5 * ec[:, None]) / 0.5) ** 2)
+    return pr.PreisachGrid(tuple(ec), tuple(ei), 0.18, tuple(map(tuple, 0.01 * w)), 0.02)
+
+
+def ramp(*points: float, step: float = 0.01) -> np.ndarray:
+    """Piecewise-linear field through ``points`` (MV/m) in steps of at most ``step``."""
+    out = [np.array([points[0]])]
+    for a, b in zip(points[:-1], points[1:], strict=True):
+        n = max(int(np.ceil(abs(b - a) / step)), 1)
+        out.append(np.linspace(a, b, n + 1)[1:])
+    return np.concatenate(out)
+
+
+def test_wiping_out() -> None:
+    """Exceeding an earlier maximum wipes out every reversal since: the outputs on the last
+    branch are those of the history without them (exactly: only the reversals are remembered)."""
+    g = grid()
+    long = ramp(0.0, 1.0, 0.3, 0.8, 0.5, 1.2, 0.6)
+    short = ramp(0.0, 1.2, 0.6)
+    p_long, s_long = hy.run(g, long, hy.initial_state(g))
+    p_short, s_short = hy.run(g, short, hy.initial_state(g))
+    n = ramp(1.2, 0.6).size
+    np.testing.assert_allclose(p_long[-n:], p_short[-n:], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(s_long.values, s_short.values, rtol=0, atol=1e-15)
+
+
+def test_congruent_minor_loops() -> None:
+    """Minor loops between the same two fields are congruent whatever came before: their
+    outputs differ by one constant (the classical Preisach property)."""
+    g = grid()
+    cycles = [0.5, 1.0, 0.5, 1.0, 0.5]
+    a = ramp(0.0, 1.5, 0.2, *cycles)
+    b = ramp(0.0, -0.4, 1.2, 0.35, *cycles)
+    n = ramp(*cycles[2:]).size  # the second cycle
+    pa, _ = hy.run(g, a, hy.initial_state(g))
+    pb, _ = hy.run(g, b, hy.initial_state(g))
+    diff = pa[-n:] - pb[-n:]
+    assert abs(diff[0]) > 1e-4  # the histories left different outputs ...
+    np.testing.assert_allclose(diff, diff[0], rtol=0, atol=1e-14)  # ... and congruent loops
+
+
+def test_rank_one_weights_are_the_normal_kernel() -> None:
+    """A single interaction node at 0 with spread sigma_I and weights P_R v_i is (13) with the
+    closed-form normal kernel: Algorithm 1's V^T P W as a one-column matrix."""
+    pol = hy.Polarization(eta=2.5, p_r=0.3, coercive=hy.Lognormal(0.6, 0.4),
+                          interaction=hy.Normal(0.25), n_coercive=32)
+    k = hy.build_kernel(pol)
+    g = pr.PreisachGrid(tuple(k.ec), (0.0,), 0.25, tuple((0.3 * w,) for w in k.wc), 1 / 2.5)
+    e = ramp(0.0, 1.4, -0.3, 0.9, -1.6, 0.4)
+    for how in ("depoled", "positive", "negative"):
+        p_ref, _ = hy.run(pol, e, hy.initial_state(pol, how))
+        p, _ = hy.run(g, e, hy.initial_state(g, how))
+        np.testing.assert_allclose(p, p_ref, rtol=0, atol=1e-12)
+
+
+def test_equals_an_independent_relay_sum() -> None:
+    """Against relays written here: each cell is 4000 literal relays (4) at the normal quantiles
+    of its interaction spread, switching up at E >= E_c - E_I and down at E <= -E_c - E_I."""
+    g = grid(5)
+    q = (np.arange(4000) + 0.5) / 4000
+    from scipy import special
+    offsets = g.spread * special.ndtri(q)
+    e = ramp(0.0, 1.3, 0.1, 0.9, 0.4, 1.1, -0.2)
+    w = g.matrix
+    p_ref = np.zeros(e.size)
+    for i, ec in enumerate(g.coercive):
+        for j, eij in enumerate(g.interaction):
+            if w[i, j] == 0:
+                continue
+            e_i = eij + offsets
+            state = np.where(e_i > 0, 1.0, -1.0)  # depoled: sgn(E_I) (y = 0)
+            for k, ek in enumerate(e):
+                state = np.where(ek >= ec - e_i, 1.0, np.where(ek <= -ec - e_i, -1.0, state))
+                p_ref[k] += w[i, j] * state.mean()
+    p_ref += g.reversible * e
+    p, _ = hy.run(g, e, hy.initial_state(g))
+    assert np.max(np.abs(p - p_ref)) < 2e-3 * g.hysteretic_range()
+
+
+def test_algorithm3_through_the_grid_follows_its_target() -> None:
+    g = grid()
+    model = tr.Transducer(g, rd.Rod(m=0.05, c=60.0, k=2.0e5, a1=3.0e4, a2=1.0e4), 100.0)
+    cm = tr.compile_model(model, 1e-4)
+    st = tr.initial(model)
+    u0 = float(tr.simulate(cm, np.zeros(1), st)[0][0])
+    t = np.arange(2000) * 1e-4
+    target = u0 + 0.8 * np.sin(np.pi * t / t[-1]) ** 2 * np.sin(2 * np.pi * 10 * t) ** 2
+    res = inv.algorithm3(cm, target, st, horizon=2, e_min=0.0, e_max=1.5)
+    assert np.max(res.error) < 1e-6
+    u = tr.simulate(cm, res.field_mv_m * 100.0, st)[0]
+    np.testing.assert_allclose(u[2:], target[1:-1], atol=1e-5)  # horizon 2: u_{k+2} = u*_{k+1}
+
+
+def test_rejects_malformed_grids() -> None:
+    with pytest.raises(ValueError, match="weights must be 2 x 3"):
+        pr.PreisachGrid((0.1, 0.2), (0.0, 0.1, 0.2), 0.1, ((1.0, 1.0),), 0.0)
+    with pytest.raises(ValueError, match=">= 0"):
+        pr.PreisachGrid((0.1,), (0.0,), 0.1, ((-1.0,),), 0.0)
+    with pytest.raises(ValueError, match="spread"):
+        pr.PreisachGrid((0.1,), (0.0,), 0.0, ((1.0,),), 0.0)
