@@ -169,7 +169,8 @@ def test_the_guide_runs_as_written_on_a_fresh_clone(tmp_path: Path) -> None:
     u, desired, part = simulate_truth(stage, clone / "tracked" / "run_inverse.csv")
     k0 = part.start + round(1 / 27.9 * 1e4)  # the steady part: one period in
     true_rms = float(np.sqrt(np.mean((u[k0:part.stop] - desired[k0:part.stop]) ** 2)))
-    assert abs(float(np.mean(desired[part])) - centre) < 1e-3
+    middle = 0.5 * (float(np.max(desired[part])) + float(np.min(desired[part])))
+    assert abs(middle - centre) < 0.01  # --offset centre: the reach's (printed to 4 digits)
     assert true_rms < max(2 * inverse["rms_um"], 0.05), (true_rms, inverse["rms_um"])
     # 8: learning and the replay
     learned = json.loads((clone / "learned" / "summary.json").read_text())
