@@ -150,32 +150,50 @@ def thermal_step(e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.nd
         # up-switching: E_I >= ec - e - band, on while inside the band or not yet fully up
         j = np.searchsorted(ei, ec[i] - e - band)
         first_up = j
+        beyond = ec[i] - e + band  # E_I past which a fully switched hysteron ends the pass
         done = False  # a hysteron before switched up completely: so do the rest
+        pure = False  # no rate back (p_+- = 0) here, so neither further on
         while j < nj:
             old = st[base + j]
+            if pure and old == 1.0:  # fully up and cannot leave: unchanged
+                if ei[j] > beyond:
+                    break
+                j += 1
+                continue
             if done:
                 x = 1.0
             else:
                 x, pm, pp = _cell(old, e + ei[j], ec[i], dt, s, zcut, nu0, table)
                 done = pm == 0.0 and pp >= full  # (0 when not evaluated: x_+ was already 1)
-            out[base + j] = x
-            d_acc += (cw[j + 1] - cw[j]) * (x - old)
-            if old == 1.0 and x == 1.0 and ei[j] > ec[i] - e + band:
+                pure = -s * (e + ei[j] + ec[i]) <= zcut
+            if x != old:
+                out[base + j] = x
+                d_acc += (cw[j + 1] - cw[j]) * (x - old)
+            if old == 1.0 and x == 1.0 and ei[j] > beyond:
                 break
             j += 1
         # down-switching: E_I <= -ec - e + band, below the hysterons the up pass visited
         j = min(np.searchsorted(ei, -ec[i] - e + band, side="right"), first_up) - 1
+        beyond = -ec[i] - e - band
         done = False
+        pure = False  # no rate back (p_-+ = 0)
         while j >= 0:
             old = st[base + j]
+            if pure and old == 0.0:
+                if ei[j] < beyond:
+                    break
+                j -= 1
+                continue
             if done:
                 x = 0.0
             else:
                 x, pm, pp = _cell(old, e + ei[j], ec[i], dt, s, zcut, nu0, table)
                 done = pp == 0.0 and pm >= full
-            out[base + j] = x
-            d_acc += (cw[j + 1] - cw[j]) * (x - old)
-            if old == 0.0 and x == 0.0 and ei[j] < -ec[i] - e - band:
+                pure = s * (e + ei[j] - ec[i]) <= zcut
+            if x != old:
+                out[base + j] = x
+                d_acc += (cw[j + 1] - cw[j]) * (x - old)
+            if old == 0.0 and x == 0.0 and ei[j] < beyond:
                 break
             j -= 1
         acc += 2.0 * wc[i] * d_acc
