@@ -9,7 +9,8 @@ vocabulary (backlash, gauge saturation, interference on the sensor line) and mus
 on them with the noise it estimates from the data. Then, on every stage with an effect track can
 invert (all in the vocabulary but a per-run gain), a 27.9 Hz triangle is tracked with the base
 and with the extended model diagnose wrote, on the same foreign plant, and judged by the stage's
-true position.
+true position. Last (issue 27), the guide's standard set is recorded on the emulated stage and
+``afmctl diagnose`` on it timed end to end (:func:`standard_set`).
 
 Out-of-family stages (issue 23, ``benchmarks/family_sets.py``; ``--family-only`` runs this part
 alone, ``--family`` / ``--other-form`` choose stages by name): the three standard triangles
@@ -22,14 +23,18 @@ on which that cause was named.
 
 Run: ``python benchmarks/bench_diagnose.py --json [--jobs 2]`` (last line one JSON object: ``cases``,
 ``correct``, ``false_alarms``, ``none_on_effect``, ``unexplained_right``, ``median_seconds``,
-``track_extended_beats_base``, ``track_cases``, the confusion matrix and per-case rows).
+``track_extended_beats_base``, ``track_cases``, the confusion matrix, ``standard_set_seconds``
+(with ``standard_set_load``, the load average before and after, and ``standard_set_cause``) and
+per-case rows); ``--standard-set only`` times the standard set alone.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -311,6 +316,32 @@ def family(names: str, other: str, jobs: int) -> dict[str, Any]:
     return family_summary(rows)
 
 
+def standard_set(workdir: Path) -> dict[str, Any]:
+    """The guide's steps 4-6 (docs/calibrate-your-stage.md) on the emulated stage, each as a user
+    runs it (``python -m afmctl``, a process of its own): ``afmctl sweep`` records the standard
+    set (triangles at 0.279, 5.58 and 27.9 Hz and the 40 s of nested minor loops at 0.1 Hz, at
+    10 kHz), ``afmctl identify`` writes ``model.toml``, and ``afmctl diagnose --model`` is timed
+    end to end (wall, s: start-up, reading, fits, plots, files), with the 1-minute load average
+    before and after it (the target, 60 s, is for an idle 2-core machine)."""
+    def afmctl(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "afmctl", *args], cwd=workdir, check=True,
+                              capture_output=True, text=True)
+
+    afmctl("sweep", "--out", "sweeps")
+    files = sorted(f"sweeps/{p.name}" for p in (workdir / "sweeps").glob("*.csv"))
+    afmctl("identify", *files, "-o", "model.toml")
+    load = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    done = afmctl("diagnose", *files, "--model", "model.toml", "--out", "diagnose", "--json")
+    seconds = time.perf_counter() - t0
+    cause = json.loads(done.stdout.strip().splitlines()[-1])["cause"]
+    log(f"standard set: diagnose {seconds:.1f} s wall (load {load:.2f} -> "
+        f"{os.getloadavg()[0]:.2f}), cause {cause}")
+    return {"standard_set_seconds": round(seconds, 1),
+            "standard_set_load": [round(load, 2), round(os.getloadavg()[0], 2)],
+            "standard_set_cause": cause}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print the JSON object last")
@@ -325,7 +356,18 @@ def main() -> None:
     family_sets.add_arguments(ap, cache=False)
     ap.add_argument("--other-form", default="", help="comma-separated other-form stages "
                                                      "(default: all; 'none': no such stage)")
+    ap.add_argument("--standard-set", default="run", choices=("run", "only", "skip"),
+                    help="time diagnose on the guide's standard set recorded on the emulated "
+                         "stage (standard_set_seconds): after the cases (run), alone (only) or "
+                         "not (skip)")
     args = ap.parse_args()
+    timed: dict[str, Any] = {}
+    if args.standard_set == "only":
+        with tempfile.TemporaryDirectory() as tmp:
+            timed = standard_set(Path(tmp))
+        if args.json:
+            print(json.dumps(timed))
+        return
     fam = family(args.family, args.other_form, args.jobs)
     if args.family_only:
         print(json.dumps(dg.json_safe(fam)))
@@ -348,7 +390,11 @@ def main() -> None:
             log(f"{row['cause']:20s} s={row['strength']}: named {row['named']:20s} base "
                 f"{row['base_over_noise']:.2f}x -> {row['extended_over_noise']:.2f}x noise "
                 f"({row['seconds']} s){extra}")
-    out = {**summary(rows), "seconds": round(time.perf_counter() - t0, 1), "rows": rows, **fam}
+    if args.standard_set == "run":
+        with tempfile.TemporaryDirectory() as tmp:
+            timed = standard_set(Path(tmp))
+    out = {**summary(rows), "seconds": round(time.perf_counter() - t0, 1), **timed, "rows": rows,
+           **fam}
     log(f"{out['correct']}/{out['cases']} right, false alarms {out['false_alarms']}, none on an "
         f"effect {out['none_on_effect']}, unexplained right {out['unexplained_right']}, median "
         f"{out['median_seconds']} s, track {out['track_extended_beats_base']}/{out['track_cases']}")

@@ -356,28 +356,9 @@ def check(sweeps: Sequence[Sweep]) -> None:
 MAX_COERCIVE = 256
 
 
-#: Most residual rows a sweep keeps in the candidates' fits (:func:`thinned`).
+#: Most residual rows a sweep keeps in the candidates' fits (:func:`pz.thinned`; the fitted half
+#: of the standard set's 40 s of minor loops at 10 kHz has 200,000).
 FIT_ROWS = 20_000
-
-
-def thinned(prep: pz.Prepared, rows: int) -> pz.Prepared:
-    """``prep`` with its residual on every ``k``-th of its samples, ``k`` the smallest stride
-    that leaves at most ``rows`` (``prep`` itself when it has no more).
-
-    The model is still simulated at the full rate (hysteresis, rod, effects); only the samples
-    the misfit is summed over are fewer. The fitted half of the standard set's 40 s of nested
-    minor loops at 10 kHz has 200,000 samples of a 0.1 Hz triangle: every 10th (1 ms) still
-    resolves its loops and the rod's ringing after a corner (4 ms period at 250 Hz), the noise
-    stays white, and each sweep weighs the same in the cost whatever its row count
-    (:class:`afmctl.fit.extension.ExtendedSpace`). The held-out judgement uses every sample.
-    """
-    idx = np.flatnonzero(prep.mask)
-    k = -(-idx.size // rows)
-    if k <= 1:
-        return prep
-    mask = np.zeros_like(prep.mask)
-    mask[idx[::k]] = True
-    return replace(prep, mask=mask, y=prep.y[::k])
 
 
 @dataclass(frozen=True)
@@ -392,10 +373,10 @@ class _Data:
 
 def _prepare(sweeps: Sequence[Sweep], thickness: float, settings: idf.Settings,
              starts: Sequence[str] | None = None, n_coercive: int | None = None) -> _Data:
-    """The sweeps prepared for the fits (their residual rows :func:`thinned` to
-    :data:`FIT_ROWS`): each from its start (None: chosen later), the hysteresis on
-    ``n_coercive`` nodes (None: the identification's fitting count)."""
-    preps = [thinned(pz.prepare(s, thickness, settings.field_step, None), FIT_ROWS)
+    """The sweeps prepared for the fits (residual rows thinned to :data:`FIT_ROWS`): each from
+    its start (None: chosen later), the hysteresis on ``n_coercive`` nodes (None: the
+    identification's fitting count)."""
+    preps = [pz.thinned(pz.prepare(s, thickness, settings.field_step, None), FIT_ROWS)
              for s in sweeps]
     space = pz.LognormalSpace(preps, settings.scales, n_coercive or settings.n_coercive_fit,
                               starts)
@@ -423,8 +404,8 @@ def _base_fit(halves: Sequence[Sweep], thickness: float, settings: Settings,
 
 
 def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um: float,
-         settings: Settings, whole: Sequence[pz.Prepared], sweeps: Sequence[Sweep]
-         ) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
+         settings: Settings, whole: Sequence[pz.Prepared], sweeps: Sequence[Sweep],
+         progress: ext.Progress | None = None) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
     """Fit candidate ``name`` from the base parameters ``x_start``; a gauge error fitted in the
     frame of the ``whole`` sweeps' slowest readings and stated in that of a lab's linear
     calibration on the slowest of the recorded ``sweeps``."""
@@ -432,7 +413,7 @@ def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um
                          float(np.exp(x_start[4])), cd.field_rate_max(data.preps))[name]
     space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um,
                               gauge_frame=cd.calibration_frame(whole),
-                              calibration_um=cd.recorded_calibration(sweeps))
+                              calibration_um=cd.recorded_calibration(sweeps), progress=progress)
     fitted, space = ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts,
                             settings.identify)
     return fitted, cand.n_params, space
@@ -451,11 +432,17 @@ class _Job:
     sweeps: tuple[Sweep, ...]
 
 
+#: Where the candidates' fits say how far they are (:class:`afmctl.fit.extension.Progress`):
+#: set by :func:`_judge_all` for its worker processes, which inherit it (forked).
+_progress_say: Callable[[str], None] | None = None
+
+
 def _judge(name: str, job: _Job) -> Judged:
     """Fit candidate ``name`` on the first halves and judge it on the second halves."""
     t1 = time.perf_counter()
+    progress = None if _progress_say is None else ext.Progress(_progress_say, name)
     fitted, n_params, space = _fit(name, job.data, job.x0, job.thickness, job.range_um,
-                                   job.settings, job.whole, job.sweeps)
+                                   job.settings, job.whole, job.sweeps, progress)
     rms, per = heldout(space.on(job.whole), fitted, job.sweeps)
     return Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
 
@@ -465,27 +452,30 @@ def _judge(name: str, job: _Job) -> Judged:
 def _judge_all(names: Sequence[str], job: _Job, floor: float,
                say: Callable[[str], None]) -> dict[str, Judged]:
     """Every candidate judged, in ``names`` order; fitted ``job.settings.jobs`` at a time in
-    worker processes (the fits are independent and pure).
-
-    :func:`diagnose` calls it with BLAS limited to one thread (the workers, forked, inherit
-    it): the fits' linear algebra is small (matrices of 4 x 4 in the amplifier's and the second
-    mode's discretization, tall ones of a few columns), the processes already take every core,
-    and OpenBLAS's threads waiting on a busy core made a 4 x 4 ``expm`` take 15-20 ms instead of
-    0.03 ms (second-mode candidate 52.6 -> 8.9 s of CPU, same fit, load 11 on 2 cores)."""
+    worker processes (the fits are independent and pure), with one BLAS thread each (set by
+    :func:`diagnose`, inherited): the processes take every core, and OpenBLAS's threads
+    waiting on busy cores made a 4 x 4 ``expm`` take 15 ms instead of 0.03 ms."""
+    global _progress_say
     jobs = min(job.settings.jobs or os.cpu_count() or 1, len(names))
     order = sorted(names, key=lambda n: cd.SLOWEST_FIRST.index(n) if n in cd.SLOWEST_FIRST else 9)
+    say(f"fitting {len(names)} candidates, {jobs} at a time (a long fit says how far it is "
+        f"every {ext.PROGRESS_S:.0f} s) ...")
 
     def said(name: str, j: Judged) -> Judged:
         say(f"  {name:20s} held-out RMS {j.heldout_rms_um:.4f} um = "
             f"{j.heldout_rms_um / floor:.2f}x noise ({j.fit_seconds:.1f} s)")
         return j
 
-    if jobs <= 1:
-        done = {n: said(n, _judge(n, job)) for n in order}
-    else:  # leaving the pool (an error, Ctrl-C) terminates the workers; they ignore SIGINT
-        with mp.get_context("fork").Pool(jobs, _ignore_interrupt) as pool:
-            done = {n: said(n, j) for n, j in pool.imap_unordered(_named_judge,
-                                                                  [(n, job) for n in order])}
+    _progress_say = say
+    try:
+        if jobs <= 1:
+            done = {n: said(n, _judge(n, job)) for n in order}
+        else:  # leaving the pool (an error, Ctrl-C) terminates the workers; they ignore SIGINT
+            with mp.get_context("fork").Pool(jobs, _ignore_interrupt) as pool:
+                done = {n: said(n, j) for n, j in pool.imap_unordered(_named_judge,
+                                                                      [(n, job) for n in order])}
+    finally:
+        _progress_say = None
     return {n: done[n] for n in names}
 
 

@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass, replace
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,6 +48,8 @@ REBASED = ("amplifier-lag", "sensor-delay", "sensor-nonlinearity")
 REBASE_GAIN = 0.8
 #: The polish on the fine grid gets this fraction (1/FINE_SHARE) of a fit's evaluations.
 FINE_SHARE = 12
+#: Seconds between a fit's progress lines (:class:`Progress`).
+PROGRESS_S = 15.0
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,31 @@ class Extended:
     beta: FloatArray
 
 
+@dataclass
+class Progress:
+    """Progress lines of one candidate's fit (``say``: one line each, e.g. to stderr): each
+    stage as it starts (:meth:`stage`) and, every :data:`PROGRESS_S` seconds, how many
+    residuals it has evaluated (:meth:`tick`, from :meth:`ExtendedSpace.residual`)."""
+
+    say: Callable[[str], None]
+    name: str
+    t0: float = field(default_factory=time.perf_counter)
+    last: float = field(default_factory=time.perf_counter)
+    evaluations: int = 0
+
+    def stage(self, text: str) -> None:
+        self.say(f"  {self.name}: {text} ({time.perf_counter() - self.t0:.0f} s)")
+        self.last = time.perf_counter()
+
+    def tick(self) -> None:
+        self.evaluations += 1
+        now = time.perf_counter()
+        if now - self.last >= PROGRESS_S:
+            self.last = now
+            self.say(f"  {self.name}: {self.evaluations} residual evaluations, "
+                     f"{now - self.t0:.0f} s")
+
+
 def _log_gains(phi: FloatArray) -> FloatArray:
     """Per-sweep log gains from the free ones: the last makes their mean 0, so the model keeps
     the sweeps' average gain (a model for ``track``, which cannot know a future run's gain)."""
@@ -80,14 +108,17 @@ class ExtendedSpace:
     slowest recorded sweep's, whole); ``gauge_frame``: centre and half width (um) of the readings
     a gauge error is fitted about, and their third and fourth central moments (um^3, um^4;
     absent: a uniform spread); default :func:`afmctl.fit.candidates.reading_frame` of
-    ``calibration_um`` (:func:`afmctl.model.effects.gauge`)."""
+    ``calibration_um`` (:func:`afmctl.model.effects.gauge`); ``progress``: where the fit says
+    how far it is (:class:`Progress`; shared by the spaces derived from this one)."""
 
     def __init__(self, candidate: Candidate, preps: Sequence[pz.Prepared], base: pz.LognormalSpace,
                  field_step: float, range_um: float, dt_min: float | None = None,
                  gauge_frame: tuple[float, ...] | None = None,
                  thermal_grid: tuple[int, float, int] = THERMAL_FINE,
-                 calibration_um: FloatArray | None = None) -> None:
+                 calibration_um: FloatArray | None = None,
+                 progress: Progress | None = None) -> None:
         self.candidate, self.preps, self.base = candidate, list(preps), base
+        self.progress = progress
         self.step_rel = field_step
         self.range_um = range_um
         self.calibration_um = (calibration_readings(self.preps) if calibration_um is None
@@ -273,7 +304,7 @@ class ExtendedSpace:
         return ExtendedSpace(self.candidate, self.preps if preps is None else preps,
                              base or self.base, self.step_rel, self.range_um, self.dt_min,
                              self.gauge_frame, thermal_grid or self.thermal_grid,
-                             self.calibration_um)
+                             self.calibration_um, self.progress)
 
     def with_starts(self, starts: Sequence[str]) -> ExtendedSpace:
         """The same candidate with other initial states of the sweeps (:data:`pz.STARTS`)."""
@@ -305,6 +336,8 @@ class ExtendedSpace:
         return pz.LognormalSpace(preps, self.base.scales, self.base.n_coercive, self.base.starts)
 
     def residual(self, z: FloatArray) -> FloatArray:
+        if self.progress is not None:
+            self.progress.tick()
         a, y = self.system(z)
         return pz.project(a, y)[1]
 
@@ -368,6 +401,11 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
     return {}
 
 
+def _stage(space: ExtendedSpace, text: str) -> None:
+    if space.progress is not None:
+        space.progress.stage(text)
+
+
 def _rebase(space: ExtendedSpace, z: FloatArray,
             settings: idf.Settings) -> tuple[ExtendedSpace, FloatArray]:
     """``x`` and each sweep's start fitted afresh with the effect of ``z`` held
@@ -378,6 +416,7 @@ def _rebase(space: ExtendedSpace, z: FloatArray,
     far for a local fit to come back from; through a sensor effect with identify's local round
     from ``x`` (solve, re-choose the starts, solve again if one changed)."""
     n_x = z.size - space.candidate.n_params
+    _stage(space, "the paper's model refitted through the effect")
     base = space.through(z[n_x:])
     noise = np.array([max(ns.sensor_noise_um(p.y), 1e-12) for p in base.preps])
     prob = idf.Problem((), base.preps, np.concatenate([p.y for p in base.preps]), noise,
@@ -499,6 +538,8 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
         spaces = [space.with_grid(THERMAL_COARSE)]
         z0 = np.concatenate((x_base, space.candidate.starts[0]))
         spaces += [s for s in [_in_sequence(spaces[0], z0)] if s is not None]
+        _stage(space, f"multi-start on the coarse grid ({THERMAL_COARSE[0]} rows), "
+                      f"{len(spaces)} choice(s) of the sweeps' start states")
     elif space.candidate.sequenced and len(space.preps) > 1:
         spaces += [space.with_starts(c) for c in state_choices(len(space.preps))
                    if c != space.base.starts]
@@ -514,8 +555,10 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
             started, key=lambda f: float(np.sum(f[0].residual(f[1]) ** 2)))
         if space.candidate.own_states:
             space = space.with_grid(THERMAL_JOINT)
+            _stage(space, f"joint fit (up to {max_nfev} evaluations, {THERMAL_JOINT[0]} rows)")
         space, sol, nfev = _joint((space, z, sum(f[2] for f in started)), max_nfev)
     if space.candidate.own_states:  # polished on the fine grid
+        _stage(space, f"polish on the fine grid ({THERMAL_FINE[0]} rows)")
         space, sol, nfev = _joint((space.with_grid(THERMAL_FINE), sol.x, nfev),
                                   max(max_nfev // FINE_SHARE, 1))
     model, gains, offsets = space.to_model(sol.x, thickness_um)
