@@ -258,7 +258,8 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
             "sample_rate_Hz": prof.sample_rate_hz}
     truth = prof.emulator.true_model if prof.emulator is not None else model
     outcomes = experiment.run_all(stage, {k: plans[k] for k in wanted}, desired, out, meta,
-                                  truth, progress_printer(False), sensor=model.effects)
+                                  truth, progress_printer(False), sensor=model.effects,
+                                  estimate=prof.emulator is None)
     return outcomes, meta
 
 
@@ -271,6 +272,8 @@ def _report(prof: Any, cal: Any, outcomes: dict[str, Any], desired: Any, out: Pa
     data = experiment.summary(outcomes, desired, {
         **meta, "model": cal.as_dict(),
         "between_samples_from": "model estimate" if estimate else "emulator truth",
+        "between_samples_misfit": ("the readings at the samples: the model's misfit there "
+                                   "interpolated between them") if estimate else None,
         "readings_corrected_for": modelfile.effects_dict(fx.sensor_part(cal.model.effects))})
     written = [o.run_file.name for o in outcomes.values()] + ["run.csv", "summary.json",
                                                                 "track.png"]
@@ -294,7 +297,8 @@ def _report(prof: Any, cal: Any, outcomes: dict[str, Any], desired: Any, out: Pa
         for name, o in outcomes.items():
             if o.score.rms_between_um is not None:
                 say(f"model estimate, not measured: {name} between samples "
-                    f"{o.score.rms_between_um:.4f} um (the model's own simulation)")
+                    f"{o.score.rms_between_um:.4f} um (the model's simulation, moved at every "
+                    f"sample onto the reading: its misfit carried between samples)")
     say(f"wrote {out}/" + ", ".join(written))
     if as_json:
         click.echo(json.dumps(data, allow_nan=False))

@@ -93,12 +93,15 @@ def stream(stage: PlayingStage, wf: track.Waveform, path: Path, meta: Mapping[st
 
 def run_all(stage: PlayingStage, plans: Mapping[str, track.Waveform], desired: track.Desired,
             out: Path, meta: Mapping[str, object], between_model: tr.Transducer | None,
-            progress: Progress | None = None, sensor: fx.Effects | None = None
-            ) -> dict[str, Outcome]:
+            progress: Progress | None = None, sensor: fx.Effects | None = None,
+            estimate: bool = False) -> dict[str, Outcome]:
     """Run each plan in turn (inverse first) and score it; run files go to ``out`` (created).
 
     The readings are scored as the stage's position: corrected for the ``sensor`` effects the
     model knows (delay, gauge; none by default). The run files keep the raw readings.
+    ``estimate``: ``between_model`` is the fitted model, not the stage's truth, so the error
+    between the samples carries the model's misfit at the samples
+    (:func:`afmctl.planning.track.between_samples` with the readings).
     """
     out.mkdir(parents=True, exist_ok=True)
     outcomes = {}
@@ -108,7 +111,8 @@ def run_all(stage: PlayingStage, plans: Mapping[str, track.Waveform], desired: t
         where = fx.sensor_correct(fx.compile_chain(sensor or fx.Effects(), wf.dt_s), u)
         between = None
         if between_model is not None:
-            between = track.between_samples(between_model, wf, desired, tr.initial(between_model))
+            between = track.between_samples(between_model, wf, desired, tr.initial(between_model),
+                                            where if estimate else None)
         outcomes[name] = Outcome(wf, u, v, track.score(wf, desired, where, between), complete,
                                  path)
     return outcomes
