@@ -412,7 +412,7 @@ def _load(path: str | Path) -> tuple[Transducer, Envelope | None]:
         raise t.fail("format_version", f"this afmctl reads versions "
                      f"{', '.join(map(str, READABLE_VERSIONS))}, got {ver}")
     model = from_table(t)
-    if ver < version_for(model):
+    if ver < 3 <= version_for(model):
         raise t.fail("format_version", f"a Preisach grid or creep needs version 3, got {ver}")
     env_t = t.table("envelope", required=False) if ver >= 2 else None
     env = None if env_t is None else _envelope(env_t)
