@@ -106,7 +106,7 @@ def preisach_model(nominal: Transducer) -> Transducer:
                         ((0.01, 0.02, 0.0, 0.0), (0.0, 0.03, 0.05, 0.01), (0.0, 0.0, 0.02, 0.04)),
                         0.05)
     return dc.replace(nominal, polarization=grid, creep=Creep((0.01, 1.0, 100.0),
-                                                              (0.01, 0.005, 0.0)))
+                                                              (0.01, 0.005, 0.0), (0.0, 0.0, 0.02)))
 
 
 def test_preisach_grid_and_creep_round_trip_as_version_3(nominal: Transducer,
@@ -125,6 +125,8 @@ def test_preisach_grid_and_creep_round_trip_as_version_3(nominal: Transducer,
      "weights_C_per_m2: rows of different lengths"),
     ("[0.0, 0.03, 0.05, 0.01]", "[0.0, -0.03, 0.05, 0.01]", "weights_C_per_m2: .*>= 0"),
     ("weights = [0.01, 0.005, 0.0]", "weights = [0.01, 0.005]", "creep.weights: .*equally long"),
+    ("thresholds_C_per_m2 = [0.0, 0.0, 0.02]", "thresholds_C_per_m2 = [0.0, 0.0, -0.02]",
+     "creep.weights: .*thresholds >= 0"),
 ])
 def test_malformed_preisach_file_names_the_key(nominal: Transducer, tmp_path: Path, old: str,
                                                new: str, match: str) -> None:

@@ -135,12 +135,14 @@ class PreisachStage:
 
 def standard_sweeps(stage: PreisachStage) -> list[sw.Sweep]:
     """The other-family sets' design: 0.279 Hz nested loops at 1 kHz, 5.58 Hz at 5 kHz, 27.9 Hz
-    at 10 kHz, all 0 ... 150 V, in sequence on the same stage."""
+    at 10 kHz, all 0 ... 150 V, in sequence on the same stage, which rests (its creep settles)
+    before each."""
     out = []
     for name, v, rate in (("nested_0.279Hz", sw.nested_loops(0.279, None, 3, 1000.0, (0, 150)),
                            1000.0),
                           ("tri_5.58Hz", sw.loop(5.58, 0.0, 150.0, 4, 5000.0), 5000.0),
                           ("tri_27.9Hz", sw.loop(27.9, 0.0, 150.0, 6, 10000.0), 10000.0)):
+        stage.rest()
         u = stage.play(v, 1.0 / rate)
         stage.zero_um = float(u[0])  # the gauge zeroed at each sweep's first sample
         out.append(sw.from_arrays(v, u - u[0], rate, {"layer_thickness_um": "100"}, name))
