@@ -87,6 +87,7 @@ creep (:mod:`afmctl.model.creep`)::
     [creep]
     tau_s = [0.01, 0.0316, ...]
     weights = [0.004, 0.003, ...]
+    thresholds_C_per_m2 = [0.0, 0.0, ...]       # play half-widths (optional, default 0)
 
 ``identify`` writes version 3 only for a model that needs it (versions 1 and 2 are still read, and
 a model of the paper's form is still written as version 2).
@@ -283,6 +284,8 @@ def to_dict(model: Transducer) -> dict[str, Any]:
     }
     if model.creep is not None:
         out["creep"] = {"tau_s": list(model.creep.tau_s), "weights": list(model.creep.weights)}
+        if any(model.creep.thresholds):
+            out["creep"]["thresholds_C_per_m2"] = list(model.creep.thresholds)
     fx = effects_dict(model.effects)
     return {**out, "effects": fx} if fx else out
 
@@ -406,7 +409,8 @@ def _creep(t: Table | None) -> Creep | None:
     if t is None:
         return None
     try:
-        return Creep(t.numbers("tau_s"), t.numbers("weights"))
+        return Creep(t.numbers("tau_s"), t.numbers("weights"),
+                     t.numbers("thresholds_C_per_m2") if t.has("thresholds_C_per_m2") else ())
     except ValueError as exc:
         if isinstance(exc, FileFormatError):
             raise

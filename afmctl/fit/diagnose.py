@@ -390,7 +390,8 @@ def _base_fit(halves: Sequence[Sweep], thickness: float, settings: Settings,
     chosen for them: the data prepared for every candidate, and ``x`` of the base model."""
     if start is None:
         say("identifying the base model on the first halves ...")
-        res = idf.fit(halves, settings.identify)
+        # the paper's model: the candidates extend it (a Preisach grid has no such candidates)
+        res = idf.fit(halves, replace(settings.identify, representation="hem"))
         n_c = min(max(settings.identify.n_coercive_fit, res.model.polarization.n_coercive),
                   MAX_COERCIVE)
         say("  base fit: RMS / noise per half " + " / ".join(

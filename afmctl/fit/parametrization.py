@@ -318,6 +318,10 @@ def internal(model: td.Transducer) -> FloatArray:
     """``log(theta)`` (order of :data:`THETA_NAMES`) of a lognormal/normal model: the inverse of
     :func:`to_model` for the nonlinear parameters. ValueError for other densities."""
     pol = model.polarization
+    if not isinstance(pol, hy.Polarization):
+        raise ValueError("is a Preisach-grid model: diagnose extends the paper's parametric model "
+                         "(lognormal/normal densities); run it without --model and it fits its "
+                         "own")
     if not isinstance(pol.coercive, hy.Lognormal) or not isinstance(pol.interaction, hy.Normal):
         raise ValueError("needs a lognormal coercive-field and a normal interaction-field density")
     return np.log([pol.coercive.median, pol.coercive.sigma, pol.interaction.std,

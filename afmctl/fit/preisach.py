@@ -53,6 +53,10 @@ FloatArray = NDArray[np.float64]
 #: reversals of the other-family creep set: 1.33 / 1.29 / 1.60x its noise, against 1.31 / 1.07 /
 #: 1.17x with two).
 CREEP_TAUS_S = tuple(float(t) for t in np.logspace(-2, 3, 11))
+#: Play half-widths in front of the creep elements, shares of the hysteretic output's range: 0 is
+#: linear creep; wider plays keep creeping the old way through small reversals (the Krejci-Kuhnen
+#: operators; on the other-family creep set they take the slow sweep from 1.26 to 1.11x its noise).
+CREEP_THRESHOLDS = (0.0, 0.02, 0.05, 0.1)
 #: Relative smoothing weights tried (times tr(J_w^T J_w) / tr(D^T D)).
 SMOOTHING = (1e-6, 1e-5, 1e-4, 1e-3)
 #: Residual blocks per sweep for the held-out folds, and the folds (blocks dealt in turn).
@@ -61,8 +65,11 @@ FOLDS = 4
 #: A Gauss-Newton fit has converged once a step lowers the cost by less than this share of the
 #: noise's sum of squares.
 TOL_SHARE = 2e-4
-#: A sweep's creep transient is fitted for the elements up to this many times its length.
-TRANSIENT_SPAN = 3.0
+#: A sweep's creep transient is fitted for the elements up to this many times its length: 0, off.
+#: Free transients (tried at 3) fitted the other-family creep set's misfit instead of a history
+#: (the model alone, which track uses, was then 70x the noise where the fit said 1.2x): each sweep
+#: is taken to start with its creep at rest.
+TRANSIENT_SPAN = 0.0
 #: Largest change of log f_n or log zeta in one Gauss-Newton step (a trust region).
 MAX_LOG_STEP = 0.5
 #: Bounds of the rod's damping ratio (those of the parametric fit).
@@ -86,6 +93,7 @@ class Settings:
     coef_coercive: int = 12
     coef_interaction: int = 18
     creep_taus_s: tuple[float, ...] = CREEP_TAUS_S
+    creep_thresholds: tuple[float, ...] = CREEP_THRESHOLDS
     smoothing: tuple[float, ...] = SMOOTHING
     max_iter: int = 40
     p_scale: float = 0.3  # |P| over the sweeps is scaled to this, C/m^2 (a convention, like P_R)
@@ -240,22 +248,22 @@ class Problem:
     """The basis of one start assignment and the exact model and its linearization.
 
     A sweep need not start with the creep at rest: recorded after others (or after poling), its
-    slow elements still remember them. So with creep each sweep has free transients: the
-    elements' departure from rest decays as ``exp(-t / tau_j)``, one amplitude per element whose
-    time constant is at most :data:`TRANSIENT_SPAN` times the sweep's length (a slower one would
-    only add a straight line in time over the sweep: a drift, which the fit must not absorb).
-    They belong to the sweeps' history, not to the model.
+    slow elements still remember them. The fit can give each sweep free transients (the elements'
+    departure from rest decaying as ``exp(-t / tau_j)``, for time constants up to
+    :data:`TRANSIENT_SPAN` times the sweep's length; a slower one would only add a straight line
+    in time, a drift, which the fit must not absorb), but does not by default (see there): each
+    sweep starts with its creep at rest.
     """
 
     def __init__(self, data: Data, grid: Grid, starts: Sequence[str], taus: Sequence[float]):
         self.data, self.grid, self.starts = data, grid, tuple(starts)
         self.taus = np.asarray(taus, float)
+        self.set_thresholds((0.0,))
         self.trans = []
         for e, dt in zip(data.fields, data.dts, strict=True):
             t = np.arange(e.size) * dt
-            self.trans.append(np.column_stack([np.exp(-t / tau) for tau in self.taus
-                                               if tau <= TRANSIENT_SPAN * t[-1]])
-                              .reshape(e.size, -1))
+            cols = [np.exp(-t / tau) for tau in self.taus if tau <= TRANSIENT_SPAN * t[-1]]
+            self.trans.append(np.column_stack(cols) if cols else np.zeros((e.size, 0)))
         self.n_trans = [a.shape[1] for a in self.trans]
         self.fn_bounds = (0.5, 10.0 / min(data.dts))  # up to 20x the Nyquist frequency
         self.noise_sse = float(sum(y.size * n * n for y, n in zip(data.y, data.noise,
@@ -273,8 +281,32 @@ class Problem:
     def hysteretic(self, th: Theta) -> list[FloatArray]:
         return [p @ th.w + th.r * e for p, e in zip(self.phi, self.data.fields, strict=True)]
 
+    def set_thresholds(self, thresholds_um: Sequence[float]) -> None:
+        """Creep elements: every time constant behind a play of each half-width (um of ``Q``)."""
+        self.thresholds = tuple(float(r) for r in thresholds_um)
+        self.el_tau = np.tile(self.taus, len(self.thresholds))
+        self.el_thr = np.repeat(self.thresholds, self.taus.size)
+
     def lags(self, q: FloatArray, dt: float) -> FloatArray:
-        return cr.lagged(q, self.taus, dt, np.full(self.taus.size, q[0]))
+        """Each creep element's state before every sample for the hysteretic output ``q`` (um),
+        shape (N, elements), from rest at the first sample."""
+        out = []
+        for r in self.thresholds:
+            y = cr.play_hold(q, r)[0]
+            out.append(cr.lagged(y, self.taus, dt, np.full(self.taus.size, y[0])))
+        return np.hstack(out)
+
+    def crept(self, x: FloatArray, q: FloatArray, c: FloatArray, dt: float) -> FloatArray:
+        """``sum_j c_j Z_j`` linearized in the hysteresis: each element's play held where it
+        last moved on ``q``, applied to the columns of ``x`` (N, K) (or to ``x`` (N,))."""
+        out = np.zeros(x.shape)
+        n_tau = self.taus.size
+        for i, r in enumerate(self.thresholds):
+            ci = c[i * n_tau:(i + 1) * n_tau]
+            if ci.any():
+                idx = cr.play_hold(q, r)[1]
+                out += cr.lag_columns(self.taus, ci, x[idx], dt)
+        return out
 
     def transients(self, th: Theta) -> list[FloatArray]:
         """Each sweep's creep transient (um, full rate; zeros without)."""
@@ -320,11 +352,11 @@ class Problem:
             tr = tr if creep else np.zeros(q.size)
             qt = q + z @ th.c + tr if creep else q
             m0 = 1.0 + 2.0 * th.s * qt
-            cp, ce = p, e
+            cp, ce, held = p, e, 0.0
             if creep and th.c.any():
-                c0 = cr.Creep(tuple(self.taus), tuple(th.c))
-                cp = cr.apply_columns(c0, p, dt)
-                ce = cr.apply_columns(c0, e, dt)
+                cp = p + self.crept(p, q, th.c, dt)
+                ce = e + self.crept(e, q, th.c, dt)
+                held = self.crept(q, q, th.c, dt)
             g = qt + th.s * qt * qt
             lg = rod_filter(g, fn, zeta, dt)
             cols = [rod_filter(m0[:, None] * cp, fn, zeta, dt)[m],
@@ -340,7 +372,7 @@ class Problem:
                 ind[:, n_s + d_at[i]:n_s + d_at[i + 1]] = rod_filter(
                     m0[:, None] * self.trans[i], fn, zeta, dt)[m]
             designs.append(np.hstack(cols + [ind]))
-            rhs.append(y - rod_filter(qt - m0 * (2 * qt - q - tr), fn, zeta, dt)[m])
+            rhs.append(y - rod_filter(qt - m0 * (qt + held), fn, zeta, dt)[m])
         return designs, rhs
 
 
@@ -632,8 +664,8 @@ def build(th: Theta, prob: Problem, scales_mass: float, thickness_um: float,
     rod = rd.Rod(m=scales_mass, c=2 * zeta * math.sqrt(k * scales_mass), k=k,
                  a1=1e-6 * k / kappa, a2=1e-6 * k * th.s / kappa ** 2,
                  offset_um=float(th.offsets[-1]))
-    cp = cr.Creep(tuple(float(t) for t in prob.taus), tuple(float(c) for c in th.c)) if (
-        creep and th.c.any()) else None
+    cp = cr.Creep(tuple(float(t) for t in prob.el_tau), tuple(float(c) for c in th.c),
+                  tuple(float(r) * kappa for r in prob.el_thr)) if creep and th.c.any() else None
     first = prob.starts[0] if prob.starts[0] != "previous" else "depoled"
     return td.Transducer(grid, rod, thickness_um, initial=first, creep=cp)  # type: ignore[arg-type]
 
@@ -696,6 +728,11 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                      math.log(rod0[0]), math.log(rod0[1]),
                      np.array([float(np.mean(y)) for y in data.y]))
 
+    def with_elements(th: Theta) -> Theta:
+        out = th.copy()
+        out.c = np.zeros(prob.el_tau.size)
+        return out
+
     best: tuple[float, Problem, Theta] | None = None
     for starts in cands:  # the start states: one linear step each, the cheapest to compare
         prob = Problem(data, grid, starts, settings.creep_taus_s)
@@ -708,8 +745,10 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
         f"{settings.coef_interaction} coefficients ({grid.active.size} the sweeps move), "
         f"starts {', '.join(prob.starts)}")
     plain = gauss_newton(prob, th, pen, lam0, False, settings.max_iter // 2)
-    runs = {False: plain,
-            True: gauss_newton(prob, plain.theta, pen, lam0, True, settings.max_iter)}
+    q_range = max(float(np.ptp(q)) for q in prob.hysteretic(plain.theta))
+    prob.set_thresholds([f * q_range for f in settings.creep_thresholds])
+    runs = {False: plain, True: gauss_newton(prob, with_elements(plain.theta), pen, lam0, True,
+                                             settings.max_iter)}
     for creep, run in runs.items():
         say(f"  {'with' if creep else 'without'} creep: RMS / noise per sweep "
             + " / ".join(f"{r:.2f}" for r in prob.ratios(run.theta))
@@ -746,7 +785,8 @@ def scalar_uncertainty(prob: Problem, th: Theta, creep: bool) -> dict[str, Any]:
     a = np.vstack(designs)[:, k:]
     res = np.concatenate([y - u for y, u in zip(prob.data.y, prob.predict(th), strict=True)])
     names = (["reversible_um_per_MV_per_m"]
-             + ([f"creep_c@{t:g}s" for t in prob.taus] if creep else [])
+             + ([f"creep_c@{t:g}s_r{r:.3g}um" for t, r in zip(prob.el_tau, prob.el_thr,
+                                                                 strict=True)] if creep else [])
              + ["s_per_um", "log_fn", "log_zeta"]
              + [f"offset_{i + 1}_um" for i in range(len(prob.phi))]
              + ([f"offset_{i + 1}_creep_transient@{t:g}s_um" for i, n in enumerate(prob.n_trans)

@@ -1,11 +1,11 @@
-"""Log-time creep of the polarization: linear Krejci-Kuhnen creep operators.
+"""Log-time creep of the polarization: Krejci-Kuhnen creep operators.
 
 A piezo stack held at a constant voltage keeps moving in the direction of its last motion, by about
 1-2 % of the step per decade of time (PI's tutorial; Kuhnen's creep operators). afmctl describes it
 as a bank of first-order creep elements driven by the hysteretic output ``P_h`` of the polarization
 model ((13) or the Preisach grid of :mod:`afmctl.model.preisach`)::
 
-    P(t) = P_h(t) + sum_j c_j z_j(t),      tau_j z_j' = P_h - z_j,      c_j >= 0,
+    P(t) = P_h(t) + sum_j c_j z_j(t),      tau_j z_j' = play_{r_j}[P_h] - z_j,      c_j >= 0,
 
 with time constants ``tau_j`` log-spaced over the decades the stage creeps over (10 ms ... 1000 s
 by default). ``P`` then forces the rod (16) in place of ``P_h``. After a step ``Delta P_h`` from rest,
@@ -17,10 +17,11 @@ A thermal relaxation (kernel (10)) instead settles with an exponential knee.
 The weights enter the displacement linearly once the hysteretic output is known, so they are fitted
 by non-negative least squares together with the Preisach weights (:mod:`afmctl.fit.preisach`).
 
-Discretization (zero-order hold, sample period ``dt``): ``z_{j,k+1} = a_j z_{j,k} + (1 - a_j) P_{h,k}``
-with ``a_j = exp(-dt / tau_j)``, and ``P_k = P_{h,k} + sum_j c_j z_{j,k}``: the creep part of sample
-``k`` depends only on the samples before it, so the inverse (Algorithm 3) sees it as a known
-offset of the polarization at each sample.
+Discretization (zero-order hold, sample period ``dt``): ``y_{j,k}`` the play output after sample
+``k``, ``z_{j,k+1} = a_j z_{j,k} + (1 - a_j) y_{j,k}`` with ``a_j = exp(-dt / tau_j)``, and
+``P_k = P_{h,k} + sum_j c_j z_{j,k}``: the creep part of sample ``k`` depends only on the samples
+before it, so the inverse (Algorithm 3) sees it as a known offset of the polarization at each
+sample. The state is ``(z_1 ... z_n, y_1 ... y_n)``.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ DEFAULT_TAUS_S = tuple(float(t) for t in np.logspace(-2, 3, 11))
 
 @dataclass(frozen=True)
 class Creep:
-    """Linear creep operators on the polarization.
+    """Creep operators on the polarization.
 
     Parameters
     ----------
@@ -50,19 +51,30 @@ class Creep:
     weights : tuple of float
         Weight ``c_j`` of each element (dimensionless, >= 0): the share of a step in ``P_h``
         that element ``j`` adds once settled.
+    thresholds : tuple of float, optional
+        Play half-width ``r_j`` in front of each element, C/m^2 (>= 0; default all 0: linear
+        creep elements).
     """
 
     tau_s: tuple[float, ...]
     weights: tuple[float, ...]
+    thresholds: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         t, c = np.asarray(self.tau_s, float), np.asarray(self.weights, float)
-        if t.ndim != 1 or t.shape != c.shape or t.size < 1:
-            raise ValueError("creep needs equally long, non-empty tau_s and weights")
-        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(c))):
-            raise ValueError("creep time constants and weights must be finite")
-        if np.any(t <= 0) or np.any(c < 0):
-            raise ValueError("creep time constants must be > 0 and weights >= 0")
+        if not self.thresholds:
+            object.__setattr__(self, "thresholds", (0.0,) * t.size)
+        r = np.asarray(self.thresholds, float)
+        if t.ndim != 1 or t.shape != c.shape or t.shape != r.shape or t.size < 1:
+            raise ValueError("creep needs equally long, non-empty tau_s, weights and thresholds")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(c)) and np.all(np.isfinite(r))):
+            raise ValueError("creep time constants, weights and thresholds must be finite")
+        if np.any(t <= 0) or np.any(c < 0) or np.any(r < 0):
+            raise ValueError("creep time constants must be > 0, weights and thresholds >= 0")
+
+    @property
+    def size(self) -> int:
+        return len(self.tau_s)
 
     @property
     def total(self) -> float:
@@ -74,30 +86,48 @@ class Creep:
         return np.exp(-float(dt) / np.asarray(self.tau_s, float))
 
     def per_decade(self, t_lo: float = 0.1, t_hi: float = 100.0) -> float:
-        """Mean creep per decade of time between ``t_lo`` and ``t_hi`` (s) after a unit step."""
+        """Mean creep per decade of time between ``t_lo`` and ``t_hi`` (s) after a unit step
+        (one much larger than every threshold)."""
         lo, hi = step_response(self, np.array([t_lo, t_hi]))
         return float((hi - lo) / np.log10(t_hi / t_lo))
 
 
 def rest_state(creep: Creep | None, p_h: float) -> FloatArray:
     """Creep state after a long rest at hysteretic output ``p_h``: every element settled."""
-    return np.zeros(0) if creep is None else np.full(len(creep.tau_s), float(p_h))
+    return np.zeros(0) if creep is None else np.full(2 * creep.size, float(p_h))
 
 
 def offset(creep: Creep | None, z: FloatArray) -> float:
     """Creep part ``sum c_j z_j`` of the polarization in state ``z``."""
-    return 0.0 if creep is None or z.size == 0 else float(np.dot(creep.weights, z))
+    if creep is None or z.size == 0:
+        return 0.0
+    return float(np.dot(creep.weights, z[:creep.size]))
 
 
 @nb.njit(cache=True)
-def _run(p_h: np.ndarray, a: np.ndarray, c: np.ndarray, z: np.ndarray) -> np.ndarray:
+def _update(p: float, a: np.ndarray, r: np.ndarray, z: np.ndarray) -> None:
+    """Advance the state ``z = (z_j, y_j)`` by one sample of hysteretic output ``p``."""
+    n = a.size
+    for j in range(n):
+        y = z[n + j]
+        if y < p - r[j]:
+            y = p - r[j]
+        elif y > p + r[j]:
+            y = p + r[j]
+        z[n + j] = y
+        z[j] = a[j] * z[j] + (1.0 - a[j]) * y
+
+
+@nb.njit(cache=True)
+def _run(p_h: np.ndarray, a: np.ndarray, c: np.ndarray, r: np.ndarray,
+         z: np.ndarray) -> np.ndarray:
     out = np.empty(p_h.size)
     for k in range(p_h.size):
         acc = 0.0
         for j in range(a.size):
             acc += c[j] * z[j]
-            z[j] = a[j] * z[j] + (1.0 - a[j]) * p_h[k]
         out[k] = p_h[k] + acc
+        _update(p_h[k], a, r, z)
     return out
 
 
@@ -113,7 +143,7 @@ def run(creep: Creep | None, p_h: FloatArray, dt: float,
         Hysteretic output per sample, C/m^2.
     dt : float
         Sample period, s.
-    z : ndarray, shape (n_elements,)
+    z : ndarray, shape (2 n_elements,)
         Creep state before the first sample (:func:`rest_state`); not modified.
 
     Returns
@@ -134,7 +164,8 @@ def run(creep: Creep | None, p_h: FloatArray, dt: float,
     if creep is None:
         return p_h.copy(), np.zeros(0)
     zz = np.array(z, dtype=float)
-    out = _run(p_h, creep.factors(dt), np.asarray(creep.weights, float), zz)
+    out = _run(p_h, creep.factors(dt), np.asarray(creep.weights, float),
+               np.asarray(creep.thresholds, float), zz)
     return out, zz
 
 
@@ -174,7 +205,7 @@ def _columns(x: np.ndarray, a: np.ndarray, c: np.ndarray) -> np.ndarray:
         z[j] = x[0]
     for t in range(n):
         for i in range(k):
-            acc = x[t, i]
+            acc = 0.0
             for j in range(a.size):
                 acc += c[j] * z[j, i]
                 z[j, i] = a[j] * z[j, i] + (1.0 - a[j]) * x[t, i]
@@ -182,9 +213,34 @@ def _columns(x: np.ndarray, a: np.ndarray, c: np.ndarray) -> np.ndarray:
     return out
 
 
-def apply_columns(creep: Creep, x: FloatArray, dt: float) -> FloatArray:
-    """:func:`run` on every column of ``x`` (N, K) at once, each from rest at its first sample
-    (the creep of every basis column of a fit)."""
+def lag_columns(tau_s: FloatArray, weights: FloatArray, x: FloatArray, dt: float) -> FloatArray:
+    """``sum_j c_j z_j`` of linear elements (``tau_s``, ``weights``) on every column of ``x``
+    (N, K) at once, each from rest at its first sample (z before each sample, as in :func:`run`):
+    the creep of every basis column of a fit."""
     x2 = np.ascontiguousarray(x, dtype=float).reshape(x.shape[0], -1)
-    out = _columns(x2, creep.factors(dt), np.asarray(creep.weights, dtype=float))
-    return out.reshape(x.shape)
+    a = np.exp(-float(dt) / np.asarray(tau_s, float))
+    return _columns(x2, a, np.asarray(weights, dtype=float)).reshape(x.shape)
+
+
+@nb.njit(cache=True)
+def _held(x: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
+    y = np.empty(x.size)
+    idx = np.empty(x.size, dtype=np.int64)
+    yy, last = x[0], 0
+    for k in range(x.size):
+        if yy < x[k] - r:
+            yy, last = x[k] - r, k
+        elif yy > x[k] + r:
+            yy, last = x[k] + r, k
+        elif r == 0.0:
+            last = k
+        y[k] = yy
+        idx[k] = last
+    return y, idx
+
+
+def play_hold(x: FloatArray, r: float) -> tuple[FloatArray, NDArray[np.int64]]:
+    """The play operator of half-width ``r`` on ``x`` (from rest at ``x[0]``) and, per sample, the
+    last sample at which it moved: its derivative with respect to ``x`` is that sample's
+    (``play(x + dx)[k] = play(x)[k] + dx[idx[k]]`` for a small ``dx``)."""
+    return _held(np.ascontiguousarray(x, dtype=float), float(r))

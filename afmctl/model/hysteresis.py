@@ -371,12 +371,12 @@ def _matrix_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray, ei: 
                  cw: np.ndarray, sigma: float) -> float:
     """Kernel of a weight matrix on the grid (:mod:`afmctl.model.preisach`): per coercive row the
     play output ``y_i``, then ``sum_j w_ij erf((y_i + E_I,j) / (sqrt(2) sigma))``. ``cw`` packs per
-    row the ``N_j`` weights then their ``N_j + 1`` cumulative sums; cells more than 6 sigma from
-    switching count as +-1 (erf(6) = 1 - 2e-17)."""
+    row the ``N_j`` weights then their ``N_j + 1`` cumulative sums; cells more than
+    ``5 sqrt(2)`` spreads from switching count as +-1 (erfc(5) = 1.5e-12)."""
     ni, nj = ec.size, ei.size
     stride = 2 * nj + 1
     inv = 1.0 / (math.sqrt(2.0) * sigma)
-    cut = 6.0 * math.sqrt(2.0) * sigma
+    cut = 5.0 * math.sqrt(2.0) * sigma
     acc = 0.0
     for i in range(ni):
         y = st[i]

@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from afmctl.model import creep as cr
 from afmctl.model import hysteresis as hy
 from afmctl.model import transducer as tr
+from afmctl.model.creep import _update as _creep_update
 from afmctl.model.hysteresis import _quiet_band, _step
 
 FloatArray = NDArray[np.float64]
@@ -108,11 +109,13 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
                 cw: np.ndarray, scal: np.ndarray, phi: np.ndarray, gam: np.ndarray,
                 row: np.ndarray, gain: float, a1: float, a2: float, offset: float,
                 floor: float, e_min: float, e_max: float, tol: float, ca: np.ndarray,
-                cc: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                cc: np.ndarray, cr_: np.ndarray,
+                z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fields for targets ``target[k]`` = desired u at sample ``k + d`` (um), rod state ``x`` (m).
 
-    ``ca``, ``cc``, ``z``: creep factors ``a_j``, weights ``c_j`` and state (updated in place;
-    empty without creep, :mod:`afmctl.model.creep`). ``p_init`` is the hysteretic output ``P_h``.
+    ``ca``, ``cc``, ``cr_``, ``z``: creep factors ``a_j``, weights ``c_j``, thresholds and state
+    (updated in place; empty without creep, :mod:`afmctl.model.creep`). ``p_init`` is the
+    hysteretic output ``P_h``.
     """
     n = target.size
     e_out = np.empty(n)
@@ -157,8 +160,8 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
         x0 = phi[0, 0] * x[0] + phi[0, 1] * x[1] + gam[0] * f
         x[1] = phi[1, 0] * x[0] + phi[1, 1] * x[1] + gam[1] * f
         x[0] = x0
-        for j in range(cc.size):
-            z[j] = ca[j] * z[j] + (1.0 - ca[j]) * p
+        if cc.size:
+            _creep_update(p, ca, cr_, z)
         e_out[k] = e
         e_prev, p_prev = e, p
     return e_out, u_out, err
@@ -207,7 +210,8 @@ def algorithm2(params: hy.Polarization, p_target: FloatArray, state: hy.Polariza
     e, _, w = _algorithm3(k.kind, np.ascontiguousarray(p_target, dtype=float), e_init, p0[0], x, st,
                           dt, k.ec, k.wc, k.ei, k.cw, k.scal, np.eye(2), np.zeros(2),
                           np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.5 / params.eta,
-                          -e_max if e_min is None else e_min, e_max, tol, _NONE, _NONE, _NONE)
+                          -e_max if e_min is None else e_min, e_max, tol, _NONE, _NONE, _NONE,
+                          _NONE)
     p_out, _ = hy.run(k, e, state, dt)
     return Inversion(e, p_out, w, hy.PolarizationState(k.kind, st))
 
@@ -263,12 +267,14 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
          else cr.rest_state(creep, float(p0[0])))
     ca = _NONE if creep is None else creep.factors(cm.dt)
     cc = _NONE if creep is None else np.asarray(creep.weights, dtype=float)
+    cth = _NONE if creep is None else np.asarray(creep.thresholds, dtype=float)
     dfdp = abs(rod.a1 + 2 * rod.a2 * (p0[0] + cr.offset(creep, z))) or abs(rod.a1)
     floor = 0.5 * gain * dfdp * 1e6 / cm.model.polarization.eta
     e, pred, w = _algorithm3(cm.kernel.kind, target, e_init, p0[0], x, st, cm.dt, cm.kernel.ec,
                              cm.kernel.wc, cm.kernel.ei, cm.kernel.cw, cm.kernel.scal,
                              cm.disc.phi, cm.disc.gamma, row, gain, rod.a1, rod.a2, rod.offset_um,
-                             floor, -e_max if e_min is None else e_min, e_max, tol_um, ca, cc, z)
+                             floor, -e_max if e_min is None else e_min, e_max, tol_um, ca, cc,
+                             cth, z)
     return Inversion(e, pred, w, tr.StageState(hy.PolarizationState(ps.kind, st), x, z))
 
 

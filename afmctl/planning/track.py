@@ -510,10 +510,19 @@ def score(wf: Waveform, desired: Desired, measured_um: FloatArray,
 
 
 def between_samples(model: tr.Transducer, wf: Waveform, desired: Desired,
-                    state: tr.StageState) -> FloatArray:
+                    state: tr.StageState, measured_um: FloatArray | None = None) -> FloatArray:
     """Error of the stage's true position between samples: the plant (with the model's amplifier
     lag and second mode, not its sensor) simulated on a grid ``FINE`` times finer, the voltage
-    held (zero-order hold), the desired trajectory linearly interpolated (um)."""
+    held (zero-order hold), the desired trajectory linearly interpolated (um).
+
+    ``measured_um`` (the run's readings, corrected for the model's sensor effects, on the whole
+    waveform) makes it an estimate that carries the model's misfit: when ``model`` is the fitted
+    model rather than the stage's truth, its own simulation between the samples is only as good
+    as the model (issue 23: on a stage off the model's family it understated the true error
+    10-40x). The misfit at the samples, reading minus the model's simulation there, is added
+    between them by linear interpolation, so at every sample the estimate is the measured error
+    and between samples it is the model's shape moved by what the model got wrong nearby.
+    """
     fine = tr.compile_model(model, wf.dt_s / FINE)
     chain = fx.compile_chain(model.effects, wf.dt_s / FINE)
     v = np.repeat(wf.voltage_v, FINE)
@@ -523,4 +532,11 @@ def between_samples(model: tr.Transducer, wf: Waveform, desired: Desired,
     n = (desired.u_um.size - 1) * FINE + 1
     t_fine = np.arange(n) / FINE
     want = np.interp(t_fine, np.arange(desired.u_um.size), desired.u_um)
-    return u[start:start + n] - want
+    err = u[start:start + n] - want
+    if measured_um is not None:
+        k = np.arange(desired.u_um.size)
+        misfit = np.asarray(measured_um, float)[wf.tracking] - u[start + k * FINE]
+        ok = np.isfinite(misfit)
+        if ok.any():
+            err = err + np.interp(t_fine, k[ok], misfit[ok])
+    return err

@@ -97,3 +97,43 @@ def test_malformed_envelope_names_the_key(nominal: Transducer, tmp_path: Path) -
     path.write_text(path.read_text().replace("voltage_max_V = 150.0", "voltage_max_V = -50.0"))
     with pytest.raises(modelfile.FileFormatError, match="voltage_max_V"):
         modelfile.read_envelope(path)
+
+
+def preisach_model(nominal: Transducer) -> Transducer:
+    from afmctl.model.creep import Creep
+    from afmctl.model.preisach import PreisachGrid
+    grid = PreisachGrid((0.0, 0.3, 0.6), (-1.0, -0.5, 0.0, 0.5), 0.2,
+                        ((0.01, 0.02, 0.0, 0.0), (0.0, 0.03, 0.05, 0.01), (0.0, 0.0, 0.02, 0.04)),
+                        0.05)
+    return dc.replace(nominal, polarization=grid, creep=Creep((0.01, 1.0, 100.0),
+                                                              (0.01, 0.005, 0.0), (0.0, 0.0, 0.02)))
+
+
+def test_preisach_grid_and_creep_round_trip_as_version_3(nominal: Transducer,
+                                                          tmp_path: Path) -> None:
+    m = preisach_model(nominal)
+    path = tmp_path / "m.toml"
+    modelfile.write(m, path)
+    assert "format_version = 3" in path.read_text() and modelfile.read(path) == m
+    modelfile.write(nominal, path)  # the paper's model is still written as version 2
+    assert "format_version = 2" in path.read_text()
+
+
+@pytest.mark.parametrize(("old", "new", "match"), [
+    ("format_version = 3", "format_version = 2", "needs version 3"),
+    ("weights_C_per_m2 = [[0.01, 0.02, 0.0, 0.0], ", "weights_C_per_m2 = [[0.01, 0.02, 0.0], ",
+     "weights_C_per_m2: rows of different lengths"),
+    ("[0.0, 0.03, 0.05, 0.01]", "[0.0, -0.03, 0.05, 0.01]", "weights_C_per_m2: .*>= 0"),
+    ("weights = [0.01, 0.005, 0.0]", "weights = [0.01, 0.005]", "creep.weights: .*equally long"),
+    ("thresholds_C_per_m2 = [0.0, 0.0, 0.02]", "thresholds_C_per_m2 = [0.0, 0.0, -0.02]",
+     "creep.weights: .*thresholds >= 0"),
+])
+def test_malformed_preisach_file_names_the_key(nominal: Transducer, tmp_path: Path, old: str,
+                                               new: str, match: str) -> None:
+    path = tmp_path / "m.toml"
+    modelfile.write(preisach_model(nominal), path)
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new))
+    with pytest.raises(modelfile.FileFormatError, match=match):
+        modelfile.read(path)

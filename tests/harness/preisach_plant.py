@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from afmctl.files import sweepfile as sw
+from afmctl.planning import sweepdesign as sd
 
 FloatArray = NDArray[np.float64]
 THICKNESS_UM = 100.0
@@ -39,6 +40,7 @@ class PreisachStage:
     gain_um: float = 100.0
     creep_per_element: float = 0.0
     n: int = 600
+    zero_um: float = 0.0
     mu: FloatArray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -59,6 +61,14 @@ class PreisachStage:
         self.creep_z = np.zeros(self.creep_tau.size)
         self.rod = None
         self.rng = np.random.default_rng(self.seed)
+
+    def rest(self) -> None:
+        """Leave the stage idle (at its last voltage) long enough for every creep element and
+        the rod to settle."""
+        if self.rod is not None:
+            self.creep_z[:] = self.h_last
+            total = self.h_last * (1.0 + self.creep_per_element * self.creep_z.size)
+            self.rod = np.array([total, 0.0])
 
     def _f(self, hi: float, lo: float) -> float:
         """Everett function: the mass of relays with ``lo <= beta <= alpha <= hi``."""
@@ -100,6 +110,7 @@ class PreisachStage:
         """Readings (um) for a voltage history held ``dt`` s per sample (reading k before
         sample k's voltage acts)."""
         h = self.hysteresis(np.asarray(voltage_v, float) / THICKNESS_UM)
+        self.h_last = float(h[-1])
         if self.creep_per_element:
             a = np.exp(-dt / self.creep_tau)
             if self.rod is None:
@@ -125,12 +136,15 @@ class PreisachStage:
 
 def standard_sweeps(stage: PreisachStage) -> list[sw.Sweep]:
     """The other-family sets' design: 0.279 Hz nested loops at 1 kHz, 5.58 Hz at 5 kHz, 27.9 Hz
-    at 10 kHz, all 0 ... 150 V, in sequence on the same stage."""
+    at 10 kHz, all 0 ... 150 V, in sequence on the same stage, which rests (its creep settles)
+    before each."""
     out = []
-    for name, v, rate in (("nested_0.279Hz", sw.nested_loops(0.279, None, 3, 1000.0, (0, 150)),
+    for name, v, rate in (("nested_0.279Hz", sd.nested_loops(0.279, None, 3, 1000.0, (0, 150)),
                            1000.0),
-                          ("tri_5.58Hz", sw.loop(5.58, 0.0, 150.0, 4, 5000.0), 5000.0),
-                          ("tri_27.9Hz", sw.loop(27.9, 0.0, 150.0, 6, 10000.0), 10000.0)):
+                          ("tri_5.58Hz", sd.loop(5.58, 0.0, 150.0, 4, 5000.0), 5000.0),
+                          ("tri_27.9Hz", sd.loop(27.9, 0.0, 150.0, 6, 10000.0), 10000.0)):
+        stage.rest()
         u = stage.play(v, 1.0 / rate)
+        stage.zero_um = float(u[0])  # the gauge zeroed at each sweep's first sample
         out.append(sw.from_arrays(v, u - u[0], rate, {"layer_thickness_um": "100"}, name))
     return out

@@ -76,3 +76,21 @@ def test_rejects_malformed_creep() -> None:
         cr.Creep((0.0,), (0.1,))
     with pytest.raises(ValueError, match=">= 0"):
         cr.Creep((1.0,), (-0.1,))
+
+
+def test_an_element_behind_a_play_keeps_creeping_through_a_small_reversal() -> None:
+    """Krejci-Kuhnen elements behind a play of half-width r: a reversal smaller than 2 r does not
+    turn them round (a linear element turns at once); a larger one does."""
+    dt = 0.01
+    hold = np.ones(500)
+    p_h = np.concatenate([hold, 0.9 * hold, 0.0 * hold])  # up, a small reversal, a large one
+    lin = cr.Creep((1.0,), (0.1,))
+    thr = cr.Creep((1.0,), (0.1,), (0.2,))
+    part = {}
+    for name, c in (("linear", lin), ("play", thr)):
+        p, _ = cr.run(c, p_h, dt, cr.rest_state(c, 0.0))
+        part[name] = p - p_h
+    small = slice(520, 990)
+    assert np.all(np.diff(part["linear"][small]) < 0)  # turned with the small reversal
+    assert np.all(np.diff(part["play"][small]) > 0)  # still creeping the old way, up
+    assert part["play"][1490] < part["play"][990] - 0.05  # a large reversal turns it too
