@@ -7,7 +7,8 @@
   Arrhenius switching integrated on its own hysteron grid, rates written as Gaussian hazards) on
   the same material and field history;
 * Algorithm 3 through kernel (10) against the forward model while dipoles creep;
-* diagnose on foreign stages with hidden thermal relaxation (slow).
+* diagnose on foreign stages with hidden thermal relaxation (slow), and what the relaxation
+  candidate says while it runs (slow).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from afmctl.drivers.device.foreign import stage as plant
 from afmctl.drivers.device.foreign.effects import Thermal as ForeignThermal
 from afmctl.drivers.device.foreign.stages import random_stage
 from afmctl.fit import diagnose as dg
+from afmctl.fit import extension as ext
 from afmctl.fit import parametrization as pz
 from afmctl.fit import relaxation
 from afmctl.model import hysteresis as hy
@@ -151,6 +153,26 @@ def test_diagnose_names_thermal_relaxation_on_foreign_stages(cause: str, strengt
     rms = bench.track_rms(stage, state, {"base": d.base, "ext": d.extended}, sweeps,
                           truth["calibration_um"])
     assert rms["ext"] <= 1.05 * rms["base"], rms
+
+
+@pytest.mark.slow
+def test_the_relaxation_candidate_says_how_far_it_is(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 27: the longest candidate was silent for minutes. It names each stage of its fit
+    as it starts and, every PROGRESS_S seconds (0 here: at every residual), how many residuals
+    it has evaluated; the lines reach ``progress`` before the candidate's result."""
+    monkeypatch.setattr(ext, "PROGRESS_S", 0.0)
+    _, sweeps, _, _ = bench.make_stage("none", None, 1, refit=False)
+    lines: list[str] = []
+    dg.diagnose(sweeps, dg.Settings(candidates=("none", "thermal-relaxation"), jobs=1),
+                progress=lines.append)
+    mine = [line for line in lines if "thermal-relaxation:" in line]
+    stages = ("multi-start on the coarse grid", "joint fit", "polish on the fine grid")
+    at = [next(i for i, line in enumerate(mine) if stage in line) for stage in stages]
+    assert at == sorted(at), mine[:5]
+    counts = [int(line.split(": ")[1].split()[0]) for line in mine if "residual evaluations" in line]
+    assert len(counts) > 50 and counts == sorted(counts)
+    done = next(i for i, line in enumerate(lines) if line.lstrip().startswith("thermal-relaxation "))
+    assert lines.index(mine[-1]) < done
 
 
 @pytest.mark.parametrize("horizon", [1, 3])

@@ -119,3 +119,20 @@ def test_a_general_density_model_starts_the_lognormal_fits_where_it_is(
     assert "needs a lognormal" not in res.stderr, res.stderr
     assert "starts the fits as the lognormal" in res.stderr  # and then: the sweep is too short
     assert res.exit_code == 2 and "record a longer sweep" in res.stderr
+
+
+def test_thinned_sums_the_misfit_over_every_kth_sample_of_a_long_sweep() -> None:
+    """Issue 27: a sweep longer than ``rows`` keeps every k-th of its residual samples (the
+    readings at exactly those samples); the field and the samples the model runs on stay."""
+    n = 250_003
+    mask = np.ones(n, dtype=bool)
+    mask[:1000] = False  # before the first full excursion
+    prep = pz.Prepared(np.linspace(0, 1, n), np.arange(0, n, 7), mask,
+                       np.flatnonzero(mask).astype(float), 1e-4)
+    thin = pz.thinned(prep, 20_000)
+    rows = np.flatnonzero(thin.mask)
+    assert 10_000 < rows.size <= 20_000
+    assert np.all(np.diff(rows) == rows[1] - rows[0]) and rows[0] == 1000
+    np.testing.assert_array_equal(thin.y, rows.astype(float))  # the readings of those samples
+    assert thin.field is prep.field and thin.keep is prep.keep and thin.dt == prep.dt
+    assert pz.thinned(prep, n) is prep
