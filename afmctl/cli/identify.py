@@ -72,6 +72,9 @@ def _report(result: Any, data: Any = None, reach: str = "") -> str:
              f"{result.seconds:.2f} s)"]
     if not result.thickness_known:
         lines.append("layer thickness unknown: fitted in volts (thickness_um = 1 by convention)")
+    if result.representations:
+        lines.append(f"representation: {result.representations['chosen']} "
+                     f"({result.representations['why']})")
     floor = "at" if result.at_noise_floor else "NOT at"
     lines.append(f"{floor} the noise floor (every sweep within 1.5x its sensor noise); "
                  f"N_c = {result.model.polarization.n_coercive}, {result.restarts} restart(s)")

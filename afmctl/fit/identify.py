@@ -594,8 +594,8 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     other = rep.Grid(sweeps, thickness, settings, noise, say, t0)
     space, sol, restarts = global_fit(prob, other.early if settings.representation != "hem" else None)
     if other.decided:  # the grid left the HEM far behind after its first start: no polishing
-        return other.choose(_hem_result(prob, space, sol, thickness, known, restarts, t0), prob,
-                            space, sol)
+        return other.choose(rep.first_start(prob, space, sol, thickness, known, restarts, t0),
+                            prob, space, sol)
     ok = sol.success and sol.status > 0
     fields = [p.field[p.keep] for p in preps]
     n_c = n_coercive_for(_model(space, sol.x, prob.y, thickness), fields, starts=space.starts)
@@ -641,18 +641,3 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
                                                   and not hem.at_noise_floor):
         return other.choose(hem, prob, space, sol)
     return hem
-
-
-def _hem_result(prob: Problem, space: pz.LognormalSpace, sol: optimize.OptimizeResult,
-                thickness: float, known: bool, restarts: int, t0: float) -> FitResult:
-    """The HEM's result at its first start, unpolished (when the grid wins outright)."""
-    beta, _ = pz.project(space.design(sol.x), prob.y)
-    model = _model(space, sol.x, prob.y, thickness)
-    predicted = predict_set(model, prob.sweeps, space.starts, beta[2:])
-    errors = tuple(_error(s.path or s.name, s, u, prob.settings.window_s, st, float(off))
-                   for s, u, st, off in zip(prob.sweeps, predicted, space.starts, beta[2:],
-                                            strict=True))
-    return FitResult(model, (), errors, bool(sol.success and sol.status > 0), int(sol.status),
-                     str(sol.message), prob.nfev, time.perf_counter() - t0, known, sol.x,
-                     {}, envelope(prob.sweeps, model.thickness_um), restarts,
-                     bool(np.all(np.isfinite(sol.x))))

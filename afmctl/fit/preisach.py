@@ -32,348 +32,49 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
-import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize
 from threadpoolctl import threadpool_limits
 
-from afmctl.fit import parametrization as pz
 from afmctl.fit import uncertainty as unc
+from afmctl.fit.preisach_problem import (
+    BLOCKS,
+    CREEP_TAUS_S,
+    CREEP_THRESHOLDS,
+    FOLDS,
+    SMOOTHING,
+    TRANSIENT_SPAN,
+    Data,
+    Grid,
+    Problem,
+    Settings,
+    Theta,
+    basis,
+    hat_matrix,
+    make_grid,
+    rod_filter,
+)
 from afmctl.model import creep as cr
 from afmctl.model import preisach as pr
 from afmctl.model import rod as rd
 from afmctl.model import transducer as td
 
 FloatArray = NDArray[np.float64]
-#: Two creep elements per decade, 10 ms ... 1000 s (one per decade left a ripple at the
-#: reversals of the other-family creep set: 1.33 / 1.29 / 1.60x its noise, against 1.31 / 1.07 /
-#: 1.17x with two).
-CREEP_TAUS_S = tuple(float(t) for t in np.logspace(-2, 3, 11))
-#: Play half-widths in front of the creep elements, shares of the hysteretic output's range: 0 is
-#: linear creep; wider plays keep creeping the old way through small reversals (the Krejci-Kuhnen
-#: operators; on the other-family creep set they take the slow sweep from 1.26 to 1.11x its noise).
-CREEP_THRESHOLDS = (0.0, 0.02, 0.05, 0.1)
-#: Relative smoothing weights tried (times tr(J_w^T J_w) / tr(D^T D)).
-SMOOTHING = (1e-6, 1e-5, 1e-4, 1e-3)
-#: Residual blocks per sweep for the held-out folds, and the folds (blocks dealt in turn).
-BLOCKS = 24
-FOLDS = 4
 #: A Gauss-Newton fit has converged once a step lowers the cost by less than this share of the
-#: noise's sum of squares.
-TOL_SHARE = 2e-4
-#: A sweep's creep transient is fitted for the elements up to this many times its length: 0, off.
-#: Free transients (tried at 3) fitted the other-family creep set's misfit instead of a history
-#: (the model alone, which track uses, was then 70x the noise where the fit said 1.2x): each sweep
-#: is taken to start with its creep at rest.
-TRANSIENT_SPAN = 0.0
+#: noise's sum of squares (the RMS over the noise then moves by less than 5e-4 of itself).
+TOL_SHARE = 1e-3
 #: Largest change of log f_n or log zeta in one Gauss-Newton step (a trust region).
 MAX_LOG_STEP = 0.5
 #: Bounds of the rod's damping ratio (those of the parametric fit).
 ZETA_BOUNDS = (0.003, 5.0)
 
-
-@dataclass(frozen=True)
-class Settings:
-    """Options of :func:`fit`.
-
-    The model's grid (``n_coercive x n_interaction`` cells, the kernel's resolution) is finer
-    than the fitted coefficients (``coef_coercive x coef_interaction``, non-negative), from which
-    the weights are interpolated bilinearly: the kernel needs fine rows to follow a smooth density
-    without kinks, the data do not need one free weight per cell (measured on the other-family
-    Preisach set: a 16 x 24 grid fitted cell by cell stays at 1.75x the noise on the slow sweep,
-    a 32 x 48 grid from 12 x 18 coefficients reaches 1.08x with fewer unknowns).
-    """
-
-    n_coercive: int = 32
-    n_interaction: int = 48
-    coef_coercive: int = 12
-    coef_interaction: int = 18
-    creep_taus_s: tuple[float, ...] = CREEP_TAUS_S
-    creep_thresholds: tuple[float, ...] = CREEP_THRESHOLDS
-    smoothing: tuple[float, ...] = SMOOTHING
-    max_iter: int = 40
-    p_scale: float = 0.3  # |P| over the sweeps is scaled to this, C/m^2 (a convention, like P_R)
-
-
-def hat_matrix(n_fine: int, n_coarse: int) -> FloatArray:
-    """Linear interpolation from ``n_coarse`` equally spaced nodes to ``n_fine`` ones, spanning
-    the same interval, shape (n_fine, n_coarse); rows sum to 1, entries >= 0."""
-    x = np.linspace(0.0, n_coarse - 1.0, n_fine)
-    j = np.minimum(np.floor(x).astype(int), n_coarse - 2)
-    t = x - j
-    m = np.zeros((n_fine, n_coarse))
-    m[np.arange(n_fine), j] = 1.0 - t
-    m[np.arange(n_fine), j + 1] = t
-    return m
-
-
-@dataclass(frozen=True)
-class Grid:
-    """Nodes of the model's grid (MV/m), the interpolation from the coefficients (``mi``, ``mj``)
-    and which coefficients the sweeps can move (``active``, flat row-major indices into the
-    ``coef_coercive x coef_interaction`` array)."""
-
-    coercive: FloatArray
-    interaction: FloatArray
-    spread: float
-    mi: FloatArray
-    mj: FloatArray
-    active: NDArray[np.intp]
-
-    def weights(self, coef: FloatArray) -> FloatArray:
-        """The cell weights (N_i, N_j) of the active coefficients ``coef``."""
-        full = np.zeros(self.mi.shape[1] * self.mj.shape[1])
-        full[self.active] = coef
-        return self.mi @ full.reshape(self.mi.shape[1], -1) @ self.mj.T
-
-
-def make_grid(fields: Sequence[FloatArray], settings: Settings) -> tuple[FloatArray, FloatArray,
-                                                                           float]:
-    """Coercive nodes ``0 ... span/2`` (rows that the field's span can switch) and interaction
-    nodes with ``-E_I`` over the field range padded by two spacings; the spread is the spacing."""
-    lo = min(float(np.min(e)) for e in fields)
-    hi = max(float(np.max(e)) for e in fields)
-    span = max(hi - lo, 1e-9)
-    ec = np.linspace(0.0, 0.5 * span, settings.n_coercive)
-    h = span / (settings.n_interaction - 5)
-    ei = np.sort(-np.linspace(lo - 2 * h, hi + 2 * h, settings.n_interaction))
-    return ec, ei, h
-
-
-@nb.njit(cache=True)
-def _coef_columns(y: np.ndarray, ei: np.ndarray, inv: float, mi: np.ndarray,
-                  mj: np.ndarray) -> np.ndarray:
-    """``sum_ij mi[i, a] mj[j, b] erf((y_i + E_I,j) inv)`` per sample, shape (N, A B)."""
-    n, ni = y.shape
-    nj, na, nb_ = ei.size, mi.shape[1], mj.shape[1]
-    out = np.zeros((n, na * nb_))
-    row = np.empty(nb_)
-    for t in range(n):
-        for i in range(ni):
-            for b in range(nb_):
-                row[b] = 0.0
-            for j in range(nj):
-                z = (y[t, i] + ei[j]) * inv
-                v = 1.0 if z > 5.0 else (-1.0 if z < -5.0 else math.erf(z))
-                for b in range(nb_):
-                    if mj[j, b] != 0.0:
-                        row[b] += mj[j, b] * v
-            for a in range(na):
-                if mi[i, a] != 0.0:
-                    for b in range(nb_):
-                        out[t, a * nb_ + b] += mi[i, a] * row[b]
-    return out
-
-
-def basis(field: FloatArray, grid: Grid, y0: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Columns of every coefficient (row-major over the coefficient grid), shape (N, A B): the
-    polarization the interpolated cells ``erf((y_i + E_I,j) / (sqrt(2) spread))`` give with that
-    coefficient 1 and the others 0; and the play outputs after the sweep (its end state)."""
-    y = pr.play(field, grid.coercive, y0)
-    cols = _coef_columns(y, grid.interaction, 1.0 / (math.sqrt(2.0) * grid.spread), grid.mi,
-                         grid.mj)
-    return cols, y[-1]
-
-
-@dataclass
-class Data:
-    """The sweeps as the fit sees them: fields (MV/m), readings (um) on their judged samples,
-    noise (um), sample periods and a fold label per judged sample."""
-
-    fields: list[FloatArray]
-    masks: list[NDArray[np.bool_]]
-    y: list[FloatArray]
-    dts: list[float]
-    noise: FloatArray
-    folds: list[NDArray[np.intp]] = field(default_factory=list)
-
-    def __post_init__(self) -> None:
-        if not self.folds:
-            for y in self.y:
-                block = np.minimum(np.arange(y.size) * BLOCKS // max(y.size, 1), BLOCKS - 1)
-                self.folds.append((block % FOLDS).astype(np.intp))
-
-
-@nb.njit(cache=True)
-def _rod_columns(phi: np.ndarray, gam: np.ndarray, x: np.ndarray) -> np.ndarray:
-    n, k = x.shape
-    out = np.empty((n, k))
-    p = x[0].copy()
-    v = np.zeros(k)
-    for t in range(n):
-        for j in range(k):
-            out[t, j] = p[j]
-            f = x[t, j]
-            p_new = phi[0, 0] * p[j] + phi[0, 1] * v[j] + gam[0] * f
-            v[j] = phi[1, 0] * p[j] + phi[1, 1] * v[j] + gam[1] * f
-            p[j] = p_new
-    return out
-
-
-def rod_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
-    """``L[x]`` along axis 0 (each column): the rod (16) normalized to unit DC gain (exact ZOH,
-    (18)), at rest with the first sample; :func:`afmctl.fit.parametrization.unit_filter` for
-    many columns at once."""
-    d = pz.unit_oscillator_zoh(fn, zeta, dt)
-    w2 = (2 * math.pi * fn) ** 2
-    x2 = np.ascontiguousarray(x, dtype=float).reshape(x.shape[0], -1)
-    return _rod_columns(d.phi, d.gamma * w2, x2).reshape(x.shape)
-
-
-@dataclass
-class Theta:
-    """A point of the fit: weights (um), reversible slope (um per MV/m), creep weights, the
-    quadratic ``s`` (1/um), rod ``log f_n``, ``log zeta``, one offset per sweep (um) and, with
-    creep, each sweep's creep transients ``d`` (um; see :class:`Problem`)."""
-
-    w: FloatArray
-    r: float
-    c: FloatArray
-    s: float
-    log_fn: float
-    log_zeta: float
-    offsets: FloatArray
-    d: FloatArray = field(default_factory=lambda: np.zeros(0))
-
-    def copy(self) -> Theta:
-        return Theta(self.w.copy(), self.r, self.c.copy(), self.s, self.log_fn, self.log_zeta,
-                     self.offsets.copy(), self.d.copy())
-
-
-class Problem:
-    """The basis of one start assignment and the exact model and its linearization.
-
-    A sweep need not start with the creep at rest: recorded after others (or after poling), its
-    slow elements still remember them. The fit can give each sweep free transients (the elements'
-    departure from rest decaying as ``exp(-t / tau_j)``, for time constants up to
-    :data:`TRANSIENT_SPAN` times the sweep's length; a slower one would only add a straight line
-    in time, a drift, which the fit must not absorb), but does not by default (see there): each
-    sweep starts with its creep at rest.
-    """
-
-    def __init__(self, data: Data, grid: Grid, starts: Sequence[str], taus: Sequence[float]):
-        self.data, self.grid, self.starts = data, grid, tuple(starts)
-        self.taus = np.asarray(taus, float)
-        self.set_thresholds((0.0,))
-        self.trans = []
-        for e, dt in zip(data.fields, data.dts, strict=True):
-            t = np.arange(e.size) * dt
-            cols = [np.exp(-t / tau) for tau in self.taus if tau <= TRANSIENT_SPAN * t[-1]]
-            self.trans.append(np.column_stack(cols) if cols else np.zeros((e.size, 0)))
-        self.n_trans = [a.shape[1] for a in self.trans]
-        self.fn_bounds = (0.5, 10.0 / min(data.dts))  # up to 20x the Nyquist frequency
-        self.noise_sse = float(sum(y.size * n * n for y, n in zip(data.y, data.noise,
-                                                                   strict=True)))
-        self.phi: list[FloatArray] = []
-        y_end: FloatArray | None = None
-        for e, start in zip(data.fields, self.starts, strict=True):
-            if start == "previous" and y_end is not None:
-                y0 = y_end
-            else:
-                y0 = pr.start_outputs(grid.coercive, "depoled" if start == "previous" else start)
-            cols, y_end = basis(e, grid, y0)
-            self.phi.append(np.ascontiguousarray(cols[:, grid.active]))
-
-    def hysteretic(self, th: Theta) -> list[FloatArray]:
-        return [p @ th.w + th.r * e for p, e in zip(self.phi, self.data.fields, strict=True)]
-
-    def set_thresholds(self, thresholds_um: Sequence[float]) -> None:
-        """Creep elements: every time constant behind a play of each half-width (um of ``Q``)."""
-        self.thresholds = tuple(float(r) for r in thresholds_um)
-        self.el_tau = np.tile(self.taus, len(self.thresholds))
-        self.el_thr = np.repeat(self.thresholds, self.taus.size)
-
-    def lags(self, q: FloatArray, dt: float) -> FloatArray:
-        """Each creep element's state before every sample for the hysteretic output ``q`` (um),
-        shape (N, elements), from rest at the first sample."""
-        out = []
-        for r in self.thresholds:
-            y = cr.play_hold(q, r)[0]
-            out.append(cr.lagged(y, self.taus, dt, np.full(self.taus.size, y[0])))
-        return np.hstack(out)
-
-    def crept(self, x: FloatArray, q: FloatArray, c: FloatArray, dt: float) -> FloatArray:
-        """``sum_j c_j Z_j`` linearized in the hysteresis: each element's play held where it
-        last moved on ``q``, applied to the columns of ``x`` (N, K) (or to ``x`` (N,))."""
-        out = np.zeros(x.shape)
-        n_tau = self.taus.size
-        for i, r in enumerate(self.thresholds):
-            ci = c[i * n_tau:(i + 1) * n_tau]
-            if ci.any():
-                idx = cr.play_hold(q, r)[1]
-                out += cr.lag_columns(self.taus, ci, x[idx], dt)
-        return out
-
-    def transients(self, th: Theta) -> list[FloatArray]:
-        """Each sweep's creep transient (um, full rate; zeros without)."""
-        if not th.d.size:
-            return [np.zeros(a.shape[0]) for a in self.trans]
-        parts = np.split(th.d, np.cumsum(self.n_trans)[:-1])
-        return [a @ d for a, d in zip(self.trans, parts, strict=True)]
-
-    def predict(self, th: Theta, full: bool = False) -> list[FloatArray]:
-        """Readings on each sweep's judged samples (``full``: on all its samples), um."""
-        out = []
-        fn, zeta = math.exp(th.log_fn), math.exp(th.log_zeta)
-        for q, dt, m, off, tr in zip(self.hysteretic(th), self.data.dts, self.data.masks,
-                                     th.offsets, self.transients(th), strict=True):
-            qt = q + self.lags(q, dt) @ th.c + tr if th.c.any() else q
-            u = rod_filter(qt + th.s * qt * qt, fn, zeta, dt) + off
-            out.append(u if full else u[m])
-        return out
-
-    def ratios(self, th: Theta) -> FloatArray:
-        """RMS over noise per sweep on the judged samples."""
-        return np.array([float(np.sqrt(np.mean((y - u) ** 2))) / n for y, u, n in
-                         zip(self.data.y, self.predict(th), self.data.noise, strict=True)])
-
-    def cost(self, th: Theta, pen: FloatArray, lam: float) -> float:
-        res = sum(float(np.sum((y - u) ** 2)) for y, u in zip(self.data.y, self.predict(th),
-                                                               strict=True))
-        return res + lam * float(np.sum((pen @ th.w) ** 2))
-
-    def linearize(self, th: Theta, creep: bool) -> tuple[list[FloatArray], list[FloatArray]]:
-        """Per sweep: the design ``[w | r | c | s | log f_n | log zeta | offsets | d]`` on the
-        judged samples and the known term ``y - b0`` (see the module docstring)."""
-        fn, zeta = math.exp(th.log_fn), math.exp(th.log_zeta)
-        n_s, step = len(self.phi), 1e-4
-        n_d = sum(self.n_trans) if creep else 0
-        d_at = np.concatenate(([0], np.cumsum(self.n_trans)))
-        designs, rhs = [], []
-        for i, (p, e, dt, m, y, tr) in enumerate(zip(self.phi, self.data.fields, self.data.dts,
-                                                     self.data.masks, self.data.y,
-                                                     self.transients(th), strict=True)):
-            q = p @ th.w + th.r * e
-            z = self.lags(q, dt) if creep else np.zeros((q.size, 0))
-            tr = tr if creep else np.zeros(q.size)
-            qt = q + z @ th.c + tr if creep else q
-            m0 = 1.0 + 2.0 * th.s * qt
-            cp, ce, held = p, e, 0.0
-            if creep and th.c.any():
-                cp = p + self.crept(p, q, th.c, dt)
-                ce = e + self.crept(e, q, th.c, dt)
-                held = self.crept(q, q, th.c, dt)
-            g = qt + th.s * qt * qt
-            lg = rod_filter(g, fn, zeta, dt)
-            cols = [rod_filter(m0[:, None] * cp, fn, zeta, dt)[m],
-                    rod_filter(m0 * ce, fn, zeta, dt)[m, None]]
-            if creep:
-                cols.append(rod_filter(m0[:, None] * z, fn, zeta, dt)[m])
-            cols += [rod_filter(qt * qt, fn, zeta, dt)[m, None],
-                     ((rod_filter(g, fn * math.exp(step), zeta, dt) - lg) / step)[m, None],
-                     ((rod_filter(g, fn, zeta * math.exp(step), dt) - lg) / step)[m, None]]
-            ind = np.zeros((int(m.sum()), n_s + n_d))
-            ind[:, i] = 1.0
-            if creep and self.n_trans[i]:
-                ind[:, n_s + d_at[i]:n_s + d_at[i + 1]] = rod_filter(
-                    m0[:, None] * self.trans[i], fn, zeta, dt)[m]
-            designs.append(np.hstack(cols + [ind]))
-            rhs.append(y - rod_filter(qt - m0 * (qt + held), fn, zeta, dt)[m])
-        return designs, rhs
+__all__ = ["CREEP_TAUS_S", "CREEP_THRESHOLDS", "SMOOTHING", "BLOCKS", "FOLDS", "TRANSIENT_SPAN",
+           "Settings", "hat_matrix", "Grid", "make_grid", "basis", "Data", "rod_filter", "Theta",
+           "Problem", "PreisachFit", "fit", "gauss_newton", "heldout", "bounded_solve", "penalty"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -692,7 +393,7 @@ def _active(data: Data, ec: FloatArray, ei: FloatArray, spread: float, mi: Float
 
 
 def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
-        thickness_um: float, mass_kg: float, settings: Settings = Settings(),
+        thickness_um: float, mass_kg: float, settings: Settings | None = None,
         say: Callable[[str], None] | None = None) -> PreisachFit:
     """Fit the Preisach grid (and creep) to ``data``.
 
@@ -706,9 +407,10 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     thickness_um, mass_kg : float
         Layer thickness (um) and the fixed effective mass (kg, a scale convention).
     """
-    with threadpool_limits(1):  # small dense algebra: threads only contend (seconds per call
-        return _fit(data, starts_candidates, rod0, thickness_um, mass_kg, settings,  # on a
-                    say or (lambda _m: None))                                      # busy host)
+    # small dense algebra: more BLAS threads only contend (seconds per call on a busy host)
+    with threadpool_limits(1):
+        return _fit(data, starts_candidates, rod0, thickness_um, mass_kg, settings or Settings(),
+                    say or (lambda _m: None))
 
 
 def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
@@ -744,7 +446,7 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     say(f"Preisach grid {ec.size} x {ei.size} from {settings.coef_coercive} x "
         f"{settings.coef_interaction} coefficients ({grid.active.size} the sweeps move), "
         f"starts {', '.join(prob.starts)}")
-    plain = gauss_newton(prob, th, pen, lam0, False, settings.max_iter // 2)
+    plain = gauss_newton(prob, th, pen, lam0, False, settings.max_iter // 4)
     q_range = max(float(np.ptp(q)) for q in prob.hysteretic(plain.theta))
     prob.set_thresholds([f * q_range for f in settings.creep_thresholds])
     runs = {False: plain, True: gauss_newton(prob, with_elements(plain.theta), pen, lam0, True,

@@ -136,6 +136,24 @@ class Grid:
             "preisach", figures)
 
 
+def first_start(prob: idf.Problem, space: pz.LognormalSpace, sol: optimize.OptimizeResult,
+                thickness: float, known: bool, restarts: int, t0: float) -> idf.FitResult:
+    """The HEM's result at its first start, unpolished (when the grid wins outright)."""
+    from afmctl.fit import identify as idf
+    from afmctl.fit import parametrization as pz
+
+    beta, _ = pz.project(space.design(sol.x), prob.y)
+    model = idf._model(space, sol.x, prob.y, thickness)
+    predicted = idf.predict_set(model, prob.sweeps, space.starts, beta[2:])
+    errors = tuple(idf._error(s.path or s.name, s, u, prob.settings.window_s, st, float(off))
+                   for s, u, st, off in zip(prob.sweeps, predicted, space.starts, beta[2:],
+                                            strict=True))
+    return idf.FitResult(model, (), errors, bool(sol.success and sol.status > 0),
+                         int(sol.status), str(sol.message), prob.nfev, time.perf_counter() - t0,
+                         known, sol.x, {}, idf.envelope(prob.sweeps, model.thickness_um),
+                         restarts, bool(np.all(np.isfinite(sol.x))))
+
+
 def _floor() -> float:
     from afmctl.fit import identify as idf
 
@@ -183,4 +201,4 @@ def estimates(model: Any, fit: pf.PreisachFit) -> tuple[unc.Estimate, ...]:
                         unc.Estimate("p_scale", fit.p_scale, 0.0, "C/m^2", fixed=True)])
 
 
-__all__ = ["Grid", "EARLY", "DECISIVE", "MARGIN", "estimates"]
+__all__ = ["Grid", "EARLY", "DECISIVE", "MARGIN", "estimates", "first_start"]
