@@ -28,15 +28,20 @@ if TYPE_CHECKING:
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--device", action="store", default=None, metavar="PROFILE",
                      help="run the tests marked `device` against the real stage of this profile")
+    parser.addoption("--guide", action="store_true", default=False,
+                     help="run the tests marked `guide`: the calibration guide end to end on a "
+                          "fresh clone (several minutes; kept out of CI's 20-minute budget)")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    if config.getoption("--device"):
-        return
-    skip = pytest.mark.skip(reason="needs real hardware: pytest --device PROFILE")
+    opt_in = {"device": (config.getoption("--device") is not None,
+                         "needs real hardware: pytest --device PROFILE"),
+              "guide": (config.getoption("--guide"),
+                        "the guide end to end takes minutes: pytest --guide")}
     for item in items:
-        if item.get_closest_marker("device") is not None:
-            item.add_marker(skip)
+        for marker, (wanted, reason) in opt_in.items():
+            if not wanted and item.get_closest_marker(marker) is not None:
+                item.add_marker(pytest.mark.skip(reason=reason))
 
 
 @pytest.fixture(autouse=True)

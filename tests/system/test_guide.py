@@ -96,6 +96,7 @@ def simulate_truth(profile: Path, run_csv: Path) -> tuple[np.ndarray, np.ndarray
 
 
 @pytest.mark.slow
+@pytest.mark.guide
 def test_the_guide_runs_as_written_on_a_fresh_clone(tmp_path: Path) -> None:
     if shutil.which("git") is None:
         pytest.skip("git is not installed")
