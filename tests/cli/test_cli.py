@@ -85,7 +85,7 @@ def test_non_converged_fit_writes_its_best_model_with_a_warning(tmp_path: Path,
     """No dead end (issue 23): a fit stopped by its budget writes its best point, says so on
     stderr and in the JSON (success false), and exits 0."""
     prof = tmp_path / "p.toml"
-    prof.write_text(EMULATED.read_text() + "\n[identify]\nmax_nfev = 1\n")
+    prof.write_text(EMULATED.read_text() + "\n[identify]\nmax_nfev = 1\nrepresentation = \"hem\"\n")
     out = tmp_path / "m.toml"
     res = CliRunner().invoke(main, ["identify", str(good_file), "-o", str(out), "--json",
                                     "--profile", str(prof)])
