@@ -1,0 +1,125 @@
+"""Cross-coupling between the axes of an x/y stage: the motion of one axis caused by another's.
+
+A real x/y stage couples: driving x moves y a little, by geometry (a flexure's parasitic motion, a
+tube's bending: -45 to -25 dB) and, near the shared resonances, through the structure's modes. The
+paper models one axis; this module adds what two axes need, in the same terms: a linear operator
+from the *source* axis's displacement to the *target* axis's, in um of target per um of source.
+
+The low-order form is a static gain plus one mode that vanishes at DC::
+
+    H(s) = static + (gain_hp (s/w)^2 + gain_bp 2 zeta (s/w)) / ((s/w)^2 + 2 zeta (s/w) + 1)
+
+with ``w = 2 pi mode_hz``. ``gain_hp`` is the mode's high-frequency part (the target follows the
+source's acceleration through the shared mass), ``gain_bp`` its velocity part (its value at the
+resonance). ``mode_hz = 0`` means a static coupling only.
+
+The operator acts on the source's displacement *relative to where it was while the target's own
+model was identified* (``reference_um``): identify sweeps each axis with the other held, so the
+target's model already carries the static part at that position.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import signal
+
+FloatArray = NDArray[np.float64]
+ComplexArray = NDArray[np.complex128]
+
+
+@dataclass(frozen=True)
+class Coupling:
+    """Motion of a target axis caused by a source axis's motion (one direction).
+
+    Parameters
+    ----------
+    static : float
+        DC gain, um of target per um of source (signed).
+    mode_hz : float
+        Natural frequency of the shared mode, Hz (0: static coupling only).
+    damping : float
+        Damping ratio of the shared mode (0 < damping).
+    gain_hp : float
+        The mode's high-frequency gain (acceleration path), um/um.
+    gain_bp : float
+        The mode's gain at its resonance (velocity path), um/um.
+    reference_um : float
+        Source displacement at which the target's own model was identified, um.
+    """
+
+    static: float
+    mode_hz: float = 0.0
+    damping: float = 0.05
+    gain_hp: float = 0.0
+    gain_bp: float = 0.0
+    reference_um: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("static", "mode_hz", "damping", "gain_hp", "gain_bp", "reference_um"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"coupling {name} must be finite")
+        if self.mode_hz < 0 or (self.mode_hz > 0 and self.damping <= 0):
+            raise ValueError("coupling mode_hz must be >= 0 and its damping > 0")
+
+    @property
+    def static_db(self) -> float:
+        """The static gain in dB (20 log10 |static|; -inf for none)."""
+        return 20 * math.log10(abs(self.static)) if self.static else -math.inf
+
+    def transfer(self) -> tuple[FloatArray, FloatArray]:
+        """Numerator and denominator of ``H(s)`` in descending powers of ``s`` (s in rad/s)."""
+        if self.mode_hz == 0:
+            return np.array([self.static]), np.array([1.0])
+        w, z = 2 * math.pi * self.mode_hz, self.damping
+        den = np.array([1.0, 2 * z * w, w * w])
+        num = self.static * den + np.array([self.gain_hp, self.gain_bp * 2 * z * w, 0.0])
+        return num, den
+
+
+def frf(c: Coupling, freq_hz: ArrayLike) -> ComplexArray:
+    """The coupling's frequency response ``H(j 2 pi f)``, um of target per um of source.
+
+    Parameters
+    ----------
+    c : Coupling
+    freq_hz : array_like
+        Frequencies, Hz (>= 0).
+    """
+    num, den = c.transfer()
+    s = 2j * math.pi * np.asarray(freq_hz, dtype=float)
+    return np.polyval(num, s) / np.polyval(den, s)
+
+
+def caused(c: Coupling, source_um: ArrayLike, dt_s: float) -> FloatArray:
+    """Target motion caused by a sampled source displacement, um (starting at rest).
+
+    The source is taken piecewise linear between samples (first-order hold): the exact response
+    of ``H(s)`` to the interpolated source, sampled at the same instants. Before the first sample
+    the source is taken to have rested at its first value.
+
+    Parameters
+    ----------
+    c : Coupling
+    source_um : array_like, shape (N,)
+        Source axis displacement at each sample, um.
+    dt_s : float
+        Sample interval, s.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        Target displacement caused, um (relative to its own model's prediction).
+    """
+    x = np.asarray(source_um, dtype=float) - c.reference_um
+    if c.mode_hz == 0 or x.size == 0:
+        return c.static * x
+    num, den = c.transfer()
+    bd, ad, _ = signal.cont2discrete((num, den), dt_s, method="foh")
+    bd = np.ravel(bd)
+    zi = signal.lfilter_zi(bd, ad) * x[0]
+    y, _ = signal.lfilter(bd, ad, x, zi=zi)
+    return np.asarray(y, dtype=float)

@@ -1,0 +1,60 @@
+"""The cross-coupling operator against analytic limits: DC gain, the steady sine response equal to
+|H(j w)| and its phase, the mode's resonance written by hand, and rest at the reference."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from afmctl.model.coupling import Coupling, caused, frf
+
+
+def test_static_only_is_a_gain_about_the_reference() -> None:
+    c = Coupling(static=-0.012, reference_um=40.0)
+    x = np.linspace(0.0, 80.0, 11)
+    assert np.allclose(caused(c, x, 1e-4), -0.012 * (x - 40.0))
+    assert c.static_db == pytest.approx(20 * math.log10(0.012))
+
+
+def test_frf_at_dc_resonance_and_high_frequency() -> None:
+    c = Coupling(static=0.01, mode_hz=400.0, damping=0.04, gain_hp=0.02, gain_bp=0.03)
+    h = frf(c, [0.0, 400.0, 4e6])
+    assert h[0] == pytest.approx(0.01)
+    # at s = j w: (s/w)^2 = -1, 2 zeta s/w = 2 zeta j, denominator 2 zeta j
+    assert h[1] == pytest.approx(0.01 + (-0.02 + 0.03 * 2 * 0.04j) / (2 * 0.04j))
+    assert abs(h[2] - 0.03) < 1e-6
+
+
+@pytest.mark.parametrize("f_hz", [5.0, 120.0, 350.0])
+def test_steady_sine_follows_the_frf(f_hz: float) -> None:
+    c = Coupling(static=-0.008, mode_hz=300.0, damping=0.06, gain_hp=0.015, gain_bp=-0.01)
+    dt = 1e-4
+    t = np.arange(int(2.0 / dt)) * dt
+    y = caused(c, np.sin(2 * np.pi * f_hz * t), dt)
+    tail = t > 1.0  # the mode (tau = 1 / (zeta w) < 10 ms) has died away
+    basis = np.column_stack([np.sin(2 * np.pi * f_hz * t[tail]), np.cos(2 * np.pi * f_hz * t[tail])])
+    (a, b), *_ = np.linalg.lstsq(basis, y[tail], rcond=None)
+    # the hold interpolates the source linearly: a sine's spectrum is weighted by sinc^2(f dt)
+    # (0.4 % at 350 Hz); the images at k/dt +- f fold back at the samples, weighted by
+    # sinc^2 ~ (f dt)^2: a few 1e-4 of H, hence the tolerance
+    h = frf(c, [f_hz])[0] * np.sinc(f_hz * dt) ** 2
+    assert a + 1j * b == pytest.approx(h, rel=1e-3)
+
+
+def test_starts_at_rest_and_settles_to_the_static_gain() -> None:
+    c = Coupling(static=0.02, mode_hz=200.0, damping=0.05, gain_hp=0.05, reference_um=10.0)
+    x = np.full(4000, 30.0)
+    x[2000:] = 50.0
+    y = caused(c, x, 1e-4)
+    assert np.allclose(y[:2000], 0.02 * 20.0)
+    assert y[-1] == pytest.approx(0.02 * 40.0, rel=1e-3)
+    assert abs(y[2000:2100] - 0.8).max() > 0.01  # the mode rings after the step
+
+
+def test_bad_parameters_are_refused() -> None:
+    with pytest.raises(ValueError):
+        Coupling(static=float("nan"))
+    with pytest.raises(ValueError):
+        Coupling(static=0.0, mode_hz=100.0, damping=0.0)
