@@ -243,9 +243,7 @@ def initial_state(stage: XYStage) -> XYState:
     """Both actuators poled and back at 0 V (:func:`~afmctl.drivers.device.foreign.xy_actuator.power_on`),
     the structure at rest there."""
     acts = tuple(power_on(a) for a in stage.actuators)
-    d = np.array([strokes(a, np.array([0.0]), s)[0][0]
-                  for a, s in zip(stage.actuators, acts, strict=True)])
-    return XYState(_rest(stage, d), acts)  # type: ignore[arg-type]
+    return idle(stage, XYState(np.zeros(6), acts), np.zeros(2))  # type: ignore[arg-type]
 
 
 def run(stage: XYStage, voltage_v: FloatArray, rate_hz: float, state: XYState
@@ -284,6 +282,18 @@ def run(stage: XYStage, voltage_v: FloatArray, rate_hz: float, state: XYState
     _propagate(phi, gam, z, np.ascontiguousarray(d), zs)
     true_um = position_um(stage, zs[:, :3])
     return true_um, true_um + np.asarray(stage.sensor_offset_um), XYState(z, tuple(acts))
+
+
+def idle(stage: XYStage, state: XYState, voltage_v: FloatArray) -> XYState:
+    """Go to the command ``voltage_v`` (V, shape (2,)) and hold it until every transient has died:
+    the actuators step there, the structure rests at their strokes."""
+    v = np.asarray(voltage_v, dtype=float).reshape(2)
+    d, acts = np.empty(2), []
+    for i, (act, st) in enumerate(zip(stage.actuators, state.actuators, strict=True)):
+        stroke, new = strokes(act, v[i:i + 1], st)
+        d[i] = stroke[0]
+        acts.append(new)
+    return XYState(_rest(stage, d), tuple(acts))  # type: ignore[arg-type]
 
 
 def noise_um(stage: XYStage) -> FloatArray:

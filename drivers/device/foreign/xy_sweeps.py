@@ -187,9 +187,25 @@ def format_rows(plan: XYPlan, reading_um: FloatArray) -> str:
     return out.getvalue()
 
 
+def record(stage: XYStage, plans: list[XYPlan], rng: np.random.Generator | None
+           ) -> list[FloatArray]:
+    """Run ``plans`` in order from power-on (moving between them as the module says) and return
+    each one's readings (N, 2), um, with sensor noise from ``rng`` (None: noise free)."""
+    state, last, out = initial_state(stage), np.zeros(2), []
+    sigma = noise_um(stage)
+    for plan in plans:
+        state = _move_to(stage, state, last, plan.voltage_V[0])
+        _, reading, state = run(stage, plan.voltage_V, RATE_HZ, state)
+        if rng is not None:
+            reading = reading + sigma * rng.standard_normal(reading.shape)
+        out.append(reading)
+        last = plan.voltage_V[-1]
+    return out
+
+
 def write_sweep_set(stage: XYStage, out_dir: str | Path, rng: np.random.Generator, *,
                     design: str = "mixed") -> list[Path]:
-    """Record ``design`` on ``stage`` (from power-on, in order) and write one file per plan.
+    """Record ``design`` on ``stage`` (:func:`record`) and write one file per plan.
 
     Parameters
     ----------
@@ -204,20 +220,16 @@ def write_sweep_set(stage: XYStage, out_dir: str | Path, rng: np.random.Generato
     Returns
     -------
     list of Path
-        The files, in recording order (``NN_<name>.csv``).
+        The files, in recording order (``NN_<name>.csv``), each written atomically.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    state, last, paths = initial_state(stage), np.zeros(2), []
-    sigma = noise_um(stage)
-    for plan in design_plans(stage, design):
-        state = _move_to(stage, state, last, plan.voltage_V[0])
-        _, reading, state = run(stage, plan.voltage_V, RATE_HZ, state)
-        reading = reading + sigma * rng.standard_normal(reading.shape)
+    plans = design_plans(stage, design)
+    paths = []
+    for plan, reading in zip(plans, record(stage, plans, rng), strict=True):
         path = out / f"{plan.name}.csv"
         tmp = path.with_name(path.name + ".partial")
         tmp.write_text(format_rows(plan, reading), encoding="utf-8")
         tmp.replace(path)
         paths.append(path)
-        last = plan.voltage_V[-1]
     return paths
