@@ -337,7 +337,10 @@ def true_coupling(stage: XYStage, freq_hz: FloatArray) -> dict:
     (both as the sensors see them, offsets aside), linearized about that point (the flexures' arc
     enters through its slope there). Both responses are linear in the same source stroke, so the
     source actuator's hysteresis (and any other law from voltage to stroke) cancels from the
-    ratio: it is a property of the structure and the geometry alone.
+    ratio: it is a property of the structure and the geometry alone. Over a sweep of the whole
+    range the arc's secant slope is its slope at the sweep's middle (a quadratic's), which is the
+    operating point's up to the held axis's own coupling (a few 1e-5 um/um), so a static gain
+    fitted to full-range sweeps estimates ``yx_static`` too.
 
     Parameters
     ----------

@@ -185,6 +185,18 @@ def test_drawn_stages_are_stage_like(stages) -> None:
         assert min(d["derived"]["natural_hz"]) == pytest.approx(mode, rel=1e-6)
 
 
+def test_random_stages_draw_within_the_issue_ranges() -> None:
+    """Undirected draws: static couplings -45 .. -25 dB both ways, the shared mode 150 .. 800 Hz
+    and the lowest, the range asked for."""
+    for seed, unipolar in ((11, True), (12, False), (13, True)):
+        stage = xs.random_xy_stage(np.random.default_rng(seed), unipolar=unipolar)
+        d = xs.describe(stage)["derived"]
+        for key in ("yx_static_db", "xy_static_db"):
+            assert -45.0 - 1e-9 <= d[key] <= -25.0 + 1e-9
+        assert 150.0 <= d["mode_hz"] <= 800.0 and d["mode_hz"] == min(d["natural_hz"])
+        assert stage.drive_range_V[1] == (xs.UNIPOLAR_V if unipolar else xs.BIPOLAR_V)
+
+
 def test_designs_keep_range_and_slew(stages) -> None:
     """Every file of every design within each axis's range, at most 50 V/ms at 10 kHz, one axis
     held (as its metadata says) or both moving, the excitation reaching half the shared mode."""
