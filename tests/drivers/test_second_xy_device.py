@@ -221,3 +221,54 @@ def test_a_held_channel_records_the_plants_coupling(stage) -> None:
     slope = np.polyfit(x[:, 0], y[:, 0], 1)[0]
     want = xs.true_coupling(stage, np.zeros(0))["yx_static"]
     assert slope == pytest.approx(want, rel=0.01)
+
+
+def wav(client: Client, channel: int, first: int, values: np.ndarray) -> str:
+    body = " ".join(f"{v:.4f}" for v in values)
+    return client.ask(f"CH {channel} WAV {first} {values.size} {body}")
+
+
+def test_a_stream_of_both_channels_and_an_underrun_of_one(stage) -> None:
+    """§2.14(h) at 1 kHz through a 256-sample table: both channels refilled as played record
+    exactly what a single run would (the commands, declared); then a stream whose channel 1 is
+    not refilled underruns at the first sample channel 1 lacks (error 10, both outputs to 0 V),
+    where a completed one leaves each output at its last sample (§2.2(d))."""
+    n, table, block = 768, 256, 128
+    k = np.arange(n)
+    wave = np.column_stack([60 + 40 * np.sin(2 * np.pi * k / 300),
+                            50 + 30 * np.sin(2 * np.pi * k / 200)])
+    with serve(stage) as server:
+        client = Client(server.url)
+        try:
+            for refill_y, want_end in ((True, "error=0"), (False, "error=10")):
+                for line in ("SAFE", "WTR 1000", f"WTL {table}", "ERR?"):
+                    client.ask(line)
+                for c in (0, 1):
+                    for first in range(0, table, block):
+                        assert wav(client, c, first, wave[first:first + block, c]) == "OK"
+                for c, v in enumerate(wave[0]):  # the step into sample 0 is checked (§2.6(e))
+                    for step in np.linspace(0, v, 5)[1:]:
+                        assert client.ask(f"CH {c} SVA {step:.4f}") == "OK"
+                assert client.ask(f"WGS {n}") == "OK"
+                refilled = (0, 1) if refill_y else (0,)
+                last = n if refill_y else table + block  # channel 0 one block past channel 1
+                for nxt in range(table, last, block):
+                    while int(client.ask("POS?")) < nxt + block - table:
+                        time.sleep(0.005)
+                    for c in refilled:
+                        assert wav(client, c, nxt, wave[nxt:nxt + block, c]) == "OK"
+                time.sleep(0.9)
+                status = client.ask("STA?").split()
+                assert "running=0" in status and want_end in status
+                if refill_y:
+                    assert f"pos={n}" in status
+                    x, y = read_recorder(client, 0, n), read_recorder(client, 1, n)
+                    np.testing.assert_allclose(np.column_stack([x[:, 1], y[:, 1]]),
+                                               wave.astype(np.float32), atol=1e-4)
+                    outs = [float(client.ask(q)) for q in ("VOL?", "CH 1 VOL?")]
+                    np.testing.assert_allclose(outs, wave[-1], atol=1e-4)  # the last held
+                else:
+                    assert f"pos={table}" in status
+                    assert client.ask("VOL?") == "0" and client.ask("CH 1 VOL?") == "0"
+        finally:
+            client.close()

@@ -18,7 +18,6 @@ measure its amplifier's output records the command and the device declares it (`
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
@@ -95,21 +94,10 @@ class XYDevice(Device):
             raise Refused(6)
         return self._ch
 
-    # -- time ------------------------------------------------------------------------------------
-    def advance(self, now: float) -> None:
-        if self.armed and now > self.last_beat + self.period:
-            when = self.last_beat + self.period
-            self.play_until(when)
-            self.halt()
-            self.ramp(when)
-            self.armed, self.expired, self.error = False, True, 8
-        self.play_until(now)
-        run = self.run
-        if (run is None or not run["active"] or run["played"] >= run["n"]) and now > self.t_plant:
-            self.plant.idle(self.outs.copy(), now - self.t_plant)
-            self.t_plant = now
+    def dac(self) -> np.ndarray:  # type: ignore[override]
+        return self.outs.copy()
 
-    def samples(self, ks: np.ndarray, run: dict) -> np.ndarray:
+    def batch(self, ks: np.ndarray, run: dict) -> np.ndarray:
         """Samples ``ks`` of every channel (n, C): a written channel's slots, a held one's output
         at the start (§2.14(c))."""
         out = np.tile(run["held"], (ks.size, 1))
@@ -117,45 +105,23 @@ class XYDevice(Device):
             out[:, c] = self.values[c, ks % self.length]
         return out
 
-    def play_until(self, now: float) -> None:
-        """Each sample is checked when its hold begins (§2.14(h): a stale slot of any written
-        channel, a step beyond any channel's slew); complete holds go through the plant."""
-        run = self.run
-        if run is None or not run["active"]:
-            return
-        dt = 1.0 / run["rate"]
-        elapsed = math.floor((now - run["t0"]) / dt + 1e-9)
-        begun = min(run["n"], elapsed + 1)
-        first = run["played"]
-        ks = np.arange(first, max(first, begun))
-        batch = self.samples(ks, run)
-        fault, k = 0, begun
-        if run["stream"] and ks.size:
-            cols = np.flatnonzero(run["written"])
-            stale = np.flatnonzero((self.holds[cols][:, ks % self.length] != ks).any(axis=0))
-            step = np.abs(np.diff(np.vstack([run["last"], batch]), axis=0))
-            steep = np.flatnonzero((step > self.steps()).any(axis=1))
-            for code, where in ((10, stale), (4, steep)):
-                if where.size and first + int(where[0]) < k:
-                    fault, k = code, first + int(where[0])
-        done = min(k, elapsed) - first
-        if done > 0:
-            v = batch[:done]
-            u, mean = self.plant.play(v, dt)
-            stack = v if self.records_command else mean
-            idx = np.arange(first, first + done)
-            self.rec[:, idx % self.rec_cap, 0] = u.T
-            self.rec[:, idx % self.rec_cap, 1] = stack.T
-            self.rec_k[idx % self.rec_cap] = idx
-            run["played"], run["last"] = first + done, v[-1].copy()
-            self.outs[:] = v[-1]
-        if fault:
-            return self.fault(run, k, fault)
-        if k - first > done:
-            self.outs[:] = batch[done]  # the sample being held (§2.2(f))
-        if run["played"] >= run["n"]:
-            run["active"] = run["n"] > self.visible(now)
-            self.t_plant = run["t0"] + run["n"] * dt
+    def stream_faults(self, ks: np.ndarray, batch: np.ndarray, run: dict
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """§2.14(h): a stale slot of any written channel, a step beyond any channel's slew."""
+        cols = np.flatnonzero(run["written"])
+        stale = np.flatnonzero((self.holds[cols][:, ks % self.length] != ks).any(axis=0))
+        step = np.abs(np.diff(np.vstack([run["last"], batch]), axis=0))
+        return stale, np.flatnonzero((step > self.steps()).any(axis=1))
+
+    def record(self, ks: np.ndarray, v: np.ndarray, u: np.ndarray, mean: np.ndarray) -> None:
+        stack = v if self.records_command else mean
+        self.rec[:, ks % self.rec_cap, 0] = u.T
+        self.rec[:, ks % self.rec_cap, 1] = stack.T
+        self.rec_k[ks % self.rec_cap] = ks
+
+    def hold(self, sample: np.ndarray) -> np.ndarray:  # type: ignore[override]
+        self.outs[:] = sample
+        return self.outs.copy()
 
     def ramp(self, at: float) -> None:
         """Every output to 0 V together, each at 90 % of its own slew, then 0 V until the longest
@@ -171,12 +137,6 @@ class XYDevice(Device):
             self.plant.play(self.outs[None, :] * frac, 1.0 / self.rate)
         self.outs[:] = 0.0
         self.t_plant = max(at, self.t_plant) + longest / self.rate
-
-    def halt(self) -> None:
-        run = self.run
-        if run is not None and run["active"]:
-            run["active"] = False
-            self.t_plant = run["t0"] + run["played"] / run["rate"]
 
     # -- checks ----------------------------------------------------------------------------------
     def check(self, c: int, values: np.ndarray, previous: float | None) -> None:
@@ -195,7 +155,7 @@ class XYDevice(Device):
         want = np.arange(n)
         return all(np.array_equal(self.holds[c, :n], want) for c in np.flatnonzero(self.written))
 
-    def start_checks(self, count: int, wrap: bool) -> None:
+    def start_check(self, count: int, wrap: bool) -> None:
         for c in np.flatnonzero(self.written):
             v = self.values[c, :count]
             self.check(int(c), np.concatenate([v, v[:1]]) if wrap else v, float(self.outs[c]))
@@ -244,81 +204,29 @@ class XYDevice(Device):
 
     def wtl(self, args: list[str], now: float) -> str:
         reply = super().wtl(args, now)
-        self.holds[:] = -1
         self.written[:] = False
         return reply
 
-    def wav(self, args: list[str], now: float) -> str:
-        first, n = ints(args[:2], 2)
-        if not 1 <= n <= 256 or len(args) != n + 2:
-            raise Refused(2)
-        values = np.array(floats(args[2:], n))
-        if self.read_only:
-            raise Refused(7)
-        run = self.run
-        streaming = run is not None and run["active"] and run["stream"]
-        if self.running(now) and not streaming:
-            raise Refused(5)
+    def in_range(self, values: np.ndarray, previous: float | None) -> None:
+        """The named channel's range and steps (its number checked first: 6, §2.14(g))."""
+        self.check(self.channel(), values, previous)
+
+    def store(self, first: int, values: np.ndarray, run: dict | None) -> None:
         c = self.channel()
-        total, pos = (run["n"], self.visible(now)) if streaming else (self.length, 0)
-        if first < 0 or first + n > total or first + n > pos + self.length:
-            raise Refused(6)
-        self.check(c, values, None)
         for i, v in enumerate(values):
             k = first + i
-            if streaming and k <= run["played"]:
+            if run is not None and k <= run["played"]:  # played or on the DAC: ignored
                 continue
             self.values[c, k % self.length], self.holds[c, k % self.length] = v, k
         self.written[c] = True
-        return "OK"
 
     def begin(self, n: int, stream: bool, now: float) -> None:
         super().begin(n, stream, now)
         self.run.update(written=self.written.copy(), held=self.outs.copy(),
                         last=self.outs.copy())
 
-    def wgo(self, args: list[str], now: float) -> str:
-        cycles = ints(args, 1)[0]
-        if cycles == 0:
-            self.advance(now)
-            self.halt()
-            return "OK"
-        self.writable(now)
-        if cycles < 1 or max(self.length, 1) * cycles > self.rec_cap:
-            raise Refused(6)
-        if not self.complete(self.length):
-            raise Refused(9)
-        self.start_checks(self.length, cycles > 1)
-        self.begin(self.length * cycles, False, now)
-        return "OK"
-
-    def wgs(self, args: list[str], now: float) -> str:
-        n = ints(args, 1)[0]
-        self.writable(now)
-        if not 1 <= n <= 1 << 29:
-            raise Refused(6)
-        need = min(self.length, n)
-        if need == 0 or not self.complete(need):
-            raise Refused(9)
-        self.start_checks(need, False)
-        self.begin(n, True, now)
-        return "OK"
-
-    def drr(self, args: list[str], now: float) -> str:
-        first, n = ints(args, 2)
-        if not 1 <= n <= 256:
-            raise Refused(2)
-        c = self.channel()
-        if first < 0:
-            raise Refused(6)
-        seen = self.visible(now)
-        words = [str(first), str(n)]
-        for k in range(first, first + n):
-            if k < seen and self.rec_k[k % self.rec_cap] == k:
-                words += [num(x) for x in self.rec[c, k % self.rec_cap]]
-            else:
-                words += ["nan", "nan"]
-        return " ".join(words)
+    def recorder(self) -> np.ndarray:
+        return self.rec[self.channel()]
 
 
 class SecondXYStage(SecondStage):
