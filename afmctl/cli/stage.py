@@ -188,7 +188,8 @@ def status(profile_path: str | None, read: bool, as_json: bool) -> None:
                 f"{reading.output_v:g} V, sd {reading.sd_um:.4f} um)")
         click.echo(f"{key}: {value}")
     for name, ax in (axes or {}).items():
-        click.echo(f"axis {name}: " + ", ".join(f"{k} {v}" for k, v in ax.items()))
+        click.echo(f"axis {name}: " + ", ".join(
+            f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in ax.items()))
 
 
 def _readings(stage: Any, prof: Any, read: bool) -> list[Any]:

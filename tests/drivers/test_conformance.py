@@ -262,10 +262,12 @@ def test_the_dc_set_clause_stays_within_the_bound_on_a_device_without_slew_check
         profile: Profile, monkeypatch: pytest.MonkeyPatch) -> None:
     """A device that takes any DC step is never sent one beyond ``--max-voltage``: with a bound of
     2 V the clause raises the sample rate until a refused step fits within it, and fails."""
-    def set_voltage(self: Emulator, v: float, now: float) -> None:  # range checked, not slew
+    def set_voltage(self: Emulator, v: float, now: float, channel: int = 0) -> None:  # no slew
         self.tick(now)
-        self._check(np.array([float(np.float32(v))]))
-        self._hold(np.array([float(np.float32(v))]), now)
+        self._check(np.array([float(np.float32(v))]), channel)
+        sample = self.outputs.copy()
+        sample[channel] = float(np.float32(v))
+        self._hold(sample[None, :], now)
     monkeypatch.setattr(Emulator, "set_voltage", set_voltage)
     with stage_on("serial-socket", profile) as (stage, em):
         with pytest.raises(cf.Failure) as failure:
