@@ -220,6 +220,21 @@ class FamilySpec:
 
 
 @dataclass(frozen=True)
+class XYForeignSpec:
+    """An independently written foreign x/y stage as a two-axis emulated device's plant
+    (``[emulator.xy_foreign]``, :mod:`afmctl.drivers.device.foreign.xy_stage`): both axes and
+    their coupling from formulas of its own, drawn from ``seed`` (optionally with its static
+    coupling y from x, dB, and its shared mode, Hz), or one of the fixed benchmark stages
+    (``bench``, 1 ... 8). Its drive range is the profile's: 0 ... 150 V (unipolar) or -150 ...
+    150 V on both axes."""
+
+    seed: int = 0
+    coupling_db: float | None = None
+    mode_hz: float | None = None
+    bench: int | None = None
+
+
+@dataclass(frozen=True)
 class EmulatorConfig:
     """The emulated device's truth: model, effects, noise (um, 1 sigma), seed, watchdog (s), and
     the wire faults its servers inject."""
@@ -238,6 +253,8 @@ class EmulatorConfig:
     #: A two-axis stage's cross-coupling by direction (``"yx"``: y motion caused by x), from
     #: ``[emulator.coupling.yx]`` and ``[emulator.coupling.xy]`` of the profile's top level.
     coupling: tuple[tuple[str, Coupling], ...] = ()
+    #: A two-axis stage whose plant is the foreign x/y stage (both axes and the coupling).
+    xy_foreign: XYForeignSpec | None = None
 
     @property
     def true_model(self) -> Transducer:
@@ -248,7 +265,7 @@ class EmulatorConfig:
     def plant_model(self) -> Transducer | None:
         """The model the device simulates (:attr:`true_model`), the truth between its samples;
         None when its plant is a foreign stage: ``[emulator.model]`` is then not what it does."""
-        return None if self.foreign is not None else self.true_model
+        return None if self.foreign is not None or self.xy_foreign is not None else self.true_model
 
 
 @dataclass(frozen=True)
@@ -284,7 +301,8 @@ class Profile:
             return self
         if name != self.axes[0]:
             return self.other_axes[self.axes.index(name) - 1]
-        em = None if self.emulator is None else replace(self.emulator, coupling=())
+        em = (None if self.emulator is None
+              else replace(self.emulator, coupling=(), xy_foreign=None))
         return replace(self, name=f"{self.name}, axis {name}", emulator=em, axes=(name,),
                        other_axes=())
 
@@ -403,6 +421,7 @@ def _emulator(t: Table) -> EmulatorConfig:
     mt = t.table("model")
     assert mt is not None
     t.has("coupling")  # the stage's, read by from_table
+    t.has("xy_foreign")
     model = modelfile.from_table(mt)
     if mt.has("effects"):
         raise mt.fail("effects", "put the emulator's effects in [emulator.effects]")
@@ -488,8 +507,9 @@ def _other_axes(t: Table, axes: tuple[str, ...], rate: float, transport: Transpo
                 raise over.fail(key, f"not a per-axis section (an axis overrides "
                                      f"{', '.join(AXIS_SECTIONS)}; the rest is the stage's)")
         base = {k: v for k, v in t.data.items() if k in AXIS_SECTIONS}
-        if isinstance(base.get("emulator"), dict):  # the coupling is the stage's, not an axis's
-            base["emulator"] = {k: v for k, v in base["emulator"].items() if k != "coupling"}
+        if isinstance(base.get("emulator"), dict):  # the stage's, not an axis's
+            base["emulator"] = {k: v for k, v in base["emulator"].items()
+                                if k not in ("coupling", "xy_foreign")}
         if "emulator" in over.data and "emulator" not in base:
             raise over.fail("emulator", "the top level has no [emulator] for it to override")
         merged = Table(_merged(base, dict(over.data)), over.where)
@@ -540,8 +560,45 @@ def from_table(t: Table) -> Profile:
     if ct is not None and not isinstance(ct, dict):
         raise FileFormatError(f"{t.where} emulator.coupling: expected a table")
     coupling = _coupling(None if ct is None else Table(ct, f"{t.where} emulator.coupling"), axes)
-    emulator = None if first.emulator is None else replace(first.emulator, coupling=coupling)
+    xy = em.get("xy_foreign") if isinstance(em, dict) else None
+    xy_foreign = None if xy is None else _xy_foreign(
+        Table(xy, f"{t.where} emulator.xy_foreign") if isinstance(xy, dict) else None,
+        t, first, others)
+    emulator = None if first.emulator is None else replace(first.emulator, coupling=coupling,
+                                                           xy_foreign=xy_foreign)
     return replace(first, emulator=emulator, axes=axes, other_axes=others)
+
+
+#: The drive ranges of a foreign x/y stage (unipolar, bipolar), V.
+XY_FOREIGN_RANGES = ((0.0, 150.0), (-150.0, 150.0))
+
+
+def _xy_foreign(t: Table | None, top: Table, first: Profile,
+                others: tuple[Profile, ...]) -> XYForeignSpec:
+    """``[emulator.xy_foreign]``: needs two axes, each amplifier over the foreign stage's range."""
+    if t is None:
+        raise top.fail("emulator.xy_foreign", "expected a table")
+    known = ("seed", "coupling_dB", "mode_Hz", "bench")
+    for key in t.data:
+        if key not in known:
+            raise t.fail(key, f"unknown key (known: {', '.join(known)})")
+    if len(others) != 1:
+        raise t.fail("seed", 'a foreign x/y stage needs [axes] names = ["x", "y"]')
+    for axis in (first, *others):
+        if (axis.limits.v_min, axis.limits.v_max) not in XY_FOREIGN_RANGES:
+            raise t.fail("seed", f"{axis.name}: the foreign x/y stage drives 0 ... 150 V or "
+                                 f"-150 ... 150 V, the amplifier says {axis.limits.v_min:g} ... "
+                                 f"{axis.limits.v_max:g} V")
+    spec = XYForeignSpec(
+        t.integer("seed", 0),
+        t.number("coupling_dB") if t.has("coupling_dB") else None,
+        t.number("mode_Hz", positive=True) if t.has("mode_Hz") else None,
+        t.integer("bench", minimum=1) if t.has("bench") else None)
+    if spec.coupling_db is not None and not -45.0 <= spec.coupling_db <= -25.0:
+        raise t.fail("coupling_dB", f"must be in [-45, -25] dB, got {spec.coupling_db:g}")
+    if spec.bench is not None and spec.bench > 8:
+        raise t.fail("bench", f"the benchmark stages are 1 ... 8, got {spec.bench}")
+    return spec
 
 
 def shipped_names() -> list[str]:

@@ -78,6 +78,20 @@ def test_a_sample_beyond_channel_1s_limits_is_refused_before_anything_is_sent(ki
         assert emu.applied_log(emu.plant_time or 0.0).size == 0
 
 
+def test_the_foreign_xy_stage_plays_behind_the_wire_with_its_own_coupling() -> None:
+    """``emulated-xy-foreign``: the independently written x/y stage behind socket://; y follows x
+    by the stage's own static coupling (its formulas, -35 dB drawn), within 10 % over a sweep."""
+    from afmctl.drivers.device.foreign import xy_stage as xs
+    prof = shipped_profile("emulated-xy-foreign")
+    v = x_only(3000, 120.0, 10.0)
+    with stage_on("serial-socket", prof) as (stage, emu):
+        rec = stage.play(v)
+        truth = xs.describe(emu.physics.stage)["derived"]["yx_static"]  # type: ignore[attr-defined]
+    assert rec.valid.all() and abs(xs.db(truth) + 35.0) < 0.01
+    slope = coupling_slope(rec.displacement_um[:, 0], rec.displacement_um[:, 1])
+    assert abs(slope / truth - 1.0) < 0.1, (slope, truth)
+
+
 def test_a_one_axis_play_on_the_xy_device_drives_channel_0_and_holds_channel_1() -> None:
     """Old forms mean channel 0 (docs/reference/protocol.md §2.14): a (N,) waveform plays x while y
     holds its DC set point through the run."""
