@@ -377,9 +377,10 @@ class StageBase(abc.ABC):
             on channel ``c`` (the profile's axis ``axis_names[c]``).
         on_block : callable, optional
             ``on_block(first_index, voltage_v, displacement_um, valid)`` with arrays of shape (m,)
-            or (m, C) like the waveform (V, um, bool) for samples ``first_index .. first_index+m-1``; the blocks are in order,
-            contiguous and cover ``[0, N)`` even when the run fails (samples never measured are
-            NaN with ``valid=False``), unless on_block itself raised.
+            or (m, C) like the waveform (V, um, bool) for samples ``first_index ..
+            first_index+m-1``; the blocks are in order, contiguous and cover ``[0, N)`` even when
+            the run fails (samples never measured are NaN with ``valid=False``), unless on_block
+            itself raised.
         poll_s : float
             Pause between polls when there is nothing to do, s.
         timeout_s : float, optional

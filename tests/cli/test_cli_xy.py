@@ -63,3 +63,18 @@ def test_a_malformed_two_axis_profile_is_one_line_naming_the_key(
     res = CliRunner().invoke(main, ["status", "--profile", str(path), "--no-read"])
     assert res.exit_code == 2 and len(res.stderr.strip().splitlines()) == 1, res.output
     assert key in res.stderr and "Traceback" not in res.output
+
+
+@pytest.mark.parametrize(("old", "new", "key"), [
+    ("coupling_dB = -35.0", "coupling_dB = -20.0", "emulator.xy_foreign.coupling_dB"),
+    ("v_min_V = 0.0", "v_min_V = -100.0", "emulator.xy_foreign.seed"),
+    ("seed = 25", "sead = 25", "emulator.xy_foreign.sead"),
+])
+def test_a_malformed_foreign_xy_profile_is_one_line_naming_the_key(
+        old: str, new: str, key: str, tmp_path: Path) -> None:
+    text = (PROFILES / "emulated-xy-foreign.toml").read_text()
+    assert old in text
+    path = tmp_path / "xyf.toml"
+    path.write_text(text.replace(old, new, 1))
+    res = CliRunner().invoke(main, ["safe", "--profile", str(path)])
+    assert res.exit_code == 2 and key in res.stderr and "Traceback" not in res.output, res.output
