@@ -168,7 +168,9 @@ class StageBase(abc.ABC):
         """The device's own limits of ``channel``: v_min (V), v_max (V), slew (V/ms)."""
 
     def voltage(self, channel: int = 0) -> float:
-        """Output voltage of ``channel`` now, V."""
+        """Output voltage of ``channel`` now, V (this default knows channel 0's only)."""
+        if channel:
+            raise NotImplementedError(f"{type(self).__name__} reads channel 0's output only")
         return self.status().output_v
 
     def voltages(self) -> NDArray[np.float64]:
