@@ -178,7 +178,8 @@ def _both_run(bench: Bench, y: Axis, channels: int) -> str:
 def _stream(bench: Bench, y: Axis, channels: int) -> str:
     """§2.14(h): a stream of channels 0 and 1 through a 256-sample table, refilled per channel as
     it plays, ends at N with every channel recorded (an underrun the host caused: host late)."""
-    stage, n, length, block = bench.stage, 768, 256, 64
+    stage, n, length = bench.stage, 768, 256
+    block = min(64, stage.upload_chunk)
     with rate(bench, SLOW_RATE_HZ):
         x_wave = stream_wave(bench, n, SLOW_RATE_HZ)
         y_wave = x_wave * min(1.0, abs(y.top / bench.top)) * np.sign(y.top * bench.top)
