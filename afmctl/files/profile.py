@@ -33,8 +33,11 @@ from typing import ClassVar
 
 from afmctl.errors import FileFormatError
 from afmctl.files import modelfile
+from afmctl.files import profile_axes as pa
+from afmctl.files.profile_axes import XYForeignSpec
 from afmctl.files.tomlfile import Table, load
 from afmctl.guard import Limits
+from afmctl.model.coupling import Coupling
 from afmctl.model.effects import Effects, SecondMode
 from afmctl.model.transducer import Transducer
 
@@ -42,6 +45,7 @@ FORMAT = "afmctl-profile"
 FORMAT_VERSION = 1
 
 __all__ = ["Effects", "SecondMode", "FileFormatError", "FamilySpec", "ForeignStage", "Profile",
+           "XYForeignSpec",
            "load_profile",
            "default_profile", "shipped_profile", "shipped_names"]
 
@@ -234,6 +238,11 @@ class EmulatorConfig:
     faults: WireFaults = field(default_factory=WireFaults)
     foreign: ForeignStage | None = None
     family: FamilySpec | None = None
+    #: A two-axis stage's cross-coupling by direction (``"yx"``: y motion caused by x), from
+    #: ``[emulator.coupling.yx]`` and ``[emulator.coupling.xy]`` of the profile's top level.
+    coupling: tuple[tuple[str, Coupling], ...] = ()
+    #: A two-axis stage whose plant is the foreign x/y stage (both axes and the coupling).
+    xy_foreign: XYForeignSpec | None = None
 
     @property
     def true_model(self) -> Transducer:
@@ -244,7 +253,7 @@ class EmulatorConfig:
     def plant_model(self) -> Transducer | None:
         """The model the device simulates (:attr:`true_model`), the truth between its samples;
         None when its plant is a foreign stage: ``[emulator.model]`` is then not what it does."""
-        return None if self.foreign is not None else self.true_model
+        return None if self.foreign is not None or self.xy_foreign is not None else self.true_model
 
 
 @dataclass(frozen=True)
@@ -260,6 +269,30 @@ class Profile:
     sensor_offset_um: float
     thickness_um: float
     emulator: EmulatorConfig | None = None
+    #: Names of the stage's axes, channel 0 first (``("x",)``, or ``("x", "y")`` from ``[axes]``).
+    axes: tuple[str, ...] = ("x",)
+    #: The one-axis profiles of the axes after the first (``[axis.y]`` over the top level).
+    other_axes: tuple[Profile, ...] = ()
+
+    @property
+    def axis_names(self) -> tuple[str, ...]:
+        """The axes, channel 0 first: ``("x",)`` for a one-axis profile."""
+        return self.axes
+
+    def axis(self, name: str) -> Profile:
+        """The complete one-axis profile of axis ``name`` (its channel's limits, sensor, stack and
+        emulated plant; transport and sample rate the stage's). KeyError for an unknown axis."""
+        if name not in self.axes:
+            raise KeyError(f"profile {self.name!r} has no axis {name!r} (axes: "
+                           f"{', '.join(self.axes)})")
+        if len(self.axes) == 1:
+            return self
+        if name != self.axes[0]:
+            return self.other_axes[self.axes.index(name) - 1]
+        em = (None if self.emulator is None
+              else replace(self.emulator, coupling=(), xy_foreign=None))
+        return replace(self, name=f"{self.name}, axis {name}", emulator=em, axes=(name,),
+                       other_axes=())
 
 
 def _transport(t: Table) -> Transport:
@@ -365,6 +398,8 @@ def _family(t: Table | None) -> FamilySpec | None:
 def _emulator(t: Table) -> EmulatorConfig:
     mt = t.table("model")
     assert mt is not None
+    t.has("coupling")  # the stage's, read by from_table
+    t.has("xy_foreign")
     model = modelfile.from_table(mt)
     if mt.has("effects"):
         raise mt.fail("effects", "put the emulator's effects in [emulator.effects]")
@@ -386,23 +421,37 @@ def _emulator(t: Table) -> EmulatorConfig:
         foreign=foreign, family=family)
 
 
-def from_table(t: Table) -> Profile:
-    """Build a profile from its parsed TOML (see the module docstring for the schema)."""
-    t.check_format(FORMAT, FORMAT_VERSION)
-    rate = t.number("sample_rate_Hz", positive=True)
+def _channel(t: Table, name: str, rate: float, transport: Transport) -> Profile:
+    """The one-axis profile of the per-channel sections of ``t`` (amplifier, sensor, stack,
+    emulator) with the stage's name, sample rate and transport."""
     amp, sensor, stack = t.table("amplifier"), t.table("sensor"), t.table("stack")
     assert amp is not None and sensor is not None and stack is not None
     em = t.table("emulator", required=False)
-    transport = _transport(t.table("transport"))  # type: ignore[arg-type]
     if isinstance(transport, EmulatedTransport) and em is None:
         raise t.fail("emulator", "missing table (transport kind 'emulated' needs it)")
     return Profile(
-        name=t.string("name"), transport=transport, sample_rate_hz=rate,
+        name=name, transport=transport, sample_rate_hz=rate,
         limits=_limits(amp, rate), amplifier_gain=amp.number("gain_V_per_V", 1.0, positive=True),
         sensor_scale_um=sensor.number("scale_um_per_unit"),
         sensor_offset_um=sensor.number("offset_um", 0.0),
         thickness_um=stack.number("thickness_um", positive=True),
         emulator=None if em is None else _emulator(em))
+
+
+def from_table(t: Table) -> Profile:
+    """Build a profile from its parsed TOML (see the module docstring for the schema)."""
+    t.check_format(FORMAT, FORMAT_VERSION)
+    rate = t.number("sample_rate_Hz", positive=True)
+    transport = _transport(t.table("transport"))  # type: ignore[arg-type]
+    name = t.string("name")
+    axes = pa.axes_of(t)
+    first = _channel(t, name, rate, transport)
+    others = pa.other_axes(t, axes, lambda table, axis: _channel(table, f"{name}, axis {axis}",
+                                                                   rate, transport))
+    coupling, xy_foreign = pa.stage_plant(t, axes, first, others)
+    emulator = None if first.emulator is None else replace(first.emulator, coupling=coupling,
+                                                           xy_foreign=xy_foreign)
+    return replace(first, emulator=emulator, axes=axes, other_axes=others)
 
 
 def shipped_names() -> list[str]:
