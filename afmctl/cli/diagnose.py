@@ -117,6 +117,11 @@ def _record(d, names: tuple[str, ...], extended: bool):  # noqa: ANN001, ANN202 
     if d.cause == "unexplained":
         return FitRecord("diagnose", f"no candidate cause explains the residual ({held})", True,
                          names)
+    if d.separating is not None:  # indistinguishable: both files are the paper's model
+        s = d.separating
+        return FitRecord("diagnose", f"{s['sensor']} or {s['actuator']}, not separated by these "
+                                     f"sweeps ({held}): readings kept uncorrected", not over <= WARN,
+                         names)
     if not extended and d.cause != "none":
         return FitRecord("diagnose", f"misses {d.cause}, which diagnose named ({held}): track "
                                      f"with extended.toml", True, names)

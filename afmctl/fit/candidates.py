@@ -16,6 +16,11 @@ name                     phi (internal)                                   acts o
 ``voltage-gain-drift``   log g_s of every sweep but the last (mean 0)     field, per sweep
 =======================  ===============================================  =======================
 
+``actuator-nonlinearity`` (no parameter in ``phi``: a design column ``L[Q^3]`` whose gain is
+projected out, acting on the rod's input (16)) is no cause of the catalogue: it is the *twin* of
+``sensor-nonlinearity`` (:data:`TWINS`), the same cubic nonlinearity before the rod's dynamics
+instead of after it, fitted only to tell whether the sweeps separate the two.
+
 :mod:`afmctl.fit.extension` fits them. Pure numerics: no I/O.
 """
 
@@ -56,6 +61,18 @@ UNEXPLAINED = ("neither the paper's model nor any candidate explains the data do
                "sensor's noise: an effect outside the vocabulary (or several at once)")
 #: The candidates' names, in the catalogue's order.
 NAMES = tuple(CAUSES)
+#: Each sensor-side cause (it changes what afmctl believes the true position is) and its
+#: actuator-side twin (the same effect before the rod's dynamics: it moves the stage). A sensor
+#: cause is named only when the sweeps separate it from its twin (:mod:`afmctl.fit.verdict`).
+TWINS = {"sensor-nonlinearity": "actuator-nonlinearity", "sensor-delay": "amplifier-lag"}
+#: Twins fitted only as such, never named: their physical reading.
+TWIN_ONLY = {"actuator-nonlinearity": "a cubic nonlinearity of the actuator: the stack's "
+                                      "output, before the rod's dynamics, is a cubic in Q"}
+#: The verdict when a sensor-side cause explains the data but its actuator-side twin does as
+#: well (its reading in the report; the model keeps the readings uncorrected).
+INDISTINGUISHABLE = ("a sensor-side cause and its actuator-side twin explain these sweeps "
+                     "equally well: the readings are kept uncorrected (no sensor correction in "
+                     "the model), and a sweep that would separate them is suggested")
 #: Candidates by typical fit time, longest first (they are handed to the processes in this order).
 SLOWEST_FIRST = ("thermal-relaxation", "second-mode", "amplifier-lag")
 #: Candidates whose parameters change ``Q`` (they act on the field or in the kernel).
@@ -83,7 +100,9 @@ class Candidate:
     ``fresh_density``: the effect changes which coercive fields the data show (thermally
     activated dipoles switch ahead of E_c, and the relay model's fit absorbed that in a broader
     density with more weight beyond the peak field), so the multi-start also starts the density
-    afresh (:func:`density_starts`) and its short runs move the whole model with the effect."""
+    afresh (:func:`density_starts`) and its short runs move the whole model with the effect.
+    ``cubic``: the rod is driven by a cubic in ``Q`` as well (a design column ``L[Q^3]``, its
+    gain projected out like the others: one parameter added beyond ``labels``)."""
 
     name: str
     labels: tuple[str, ...]
@@ -95,10 +114,17 @@ class Candidate:
     own_states: bool = False
     sequenced: bool = False
     fresh_density: bool = False
+    cubic: bool = False
 
     @property
     def n_params(self) -> int:
+        """Nonlinear parameters added (``phi``)."""
         return len(self.labels)
+
+    @property
+    def n_added(self) -> int:
+        """Every parameter added to the base model (``phi`` and a projected cubic gain)."""
+        return self.n_params + int(self.cubic)
 
 
 def calibration_readings(preps: Sequence[pz.Prepared]) -> FloatArray:
@@ -174,6 +200,7 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
                         if f * rod_hz < 0.8 * nyquist_hz) or ((ln - 1, lf(0.03), 0.1, 0.0),),
                   (lf(min(1.05 * rod_hz, 0.3 * nyquist_hz)), lf(0.002), -0.9, -1.0),
                   (ln, lf(0.5), 3.0, 1.0), free_rod=True),
+        Candidate("actuator-nonlinearity", (), ((),), (), (), cubic=True),
     ]
     if n_sweeps >= 2:
         k = n_sweeps - 1
