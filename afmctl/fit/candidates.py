@@ -16,10 +16,13 @@ name                     phi (internal)                                   acts o
 ``voltage-gain-drift``   log g_s of every sweep but the last (mean 0)     field, per sweep
 =======================  ===============================================  =======================
 
-``actuator-nonlinearity`` (no parameter in ``phi``: a design column ``L[Q^3]`` whose gain is
-projected out, acting on the rod's input (16)) is no cause of the catalogue: it is the *twin* of
-``sensor-nonlinearity`` (:data:`TWINS`), the same cubic nonlinearity before the rod's dynamics
-instead of after it, fitted only to tell whether the sweeps separate the two.
+``actuator-nonlinearity`` (no parameter in ``phi``: design columns ``L[Q^3]`` and ``L[Q^4]``
+whose gains are projected out, acting on the rod's input (16)) is no cause of the catalogue: it is
+the *twin* of ``sensor-nonlinearity`` (:data:`TWINS`), the same nonlinearity before the rod's
+dynamics instead of after it (quasi-statically the gauge's ``w + c2 w^2 + c3 w^3`` of
+``w = g1 Q + g2 Q^2`` is a polynomial in ``Q`` whose terms beyond the fourth power are products
+of three small coefficients), fitted only to tell whether the sweeps separate the two, from the
+gauge's own fit (its model and start states: :func:`afmctl.fit.diagnose.diagnose`).
 
 :mod:`afmctl.fit.extension` fits them. Pure numerics: no I/O.
 """
@@ -66,8 +69,9 @@ NAMES = tuple(CAUSES)
 #: cause is named only when the sweeps separate it from its twin (:mod:`afmctl.fit.verdict`).
 TWINS = {"sensor-nonlinearity": "actuator-nonlinearity", "sensor-delay": "amplifier-lag"}
 #: Twins fitted only as such, never named: their physical reading.
-TWIN_ONLY = {"actuator-nonlinearity": "a cubic nonlinearity of the actuator: the stack's "
-                                      "output, before the rod's dynamics, is a cubic in Q"}
+TWIN_ONLY = {"actuator-nonlinearity": "a nonlinearity of the actuator: the force on the rod "
+                                      "is a polynomial in Q (to its fourth power), before the "
+                                      "rod's dynamics"}
 #: The verdict when a sensor-side cause explains the data but its actuator-side twin does as
 #: well (its reading in the report; the model keeps the readings uncorrected).
 INDISTINGUISHABLE = ("a sensor-side cause and its actuator-side twin explain these sweeps "
@@ -101,8 +105,9 @@ class Candidate:
     activated dipoles switch ahead of E_c, and the relay model's fit absorbed that in a broader
     density with more weight beyond the peak field), so the multi-start also starts the density
     afresh (:func:`density_starts`) and its short runs move the whole model with the effect.
-    ``cubic``: the rod is driven by a cubic in ``Q`` as well (a design column ``L[Q^3]``, its
-    gain projected out like the others: one parameter added beyond ``labels``)."""
+    ``powers``: the highest power of ``Q`` driving the rod (2: the paper's (16); more: design
+    columns ``L[Q^3]`` ... with their gains projected out like the others, each one parameter
+    added beyond ``labels``)."""
 
     name: str
     labels: tuple[str, ...]
@@ -114,7 +119,7 @@ class Candidate:
     own_states: bool = False
     sequenced: bool = False
     fresh_density: bool = False
-    cubic: bool = False
+    powers: int = 2
 
     @property
     def n_params(self) -> int:
@@ -123,8 +128,8 @@ class Candidate:
 
     @property
     def n_added(self) -> int:
-        """Every parameter added to the base model (``phi`` and a projected cubic gain)."""
-        return self.n_params + int(self.cubic)
+        """Every parameter added to the base model (``phi`` and projected gains)."""
+        return self.n_params + self.powers - 2
 
 
 def calibration_readings(preps: Sequence[pz.Prepared]) -> FloatArray:
@@ -200,7 +205,7 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
                         if f * rod_hz < 0.8 * nyquist_hz) or ((ln - 1, lf(0.03), 0.1, 0.0),),
                   (lf(min(1.05 * rod_hz, 0.3 * nyquist_hz)), lf(0.002), -0.9, -1.0),
                   (ln, lf(0.5), 3.0, 1.0), free_rod=True),
-        Candidate("actuator-nonlinearity", (), ((),), (), (), cubic=True),
+        Candidate("actuator-nonlinearity", (), ((),), (), (), powers=4),
     ]
     if n_sweeps >= 2:
         k = n_sweeps - 1

@@ -465,9 +465,24 @@ def _ignore_interrupt() -> None:
 
 def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:
     """The candidates tried on ``n_sweeps`` sweeps (gain drift needs two or more), and the
-    actuator-side twin of every sensor-side one (:data:`afmctl.fit.candidates.TWINS`)."""
+    actuator-side twin of every sensor-side one (:data:`afmctl.fit.candidates.TWINS`) that is a
+    cause of its own (a twin only, :data:`~afmctl.fit.candidates.TWIN_ONLY`, is fitted from its
+    sensor cause's fit: :func:`_twin_from`)."""
     names = [n for n in settings.candidates if n != "voltage-gain-drift" or n_sweeps >= 2]
-    return names + [cd.TWINS[n] for n in names if n in cd.TWINS and cd.TWINS[n] not in names]
+    return names + [t for n in names if (t := cd.TWINS.get(n)) in cd.NAMES and t not in names]
+
+
+def _twin_from(sensor: str, table: dict[str, Judged], job: _Job) -> Judged:
+    """The twin-only candidate of ``sensor`` fitted from the sensor cause's fit (its model's
+    ``x`` and start states; quasi-statically the two are the same readings) and judged on the
+    second halves."""
+    t1 = time.perf_counter()
+    fitted = table[sensor].fitted
+    space = _space(cd.TWINS[sensor], job).with_starts(fitted.starts)
+    twin, space = ext.fit(space, fitted.x[:6], job.thickness, job.settings.max_nfev, 1,
+                          job.settings.identify)
+    rms, per = heldout(space.on(job.whole), twin, job.sweeps)
+    return Judged(twin, space.candidate.n_added, rms, per, time.perf_counter() - t1)
 
 
 def scored(table: dict[str, Judged]) -> list[vd.Scored]:
@@ -546,6 +561,9 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
         whole = [pz.prepare(s, thickness, settings.identify.field_step, None) for s in sweeps]
         job = _Job(data, x0, thickness, range_um, settings, whole, tuple(sweeps))
         table = _judge_all(candidate_names(len(sweeps), settings), job, floor, say)
+        for sensor in [n for n in cd.TWINS if n in table and cd.TWINS[n] in cd.TWIN_ONLY]:
+            say(f"fitting {cd.TWINS[sensor]}, the twin of {sensor}, from its fit ...")
+            table[cd.TWINS[sensor]] = _twin_from(sensor, table, job)
         cause = choose(table, floor, settings.rule)
         pairs = tw.pairs(scored(table), settings.rule)
         separating = None

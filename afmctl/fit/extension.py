@@ -250,12 +250,13 @@ class ExtendedSpace:
 
     @property
     def n_rod(self) -> int:
-        """Design columns of the rod: ``L[Q]``, ``L[Q^2]`` (and ``L[Q^3]`` for a cubic)."""
-        return 3 if self.candidate.cubic else 2
+        """Design columns of the rod: ``L[Q]``, ``L[Q^2]``, ... (:attr:`Candidate.powers`)."""
+        return self.candidate.powers
 
     def _filtered(self, z: FloatArray) -> list[tuple[FloatArray, ...]]:
-        """Per sweep at the full rate: ``L[Q]``, ``L[Q^2]`` (``L[Q^3]`` for a cubic candidate)
-        and ``1`` after the output effects (the sensor zero is the rod's, so it sees them too)."""
+        """Per sweep at the full rate: ``L[Q]``, ``L[Q^2]`` (and higher powers,
+        :attr:`n_rod`) and ``1`` after the output effects (the sensor zero is the rod's, so it
+        sees them too)."""
         theta, phi = np.exp(z[:6]), z[6:]
         out, blocks = self._output(phi), []
         for q, p in zip(self._q(theta, phi), self.preps, strict=True):
@@ -269,8 +270,8 @@ class ExtendedSpace:
         return blocks
 
     def columns(self, z: FloatArray) -> list[FloatArray]:
-        """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` (``L[Q^3]`` before the ``1`` for a
-        cubic candidate) after the output effects (the sensor zero is the rod's, so it sees them
+        """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` (higher powers before the ``1``,
+        :attr:`n_rod`) after the output effects (the sensor zero is the rod's, so it sees them
         too), shape (N, :attr:`n_rod` + 1)."""
         return [np.column_stack(c) for c in self._filtered(z)]
 
@@ -299,8 +300,8 @@ class ExtendedSpace:
 
     def readings(self, z: FloatArray, beta: FloatArray) -> list[FloatArray]:
         """What the sensor reads (um) at every sample of every sweep for ``z`` and the linear
-        parameters ``beta = (g1, g2, zero_1, ..., zero_S)`` (``(g1, g2, g3, zero_1, ...)`` for
-        a cubic candidate)."""
+        parameters ``beta = (g1, g2, zero_1, ..., zero_S)`` (more gains before the zeros,
+        :attr:`n_rod`)."""
         gauge, k = self._gauge(z[6:]), self.n_rod
         return [fx.gauge(gauge, c[:, :k] @ beta[:k] + c[:, k] * beta[k + s])
                 for s, c in enumerate(self.columns(z))]
@@ -358,8 +359,8 @@ class ExtendedSpace:
         slowest sweep's readings and stated in that of its positions (:func:`effects.position_frame`:
         the rod's gains and zeros scaled and shifted with it), the frame of a lab's linear
         calibration of the gauge on that sweep: the readings the model predicts are the same.
-        A cubic candidate's model lacks its cubic (a model file holds none: that twin is judged,
-        never written)."""
+        The model of a candidate with higher powers of ``Q`` lacks them (a model file holds none:
+        that twin is judged, never written)."""
         a, y = self.system(z)
         beta, _ = pz.project(a, y)
         phi, name = z[6:], self.candidate.name
@@ -576,8 +577,8 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     model, gains, offsets = space.to_model(sol.x, thickness_um)
     beta = pz.project(*space.system(sol.x))[0]
     fitted = physical(space.candidate.name, model, gains)
-    if space.candidate.cubic:  # the gain of L[Q^3]: um of rod input per (C/m^2)^3
-        fitted["cubic_gain"] = float(beta[2])
+    for k in range(3, space.n_rod + 1):  # the gains of L[Q^k] (in the fit's units)
+        fitted[f"gain_Q{k}"] = float(beta[k - 1])
     return Extended(space.candidate.name, model, gains, fitted,
                     bool(sol.success and sol.status > 0), nfev, sol.x,
                     space.base.starts, offsets, beta), space
