@@ -79,6 +79,10 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     say(f"cause: {d.cause} (held-out RMS {d.base_rms_um:.4f} -> {d.extended_rms_um:.4f} um, "
         f"gain {d.gain:.2f}; {d.base_over_noise:.2f}x -> {d.extended_over_noise:.2f}x the noise "
         f"{d.noise_um:.4f} um); wrote {out}/" + ", ".join(OUTPUTS[1:] + OUTPUTS[:1]))
+    if d.cause == "unexplained":
+        say(d.closest_dict()["text"])
+    for s in d.suggestions() if d.separating is not None else []:
+        say(f"{s['reading']}: {s['measure']}")
     if as_json:
         click.echo(json.dumps(doc, allow_nan=False))
 
@@ -88,7 +92,7 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     from afmctl import plots
     from afmctl.experiment.runner import atomic_write
     from afmctl.files import modelfile
-    from afmctl.fit import diagnose as dg
+    from afmctl.fit import diagnosis_report
     make_dir(out, "--out")
     header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
     names = tuple(Path(f).name for f in sweep_files)
@@ -102,7 +106,7 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     plots.diagnosis_figure(data, before, after, d.base_model.thickness_um,
                            ("paper's model", f"extended: {d.cause}"), partial)
     partial.replace(out / "residuals.png")
-    atomic_write(out / "report.md", dg.report(d, "residuals.png"))
+    atomic_write(out / "report.md", diagnosis_report.report(d, "residuals.png"))
     atomic_write(out / "diagnosis.json", text)  # last: marks the folder complete
 
 

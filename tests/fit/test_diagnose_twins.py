@@ -23,6 +23,7 @@ from afmctl.drivers.device.foreign.stages import random_stage
 from afmctl.experiment import runner
 from afmctl.files import sweepfile as sw
 from afmctl.fit import diagnose as dg
+from afmctl.fit import diagnosis_report
 from afmctl.fit import identify as idf
 from afmctl.fit import twins
 from afmctl.planning import sweepdesign as sd
@@ -123,4 +124,7 @@ def test_without_the_fast_triangle_the_verdict_says_which_sweep_would_separate()
     assert s is not None and s["separates"] and s["kind"] == "triangle"
     assert 5.58 < s["frequency_hz"] <= 27.9 and s["difference_over_noise"] >= twins.SEPARATES
     assert s["text"].startswith(f"record a triangle at {s['frequency_hz']:.4g} Hz over 0 .. 150 V")
-    assert "# afmctl diagnose: indistinguishable" in dg.report(d, "residuals.png")
+    assert "# afmctl diagnose: indistinguishable" in diagnosis_report.report(d, "residuals.png")
+    from afmctl.cli.diagnose import _record  # the [fit] record both model files carry
+    for extended in (False, True):
+        assert "not separated by these sweeps" in _record(d, ("a.csv",), extended).verdict
