@@ -7,7 +7,17 @@ from pathlib import Path
 
 import click
 
-from afmctl.cli.base import Finite, check_output_dir, fit_settings, main, make_dir, say, timestamped, writing
+from afmctl.cli.base import (
+    Finite,
+    check_output_dir,
+    fit_settings,
+    load_profile_or_exit,
+    main,
+    make_dir,
+    say,
+    timestamped,
+    writing,
+)
 from afmctl.errors import InputError, OutputError
 
 OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residuals.png")
@@ -21,7 +31,7 @@ OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residua
 @click.option("--profile", "profile", default=None,
               help="Stage profile, a file or a shipped name (emulated, lab-serial, ...): its "
                    "[stack] thickness for sweeps without one; its [identify] table sets the "
-                   "fit options.")
+                   "fit options; a suggested separating sweep keeps to half its slew limit.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output folder (default: ./afmctl-diagnose-<time>).")
 @click.option("--noise-um", "noise_um", type=Finite(0, open_min=True), default=None,
@@ -46,7 +56,8 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     from afmctl.fit import identify as idf
     from afmctl.fit import parametrization
 
-    settings = dg.Settings(identify=fit_settings(profile), jobs=jobs)
+    slew = None if profile is None else load_profile_or_exit(profile).limits.slew_v_per_ms * 1e3
+    settings = dg.Settings(identify=fit_settings(profile), jobs=jobs, max_slew_v_per_s=slew)
     data = [sweeps.read_complete(f) for f in sweep_files]
     start = None if model_path is None else modelfile.read(model_path)
     if start is not None:

@@ -55,8 +55,10 @@ FloatArray = NDArray[np.float64]
 @dataclass(frozen=True)
 class Settings:
     """Options of :func:`diagnose`: identification settings of the fits, the solver budget per run,
-    the number of starts per candidate, the candidates, the verdict's thresholds and the number of
-    candidates fitted at once (``jobs``, processes; None: one per core)."""
+    the number of starts per candidate, the candidates, the verdict's thresholds, the number of
+    candidates fitted at once (``jobs``, processes; None: one per core) and the stage's slew
+    limit (V/s; None: unknown), which a suggested separating sweep keeps to
+    (:func:`afmctl.fit.twins.proposals`)."""
 
     identify: idf.Settings = idf.Settings()
     max_nfev: int = 60
@@ -64,6 +66,7 @@ class Settings:
     candidates: tuple[str, ...] = cd.NAMES
     rule: vd.Rule = vd.Rule()
     jobs: int | None = None
+    max_slew_v_per_s: float | None = None
 
 
 def fitted_text(parameters: dict[str, float]) -> str:
@@ -503,7 +506,8 @@ def _separating(table: dict[str, Judged], job: _Job, floor: float,
     pair = min((p for p in pairs if not p["separated"] and not p["refuted"]),
                key=lambda p: p["sensor_heldout_rms_um"])
     found = tw.separating_sweep(lambda name, s: _readings_on(table, job, name, s),
-                                pair["sensor"], job.sweeps, floor)
+                                pair["sensor"], job.sweeps, floor,
+                                job.settings.max_slew_v_per_s)
     return {"sensor": pair["sensor"], "actuator": pair["actuator"], "needed": pair["needed"],
             **found}
 

@@ -14,7 +14,9 @@ When they are not separated, :func:`separating_sweep` predicts, with both fitted
 readings of fast triangles over the recorded voltage range (2, 4, 8, ... times the fastest
 recorded frequency, up to a twentieth of the fastest sample rate) and of a step, and names the
 first that puts the two predictions :data:`SEPARATES` times the noise floor apart (RMS): the
-sweep to record. Pure numerics: no I/O.
+sweep to record. Given the stage's slew limit, every proposal keeps to :data:`SLEW_SHARE` of it
+(as the separating design's steps do): a fast triangle narrows about the range's middle, the
+step becomes a ramp. Pure numerics: no I/O.
 """
 
 from __future__ import annotations
@@ -39,6 +41,10 @@ DOUBLINGS = 8
 CYCLES = 4
 #: A proposed step: held at the low end, at the high end and at the low end again, s.
 STEP_HOLDS_S = (0.01, 0.04, 0.04)
+#: Share of the stage's slew limit a proposed sweep may use.
+SLEW_SHARE = 0.5
+#: A triangle narrowed by the slew limit to under this share of the range is not proposed.
+NARROWEST = 0.1
 
 
 def pairs(scored: Sequence[vd.Scored], rule: vd.Rule = vd.Rule()) -> list[dict[str, Any]]:
@@ -65,36 +71,46 @@ def _triangle(hz: float, lo: float, hi: float, fs: float) -> FloatArray:
     return np.interp((t * hz) % 1.0, [0.0, 0.5, 1.0], [lo, hi, lo])
 
 
-def _step(lo: float, hi: float, fs: float) -> FloatArray:
-    return np.concatenate([np.full(max(int(round(h * fs)), 1), v)
-                           for h, v in zip(STEP_HOLDS_S, (lo, hi, lo), strict=True)])
+def _step(lo: float, hi: float, fs: float, slew: float) -> FloatArray:
+    """Held at ``lo``, ``hi`` and ``lo`` (:data:`STEP_HOLDS_S`), moving between them at ``slew``
+    (V/s; within one sample if faster)."""
+    up = np.linspace(lo, hi, max(int(np.ceil((hi - lo) / slew * fs)), 1) + 1)[1:]
+    held = [np.full(max(int(round(h * fs)), 1), v)
+            for h, v in zip(STEP_HOLDS_S, (lo, hi, lo), strict=True)]
+    return np.concatenate([held[0], up, held[1], up[::-1], held[2]])
 
 
-def proposals(sweeps: Sequence[Sweep]) -> list[tuple[dict[str, Any], Sweep]]:
+def proposals(sweeps: Sequence[Sweep], max_slew_v_per_s: float | None = None
+              ) -> list[tuple[dict[str, Any], Sweep]]:
     """The sweeps :func:`separating_sweep` tries, each with its description: fast triangles over
-    the recorded voltage range at the fastest recorded sample rate, slowest first, then a step."""
+    the recorded voltage range at the fastest recorded sample rate, slowest first, then a step;
+    within :data:`SLEW_SHARE` of ``max_slew_v_per_s`` (V/s; None: no limit)."""
     fs = max(1.0 / s.dt for s in sweeps)
     lo = min(float(np.min(s.voltage_v)) for s in sweeps)
     hi = max(float(np.max(s.voltage_v)) for s in sweeps)
     f0 = max((s.frequency_hz or 0.0 for s in sweeps), default=0.0) or fs / 1000
+    slew = SLEW_SHARE * max_slew_v_per_s if max_slew_v_per_s else np.inf
     out = []
     for k in range(1, DOUBLINGS + 1):
         hz = f0 * 2 ** k
-        if hz > fs / 20:
+        half = 0.5 * min(hi - lo, slew / (2 * hz))  # the slew limit narrows a fast triangle
+        if hz > fs / 20 or 2 * half < NARROWEST * (hi - lo):
             break
-        what = {"kind": "triangle", "frequency_hz": hz, "v_range_V": [lo, hi],
-                "sample_rate_hz": fs, "slew_V_per_s": 2 * (hi - lo) * hz}
-        v = _triangle(hz, lo, hi, fs)
+        a, b = 0.5 * (lo + hi) - half, 0.5 * (lo + hi) + half
+        what = {"kind": "triangle", "frequency_hz": hz, "v_range_V": [a, b],
+                "sample_rate_hz": fs, "slew_V_per_s": 2 * (b - a) * hz}
+        v = _triangle(hz, a, b, fs)
         out.append((what, from_arrays(v, np.zeros_like(v), fs, {"frequency_hz": f"{hz:g}"},
                                       f"triangle_{hz:.4g}hz")))
-    v = _step(lo, hi, fs)
+    v = _step(lo, hi, fs, slew)
     step = {"kind": "step", "frequency_hz": None, "v_range_V": [lo, hi], "sample_rate_hz": fs,
-            "slew_V_per_s": (hi - lo) * fs}
+            "slew_V_per_s": min((hi - lo) * fs, slew)}
     return out + [(step, from_arrays(v, np.zeros_like(v), fs, {}, "step"))]
 
 
 def separating_sweep(readings: Callable[[str, Sweep], FloatArray], sensor: str,
-                     sweeps: Sequence[Sweep], floor_um: float) -> dict[str, Any]:
+                     sweeps: Sequence[Sweep], floor_um: float,
+                     max_slew_v_per_s: float | None = None) -> dict[str, Any]:
     """The first of :func:`proposals` on which the fitted sensor cause and its fitted twin
     predict readings at least :data:`SEPARATES` times ``floor_um`` apart (RMS after the first
     cycle), or the proposal that puts them furthest apart if none does.
@@ -109,6 +125,8 @@ def separating_sweep(readings: Callable[[str, Sweep], FloatArray], sensor: str,
         The recorded sweeps (their voltage range, fastest frequency and sample rate).
     floor_um : float
         The noise floor, um.
+    max_slew_v_per_s : float, optional
+        The stage's slew limit, V/s (:func:`proposals`).
 
     Returns
     -------
@@ -118,7 +136,7 @@ def separating_sweep(readings: Callable[[str, Sweep], FloatArray], sensor: str,
         proposal tried (``tried``) and one sentence (``text``).
     """
     twin, tried, found = TWINS[sensor], [], None
-    for what, sweep in proposals(sweeps):
+    for what, sweep in proposals(sweeps, max_slew_v_per_s):
         hz = what["frequency_hz"]
         judged = sweep.time_s >= (1.0 / hz if hz else 0.0)
         diff = readings(sensor, sweep) - readings(twin, sweep)
@@ -136,8 +154,8 @@ def separating_sweep(readings: Callable[[str, Sweep], FloatArray], sensor: str,
 def _text(sensor: str, twin: str, row: dict[str, Any], separates: bool) -> str:
     lo, hi = row["v_range_V"]
     what = (f"a triangle at {row['frequency_hz']:.4g} Hz" if row["kind"] == "triangle"
-            else "a step") + (f" over {lo:g} .. {hi:g} V at {row['sample_rate_hz']:g} samples/s "
-                              f"(slew {row['slew_V_per_s']:.3g} V/s, if the profile allows it)")
+            else "a step") + (f" over {lo:.4g} .. {hi:.4g} V at {row['sample_rate_hz']:g} "
+                              f"samples/s (slew {row['slew_V_per_s']:.3g} V/s)")
     apart = (f"{sensor} and {twin}, as fitted, predict readings "
              f"{row['difference_over_noise']:.1f}x the noise apart there")
     if separates:

@@ -49,7 +49,7 @@ def test_pi_stage_with_a_cubic_output_map_gets_no_sensor_correction() -> None:
     (3.3x -> 1.89x the noise) and tracking with that model put the TRUE position 2.7x further
     off (0.559 um) than identify's model (0.210 um). Now the gauge and the same nonlinearity
     before the rod (1.91x) are not separated: ``indistinguishable``, the paper's model written,
-    tracking as good as identify's, and a faster sweep suggested."""
+    tracking as good as identify's, and a faster sweep suggested within the profile's slew."""
     case = family_sets.cases_named("pi-b")[0]
     with family_sets.session(case) as s:
         lo, hi, rate = s.profile.limits.v_min, s.profile.limits.v_max, s.profile.sample_rate_hz
@@ -59,7 +59,9 @@ def test_pi_stage_with_a_cubic_output_map_gets_no_sensor_correction() -> None:
                   for hz, n in SMALL]
         ident = idf.fit(sweeps, replace(idf.Settings(), representation="hem", restarts=0,
                                         density="parametric"))  # the model diagnose extends
-        d = dg.diagnose(sweeps, dg.Settings(candidates=GAUGE_ONLY, jobs=1), start=ident.model)
+        slew = s.profile.limits.slew_v_per_ms * 1e3  # V/s: the suggested sweep keeps to half
+        d = dg.diagnose(sweeps, dg.Settings(candidates=GAUGE_ONLY, jobs=1, max_slew_v_per_s=slew),
+                        start=ident.model)
         assert d.cause == "indistinguishable", d.evidence()
         assert d.extended_model.effects == ident.model.effects  # no sensor correction written
         a, b = family_sets.span_of(sweeps)
@@ -73,6 +75,7 @@ def test_pi_stage_with_a_cubic_output_map_gets_no_sensor_correction() -> None:
     assert pair["actuator_over_sensor"] < 1.1
     sweep = doc["separating_sweep"]
     assert sweep["sensor"] == "sensor-nonlinearity" and sweep["kind"] in ("triangle", "step")
+    assert all(r["slew_V_per_s"] <= twins.SLEW_SHARE * slew * (1 + 1e-9) for r in sweep["tried"])
     assert sweep["difference_over_noise"] == pytest.approx(
         sweep["difference_um"] / d.noise_um)
     assert "do not tell an effect in the sensor from one before the rod's dynamics" in (
