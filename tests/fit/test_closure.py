@@ -16,6 +16,7 @@ from afmctl.cli import main
 from afmctl.drivers.device.foreign import family_stage as fst
 from afmctl.files import sweepfile as sw
 from afmctl.fit import closure
+from tests.harness.paths import PROFILES
 
 RATE_HZ = 1000.0
 
@@ -68,7 +69,6 @@ def test_identify_says_when_minor_loops_do_not_close(tmp_path: Path) -> None:
     path = tmp_path / "bw.csv"
     sw.write(minor_loops(1, "bouc-wen"), path)
     prof = tmp_path / "p.toml"
-    from tests.harness.paths import PROFILES
     prof.write_text((PROFILES / "emulated.toml").read_text()
                     + "\n[identify]\nmax_nfev = 2\nrestarts = 0\nn_coercive_fit = 32\n"
                     "representation = \"hem\"\n")  # the fit does not matter here: be quick
