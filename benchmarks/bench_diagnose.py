@@ -231,6 +231,7 @@ def run_case(case: tuple[str, float | None, int], design: str = "standard") -> d
         "extended_rms_um": d.extended_rms_um, "noise_est_um": d.noise_um,
         "base_over_noise": d.base_over_noise, "extended_over_noise": d.extended_over_noise,
         "closest": d.closest.fitted.name,
+        "closest_explained_fraction": d.closest_dict()["explained_fraction"],
         "fitted": d.table[d.cause].fitted.parameters if d.cause in d.table else {},
         "twins": list(d.twins), "separating_sweep": d.separating,
         "seconds": round(d.seconds, 1), "design": design}
@@ -287,6 +288,7 @@ def family_row(name: str) -> dict[str, Any]:
             and named not in present,
             "noise_um": s.noise_um, "base_over_noise": d.base_over_noise,
             "extended_over_noise": d.extended_over_noise, "closest": d.closest.fitted.name,
+            "closest_explained_fraction": d.closest_dict()["explained_fraction"],
             "seconds": round(d.seconds, 1)}
 
 
