@@ -82,6 +82,12 @@ def test_pi_stage_with_a_cubic_output_map_gets_no_sensor_correction() -> None:
         doc["evidence"])
     assert doc["suggestions"][0]["measure"] == sweep["text"]
     assert "readings are kept uncorrected" in doc["explanation"]
+    closest = doc["closest"]  # issue 23 item 7: how much of the misfit the closest explains
+    frac = (d.base_rms_um ** 2 - closest["heldout_rms_um"] ** 2) / (d.base_rms_um ** 2
+                                                                     - d.noise_um ** 2)
+    assert closest["explained_fraction"] == pytest.approx(frac) and 0.5 < frac < 1.0
+    assert closest["text"].startswith(f"closest: {closest['model']}, explains "
+                                      f"{100 * frac:.0f} % of the misfit")
 
 
 def _gauge_stage_sweeps(sets: tuple[tuple[float, int], ...]) -> list[sw.Sweep]:
