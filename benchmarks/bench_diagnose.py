@@ -231,7 +231,9 @@ def run_case(case: tuple[str, float | None, int], design: str = "standard") -> d
         "extended_rms_um": d.extended_rms_um, "noise_est_um": d.noise_um,
         "base_over_noise": d.base_over_noise, "extended_over_noise": d.extended_over_noise,
         "closest": d.closest.fitted.name,
+        "closest_explained_fraction": d.closest_dict()["explained_fraction"],
         "fitted": d.table[d.cause].fitted.parameters if d.cause in d.table else {},
+        "twins": list(d.twins), "separating_sweep": d.separating,
         "seconds": round(d.seconds, 1), "design": design}
     if cause in TRACKABLE:
         rms = track_rms(stage, state, {"base": d.base, "extended": d.extended}, sweeps,
@@ -250,7 +252,7 @@ def right(row: dict[str, Any]) -> bool:
 def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     effect = [r for r in rows if r["cause"] != "none"]
     tracked = [r for r in rows if "track_base_rms_um" in r]
-    labels = ["none", *IN_VOCABULARY, "unexplained"]
+    labels = ["none", *IN_VOCABULARY, "unexplained", "indistinguishable"]
     truths = ["none", *IN_VOCABULARY, *OUT_OF_VOCABULARY]
     confusion = {t: {lab: sum(r["cause"] == t and r["named"] == lab for r in rows)
                      for lab in labels} for t in truths}
@@ -260,6 +262,7 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "unexplained_right": sum(r["named"] == "unexplained" for r in rows
                                      if r["cause"] in OUT_OF_VOCABULARY),
             "out_of_vocabulary_cases": sum(r["cause"] in OUT_OF_VOCABULARY for r in rows),
+            "indistinguishable": sum(r["named"] == "indistinguishable" for r in rows),
             "median_seconds": statistics.median(r["seconds"] for r in rows),
             "track_extended_beats_base": sum(r["track_extended_rms_um"] < r["track_base_rms_um"]
                                              for r in tracked),
@@ -281,9 +284,11 @@ def family_row(name: str) -> dict[str, Any]:
     named = d.cause
     return {"stage": case.name, "family": case.family, "creep": case.creep, "drift": case.drift,
             "effect": case.effect, "want": case.cause, "named": named,
-            "wrong": named not in ("none", "unexplained") and named not in present,
+            "wrong": named not in ("none", "unexplained", "indistinguishable")
+            and named not in present,
             "noise_um": s.noise_um, "base_over_noise": d.base_over_noise,
             "extended_over_noise": d.extended_over_noise, "closest": d.closest.fitted.name,
+            "closest_explained_fraction": d.closest_dict()["explained_fraction"],
             "seconds": round(d.seconds, 1)}
 
 

@@ -7,7 +7,17 @@ from pathlib import Path
 
 import click
 
-from afmctl.cli.base import Finite, check_output_dir, fit_settings, main, make_dir, say, timestamped, writing
+from afmctl.cli.base import (
+    Finite,
+    check_output_dir,
+    fit_settings,
+    load_profile_or_exit,
+    main,
+    make_dir,
+    say,
+    timestamped,
+    writing,
+)
 from afmctl.errors import InputError, OutputError
 
 OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residuals.png")
@@ -21,7 +31,7 @@ OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residua
 @click.option("--profile", "profile", default=None,
               help="Stage profile, a file or a shipped name (emulated, lab-serial, ...): its "
                    "[stack] thickness for sweeps without one; its [identify] table sets the "
-                   "fit options.")
+                   "fit options; a suggested separating sweep keeps to half its slew limit.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output folder (default: ./afmctl-diagnose-<time>).")
 @click.option("--noise-um", "noise_um", type=Finite(0, open_min=True), default=None,
@@ -46,7 +56,8 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     from afmctl.fit import identify as idf
     from afmctl.fit import parametrization
 
-    settings = dg.Settings(identify=fit_settings(profile), jobs=jobs)
+    slew = None if profile is None else load_profile_or_exit(profile).limits.slew_v_per_ms * 1e3
+    settings = dg.Settings(identify=fit_settings(profile), jobs=jobs, max_slew_v_per_s=slew)
     data = [sweeps.read_complete(f) for f in sweep_files]
     start = None if model_path is None else modelfile.read(model_path)
     if start is not None:
@@ -79,6 +90,10 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     say(f"cause: {d.cause} (held-out RMS {d.base_rms_um:.4f} -> {d.extended_rms_um:.4f} um, "
         f"gain {d.gain:.2f}; {d.base_over_noise:.2f}x -> {d.extended_over_noise:.2f}x the noise "
         f"{d.noise_um:.4f} um); wrote {out}/" + ", ".join(OUTPUTS[1:] + OUTPUTS[:1]))
+    if d.cause == "unexplained":
+        say(d.closest_dict()["text"])
+    for s in d.suggestions() if d.separating is not None else []:
+        say(f"{s['reading']}: {s['measure']}")
     if as_json:
         click.echo(json.dumps(doc, allow_nan=False))
 
@@ -88,7 +103,7 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     from afmctl import plots
     from afmctl.experiment.runner import atomic_write
     from afmctl.files import modelfile
-    from afmctl.fit import diagnose as dg
+    from afmctl.fit import diagnosis_report
     make_dir(out, "--out")
     header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
     names = tuple(Path(f).name for f in sweep_files)
@@ -102,7 +117,7 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     plots.diagnosis_figure(data, before, after, d.base_model.thickness_um,
                            ("paper's model", f"extended: {d.cause}"), partial)
     partial.replace(out / "residuals.png")
-    atomic_write(out / "report.md", dg.report(d, "residuals.png"))
+    atomic_write(out / "report.md", diagnosis_report.report(d, "residuals.png"))
     atomic_write(out / "diagnosis.json", text)  # last: marks the folder complete
 
 
@@ -116,6 +131,11 @@ def _record(d, names: tuple[str, ...], extended: bool):  # noqa: ANN001, ANN202 
     held = f"held-out RMS {over:.1f}x the noise"
     if d.cause == "unexplained":
         return FitRecord("diagnose", f"no candidate cause explains the residual ({held})", True,
+                         names)
+    if d.separating is not None:  # indistinguishable: both files are the paper's model
+        s = d.separating
+        return FitRecord("diagnose", f"{s['sensor']} or {s['actuator']}, not separated by these "
+                                     f"sweeps ({held}): readings kept uncorrected", not over <= WARN,
                          names)
     if not extended and d.cause != "none":
         return FitRecord("diagnose", f"misses {d.cause}, which diagnose named ({held}): track "

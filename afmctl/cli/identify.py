@@ -64,9 +64,9 @@ def start_notes(result: Any, data: Any) -> list[str]:
             f"was driven there"]
 
 
-def _report(result: Any, data: Any = None, reach: str = "") -> str:
+def _report(result: Any, data: Any = None, reach: str = "", loops: str = "") -> str:
     """Human-readable fit report (``result`` is an ``identify.FitResult``, ``data`` its
-    sweeps)."""
+    sweeps, ``loops`` the minor loops' closure in words)."""
     state = "converged" if result.success else "NOT CONVERGED (its best point is kept)"
     lines = [f"fit {state}: {result.message} (status {result.status}, {result.nfev} evaluations, "
              f"{result.seconds:.2f} s)"]
@@ -85,6 +85,8 @@ def _report(result: Any, data: Any = None, reach: str = "") -> str:
                      f"{s.rms_over_noise:9.2f} {s.max_um:9.4f} {s.rms_pct:7.3f}")
     if data is not None:
         lines += start_notes(result, data)
+    if loops:
+        lines.append(loops)
     lines.append("parameters (1-sigma from the Jacobian):")
     for p in result.parameters:
         err = "fixed (scale convention)" if p.fixed else f"+- {p.stderr:.4g}"
@@ -130,6 +132,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
     """
     from afmctl.files import modelfile
     from afmctl.files import sweepfile as sweeps
+    from afmctl.fit import closure
     from afmctl.fit import identify as idf
 
     settings = fit_settings(profile)
@@ -157,6 +160,9 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
                                        settings.window_s):
                 say(f"wrote {p}")
     _warn_above_floor(result)
+    loops = closure.check(data, [s.noise_um for s in result.sweeps])
+    if loops["close"] is False:
+        click.echo(f"warning: {loops['text']}", err=True)
     if result.finite and not result.success:
         click.echo(f"warning: the solver stopped before converging ({result.message}); the "
                    f"model written is its best point (at_noise_floor: "
@@ -166,9 +172,10 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
         doc = result.to_dict()
         if reach is not None:
             doc["reach_um"] = list(reach[:2])
+        doc["minor_loops"] = loops
         click.echo(json.dumps(doc))
     else:
-        click.echo(_report(result, data, "" if reach is None else reach[2]))
+        click.echo(_report(result, data, "" if reach is None else reach[2], loops["text"]))
     if not result.finite:
         sys.exit(1)
 

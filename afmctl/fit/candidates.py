@@ -16,6 +16,14 @@ name                     phi (internal)                                   acts o
 ``voltage-gain-drift``   log g_s of every sweep but the last (mean 0)     field, per sweep
 =======================  ===============================================  =======================
 
+``actuator-nonlinearity`` (no parameter in ``phi``: design columns ``L[Q^3]`` and ``L[Q^4]``
+whose gains are projected out, acting on the rod's input (16)) is no cause of the catalogue: it is
+the *twin* of ``sensor-nonlinearity`` (:data:`TWINS`), the same nonlinearity before the rod's
+dynamics instead of after it (quasi-statically the gauge's ``w + c2 w^2 + c3 w^3`` of
+``w = g1 Q + g2 Q^2`` is a polynomial in ``Q`` whose terms beyond the fourth power are products
+of three small coefficients), fitted only to tell whether the sweeps separate the two, from the
+gauge's own fit (its model and start states: :func:`afmctl.fit.diagnose.diagnose`).
+
 :mod:`afmctl.fit.extension` fits them. Pure numerics: no I/O.
 """
 
@@ -56,6 +64,19 @@ UNEXPLAINED = ("neither the paper's model nor any candidate explains the data do
                "sensor's noise: an effect outside the vocabulary (or several at once)")
 #: The candidates' names, in the catalogue's order.
 NAMES = tuple(CAUSES)
+#: Each sensor-side cause (it changes what afmctl believes the true position is) and its
+#: actuator-side twin (the same effect before the rod's dynamics: it moves the stage). A sensor
+#: cause is named only when the sweeps separate it from its twin (:mod:`afmctl.fit.verdict`).
+TWINS = {"sensor-nonlinearity": "actuator-nonlinearity", "sensor-delay": "amplifier-lag"}
+#: Twins fitted only as such, never named: their physical reading.
+TWIN_ONLY = {"actuator-nonlinearity": "a nonlinearity of the actuator: the force on the rod "
+                                      "is a polynomial in Q (to its fourth power), before the "
+                                      "rod's dynamics"}
+#: The verdict when a sensor-side cause explains the data but its actuator-side twin does as
+#: well (its reading in the report; the model keeps the readings uncorrected).
+INDISTINGUISHABLE = ("a sensor-side cause and its actuator-side twin explain these sweeps "
+                     "equally well: the readings are kept uncorrected (no sensor correction in "
+                     "the model), and a sweep that would separate them is suggested")
 #: Candidates by typical fit time, longest first (they are handed to the processes in this order).
 SLOWEST_FIRST = ("thermal-relaxation", "second-mode", "amplifier-lag")
 #: Candidates whose parameters change ``Q`` (they act on the field or in the kernel).
@@ -83,7 +104,10 @@ class Candidate:
     ``fresh_density``: the effect changes which coercive fields the data show (thermally
     activated dipoles switch ahead of E_c, and the relay model's fit absorbed that in a broader
     density with more weight beyond the peak field), so the multi-start also starts the density
-    afresh (:func:`density_starts`) and its short runs move the whole model with the effect."""
+    afresh (:func:`density_starts`) and its short runs move the whole model with the effect.
+    ``powers``: the highest power of ``Q`` driving the rod (2: the paper's (16); more: design
+    columns ``L[Q^3]`` ... with their gains projected out like the others, each one parameter
+    added beyond ``labels``)."""
 
     name: str
     labels: tuple[str, ...]
@@ -95,10 +119,17 @@ class Candidate:
     own_states: bool = False
     sequenced: bool = False
     fresh_density: bool = False
+    powers: int = 2
 
     @property
     def n_params(self) -> int:
+        """Nonlinear parameters added (``phi``)."""
         return len(self.labels)
+
+    @property
+    def n_added(self) -> int:
+        """Every parameter added to the base model (``phi`` and projected gains)."""
+        return self.n_params + self.powers - 2
 
 
 def calibration_readings(preps: Sequence[pz.Prepared]) -> FloatArray:
@@ -174,6 +205,7 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
                         if f * rod_hz < 0.8 * nyquist_hz) or ((ln - 1, lf(0.03), 0.1, 0.0),),
                   (lf(min(1.05 * rod_hz, 0.3 * nyquist_hz)), lf(0.002), -0.9, -1.0),
                   (ln, lf(0.5), 3.0, 1.0), free_rod=True),
+        Candidate("actuator-nonlinearity", (), ((),), (), (), powers=4),
     ]
     if n_sweeps >= 2:
         k = n_sweeps - 1

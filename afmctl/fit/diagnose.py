@@ -14,7 +14,8 @@ Given measured sweeps, :func:`diagnose`
    ``unexplained`` when nothing is (with how far, the residual's signature and what to measure);
 5. analyses the base model's residuals against time, field, field rate, frequency, amplitude,
    turning points, a tone that is no harmonic of the drive, and between sweeps
-   (:func:`residual_signature`). The model files are the fits on the first halves.
+   (:func:`afmctl.fit.residuals.residual_signature`). The model files are the fits on the first
+   halves.
 
 Pure numerics and data: files and plots are written by the CLI (:mod:`afmctl.cli`).
 """
@@ -41,7 +42,9 @@ from afmctl.fit import extension as ext
 from afmctl.fit import identify as idf
 from afmctl.fit import noise as ns
 from afmctl.fit import parametrization as pz
+from afmctl.fit import twins as tw
 from afmctl.fit import verdict as vd
+from afmctl.fit.residuals import predicted, residual_signature
 from afmctl.fit.verdict import ratio, required_gain
 from afmctl.model import transducer as td
 
@@ -52,8 +55,10 @@ FloatArray = NDArray[np.float64]
 @dataclass(frozen=True)
 class Settings:
     """Options of :func:`diagnose`: identification settings of the fits, the solver budget per run,
-    the number of starts per candidate, the candidates, the verdict's thresholds and the number of
-    candidates fitted at once (``jobs``, processes; None: one per core)."""
+    the number of starts per candidate, the candidates, the verdict's thresholds, the number of
+    candidates fitted at once (``jobs``, processes; None: one per core) and the stage's slew
+    limit (V/s; None: unknown), which a suggested separating sweep keeps to
+    (:func:`afmctl.fit.twins.proposals`)."""
 
     identify: idf.Settings = idf.Settings()
     max_nfev: int = 60
@@ -61,6 +66,7 @@ class Settings:
     candidates: tuple[str, ...] = cd.NAMES
     rule: vd.Rule = vd.Rule()
     jobs: int | None = None
+    max_slew_v_per_s: float | None = None
 
 
 def fitted_text(parameters: dict[str, float]) -> str:
@@ -92,7 +98,10 @@ class Diagnosis:
     """Outcome of :func:`diagnose`: the verdict, held-out RMS (um) of the base and the extended
     model, the noise floor (um, overall and per sweep), the candidate table, both models fitted on
     the first halves (the extended one with its per-sweep applied-voltage gains; the base again if no
-    cause is named), the residual signature and the wall time (s)."""
+    cause is named), the residual signature, the wall time (s), every fitted sensor-side cause
+    with its actuator-side twin (:func:`afmctl.fit.twins.pairs`) and, when the verdict is
+    ``indistinguishable``, the sweep that would separate them
+    (:func:`afmctl.fit.twins.separating_sweep`, with the pair's names)."""
 
     cause: str
     base_rms_um: float
@@ -105,6 +114,8 @@ class Diagnosis:
     signature: dict[str, Any]
     seconds: float
     files: tuple[str, ...]
+    twins: tuple[dict[str, Any], ...] = ()
+    separating: dict[str, Any] | None = None
 
     @property
     def gain(self) -> float:
@@ -140,20 +151,47 @@ class Diagnosis:
         """The model (base or candidate) with the smallest held-out RMS."""
         return min(self.table.values(), key=lambda j: j.heldout_rms_um)
 
+    @property
+    def explanation(self) -> str:
+        """The verdict's physical reading."""
+        if self.cause == vd.INDISTINGUISHABLE:
+            return cd.INDISTINGUISHABLE
+        return cd.CAUSES.get(self.cause, cd.UNEXPLAINED)
+
+    def closest_dict(self) -> dict[str, Any]:
+        """The model nearest the floor: held-out RMS (um), over the noise, the fraction of the
+        base model's misfit it explains (:func:`afmctl.fit.verdict.explained`) and a phrase."""
+        c = self.closest
+        frac = vd.explained(self.base_rms_um, c.heldout_rms_um, self.noise_um)
+        return {"model": c.fitted.name, "heldout_rms_um": c.heldout_rms_um,
+                "over_noise": ratio(c.heldout_rms_um, self.noise_um), "explained_fraction": frac,
+                "text": vd.closest_phrase(c.fitted.name, frac)}
+
+    def suggestions(self) -> list[dict[str, str]]:
+        """What would tell more: the residual's hints when unexplained, the separating sweep
+        when indistinguishable (none otherwise)."""
+        if self.cause == "unexplained":
+            return vd.suggestions(self.signature)
+        if self.separating is not None:
+            s = self.separating
+            return [{"feature": "twins", "reading": f"{s['sensor']} and its actuator-side twin "
+                     f"{s['actuator']} explain these sweeps equally well",
+                     "measure": s["text"]}]
+        return []
+
     def as_dict(self) -> dict[str, Any]:
         """The ``diagnosis.json`` object (and ``--json`` output); non-finite numbers are null."""
-        closest = self.closest
         return json_safe({
-            "cause": self.cause, "explanation": cd.CAUSES.get(self.cause, cd.UNEXPLAINED),
+            "cause": self.cause, "explanation": self.explanation,
             "base_rms_um": self.base_rms_um, "extended_rms_um": self.extended_rms_um,
             "gain": self.gain, "noise_um": self.noise_um,
             "noise_per_sweep_um": list(self.noise_per_sweep_um),
             "base_over_noise": self.base_over_noise,
             "extended_over_noise": self.extended_over_noise,
-            "closest": {"model": closest.fitted.name, "heldout_rms_um": closest.heldout_rms_um,
-                        "over_noise": ratio(closest.heldout_rms_um, self.noise_um)},
+            "closest": self.closest_dict(),
             "evidence": self.evidence(),
-            "suggestions": vd.suggestions(self.signature) if self.cause == "unexplained" else [],
+            "suggestions": self.suggestions(),
+            "twins": list(self.twins), "separating_sweep": self.separating,
             "candidates": {k: j.as_dict(self.base_rms_um, self.noise_um)
                            for k, j in self.table.items()},
             "extended_gains": list(self.extended_gains),
@@ -176,7 +214,19 @@ class Diagnosis:
         if self.cause == "unexplained":
             c = self.closest
             head = (f"unexplained: {floor}, the closest model ({c.fitted.name}) at "
-                    f"{ratio(c.heldout_rms_um, self.noise_um):.2f}x: nothing reaches the floor")
+                    f"{ratio(c.heldout_rms_um, self.noise_um):.2f}x: nothing reaches the floor"
+                    f" ({self.closest_dict()['text']})")
+        elif self.separating is not None:
+            s = self.separating
+            sensor, twin = self.table[s["sensor"]], self.table[s["actuator"]]
+            head = (f"indistinguishable: {floor}; {s['sensor']} at "
+                    f"{ratio(sensor.heldout_rms_um, self.noise_um):.2f}x and its actuator-side "
+                    f"twin {s['actuator']} at {ratio(twin.heldout_rms_um, self.noise_um):.2f}x "
+                    f"(the twin must miss by {s['needed']:.2f}x the sensor cause's RMS "
+                    f"to separate them, it misses by "
+                    f"{ratio(twin.heldout_rms_um, sensor.heldout_rms_um):.2f}x): these sweeps do "
+                    f"not tell an effect in the sensor from one before the rod's dynamics, so the "
+                    f"readings are kept uncorrected (the model is the paper's)")
         else:
             fitted = fitted_text(self.table[self.cause].fitted.parameters)
             head = (f"{self.cause}: {floor}, held-out RMS {self.base_rms_um:.4f} -> "
@@ -205,12 +255,6 @@ def first_half(s: Sweep) -> Sweep:
     """The fitted part of a sweep: its first half in time."""
     h = s.time_s.size // 2
     return Sweep(s.time_s[:h], s.voltage_v[:h], s.displacement_um[:h], s.meta, s.path)
-
-
-def predicted(fitted: ext.Extended, sweeps: Sequence[Sweep]) -> list[FloatArray]:
-    """Readings (um) the fitted candidate predicts for ``sweeps`` recorded in sequence: each from
-    its start, with its sensor zero and applied-voltage gain (:func:`afmctl.fit.identify.predict_set`)."""
-    return idf.predict_set(fitted.model, sweeps, fitted.starts, fitted.offsets_um, fitted.gains)
 
 
 def heldout(space: ext.ExtendedSpace, fitted: ext.Extended,
@@ -242,89 +286,6 @@ def heldout(space: ext.ExtendedSpace, fitted: ext.Extended,
         judged[:h] = False
         mse.append(float(np.mean(err[judged] ** 2)))
     return math.sqrt(float(np.mean(mse))), tuple(math.sqrt(m) for m in mse)
-
-
-# ----------------------------------------------------------------------------------------------
-# residual analysis
-# ----------------------------------------------------------------------------------------------
-
-
-def _corr(a: FloatArray, b: FloatArray) -> float:
-    if a.size < 3 or np.std(a) == 0 or np.std(b) == 0:
-        return 0.0
-    return float(np.corrcoef(a, b)[0, 1])
-
-
-def _after_turns(v: FloatArray, dt: float, window_s: float) -> NDArray[np.bool_]:
-    """Samples within ``window_s`` after a turning point of the voltage."""
-    near = np.zeros(v.size, dtype=bool)
-    width = max(1, int(window_s / dt))
-    for k in pz.turning_points(v)[1:-1]:
-        near[k:k + width] = True
-    return near
-
-
-def tone_fraction(r: FloatArray, dt: float, drive_hz: float | None) -> float:
-    """Fraction of the residual's power (mean removed, Hann window) in its strongest spectral line
-    that is no harmonic of the drive (five bins around the peak; bins within three of a harmonic
-    skipped). White noise gives about 5 ln(N) / N; interference at a fixed frequency approaches 1."""
-    spec = np.abs(np.fft.rfft((r - np.mean(r)) * np.hanning(r.size))) ** 2
-    spec[0] = 0.0
-    total = float(np.sum(spec))
-    if total == 0 or spec.size < 8:
-        return 0.0
-    f = np.fft.rfftfreq(r.size, dt)
-    free = np.ones(spec.size, dtype=bool)
-    if drive_hz:
-        df = f[1]
-        near = np.abs(f / drive_hz - np.round(f / drive_hz)) * drive_hz <= 3.5 * df
-        free &= ~near
-    if not free.any():
-        return 0.0
-    k = int(np.argmax(np.where(free, spec, 0.0)))
-    return float(np.sum(spec[max(k - 2, 1):k + 3]) / total)
-
-
-def residual_signature(fitted: ext.Extended, sweeps: Sequence[Sweep]) -> dict[str, Any]:
-    """How the model's residual (measured - predicted, um) depends on time, field, field rate,
-    frequency, amplitude, turning points, and how it differs between sweeps; the strongest tone
-    that is no harmonic of the drive (:func:`tone_fraction`)."""
-    per, r_all, e_all, rate_all = [], [], [], []
-    model = fitted.model
-    for s, u in zip(sweeps, predicted(fitted, sweeps), strict=True):
-        m = s.mask(None)
-        r = (s.displacement_um - u)[m]
-        e = (s.voltage_v / model.thickness_um)[m]
-        rate = np.gradient(s.voltage_v / model.thickness_um, s.dt)[m]
-        period = 1.0 / s.frequency_hz if s.frequency_hz else s.time_s[-1] - s.time_s[0]
-        turns = _after_turns(s.voltage_v, s.dt, 0.05 * period)[m]
-        rms_turn = float(np.sqrt(np.mean(r[turns] ** 2))) if turns.any() else float("nan")
-        per.append({
-            "file": s.path or s.name, "frequency_hz": s.frequency_hz,
-            "amplitude_pp_V": float(np.ptp(s.voltage_v)), "rms_um": float(np.sqrt(np.mean(r ** 2))),
-            "mean_um": float(np.mean(r)), "corr_time": _corr(r, s.time_s[m]),
-            "corr_field": _corr(r, e), "corr_field_squared": _corr(r, e * e),
-            "corr_field_rate": _corr(r, rate),
-            "rms_after_turning_points_um": rms_turn,
-            "tone_fraction": tone_fraction(r, s.dt, s.frequency_hz),
-            "rms_elsewhere_um": float(np.sqrt(np.mean(r[~turns] ** 2))) if (~turns).any()
-            else float("nan")})
-        r_all.append(r)
-        e_all.append(e)
-        rate_all.append(rate)
-    r, e, rate = (np.concatenate(a) for a in (r_all, e_all, rate_all))
-    means = [p["mean_um"] for p in per]
-    freq = [(p["frequency_hz"], p["rms_um"]) for p in per if p["frequency_hz"]]
-    turn = [p["rms_after_turning_points_um"] / p["rms_elsewhere_um"] for p in per
-            if p["rms_elsewhere_um"] > 0 and math.isfinite(p["rms_after_turning_points_um"])]
-    return {"sweeps": per, "rms_um": float(np.sqrt(np.mean(r ** 2))),
-            "corr_field": _corr(r, e), "corr_field_squared": _corr(r, e * e),
-            "corr_field_rate": _corr(r, rate),
-            "corr_time": float(np.mean([p["corr_time"] for p in per])),
-            "turning_point_ratio": max(turn, default=1.0),
-            "tone_fraction": max(p["tone_fraction"] for p in per),
-            "between_sweeps_mean_spread_um": float(np.ptp(means)) if len(means) > 1 else 0.0,
-            "rms_vs_frequency": sorted(freq, key=lambda t: t[0])}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -404,22 +365,6 @@ def _base_fit(halves: Sequence[Sweep], thickness: float, settings: Settings,
     return replace(data, base=idf.choose_starts(data.base, x0, y)), x0
 
 
-def _fit(name: str, data: _Data, x_start: FloatArray, thickness: float, range_um: float,
-         settings: Settings, whole: Sequence[pz.Prepared], sweeps: Sequence[Sweep],
-         progress: ext.Progress | None = None) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
-    """Fit candidate ``name`` from the base parameters ``x_start``; a gauge error fitted in the
-    frame of the ``whole`` sweeps' slowest readings and stated in that of a lab's linear
-    calibration on the slowest of the recorded ``sweeps``."""
-    cand = cd.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
-                         float(np.exp(x_start[4])), cd.field_rate_max(data.preps))[name]
-    space = ext.ExtendedSpace(cand, data.preps, data.base, settings.identify.field_step, range_um,
-                              gauge_frame=cd.calibration_frame(whole),
-                              calibration_um=cd.recorded_calibration(sweeps), progress=progress)
-    fitted, space = ext.fit(space, x_start, thickness, settings.max_nfev, settings.n_starts,
-                            settings.identify)
-    return fitted, cand.n_params, space
-
-
 @dataclass(frozen=True)
 class _Job:
     """What every candidate's fit and judgement needs (sent to the worker processes)."""
@@ -433,6 +378,40 @@ class _Job:
     sweeps: tuple[Sweep, ...]
 
 
+def _space(name: str, job: _Job, progress: ext.Progress | None = None) -> ext.ExtendedSpace:
+    """Candidate ``name`` on the first halves, from the base parameters ``job.x0``; a gauge error
+    fitted in the frame of the whole sweeps' slowest readings and stated in that of a lab's
+    linear calibration on the slowest of the recorded sweeps."""
+    data = job.data
+    cand = cd.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
+                         float(np.exp(job.x0[4])), cd.field_rate_max(data.preps))[name]
+    return ext.ExtendedSpace(cand, data.preps, data.base, job.settings.identify.field_step,
+                             job.range_um, gauge_frame=cd.calibration_frame(job.whole),
+                             calibration_um=cd.recorded_calibration(job.sweeps),
+                             progress=progress)
+
+
+def _fit(name: str, job: _Job, progress: ext.Progress | None = None
+         ) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
+    """Fit candidate ``name`` (:func:`_space`): the fit, the parameters it adds, its space."""
+    space = _space(name, job, progress)
+    fitted, space = ext.fit(space, job.x0, job.thickness, job.settings.max_nfev,
+                            job.settings.n_starts, job.settings.identify)
+    return fitted, space.candidate.n_added, space
+
+
+def _readings_on(table: dict[str, Judged], job: _Job, name: str, sweep: Sweep) -> FloatArray:
+    """What fitted candidate ``name`` of ``table`` reads (um) on a sweep never recorded, from the
+    state its first sweep started in (depoled if that carried on from an earlier history), with
+    the last sweep's sensor zero."""
+    fitted = table[name].fitted
+    prep = pz.prepare(sweep, job.thickness, job.settings.identify.field_step, None)
+    start = fitted.starts[0] if fitted.starts[0] != "previous" else "depoled"
+    space = _space(name, job).on([prep], (start,))
+    beta = np.concatenate((fitted.beta[:space.n_rod], fitted.beta[-1:]))
+    return space.readings(fitted.x, beta)[0]
+
+
 #: Where the candidates' fits say how far they are (:class:`afmctl.fit.extension.Progress`):
 #: set by :func:`_judge_all` for its worker processes, which inherit it (forked).
 _progress_say: Callable[[str], None] | None = None
@@ -442,8 +421,7 @@ def _judge(name: str, job: _Job) -> Judged:
     """Fit candidate ``name`` on the first halves and judge it on the second halves."""
     t1 = time.perf_counter()
     progress = None if _progress_say is None else ext.Progress(_progress_say, name)
-    fitted, n_params, space = _fit(name, job.data, job.x0, job.thickness, job.range_um,
-                                   job.settings, job.whole, job.sweeps, progress)
+    fitted, n_params, space = _fit(name, job, progress)
     rms, per = heldout(space.on(job.whole), fitted, job.sweeps)
     return Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
 
@@ -489,15 +467,49 @@ def _ignore_interrupt() -> None:
 
 
 def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:
-    """The candidates tried on ``n_sweeps`` sweeps (gain drift needs two or more)."""
-    return [n for n in settings.candidates if n != "voltage-gain-drift" or n_sweeps >= 2]
+    """The candidates tried on ``n_sweeps`` sweeps (gain drift needs two or more), and the
+    actuator-side twin of every sensor-side one (:data:`afmctl.fit.candidates.TWINS`) that is a
+    cause of its own (a twin only, :data:`~afmctl.fit.candidates.TWIN_ONLY`, is fitted from its
+    sensor cause's fit: :func:`_twin_from`)."""
+    names = [n for n in settings.candidates if n != "voltage-gain-drift" or n_sweeps >= 2]
+    return names + [t for n in names if (t := cd.TWINS.get(n)) in cd.NAMES and t not in names]
+
+
+def _twin_from(sensor: str, table: dict[str, Judged], job: _Job) -> Judged:
+    """The twin-only candidate of ``sensor`` fitted from the sensor cause's fit (its model's
+    ``x`` and start states; quasi-statically the two are the same readings) and judged on the
+    second halves."""
+    t1 = time.perf_counter()
+    fitted = table[sensor].fitted
+    space = _space(cd.TWINS[sensor], job).with_starts(fitted.starts)
+    twin, space = ext.fit(space, fitted.x[:6], job.thickness, job.settings.max_nfev, 1,
+                          job.settings.identify)
+    rms, per = heldout(space.on(job.whole), twin, job.sweeps)
+    return Judged(twin, space.candidate.n_added, rms, per, time.perf_counter() - t1)
+
+
+def scored(table: dict[str, Judged]) -> list[vd.Scored]:
+    """The table's held-out RMS and parameters added, for the verdict."""
+    return [vd.Scored(j.fitted.name, j.heldout_rms_um, j.n_params) for j in table.values()]
 
 
 def choose(table: dict[str, Judged], floor_um: float, rule: vd.Rule) -> str:
     """The verdict on the candidate table against the noise floor ``floor_um`` (um):
     :func:`afmctl.fit.verdict.decide`."""
-    return vd.decide([vd.Scored(j.fitted.name, j.heldout_rms_um, j.n_params)
-                      for j in table.values()], floor_um, rule)
+    return vd.decide(scored(table), floor_um, rule)
+
+
+def _separating(table: dict[str, Judged], job: _Job, floor: float,
+                pairs: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The sweep that would separate the best sensor-side cause the sweeps left unseparated
+    from its twin (:func:`afmctl.fit.twins.separating_sweep`), with both names and the bar."""
+    pair = min((p for p in pairs if not p["separated"] and not p["refuted"]),
+               key=lambda p: p["sensor_heldout_rms_um"])
+    found = tw.separating_sweep(lambda name, s: _readings_on(table, job, name, s),
+                                pair["sensor"], job.sweeps, floor,
+                                job.settings.max_slew_v_per_s)
+    return {"sensor": pair["sensor"], "actuator": pair["actuator"], "needed": pair["needed"],
+            **found}
 
 
 def check_noise(sweeps: Sequence[Sweep], noise_um: Sequence[float]) -> tuple[float, ...]:
@@ -551,52 +563,24 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     with threadpool_limits(limits=1, user_api="blas"):  # one BLAS thread: see _judge_all
         data, x0 = _base_fit(halves, thickness, settings, start, say)
         whole = [pz.prepare(s, thickness, settings.identify.field_step, None) for s in sweeps]
-        table = _judge_all(candidate_names(len(sweeps), settings),
-                           _Job(data, x0, thickness, range_um, settings, whole, tuple(sweeps)),
-                           floor, say)
-    cause = choose(table, floor, settings.rule)
+        job = _Job(data, x0, thickness, range_um, settings, whole, tuple(sweeps))
+        table = _judge_all(candidate_names(len(sweeps), settings), job, floor, say)
+        for sensor in [n for n in cd.TWINS if n in table and cd.TWINS[n] in cd.TWIN_ONLY]:
+            say(f"fitting {cd.TWINS[sensor]}, the twin of {sensor}, from its fit ...")
+            j = table[cd.TWINS[sensor]] = _twin_from(sensor, table, job)
+            say(f"  {cd.TWINS[sensor]:20s} held-out RMS {j.heldout_rms_um:.4f} um = "
+                f"{j.heldout_rms_um / floor:.2f}x noise ({j.fit_seconds:.1f} s)")
+        cause = choose(table, floor, settings.rule)
+        pairs = tw.pairs(scored(table), settings.rule)
+        separating = None
+        if cause == vd.INDISTINGUISHABLE:
+            say("the sensor-side cause and its twin are not separated: predicting fast sweeps "
+                "with both ...")
+            separating = _separating(table, job, floor, pairs)
     say(f"verdict: {cause}")
     named = cause if cause in table else "none"
     base, final = table["none"].fitted, table[named].fitted
     return Diagnosis(cause, table["none"].heldout_rms_um, table[named].heldout_rms_um, floor,
                      noise, table, base, final, residual_signature(base, sweeps),
                      time.perf_counter() - t0,
-                     tuple(s.path or s.name for s in sweeps))
-
-
-def _suggestion_lines(d: Diagnosis) -> list[str]:
-    if d.cause != "unexplained":
-        return []
-    return ["", "What the residual shows, and what would tell more:", ""] + [
-        f"- {s['reading']}: {s['measure']}." for s in vd.suggestions(d.signature)]
-
-
-def report(d: Diagnosis, figure: str) -> str:
-    """A short Markdown report: the cause, its evidence, the candidate table, the residuals."""
-    lines = [f"# afmctl diagnose: {d.cause}", "", cd.CAUSES.get(d.cause, cd.UNEXPLAINED) + ".", "",
-             d.evidence() + ".",
-             *_suggestion_lines(d),
-             "", "Held-out RMS: each candidate fitted on the first half of every sweep and judged "
-             "on the second half.", "",
-             "| candidate | parameters added | held-out RMS (um) | x noise | gain | needed | fitted |",
-             "|---|---:|---:|---:|---:|---:|---|"]
-    for name, j in sorted(d.table.items(), key=lambda kv: kv[1].heldout_rms_um):
-        fitted = fitted_text(j.fitted.parameters)
-        lines.append(f"| {name} | {j.n_params} | {j.heldout_rms_um:.4f} | "
-                     f"{ratio(j.heldout_rms_um, d.noise_um):.2f} | "
-                     f"{ratio(d.base_rms_um, j.heldout_rms_um):.2f} | "
-                     f"{required_gain(j.n_params):.2f} | {fitted} |")
-    sig = d.signature
-    lines += ["", "## Residuals of the paper's model", "",
-              "| sweep | frequency (Hz) | RMS (um) | mean (um) | corr. field | corr. field rate "
-              "| RMS after turning points (um) | elsewhere (um) |",
-              "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for p in sig["sweeps"]:
-        lines.append(f"| {p['file']} | {p['frequency_hz'] or ''} | {p['rms_um']:.4f} | "
-                     f"{p['mean_um']:.4f} | {p['corr_field']:.2f} | {p['corr_field_rate']:.2f} | "
-                     f"{p['rms_after_turning_points_um']:.4f} | {p['rms_elsewhere_um']:.4f} |")
-    lines += ["", f"All sweeps: correlation with field {sig['corr_field']:.2f}, with field squared "
-              f"{sig['corr_field_squared']:.2f}, with field rate {sig['corr_field_rate']:.2f}; "
-              f"spread of the per-sweep mean residual {sig['between_sweeps_mean_spread_um']:.4f} um.",
-              "", f"![residuals before and after]({figure})", ""]
-    return "\n".join(lines)
+                     tuple(s.path or s.name for s in sweeps), tuple(pairs), separating)

@@ -248,14 +248,20 @@ class ExtendedSpace:
         return [(0.0, float(np.clip(c3 * self.range_um ** 2, self.candidate.lower[1],
                                     self.candidate.upper[1])))]
 
-    def _filtered(self, z: FloatArray) -> list[tuple[FloatArray, FloatArray, FloatArray]]:
-        """Per sweep at the full rate: ``L[Q]``, ``L[Q^2]`` and ``1`` after the output effects
-        (the sensor zero is the rod's, so it sees them too)."""
+    @property
+    def n_rod(self) -> int:
+        """Design columns of the rod: ``L[Q]``, ``L[Q^2]``, ... (:attr:`Candidate.powers`)."""
+        return self.candidate.powers
+
+    def _filtered(self, z: FloatArray) -> list[tuple[FloatArray, ...]]:
+        """Per sweep at the full rate: ``L[Q]``, ``L[Q^2]`` (and higher powers,
+        :attr:`n_rod`) and ``1`` after the output effects (the sensor zero is the rod's, so it
+        sees them too)."""
         theta, phi = np.exp(z[:6]), z[6:]
         out, blocks = self._output(phi), []
         for q, p in zip(self._q(theta, phi), self.preps, strict=True):
-            cols = (pz.unit_filter(q, theta[4], theta[5], p.dt),
-                    pz.unit_filter(q * q, theta[4], theta[5], p.dt), np.ones(q.size))
+            cols = tuple(pz.unit_filter(q ** k, theta[4], theta[5], p.dt)
+                         for k in range(1, self.n_rod + 1)) + (np.ones(q.size),)
             if out != fx.Effects():
                 chain = fx.compile_chain(out, p.dt)
                 cols = tuple(fx.measure(chain, c, *fx.rest(chain, float(c[0])))[0]
@@ -264,8 +270,9 @@ class ExtendedSpace:
         return blocks
 
     def columns(self, z: FloatArray) -> list[FloatArray]:
-        """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` after the output effects (the
-        sensor zero is the rod's, so it sees them too), shape (N, 3)."""
+        """Per sweep at the full rate: ``[L[Q], L[Q^2], 1]`` (higher powers before the ``1``,
+        :attr:`n_rod`) after the output effects (the sensor zero is the rod's, so it sees them
+        too), shape (N, :attr:`n_rod` + 1)."""
         return [np.column_stack(c) for c in self._filtered(z)]
 
     @functools.cached_property
@@ -279,22 +286,24 @@ class ExtendedSpace:
         gathered from the full-rate columns."""
         gauge = self._gauge(z[6:])
         rows = self._rows
-        a = np.zeros((sum(r.size for r in rows), 2 + len(rows)))
+        k = self.n_rod
+        a = np.zeros((sum(r.size for r in rows), k + len(rows)))
         start = 0
         for s, (cols, r, w) in enumerate(zip(self._filtered(z), rows, self.weights, strict=True)):
             stop = start + r.size
-            a[start:stop, 0] = w * cols[0][r]
-            a[start:stop, 1] = w * cols[1][r]
-            a[start:stop, 2 + s] = w * cols[2][r]
+            for j in range(k):
+                a[start:stop, j] = w * cols[j][r]
+            a[start:stop, k + s] = w * cols[k][r]
             start = stop
         ys = [w * fx.ungauge(gauge, p.y) for p, w in zip(self.preps, self.weights, strict=True)]
         return a, np.concatenate(ys)
 
     def readings(self, z: FloatArray, beta: FloatArray) -> list[FloatArray]:
         """What the sensor reads (um) at every sample of every sweep for ``z`` and the linear
-        parameters ``beta = (g1, g2, zero_1, ..., zero_S)``."""
-        gauge = self._gauge(z[6:])
-        return [fx.gauge(gauge, c[:, :2] @ beta[:2] + c[:, 2] * beta[2 + s])
+        parameters ``beta = (g1, g2, zero_1, ..., zero_S)`` (more gains before the zeros,
+        :attr:`n_rod`)."""
+        gauge, k = self._gauge(z[6:]), self.n_rod
+        return [fx.gauge(gauge, c[:, :k] @ beta[:k] + c[:, k] * beta[k + s])
                 for s, c in enumerate(self.columns(z))]
 
     def _derived(self, preps: Sequence[pz.Prepared] | None = None,
@@ -314,11 +323,13 @@ class ExtendedSpace:
         """The same candidate with another thermal grid (rows, field step, most columns)."""
         return self._derived(thermal_grid=thermal_grid)
 
-    def on(self, preps: Sequence[pz.Prepared]) -> ExtendedSpace:
-        """The same candidate, starts and node count on other prepared sweeps (the whole sweeps
-        a fit on their first halves is judged on)."""
+    def on(self, preps: Sequence[pz.Prepared], starts: Sequence[str] | None = None
+           ) -> ExtendedSpace:
+        """The same candidate, starts (or ``starts``, one per sweep) and node count on other
+        prepared sweeps (the whole sweeps a fit on their first halves is judged on)."""
         return self._derived(preps, pz.LognormalSpace(preps, self.base.scales,
-                                                      self.base.n_coercive, self.base.starts))
+                                                      self.base.n_coercive,
+                                                      starts or self.base.starts))
 
     def through(self, phi: FloatArray) -> pz.LognormalSpace:
         """The base model's space on the fields the hysteresis sees with the input-side effect
@@ -347,7 +358,9 @@ class ExtendedSpace:
         applied-voltage gains and sensor zeros (um). A gauge error is fitted in the frame of the
         slowest sweep's readings and stated in that of its positions (:func:`effects.position_frame`:
         the rod's gains and zeros scaled and shifted with it), the frame of a lab's linear
-        calibration of the gauge on that sweep: the readings the model predicts are the same."""
+        calibration of the gauge on that sweep: the readings the model predicts are the same.
+        The model of a candidate with higher powers of ``Q`` lacks them (a model file holds none:
+        that twin is judged, never written)."""
         a, y = self.system(z)
         beta, _ = pz.project(a, y)
         phi, name = z[6:], self.candidate.name
@@ -356,7 +369,7 @@ class ExtendedSpace:
             shift, scale, gauge = fx.position_frame(gauge, self.calibration_um)
             beta = np.concatenate((scale * beta[:2], shift + scale * beta[2:]))
         model = self.base.model(z[:6], np.array([beta[0], beta[1], beta[-1]]), thickness_um)
-        offsets = tuple(float(b) for b in beta[2:])
+        offsets = tuple(float(b) for b in beta[self.n_rod:])
         gains = tuple([1.0] * len(self.preps))
         if name == "thermal-relaxation":
             grid = thermal_polarization(np.exp(z[:4]), hy.Thermal(math.exp(phi[0]),
@@ -562,6 +575,10 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
         space, sol, nfev = _joint((space.with_grid(THERMAL_FINE), sol.x, nfev),
                                   max(max_nfev // FINE_SHARE, 1))
     model, gains, offsets = space.to_model(sol.x, thickness_um)
-    return Extended(space.candidate.name, model, gains, physical(space.candidate.name, model, gains),
+    beta = pz.project(*space.system(sol.x))[0]
+    fitted = physical(space.candidate.name, model, gains)
+    for k in range(3, space.n_rod + 1):  # the gains of L[Q^k] (in the fit's units)
+        fitted[f"gain_Q{k}"] = float(beta[k - 1])
+    return Extended(space.candidate.name, model, gains, fitted,
                     bool(sol.success and sol.status > 0), nfev, sol.x,
-                    space.base.starts, offsets, pz.project(*space.system(sol.x))[0]), space
+                    space.base.starts, offsets, beta), space

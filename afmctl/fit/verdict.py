@@ -18,6 +18,12 @@ Rules (:class:`Rule`, defaults from issue 12):
 4. Otherwise ``unexplained``: neither the base nor any candidate explains the data down to the
    floor. The diagnosis then says how far each is, what the residual looks like and which
    measurement would tell more (:func:`suggestions`).
+5. A sensor-side cause (:data:`afmctl.fit.candidates.TWINS`: it changes what afmctl believes the
+   true position is) is named only when the sweeps *separate* it from its actuator-side twin:
+   the twin's held-out RMS is at least ``separated`` (1.1, the gain one parameter must buy)
+   times the sensor cause's. A twin that much better than the sensor cause refutes it (it is
+   not considered); between the two, the verdict is ``indistinguishable`` (the model keeps the
+   readings uncorrected). A twin fitted only as such (``actuator-nonlinearity``) is never named.
 
 Pure functions of numbers and dicts; no I/O.
 """
@@ -29,6 +35,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from afmctl.fit.candidates import TWIN_ONLY, TWINS
+
+#: The verdict when a sensor-side cause and its actuator-side twin are not separated (rule 5).
+INDISTINGUISHABLE = "indistinguishable"
+
 
 @dataclass(frozen=True)
 class Rule:
@@ -38,6 +49,7 @@ class Rule:
     near: float = 2.0
     min_explained: float = 0.5
     clearly_explained: float = 0.95
+    separated: float = 1.1
 
 
 @dataclass(frozen=True)
@@ -73,14 +85,38 @@ def explained(base_um: float, other_um: float, floor_um: float) -> float:
     return (base_um ** 2 - other_um ** 2) / excess if excess > 0 else 0.0
 
 
+def closest_phrase(name: str, explained_fraction: float) -> str:
+    """How much of the base model's misfit the closest model explains, in words (issue 23:
+    "closest: thermal-relaxation, explains 63 % of the misfit")."""
+    if name == "none":
+        return "closest: the paper's model itself"
+    return (f"closest: {name}, explains {100 * explained_fraction:.0f} % of the misfit (the "
+            f"held-out variance above the noise floor)")
+
+
 def clears(base: Scored, s: Scored, floor_um: float, rule: Rule = Rule()) -> bool:
     """Whether candidate ``s`` gains enough over ``base`` to be considered (rule 2)."""
     return (s.n_params > 0 and ratio(base.heldout_rms_um, s.heldout_rms_um) >= required_gain(s.n_params)
             and explained(base.heldout_rms_um, s.heldout_rms_um, floor_um) >= rule.min_explained)
 
 
+def separated(sensor: Scored, twin: Scored | None, rule: Rule = Rule()) -> bool:
+    """Whether the sweeps separate a sensor-side cause from its actuator-side twin (rule 5): the
+    twin (None: not fitted) misses by ``rule.separated`` times the sensor cause's held-out RMS."""
+    return twin is not None and ratio(twin.heldout_rms_um, sensor.heldout_rms_um) >= rule.separated
+
+
+def refuted(s: Scored, by_name: dict[str, Scored], rule: Rule = Rule()) -> bool:
+    """Whether ``s`` is a sensor-side cause whose actuator-side twin explains the data clearly
+    better (by ``rule.separated``): the sweeps say the effect is before the rod, not in the
+    sensor."""
+    twin = by_name.get(TWINS.get(s.name, ""))
+    return twin is not None and separated(twin, s, rule)
+
+
 def decide(scored: Sequence[Scored], floor_um: float, rule: Rule = Rule()) -> str:
-    """The verdict: the name of a candidate, ``none`` or ``unexplained`` (rules 1-4).
+    """The verdict: the name of a candidate, ``none``, ``unexplained`` or ``indistinguishable``
+    (rules 1-5).
 
     Parameters
     ----------
@@ -91,10 +127,14 @@ def decide(scored: Sequence[Scored], floor_um: float, rule: Rule = Rule()) -> st
     rule : Rule
     """
     base = next(s for s in scored if s.name == "none")
-    able = [s for s in scored if clears(base, s, floor_um, rule)]
+    by_name = {s.name: s for s in scored}
+    able = [s for s in scored if s.name not in TWIN_ONLY and clears(base, s, floor_um, rule)
+            and not refuted(s, by_name, rule)]
     best = min(able, key=lambda s: s.heldout_rms_um, default=None)
     if best is not None and (best.heldout_rms_um <= rule.near * floor_um or explained(
             base.heldout_rms_um, best.heldout_rms_um, floor_um) >= rule.clearly_explained):
+        if best.name in TWINS and not separated(best, by_name.get(TWINS[best.name]), rule):
+            return INDISTINGUISHABLE
         return best.name
     if base.heldout_rms_um <= rule.none_within * floor_um:
         return "none"
@@ -125,7 +165,7 @@ _HINTS = (
 
 
 def suggestions(signature: dict[str, Any]) -> list[dict[str, str]]:
-    """The features of the residual signature (:func:`afmctl.fit.diagnose.residual_signature`) that
+    """The features of the residual signature (:func:`afmctl.fit.residuals.residual_signature`) that
     stand out, strongest first, each with what it suggests and the measurement that would tell
     more. Always at least one entry (a generic one if nothing stands out)."""
     score = {

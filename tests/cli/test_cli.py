@@ -68,6 +68,7 @@ def test_identify_json_model_and_plots(tmp_path: Path, good_file: Path) -> None:
     assert set(s) >= {"file", "rms_um", "max_um", "range_um"}
     assert s["file"] == str(good_file) and s["rms_um"] <= 1.5 * NOISE_UM
     assert doc["parameters"]["m"]["fixed"] is True
+    assert doc["minor_loops"]["close"] is not False, doc["minor_loops"]  # the paper's model: Preisach
     model = modelfile.read(out)
     assert model.thickness_um == 1.0 and model.polarization.n_coercive == doc["n_coercive"] >= 64
     assert len(list(plots.glob("*.png"))) == 1
@@ -77,7 +78,7 @@ def test_identify_human_report(tmp_path: Path, good_file: Path) -> None:
     res = CliRunner().invoke(main, ["identify", str(good_file), "-o", str(tmp_path / "m.toml")])
     assert res.exit_code == 0
     assert "fit converged" in res.stdout and "fixed (scale convention)" in res.stdout
-    assert "foreign.csv" in res.stdout
+    assert "foreign.csv" in res.stdout and "minor loops" in res.stdout
 
 
 def test_non_converged_fit_writes_its_best_model_with_a_warning(tmp_path: Path,

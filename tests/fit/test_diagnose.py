@@ -64,7 +64,7 @@ def test_cli_on_a_clean_foreign_stage_claims_nothing(tmp_path: Path) -> None:
     assert doc["base_rms_um"] == doc["extended_rms_um"]
     assert doc["base_over_noise"] == pytest.approx(doc["base_rms_um"] / doc["noise_um"])
     assert doc["base_over_noise"] < 1.5 and doc["extended_over_noise"] < 1.5
-    assert set(doc["candidates"]) == set(candidates.NAMES)
+    assert set(doc["candidates"]) == set(candidates.NAMES) | set(candidates.TWIN_ONLY)
     for row in doc["candidates"].values():
         assert {"heldout_rms_um", "gain", "required_gain", "parameters_added", "over_noise"} <= set(row)
     assert json.loads((out / "diagnosis.json").read_text()) == doc

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from afmctl.fit import diagnose as dg
+from afmctl.fit import residuals as rs
 from afmctl.fit import verdict as vd
 
 FLOOR = 0.02
@@ -27,8 +27,10 @@ def table(base: float, **cands: tuple[float, int]) -> list[vd.Scored]:
     (table(6.0, amplifier_lag=(1.1, 1), sensor_delay=(2.5, 1)), "amplifier-lag"),
     # the smallest held-out RMS among those that clear their bar wins
     (table(4.0, sensor_delay=(1.3, 1), second_mode=(1.2, 3)), "second-mode"),
-    # barely detectable (2x) and explained: named, though the gain is small
-    (table(2.0, sensor_nonlinearity=(1.05, 1)), "sensor-nonlinearity"),
+    # barely detectable (2x) and explained, its actuator-side twin clearly worse: named, though
+    # the gain is small
+    (table(2.0, sensor_nonlinearity=(1.05, 1), actuator_nonlinearity=(1.3, 1)),
+     "sensor-nonlinearity"),
     # within 1.5x, nothing clears its bar: none
     (table(1.45, sensor_delay=(1.4, 1)), "none"),
     # above 1.5x, nothing clears: never none
@@ -42,6 +44,41 @@ def table(base: float, **cands: tuple[float, int]) -> list[vd.Scored]:
 ])
 def test_decide_follows_the_rules(rows: list[vd.Scored], verdict: str) -> None:
     assert vd.decide(rows, FLOOR) == verdict
+
+
+@pytest.mark.parametrize(("rows", "verdict"), [
+    # the twin not fitted: nothing separates the sensor cause from it
+    (table(2.0, sensor_nonlinearity=(1.05, 2)), "indistinguishable"),
+    # issue 23's Prandtl-Ishlinskii stage: the gauge 4.9x -> 1.9x, the cubic before the rod as
+    # good (2.0x: misses by 1.05 < 1.1)
+    (table(4.9, sensor_nonlinearity=(1.9, 2), actuator_nonlinearity=(2.0, 1)),
+     "indistinguishable"),
+    # the twin clearly better: the sensor cause is refuted, and the twin is never named
+    (table(4.9, sensor_nonlinearity=(1.9, 2), actuator_nonlinearity=(1.2, 1)), "unexplained"),
+    # a sensor delay and an amplifier lag alike on these sweeps
+    (table(8.0, sensor_delay=(1.2, 1), amplifier_lag=(1.25, 3)), "indistinguishable"),
+    # ... and separated by them (the lag misses by 1.67x the delay's RMS)
+    (table(8.0, sensor_delay=(1.2, 1), amplifier_lag=(2.0, 3)), "sensor-delay"),
+    # the actuator-side cause clearly better: named as before
+    (table(8.0, sensor_delay=(2.0, 1), amplifier_lag=(1.1, 3)), "amplifier-lag"),
+    # a second mode beats both: the twins do not matter
+    (table(8.0, sensor_delay=(1.5, 1), amplifier_lag=(1.5, 3), second_mode=(1.1, 4)),
+     "second-mode"),
+])
+def test_a_sensor_cause_is_named_only_when_separated_from_its_twin(rows: list[vd.Scored],
+                                                                   verdict: str) -> None:
+    """Rule 5 (issue 23 item 4): a sensor-side cause changes what afmctl believes the true
+    position is, so it is named only when its actuator-side twin misses by 1.1x its RMS."""
+    assert vd.decide(rows, FLOOR) == verdict
+
+
+def test_closest_phrase_says_how_much_of_the_misfit_is_explained() -> None:
+    """Issue 23 item 7: the fraction of the excess variance, in words (base 3x, closest 2x the
+    floor: (9 - 4) / (9 - 1) = 62.5 %)."""
+    frac = vd.explained(3.0, 2.0, 1.0)
+    assert frac == pytest.approx(0.625)
+    assert vd.closest_phrase("thermal-relaxation", frac).startswith(
+        "closest: thermal-relaxation, explains 62 % of the misfit")
 
 
 @pytest.mark.parametrize("base", [1.51, 2.0, 3.01, 10.0, 100.0])
@@ -65,9 +102,9 @@ def test_tone_fraction_finds_interference_not_noise_or_harmonics() -> None:
     white = rng.normal(0.0, 1.0, n)
     harmonic = np.sin(2 * np.pi * 3 * drive * t)
     tone = np.sin(2 * np.pi * 50.0 * t)
-    assert dg.tone_fraction(white, dt, drive) < 0.02
-    assert dg.tone_fraction(harmonic + 0.1 * white, dt, drive) < 0.05
-    assert dg.tone_fraction(tone + 0.3 * white, dt, drive) > 0.8
+    assert rs.tone_fraction(white, dt, drive) < 0.02
+    assert rs.tone_fraction(harmonic + 0.1 * white, dt, drive) < 0.05
+    assert rs.tone_fraction(tone + 0.3 * white, dt, drive) > 0.8
 
 
 def test_suggestions_point_at_the_standing_feature() -> None:

@@ -1,0 +1,133 @@
+"""Do the measured minor loops close? Return-point memory checked on the sweeps themselves.
+
+Every Preisach-type hysteresis (the paper's model with relay hysterons, any Preisach density,
+the Preisach grid) has *return-point memory*: after a reversal at ``v_a``, an excursion to
+``v_b`` and a return to ``v_a``, the output is again what it was at the reversal (the wiping-out
+property erases the excursion), so every minor loop closes. A rate-independent hysteresis
+without it (Bouc-Wen) leaves its minor loops open, and no Preisach-type model can fit such a
+stage to its noise (issue 23 item 3). Creep and drift open loops as well (the stage moves between
+the two passes), and so does thermal relaxation: the check says what the data show, not which.
+
+The check (:func:`check`): for every reversal ``a`` of a sweep's voltage whose next excursion
+returns to ``v_a`` (or beyond), the readings of the pass into the reversal and of the pass back
+through ``v_a``, each within :data:`WINDOW` of the sweep's voltage range of ``v_a`` and moving
+the same way, are each fitted by a quadratic in the voltage and evaluated at ``v_a``: the
+*closure gap* is the difference, with its standard error from the fits' residuals. A loop is
+*open* when its gap exceeds :data:`SIGMAS` standard errors and :data:`NOISES` times the sweep's
+sensor noise (both: a gap the noise cannot make, and large enough to matter to a model judged
+against that noise). Pure numerics on sweeps already read: no I/O.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl.files.sweepfile import Sweep
+from afmctl.fit.parametrization import turning_points
+
+FloatArray = NDArray[np.float64]
+#: Half-width of the voltage window each pass is fitted over, as a fraction of the sweep's range.
+WINDOW = 0.04
+#: A gap is open when it exceeds this many standard errors ...
+SIGMAS = 5.0
+#: ... and this many times the sweep's sensor noise.
+NOISES = 3.0
+#: Fewest samples a pass needs in its window (fewer: the loop is not checked).
+MIN_SAMPLES = 8
+
+
+@dataclass(frozen=True)
+class Gap:
+    """One minor loop's closure: the sweep, the reversal voltage (V) and time (s), the gap
+    (um, return minus reversal) and its standard error (um), and the sweep's noise (um)."""
+
+    sweep: str
+    voltage_v: float
+    time_s: float
+    gap_um: float
+    stderr_um: float
+    noise_um: float
+
+    @property
+    def open(self) -> bool:
+        return (abs(self.gap_um) > SIGMAS * self.stderr_um
+                and abs(self.gap_um) > NOISES * self.noise_um)
+
+
+def _at(v: FloatArray, y: FloatArray, va: float) -> tuple[float, float]:
+    """A quadratic in ``v - va`` fitted to ``y``: its value at ``va`` and standard error (um)."""
+    x = np.column_stack((np.ones_like(v), v - va, (v - va) ** 2))
+    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+    res = y - x @ coef
+    s2 = float(res @ res) / max(y.size - 3, 1)
+    cov = s2 * np.linalg.pinv(x.T @ x)
+    return float(coef[0]), float(np.sqrt(max(cov[0, 0], 0.0)))
+
+
+def loop_gaps(sweep: Sweep, noise_um: float) -> list[Gap]:
+    """Every minor loop of ``sweep`` that returns to its reversal voltage, with its closure gap."""
+    v, y = sweep.voltage_v, sweep.displacement_um
+    turns = turning_points(v)
+    width = WINDOW * float(np.ptp(v))
+    out = []
+    for i in range(1, turns.size - 1):
+        a, b = int(turns[i - 1]), int(turns[i])
+        end = int(turns[i + 2]) if i + 2 < turns.size else v.size - 1
+        va, sign = float(v[b]), float(np.sign(v[b] - v[a]))
+        nxt = int(turns[i + 1])
+        back = np.flatnonzero(sign * (v[nxt:end + 1] - va) >= 0)  # the return reaches v_a
+        if sign == 0 or back.size == 0:
+            continue
+        into = np.arange(a, b + 1)
+        into = into[np.abs(v[into] - va) <= width]
+        ret = np.arange(nxt, nxt + int(back[0]) + 1)
+        ret = ret[np.abs(v[ret] - va) <= width]
+        if min(into.size, ret.size) < MIN_SAMPLES:
+            continue
+        y_into, se_into = _at(v[into], y[into], va)
+        y_back, se_back = _at(v[ret], y[ret], va)
+        out.append(Gap(sweep.path or sweep.name, va, float(sweep.time_s[b]), y_back - y_into,
+                       float(np.hypot(se_into, se_back)), noise_um))
+    return out
+
+
+def check(sweeps: Sequence[Sweep], noise_um: Sequence[float]) -> dict[str, Any]:
+    """The closure of every minor loop of ``sweeps`` (``noise_um``: each sweep's sensor noise):
+    ``checked`` and ``open`` loops, ``close`` (None: no loop returns to its reversal, so the
+    sweeps cannot tell), the widest gap (``worst``: sweep, voltage, time, gap and its standard
+    error in um, gap over the noise) and one sentence (``text``)."""
+    gaps = [g for s, n in zip(sweeps, noise_um, strict=True) for g in loop_gaps(s, n)]
+    opened = [g for g in gaps if g.open]
+    worst = max(gaps, key=lambda g: abs(g.gap_um) / g.noise_um, default=None)
+    out: dict[str, Any] = {"checked": len(gaps), "open": len(opened),
+                           "close": None if not gaps else not opened, "worst": None,
+                           "thresholds": {"stderr": SIGMAS, "noise": NOISES}}
+    if worst is not None:
+        out["worst"] = {"sweep": worst.sweep, "voltage_V": worst.voltage_v,
+                        "time_s": worst.time_s, "gap_um": worst.gap_um,
+                        "stderr_um": worst.stderr_um,
+                        "gap_over_noise": abs(worst.gap_um) / worst.noise_um}
+    out["text"] = _text(out, worst)
+    return out
+
+
+def _text(out: dict[str, Any], worst: Gap | None) -> str:
+    if worst is None:
+        return ("minor loops: none of these sweeps returns to a reversal point, so return-point "
+                "memory cannot be checked")
+    where = (f"{abs(worst.gap_um):.4f} um ({abs(worst.gap_um) / worst.noise_um:.1f}x the noise, "
+             f"{abs(worst.gap_um) / max(worst.stderr_um, 1e-300):.0f} standard errors) at "
+             f"{worst.voltage_v:g} V in {worst.sweep}")
+    if out["close"]:
+        return (f"minor loops close: {out['checked']} checked, the widest gap {where}: "
+                f"consistent with a Preisach-type hysteresis (return-point memory)")
+    return (f"minor loops do NOT close: {out['open']} of {out['checked']} open, the widest by "
+            f"{where}. The stage has no return-point memory (a rate-independent hysteresis "
+            f"that is not of Preisach type, such as Bouc-Wen), or it creeps or drifts between "
+            f"the passes; no Preisach-type model (the paper's, the Preisach grid) fits such "
+            f"loops to the noise")

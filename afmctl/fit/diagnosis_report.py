@@ -1,0 +1,46 @@
+"""The Markdown report of ``afmctl diagnose`` (``report.md``): the verdict, its evidence, what
+would tell more, the candidate table and the residuals of the paper's model. Pure text from a
+:class:`afmctl.fit.diagnose.Diagnosis`: no I/O."""
+
+from __future__ import annotations
+
+from afmctl.fit import diagnose as dg
+from afmctl.fit.verdict import ratio, required_gain
+
+
+def _suggestion_lines(d: dg.Diagnosis) -> list[str]:
+    if not d.suggestions():
+        return []
+    return ["", "What the residual shows, and what would tell more:", ""] + [
+        f"- {s['reading']}: {s['measure']}." for s in d.suggestions()]
+
+
+def report(d: dg.Diagnosis, figure: str) -> str:
+    """A short Markdown report: the cause, its evidence, the candidate table, the residuals."""
+    lines = [f"# afmctl diagnose: {d.cause}", "", d.explanation + ".", "",
+             d.evidence() + ".",
+             *_suggestion_lines(d),
+             "", "Held-out RMS: each candidate fitted on the first half of every sweep and judged "
+             "on the second half.", "",
+             "| candidate | parameters added | held-out RMS (um) | x noise | gain | needed | fitted |",
+             "|---|---:|---:|---:|---:|---:|---|"]
+    for name, j in sorted(d.table.items(), key=lambda kv: kv[1].heldout_rms_um):
+        fitted = dg.fitted_text(j.fitted.parameters)
+        lines.append(f"| {name} | {j.n_params} | {j.heldout_rms_um:.4f} | "
+                     f"{ratio(j.heldout_rms_um, d.noise_um):.2f} | "
+                     f"{ratio(d.base_rms_um, j.heldout_rms_um):.2f} | "
+                     f"{required_gain(j.n_params):.2f} | {fitted} |")
+    sig = d.signature
+    lines += ["", "## Residuals of the paper's model", "",
+              "| sweep | frequency (Hz) | RMS (um) | mean (um) | corr. field | corr. field rate "
+              "| RMS after turning points (um) | elsewhere (um) |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for p in sig["sweeps"]:
+        lines.append(f"| {p['file']} | {p['frequency_hz'] or ''} | {p['rms_um']:.4f} | "
+                     f"{p['mean_um']:.4f} | {p['corr_field']:.2f} | {p['corr_field_rate']:.2f} | "
+                     f"{p['rms_after_turning_points_um']:.4f} | {p['rms_elsewhere_um']:.4f} |")
+    lines += ["", f"All sweeps: correlation with field {sig['corr_field']:.2f}, with field squared "
+              f"{sig['corr_field_squared']:.2f}, with field rate {sig['corr_field_rate']:.2f}; "
+              f"spread of the per-sweep mean residual {sig['between_sweeps_mean_spread_um']:.4f} um.",
+              "", f"![residuals before and after]({figure})", ""]
+    return "\n".join(lines)

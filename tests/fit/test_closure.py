@@ -1,0 +1,80 @@
+"""Return-point memory checked on measured sweeps (issue 23 item 3, identify's half): on an
+independent Bouc-Wen stage (:mod:`afmctl.drivers.device.foreign.family_stage`, written without
+afmctl's model code) the minor loops do not close, and identify says so; on Preisach-type
+stages of the same independent code they close."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from afmctl.cli import main
+from afmctl.drivers.device.foreign import family_stage as fst
+from afmctl.files import sweepfile as sw
+from afmctl.fit import closure
+from tests.harness.paths import PROFILES
+
+RATE_HZ = 1000.0
+
+
+def minor_loops(seed: int, family: str, **fixed: float) -> sw.Sweep:
+    """Ramps 0 -> 150 -> 50 -> 110 -> 50 -> 110 -> 0 V at 150 V/s and 1 kHz (two minor loops
+    between 50 and 110 V, each returning to its reversal) on a drawn stage, with its noise."""
+    corners = (0.0, 150.0, 50.0, 110.0, 50.0, 110.0, 0.0)
+    v = np.concatenate([[0.0]] + [np.linspace(a, b, int(abs(b - a) / 150.0 * RATE_HZ) + 1)[1:]
+                                  for a, b in zip(corners[:-1], corners[1:])])
+    stage = fst.random_family_stage(np.random.default_rng(seed), family, **fixed)
+    _, reading, _ = fst.run(stage, v, RATE_HZ, fst.initial_state(stage))
+    noisy = reading + np.random.default_rng(seed + 100).normal(0.0, stage.noise_um, v.size)
+    return sw.from_arrays(v, noisy, RATE_HZ, {"frequency_hz": "0.5",
+                                              "layer_thickness_um": "100"},
+                          path=f"{family}-{seed}.csv")
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_bouc_wen_minor_loops_do_not_close(seed: int) -> None:
+    """Bouc-Wen (no wiping-out): each return misses its reversal by far more than the noise."""
+    s = minor_loops(seed, "bouc-wen")
+    out = closure.check([s], [fst.random_family_stage(np.random.default_rng(seed),
+                                                      "bouc-wen").noise_um])
+    assert out["checked"] >= 3 and out["close"] is False, out
+    assert out["worst"]["gap_over_noise"] > 10 * closure.NOISES, out
+    assert "do NOT close" in out["text"] and "Bouc-Wen" in out["text"]
+
+
+@pytest.mark.parametrize(("seed", "family"), [(1, "preisach"), (2, "preisach"),
+                                              (3, "prandtl-ishlinskii")])
+def test_preisach_type_minor_loops_close(seed: int, family: str) -> None:
+    """A Preisach operator with a non-separable density and a Prandtl-Ishlinskii one (both
+    with return-point memory): every loop closes to within the thresholds."""
+    noise = fst.random_family_stage(np.random.default_rng(seed), family).noise_um
+    out = closure.check([minor_loops(seed, family)], [noise])
+    assert out["checked"] >= 3 and out["close"] is True, out
+    assert out["worst"]["gap_over_noise"] < closure.NOISES
+
+
+def test_no_return_to_a_reversal_cannot_tell() -> None:
+    """A single ramp up and down never returns to a reversal: nothing to check (None)."""
+    v = np.concatenate([np.linspace(0, 150, 500), np.linspace(150, 0, 500)[1:]])
+    out = closure.check([sw.from_arrays(v, v * 0.5, RATE_HZ)], [0.01])
+    assert out == {**out, "checked": 0, "close": None, "worst": None}
+
+
+def test_identify_says_when_minor_loops_do_not_close(tmp_path: Path) -> None:
+    """``afmctl identify --json`` carries ``minor_loops`` and warns on a Bouc-Wen stage."""
+    path = tmp_path / "bw.csv"
+    sw.write(minor_loops(1, "bouc-wen"), path)
+    prof = tmp_path / "p.toml"
+    prof.write_text((PROFILES / "emulated.toml").read_text()
+                    + "\n[identify]\nmax_nfev = 2\nrestarts = 0\nn_coercive_fit = 32\n"
+                    "representation = \"hem\"\n")  # the fit does not matter here: be quick
+    res = CliRunner().invoke(main, ["identify", str(path), "-o", str(tmp_path / "m.toml"),
+                                    "--json", "--profile", str(prof)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    assert doc["minor_loops"]["close"] is False and doc["minor_loops"]["open"] >= 1
+    assert "minor loops do NOT close" in res.stderr
