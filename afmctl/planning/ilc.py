@@ -136,6 +136,11 @@ class Law:
         Largest ``|L|`` of the per-harmonic law: where the stage responds far less than the
         model (``|G| < 1 / max_boost``) learning takes several smaller steps instead of one
         step that asks for the whole missing response at once (and for the slew it needs).
+    min_step : float
+        Smallest step, as a fraction of ``rho``: after an iteration worse than the best so far
+        (its repeatable error) the next step starts from the best one at half the step, down
+        to this; an iteration beyond ``diverge_factor`` at this step ends learning. 1: never
+        shrink (every step the full ``rho``, from the last iteration).
     """
 
     cutoff_hz: float = 600.0
@@ -145,15 +150,17 @@ class Law:
     diverge_factor: float = 1.2
     region: str = "all"
     max_boost: float = 2.0
+    min_step: float = 0.25
 
     def __post_init__(self) -> None:
         if self.region not in ("all", "imaging"):
             raise ValueError(f"learning region must be 'all' or 'imaging', not {self.region!r}")
         if not (self.cutoff_hz > 0 and 0 < self.gain < 2 and self.max_lead_samples >= 0
                 and (self.floor_factor >= 1 or self.floor_factor == 0) and self.diverge_factor > 1
-                and self.max_boost >= 1):
+                and self.max_boost >= 1 and 0 < self.min_step <= 1):
             raise ValueError("learning law: need cutoff > 0, 0 < gain < 2, lead >= 0, "
-                             "floor factor >= 1 (or 0), divergence factor > 1, max boost >= 1")
+                             "floor factor >= 1 (or 0), divergence factor > 1, max boost >= 1, "
+                             "0 < min step <= 1")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -219,6 +226,8 @@ class Tuning:
 APERIODIC_FRACTION = 0.25
 #: Fewest runs whose gains give a spread (two runs give one difference, no scale to trust).
 MIN_RUNS_SPREAD = 3
+#: Runs whose slow offsets give the trend continued into the next run (:func:`predicted_offset`).
+TREND_RUNS = 3
 #: Fewest reliably measured harmonics for the per-harmonic inverse of ``G``.
 MIN_HARMONICS = 3
 #: A harmonic's G is measured when the reference's amplitude there exceeds this many standard
@@ -324,14 +333,30 @@ def next_reference(reference: FloatArray, error: FloatArray, desired: track.Desi
     return reference + fade * synthesize(dr, t, f0) + slow
 
 
-def gain_coefficient(x: FloatArray, s: FloatArray) -> float:
+def gain_and_offset(x: FloatArray, s: FloatArray) -> tuple[float, float]:
     """Least-squares coefficient of ``x`` (um) along the gain direction ``s`` (um per unit gain)
-    with a free offset (NaN skipped): the change of the stage's gain that moves it by ``x``,
-    whatever constant shift (creep, drift) comes with it."""
+    with a free offset (NaN skipped), and that offset (um): the change of the stage's gain
+    that moves it by ``x``, and the constant shift (creep, drift) that comes with it."""
     k = np.isfinite(x) & np.isfinite(s)
-    sc = s[k] - s[k].mean() if k.any() else s[k]
+    if not k.any():
+        return 0.0, 0.0
+    sc = s[k] - s[k].mean()
     ss = float(np.sum(sc**2))
-    return float(np.sum(x[k] * sc) / ss) if ss > 0 else 0.0
+    d = float(np.sum(x[k] * sc) / ss) if ss > 0 else 0.0
+    return d, float(np.mean(x[k]) - d * np.mean(s[k]))
+
+
+def predicted_offset(offsets: FloatArray) -> float:
+    """The next run's slow offset (um) from the runs' offsets so far (creep, drift: measured on
+    the conditioning, :func:`gain_and_offset`): the straight line through the last
+    :data:`TREND_RUNS` of them (by run index: runs follow one another at a steady pace),
+    continued one run; the last offset itself while there is only one."""
+    o = np.asarray(offsets, dtype=float)[-TREND_RUNS:]
+    if o.size < 2:
+        return float(o[-1]) if o.size else 0.0
+    k = np.arange(o.size, dtype=float)
+    slope, icept = np.polyfit(k, o, 1)
+    return float(icept + slope * o.size)
 
 
 def resolution(noise_um: float, gain_sigma: float, s_rms_um: float, runs: int) -> float:
