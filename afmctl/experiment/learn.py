@@ -336,6 +336,8 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         it = dc.replace(it, reference_um=ref, predicted_offset_um=pred)
         first = resume.kept if resume is not None else (done[0] if done else None)
         it = measure_change(p, it, first, model.effects)
+        if j == 0 and resume is not None:  # the replay's offset could not be predicted: its
+            it = dc.replace(it, predicted_offset_um=it.offset_um)  # error is its waveform's now
         done, sigma = at_mean_gain([*done, it], desired, law)
         it = done[-1]
         compute.append(t_plan + time.perf_counter() - t1)
