@@ -295,7 +295,7 @@ def family_row(case: family_sets.Case, cache: Path | None, tmp: Path) -> dict[st
             first = len(s.probe.positions)
             rep = learn.run(s.probe, fit["model"], desired, s.profile.limits, tmp / "replay",
                             {}, RELEARN, ilc.Law(),
-                            resume=learn.Resume(res.best_iteration, res.tuning))
+                            resume=learn.Resume.kept(res))
         except (LimitError, StageError) as exc:
             return {**row, "stop": f"refused: {exc}", "ok": False, "replay_ok": False,
                     "replay_raw_ok": False}

@@ -226,12 +226,24 @@ OnIteration = Callable[[Result], None]
 
 @dataclass(frozen=True)
 class Resume:
-    """A replay of earlier learning: its kept iteration (the reference it inverts, and its run,
-    whose conditioning readings the replay's are compared with to tell how far the stage has
-    moved since: creep, drift) and its tuning of ``L`` and ``Q``."""
+    """Where a replay of earlier learning starts: the kept iteration's reference (tracking
+    part, um) and inversion horizons, its run's readings (whole run, um: the replay's
+    conditioning readings are compared with them to tell how far the stage has moved since,
+    creep and drift; None: not told) and that learning's tuning of ``L`` and ``Q`` (None:
+    measured on the replay, as on a first iteration 0)."""
 
-    kept: Iteration
-    tuning: ilc.Tuning
+    reference_um: FloatArray
+    horizons: tuple[int, ...] = ()
+    readings_um: FloatArray | None = None
+    tuning: ilc.Tuning | None = None
+
+    @classmethod
+    def kept(cls, result: Result) -> Resume:
+        """The replay of ``result``'s best iteration."""
+        it = result.best_iteration
+        assert it.reference_um is not None
+        return cls(it.reference_um, it.outcome.waveform.horizons, it.outcome.displacement_um,
+                   result.tuning)
 
 
 @dataclass
@@ -301,10 +313,9 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     ref = desired.u_um.copy()
     tuning = ilc.Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex), np.zeros(0))
     if resume is not None:
-        assert resume.kept.reference_um is not None
-        ref, tuning = resume.kept.reference_um.copy(), resume.tuning
-        if resume.kept.outcome.waveform.horizons:  # the kept run's (grown) horizons
-            p = dc.replace(p, horizons=resume.kept.outcome.waveform.horizons)
+        ref, tuning = resume.reference_um.copy(), resume.tuning or tuning
+        if resume.horizons:  # the kept run's (grown) horizons
+            p = dc.replace(p, horizons=resume.horizons)
         wf = plan_reference(p, desired, ref)
     done: list[Iteration] = []
     compute: list[float] = []
@@ -313,6 +324,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     for j in range(iterations + 1):
         if j:
             t0 = time.perf_counter()
+            src = step.start
             ref = next_reference(done, step, desired, law, tuning, region)
             try:
                 wf = plan_reference(p, desired, ref)
@@ -330,16 +342,19 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         it = judge(wf, desired, j, measured, path, model.effects, between)
         if j == 0:
             noise = ilc.noise_estimate(it.error_um[ilc.steady_part(desired)])
-            if resume is None:
+            if resume is None or resume.tuning is None:
                 tuning = ilc.tune(ref, desired.u_um - it.error_um, desired, law, noise)
         pred = ilc.predicted_offset(np.array([x.offset_um for x in done])) if j else 0.0
         it = dc.replace(it, reference_um=ref, predicted_offset_um=pred)
-        first = resume.kept if resume is not None else (done[0] if done else None)
+        first = (resume.readings_um if resume is not None and resume.readings_um is not None
+                 else done[0].outcome.displacement_um if done else None)
         it = measure_change(p, it, first, model.effects)
         if j == 0 and resume is not None:  # the replay's offset could not be predicted: its
             it = dc.replace(it, predicted_offset_um=it.offset_um)  # error is its waveform's now
         done, sigma = at_mean_gain([*done, it], desired, law)
         it = done[-1]
+        if j and law.local_gain:
+            tuning = remeasure(tuning, done[src], it, desired, law, noise)
         compute.append(t_plan + time.perf_counter() - t1)
         best = int(np.argmin([x.judged_um for x in done]))
         if on_iteration is not None:
@@ -351,6 +366,17 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         if stop != "iterations done":
             break
     return Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma)
+
+
+def remeasure(tuning: ilc.Tuning, before: Iteration, after: Iteration,
+              desired: track.Desired, law: ilc.Law, noise: float) -> ilc.Tuning:
+    """``G`` measured again on the step from ``before`` to ``after``
+    (:func:`afmctl.planning.ilc.remeasured`: the change of the position estimate at the mean
+    gain and the predicted offset over the change of the reference)."""
+    assert before.reference_um is not None and after.reference_um is not None
+    assert before.learned_um is not None and after.learned_um is not None
+    return ilc.remeasured(tuning, after.reference_um - before.reference_um,
+                          before.learned_um - after.learned_um, desired, law, noise)
 
 
 def stop_rule(done: list[Iteration], no_step_left: bool, floor: float, noise: float,
@@ -372,11 +398,11 @@ def stop_rule(done: list[Iteration], no_step_left: bool, floor: float, noise: fl
     return ""
 
 
-def measure_change(p: Planner, it: Iteration, first: Iteration | None,
+def measure_change(p: Planner, it: Iteration, first: FloatArray | None,
                    sensor: fx.Effects) -> Iteration:
-    """``it`` with its waveform's gain direction ``s`` and, against ``first`` (None: it is the
-    first run), its gain change and slow offset (:func:`run_change`). Without conditioning
-    nothing is measured."""
+    """``it`` with its waveform's gain direction ``s`` and, against the readings ``first`` of
+    the run it is compared with (um; None: there is none), its gain change and slow offset
+    (:func:`run_change`). Without conditioning nothing is measured."""
     if not p.prefix_v.size:
         return it
     # s of this waveform: the learned waveforms sit elsewhere on the hysteresis than
@@ -389,9 +415,10 @@ def measure_change(p: Planner, it: Iteration, first: Iteration | None,
     return dc.replace(it, gain_change=d, offset_um=o)
 
 
-def run_change(it: Iteration, first: Iteration, s: FloatArray, prefix_v: FloatArray,
+def run_change(it: Iteration, first: FloatArray, s: FloatArray, prefix_v: FloatArray,
                sensor: fx.Effects) -> tuple[float, float]:
-    """The run's applied-voltage gain relative to ``first``'s (fraction) and its slow offset
+    """The run's applied-voltage gain relative to that of the run whose readings are ``first``
+    (um) (fraction) and its slow offset
     (um: creep, drift), from the conditioning excursion ``prefix_v`` that starts every
     iteration: the coefficient along ``s`` and the free offset of the difference of the two
     runs' readings (corrected for ``sensor``) from its peak on, where the same voltages have
@@ -401,7 +428,7 @@ def run_change(it: Iteration, first: Iteration, s: FloatArray, prefix_v: FloatAr
     movement, which is what learning removes."""
     chain = fx.compile_chain(sensor, it.outcome.waveform.dt_s)
     part = slice(int(np.argmax(prefix_v)), prefix_v.size)
-    w = [fx.sensor_correct(chain, x.outcome.displacement_um)[part] for x in (first, it)]
+    w = [fx.sensor_correct(chain, x)[part] for x in (first, it.outcome.displacement_um)]
     return ilc.gain_and_offset(w[1] - w[0], s[part])
 
 

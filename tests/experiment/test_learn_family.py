@@ -72,7 +72,7 @@ def test_a_drifting_stage_replayed_a_minute_later_is_relearned_in_two_iterations
         s.clock.skip(60.0)
         first = len(probe.positions)
         rep = learn.run(probe, model, desired, s.profile.limits, tmp_path / "replay", {}, 2,
-                        ilc.Law(), resume=learn.Resume(res.best_iteration, res.tuning))
+                        ilc.Law(), resume=learn.Resume.kept(res))
         again = true_rms(probe, first, rep, desired)
         moved = s.truth.drift_um_per_s * (probe.starts[first] - kept_at)
     noise = s.noise_um
