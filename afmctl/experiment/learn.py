@@ -496,10 +496,16 @@ def waveform_text(it: Iteration, desired: track.Desired, meta: Mapping[str, obje
 
     wf = it.outcome.waveform
     info = {**meta, "trajectory": desired.label, "iteration": it.index,
-            "rms_steady_um": f"{it.steady_um:.6g}"}
+            "rms_steady_um": f"{it.steady_um:.6g}", "run_file": it.outcome.run_file.name,
+            "filter": wf.filter.rpartition("_iter")[0] or wf.filter,
+            "horizons": ",".join(str(h) for h in wf.horizons)}
     if desired.period_s is not None:
         info["period_s"] = f"{desired.period_s:.9g}"
-    return waveformfile.format_text(wf.time_s, wf.voltage_v, wf.desired_um, info)
+    ref = None
+    if it.reference_um is not None:
+        ref = np.full(wf.voltage_v.size, np.nan)
+        ref[wf.tracking] = it.reference_um
+    return waveformfile.format_text(wf.time_s, wf.voltage_v, wf.desired_um, info, ref)
 
 
 def write_outputs(result: Result, desired: track.Desired, law: ilc.Law,

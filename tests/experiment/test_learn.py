@@ -428,7 +428,9 @@ def test_track_learn_writes_every_iteration_and_play_reproduces_it(model_file: P
     assert meta["profile"] == "emulated" and meta["model"] == str(model_file)
     assert meta["trajectory"].startswith("triangle 27.9 Hz")
     assert int(meta["iteration"]) == doc["best_iteration"]
-    assert next(ln for ln in lines if not ln.startswith("#")) == "time_s,voltage_V,desired_um"
+    assert next(ln for ln in lines if not ln.startswith("#")) == ("time_s,voltage_V,desired_um,"
+                                                                  "reference_um")
+    assert meta["run_file"] == rows[doc["best_iteration"]]["run_file"]
 
     res = CliRunner().invoke(main, ["play", str(out / "waveform_learned.csv"), "--out", str(rep),
                                     "--json"])
@@ -440,6 +442,25 @@ def test_track_learn_writes_every_iteration_and_play_reproduces_it(model_file: P
     assert played["rms_between_um"] == pytest.approx(kept["rms_between_um"], rel=1e-5)
     assert played["rms_steady_um"] == pytest.approx(kept["rms_steady_um"], rel=0.25)
     assert runfile.read(rep / "run_play.csv").complete
+
+    # --relearn: the replay is iteration 0 of learning resumed from the file's reference (the
+    # same voltages, re-planned), and says how far the stage moved since the learned run (this
+    # stage neither creeps nor drifts: nothing beyond the noise's share)
+    again = tmp_path / "relearn"
+    res = CliRunner().invoke(main, ["play", str(out / "waveform_learned.csv"), "--model",
+                                    str(model_file), "--relearn", "1", "--out", str(again),
+                                    "--json"])
+    assert res.exit_code == 0, res.output
+    relearned = json.loads(res.stdout.strip().splitlines()[-1])
+    assert "the stage has moved" in res.stderr
+    assert abs(relearned["replay_offset_um"]) < 0.01
+    v0 = runfile.read(again / relearned["iterations"][0]["run_file"]).voltage_v
+    np.testing.assert_allclose(v0, runfile.read(rep / "run_play.csv").voltage_v, atol=2e-3)
+    assert relearned["iterations"][0]["rms_between_um"] == pytest.approx(
+        kept["rms_between_um"], rel=1e-3)
+    res = CliRunner().invoke(main, ["play", str(out / "waveform_learned.csv"), "--relearn", "1",
+                                    "--out", str(tmp_path / "no-model")])
+    assert res.exit_code == 2 and "--model" in res.output
 
 
 def test_play_refuses_a_waveform_outside_the_limits(tmp_path: Path) -> None:
