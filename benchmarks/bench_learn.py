@@ -309,6 +309,11 @@ def family_row(case: family_sets.Case, cache: Path | None, tmp: Path) -> dict[st
                 "replay_over_noise": again[0] / noise, "replay_raw_ok": again[0] <= 2 * noise,
                 "replay_drift_um": rep.iterations[0].offset_um,
                 "relearned_rms_um_by_iteration": again, "relearn_kept_iteration": rep.best,
+                "relearn_offset_um_by_iteration": [it.offset_um for it in rep.iterations],
+                "relearn_predicted_offset_um_by_iteration": [it.predicted_offset_um
+                                                             for it in rep.iterations],
+                "relearn_repeatable_um_by_iteration": [it.repeatable_um
+                                                       for it in rep.iterations],
                 "relearn_stop": rep.stop, "relearned_over_noise": again[rep.best] / noise,
                 "replay_ok": again[rep.best] <= 2 * noise})
     log(f"  {case.name:18s}: true RMS {' -> '.join(f'{x:.4f}' for x in rms)} um "

@@ -230,8 +230,10 @@ class Tuning:
 APERIODIC_FRACTION = 0.25
 #: Fewest runs whose gains give a spread (two runs give one difference, no scale to trust).
 MIN_RUNS_SPREAD = 3
-#: Runs whose slow offsets give the trend continued into the next run (:func:`predicted_offset`).
-TREND_RUNS = 3
+#: Share of the last step of the slow offset continued into the next run while only two runs
+#: tell it (:func:`predicted_offset`): a steady drift keeps its step (1), creep relaxing in
+#: log-time shrinks it (ln(3/2) / ln 2 = 0.58 for the second run after a rest); half splits them.
+FIRST_RATIO = 0.5
 #: Fewest reliably measured harmonics for the per-harmonic inverse of ``G``.
 MIN_HARMONICS = 3
 #: A harmonic's G is measured when the reference's amplitude there exceeds this many standard
@@ -374,15 +376,20 @@ def gain_and_offset(x: FloatArray, s: FloatArray) -> tuple[float, float]:
 
 def predicted_offset(offsets: FloatArray) -> float:
     """The next run's slow offset (um) from the runs' offsets so far (creep, drift: measured on
-    the conditioning, :func:`gain_and_offset`): the straight line through the last
-    :data:`TREND_RUNS` of them (by run index: runs follow one another at a steady pace),
-    continued one run; the last offset itself while there is only one."""
-    o = np.asarray(offsets, dtype=float)[-TREND_RUNS:]
+    the conditioning, :func:`gain_and_offset`; runs follow one another at a steady pace): the
+    last offset plus its last step times the ratio of the last two steps (clipped to 0..1:
+    a steady drift keeps its step, ratio 1; creep relaxing in log-time after a rest takes
+    steps that shrink, ratio ~0.5-0.6), :data:`FIRST_RATIO` of the step while there are only
+    two runs, and the last offset itself while there is one."""
+    o = np.asarray(offsets, dtype=float)
     if o.size < 2:
         return float(o[-1]) if o.size else 0.0
-    k = np.arange(o.size, dtype=float)
-    slope, icept = np.polyfit(k, o, 1)
-    return float(icept + slope * o.size)
+    step = o[-1] - o[-2]
+    ratio = FIRST_RATIO
+    if o.size > 2:
+        prev = o[-2] - o[-3]
+        ratio = float(np.clip(step / prev, 0.0, 1.0)) if prev != 0 else 0.0
+    return float(o[-1] + ratio * step)
 
 
 def resolution(noise_um: float, gain_sigma: float, s_rms_um: float, runs: int) -> float:

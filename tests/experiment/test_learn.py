@@ -142,11 +142,14 @@ def test_gain_and_offset_separate_a_gain_change_from_a_slow_offset() -> None:
     assert ilc.gain_and_offset(np.full(5, np.nan), s[:5]) == (0.0, 0.0)
 
 
-def test_predicted_offset_continues_a_steady_drift_and_holds_a_single_one() -> None:
+def test_predicted_offset_continues_a_drift_and_a_relaxing_creep() -> None:
     assert ilc.predicted_offset(np.zeros(0)) == 0.0
     assert ilc.predicted_offset(np.array([0.4])) == 0.4  # one run: it stays where it is
+    assert ilc.predicted_offset(np.array([0.0, 0.2])) == pytest.approx(0.3)  # half the step
+    # a steady drift: the same step again; creep after a rest (steps halving): half of it
     assert ilc.predicted_offset(np.array([0.0, 0.02, 0.04, 0.06])) == pytest.approx(0.08)
-    assert ilc.predicted_offset(np.array([5.0, 0.0, 0.0, 0.0])) == pytest.approx(0.0)  # last 3
+    assert ilc.predicted_offset(np.array([-0.9, -0.5, -0.3, -0.2])) == pytest.approx(-0.15)
+    assert ilc.predicted_offset(np.array([0.0, 0.1, 0.05])) == pytest.approx(0.05)  # turned
 
 
 def test_imaging_mask_is_the_central_80_percent_of_every_ramp() -> None:
