@@ -324,7 +324,6 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     for j in range(iterations + 1):
         if j:
             t0 = time.perf_counter()
-            src = step.start
             ref = next_reference(done, step, desired, law, tuning, region)
             try:
                 wf = plan_reference(p, desired, ref)
@@ -353,8 +352,6 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
             it = dc.replace(it, predicted_offset_um=it.offset_um)  # error is its waveform's now
         done, sigma = at_mean_gain([*done, it], desired, law)
         it = done[-1]
-        if j and law.local_gain:
-            tuning = remeasure(tuning, done[src], it, desired, law, noise)
         compute.append(t_plan + time.perf_counter() - t1)
         best = int(np.argmin([x.judged_um for x in done]))
         if on_iteration is not None:
@@ -366,17 +363,6 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         if stop != "iterations done":
             break
     return Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma)
-
-
-def remeasure(tuning: ilc.Tuning, before: Iteration, after: Iteration,
-              desired: track.Desired, law: ilc.Law, noise: float) -> ilc.Tuning:
-    """``G`` measured again on the step from ``before`` to ``after``
-    (:func:`afmctl.planning.ilc.remeasured`: the change of the position estimate at the mean
-    gain and the predicted offset over the change of the reference)."""
-    assert before.reference_um is not None and after.reference_um is not None
-    assert before.learned_um is not None and after.learned_um is not None
-    return ilc.remeasured(tuning, after.reference_um - before.reference_um,
-                          before.learned_um - after.learned_um, desired, law, noise)
 
 
 def stop_rule(done: list[Iteration], no_step_left: bool, floor: float, noise: float,

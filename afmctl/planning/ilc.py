@@ -94,7 +94,7 @@ region of a raster line: the central 80 % of every ramp between turning points (
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -141,9 +141,6 @@ class Law:
         (its repeatable error) the next step starts from the best one at half the step, down
         to this; an iteration beyond ``diverge_factor`` at this step ends learning. 1: never
         shrink (every step the full ``rho``, from the last iteration).
-    local_gain : bool
-        Measure ``G`` again on every step (its local gain about the waveform learned so far,
-        :func:`remeasured`) instead of keeping iteration 0's ``Y / R``.
     """
 
     cutoff_hz: float = 600.0
@@ -154,7 +151,6 @@ class Law:
     region: str = "all"
     max_boost: float = 2.0
     min_step: float = 0.25
-    local_gain: bool = False
 
     def __post_init__(self) -> None:
         if self.region not in ("all", "imaging"):
@@ -299,28 +295,6 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
         fc = min(fc, float(freqs.max()))
     c = q_gain(freqs, dt, fc) * np.abs(1 - law.gain * np.exp(2j * np.pi * freqs * m * dt) * g)
     return Tuning(m, fc, freqs, g, c)
-
-
-def remeasured(tuning: Tuning, d_reference: FloatArray, d_position: FloatArray,
-               desired: track.Desired, law: Law, noise_um: float) -> Tuning:
-    """``tuning`` with ``G`` measured again on the last step: ``dY_n / dR_n``, the change of the
-    true-position estimate over the change of the reference between two iterations (tracking
-    part, um), at each of its harmonics where ``|dR_n|`` is :data:`RELIABLE` standard errors
-    of the two runs' noise or more; elsewhere the earlier ``G``. Iteration 0's ``Y / R`` is the
-    plant's gain from nothing to the trajectory; this is its local gain about the waveform
-    learned so far, which is what a step meets (on a stage outside the model's family, e.g.
-    Bouc-Wen, the two differ)."""
-    if not tuning.harmonic or desired.period_s is None:
-        return tuning
-    skip = steady_part(desired).start
-    f0, n_max = 1 / desired.period_s, _n_max(desired, law)
-    t = np.arange(skip, d_reference.size) * desired.dt_s
-    r = harmonics(d_reference[skip:], t, f0, n_max)[1:]
-    y = harmonics(np.nan_to_num(d_position[skip:]), t, f0, n_max)[1:]
-    se = (noise_um if np.isfinite(noise_um) else 0.0) * 2 / np.sqrt(max(t.size, 1))
-    n = np.rint(tuning.freqs_hz / f0).astype(int) - 1
-    ok = np.abs(r[n]) > max(RELIABLE * se, 1e-12)
-    return replace(tuning, g=np.where(ok, y[n] / np.where(ok, r[n], 1.0), tuning.g))
 
 
 def _g_hat(tuning: Tuning, freqs: FloatArray) -> NDArray[np.complex128]:

@@ -92,32 +92,6 @@ def test_per_harmonic_law_measures_g_and_inverts_it() -> None:
     assert np.sqrt(np.mean(e1**2)) < 0.05 * np.sqrt(np.mean(e0**2))
 
 
-def test_local_gain_is_measured_again_on_a_step() -> None:
-    """A plant whose response to the trajectory (``Y / R``: 1 + 0.5 of the trajectory's
-    square, measured by :func:`ilc.tune`) is not its local gain about it (2 x the step here, an
-    affine plant ``y = 2 r - c``): the step's ``dY / dR`` replaces iteration 0's ``G`` at the
-    harmonics the step moved, and the next step with it lands on the trajectory."""
-    desired = track.triangle(27.9, 20.0, 0.0, 3, DT)
-    u = desired.u_um
-    offset = 0.5 * u  # what the affine plant gives back on the trajectory itself: y0 = 1.5 u
-
-    def plant(r: np.ndarray) -> np.ndarray:
-        return 2 * r - offset
-
-    tuning = ilc.tune(u, plant(u), desired, ilc.Law(), 0.0)
-    np.testing.assert_allclose(tuning.g, 1.5, rtol=1e-6)  # Y / R, not the local gain
-    r1 = ilc.next_reference(u, u - plant(u), desired, ilc.Law(), tuning)
-    local = ilc.remeasured(tuning, r1 - u, plant(r1) - plant(u), desired, ilc.Law(), 0.0)
-    np.testing.assert_allclose(local.g, 2.0, rtol=1e-6)
-    steady = ilc.steady_part(desired)
-    e1 = (u - plant(r1))[steady]
-    r2 = ilc.next_reference(r1, u - plant(r1), desired, ilc.Law(), local)
-    e_local = (u - plant(r2))[steady]
-    r2_old = ilc.next_reference(r1, u - plant(r1), desired, ilc.Law(), tuning)
-    e_old = (u - plant(r2_old))[steady]
-    assert ilc.rms(e_local) < 0.05 * ilc.rms(e1) and ilc.rms(e_local) < 0.2 * ilc.rms(e_old)
-
-
 def test_harmonics_round_trip_without_leakage() -> None:
     t = np.arange(1234) * DT  # not a whole number of periods
     c = np.array([0.5, 2 - 1j, 0, 0.3j])
