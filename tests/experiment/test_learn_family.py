@@ -53,7 +53,8 @@ def test_a_drifting_stage_replayed_a_minute_later_is_relearned_in_two_iterations
     """A Preisach stage (non-separable density) whose frame drifts 18.5 nm/s (noise 15 nm).
     Learning reaches the noise (the slow offset of each run measured on the conditioning and
     its trend predicted: it neither chases nor diverges; measured: 0.85 -> 0.060 -> 0.014 ->
-    0.009 um). A minute later the kept waveform, replayed as it was, is 1.13 um off (73 x the
+    0.009 um, 0.6 x the noise; before this change learning chased the drift and stayed one
+    run's drift, 16 nm, off: 1.25-1.33 x from iteration 2 on). A minute later the kept waveform, replayed as it was, is 1.13 um off (73 x the
     noise: the frame moved, and no waveform learned before can know where to): the replay says
     how far the stage moved (its offset against the kept run's conditioning: 1.127 um, within
     5 % of the drift rate times the device time between the two runs), and two re-learned
@@ -79,7 +80,7 @@ def test_a_drifting_stage_replayed_a_minute_later_is_relearned_in_two_iterations
         moved = s.truth.drift_um_per_s * (probe.starts[first] - kept_at)
     noise = s.noise_um
     assert not res.stop.startswith("diverging"), res.stop
-    assert learned[res.best] <= 2 * noise, learned
+    assert learned[res.best] <= noise, learned  # not a run's drift off
     assert again[0] > 20 * noise  # the stage had moved on: the replay as it was is far off
     assert rep.iterations[0].offset_um == pytest.approx(moved, rel=0.05)
     assert len(again) <= 3 and again[rep.best] <= 2 * noise, again
