@@ -50,7 +50,7 @@ Above the cut-off nothing is learned and the error stays what the model leaves.
 its floor) and an unlucky draw would look like a divergence. So every iteration starts with the
 same conditioning excursion, on which two runs' readings differ by nothing but their gains (and
 noise): the coefficient of that difference along ``s = dy/dg`` (the model's position per unit
-gain, :func:`gain_coefficient`) is the run's gain relative to iteration 0, ``d_j``. The law uses
+gain, :func:`gain_and_offset`) is the run's gain relative to iteration 0, ``d_j``. The law uses
 the error the run would have made at the **mean gain** of the runs so far,
 
     e~_j = e_j + (d_j - mean(d_0 .. d_j)) s_j
@@ -86,7 +86,15 @@ at the noise floor (the steady error of the readings within :attr:`Law.floor_fac
 noise, estimated from the readings themselves, and of the mean gain's uncertainty under
 run-to-run variation: :func:`resolution`) and on a diverging error (an iteration worse than
 :attr:`Law.diverge_factor` times the best so far, the best counted no lower than that
-resolution: within it, iterations cannot be told apart).
+resolution: within it, iterations cannot be told apart, at the smallest step: after an
+iteration worse than the best the next step starts from the best at half the step, down to
+:attr:`Law.min_step`).
+
+**Creep and drift.** The conditioning also gives each run's slow offset against the first run
+(the free offset of :func:`gain_and_offset`); the next run's is predicted
+(:func:`predicted_offset`), the reference shifted by the predicted change, and learning learns
+from (and the divergence stop and the step look at) the error the run would have made at its
+predicted offset: the drift's predictable part is followed, its unpredictable part not chased.
 
 Judging is track's (at the samples and between them, the first period excluded) plus the imaging
 region of a raster line: the central 80 % of every ramp between turning points (:func:`imaging_mask`).
