@@ -29,12 +29,14 @@ def _out_dir(out_dir: str | None, prefix: str, force: bool = False) -> Path:
 
 def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any,
                 iterations: int, law_args: dict[str, Any], seed: str, how: tuple[bool, bool],
-                out_dir: str | None, as_json: bool, cal: Any = None) -> None:
+                out_dir: str | None, as_json: bool, cal: Any = None, resume: Any = None) -> None:
     """``afmctl track ... --learn N`` on an open ``stage``: iteration 0 is the ``seed`` filter's
     waveform, then up to N learning iterations (:mod:`afmctl.experiment.learn`); files after every
     iteration. ``how`` = (condition, extrapolate): every iteration keeps to the model's validity
     envelope (read from ``model_name``) unless extrapolate. ``cal`` (the model's calibration) goes
-    into summary.json, with the fit's flag if identify or diagnose raised one."""
+    into summary.json, with the fit's flag if identify or diagnose raised one. With ``resume``
+    (``afmctl play --relearn N``) iteration 0 replays a learned waveform and says how far the
+    stage has moved since it was learned."""
     from afmctl import plots
     from afmctl.experiment import learn
     from afmctl.experiment import runner as experiment
@@ -57,6 +59,10 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
 
     def each(result: learn.Result) -> None:
         it = result.iterations[-1]
+        if resume is not None and it.index == 0 and resume.readings_um is not None:
+            click.echo(f"replay: the stage has moved {it.offset_um:+.4f} um since the learned "
+                       f"run (creep, drift: its conditioning's readings against that run's)",
+                       err=True)
         gain = (f", gain {100 * it.gain_change:+.2f} % (at the mean gain {it.judged_um:.4f} um)"
                 if abs(it.gain_change) >= 5e-5 else "")
         between = ("" if it.outcome.score.rms_between_um is None else
@@ -66,12 +72,16 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
                    f"{it.outcome.waveform.max_slew_v_per_ms:.1f} V/ms{gain}", err=True)
         write(result)
 
-    click.echo(f"learning {desired.label}: up to {iterations} iterations after the {seed} "
-               f"waveform ...", err=True)
+    click.echo(f"learning {desired.label}: up to {iterations} iterations after the "
+               + ("replayed" if resume is not None else seed) + " waveform ...", err=True)
     result = learn.run(stage, model, desired, prof.limits, out, meta, iterations, law, truth,
                        seed, how[0], progress_printer(True), each,
-                       envelope=modelfile.read_envelope(model_name), extrapolate=how[1])
+                       envelope=modelfile.read_envelope(model_name), extrapolate=how[1],
+                       resume=resume)
     data = write(result)
+    if resume is not None and resume.readings_um is not None:
+        data["replay_offset_um"] = result.iterations[0].offset_um
+        experiment.write_summary(data, out / "summary.json")
     click.echo(f"stopped: {result.stop}; best iteration {result.best} "
                f"({result.best_iteration.judged_um:.4f} um)", err=True)
     if truth is None:
@@ -102,13 +112,20 @@ def _tracking(desired_um: Any) -> slice:
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Output folder (default: ./afmctl-play-<time>).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary JSON on stdout.")
+@click.option("--relearn", type=click.IntRange(min=0), default=0,
+              help="Re-learn: after the replay, up to N learning iterations from the waveform's "
+                   "learned reference (a stage that has moved on since: creep, drift), through "
+                   "--model; says how far the stage has moved (needs a waveform_learned.csv "
+                   "with its reference_um column).")
 def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: str | None,
-         as_json: bool) -> None:
+         as_json: bool, relearn: int) -> None:
     """Replay a saved waveform (time_s,voltage_V[,desired_um] CSV, e.g. a learned one).
 
     The waveform passes the same guard as track's (nothing is sent otherwise); its run file,
     summary.json, play.png and scores (against desired_um, if the file has it) are track's. A
-    waveform whose header names another profile or model is played with a warning.
+    waveform whose header names another profile or model is played with a warning. With
+    --relearn N the replay is iteration 0 of learning resumed from the waveform's reference
+    (the outputs of ``track --learn``).
     """
     import numpy as np
 
@@ -131,6 +148,9 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     model = modelfile.read(model_path) if model_path else None
     for line in header_warnings(w.meta, prof.name, model_path, Path(wave).name):
         click.echo(line, err=True)
+    if relearn:
+        _relearn(w, Path(wave), prof, model, model_path, relearn, out_dir, as_json)
+        return
     sensor = model.effects if model is not None else fx.Effects()
     tracking = _tracking(w.desired_um)
     wf = track.Waveform("play", dt, w.voltage_v, w.desired_um, tracking)
@@ -171,6 +191,44 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     click.echo(f"wrote {out}/" + ", ".join(written), err=True)
     if as_json:
         click.echo(json.dumps(experiment.json_ready(data)))
+
+
+def _relearn(w: Any, wave: Path, prof: Any, model: Any, model_path: str | None,
+             iterations: int, out_dir: str | None, as_json: bool) -> None:
+    """``afmctl play WAVE --relearn N``: learning resumed from the waveform's reference
+    (:class:`afmctl.experiment.learn.Resume`), the learned run's readings (its run file beside
+    the waveform, named in the header) telling how far the stage has moved."""
+    import numpy as np
+
+    from afmctl.experiment import learn
+    from afmctl.files import runfile
+    from afmctl.planning import track
+    if model is None or model_path is None:
+        fail("--relearn learns through the model: give --model (the one the waveform was "
+             "learned with)")
+    if w.reference_um is None or "period_s" not in w.meta:
+        fail(f"{wave.name} has no reference_um column or no period_s (written by afmctl track "
+             f"--learn): it cannot be re-learned; play it without --relearn")
+    tracking = _tracking(w.desired_um)
+    u = w.desired_um[tracking]
+    desired = track.Desired(w.dt_s, u, float(w.meta["period_s"]), float(np.ptp(u)),
+                            w.meta.get("trajectory", "none"))
+    readings = None
+    kept = wave.parent / w.meta.get("run_file", "")
+    if kept.is_file() and kept.name:
+        run = runfile.read(kept)
+        if run.displacement_um.size == w.voltage_v.size:
+            readings = run.displacement_um
+    if readings is None:
+        click.echo(f"warning: the learned run ({w.meta.get('run_file', 'not named')}) is not "
+                   f"beside {wave.name}: how far the stage has moved is not told", err=True)
+    horizons = tuple(int(h) for h in w.meta.get("horizons", "").split(",") if h.strip())
+    resume = learn.Resume(w.reference_um[tracking], horizons, readings)
+    seed = w.meta.get("filter", "inverse")
+    with opened_stage(prof) as stage:
+        learn_track(desired, prof, model, model_path, stage, iterations, {},
+                    seed if seed in ("inverse", "linear") else "inverse", (True, False),
+                    out_dir, as_json, resume=resume)
 
 
 def header_warnings(meta: dict[str, str], profile: str, model_path: str | None,

@@ -137,8 +137,14 @@ class Iteration:
     (um per unit gain, :func:`gain_direction`; None without conditioning: no gain is measured
     then); ``learned_um`` is the error learning uses and
     judges, the error the run would have made at the mean gain of the runs so far
-    (``error_um`` itself when the gain does not vary), and ``judged_um`` its RMS over the
-    learned region (the steady part, or its imaging region)."""
+    (``error_um`` itself when the gain does not vary) and at the slow offset predicted for it,
+    and ``judged_um`` the RMS over the learned region (the steady part, or its imaging region)
+    of the error at the mean gain. ``reference_um`` is the reference ``r_j`` the waveform
+    inverts (tracking part, um); ``offset_um`` the run's slow offset (creep, drift: um, on the
+    conditioning, relative to the first run, or to the kept run of a replay), and
+    ``predicted_offset_um`` the offset its reference was shifted for (:func:`at_mean_gain`);
+    ``repeatable_um`` the RMS of ``learned_um``: what the waveform itself does, had the slow
+    offset been the predicted one (what the step size and the divergence stop look at)."""
 
     index: int
     outcome: experiment.Outcome
@@ -150,6 +156,10 @@ class Iteration:
     gain_direction_um: FloatArray | None = None
     learned_um: FloatArray | None = None
     judged_um: float = float("nan")
+    reference_um: FloatArray | None = None
+    offset_um: float = 0.0
+    predicted_offset_um: float = 0.0
+    repeatable_um: float = float("nan")
 
     def as_dict(self) -> dict[str, Any]:
         s = self.outcome.score
@@ -159,6 +169,8 @@ class Iteration:
                 "rms_steady_um": self.steady_um,
                 "max_slew_V_per_ms": self.outcome.waveform.max_slew_v_per_ms,
                 "gain_change": self.gain_change, "judged_um": self.judged_um,
+                "offset_um": self.offset_um, "predicted_offset_um": self.predicted_offset_um,
+                "repeatable_um": self.repeatable_um,
                 "complete": self.outcome.complete, "run_file": self.outcome.run_file.name}
 
 
@@ -212,38 +224,107 @@ def judge(wf: track.Waveform, desired: track.Desired, index: int, measured: tupl
 OnIteration = Callable[[Result], None]
 
 
+@dataclass(frozen=True)
+class Resume:
+    """Where a replay of earlier learning starts: the kept iteration's reference (tracking
+    part, um) and inversion horizons, its run's readings (whole run, um: the replay's
+    conditioning readings are compared with them to tell how far the stage has moved since,
+    creep and drift; None: not told) and that learning's tuning of ``L`` and ``Q`` (None:
+    measured on the replay, as on a first iteration 0)."""
+
+    reference_um: FloatArray
+    horizons: tuple[int, ...] = ()
+    readings_um: FloatArray | None = None
+    tuning: ilc.Tuning | None = None
+
+    @classmethod
+    def kept(cls, result: Result) -> Resume:
+        """The replay of ``result``'s best iteration."""
+        it = result.best_iteration
+        assert it.reference_um is not None
+        return cls(it.reference_um, it.outcome.waveform.horizons, it.outcome.displacement_um,
+                   result.tuning)
+
+
+@dataclass
+class _Step:
+    """The step of the law (a fraction of ``rho``) and where the next step starts: halved, from
+    the best iteration, after an iteration worse than the best (never below the law's
+    ``min_step``)."""
+
+    scale: float = 1.0
+    start: int = 0
+
+    def after(self, done: list[Iteration], law: ilc.Law) -> bool:
+        """Update after the last iteration of ``done``; True if it was worse than the best at
+        the smallest step already (no step left to try)."""
+        rep = [x.repeatable_um for x in done]
+        b, j = int(np.nanargmin(rep)), len(done) - 1
+        if rep[j] <= rep[b] or j == 0:
+            self.start = j
+            return False
+        if self.scale > law.min_step:
+            self.scale, self.start = max(self.scale / 2, law.min_step), b
+            return False
+        self.start = j
+        return True
+
+
+def next_reference(done: list[Iteration], step: _Step, desired: track.Desired, law: ilc.Law,
+                   tuning: ilc.Tuning, region: NDArray[np.bool_] | None) -> FloatArray:
+    """``r_{j+1}``: the law's step (scaled by ``step``) from ``step.start``'s reference and
+    learned error, shifted from the slow offset predicted for that run to the one predicted for
+    the next (:func:`afmctl.planning.ilc.predicted_offset`)."""
+    src = done[step.start]
+    assert src.reference_um is not None and src.learned_um is not None
+    pred = ilc.predicted_offset(np.array([x.offset_um for x in done]))
+    ref = ilc.next_reference(src.reference_um, src.learned_um, desired,
+                             dc.replace(law, gain=law.gain * step.scale), tuning, region)
+    return ref - (pred - src.predicted_offset_um)
+
+
 def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Desired,
         limits: guard.Limits, out: Path, meta: Mapping[str, object], iterations: int,
         law: ilc.Law = DEFAULT_LAW, truth: tr.Transducer | None = None, seed: str = "inverse",
         condition: bool = True, progress: experiment.Progress | None = None,
         on_iteration: OnIteration | None = None, envelope: Envelope | None = None,
-        extrapolate: bool = False) -> Result:
+        extrapolate: bool = False, resume: Resume | None = None) -> Result:
     """Play iteration 0 and up to ``iterations`` learning iterations on ``stage``.
 
     Every iteration's run file goes to ``out`` (``run_<seed>_iterNN.csv``) as it plays;
     ``on_iteration`` is called with the result so far after each finished iteration (write the
     summary there: an interrupt then loses nothing finished). ``truth`` is the plant the stage
     simulates, for judging between the samples (None: not judged there; the model's own
-    simulation would only show the model inverting itself). A refused waveform, the noise floor or a
-    diverging error end learning early (``Result.stop`` says which).
+    simulation would only show the model inverting itself). A refused waveform, the noise floor
+    or a diverging error end learning early (``Result.stop`` says which). With ``resume``,
+    iteration 0 replays its kept waveform (re-planned from its reference: the same voltages)
+    and the next ones re-learn from there with its tuning; the replay's ``offset_um`` is how
+    far the stage has moved since the kept run.
+
+    Raises
+    ------
+    guard.LimitError, afmctl.planning.track.EnvelopeError
+        If iteration 0's waveform would leave the limits or the envelope (nothing is sent).
     """
     out.mkdir(parents=True, exist_ok=True)
     start_v = stage.voltage()
     t0 = time.perf_counter()
     p, wf = planner(model, desired, limits, start_v, seed, condition, envelope, extrapolate)
     ref = desired.u_um.copy()
+    tuning = ilc.Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex), np.zeros(0))
+    if resume is not None:
+        ref, tuning = resume.reference_um.copy(), resume.tuning or tuning
+        if resume.horizons:  # the kept run's (grown) horizons
+            p = dc.replace(p, horizons=resume.horizons)
+        wf = plan_reference(p, desired, ref)
     done: list[Iteration] = []
     compute: list[float] = []
-    noise, best, stop = float("nan"), 0, "iterations done"
-    tuning = ilc.Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex), np.zeros(0))
-
-    plant = truth
+    noise, best, stop, sigma, step = float("nan"), 0, "iterations done", 0.0, _Step()
     region = ilc.imaging_mask(desired, first_period=True) if law.region == "imaging" else None
-    sigma = 0.0
     for j in range(iterations + 1):
         if j:
             t0 = time.perf_counter()
-            ref = ilc.next_reference(ref, done[-1].learned_um, desired, law, tuning, region)
+            ref = next_reference(done, step, desired, law, tuning, region)
             try:
                 wf = plan_reference(p, desired, ref)
             except (guard.LimitError, track.EnvelopeError) as exc:
@@ -255,57 +336,86 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         t_plan = time.perf_counter() - t0
         path = out / f"run_{wf.filter}.csv"
         measured = experiment.stream(stage, wf, path, meta, progress)
-        between = between_error(wf, desired, plant)  # reporting only: not part of the compute
+        between = between_error(wf, desired, truth)  # reporting only: not part of the compute
         t1 = time.perf_counter()
         it = judge(wf, desired, j, measured, path, model.effects, between)
         if j == 0:
             noise = ilc.noise_estimate(it.error_um[ilc.steady_part(desired)])
-            tuning = ilc.tune(ref, desired.u_um - it.error_um, desired, law, noise)
-        if p.prefix_v.size:  # the gain is measured on the conditioning: s is needed
-            # s of this waveform: the learned waveforms sit elsewhere on the hysteresis than
-            # iteration 0's (its offset alone moved s's mean by ~7 um per unit gain on a stage)
-            s_dir = gain_direction(p, wf)
-            it = dc.replace(it, gain_direction_um=s_dir[wf.tracking])
-            if j:
-                it = dc.replace(it, gain_change=gain_change(it, done[0], s_dir, p.prefix_v,
-                                                            model.effects))
+            if resume is None or resume.tuning is None:
+                tuning = ilc.tune(ref, desired.u_um - it.error_um, desired, law, noise)
+        pred = ilc.predicted_offset(np.array([x.offset_um for x in done])) if j else 0.0
+        it = dc.replace(it, reference_um=ref, predicted_offset_um=pred)
+        first = (resume.readings_um if resume is not None and resume.readings_um is not None
+                 else done[0].outcome.displacement_um if done else None)
+        it = measure_change(p, it, first, model.effects)
+        if j == 0 and resume is not None:  # the replay's offset could not be predicted: its
+            it = dc.replace(it, predicted_offset_um=it.offset_um)  # error is its waveform's now
         done, sigma = at_mean_gain([*done, it], desired, law)
         it = done[-1]
         compute.append(t_plan + time.perf_counter() - t1)
         best = int(np.argmin([x.judged_um for x in done]))
-        result = Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma)
         if on_iteration is not None:
-            on_iteration(result)
-        floor = ilc.resolution(noise, sigma, ilc.rms(s_dir[wf.tracking][ilc.steady_part(desired)]),
-                               len(done))
-        if it.judged_um > law.diverge_factor * max(done[best].judged_um, floor):
-            stop = (f"diverging: iteration {j} ({it.judged_um:.4g} um) worse than "
-                    f"{law.diverge_factor:g} x the best ({done[best].judged_um:.4g} um)")
-            break
-        if it.judged_um <= law.floor_factor * floor:
-            stop = (f"noise floor: {it.judged_um:.4g} um within {law.floor_factor:g} x noise"
-                    + ("" if floor == noise else
-                       f" and the mean gain's uncertainty ({floor:.4g} um; gain spread "
-                       f"{100 * sigma:.2g} %)"))
+            on_iteration(Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma))
+        s_rms = (0.0 if it.gain_direction_um is None
+                 else ilc.rms(it.gain_direction_um[ilc.steady_part(desired)]))
+        floor = ilc.resolution(noise, sigma, s_rms, len(done))
+        stop = stop_rule(done, step.after(done, law), floor, noise, law, sigma) or stop
+        if stop != "iterations done":
             break
     return Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma)
 
 
-def gain_change(it: Iteration, first: Iteration, s: FloatArray, prefix_v: FloatArray,
-                sensor: fx.Effects) -> float:
-    """The run's applied-voltage gain relative to iteration 0's (fraction), from the conditioning
-    excursion ``prefix_v`` that starts every iteration: the coefficient along ``s`` (with a free
-    offset) of the difference of the two runs' readings (corrected for ``sensor``) from its peak
-    on, where the same voltages have wiped out what came before, so that nothing but the gain
-    and the noise tells the two runs apart. 0 without conditioning. In units of the model's
-    ``s``: a stage that moves ``c`` times as far per volt as the model reads ``c`` times its gain
-    change, and ``d s`` is the stage's own movement, which is what learning removes."""
-    if not prefix_v.size:
-        return 0.0
+def stop_rule(done: list[Iteration], no_step_left: bool, floor: float, noise: float,
+              law: ilc.Law, sigma: float) -> str:
+    """Why learning stops after the last of ``done`` ("" to go on): its error at the mean gain
+    within ``law.floor_factor`` x the resolution ``floor`` (um), or its repeatable error (the
+    slow offset's miss removed: drift is not a divergence) worse than ``law.diverge_factor``
+    x the best's with no smaller step left to try."""
+    it, rep = done[-1], min(x.repeatable_um for x in done)
+    if no_step_left and it.repeatable_um > law.diverge_factor * max(rep, floor):
+        return (f"diverging: iteration {it.index} ({it.repeatable_um:.4g} um) worse than "
+                f"{law.diverge_factor:g} x the best ({rep:.4g} um) at the smallest step "
+                f"({law.min_step:g} rho)")
+    if it.judged_um <= law.floor_factor * floor:
+        return (f"noise floor: {it.judged_um:.4g} um within {law.floor_factor:g} x noise"
+                + ("" if floor == noise else
+                   f" and the mean gain's uncertainty ({floor:.4g} um; gain spread "
+                   f"{100 * sigma:.2g} %)"))
+    return ""
+
+
+def measure_change(p: Planner, it: Iteration, first: FloatArray | None,
+                   sensor: fx.Effects) -> Iteration:
+    """``it`` with its waveform's gain direction ``s`` and, against the readings ``first`` of
+    the run it is compared with (um; None: there is none), its gain change and slow offset
+    (:func:`run_change`). Without conditioning nothing is measured."""
+    if not p.prefix_v.size:
+        return it
+    # s of this waveform: the learned waveforms sit elsewhere on the hysteresis than
+    # iteration 0's (its offset alone moved s's mean by ~7 um per unit gain on a stage)
+    s_dir = gain_direction(p, it.outcome.waveform)
+    it = dc.replace(it, gain_direction_um=s_dir[it.outcome.waveform.tracking])
+    if first is None:
+        return it
+    d, o = run_change(it, first, s_dir, p.prefix_v, sensor)
+    return dc.replace(it, gain_change=d, offset_um=o)
+
+
+def run_change(it: Iteration, first: FloatArray, s: FloatArray, prefix_v: FloatArray,
+               sensor: fx.Effects) -> tuple[float, float]:
+    """The run's applied-voltage gain relative to that of the run whose readings are ``first``
+    (um) (fraction) and its slow offset
+    (um: creep, drift), from the conditioning excursion ``prefix_v`` that starts every
+    iteration: the coefficient along ``s`` and the free offset of the difference of the two
+    runs' readings (corrected for ``sensor``) from its peak on, where the same voltages have
+    wiped out what came before, so that nothing but the gain, the slow offset and the noise
+    tells the two runs apart. In units of the model's ``s``: a stage that moves ``c`` times as
+    far per volt as the model reads ``c`` times its gain change, and ``d s`` is the stage's own
+    movement, which is what learning removes."""
     chain = fx.compile_chain(sensor, it.outcome.waveform.dt_s)
     part = slice(int(np.argmax(prefix_v)), prefix_v.size)
-    w = [fx.sensor_correct(chain, x.outcome.displacement_um)[part] for x in (first, it)]
-    return ilc.gain_coefficient(w[1] - w[0], s[part])
+    w = [fx.sensor_correct(chain, x)[part] for x in (first, it.outcome.displacement_um)]
+    return ilc.gain_and_offset(w[1] - w[0], s[part])
 
 
 def at_mean_gain(done: list[Iteration], desired: track.Desired, law: ilc.Law
@@ -314,20 +424,29 @@ def at_mean_gain(done: list[Iteration], desired: track.Desired, law: ilc.Law
 
     A run whose gain was ``d_i - mean(d)`` above the mean moved the stage by that times its own
     waveform's ``s`` (``gain_direction_um``) on the trajectory: added back to its error, it
-    leaves the error its waveform makes at the mean gain (``learned_um``, what learning learns
-    from; ``judged_um`` its RMS over the learned region). All iterations are compared at the
-    same gain, so a run's own draw neither makes its waveform look best nor ends learning as a
-    divergence.
+    leaves the error its waveform makes at the mean gain (``judged_um`` its RMS over the
+    learned region). All iterations are compared at the same gain, so a run's own draw neither
+    makes its waveform look best nor ends learning as a divergence. Likewise a run whose slow
+    offset was ``o_i`` where ``o^_i`` was predicted moved by the difference: added back, that
+    leaves the error its waveform makes at the predicted offset (``learned_um``, what learning
+    learns from; ``repeatable_um`` its RMS), so learning neither chases the drift's
+    unpredictable part nor takes it for a divergence.
     """
     d = np.array([x.gain_change for x in done])
     out = []
     for x in done:
         s = x.gain_direction_um if x.gain_direction_um is not None else 0.0
-        learned = x.error_um + (x.gain_change - float(d.mean())) * s
-        judged = (ilc.imaging_rms(desired, learned) if law.region == "imaging"
-                  else ilc.rms(learned[ilc.steady_part(desired)]))
-        out.append(dc.replace(x, learned_um=learned, judged_um=judged))
+        at_gain = x.error_um + (x.gain_change - float(d.mean())) * s
+        learned = at_gain + (x.offset_um - x.predicted_offset_um)
+        out.append(dc.replace(x, learned_um=learned, judged_um=_region_rms(desired, at_gain, law),
+                              repeatable_um=_region_rms(desired, learned, law)))
     return out, float(np.std(d, ddof=1)) if d.size > 1 else 0.0
+
+
+def _region_rms(desired: track.Desired, error: FloatArray, law: ilc.Law) -> float:
+    """RMS (um) over the learned region: the imaging region, or the steady part."""
+    return (ilc.imaging_rms(desired, error) if law.region == "imaging"
+            else ilc.rms(error[ilc.steady_part(desired)]))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -363,10 +482,16 @@ def waveform_text(it: Iteration, desired: track.Desired, meta: Mapping[str, obje
 
     wf = it.outcome.waveform
     info = {**meta, "trajectory": desired.label, "iteration": it.index,
-            "rms_steady_um": f"{it.steady_um:.6g}"}
+            "rms_steady_um": f"{it.steady_um:.6g}", "run_file": it.outcome.run_file.name,
+            "filter": wf.filter.rpartition("_iter")[0] or wf.filter,
+            "horizons": ",".join(str(h) for h in wf.horizons)}
     if desired.period_s is not None:
         info["period_s"] = f"{desired.period_s:.9g}"
-    return waveformfile.format_text(wf.time_s, wf.voltage_v, wf.desired_um, info)
+    ref = None
+    if it.reference_um is not None:
+        ref = np.full(wf.voltage_v.size, np.nan)
+        ref[wf.tracking] = it.reference_um
+    return waveformfile.format_text(wf.time_s, wf.voltage_v, wf.desired_um, info, ref)
 
 
 def write_outputs(result: Result, desired: track.Desired, law: ilc.Law,

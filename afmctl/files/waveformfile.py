@@ -12,8 +12,11 @@ Layout (what ``afmctl track --learn`` writes as ``waveform_learned.csv``)::
     ...
 
 ``time_s`` must be uniformly spaced at the stage's sample period; ``desired_um`` is optional (empty
-on the conditioning and the ramps) and, when present, is what a replay is scored against. Any
-``time_s,voltage_V`` file with ``#`` metadata lines (or none) is a waveform file.
+on the conditioning and the ramps) and, when present, is what a replay is scored against.
+``reference_um`` (optional, learned waveforms) is the reference the waveform's voltages invert
+(Algorithm 3's target: the desired trajectory plus what learning added), which a replay that
+re-learns (``afmctl play --relearn``) starts from. Any ``time_s,voltage_V`` file with ``#``
+metadata lines (or none) is a waveform file.
 """
 
 from __future__ import annotations
@@ -35,22 +38,26 @@ FORMAT_VERSION = 1
 
 @dataclass(frozen=True)
 class WaveformFile:
-    """A waveform read back: samples every ``dt_s`` seconds, desired NaN where absent."""
+    """A waveform read back: samples every ``dt_s`` seconds, desired NaN where absent, the
+    learned reference (um, NaN where absent) or None without that column."""
 
     meta: dict[str, str]
     dt_s: float
     voltage_v: FloatArray
     desired_um: FloatArray
+    reference_um: FloatArray | None = None
 
 
 def format_text(time_s: FloatArray, voltage_v: FloatArray, desired_um: FloatArray,
-                meta: Mapping[str, object]) -> str:
-    """The file's text: metadata, header, one row per sample (desired empty where NaN)."""
+                meta: Mapping[str, object], reference_um: FloatArray | None = None) -> str:
+    """The file's text: metadata, header, one row per sample (desired and the optional
+    reference empty where NaN)."""
     head = {"afmctl-waveform": FORMAT_VERSION, **meta}
     lines = [f"# {k}: {str(v).replace(chr(10), ' ')}" for k, v in head.items()]
-    lines.append("time_s,voltage_V,desired_um")
-    lines += [f"{t:.7f},{v:.6f},{'' if math.isnan(d) else f'{d:.6f}'}"
-              for t, v, d in zip(time_s, voltage_v, desired_um, strict=True)]
+    cols = [desired_um] if reference_um is None else [desired_um, reference_um]
+    lines.append("time_s,voltage_V,desired_um" + ("" if reference_um is None else ",reference_um"))
+    lines += [f"{t:.7f},{v:.6f}," + ",".join('' if math.isnan(x) else f'{x:.6f}' for x in xs)
+              for t, v, *xs in zip(time_s, voltage_v, *cols, strict=True)]
     return "\n".join(lines) + "\n"
 
 
@@ -94,13 +101,14 @@ def parse(text: str, where: str = "<waveform>") -> WaveformFile:
     data = np.array(rows)
     t, v = data[:, header.index("time_s")], data[:, header.index("voltage_V")]
     d = data[:, header.index("desired_um")] if "desired_um" in header else np.full(t.size, np.nan)
+    r = data[:, header.index("reference_um")] if "reference_um" in header else None
     if not (np.isfinite(t).all() and np.isfinite(v).all()):
         raise FileFormatError(f"{where}: time_s and voltage_V must be finite in every row")
     steps = np.diff(t)
     dt = float(np.mean(steps))
     if dt <= 0 or np.max(np.abs(steps - dt)) > 1e-3 * dt + 1e-7:
         raise FileFormatError(f"{where}: time_s must increase in equal steps")
-    return WaveformFile(meta, dt, v, d)
+    return WaveformFile(meta, dt, v, d, r)
 
 
 def read(path: str | Path) -> WaveformFile:

@@ -50,7 +50,7 @@ Above the cut-off nothing is learned and the error stays what the model leaves.
 its floor) and an unlucky draw would look like a divergence. So every iteration starts with the
 same conditioning excursion, on which two runs' readings differ by nothing but their gains (and
 noise): the coefficient of that difference along ``s = dy/dg`` (the model's position per unit
-gain, :func:`gain_coefficient`) is the run's gain relative to iteration 0, ``d_j``. The law uses
+gain, :func:`gain_and_offset`) is the run's gain relative to iteration 0, ``d_j``. The law uses
 the error the run would have made at the **mean gain** of the runs so far,
 
     e~_j = e_j + (d_j - mean(d_0 .. d_j)) s_j
@@ -86,7 +86,15 @@ at the noise floor (the steady error of the readings within :attr:`Law.floor_fac
 noise, estimated from the readings themselves, and of the mean gain's uncertainty under
 run-to-run variation: :func:`resolution`) and on a diverging error (an iteration worse than
 :attr:`Law.diverge_factor` times the best so far, the best counted no lower than that
-resolution: within it, iterations cannot be told apart).
+resolution: within it, iterations cannot be told apart, at the smallest step: after an
+iteration worse than the best the next step starts from the best at half the step, down to
+:attr:`Law.min_step`).
+
+**Creep and drift.** The conditioning also gives each run's slow offset against the first run
+(the free offset of :func:`gain_and_offset`); the next run's is predicted
+(:func:`predicted_offset`), the reference shifted by the predicted change, and learning learns
+from (and the divergence stop and the step look at) the error the run would have made at its
+predicted offset: the drift's predictable part is followed, its unpredictable part not chased.
 
 Judging is track's (at the samples and between them, the first period excluded) plus the imaging
 region of a raster line: the central 80 % of every ramp between turning points (:func:`imaging_mask`).
@@ -136,6 +144,11 @@ class Law:
         Largest ``|L|`` of the per-harmonic law: where the stage responds far less than the
         model (``|G| < 1 / max_boost``) learning takes several smaller steps instead of one
         step that asks for the whole missing response at once (and for the slew it needs).
+    min_step : float
+        Smallest step, as a fraction of ``rho``: after an iteration worse than the best so far
+        (its repeatable error) the next step starts from the best one at half the step, down
+        to this; an iteration beyond ``diverge_factor`` at this step ends learning. 1: never
+        shrink (every step the full ``rho``, from the last iteration).
     """
 
     cutoff_hz: float = 600.0
@@ -145,15 +158,17 @@ class Law:
     diverge_factor: float = 1.2
     region: str = "all"
     max_boost: float = 2.0
+    min_step: float = 0.25
 
     def __post_init__(self) -> None:
         if self.region not in ("all", "imaging"):
             raise ValueError(f"learning region must be 'all' or 'imaging', not {self.region!r}")
         if not (self.cutoff_hz > 0 and 0 < self.gain < 2 and self.max_lead_samples >= 0
                 and (self.floor_factor >= 1 or self.floor_factor == 0) and self.diverge_factor > 1
-                and self.max_boost >= 1):
+                and self.max_boost >= 1 and 0 < self.min_step <= 1):
             raise ValueError("learning law: need cutoff > 0, 0 < gain < 2, lead >= 0, "
-                             "floor factor >= 1 (or 0), divergence factor > 1, max boost >= 1")
+                             "floor factor >= 1 (or 0), divergence factor > 1, max boost >= 1, "
+                             "0 < min step <= 1")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -219,6 +234,10 @@ class Tuning:
 APERIODIC_FRACTION = 0.25
 #: Fewest runs whose gains give a spread (two runs give one difference, no scale to trust).
 MIN_RUNS_SPREAD = 3
+#: Share of the last step of the slow offset continued into the next run while only two runs
+#: tell it (:func:`predicted_offset`): a steady drift keeps its step (1), creep relaxing in
+#: log-time shrinks it (ln(3/2) / ln 2 = 0.58 for the second run after a rest); half splits them.
+FIRST_RATIO = 0.5
 #: Fewest reliably measured harmonics for the per-harmonic inverse of ``G``.
 MIN_HARMONICS = 3
 #: A harmonic's G is measured when the reference's amplitude there exceeds this many standard
@@ -324,14 +343,35 @@ def next_reference(reference: FloatArray, error: FloatArray, desired: track.Desi
     return reference + fade * synthesize(dr, t, f0) + slow
 
 
-def gain_coefficient(x: FloatArray, s: FloatArray) -> float:
+def gain_and_offset(x: FloatArray, s: FloatArray) -> tuple[float, float]:
     """Least-squares coefficient of ``x`` (um) along the gain direction ``s`` (um per unit gain)
-    with a free offset (NaN skipped): the change of the stage's gain that moves it by ``x``,
-    whatever constant shift (creep, drift) comes with it."""
+    with a free offset (NaN skipped), and that offset (um): the change of the stage's gain
+    that moves it by ``x``, and the constant shift (creep, drift) that comes with it."""
     k = np.isfinite(x) & np.isfinite(s)
-    sc = s[k] - s[k].mean() if k.any() else s[k]
+    if not k.any():
+        return 0.0, 0.0
+    sc = s[k] - s[k].mean()
     ss = float(np.sum(sc**2))
-    return float(np.sum(x[k] * sc) / ss) if ss > 0 else 0.0
+    d = float(np.sum(x[k] * sc) / ss) if ss > 0 else 0.0
+    return d, float(np.mean(x[k]) - d * np.mean(s[k]))
+
+
+def predicted_offset(offsets: FloatArray) -> float:
+    """The next run's slow offset (um) from the runs' offsets so far (creep, drift: measured on
+    the conditioning, :func:`gain_and_offset`; runs follow one another at a steady pace): the
+    last offset plus its last step times the ratio of the last two steps (clipped to 0..1:
+    a steady drift keeps its step, ratio 1; creep relaxing in log-time after a rest takes
+    steps that shrink, ratio ~0.5-0.6), :data:`FIRST_RATIO` of the step while there are only
+    two runs, and the last offset itself while there is one."""
+    o = np.asarray(offsets, dtype=float)
+    if o.size < 2:
+        return float(o[-1]) if o.size else 0.0
+    step = o[-1] - o[-2]
+    ratio = FIRST_RATIO
+    if o.size > 2:
+        prev = o[-2] - o[-3]
+        ratio = float(np.clip(step / prev, 0.0, 1.0)) if prev != 0 else 0.0
+    return float(o[-1] + ratio * step)
 
 
 def resolution(noise_um: float, gain_sigma: float, s_rms_um: float, runs: int) -> float:
