@@ -238,7 +238,7 @@ def test_status_and_safe_by_shipped_profile_name(profile: Profile, tmp_path: Pat
     assert named.exit_code == 0 and json.loads(named.stdout)["profile"] == "emulated"
     missing = CliRunner().invoke(main, ["status", "--profile", "lab-modbuss"])
     assert missing.exit_code == 2
-    assert "shipped: emulated, emulated-foreign, lab-modbus, lab-serial" in missing.stderr
+    assert "shipped: emulated, emulated-foreign, emulated-xy, lab-modbus, lab-serial" in missing.stderr
 
 
 def test_the_limits_clause_leaves_no_sample_beyond_the_bound_in_the_table(
