@@ -67,12 +67,13 @@ class Record:
 @dataclass(frozen=True)
 class Spectrum:
     """Cross-spectral estimates of the response: frequency (Hz), H (um/um), 1-sigma of each of
-    its real and imaginary parts (um/um) and coherence."""
+    its real and imaginary parts (um/um), coherence and the index of the file of each."""
 
     freq_hz: FloatArray
     h: ComplexArray
     sigma: FloatArray
     coherence: FloatArray
+    file: NDArray[np.intp]
 
 
 @dataclass(frozen=True)
@@ -95,6 +96,11 @@ class CouplingFit:
     rms_over_sigma: float
     files: tuple[str, ...] = ()
 
+    @property
+    def stderr(self) -> tuple[float, ...]:
+        """1-sigma of ``(static, ln mode_hz, ln damping, gain_hp, gain_bp)``."""
+        return tuple(float(x) for x in np.sqrt(np.maximum(np.diag(self.covariance), 0.0)))
+
     def response(self, freq_hz: FloatArray) -> tuple[ComplexArray, FloatArray, FloatArray]:
         """The fitted response at ``freq_hz`` and the 1-sigma of its gain (um/um) and phase (deg),
         carried from the parameters' covariance (numerical Jacobian)."""
@@ -115,7 +121,7 @@ class CouplingFit:
     def to_dict(self, freq_hz: FloatArray) -> dict[str, Any]:
         """JSON-ready: the form's parameters with 1-sigma and the response at ``freq_hz``."""
         c = self.coupling
-        sd = np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+        sd = self.stderr
         h, sg, sp = self.response(freq_hz)
         lo, hi = self.band_hz
         return {
@@ -200,7 +206,7 @@ def spectrum(records: Sequence[Record], resolution_hz: float = RESOLUTION_HZ,
     ``1 / resolution_hz`` s or a third of the file), kept where the coherence reaches
     ``min_coherence``, from the first nonzero frequency to a quarter of the sample rate."""
     out: list[FloatArray] = []
-    for r in records:
+    for i, r in enumerate(records):
         fs = 1.0 / r.dt_s
         nper = int(min(round(fs / resolution_hz), r.source_um.size // 3))
         if nper < 16:
@@ -216,10 +222,11 @@ def spectrum(records: Sequence[Record], resolution_hz: float = RESOLUTION_HZ,
             sigma = np.sqrt((1 - coh) / (2 * n_seg * coh)) * np.abs(h)
         keep = (f > 0) & (f <= fs / 4) & np.isfinite(h) & (coh >= min_coherence)
         out.append(np.column_stack([f[keep], h[keep].real, h[keep].imag, sigma[keep],
-                                    coh[keep]]))
-    rows = np.concatenate(out) if out else np.empty((0, 5))
+                                    coh[keep], np.full(int(keep.sum()), i)]))
+    rows = np.concatenate(out) if out else np.empty((0, 6))
     rows = rows[np.argsort(rows[:, 0], kind="stable")]
-    return Spectrum(rows[:, 0], rows[:, 1] + 1j * rows[:, 2], rows[:, 3], rows[:, 4])
+    return Spectrum(rows[:, 0], rows[:, 1] + 1j * rows[:, 2], rows[:, 3], rows[:, 4],
+                    rows[:, 5].astype(np.intp))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -253,16 +260,26 @@ def _weighted(sp: Spectrum, static: tuple[float, float]
     return y, w
 
 
-def _design(nl: FloatArray, sp: Spectrum, w: FloatArray) -> FloatArray:
+def _local(sp: Spectrum, known: bool) -> FloatArray:
+    """Columns of each file's local static offset (real rows of its estimates), when the static
+    gain is known from the low-passed regression (else none: the estimates fix it)."""
+    files = np.unique(sp.file) if known else np.empty(0, dtype=np.intp)
+    real = (sp.file[:, None] == files[None, :]).astype(float)
+    return np.vstack([real, np.zeros_like(real), np.zeros((1, files.size))])
+
+
+def _design(nl: FloatArray, sp: Spectrum, w: FloatArray, local: FloatArray) -> FloatArray:
     b = _basis(nl[0], nl[1], sp.freq_hz)
     a = np.vstack([b.real, b.imag, [[1.0, 0.0, 0.0]]])
-    return a * w[:, None]
+    return np.hstack([a, local]) * w[:, None]
 
 
-def _project(nl: FloatArray, sp: Spectrum, y: FloatArray, w: FloatArray
+def _project(nl: FloatArray, sp: Spectrum, y: FloatArray, w: FloatArray, local: FloatArray
              ) -> tuple[FloatArray, FloatArray]:
-    a = _design(nl, sp, w)
-    beta, *_ = np.linalg.lstsq(a, y, rcond=None)
+    a = _design(nl, sp, w, local)
+    norm = np.maximum(np.linalg.norm(a, axis=0), 1e-300)
+    an = a / norm  # normal equations of the scaled columns: a few columns, thousands of rows
+    beta = np.linalg.pinv(an.T @ an, rcond=1e-12) @ (an.T @ y) / norm
     return beta, a @ beta - y
 
 
@@ -270,24 +287,31 @@ def fit_form(sp: Spectrum, static: tuple[float, float], reference_um: float = 0.
              ) -> tuple[cp.Coupling, FloatArray, float]:
     """The low-order form fitted to the estimates ``sp`` and the static ``(value, 1-sigma)``.
 
+    A flexure's arc makes the static gain depend on where the source is: a file that excites it
+    about another position than the full-range sweeps' middle sees another local static gain.
+    When the static gain is known (finite 1-sigma), each file's estimates therefore get their own
+    real offset and the static gain is the low-passed regression's (over full-range sweeps: the
+    slope at the middle of the range); the files share the shape of the dynamic part.
+
     Returns the coupling, the covariance of ``(static, log mode_hz, log damping, gain_hp,
     gain_bp)`` (Gauss-Newton, ``s^2 (J^T J)^+``, ``s^2`` at least 1: the estimates' own scatter)
     and the weighted RMS residual.
     """
     y, w = _weighted(sp, static)
+    local = _local(sp, bool(w[-1] > 0))
     lo = np.log([MODE_RANGE_HZ[0], DAMPING_RANGE[0]])
     hi = np.log([MODE_RANGE_HZ[1], DAMPING_RANGE[1]])
     grid = [(m, d) for m in np.linspace(lo[0], hi[0], 40) for d in np.linspace(lo[1], hi[1], 10)]
-    cost = [float(np.sum(_project(np.array(g), sp, y, w)[1] ** 2)) for g in grid]
+    cost = [float(np.sum(_project(np.array(g), sp, y, w, local)[1] ** 2)) for g in grid]
     x0 = np.array(grid[int(np.argmin(cost))])
-    sol = optimize.least_squares(lambda nl: _project(nl, sp, y, w)[1], x0, bounds=(lo, hi),
-                                 x_scale=1.0)
-    beta, resid = _project(sol.x, sp, y, w)
+    sol = optimize.least_squares(lambda nl: _project(nl, sp, y, w, local)[1], x0,
+                                 bounds=(lo, hi), x_scale=1.0)
+    beta, resid = _project(sol.x, sp, y, w, local)
     p = np.array([beta[0], sol.x[0], sol.x[1], beta[1], beta[2]])
-    jac = _jacobian(p, sp, w)
-    dof = max(y.size - p.size, 1)
+    jac = np.hstack([_jacobian(p, sp, w), local * w[:, None]])
+    dof = max(y.size - jac.shape[1], 1)
     s2 = max(float(np.sum(resid ** 2)) / dof, 1.0)
-    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    cov = s2 * np.linalg.pinv(jac.T @ jac)[:5, :5]
     c = cp.Coupling(float(p[0]), math.exp(p[1]), math.exp(p[2]), float(p[3]), float(p[4]),
                     reference_um)
     return c, cov, math.sqrt(float(np.sum(resid ** 2)) / y.size)
