@@ -51,6 +51,7 @@ import numpy as np
 from afmctl.drivers import open_stage
 from afmctl.drivers.device.foreign import xy_stage as xst
 from afmctl.drivers.device.foreign import xy_sweeps as xsw
+from afmctl.errors import StageError
 from afmctl.experiment import xyrecord
 from afmctl.files import xysweepfile as xs
 from afmctl.files.profile import shipped_profile
@@ -60,6 +61,9 @@ from afmctl.model import coupling as cp
 from afmctl.planning import sweepdesign as sd
 
 N_FREQ = 25
+#: Attempts per emulated file (a stream underrun on a loaded machine stops a run; it is recorded
+#: again, as a lab would).
+RETRIES = 3
 HELD_TRIANGLE = ("5.58", "30")  # --freq Hz, --amplitude um of the track run
 
 
@@ -120,10 +124,19 @@ def emulated(tmp: Path, held: bool) -> tuple[dict, dict]:
                           {a: v.max_rate_v_per_ms * 1e3 for a, v in limits.items()}, 0.5 * first)
     out = tmp / "emulated"
     out.mkdir()
+    paths = []
     with open_stage(prof) as stage:
-        paths = xyrecord.record(stage, design, prof.sample_rate_hz, limits, out,
-                                {"layer_thickness_x_um": "100", "layer_thickness_y_um": "100"},
-                                log)
+        for one in design:
+            for attempt in range(RETRIES):
+                try:
+                    paths += xyrecord.record(stage, [one], prof.sample_rate_hz, limits, out,
+                                             {"layer_thickness_x_um": "100",
+                                              "layer_thickness_y_um": "100"}, log)
+                    break
+                except StageError as exc:  # a loaded machine's host may fall behind the stream
+                    log(f"{one[0]}: {exc}; again ({attempt + 1} of {RETRIES})")
+            else:
+                raise RuntimeError(f"{one[0]}: not recorded in {RETRIES} attempts")
     sweeps = [xs.read(p) for p in paths]
 
     def truth(freq: np.ndarray) -> dict:
