@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl.drivers import StageBase
-from afmctl.drivers.device.emulator import IDENTITY, Emulator
+from afmctl.drivers.device.emulator import IDENTITY, IDENTITY_CHANNELS, Emulator
 from afmctl.drivers.protocol import Status
 from afmctl.errors import DeviceError, StageError
 from afmctl.files.profile import Profile
@@ -61,7 +61,7 @@ class InProcessStage(StageBase):
             return fn(*args, self.clock(), **kwargs)
 
     def identify(self) -> str:
-        return f"{IDENTITY} (in-process)"
+        return f"{IDENTITY_CHANNELS if self.channels > 1 else IDENTITY} (in-process)"
 
     def status(self) -> Status:
         return self._call(self.emulator.status)  # type: ignore[return-value]

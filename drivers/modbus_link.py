@@ -170,7 +170,7 @@ class ModbusStage(StageBase):
 
     # -- Stage primitives ----------------------------------------------------------------------
     def identify(self) -> str:
-        return f"afmctl register map {rm.MAP_VERSION}, unit {self.unit}"
+        return f"afmctl register map {self.version}, unit {self.unit}"
 
     def status(self) -> Status:
         return rm.decode_status(self._request("read_input_registers", 0, count=IR.STATUS_END))

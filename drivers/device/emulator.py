@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 
 from afmctl.drivers.device.foreign.family_physics import FamilyPhysics
 from afmctl.drivers.device.foreign.physics import ForeignPhysics
+from afmctl.drivers.device.foreign.xy_physics import ForeignXYPhysics
 from afmctl.drivers.device.plant import Physics
 from afmctl.drivers.device.xy_plant import CoupledPhysics
 from afmctl.drivers.protocol import Status
@@ -141,9 +142,13 @@ def plant(profile: Profile, sample_rate_hz: float) -> Any:
     ``[emulator.foreign]``, or the out-of-family stage of its ``[emulator.family]`` (either driven
     over the profile's voltage range); for a profile of several axes, each axis's own plant
     coupled by the profile's ``[emulator.coupling]``
-    (:class:`~afmctl.drivers.device.xy_plant.CoupledPhysics`)."""
+    (:class:`~afmctl.drivers.device.xy_plant.CoupledPhysics`), or the foreign x/y stage of its
+    ``[emulator.xy_foreign]`` (:class:`~afmctl.drivers.device.foreign.xy_physics.ForeignXYPhysics`)."""
     config = profile.emulator
     assert config is not None
+    if config.xy_foreign is not None:
+        return ForeignXYPhysics(config.xy_foreign, sample_rate_hz,
+                                (profile.limits.v_min, profile.limits.v_max))
     if len(profile.axis_names) > 1:
         plants = [plant(profile.axis(name), sample_rate_hz) for name in profile.axis_names]
         return CoupledPhysics(plants, config.coupling, sample_rate_hz)

@@ -78,6 +78,20 @@ def test_a_sample_beyond_channel_1s_limits_is_refused_before_anything_is_sent(ki
         assert emu.applied_log(emu.plant_time or 0.0).size == 0
 
 
+def test_the_foreign_xy_stage_plays_behind_the_wire_with_its_own_coupling() -> None:
+    """``emulated-xy-foreign``: the independently written x/y stage behind socket://; y follows x
+    by the stage's own static coupling (its formulas, -35 dB drawn), within 10 % over a sweep."""
+    from afmctl.drivers.device.foreign import xy_stage as xs
+    prof = shipped_profile("emulated-xy-foreign")
+    v = x_only(3000, 120.0, 10.0)
+    with stage_on("serial-socket", prof) as (stage, emu):
+        rec = stage.play(v)
+        truth = xs.describe(emu.physics.stage)["derived"]["yx_static"]  # type: ignore[attr-defined]
+    assert rec.valid.all() and abs(xs.db(truth) + 35.0) < 0.01
+    slope = coupling_slope(rec.displacement_um[:, 0], rec.displacement_um[:, 1])
+    assert abs(slope / truth - 1.0) < 0.1, (slope, truth)
+
+
 def test_a_one_axis_play_on_the_xy_device_drives_channel_0_and_holds_channel_1() -> None:
     """Old forms mean channel 0 (docs/reference/protocol.md §2.14): a (N,) waveform plays x while y
     holds its DC set point through the run."""
@@ -161,3 +175,23 @@ def test_a_y_amplifier_beyond_the_devices_channel_1_is_named() -> None:
     with InProcessStage(wide, emulator=Emulator(XY)) as stage:
         with pytest.raises(LimitMismatchError, match=r"\[axis\.y\.amplifier\].*of channel 1"):
             stage.check_limits()
+
+
+def test_the_xy_plant_adds_the_coupling_of_afmctl_model_coupling_in_pieces_as_in_one() -> None:
+    """The plant's y reading is y's own plant plus ``caused(c_yx, x)`` (afmctl.model.coupling's
+    response from rest), also when the run is played in two pieces (the mode's state carried)."""
+    from afmctl.drivers.device.emulator import plant
+    from afmctl.model.coupling import caused
+    physics = plant(XY, RATE)
+    v = x_only(3000, 120.0, 20.0)
+    v[:, 1] = 10.0 * np.sin(2 * np.pi * 7.0 * np.arange(3000) / RATE)
+    whole, _, _ = physics.respond(v, physics.initial())
+    first, _, state = physics.respond(v[:1234], physics.initial())
+    rest, _, _ = physics.respond(v[1234:], state)
+    np.testing.assert_allclose(np.vstack([first, rest]), whole, atol=1e-9)
+    own = [p.respond(v[:, c], p.initial())[0] for c, p in enumerate(physics.plants)]
+    coupling = dict(XY.emulator.coupling)  # type: ignore[union-attr]
+    np.testing.assert_allclose(whole[:, 1] - own[1], caused(coupling["yx"], own[0], 1 / RATE),
+                               atol=1e-6)
+    np.testing.assert_allclose(whole[:, 0] - own[0], caused(coupling["xy"], own[1], 1 / RATE),
+                               atol=1e-6)
