@@ -48,16 +48,16 @@ MEMORY_REACH = 0.995
 
 
 @dataclass(frozen=True)
-class Sweep:
-    """One recorded sweep.
+class Recorded:
+    """A recorded history on a uniform clock: what one-axis and two-axis sweeps share.
 
     Parameters
     ----------
     time_s : ndarray, shape (N,)
         Sample instants, s, strictly increasing and uniform.
-    voltage_v : ndarray, shape (N,)
-        Voltage held from each instant to the next, V.
-    displacement_um : ndarray, shape (N,)
+    voltage_v : ndarray, shape (N,) or (N, 2)
+        Voltage held from each instant to the next, V (a column per axis for two axes).
+    displacement_um : ndarray, shape (N,) or (N, 2)
         Measured displacement at each instant, um (arbitrary sensor zero).
     meta : dict
         Metadata from the ``#`` lines (strings).
@@ -77,6 +77,15 @@ class Sweep:
         return float((self.time_s[-1] - self.time_s[0]) / (self.time_s.size - 1))
 
     @property
+    def name(self) -> str:
+        return Path(self.path).name if self.path else self.meta.get("name", "sweep")
+
+
+@dataclass(frozen=True)
+class Sweep(Recorded):
+    """One recorded sweep of one axis: :class:`Recorded` with arrays of shape (N,)."""
+
+    @property
     def thickness_um(self) -> float | None:
         """Layer thickness from the metadata, um, or None if the file does not say."""
         val = self.meta.get("layer_thickness_um")
@@ -86,10 +95,6 @@ class Sweep:
     def frequency_hz(self) -> float | None:
         val = self.meta.get("frequency_hz")
         return None if val is None else float(val)
-
-    @property
-    def name(self) -> str:
-        return Path(self.path).name if self.path else self.meta.get("name", "sweep")
 
     @property
     def memory_index(self) -> int:
@@ -170,22 +175,26 @@ UNITS = {
 QUANTITIES = {"time": (("time", "t"), "s"), "voltage": (("voltage", "volt", "v"), "V"),
               "displacement": (("displacement", "position", "disp"), "um"),
               "desired": (("desired",), "um")}
-_NAME = re.compile(r"^\s*([a-z]+)\s*(?:[_ ]\s*([^\s()\[\]]+)|[_ ]?\s*[(\[]\s*([^\s()\[\]]+)\s*[)\]])"
-                   r"\s*$")
+_NAME = re.compile(r"^\s*(?:([xy])\s*[_ ]\s*)?([a-z]+)\s*(?:[_ ]\s*([xy]))?\s*"
+                   r"(?:[_ ]\s*([^\s()\[\]]+)|[_ ]?\s*[(\[]\s*([^\s()\[\]]+)\s*[)\]])\s*$")
 
 
 def column_scale(name: str, column: str) -> float | None:
     """Factor from the unit in the header cell ``name`` to afmctl's unit for ``column`` (e.g.
-    ``time_s``), or None if ``name`` is not that quantity (``displacement_nm`` -> 1e-3 for
-    ``displacement_um``; ``Voltage (V)`` -> 1 for ``voltage_V``; ``time_ms`` -> 1e-3)."""
+    ``time_s``, or ``voltage_x_V`` for one axis of a two-axis file), or None if ``name`` is not
+    that quantity (``displacement_nm`` -> 1e-3 for ``displacement_um``; ``Voltage (V)`` -> 1 for
+    ``voltage_V``; ``time_ms`` -> 1e-3; ``X voltage (mV)`` -> 1e-3 for ``voltage_x_V``)."""
     if name == column:
         return 1.0
-    quantity = column.split("_", 1)[0]
+    parts = column.split("_")
+    quantity, axis = parts[0], (parts[1] if len(parts) == 3 else None)
     spellings, unit = QUANTITIES[quantity]
     m = _NAME.match(name.lower())
-    if m is None or m.group(1) not in spellings:
+    if m is None or m.group(2) not in spellings or (m.group(1) and m.group(3)):
         return None
-    return UNITS[unit].get(m.group(2) or m.group(3))
+    if (m.group(1) or m.group(3)) != axis:
+        return None
+    return UNITS[unit].get(m.group(4) or m.group(5))
 
 
 def _locate(where: str, header: list[str], columns: tuple[str, ...]
@@ -286,6 +295,9 @@ def _rate(where: str, meta: dict[str, str]) -> float | None:
 def parse(text: str, where: str = "<sweep>") -> Sweep:
     """Parse the text of a sweep file (see the module docstring for the format)."""
     meta, header, body, delim = _split(where, text)
+    if any(column_scale(h, "voltage_x_V") is not None for h in header):
+        raise SweepFormatError(f"{where}: a two-axis sweep file (voltage_x_V, voltage_y_V, ...): "
+                               f"this command reads one-axis sweeps (time_s,{','.join(COLUMNS[1:])})")
     rate = _rate(where, meta)
     if rate is not None and not any(column_scale(h, "time_s") is not None for h in header):
         data = _parse_rows(where, header, body, delim, COLUMNS[1:])
@@ -438,9 +450,14 @@ class SweepStream:
 
 def write(sweep: Sweep, path: str | Path) -> None:
     """Write ``sweep`` atomically (temporary file, then rename)."""
+    write_atomic(path, format_text(sweep))
+
+
+def write_atomic(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file and a rename: never half a file."""
     p = Path(path)
     tmp = p.with_name(p.name + ".partial")
-    tmp.write_text(format_text(sweep), encoding="utf-8")
+    tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, p)
 
 
@@ -448,5 +465,5 @@ def from_arrays(voltage_v: FloatArray, displacement_um: FloatArray, sample_rate_
                 meta: Mapping[str, str] | None = None, path: str = "") -> Sweep:
     """A :class:`Sweep` on the uniform clock ``t_k = k / sample_rate_hz``."""
     v = np.asarray(voltage_v, dtype=float)
-    return Sweep(np.arange(v.size) / sample_rate_hz, v, np.asarray(displacement_um, dtype=float),
-                 dict(meta or {}), path)
+    return Sweep(np.arange(v.shape[0]) / sample_rate_hz, v,
+                 np.asarray(displacement_um, dtype=float), dict(meta or {}), path)
