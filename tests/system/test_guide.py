@@ -9,7 +9,8 @@ the clone, as written; the only edits are the ones the guide asks for in step 1 
 URL and voltage range "for your hardware"). Step 6 diagnoses all four sweeps, as written.
 
 What the guide promises is checked on the way: the link and a reading, conformance, four whole
-sweeps, identify flagging the delay and reporting the reach, diagnose naming it, the triangle
+sweeps and the separating one, identify flagging the delay and reporting the reach, diagnose
+naming it (the separating sweep's steps tell it from an amplifier's lag), the triangle
 tracked at the reach's centre with the readings corrected (and the true position, simulated from
 the voltages the stage played, as close to the trajectory as the scores say), learning, replay.
 """
@@ -136,10 +137,10 @@ def test_the_guide_runs_as_written_on_a_fresh_clone(tmp_path: Path) -> None:
     assert re.search(r"^reading_um: -?\d+\.\d+ \(mean of", out["afmctl status"].stdout, re.M)
     assert out["afmctl set"].stdout.startswith("output 10 V; reading ")
     assert out["afmctl safe"].stdout.strip() == "safe: stopped, output 0 V"
-    # 4: four whole sweeps
+    # 4: the four standard sweeps and the separating one, whole
     assert sorted(p.name for p in (clone / "sweeps").iterdir()) == [
-        "minor_loops_0.1hz.csv", "triangle_0.279hz.csv", "triangle_27.9hz.csv",
-        "triangle_5.58hz.csv"]
+        "minor_loops_0.1hz.csv", "separating.csv", "triangle_0.279hz.csv",
+        "triangle_27.9hz.csv", "triangle_5.58hz.csv"]
     # 5: identify flags the delay and reports the reach
     from afmctl.files import modelfile
     fit = modelfile.read_fit(clone / "model.toml")
