@@ -6,7 +6,7 @@ downloaded again: no network here). An emulated stage with a hidden sensor delay
 behind a unipolar 0-150 V amplifier is served by the clone's ``afmctl emulate`` on 127.0.0.1
 (serial over ``socket://``). Then every command of the guide's ``sh`` blocks runs, in order, in
 the clone, as written; the only edits are the ones the guide asks for in step 1 (the profile's
-URL and voltage range "for your hardware"). Step 6 diagnoses all four sweeps, as written.
+URL and voltage range "for your hardware"). Step 6 diagnoses every sweep, as written.
 
 What the guide promises is checked on the way: the link and a reading, conformance, four whole
 sweeps and the separating one, identify flagging the delay and reporting the reach, diagnose
