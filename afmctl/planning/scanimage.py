@@ -38,7 +38,9 @@ DIRECTIONS = ("trace", "retrace")
 @dataclass(frozen=True)
 class Images:
     """A frame's images, each of shape (2, lines, pixels): index 0 the trace, 1 the retrace;
-    rows by increasing slow coordinate. um."""
+    rows by increasing slow coordinate; um. ``error_fast_um`` and ``error_slow_um`` are the
+    error along the fast and the slow direction; ``registration_px`` (lines, pixels) how far
+    the trace's pixel lands from the retrace's along the fast direction, in pixels."""
 
     x_um: FloatArray
     y_um: FloatArray
@@ -46,6 +48,7 @@ class Images:
     error_y_um: FloatArray
     error_fast_um: FloatArray
     error_slow_um: FloatArray
+    registration_px: FloatArray
 
     def channels(self) -> dict[str, FloatArray]:
         """Every image by name (``x_trace``, ..., ``error_slow_retrace``), um."""
@@ -76,7 +79,7 @@ def images(frame: Frame, grid: PixelGrid, measured_um: FloatArray) -> Images:
     a = math.radians(frame.angle_deg)
     fast = ex * math.cos(a) + ey * math.sin(a)
     slow = -ex * math.sin(a) + ey * math.cos(a)
-    return Images(x, y, ex, ey, fast, slow)
+    return Images(x, y, ex, ey, fast, slow, (fast[0] - fast[1]) / frame.pixel_um)
 
 
 def _rms(x: FloatArray) -> float:
@@ -99,8 +102,7 @@ def line_synchronous(error_slow_um: FloatArray) -> FloatArray:
 def merit(frame: Frame, img: Images, measured_um: FloatArray | None = None) -> dict[str, Any]:
     """The figures of merit of one frame (see the module docstring); ``measured_um`` (the
     tracking part's readings, (N, 2)) adds each axis's noise estimate."""
-    fast = img.error_fast_um
-    reg = (fast[0] - fast[1]) / frame.pixel_um  # trace minus retrace: the fast error differs
+    fast, reg = img.error_fast_um, img.registration_px
     slow = img.error_slow_um / frame.line_pitch_um
     data: dict[str, Any] = {
         "fast_rms_um": _rms(fast), "fast_max_um": _max(fast),
