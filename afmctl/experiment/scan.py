@@ -26,7 +26,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl.errors import InputError
 from afmctl.experiment import runner
+from afmctl.files import modelfile
 from afmctl.model import coupling as cp
 from afmctl.model import effects as fx
 from afmctl.planning import raster, scanimage
@@ -74,6 +76,33 @@ class FrameRun:
 OnFrame = Callable[[list[FrameRun]], None]
 
 
+def axis_limits(profile: Any, name: str) -> Any:
+    """The guard limits of axis ``name`` of a profile (a one-axis profile's for any name)."""
+    return profile.axis(name).limits if hasattr(profile, "axis") else profile.limits
+
+
+def model_for_scan(profile: Any, model_path: str | None, calibrate: bool
+                   ) -> tuple[dict[str, raster.AxisPlan], dict[str, cp.Coupling] | None, str]:
+    """Each axis's model, limits and envelope, the coupling to feed forward (None: none known)
+    and a description of where they came from.
+
+    A two-axis model file (each axis's model and the coupling both ways) gives everything; a
+    one-axis model file is used for both axes, with no coupling fed forward (said so).
+    """
+    if model_path is None:
+        raise InputError("a raster scan needs a model: --model M (a two-axis model file, from "
+                         "`afmctl identify` on two-axis sweeps, or a one-axis one for both "
+                         "axes)" + ("" if calibrate else ", or --calibrate"))
+    model = modelfile.read(model_path)
+    env = modelfile.read_envelope(model_path)
+    if hasattr(model, "axes"):  # a two-axis model
+        axes = {n: raster.AxisPlan(model.axes[n], axis_limits(profile, n), env)
+                for n in raster.AXES}
+        return axes, dict(model.coupling), f"{model_path} (two axes and their coupling)"
+    axes = {n: raster.AxisPlan(model, axis_limits(profile, n), env) for n in raster.AXES}
+    return axes, None, f"{model_path} (one-axis model, used for both axes; no coupling)"
+
+
 def corrected(setup: Setup, wf: raster.XYWaveform, u: FloatArray) -> FloatArray:
     """The readings of both axes corrected for each axis model's sensor effects (um)."""
     out = np.array(u, dtype=float)
@@ -112,7 +141,7 @@ def feedforward(setup: Setup, index: int, dt_s: float) -> FloatArray:
     return np.column_stack([traj.axis(n) - aims[n] for n in raster.AXES])
 
 
-def _progress(frame: raster.Frame, index: int, wf: raster.XYWaveform, say: Callable[[str], None],
+def progress(frame: raster.Frame, index: int, wf: raster.XYWaveform, say: Callable[[str], None],
               sample_rate_hz: float, frames_left: int) -> runner.Progress:
     """Progress lines: frame, filter, line and the time left (this run and the frames after)."""
     last = [0.0]
@@ -154,7 +183,7 @@ def run(stage: runner.PlayingStage, setup: Setup, out: Path, meta: Mapping[str, 
         for name, wf in plans.items():
             path = out / f"run_frame{index:03d}_{name}.csv"
             show = (None if say is None else
-                    _progress(frame, index, wf, say, rate,
+                    progress(frame, index, wf, say, rate,
                               (frame.frames - index - 1) * len(plans)))
             measured = runner.stream(stage, wf, path, {**meta, "frame": index}, show)
             runs.append(judge(setup, index, wf, measured, path, compute))

@@ -14,6 +14,13 @@ Layout (what ``afmctl track --learn`` writes as ``waveform_learned.csv``)::
 ``time_s`` must be uniformly spaced at the stage's sample period; ``desired_um`` is optional (empty
 on the conditioning and the ramps) and, when present, is what a replay is scored against. Any
 ``time_s,voltage_V`` file with ``#`` metadata lines (or none) is a waveform file.
+
+A two-axis waveform (what ``afmctl scan raster --learn-frames`` writes) has a voltage and a
+desired column per axis, channel 0 x and 1 y::
+
+    time_s,voltage_x_V,voltage_y_V,desired_x_um,desired_y_um
+
+and :class:`WaveformFile`'s arrays then have shape (N, 2).
 """
 
 from __future__ import annotations
@@ -31,11 +38,14 @@ from afmctl.files import sweepfile as sweeps
 
 FloatArray = NDArray[np.float64]
 FORMAT_VERSION = 1
+#: The axes of a two-axis waveform file, in channel order.
+AXES = ("x", "y")
 
 
 @dataclass(frozen=True)
 class WaveformFile:
-    """A waveform read back: samples every ``dt_s`` seconds, desired NaN where absent."""
+    """A waveform read back: samples every ``dt_s`` seconds, desired NaN where absent; shape
+    (N,) or, for a two-axis file, (N, 2)."""
 
     meta: dict[str, str]
     dt_s: float
@@ -45,13 +55,24 @@ class WaveformFile:
 
 def format_text(time_s: FloatArray, voltage_v: FloatArray, desired_um: FloatArray,
                 meta: Mapping[str, object]) -> str:
-    """The file's text: metadata, header, one row per sample (desired empty where NaN)."""
+    """The file's text: metadata, header, one row per sample (desired empty where NaN); a
+    two-axis file for voltages of shape (N, 2)."""
     head = {"afmctl-waveform": FORMAT_VERSION, **meta}
     lines = [f"# {k}: {str(v).replace(chr(10), ' ')}" for k, v in head.items()]
-    lines.append("time_s,voltage_V,desired_um")
-    lines += [f"{t:.7f},{v:.6f},{'' if math.isnan(d) else f'{d:.6f}'}"
-              for t, v, d in zip(time_s, voltage_v, desired_um, strict=True)]
+    two = np.ndim(voltage_v) == 2
+    lines.append(",".join(_columns(two)))
+    v2 = np.asarray(voltage_v, dtype=float).reshape(len(time_s), -1)
+    d2 = np.asarray(desired_um, dtype=float).reshape(len(time_s), -1)
+    lines += [f"{t:.7f}," + ",".join(f"{x:.6f}" for x in v) + ","
+              + ",".join("" if math.isnan(x) else f"{x:.6f}" for x in d)
+              for t, v, d in zip(time_s, v2, d2, strict=True)]
     return "\n".join(lines) + "\n"
+
+
+def _columns(two: bool) -> tuple[str, ...]:
+    if not two:
+        return ("time_s", "voltage_V", "desired_um")
+    return ("time_s", *(f"voltage_{a}_V" for a in AXES), *(f"desired_{a}_um" for a in AXES))
 
 
 def _cells(where: str, n: int, row: list[str], width: int) -> list[float]:
@@ -84,7 +105,8 @@ def parse(text: str, where: str = "<waveform>") -> WaveformFile:
             meta[key.strip()] = val.strip()
         elif header is None:
             header = [c.strip() for c in line.split(",")]
-            for col in ("time_s", "voltage_V"):
+            wanted = ("time_s", "voltage_x_V" if "voltage_x_V" in header else "voltage_V")
+            for col in (*wanted, *(("voltage_y_V",) if "voltage_x_V" in header else ())):
                 if col not in header:
                     raise FileFormatError(f"{where}: missing column {col}")
         else:
@@ -92,8 +114,8 @@ def parse(text: str, where: str = "<waveform>") -> WaveformFile:
     if header is None or len(rows) < 2:
         raise FileFormatError(f"{where}: no header or fewer than 2 samples")
     data = np.array(rows)
-    t, v = data[:, header.index("time_s")], data[:, header.index("voltage_V")]
-    d = data[:, header.index("desired_um")] if "desired_um" in header else np.full(t.size, np.nan)
+    t = data[:, header.index("time_s")]
+    v, d = _channels(data, header, "voltage_x_V" in header)
     if not (np.isfinite(t).all() and np.isfinite(v).all()):
         raise FileFormatError(f"{where}: time_s and voltage_V must be finite in every row")
     steps = np.diff(t)
@@ -101,6 +123,18 @@ def parse(text: str, where: str = "<waveform>") -> WaveformFile:
     if dt <= 0 or np.max(np.abs(steps - dt)) > 1e-3 * dt + 1e-7:
         raise FileFormatError(f"{where}: time_s must increase in equal steps")
     return WaveformFile(meta, dt, v, d)
+
+
+def _channels(data: FloatArray, header: list[str], two: bool) -> tuple[FloatArray, FloatArray]:
+    """The voltage and desired columns, (N,) or (N, 2) for a two-axis file (desired NaN where
+    absent)."""
+    cols = _columns(two)[1:]
+    half = len(cols) // 2
+    missing = np.full(data.shape[0], np.nan)
+    got = [data[:, header.index(c)] if c in header else missing for c in cols]
+    if not two:
+        return got[0], got[1]
+    return np.column_stack(got[:half]), np.column_stack(got[half:])
 
 
 def read(path: str | Path) -> WaveformFile:

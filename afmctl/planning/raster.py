@@ -206,6 +206,14 @@ def trajectories(frame: Frame, dt_s: float, index: int = 0) -> Trajectories:
     return Trajectories(dt_s, x, y)
 
 
+def image_mask(frame: Frame, dt_s: float) -> NDArray[np.bool_]:
+    """The samples of the tracking part inside the image: on an image line (not the lead line)
+    with the fast coordinate within the width (the overscan excluded)."""
+    t = np.arange(samples(frame, dt_s)) * dt_s
+    inside = np.abs(fast_coordinate(frame, t)) <= 0.5 * frame.width_um
+    return inside & (t >= LEAD_LINES * frame.line_s)
+
+
 @dataclass(frozen=True)
 class PixelGrid:
     """Where and when every pixel of the trace (index 0) and retrace (1) images is passed.
@@ -358,7 +366,8 @@ def _pad(w: track.Waveform, before: int, total: int, start_v: float) -> FloatArr
 def plan(frame: Frame, axes: Mapping[str, AxisPlan], dt_s: float,
          coupling: Mapping[str, cp.Coupling] | None = None,
          filters: tuple[str, ...] = ("inverse", "linear"), index: int = 0,
-         extrapolate: bool = False) -> dict[str, XYWaveform]:
+         extrapolate: bool = False, aims: Mapping[str, FloatArray] | None = None
+         ) -> dict[str, XYWaveform]:
     """Guard-checked two-axis waveforms of frame ``index`` for each filter.
 
     Each axis is planned by :func:`afmctl.planning.track.plan` (conditioning, Algorithm 3 with
@@ -366,10 +375,11 @@ def plan(frame: Frame, axes: Mapping[str, AxisPlan], dt_s: float,
     (:func:`targets`: the coupling fed forward unless ``coupling`` is None), within its own
     limits and envelope. The frame must fit the reach (:func:`check_reach`, call it first with
     :func:`reach` for a clear refusal); a plan that still falls short at the voltage limits (the
-    dynamics at the corners) is refused the same way.
+    dynamics at the corners) is refused the same way. ``aims`` (um per axis, the tracking part)
+    replaces the targets: a learned reference (:mod:`afmctl.experiment.scanlearn`).
     """
     traj = trajectories(frame, dt_s, index)
-    aims = targets(traj, coupling)
+    aims = targets(traj, coupling) if aims is None else aims
     per_axis: dict[str, dict[str, track.Waveform]] = {}
     for name in AXES:
         ax = axes[name]
