@@ -54,6 +54,8 @@ REACH_MARGIN = 0.02
 #: Lead lines before the image (slow axis at the first row; not imaged).
 LEAD_LINES = 1
 SLOW_MODES = ("ramp", "staircase")
+#: A staircase's step takes this fraction of the overscan's time (centred on the turnaround).
+STEP_FRACTION = 0.75
 DIRECTIONS = ("up", "down", "bounce")
 
 
@@ -161,10 +163,12 @@ def _slow_ramp(frame: Frame, t: FloatArray) -> FloatArray:
 
 def _slow_staircase(frame: Frame, t: FloatArray) -> FloatArray:
     """Slow coordinate of an upward staircase (um): row j's centre during its line, a
-    raised-cosine step to the next in the turnaround around the start of each line (from the
-    end of the retrace's image region to the start of the trace's)."""
+    raised-cosine step to the next in the turnaround about the start of each line, over the
+    central :data:`STEP_FRACTION` of the overscan's time (the row is settled a little before
+    the image starts)."""
     pos = t / frame.line_s - LEAD_LINES  # lines from the first image line
-    half_step = 0.5 * frame.overscan * frame.width_um / frame.span_um  # of a line, each side
+    # the overscan lasts overscan W / span of a half line at each side of a line start
+    half_step = STEP_FRACTION * 0.5 * frame.overscan * frame.width_um / frame.span_um
     row = np.round(pos)  # the nearest line start: the step from row - 1 to row is about it
     frac = np.clip((pos - row + half_step) / max(2 * half_step, 1e-12), 0.0, 1.0)
     level = np.clip(row - 1 + 0.5 * (1 - np.cos(np.pi * frac)), 0, frame.lines - 1)
