@@ -113,6 +113,8 @@ from afmctl.model.transducer import Transducer
 FORMAT = "afmctl-model"
 FORMAT_VERSION = 3
 READABLE_VERSIONS = (1, 2, 3)
+#: The version of a two-axis model file (:mod:`afmctl.files.xymodelfile`).
+XY_VERSION = 4
 #: A waveform may leave the envelope's voltage range by this fraction of its span.
 ENVELOPE_TOLERANCE = 0.05
 
@@ -463,15 +465,33 @@ def _transducer(t: Table, pol: hy.Polarization | PreisachGrid,
                       _creep(t.table("creep", required=False)))
 
 
-def _load(path: str | Path) -> tuple[Transducer, Envelope | None, FitRecord | None]:
-    t = load(path)
+def file_version(t: Table) -> int:
+    """The ``format_version`` of a model file's root table (checking ``format``); one of
+    :data:`READABLE_VERSIONS` or :data:`XY_VERSION` (a two-axis file)."""
     fmt = t.string("format")
     if fmt != FORMAT:
         raise t.fail("format", f"expected {FORMAT!r}, got {fmt!r}")
     ver = t.integer("format_version")
-    if ver not in READABLE_VERSIONS:
+    if ver not in (*READABLE_VERSIONS, XY_VERSION):
         raise t.fail("format_version", f"this afmctl reads versions "
-                     f"{', '.join(map(str, READABLE_VERSIONS))}, got {ver}")
+                     f"{', '.join(map(str, (*READABLE_VERSIONS, XY_VERSION)))}, got {ver}")
+    return ver
+
+
+def _load(path: str | Path) -> tuple[Transducer, Envelope | None, FitRecord | None]:
+    t = load(path)
+    ver = file_version(t)
+    if ver == XY_VERSION:
+        raise t.fail("format_version", "a two-axis model file (version 4): name the axis "
+                     "(afmctl track --axis x|y)")
+    model, env, fit = load_tables(t, ver)
+    t.reject_unknown()
+    return model, env, fit
+
+
+def load_tables(t: Table, ver: int) -> tuple[Transducer, Envelope | None, FitRecord | None]:
+    """Model, envelope and fit record from the tables of a one-axis model (a file's root, or
+    one axis's table of a two-axis file, read as version ``ver``)."""
     model = from_table(t)
     if ver < 3 <= version_for(model):
         raise t.fail("format_version", f"a Preisach grid or creep needs version 3, got {ver}")
@@ -483,7 +503,6 @@ def _load(path: str | Path) -> tuple[Transducer, Envelope | None, FitRecord | No
             unc.has(key)
     fit_t = t.table("fit", required=False) if ver >= 2 else None
     fit = None if fit_t is None else _fit_record(fit_t)
-    t.reject_unknown()
     return model, env, fit
 
 
@@ -509,7 +528,13 @@ def write(model: Transducer, path: str | Path, header: str = "",
     """Write ``model`` atomically (temporary file then rename: never a half-written model), with
     its validity ``envelope``, the fit's ``uncertainty`` (:func:`afmctl.fit.uncertainty.summary`)
     and its writer's ``fit`` record if given."""
-    p = Path(path)
+    write_text(path, header, full_dict(model, envelope, uncertainty, fit))
+
+
+def full_dict(model: Transducer, envelope: Envelope | None = None,
+              uncertainty: Mapping[str, Any] | None = None,
+              fit: FitRecord | None = None) -> dict[str, Any]:
+    """The tables of a one-axis model file: the model and what its fit said of it."""
     data = to_dict(model)
     if envelope is not None:
         data["envelope"] = envelope.to_dict()
@@ -517,6 +542,12 @@ def write(model: Transducer, path: str | Path, header: str = "",
         data["uncertainty"] = uncertainty_table(uncertainty)
     if fit is not None:
         data["fit"] = fit.to_dict()
+    return data
+
+
+def write_text(path: str | Path, header: str, data: Mapping[str, Any]) -> None:
+    """Write the tables ``data`` atomically (temporary file then rename), ``header`` as comments."""
+    p = Path(path)
     text = "".join(f"# {line}\n" for line in header.splitlines()) + dumps(data)
     tmp = p.with_name(p.name + ".partial")
     tmp.write_text(text, encoding="utf-8")

@@ -170,22 +170,26 @@ UNITS = {
 QUANTITIES = {"time": (("time", "t"), "s"), "voltage": (("voltage", "volt", "v"), "V"),
               "displacement": (("displacement", "position", "disp"), "um"),
               "desired": (("desired",), "um")}
-_NAME = re.compile(r"^\s*([a-z]+)\s*(?:[_ ]\s*([^\s()\[\]]+)|[_ ]?\s*[(\[]\s*([^\s()\[\]]+)\s*[)\]])"
-                   r"\s*$")
+_NAME = re.compile(r"^\s*(?:([xy])\s*[_ ]\s*)?([a-z]+)\s*(?:[_ ]\s*([xy]))?\s*"
+                   r"(?:[_ ]\s*([^\s()\[\]]+)|[_ ]?\s*[(\[]\s*([^\s()\[\]]+)\s*[)\]])\s*$")
 
 
 def column_scale(name: str, column: str) -> float | None:
     """Factor from the unit in the header cell ``name`` to afmctl's unit for ``column`` (e.g.
-    ``time_s``), or None if ``name`` is not that quantity (``displacement_nm`` -> 1e-3 for
-    ``displacement_um``; ``Voltage (V)`` -> 1 for ``voltage_V``; ``time_ms`` -> 1e-3)."""
+    ``time_s``, or ``voltage_x_V`` for one axis of a two-axis file), or None if ``name`` is not
+    that quantity (``displacement_nm`` -> 1e-3 for ``displacement_um``; ``Voltage (V)`` -> 1 for
+    ``voltage_V``; ``time_ms`` -> 1e-3; ``X voltage (mV)`` -> 1e-3 for ``voltage_x_V``)."""
     if name == column:
         return 1.0
-    quantity = column.split("_", 1)[0]
+    parts = column.split("_")
+    quantity, axis = parts[0], (parts[1] if len(parts) == 3 else None)
     spellings, unit = QUANTITIES[quantity]
     m = _NAME.match(name.lower())
-    if m is None or m.group(1) not in spellings:
+    if m is None or m.group(2) not in spellings or (m.group(1) and m.group(3)):
         return None
-    return UNITS[unit].get(m.group(2) or m.group(3))
+    if (m.group(1) or m.group(3)) != axis:
+        return None
+    return UNITS[unit].get(m.group(4) or m.group(5))
 
 
 def _locate(where: str, header: list[str], columns: tuple[str, ...]
@@ -286,6 +290,9 @@ def _rate(where: str, meta: dict[str, str]) -> float | None:
 def parse(text: str, where: str = "<sweep>") -> Sweep:
     """Parse the text of a sweep file (see the module docstring for the format)."""
     meta, header, body, delim = _split(where, text)
+    if any(column_scale(h, "voltage_x_V") is not None for h in header):
+        raise SweepFormatError(f"{where}: a two-axis sweep file (voltage_x_V, voltage_y_V, ...): "
+                               f"this command reads one-axis sweeps (time_s,{','.join(COLUMNS[1:])})")
     rate = _rate(where, meta)
     if rate is not None and not any(column_scale(h, "time_s") is not None for h in header):
         data = _parse_rows(where, header, body, delim, COLUMNS[1:])

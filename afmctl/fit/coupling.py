@@ -1,0 +1,334 @@
+"""Identification of the coupling between two axes from their measured displacements.
+
+What is identifiable: in a file where the *target* axis is held at a constant voltage and the
+*source* axis moves, the target's own transducer stands still, so its sensor reads a constant
+(plus noise and slow drift) plus the motion the source causes. The source's displacement is
+measured, so the coupling is a linear system from one measured signal to another
+(:mod:`afmctl.model.coupling`, um of target per um of source) and is estimated as one:
+
+* the static gain by least squares on both displacements low-passed well below any shared mode
+  (:data:`STATIC_CUTOFF_HZ`), with an offset and a slow drift per file (the held axis creeps);
+* the frequency response by the cross-spectral (H1) estimate ``S_st / S_ss`` on each file
+  (Welch, Hann segments), where the coherence says how much of the target's motion the source
+  explains (its variance ``(1 - g^2) / (2 n g^2) |H|^2``, Bendat & Piersol 9.90);
+* the low-order form ``static + (gain_hp r^2 + gain_bp 2 zeta r) / (r^2 + 2 zeta r + 1)``
+  (``r = j f / mode_hz``) fitted to those estimates, weighted by their variance, with the static
+  estimate as one more measurement: variable projection (the gains are linear), the mode and its
+  damping by :func:`scipy.optimize.least_squares` in logs from a grid. Its 1-sigma comes from
+  the Jacobian, and is carried to the response at each frequency.
+
+Above the excited band the mode is an extrapolation; :attr:`CouplingFit.band_hz` says where the
+data were, and the uncertainty says how far the mode is fixed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize, signal
+
+from afmctl.errors import FitInputError
+from afmctl.model import coupling as cp
+
+FloatArray = NDArray[np.float64]
+ComplexArray = NDArray[np.complex128]
+#: Low-pass corner for the static gain, Hz (far below the 150-800 Hz shared modes of x/y stages).
+STATIC_CUTOFF_HZ = 2.0
+#: A file enters the static gain if this share of its source's variance lies below the cutoff.
+SLOW_SHARE = 0.25
+#: Frequency resolution of the cross-spectral estimate, Hz.
+RESOLUTION_HZ = 0.5
+#: Estimates with a lower coherence are left out of the fit (the source explains too little).
+MIN_COHERENCE = 0.5
+#: The coherence is clipped here (a single segment has coherence 1 and no variance estimate).
+MAX_COHERENCE = 0.999
+#: Frequencies of the reported response: at least 30 log-spaced from 1 Hz to 200 Hz or more.
+REPORT_HZ = (1.0, 300.0, 40)
+#: Range of the mode's natural frequency, Hz, and of its damping ratio, searched by the fit.
+MODE_RANGE_HZ = (10.0, 20000.0)
+DAMPING_RANGE = (0.005, 2.0)
+
+
+@dataclass(frozen=True)
+class Record:
+    """One file's source and target displacement (target held), um, at interval ``dt_s``."""
+
+    source_um: FloatArray
+    target_um: FloatArray
+    dt_s: float
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class Spectrum:
+    """Cross-spectral estimates of the response: frequency (Hz), H (um/um), 1-sigma of each of
+    its real and imaginary parts (um/um) and coherence."""
+
+    freq_hz: FloatArray
+    h: ComplexArray
+    sigma: FloatArray
+    coherence: FloatArray
+
+
+@dataclass(frozen=True)
+class CouplingFit:
+    """One direction's identified coupling.
+
+    ``coupling`` is the low-order form; ``static``/``static_stderr`` the low-passed regression's
+    estimate; ``covariance`` that of ``(static, log mode_hz, log damping, gain_hp, gain_bp)``;
+    ``band_hz`` the frequencies the cross-spectral estimates covered; ``rms_over_sigma`` the
+    weighted RMS residual of the low-order fit (1 when the form explains the estimates to within
+    their scatter).
+    """
+
+    coupling: cp.Coupling
+    static: float
+    static_stderr: float
+    covariance: FloatArray = field(repr=False)
+    spectrum: Spectrum = field(repr=False)
+    band_hz: tuple[float, float]
+    rms_over_sigma: float
+    files: tuple[str, ...] = ()
+
+    def response(self, freq_hz: FloatArray) -> tuple[ComplexArray, FloatArray, FloatArray]:
+        """The fitted response at ``freq_hz`` and the 1-sigma of its gain (um/um) and phase (deg),
+        carried from the parameters' covariance (numerical Jacobian)."""
+        p = _params(self.coupling)
+        h = _h(p, freq_hz)
+        jac = np.empty((2, freq_hz.size, p.size))
+        for k in range(p.size):
+            step = 1e-6 * max(abs(p[k]), 1e-3)
+            q = p.copy()
+            q[k] += step
+            hq = _h(q, freq_hz)
+            jac[0, :, k] = (np.abs(hq) - np.abs(h)) / step
+            jac[1, :, k] = np.degrees(np.angle(hq / h)) / step
+        sd = [np.sqrt(np.maximum(np.einsum("fk,kl,fl->f", j, self.covariance, j), 0.0))
+              for j in jac]
+        return h, sd[0], sd[1]
+
+    def to_dict(self, freq_hz: FloatArray) -> dict[str, Any]:
+        """JSON-ready: the form's parameters with 1-sigma and the response at ``freq_hz``."""
+        c = self.coupling
+        sd = np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+        h, sg, sp = self.response(freq_hz)
+        lo, hi = self.band_hz
+        return {
+            "static": c.static, "static_stderr": float(sd[0]), "static_db": c.static_db,
+            "static_lowpass": self.static, "static_lowpass_stderr": self.static_stderr,
+            "mode_hz": c.mode_hz, "mode_hz_stderr_rel": float(sd[1]),
+            "damping": c.damping, "damping_stderr_rel": float(sd[2]),
+            "gain_hp": c.gain_hp, "gain_hp_stderr": float(sd[3]),
+            "gain_bp": c.gain_bp, "gain_bp_stderr": float(sd[4]),
+            "reference_um": c.reference_um, "band_hz": [lo, hi],
+            "rms_over_sigma": self.rms_over_sigma, "files": list(self.files),
+            "frf": [{"freq_hz": float(f), "gain": float(abs(v)),
+                     "phase_deg": float(np.degrees(np.angle(v))), "gain_stderr": float(a),
+                     "phase_stderr_deg": float(b), "measured": bool(lo <= f <= hi)}
+                    for f, v, a, b in zip(freq_hz, h, sg, sp, strict=True)],
+        }
+
+
+def report_frequencies() -> FloatArray:
+    """The frequencies (Hz) of the reported response: :data:`REPORT_HZ` log-spaced."""
+    lo, hi, n = REPORT_HZ
+    return np.geomspace(lo, hi, n)
+
+
+# ----------------------------------------------------------------------------------------------
+# the static gain
+# ----------------------------------------------------------------------------------------------
+
+
+def static_gain(records: Sequence[Record], cutoff_hz: float = STATIC_CUTOFF_HZ
+                ) -> tuple[float, float]:
+    """Static gain (um/um) and its 1-sigma from the displacements low-passed at ``cutoff_hz``.
+
+    Only files whose source moves mostly below the cutoff (:data:`SLOW_SHARE`) enter, each
+    without the filter's edge transients (``1 / cutoff_hz`` s at either end); per file an offset
+    and a quadratic drift in time (the held axis creeps) are fitted beside the one shared gain. The 1-sigma counts one independent sample per ``1 / (2 cutoff_hz)`` s (the
+    low-pass correlates the residual over that time).
+    """
+    cols, ys, blocks = [], [], []
+    n_eff = 0.0
+    for i, r in enumerate(records):
+        edge = int(math.ceil(1.0 / (cutoff_hz * r.dt_s)))
+        if 2 * cutoff_hz * r.dt_s >= 1 or r.source_um.size < 4 * edge:
+            continue
+        sos = signal.butter(4, cutoff_hz, fs=1.0 / r.dt_s, output="sos")
+        s = signal.sosfiltfilt(sos, r.source_um - r.source_um.mean())[edge:-edge]
+        t = signal.sosfiltfilt(sos, r.target_um - r.target_um.mean())[edge:-edge]
+        if np.var(s) < SLOW_SHARE * np.var(r.source_um):
+            continue  # a fast sweep: its low-passed source is its edges, not its motion
+        tau = np.linspace(-1.0, 1.0, s.size)
+        cols.append(s)
+        ys.append(t)
+        blocks.append((i, np.column_stack([np.ones_like(tau), tau, tau ** 2])))
+        n_eff += 2 * cutoff_hz * s.size * r.dt_s
+    if not cols:
+        raise FitInputError(f"no file whose source moves slowly enough (below {cutoff_hz:g} Hz) "
+                            f"and long enough for the static coupling")
+    n = sum(c.size for c in cols)
+    a = np.zeros((n, 1 + 3 * len(cols)))
+    a[:, 0] = np.concatenate(cols)
+    row = 0
+    for k, (_, b) in enumerate(blocks):
+        a[row:row + b.shape[0], 1 + 3 * k:4 + 3 * k] = b
+        row += b.shape[0]
+    y = np.concatenate(ys)
+    beta, *_ = np.linalg.lstsq(a, y, rcond=None)
+    resid = y - a @ beta
+    dof = max(n_eff - a.shape[1], 1.0)
+    s2 = float(np.sum(resid ** 2)) * (n_eff / n) / dof
+    cov = s2 * np.linalg.pinv(a.T @ a) * (n / n_eff)
+    return float(beta[0]), float(math.sqrt(max(cov[0, 0], 0.0)))
+
+
+# ----------------------------------------------------------------------------------------------
+# the cross-spectral estimate
+# ----------------------------------------------------------------------------------------------
+
+
+def spectrum(records: Sequence[Record], resolution_hz: float = RESOLUTION_HZ,
+             min_coherence: float = MIN_COHERENCE) -> Spectrum:
+    """H1 estimates ``S_st / S_ss`` of every file (Welch, Hann, half-overlapping segments of
+    ``1 / resolution_hz`` s or a third of the file), kept where the coherence reaches
+    ``min_coherence``, from the first nonzero frequency to a quarter of the sample rate."""
+    out: list[FloatArray] = []
+    for r in records:
+        fs = 1.0 / r.dt_s
+        nper = int(min(round(fs / resolution_hz), r.source_um.size // 3))
+        if nper < 16:
+            continue
+        kw = {"fs": fs, "nperseg": nper, "noverlap": nper // 2, "detrend": "linear"}
+        f, sss = signal.welch(r.source_um, **kw)
+        _, stt = signal.welch(r.target_um, **kw)
+        _, sst = signal.csd(r.source_um, r.target_um, **kw)
+        n_seg = 1 + (r.source_um.size - nper) // (nper - nper // 2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            h = sst / sss
+            coh = np.clip(np.abs(sst) ** 2 / (sss * stt), 0.0, MAX_COHERENCE)
+            sigma = np.sqrt((1 - coh) / (2 * n_seg * coh)) * np.abs(h)
+        keep = (f > 0) & (f <= fs / 4) & np.isfinite(h) & (coh >= min_coherence)
+        out.append(np.column_stack([f[keep], h[keep].real, h[keep].imag, sigma[keep],
+                                    coh[keep]]))
+    rows = np.concatenate(out) if out else np.empty((0, 5))
+    rows = rows[np.argsort(rows[:, 0], kind="stable")]
+    return Spectrum(rows[:, 0], rows[:, 1] + 1j * rows[:, 2], rows[:, 3], rows[:, 4])
+
+
+# ----------------------------------------------------------------------------------------------
+# the low-order form
+# ----------------------------------------------------------------------------------------------
+
+
+def _basis(log_mode: float, log_damp: float, freq_hz: FloatArray) -> ComplexArray:
+    """Columns ``1, r^2 / D, 2 zeta r / D`` of the low-order form (``r = j f / mode``)."""
+    r = 1j * np.asarray(freq_hz, dtype=float) / math.exp(log_mode)
+    z = math.exp(log_damp)
+    d = r * r + 2 * z * r + 1
+    return np.column_stack([np.ones_like(r), r * r / d, 2 * z * r / d])
+
+
+def _params(c: cp.Coupling) -> FloatArray:
+    return np.array([c.static, math.log(c.mode_hz), math.log(c.damping), c.gain_hp, c.gain_bp])
+
+
+def _h(p: FloatArray, freq_hz: FloatArray) -> ComplexArray:
+    return _basis(p[1], p[2], freq_hz) @ p[[0, 3, 4]].astype(complex)
+
+
+def _weighted(sp: Spectrum, static: tuple[float, float]
+              ) -> tuple[FloatArray, FloatArray]:
+    """The stacked real and imaginary estimates and the static one, each over its 1-sigma."""
+    known = math.isfinite(static[0]) and math.isfinite(static[1])
+    y = np.concatenate([sp.h.real / sp.sigma, sp.h.imag / sp.sigma,
+                        [static[0] / static[1] if known else 0.0]])
+    w = np.concatenate([1 / sp.sigma, 1 / sp.sigma, [1 / static[1] if known else 0.0]])
+    return y, w
+
+
+def _design(nl: FloatArray, sp: Spectrum, w: FloatArray) -> FloatArray:
+    b = _basis(nl[0], nl[1], sp.freq_hz)
+    a = np.vstack([b.real, b.imag, [[1.0, 0.0, 0.0]]])
+    return a * w[:, None]
+
+
+def _project(nl: FloatArray, sp: Spectrum, y: FloatArray, w: FloatArray
+             ) -> tuple[FloatArray, FloatArray]:
+    a = _design(nl, sp, w)
+    beta, *_ = np.linalg.lstsq(a, y, rcond=None)
+    return beta, a @ beta - y
+
+
+def fit_form(sp: Spectrum, static: tuple[float, float], reference_um: float = 0.0
+             ) -> tuple[cp.Coupling, FloatArray, float]:
+    """The low-order form fitted to the estimates ``sp`` and the static ``(value, 1-sigma)``.
+
+    Returns the coupling, the covariance of ``(static, log mode_hz, log damping, gain_hp,
+    gain_bp)`` (Gauss-Newton, ``s^2 (J^T J)^+``, ``s^2`` at least 1: the estimates' own scatter)
+    and the weighted RMS residual.
+    """
+    y, w = _weighted(sp, static)
+    lo = np.log([MODE_RANGE_HZ[0], DAMPING_RANGE[0]])
+    hi = np.log([MODE_RANGE_HZ[1], DAMPING_RANGE[1]])
+    grid = [(m, d) for m in np.linspace(lo[0], hi[0], 40) for d in np.linspace(lo[1], hi[1], 10)]
+    cost = [float(np.sum(_project(np.array(g), sp, y, w)[1] ** 2)) for g in grid]
+    x0 = np.array(grid[int(np.argmin(cost))])
+    sol = optimize.least_squares(lambda nl: _project(nl, sp, y, w)[1], x0, bounds=(lo, hi),
+                                 x_scale=1.0)
+    beta, resid = _project(sol.x, sp, y, w)
+    p = np.array([beta[0], sol.x[0], sol.x[1], beta[1], beta[2]])
+    jac = _jacobian(p, sp, w)
+    dof = max(y.size - p.size, 1)
+    s2 = max(float(np.sum(resid ** 2)) / dof, 1.0)
+    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    c = cp.Coupling(float(p[0]), math.exp(p[1]), math.exp(p[2]), float(p[3]), float(p[4]),
+                    reference_um)
+    return c, cov, math.sqrt(float(np.sum(resid ** 2)) / y.size)
+
+
+def _jacobian(p: FloatArray, sp: Spectrum, w: FloatArray) -> FloatArray:
+    """Jacobian of the weighted residual in ``(static, log mode, log damping, gain_hp, gain_bp)``."""
+
+    def model(q: FloatArray) -> FloatArray:
+        h = _h(q, sp.freq_hz)
+        return np.concatenate([h.real, h.imag, [q[0]]]) * w
+
+    base = model(p)
+    jac = np.empty((base.size, p.size))
+    for k in range(p.size):
+        step = 1e-6 * max(abs(p[k]), 1e-3)
+        q = p.copy()
+        q[k] += step
+        jac[:, k] = (model(q) - base) / step
+    return jac
+
+
+def identify(records: Sequence[Record], reference_um: float = 0.0) -> CouplingFit:
+    """One direction's coupling from the files where its target is held and its source moves.
+
+    Raises
+    ------
+    FitInputError
+        No file, or no frequency at which the source explains the target's motion.
+    """
+    if not records:
+        raise FitInputError("no file where the target axis is held and the source moves")
+    try:
+        static = static_gain(records)
+    except FitInputError:  # no slow file: the response's low end alone fixes the static gain
+        static = (float("nan"), float("inf"))
+    sp = spectrum(records)
+    if sp.freq_hz.size < 3:
+        raise FitInputError("the source's motion explains the target's at too few frequencies "
+                            "(coherence below %g)" % MIN_COHERENCE)
+    c, cov, rms = fit_form(sp, (static[0], max(static[1], 1e-12)), reference_um)
+    return CouplingFit(c, static[0], static[1], cov, sp,
+                       (float(sp.freq_hz[0]), float(sp.freq_hz[-1])), rms,
+                       tuple(r.name for r in records))
