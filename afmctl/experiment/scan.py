@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from afmctl.errors import InputError
 from afmctl.experiment import runner
-from afmctl.files import modelfile
+from afmctl.files import modelfile, tomlfile, xymodelfile
 from afmctl.model import coupling as cp
 from afmctl.model import effects as fx
 from afmctl.planning import raster, scanimage
@@ -93,14 +93,14 @@ def model_for_scan(profile: Any, model_path: str | None, calibrate: bool
         raise InputError("a raster scan needs a model: --model M (a two-axis model file, from "
                          "`afmctl identify` on two-axis sweeps, or a one-axis one for both "
                          "axes)" + ("" if calibrate else ", or --calibrate"))
-    model = modelfile.read(model_path)
-    env = modelfile.read_envelope(model_path)
-    if hasattr(model, "axes"):  # a two-axis model
-        axes = {n: raster.AxisPlan(model.axes[n], axis_limits(profile, n), env)
-                for n in raster.AXES}
-        return axes, dict(model.coupling), f"{model_path} (two axes and their coupling)"
-    axes = {n: raster.AxisPlan(model, axis_limits(profile, n), env) for n in raster.AXES}
-    return axes, None, f"{model_path} (one-axis model, used for both axes; no coupling)"
+    if modelfile.file_version(tomlfile.load(model_path)) != modelfile.XY_VERSION:
+        model, env, _ = xymodelfile.read_axis(model_path, "x")
+        axes = {n: raster.AxisPlan(model, axis_limits(profile, n), env) for n in raster.AXES}
+        return axes, None, f"{model_path} (one-axis model, used for both axes; no coupling)"
+    both = xymodelfile.read(model_path)
+    axes = {n: raster.AxisPlan(both.axes[n], axis_limits(profile, n),
+                               xymodelfile.read_axis(model_path, n)[1]) for n in raster.AXES}
+    return axes, dict(both.coupling), f"{model_path} (two axes and their coupling)"
 
 
 def corrected(setup: Setup, wf: raster.XYWaveform, u: FloatArray) -> FloatArray:
