@@ -28,6 +28,13 @@ from afmctl.drivers.protocol import Status
 from afmctl.errors import FrameError
 
 PROTOCOL_VERSION = 3
+#: The serial protocol of devices with several channels (``CH <c> <command>``, ``CHN?``).
+CHANNELS_VERSION = 4
+#: The versions a host speaks (docs/reference/protocol.md §7: the one the device reports).
+PROTOCOL_VERSIONS = (PROTOCOL_VERSION, CHANNELS_VERSION)
+#: Commands that act on one channel: ``CH <c> <command>`` applies one to channel ``c``; without
+#: the prefix they act on channel 0 (§2.14, §3.6).
+CHANNEL_COMMANDS = ("SVA", "VOL?", "WAV", "DRR?", "LIM?")
 MAX_LINE = 8192
 #: Largest chunk per WAV or DRR? line, samples.
 MAX_CHUNK = 256

@@ -21,7 +21,9 @@ them or into table slots that are overwritten before any start. The checks leave
 
 The checks themselves: :mod:`~afmctl.drivers.conformance_device` (§1, §2 on every wire),
 :mod:`~afmctl.drivers.conformance_timed` (§2.4 streaming and §2.8 watchdog, judged on the host's
-clock) and :mod:`~afmctl.drivers.conformance_wire` (§3 serial, §4 Modbus, §5 reply latency).
+clock), :mod:`~afmctl.drivers.conformance_channels` (§2.14, §3.6-§3.7, §4.4-§4.5: a device of
+several channels) and :mod:`~afmctl.drivers.conformance_wire` (§3 serial, §4 Modbus, §5 reply
+latency).
 """
 
 from __future__ import annotations
@@ -306,9 +308,10 @@ CLAUSES: tuple[tuple[str, str, Callable[[Bench], str], bool], ...]
 
 
 def _clauses() -> tuple[tuple[str, str, Callable[[Bench], str], bool], ...]:
+    from afmctl.drivers import conformance_channels as channels
     from afmctl.drivers import conformance_device as dev
     from afmctl.drivers import conformance_wire as wire
-    return dev.CLAUSES + wire.CLAUSES
+    return dev.CLAUSES + channels.CLAUSES + wire.CLAUSES
 
 
 #: The wires the emulated device is checked on.
@@ -411,10 +414,11 @@ def __getattr__(name: str) -> object:
     """``CLAUSES`` and the checks by name (``check_limits``), from the check modules."""
     if name == "CLAUSES":
         return _clauses()
+    from afmctl.drivers import conformance_channels as channels
     from afmctl.drivers import conformance_device as dev
     from afmctl.drivers import conformance_timed as timed
     from afmctl.drivers import conformance_wire as wire
-    for module in (dev, timed, wire):
+    for module in (dev, timed, wire, channels):
         if hasattr(module, name):
             return getattr(module, name)
     raise AttributeError(name)

@@ -1,5 +1,5 @@
-"""The edge-case tables of docs/reference/protocol.md (§3.5 serial, §4.3 Modbus), as the conformance check
-holds them: each row is ``(row, sent, reply, read-only reply, clause)``, every cell the document's
+"""The edge-case tables of docs/reference/protocol.md (§3.5 and §3.7 serial, §4.3 and §4.5
+Modbus), as the conformance check holds them: each row is ``(row, sent, reply, read-only reply, clause)``, every cell the document's
 text exactly (``tests/drivers/test_conformance.py`` checks that the two agree), and the check
 executes the cells themselves (:mod:`~afmctl.drivers.conformance_wire`).
 """
@@ -10,13 +10,13 @@ Row = tuple[str, str, str, str, str]
 
 #: §3.5: lines sent (one code span each), the reply to the last, on a read-only device, clause.
 SERIAL_ROWS: tuple[Row, ...] = (
-    ('S1', '`VER?`', '`3`', '`3`', '§3.2(d)'),
-    ('S2', '`VER? #7`', '`3 #7`', '`3 #7`', '§3.2(d)'),
-    ('S3', '`VER? #007`', '`3 #007`', '`3 #007`', '§3.2(d)'),
-    ('S4', '`VER? #123456789 *<crc>`', '`3 #123456789`', '`3 #123456789`', '§3.2(b)'),
+    ('S1', '`VER?`', '`<ver>`', '`<ver>`', '§3.2(d)'),
+    ('S2', '`VER? #7`', '`<ver> #7`', '`<ver> #7`', '§3.2(d)'),
+    ('S3', '`VER? #007`', '`<ver> #007`', '`<ver> #007`', '§3.2(d)'),
+    ('S4', '`VER? #123456789 *<crc>`', '`<ver> #123456789`', '`<ver> #123456789`', '§3.2(b)'),
     ('S5', '`VER? #1234567890`', '`ERR 2`', '`ERR 2`', '§3.2(b)'),
-    ('S6', '`VER? *<crc>`', '`3`', '`3`', '§3.2(a)'),
-    ('S7', '`VER? #8 *<CRC>`', '`3 #8`', '`3 #8`', '§3.2(a)'),
+    ('S6', '`VER? *<crc>`', '`<ver>`', '`<ver>`', '§3.2(a)'),
+    ('S7', '`VER? #8 *<CRC>`', '`<ver> #8`', '`<ver> #8`', '§3.2(a)'),
     ('S8', '`VER? #9 *<bad>`', 'no reply', 'no reply', '§3.2(c)'),
     ('S9', '`VER? *1234567`', '`ERR 2`', '`ERR 2`', '§3.2(a)'),
     ('S10', '`VER? *0123456g`', '`ERR 2`', '`ERR 2`', '§3.2(a)'),
@@ -25,13 +25,13 @@ SERIAL_ROWS: tuple[Row, ...] = (
     ('S13', '` #10 *<crc>`', 'no reply', 'no reply', '§3.1(e)'),
     ('S14', '``', 'no reply', 'no reply', '§3.1(e)'),
     ('S15', '`\\t \\t`', 'no reply', 'no reply', '§3.1(e)'),
-    ('S16', '`\\tVER?\\t \\t#11`', '`3 #11`', '`3 #11`', '§3.1(d)'),
-    ('S17', '`VER?\\r`', '`3`', '`3`', '§3.1(a)'),
+    ('S16', '`\\tVER?\\t \\t#11`', '`<ver> #11`', '`<ver> #11`', '§3.1(d)'),
+    ('S17', '`VER?\\r`', '`<ver>`', '`<ver>`', '§3.1(a)'),
     ('S18', '`VER?\\rVER?`', '`ERR 2`', '`ERR 2`', '§3.1(a)'),
     ('S19', '`VER? \\xe9`', '`ERR 2`', '`ERR 2`', '§3.1(c)'),
     ('S20', '`FOO\\x00 #12`', '`ERR 2 #12`', '`ERR 2 #12`', '§3.1(c)'),
     ('S21', '`<8193 x> #13`', '`ERR 2`', '`ERR 2`', '§3.1(b)'),
-    ('S22', '`vEr?`', '`3`', '`3`', '§3.4(c)'),
+    ('S22', '`vEr?`', '`<ver>`', '`<ver>`', '§3.4(c)'),
     ('S23', '`FOO`', '`ERR 1`', '`ERR 1`', '§2.12(a)'),
     ('S24', '`VER? 1`', '`ERR 2`', '`ERR 2`', '§3.4(c)'),
     ('S25', '`HB 1`', '`ERR 2`', '`ERR 2`', '§3.4(c)'),
@@ -106,7 +106,7 @@ SERIAL_ROWS: tuple[Row, ...] = (
 MODBUS_ROWS: tuple[Row, ...] = (
     ('M1', '`FC6 5 = 0`', 'exception 2', 'exception 2', '§4(a)'),
     ('M2', '`FC16 6 = [0]`', 'exception 2', 'exception 2', '§4(a)'),
-    ('M3', '`FC3 14 ×2`', 'exception 2', 'exception 2', '§4(a)'),
+    ('M3', '`FC3 15 ×2`', 'exception 2', 'exception 2', '§4(a)'),
     ('M4', '`FC3 100 ×1`', 'exception 2', 'exception 2', '§4(a)'),
     ('M5', '`FC4 0x1001 ×2`', 'exception 2', 'exception 2', '§4(a)'),
     ('M6', '`FC4 0x1000 ×3`', 'exception 2', 'exception 2', '§4(a)'),
@@ -124,4 +124,55 @@ MODBUS_ROWS: tuple[Row, ...] = (
     ('M18', '`FC6 0 = 2`', 'echo `2`', 'echo `2`', '§4.1(a)'),
     ('M19', '`FC16 3 = [u32 2]` then `FC4 1 ×1`', 'bit 2 clear', '—', '§2.1(c)'),
     ('M20', '`FC16 5 = [f32 -0]` then `FC4 5 ×2`', '`f32 0`', '—', '§3.3(c)'),
+)
+
+
+#: §3.7: rows for a device of serial protocol 4 with at least two channels (same columns).
+CHANNEL_SERIAL_ROWS: tuple[Row, ...] = (
+    ('SC1', '`CHN? 1`', '`ERR 2`', '`ERR 2`', '§3.6(d)'),
+    ('SC2', '`CH 1 SVA .25` `CH 1 VOL?`', '`0.25`', '—', '§3.6(b)'),
+    ('SC3', '`CH 1 SVA .25` `VOL?`', '`0`', '—', '§2.14(f)'),
+    ('SC4', '`CH 1 SVA .25` `CH 0 VOL?`', '`0`', '—', '§3.6(c)'),
+    ('SC5', '`ch 1 sva .25` `Ch 1 vol?`', '`0.25`', '—', '§3.6(c)'),
+    ('SC6', '`CH 1 SVA .25` `SAFE` `CH 1 VOL?`', '`0`', '—', '§2.14(e)'),
+    ('SC7', '`CH 99999 VOL?`', '`ERR 6`', '`ERR 6`', '§2.14(g)'),
+    ('SC8', '`CH -1 VOL?`', '`ERR 6`', '`ERR 6`', '§2.14(g)'),
+    ('SC9', '`CH 99999999999999999999 LIM?`', '`ERR 6`', '`ERR 6`', '§2.14(g)'),
+    ('SC10', '`CH x VOL?`', '`ERR 2`', '`ERR 2`', '§3.6(b)'),
+    ('SC11', '`CH 1.0 VOL?`', '`ERR 2`', '`ERR 2`', '§3.6(b)'),
+    ('SC12', '`CH`', '`ERR 2`', '`ERR 2`', '§3.6(b)'),
+    ('SC13', '`CH 1`', '`ERR 2`', '`ERR 2`', '§3.6(b)'),
+    ('SC14', '`CH 1 FOO`', '`ERR 1`', '`ERR 1`', '§3.6(b)'),
+    ('SC15', '`CH 1 WGO 1`', '`ERR 2`', '`ERR 2`', '§3.6(b)'),
+    ('SC16', '`CH 1 CH 0 VOL?`', '`ERR 2`', '`ERR 2`', '§3.6(b)'),
+    ('SC17', '`CH 1 SAFE`', '`ERR 2`', '`ERR 2`', '§3.6(b)'),
+    ('SC18', '`CH 1 VOL? 1`', '`ERR 2`', '`ERR 2`', '§3.6(b)'),
+    ('SC19', '`CH 99999 VOL? 1`', '`ERR 2`', '`ERR 2`', '§3.6(b)'),
+    ('SC20', '`CH 99999 SVA 0`', '`ERR 6`', '`ERR 7`', '§2.14(g)'),
+    ('SC21', '`CH 1 SVA 1e39`', '`ERR 3`', '`ERR 7`', '§2.14(d)'),
+    ('SC22', '`CH 1 WAV 0 1 1e39`', '`ERR 3`', '`ERR 7`', '§2.14(d)'),
+    ('SC23', '`CH 1 WAV 4 1 0`', '`ERR 6`', '`ERR 7`', '§2.14(h)'),
+    ('SC24', '`WTL 2` `CH 1 WAV 0 2 0 0` `STA?`', '`complete=1`', '—', '§2.14(c)'),
+    ('SC25', '`WTL 2` `WAV 0 2 0 0` `CH 1 WAV 0 1 0` `STA?`', '`complete=0`', '—', '§2.14(c)'),
+    ('SC26', '`WTL 2` `WAV 0 2 0 0` `CH 1 WAV 0 1 0` `WGO 1`', '`ERR 9`', '—', '§2.14(c)'),
+    ('SC27', '`CH 1 DRR? 1000000000000 1`', '`1000000000000 1 nan nan`', '`1000000000000 1 nan nan`', '§2.14(a)'),
+    ('SC28', '`CH 1 DRR? -1 1`', '`ERR 6`', '`ERR 6`', '§2.12(a)'),
+    ('SC29', '`CH 1 SVA 1e39` `ERR?`', '`3`', '`7`', '§2.11(a)'),
+)
+
+#: §4.5: rows for a device of register map 3 with at least two channels (same columns).
+CHANNEL_MODBUS_ROWS: tuple[Row, ...] = (
+    ('MC1', '`FC6 15 = 1` then `FC3 15 ×1`', '`1`', '`1`', '§4.4(b)'),
+    ('MC2', '`FC6 15 = 65535`', 'exception 3, error 6', 'exception 3, error 6', '§2.14(g)'),
+    ('MC3', '`FC6 15 = 65535` then `FC3 15 ×1`', '`0`', '`0`', '§4.4(b)'),
+    ('MC4', '`FC6 15 = 1` then `FC16 5 = [f32 0.25]` then `FC4 30 ×2`', '`f32 0.25`', '—', '§4.4(b)'),
+    ('MC5', '`FC6 15 = 1` then `FC16 5 = [f32 0.25]` then `FC4 5 ×2`', '`f32 0`', '—', '§4.4(c)'),
+    ('MC6', '`FC6 15 = 1` then `FC16 5 = [f32 0.25]` then `FC6 15 = 0` then `FC3 5 ×2`', '`f32 0`', '—', '§2.14(f)'),
+    ('MC7', '`FC6 15 = 1` then `FC16 5 = [f32 0.25]` then `FC6 0 = 3` then `FC4 30 ×2`', '`f32 0`', '—', '§2.14(e)'),
+    ('MC8', '`FC6 15 = 1` then `FC16 5 = [f32 inf]`', 'exception 3, error 3', 'exception 3, error 7', '§2.14(d)'),
+    ('MC9', '`FC6 15 = 1` then `FC16 300 = [u32 4, f32 0]`', 'exception 3, error 6', 'exception 3, error 7', '§2.14(h)'),
+    ('MC10', '`FC16 3 = [u32 2]` then `FC6 15 = 1` then `FC16 300 = [u32 0, f32 0]` then `FC4 1 ×1`', 'bit 2 clear', '—', '§2.14(c)'),
+    ('MC11', '`FC16 3 = [u32 2]` then `FC6 15 = 1` then `FC16 300 = [u32 0, f32 0, f32 0]` then `FC4 1 ×1`', 'bit 2 set', '—', '§2.14(c)'),
+    ('MC12', '`FC4 38 ×1`', 'exception 2', 'exception 2', '§4.4(a)'),
+    ('MC13', '`FC16 13 = [u32 7, 1]` then `FC3 13 ×3`', '`u32 7, 1`', '`u32 7, 1`', '§4.4(d)'),
 )

@@ -51,6 +51,8 @@ def state_p(bench: Bench) -> None:
     stage = bench.stage
     code_of(stage.safe_state)  # a device that refuses it fails §2.10(b) or §2.7, not here
     stage.set_watchdog(0.0)
+    if isinstance(stage, ModbusStage) and stage.version >= rm.CHANNELS_MAP_VERSION:
+        stage.select_channel(0)  # a row may have selected another (§4.4(b))
     if not stage.status().read_only:
         stage.set_sample_rate(SLOW_RATE_HZ)
         stage._set_table_length(4)
@@ -58,13 +60,14 @@ def state_p(bench: Bench) -> None:
     clear_error(stage)
 
 
-def _rows(rows: tuple[Row, ...], read_only: bool, clause: str
+def _rows(rows: tuple[Row, ...], read_only: bool, clause: str | None
           ) -> list[tuple[str, list[str], str, str]]:
-    """``(row, sent cells, expected reply, label)`` of the rows ``clause`` runs on this device."""
+    """``(row, sent cells, expected reply, label)`` of the rows ``clause`` runs on this device
+    (``None``: every row of the table)."""
     out = []
     for row, sent, reply, ro_reply, label in rows:
         want = ro_reply if read_only else reply
-        if row_clause(label, rows is SERIAL_ROWS) == clause and want != "—":
+        if clause in (None, row_clause(label, rows is SERIAL_ROWS)) and want != "—":
             out.append((row, spans(sent) if "`" in sent else [sent], want, label))
     return out
 
@@ -154,6 +157,7 @@ def run_serial_row(stage: SerialStage, row: str, lines: list[str], want: str, la
         if i < len(lines) - 1 and not text.endswith("*<bad>"):  # a wrong CRC gets no reply
             read_reply(stage, f"row {row}, line {text!r}")
     what = f"row {row} ({' '.join(lines)})"
+    want = want.replace("<ver>", str(stage.version))  # the version the device reported (§3.6(a))
     if want != "no reply":
         payload, tag = read_reply(stage, what, label)
         expect(not payload.startswith("ERR") or re.fullmatch(r"ERR [0-9]+( .*)?", payload)
@@ -177,7 +181,7 @@ def failed_rows(failures: list[Failure]) -> Failure:
     return Failure(labels, f"{len(failures)} rows fail: {shown}{more}")
 
 
-def run_rows(bench: Bench, table: tuple[Row, ...], clause: str,
+def run_rows(bench: Bench, table: tuple[Row, ...], clause: str | None,
              run_row: Callable[[str, list[str], str, str], None]) -> int:
     """Every row of ``table`` that ``clause`` runs, each from the state P; one failure naming
     all the rows that fail. The number of rows run."""
@@ -195,7 +199,8 @@ def run_rows(bench: Bench, table: tuple[Row, ...], clause: str,
     return len(rows)
 
 
-def _serial_rows(bench: Bench, clause: str) -> int:
+def serial_rows(bench: Bench, clause: str | None, table: tuple[Row, ...] = SERIAL_ROWS) -> int:
+    """The rows of ``table`` that ``clause`` runs (None: all) on the serial protocol."""
     stage = _serial(bench)
 
     def run_row(row: str, lines: list[str], want: str, label: str) -> None:
@@ -206,7 +211,7 @@ def _serial_rows(bench: Bench, clause: str) -> int:
             stage._buf.clear()
             stage._port.reset_input_buffer()
             raise
-    return run_rows(bench, SERIAL_ROWS, clause, run_row)
+    return run_rows(bench, table, clause, run_row)
 
 
 def row_clause(label: str, serial: bool) -> str:
@@ -221,22 +226,22 @@ def row_clause(label: str, serial: bool) -> str:
 
 def check_lines(bench: Bench) -> str:
     """§3.1: line ends, over-long lines, bytes, separators, empty lines (rows of §3.5)."""
-    return f"{_serial_rows(bench, '§3.1')} rows of §3.5 as documented"
+    return f"{serial_rows(bench, '§3.1')} rows of §3.5 as documented"
 
 
 def check_framing(bench: Bench) -> str:
     """§3.2: CRC, tags, wrong CRCs, the reply's tag and CRC (rows of §3.5)."""
-    return f"{_serial_rows(bench, '§3.2')} rows of §3.5 as documented"
+    return f"{serial_rows(bench, '§3.2')} rows of §3.5 as documented"
 
 
 def check_numbers(bench: Bench) -> str:
     """§3.3: the number grammar, float32 rounding, -0 (rows of §3.5)."""
-    return f"{_serial_rows(bench, '§3.3')} rows of §3.5 as documented"
+    return f"{serial_rows(bench, '§3.3')} rows of §3.5 as documented"
 
 
 def check_serial_edges(bench: Bench) -> str:
     """§3.5: the rows that hold §2's rules on the serial protocol (precedence, codes, flags)."""
-    return f"{_serial_rows(bench, '§3.5')} rows of §3.5 as documented"
+    return f"{serial_rows(bench, '§3.5')} rows of §3.5 as documented"
 
 
 def check_commands(bench: Bench) -> str:
@@ -244,7 +249,8 @@ def check_commands(bench: Bench) -> str:
     argument counts (rows of §3.5)."""
     stage = _serial(bench)
     version = stage.query("VER?")
-    expect(version == str(ap.PROTOCOL_VERSION), "§3.4(b)", f"VER? answers {version!r}")
+    expect(version in [str(v) for v in ap.PROTOCOL_VERSIONS], "§3.4(b)",
+           f"VER? answers {version!r}")
     idn = stage.identify()
     fields = idn.split(",")
     expect(len(fields) == 4 and all(f and ap.printable(f) and "\t" not in f for f in fields),
@@ -264,7 +270,7 @@ def check_commands(bench: Bench) -> str:
            and all(re.fullmatch(r"[0-9]+", kv[k]) for k in ints)
            and all(ap.parse_float32(kv[k]) is not None for k in ("out", "rate", "wdt")),
            "§3.4(a)", f"STA? {sta!r}: a field of the wrong type")
-    n = _serial_rows(bench, "§3.4")
+    n = serial_rows(bench, "§3.4")
     return f"{idn}; STA? fields in order; {n} rows of §3.5 as documented"
 
 
@@ -315,15 +321,16 @@ def modbus_matches(stage: ModbusStage, res: object, want: str) -> bool:
     regs = list(res.registers)  # type: ignore[attr-defined]
     if want.startswith("echo "):
         return regs[:1] == _registers(spans(want)[0])
-    if want == "bit 2 clear":
-        return not regs[0] & rm.StatusBit.TABLE_COMPLETE
+    if want in ("bit 2 clear", "bit 2 set"):
+        return bool(regs[0] & rm.StatusBit.TABLE_COMPLETE) == (want == "bit 2 set")
     shown = spans(want)[0]
     if shown.startswith("f32 "):
         return bool(rm.regs_f32(regs)[0] == np.float32(float(shown[4:])))
     return regs == _registers(shown)
 
 
-def _modbus_rows(bench: Bench, clause: str) -> int:
+def modbus_rows(bench: Bench, clause: str | None, table: tuple[Row, ...] = MODBUS_ROWS) -> int:
+    """The rows of ``table`` that ``clause`` runs (None: all) on Modbus."""
     stage = _modbus(bench)
 
     def run_row(row: str, requests: list[str], want: str, label: str) -> None:
@@ -332,23 +339,23 @@ def _modbus_rows(bench: Bench, clause: str) -> int:
             res = modbus_request(stage, text)
         expect(modbus_matches(stage, res, want), label,
                f"row {row} ({' then '.join(requests)}) answered {res}, the document says {want}")
-    return run_rows(bench, MODBUS_ROWS, clause, run_row)
+    return run_rows(bench, table, clause, run_row)
 
 
 def check_fc6_echo(bench: Bench) -> str:
     """§4.1: FC6 is answered with the value written (rows of §4.3)."""
-    return f"{_modbus_rows(bench, '§4.1')} rows of §4.3 as documented"
+    return f"{modbus_rows(bench, '§4.1')} rows of §4.3 as documented"
 
 
 def check_registers(bench: Bench) -> str:
     """§4: whole fields, reads within the map, exceptions and IR 2, multi-field writes (rows of
     §4.3)."""
-    return f"{_modbus_rows(bench, '§4')} rows of §4.3 as documented"
+    return f"{modbus_rows(bench, '§4')} rows of §4.3 as documented"
 
 
 def check_modbus_edges(bench: Bench) -> str:
     """§4.3: the rows that hold §2's and §3.3's rules on Modbus."""
-    n = _modbus_rows(bench, "§4.3")
+    n = modbus_rows(bench, "§4.3")
     return f"{n} rows of §4.3 as documented"
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl.drivers import StageBase
-from afmctl.drivers.device.emulator import IDENTITY, Emulator
+from afmctl.drivers.device.emulator import IDENTITY, IDENTITY_CHANNELS, Emulator
 from afmctl.drivers.protocol import Status
 from afmctl.errors import DeviceError, StageError
 from afmctl.files.profile import Profile
@@ -54,23 +54,28 @@ class InProcessStage(StageBase):
         self.emulator = Emulator(profile) if emulator is None else emulator
         self.clock = clock
         self._lock = threading.Lock() if lock is None else lock
+        self._channels = self.emulator.channels
 
-    def _call(self, fn: Callable[..., object], *args: object) -> object:
+    def _call(self, fn: Callable[..., object], *args: object, **kwargs: object) -> object:
         with self._lock, _refusals():
-            return fn(*args, self.clock())
+            return fn(*args, self.clock(), **kwargs)
 
     def identify(self) -> str:
-        return f"{IDENTITY} (in-process)"
+        return f"{IDENTITY_CHANNELS if self.channels > 1 else IDENTITY} (in-process)"
 
     def status(self) -> Status:
         return self._call(self.emulator.status)  # type: ignore[return-value]
 
-    def limits(self) -> tuple[float, float, float]:
-        lim = self.emulator.limits
+    def limits(self, channel: int = 0) -> tuple[float, float, float]:
+        with _refusals():
+            lim = self.emulator.channel_limits_of(channel)
         return lim.v_min, lim.v_max, lim.slew_v_per_ms
 
-    def set_voltage(self, v: float) -> None:
-        self._call(self.emulator.set_voltage, float(v))
+    def voltage(self, channel: int = 0) -> float:
+        return self._call(self.emulator.output, channel=channel)  # type: ignore[return-value]
+
+    def set_voltage(self, v: float, channel: int = 0) -> None:
+        self._call(self.emulator.set_voltage, float(v), channel=channel)
 
     def stop(self) -> None:
         self._call(self.emulator.stop)
@@ -93,20 +98,22 @@ class InProcessStage(StageBase):
     def _set_table_length(self, n: int) -> None:
         self._call(self.emulator.set_table_length, n)
 
-    def _write_chunk(self, first: int, values: NDArray[np.float32]) -> None:
-        self._call(self.emulator.write_table, first, values)
+    def _write_chunk(self, first: int, values: NDArray[np.float32], channel: int = 0) -> None:
+        self._call(self.emulator.write_table, first, values, channel=channel)
 
     def _start(self, cycles: int) -> None:
         self._call(self.emulator.start, cycles)
 
-    def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        return self._call(self.emulator.read_recorder, first, n)  # type: ignore[return-value]
+    def _read_chunk(self, first: int, n: int, channel: int = 0
+                    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        return self._call(self.emulator.read_recorder, first, n,  # type: ignore[return-value]
+                          channel=channel)
 
     def _start_stream(self, n_total: int) -> None:
         self._call(self.emulator.start_stream, n_total)
 
     def _capacities(self) -> tuple[int, int]:
-        return self.emulator.table.size, self.emulator.rec_u.size
+        return self.emulator.tables.shape[1], self.emulator.rec_global.size
 
 
 def accelerated(speed: float) -> Callable[[], float]:

@@ -75,9 +75,16 @@ class ModbusStage(StageBase):
         except StageError:
             self.close()  # nothing answers: leave no socket open behind the error
             raise
-        if version != rm.MAP_VERSION:
+        if version not in rm.MAP_VERSIONS:
             self.close()
-            raise StageError(-1, f"register map version {version}, afmctl speaks {rm.MAP_VERSION}")
+            raise StageError(-1, f"register map version {version}, afmctl speaks "
+                                 f"{' or '.join(map(str, rm.MAP_VERSIONS))}")
+        #: The register map version the device reports, which this link speaks.
+        self.version = version
+        #: The channel selected in ``HR.CHANNEL`` as far as this link knows (-1: not known).
+        self._channel = -1
+        if version >= rm.CHANNELS_MAP_VERSION:
+            self._channels = self._request("read_input_registers", IR.CHANNELS, count=1)[0]
 
     def _request(self, name: str, *args: Any, idempotent: bool = True, **kwargs: Any
                  ) -> list[int]:
@@ -145,23 +152,47 @@ class ModbusStage(StageBase):
         res = self._call("write_registers", address, regs)
         return int(getattr(res, "exception_code", -1)) if res.isError() else 0
 
+    def select_channel(self, channel: int) -> None:
+        """Select ``channel`` in ``HR.CHANNEL`` (map 3), whatever this link thought was
+        selected (e.g. after raw writes to it)."""
+        self._write(HR.CHANNEL, [channel])
+        self._channel = channel
+
+    def _use(self, channel: int) -> None:
+        """Address ``channel`` with the per-channel fields: select it if it is not (map 3);
+        on map 2 every field is channel 0's."""
+        if self.version >= rm.CHANNELS_MAP_VERSION and channel != self._channel:
+            self.select_channel(channel)
+
     def clear_error(self) -> None:
         """Clear the device's last error (command 4)."""
         self._write(HR.COMMAND, [rm.Cmd.CLEAR_ERROR])
 
     # -- Stage primitives ----------------------------------------------------------------------
     def identify(self) -> str:
-        return f"afmctl register map {rm.MAP_VERSION}, unit {self.unit}"
+        return f"afmctl register map {self.version}, unit {self.unit}"
 
     def status(self) -> Status:
         return rm.decode_status(self._request("read_input_registers", 0, count=IR.STATUS_END))
 
-    def limits(self) -> tuple[float, float, float]:
-        """Device limits: v_min (V), v_max (V), slew (V/ms)."""
-        a, b, c = rm.regs_f32(self._request("read_input_registers", IR.V_MIN, count=6))
+    def limits(self, channel: int = 0) -> tuple[float, float, float]:
+        """Device limits of ``channel``: v_min (V), v_max (V), slew (V/ms)."""
+        address = IR.V_MIN
+        if channel:
+            self._use(channel)
+            address = IR.CH_V_MIN
+        a, b, c = rm.regs_f32(self._request("read_input_registers", address, count=6))
         return float(a), float(b), float(c)
 
-    def set_voltage(self, v: float) -> None:
+    def voltage(self, channel: int = 0) -> float:
+        if not channel:
+            return self.status().output_v
+        self._use(channel)
+        return float(rm.regs_f32(self._request("read_input_registers", IR.CH_OUTPUT_V,
+                                               count=2))[0])
+
+    def set_voltage(self, v: float, channel: int = 0) -> None:
+        self._use(channel)
         self._write(HR.DC_VOLTAGE, rm.f32_regs([v]))
 
     def stop(self) -> None:
@@ -185,13 +216,16 @@ class ModbusStage(StageBase):
     def _set_table_length(self, n: int) -> None:
         self._write(HR.TABLE_LENGTH, rm.u32_regs(n))
 
-    def _write_chunk(self, first: int, values: NDArray[np.float32]) -> None:
+    def _write_chunk(self, first: int, values: NDArray[np.float32], channel: int = 0) -> None:
+        self._use(channel)
         self._write(HR.STREAM_FIRST, rm.u32_regs(first) + rm.f32_regs(values))
 
     def _start(self, cycles: int) -> None:
         self._write(HR.COMMAND, [rm.Cmd.START] + rm.u32_regs(cycles), idempotent=False)
 
-    def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    def _read_chunk(self, first: int, n: int, channel: int = 0
+                    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        self._use(channel)
         out_u = np.empty(n, dtype=np.float32)
         out_v = np.empty(n, dtype=np.float32)
         done = 0

@@ -34,11 +34,12 @@ class Recording:
 
     Attributes
     ----------
-    voltage_v : ndarray, shape (N,)
-        Voltage on the stack during each sample, V (NaN where missing).
-    displacement_um : ndarray, shape (N,)
+    voltage_v : ndarray, shape (N,) or (N, C)
+        Voltage on the stack during each sample, V (NaN where missing); one column per channel
+        when the waveform played had one.
+    displacement_um : ndarray, shape (N,) or (N, C)
         Sensor displacement at each sample instant, um (NaN where missing).
-    valid : ndarray of bool, shape (N,)
+    valid : ndarray of bool, shape (N,) or (N, C)
         False for samples the device had not recorded.
     """
 
@@ -63,7 +64,9 @@ RATE_PROBES = 3
 class Player:
     """One :meth:`StageBase.play`: the host's side of a (possibly streamed) run.
 
-    ``written`` is the next global sample to send, ``delivered`` the next one to read back.
+    ``written`` is the next global sample to send, ``delivered`` the next one to read back. ``v``
+    is (N,) for channel 0 alone or (N, C) for channels ``0 .. C-1``; the arrays kept and handed
+    over have its shape.
     """
 
     def __init__(self, stage: StageBase, v: NDArray[np.float32], on_block: BlockCallback | None,
@@ -71,6 +74,11 @@ class Player:
         if v.size == 0:
             raise ValueError("empty waveform")
         self.stage, self.v, self.on_block, self.poll_s = stage, v, on_block, poll_s
+        self.n = len(v)
+        #: Channels read back (None: channel 0 alone, arrays of shape (N,)).
+        self.columns = None if v.ndim == 1 else v.shape[1]
+        #: Channels written: the waveform's columns (channel ``c`` in column ``c``).
+        self.width = self.columns or 1
         self.table = self.half = self.recorder_capacity = 0  # the device's, once run() starts
         self.started = False  # whether a run of this waveform was started on the device
         self.written = self.delivered = 0
@@ -79,13 +87,12 @@ class Player:
         self.period = 0.0  # the device's watchdog period while this run plays, s
         self.armed = False  # whether this play armed the watchdog (and must disarm it)
         self.last_heartbeat = -np.inf
-        n = v.size
-        self.u = np.full(n, np.nan)
-        self.volt = np.full(n, np.nan)
-        self.valid = np.zeros(n, dtype=bool)
+        self.u = np.full(v.shape, np.nan)
+        self.volt = np.full(v.shape, np.nan)
+        self.valid = np.zeros(v.shape, dtype=bool)
 
     def run(self, timeout_s: float | None) -> Recording:
-        stage, n = self.stage, self.v.size
+        stage, n = self.stage, self.n
         fs = stage.profile.sample_rate_hz
         table, self.recorder_capacity = stage.capacities()
         self.table = min(table, n)
@@ -94,7 +101,8 @@ class Player:
         limit = self.table / UPLOAD_FLOOR + PLAY_MARGIN_S if timeout_s is None else timeout_s
         stage.set_deadline(t0 + limit)
         took = stage.upload(self.v[:self.table])
-        up_rate = min(self.table, stage.upload_chunk) / max(float(np.median(took)), 1e-9)
+        up_rate = min(self.table, stage.upload_chunk) / max(float(np.median(took)) * self.width,
+                                                            1e-9)
         down_rate = self._readback_rate()
         self.read_along = self._plan(up_rate, down_rate)
         if timeout_s is None:
@@ -130,11 +138,11 @@ class Player:
         (:class:`StoppedError`). After a refused refill (``refusal``) the device's last error is
         the refusal's own; the play position then tells: an underrun stops at the first sample
         not yet written."""
-        played = f"the run stopped after {st.play_position} of {self.v.size} samples"
+        played = f"the run stopped after {st.play_position} of {self.n} samples"
         if st.watchdog_expired or st.last_error == 8:
             return StageError(8, f"{played}: the device had no heartbeat for {self.stage.watchdog_s:g} s "
                                  f"(the host fell behind, e.g. a loaded machine)")
-        streamed = self.v.size > self.table
+        streamed = self.n > self.table
         if st.last_error == 10 or (refusal is not None and streamed
                                    and st.play_position >= self.written):
             return StageError(10, f"{played}: the host fell behind refilling the table")
@@ -151,7 +159,7 @@ class Player:
         took = []
         for _ in range(RATE_PROBES):
             t0 = time.monotonic()
-            self.stage.read_recorder(m, 0, missing_ok=True)
+            self.stage.read_recorder(m, 0, missing_ok=True, channels=self.columns)
             took.append(time.monotonic() - t0)
         return m / max(float(np.median(took)), 1e-9)
 
@@ -171,7 +179,7 @@ class Player:
         LinkCapacityError
             Neither fits.
         """
-        n, fs = self.v.size, self.stage.profile.sample_rate_hz
+        n, fs = self.n, self.stage.profile.sample_rate_hz
         uart = self.stage.uart_rates()
         if uart is not None:
             up_rate, down_rate = min(up_rate, uart[0]), min(down_rate, uart[1])
@@ -246,14 +254,17 @@ class Player:
 
     def _refill(self, position: int) -> bool:
         """Send the next half-table if the generator has played the samples its slots held."""
-        n = self.v.size
+        n = self.n
         if self.written >= n or self.written + self.half > position + self.table:
             return False
         end = min(n, self.written + self.half)
         chunk = self.stage.upload_chunk
-        for first in range(self.written, end, chunk):
-            self.stage.write_block(first, self.v[first:min(end, first + chunk)])
-            self._feed()
+        cols = self.v[:, None] if self.columns is None else self.v
+        for c in range(self.width):  # channel by channel: a link that selects one, once
+            for first in range(self.written, end, chunk):
+                self.stage.write_block(first, np.ascontiguousarray(
+                    cols[first:min(end, first + chunk), c]), c)
+                self._feed()
         self.written = end
         return True
 
@@ -270,7 +281,8 @@ class Player:
         if end <= self.delivered:
             return False
         first, lost = self.delivered, max(self.delivered, position - self.recorder_capacity)
-        rec = self.stage.read_recorder(end - lost, lost, missing_ok=True) if end > lost else None
+        rec = (self.stage.read_recorder(end - lost, lost, missing_ok=True, channels=self.columns)
+               if end > lost else None)
         if rec is not None:
             sl = slice(lost, end)
             self.volt[sl], self.u[sl], self.valid[sl] = (rec.voltage_v, rec.displacement_um,
@@ -307,7 +319,7 @@ class Player:
         except (StageError, TimeoutError) as exc:
             cause.add_note(f"reading back the rest after this failed too: {exc!r}")
         try:
-            self._hand_over(self.delivered, self.v.size)
+            self._hand_over(self.delivered, self.n)
         except Exception as exc:  # noqa: BLE001 - the original exception is what matters
             cause.add_note(f"handing over the missing samples failed: {exc!r}")
 

@@ -20,6 +20,10 @@ from numpy.typing import NDArray
 from afmctl.drivers.protocol import Status
 
 MAP_VERSION = 2
+#: The register map of devices with several channels (``HR.CHANNEL``, ``IR.CHANNELS`` ...).
+CHANNELS_MAP_VERSION = 3
+#: The versions a host speaks (docs/reference/protocol.md §7: the one the device reports).
+MAP_VERSIONS = (MAP_VERSION, CHANNELS_MAP_VERSION)
 
 # Exception codes of the Modbus standard that the device answers with.
 ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_BUSY = 2, 3, 6
@@ -57,6 +61,8 @@ class HR:
     RECORDER_PAGE = 12     # uint16
     STREAM_TOTAL = 13      # uint32 samples of the next stream (v2)
     CONTROL_END = 15
+    CHANNEL = 15           # uint16: the channel the per-channel fields address (map 3)
+    CHANNEL_CONTROL_END = 16
     UPLOAD_BLOCK = 100     # uint16 block index, followed by its samples
     UPLOAD_DATA = 101      # 61 x float32
     STREAM_FIRST = 300     # uint32 global index of the first sample that follows (v2)
@@ -84,6 +90,12 @@ class IR:
     PLAY_POSITION = 25     # uint32 samples clocked out in the current or last run (v2)
     RUN_SAMPLES = 27       # uint32 length of that run (v2)
     STATUS_END = 29
+    CHANNELS = 29          # uint16 number of channels (map 3)
+    CH_OUTPUT_V = 30       # float32 output of the selected channel (map 3)
+    CH_V_MIN = 32          # float32 its limits (map 3)
+    CH_V_MAX = 34
+    CH_SLEW = 36
+    CHANNEL_STATUS_END = 38
     DISPLACEMENT = 0x1000  # float32 raw sensor of sample page * 8192 + i at 0x1000 + 2 i
     VOLTAGE = 0x5000       # float32 V, same indexing
     END = 0x9000
@@ -129,9 +141,9 @@ def rtu_bytes_per_sample() -> tuple[float, float]:
 
 def decode_status(regs: list[int]) -> Status:
     """Input registers ``0 .. STATUS_END-1`` -> :class:`~afmctl.drivers.protocol.Status`."""
-    if regs[IR.MAP_VERSION] != MAP_VERSION:
+    if regs[IR.MAP_VERSION] not in MAP_VERSIONS:
         raise ValueError(f"register map version {regs[IR.MAP_VERSION]}, this afmctl speaks "
-                         f"{MAP_VERSION}")
+                         f"{' or '.join(map(str, MAP_VERSIONS))}")
     bits = regs[IR.STATUS]
     f = regs_f32(regs[IR.OUTPUT_V:IR.OUTPUT_V + 4])
     return Status(running=bool(bits & StatusBit.RUNNING),

@@ -74,10 +74,18 @@ class SerialStage(StageBase):
         except StageError:
             self.close()  # nothing answers: leave no port open behind the error
             raise
-        if version != str(ap.PROTOCOL_VERSION):
+        if version not in [str(v) for v in ap.PROTOCOL_VERSIONS]:
             self.close()
             raise StageError(-1, f"device speaks protocol {version!r}, afmctl speaks "
-                                 f"{ap.PROTOCOL_VERSION}")
+                                 f"{' or '.join(map(str, ap.PROTOCOL_VERSIONS))}")
+        #: The serial protocol version the device reports, which this link speaks.
+        self.version = int(version)
+        if self.version >= ap.CHANNELS_VERSION:
+            try:
+                self._channels = int(self.query("CHN?"))
+            except (StageError, ValueError) as exc:
+                self.close()
+                raise StageError(-1, f"CHN? on a device of protocol {version}: {exc}") from None
 
     # -- line I/O ------------------------------------------------------------------------------
     def _readline(self, deadline: float) -> str:
@@ -187,20 +195,26 @@ class SerialStage(StageBase):
         except ValueError as exc:
             raise StageError(-1, str(exc)) from None
 
-    def voltage(self) -> float:
-        return float(self.query("VOL?"))
+    @staticmethod
+    def on_channel(line: str, channel: int) -> str:
+        """A per-channel command for ``channel``: as it is for channel 0 (every protocol version),
+        ``CH <c> <command>`` for another (protocol 4, §3.6)."""
+        return line if channel == 0 else f"CH {channel} {line}"
 
-    def limits(self) -> tuple[float, float, float]:
-        """Device limits: v_min (V), v_max (V), slew (V/ms)."""
-        a, b, c = (float(x) for x in self.query("LIM?").split())
+    def voltage(self, channel: int = 0) -> float:
+        return float(self.query(self.on_channel("VOL?", channel)))
+
+    def limits(self, channel: int = 0) -> tuple[float, float, float]:
+        """Device limits of ``channel``: v_min (V), v_max (V), slew (V/ms)."""
+        a, b, c = (float(x) for x in self.query(self.on_channel("LIM?", channel)).split())
         return a, b, c
 
     def last_error(self) -> int:
         """The sticky last error code (cleared by reading, so never retried)."""
         return int(self.query("ERR?", idempotent=False))
 
-    def set_voltage(self, v: float) -> None:
-        self._command(f"SVA {ap.fmt(v)}")
+    def set_voltage(self, v: float, channel: int = 0) -> None:
+        self._command(self.on_channel(f"SVA {ap.fmt(v)}", channel))
 
     def stop(self) -> None:
         self._command("WGO 0")
@@ -223,15 +237,17 @@ class SerialStage(StageBase):
     def _set_table_length(self, n: int) -> None:
         self._command(f"WTL {n}")
 
-    def _write_chunk(self, first: int, values: NDArray[np.float32]) -> None:
-        self._command(ap.wav_line(first, values))
+    def _write_chunk(self, first: int, values: NDArray[np.float32], channel: int = 0) -> None:
+        self._command(self.on_channel(ap.wav_line(first, values), channel))
 
     def _start(self, cycles: int) -> None:
         self._command(f"WGO {cycles}", idempotent=False)
 
-    def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    def _read_chunk(self, first: int, n: int, channel: int = 0
+                    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         try:
-            return ap.parse_recorder(self.query(f"DRR? {first} {n}"), first, n)
+            return ap.parse_recorder(self.query(self.on_channel(f"DRR? {first} {n}", channel)),
+                                     first, n)
         except ValueError as exc:
             raise StageError(-1, str(exc)) from None
 

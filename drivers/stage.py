@@ -72,6 +72,9 @@ class StageBase(abc.ABC):
 
     def __init__(self, profile: Profile) -> None:
         self.profile = profile
+        #: The device's channels, as negotiated when the link opened (1 on a device of serial
+        #: protocol 3 / register map 2).
+        self._channels = 1
         self._last_run_samples = 0
         #: Requests repeated after a transport failure, since the stage was opened.
         self.retries = 0
@@ -91,10 +94,15 @@ class StageBase(abc.ABC):
         """Whether the run's deadline (:meth:`set_deadline`) has passed."""
         return self._deadline is not None and time.monotonic() > self._deadline
 
-    def write_block(self, first: int, values: NDArray[np.float32]) -> None:
-        """Write table samples from global index ``first`` (one request: at most
+    @property
+    def channels(self) -> int:
+        """The device's channels (outputs with their sensors on one sample clock)."""
+        return self._channels
+
+    def write_block(self, first: int, values: NDArray[np.float32], channel: int = 0) -> None:
+        """Write ``channel``'s table samples from global index ``first`` (one request: at most
         :attr:`upload_chunk` samples), already checked by the guard."""
-        self._write_chunk(first, values)
+        self._write_chunk(first, values, channel)
 
     def start_run(self, n: int, streamed: bool) -> None:
         """Start the generator on the uploaded table for an ``n``-sample run: streamed through the
@@ -156,27 +164,44 @@ class StageBase(abc.ABC):
     def status(self) -> Status: ...
 
     @abc.abstractmethod
-    def limits(self) -> tuple[float, float, float]:
-        """The device's own limits: v_min (V), v_max (V), slew (V/ms)."""
+    def limits(self, channel: int = 0) -> tuple[float, float, float]:
+        """The device's own limits of ``channel``: v_min (V), v_max (V), slew (V/ms)."""
 
-    def voltage(self) -> float:
-        """Output voltage now, V."""
+    def voltage(self, channel: int = 0) -> float:
+        """Output voltage of ``channel`` now, V."""
         return self.status().output_v
 
+    def voltages(self) -> NDArray[np.float64]:
+        """Every channel's output now, V, shape (C,)."""
+        return np.array([self.voltage(c) for c in range(self.channels)])
+
     def check_limits(self) -> None:
-        """Compare the profile's voltage range and slew limit with the device's own (once per
-        opened stage; :meth:`play` does it before anything is sent).
+        """Compare each axis profile's voltage range and slew limit with its channel's own limits
+        on the device (once per opened stage; :meth:`play` does it before anything is sent).
 
         Raises
         ------
         LimitMismatchError
-            The profile's range is not within the device's, or its slew limit above the
-            device's: a waveform the guard passes would be refused by the device mid-run.
+            The profile names more axes than the device has channels, or an axis's range is not
+            within its channel's, or its slew limit above the channel's: a waveform the guard
+            passes would be refused by the device mid-run.
         """
         if getattr(self, "_limits_checked", False):
             return
-        lo, hi, slew = self.limits()
-        p = self.profile.limits
+        names = self.profile.axis_names
+        if len(names) > self.channels:
+            raise LimitMismatchError(
+                f"profile {self.profile.name!r} describes {len(names)} axes ({', '.join(names)}); "
+                f"the device has {self.channels} channel(s) (CHN?, IR 29): use a profile of "
+                f"{self.channels} axis; nothing was sent")
+        for c, name in enumerate(names):
+            self._check_channel_limits(c, name)
+        self._limits_checked = True
+
+    def _check_channel_limits(self, channel: int, name: str) -> None:
+        """:meth:`check_limits` for one channel and its axis ``name``."""
+        lo, hi, slew = self.limits(channel)
+        p = self.profile.axis(name).limits
         wrong = []
         if p.v_min < lo - LIMIT_SLACK or p.v_max > hi + LIMIT_SLACK:
             wrong.append(f"voltage range {p.v_min:g} ... {p.v_max:g} V (v_min_V, v_max_V) is not "
@@ -185,15 +210,17 @@ class StageBase(abc.ABC):
             wrong.append(f"slew limit {p.slew_v_per_ms:g} V/ms (slew_V_per_ms) is above the "
                          f"device's {slew:g} V/ms")
         if wrong:
+            section = "[amplifier]" if channel == 0 else f"[axis.{name}.amplifier]"
+            where = "" if channel == 0 else f" of channel {channel}"
             raise LimitMismatchError(
-                f"profile {self.profile.name!r}: its [amplifier] " + "; its ".join(wrong)
-                + " (the device's own limits, LIM?): set the profile's [amplifier] to the "
+                f"profile {self.profile.name!r}: its {section} " + "; its ".join(wrong)
+                + f" (the device's own limits{where}, LIM?): set the profile's {section} to the "
                   "stage's; nothing was sent")
-        self._limits_checked = True
 
     @abc.abstractmethod
-    def set_voltage(self, v: float) -> None:
-        """DC output, V (refused outside the limits or beyond one slew-limited step)."""
+    def set_voltage(self, v: float, channel: int = 0) -> None:
+        """DC output of ``channel``, V (refused outside its limits or beyond one slew-limited
+        step)."""
 
     @abc.abstractmethod
     def stop(self) -> None: ...
@@ -219,14 +246,16 @@ class StageBase(abc.ABC):
     def _set_table_length(self, n: int) -> None: ...
 
     @abc.abstractmethod
-    def _write_chunk(self, first: int, values: NDArray[np.float32]) -> None: ...
+    def _write_chunk(self, first: int, values: NDArray[np.float32], channel: int = 0) -> None: ...
 
     @abc.abstractmethod
     def _start(self, cycles: int) -> None: ...
 
     @abc.abstractmethod
-    def _read_chunk(self, first: int, n: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """Raw sensor and voltage of samples ``first .. first+n-1``, float32, NaN if missing."""
+    def _read_chunk(self, first: int, n: int, channel: int = 0
+                    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Raw sensor and voltage of ``channel``'s samples ``first .. first+n-1``, float32, NaN if
+        missing."""
 
     @abc.abstractmethod
     def _start_stream(self, n_total: int) -> None:
@@ -244,22 +273,28 @@ class StageBase(abc.ABC):
 
     # -- composed operations -------------------------------------------------------------------
     def upload(self, waveform_v: ArrayLike) -> NDArray[np.float64]:
-        """Load the waveform table, V, shape (N,) (sent as float32, in chunks).
+        """Load the waveform tables, V, shape (N,) (channel 0) or (N, C) (channels ``0 .. C-1``),
+        sent as float32, in chunks.
 
         Returns
         -------
         ndarray, shape (chunks,)
-            Seconds each chunk took, retries included (what the link carries).
+            Seconds each chunk took (one channel's samples), retries included (what the link
+            carries).
         """
-        v = np.asarray(waveform_v, dtype=np.float32).ravel()
+        v = np.asarray(waveform_v, dtype=np.float32)
+        v = v.ravel() if v.ndim < 2 else v
         if v.size == 0:
             raise ValueError("empty waveform")
-        self._set_table_length(v.size)
+        self._set_table_length(len(v))
+        cols = v[:, None] if v.ndim == 1 else v
         took = []
-        for first in range(0, v.size, self.upload_chunk):
-            t0 = time.monotonic()
-            self._write_chunk(first, v[first:first + self.upload_chunk])
-            took.append(time.monotonic() - t0)
+        for c in range(cols.shape[1]):  # channel by channel: a link that selects one, once
+            for first in range(0, len(v), self.upload_chunk):
+                t0 = time.monotonic()
+                self.write_block(first, np.ascontiguousarray(cols[first:first + self.upload_chunk,
+                                                                  c]), c)
+                took.append(time.monotonic() - t0)
         return np.array(took)
 
     def run(self, cycles: int = 1) -> None:
@@ -283,24 +318,34 @@ class StageBase(abc.ABC):
         return st
 
     def read_recorder(self, n: int | None = None, first: int = 0, *,
-                      missing_ok: bool = False) -> Recording:
-        """Read ``n`` recorder samples from global index ``first`` (default: all of the last run).
+                      missing_ok: bool = False, channels: int | None = None) -> Recording:
+        """Read ``n`` recorder samples from global index ``first`` (default: all of the last run):
+        channel 0's, shape (n,), or with ``channels`` those of channels ``0 .. channels-1``,
+        shape (n, channels), each with its axis's sensor scale and offset.
 
         With ``missing_ok``, a request that still fails on the wire after its retries leaves its
         samples missing (NaN, ``valid=False``) instead of raising."""
         n = self._last_run_samples - first if n is None else n
-        raw = np.full(n, np.nan, dtype=np.float32)
-        volt = np.full(n, np.nan, dtype=np.float32)
-        for off in range(0, n, self.read_chunk):
+        cols = 1 if channels is None else channels
+        raw = np.full((n, cols), np.nan, dtype=np.float32)
+        volt = np.full((n, cols), np.nan, dtype=np.float32)
+        for c, off in ((c, off) for c in range(cols) for off in range(0, n, self.read_chunk)):
             m = min(self.read_chunk, n - off)
             try:
-                raw[off:off + m], volt[off:off + m] = self._read_chunk(first + off, m)
+                raw[off:off + m, c], volt[off:off + m, c] = self._read_chunk(first + off, m, c)
             except StageError as exc:
                 if not (missing_ok and exc.code == -1):
                     raise
-        u = self.profile.sensor_scale_um * raw.astype(float) + self.profile.sensor_offset_um
+        axes = [self.profile.axis(name) for name in self.profile.axis_names[:cols]]
+        axes += [self.profile] * (cols - len(axes))
+        scale = np.array([a.sensor_scale_um for a in axes])
+        offset = np.array([a.sensor_offset_um for a in axes])
+        u = scale * raw.astype(float) + offset
         v = volt.astype(float)
-        return Recording(v, u, np.isfinite(u) & np.isfinite(v))
+        valid = np.isfinite(u) & np.isfinite(v)
+        if channels is None:
+            return Recording(v[:, 0], u[:, 0], valid[:, 0])
+        return Recording(v, u, valid)
 
     def play(self, waveform_v: ArrayLike, on_block: BlockCallback | None = None, *,
              poll_s: float = 0.01, timeout_s: float | None = None) -> Recording:
@@ -326,11 +371,13 @@ class StageBase(abc.ABC):
 
         Parameters
         ----------
-        waveform_v : array_like, shape (N,)
-            Voltage per sample, V (sent as float32).
+        waveform_v : array_like, shape (N,) or (N, C)
+            Voltage per sample, V (sent as float32): shape (N,) plays channel 0 (any other channel
+            holds its output); (N, C) plays every channel, C = :attr:`channels`, column ``c``
+            on channel ``c`` (the profile's axis ``axis_names[c]``).
         on_block : callable, optional
             ``on_block(first_index, voltage_v, displacement_um, valid)`` with arrays of shape (m,)
-            (V, um, bool) for samples ``first_index .. first_index+m-1``; the blocks are in order,
+            or (m, C) like the waveform (V, um, bool) for samples ``first_index .. first_index+m-1``; the blocks are in order,
             contiguous and cover ``[0, N)`` even when the run fails (samples never measured are
             NaN with ``valid=False``), unless on_block itself raised.
         poll_s : float
@@ -344,7 +391,8 @@ class StageBase(abc.ABC):
         Returns
         -------
         Recording
-            All N samples; samples the recorder no longer (or never) held are NaN with
+            All N samples, each array of the waveform's shape (per channel, each with its axis's
+            sensor calibration); samples the recorder no longer (or never) held are NaN with
             ``valid=False``.
 
         Raises
@@ -357,7 +405,8 @@ class StageBase(abc.ABC):
 
         afmctl.guard.LimitError
             The waveform (as float32, from the stage's present output) violates the profile's
-            voltage, slew or current limits; nothing was sent.
+            voltage, slew or current limits on some channel (each against its own axis's);
+            nothing was sent.
         LinkCapacityError
             The link cannot carry this streamed run; nothing was played (the first table was
             uploaded), ``on_block`` was not called.
@@ -369,15 +418,20 @@ class StageBase(abc.ABC):
         not yet delivered are handed to ``on_block`` (read back if the link still works, else
         missing), and the exception propagates.
         """
-        v = np.asarray(waveform_v, dtype=np.float32).ravel()
+        v = np.asarray(waveform_v, dtype=np.float32)
+        v = v.ravel() if v.ndim < 2 else v
         if v.size == 0:
             raise ValueError("empty waveform")
+        names = self.profile.axis_names
+        if v.ndim == 2 and not v.shape[1] == self.channels == len(names):
+            raise ValueError(f"a waveform of {v.shape[1]} channels for a device of "
+                             f"{self.channels} and a profile of {len(names)} axes: give shape "
+                             f"(N,) or (N, C) with C channels and axes")
         player = Player(self, v, on_block, poll_s)
         try:
             self.check_limits()
+            self._guard(v)
             self._ensure_rate()
-            guard.check(v.astype(float), 1.0 / self.profile.sample_rate_hz, self.profile.limits,
-                        self.voltage(), "waveform")
             return player.run(timeout_s)
         except (guard.LimitError, LinkCapacityError, LimitMismatchError):
             raise  # refused before anything played: the stage stays where it is
@@ -396,6 +450,16 @@ class StageBase(abc.ABC):
             raise
         finally:
             self._deadline = None
+
+    def _guard(self, v: NDArray[np.float32]) -> None:
+        """Every channel of ``v`` against its own axis profile's limits, from its present output
+        (:func:`afmctl.guard.check`); nothing is sent."""
+        cols = v[:, None] if v.ndim == 1 else v
+        names = self.profile.axis_names
+        for c in range(cols.shape[1]):
+            what = "waveform" if v.ndim == 1 else f"waveform, axis {names[c]} (channel {c})"
+            guard.check(cols[:, c].astype(float), 1.0 / self.profile.sample_rate_hz,
+                        self.profile.axis(names[c]).limits, self.voltage(c), what)
 
     def _ensure_rate(self) -> None:
         """Clock the device at the profile's sample rate: timestamps, the model's discretization

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from typing import Any
 
 import click
 
@@ -135,7 +136,7 @@ def _print_table(wire: str, results: list) -> None:  # noqa: ANN001 (list[confor
 @click.option("--json", "as_json", is_flag=True, help="One JSON object on stdout.")
 def status(profile_path: str | None, read: bool, as_json: bool) -> None:
     """Show the stage's state: identity, limits, output, run, watchdog, last error and the
-    sensor's reading at the present output."""
+    sensor's reading at the present output (on a stage of several axes, per axis too)."""
     prof = load_profile_or_exit(profile_path)
     from afmctl.drivers import open_stage
     from afmctl.drivers.protocol import ERRORS
@@ -147,18 +148,18 @@ def status(profile_path: str | None, read: bool, as_json: bool) -> None:
             stage.check_limits()
         except LimitMismatchError as exc:
             mismatch = str(exc)
-        reading, why = None, ""
+        why = ""
         if not read:
             why = "not read (--no-read)"
         elif mismatch or st.running or st.read_only:
             why = ("not read: " + ("the profile's limits do not match the device's" if mismatch
                                    else "a run is playing" if st.running
                                    else "a read-only device plays no run"))
-        else:
-            from afmctl.experiment import runner
-            reading = runner.move_and_read(stage, st.output_v, prof.limits, prof.sample_rate_hz,
-                                           0.01)
-    fields = {"profile": prof.name, "identity": idn, "running": st.running,
+        readings = _readings(stage, prof, read=not why)
+        axes = _axes(stage, prof, readings) if len(prof.axis_names) > 1 else None
+    reading = readings[0]
+    fields = {"profile": prof.name, "identity": idn, "channels": stage.channels,
+              "running": st.running,
               "output_V": st.output_v, "sample_rate_Hz": st.sample_rate_hz,
               "v_min_V": v_min, "v_max_V": v_max, "slew_V_per_ms": slew,
               "play_position_samples": st.play_position, "run_samples": st.run_samples,
@@ -169,13 +170,15 @@ def status(profile_path: str | None, read: bool, as_json: bool) -> None:
               "last_error_text": ERRORS.get(st.last_error, "unknown code"),
               "reading_um": None if reading is None else reading.mean_um,
               "reading_sd_um": None if reading is None else reading.sd_um}
+    if axes is not None:
+        fields["axes"] = axes
     if mismatch:
         click.echo(f"warning: {mismatch}", err=True)
     if as_json:
         click.echo(_json(fields))
         return
     for key, value in fields.items():
-        if key in ("last_error_text", "reading_sd_um"):
+        if key in ("last_error_text", "reading_sd_um", "axes"):
             continue
         if key == "last_error":
             value = f"{value} ({fields['last_error_text']})"
@@ -184,6 +187,31 @@ def status(profile_path: str | None, read: bool, as_json: bool) -> None:
                 f"{reading.mean_um:.4f} (mean of {reading.samples} samples at "
                 f"{reading.output_v:g} V, sd {reading.sd_um:.4f} um)")
         click.echo(f"{key}: {value}")
+    for name, ax in (axes or {}).items():
+        click.echo(f"axis {name}: " + ", ".join(
+            f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in ax.items()))
+
+
+def _readings(stage: Any, prof: Any, read: bool) -> list[Any]:
+    """Each axis's sensor reading at its present output (None each if not ``read``)."""
+    if not read:
+        return [None] * len(prof.axis_names)
+    from afmctl.experiment import runner
+    return [runner.move_and_read(stage, stage.voltage(c), prof.axis(name).limits,
+                                 prof.sample_rate_hz, 0.01, channel=c)
+            for c, name in enumerate(prof.axis_names)]
+
+
+def _axes(stage: Any, prof: Any, readings: list[Any]) -> dict[str, dict[str, object]]:
+    """``status``'s ``axes``: each axis's channel, output, limits and reading."""
+    out = {}
+    for c, (name, r) in enumerate(zip(prof.axis_names, readings, strict=True)):
+        v_min, v_max, slew = stage.limits(c)
+        out[name] = {"channel": c, "output_V": stage.voltage(c), "v_min_V": v_min,
+                     "v_max_V": v_max, "slew_V_per_ms": slew,
+                     "reading_um": None if r is None else r.mean_um,
+                     "reading_sd_um": None if r is None else r.sd_um}
+    return out
 
 
 def _json(fields: dict[str, object]) -> str:
@@ -199,8 +227,13 @@ def _json(fields: dict[str, object]) -> str:
                    "limits).")
 @click.option("--hold", "hold_s", type=Finite(0.001), default=0.1, show_default=True,
               help="Time held at the voltage while the sensor is read, s.")
+@click.option("--axis", "axis_name", default=None,
+              help="The axis to move on a stage of several (x, y; default x), the others held.")
+@click.option("--channel", type=click.IntRange(0), default=None,
+              help="The channel to move (0 is x, 1 is y): the same as --axis.")
 @click.option("--json", "as_json", is_flag=True, help="One JSON object on stdout.")
-def set_voltage(profile_path: str | None, voltage: float, hold_s: float, as_json: bool) -> None:
+def set_voltage(profile_path: str | None, voltage: float, hold_s: float, axis_name: str | None,
+                channel: int | None, as_json: bool) -> None:
     """Bring the stage to a DC voltage by hand and read its sensor there.
 
     The output ramps from where it is to VOLTAGE (a raised cosine at a quarter of the profile's
@@ -210,15 +243,18 @@ def set_voltage(profile_path: str | None, voltage: float, hold_s: float, as_json
     from afmctl.cli.base import opened_stage
     from afmctl.experiment import runner
     prof = load_profile_or_exit(profile_path)
-    lim = prof.limits
+    channel = _channel(prof, axis_name, channel)
+    name = prof.axis_names[channel]
+    lim = prof.axis(name).limits
     if not lim.v_min <= voltage <= lim.v_max:
-        fail(f"--voltage {voltage:g} V is outside profile {prof.name!r}'s limits "
+        axis = f" axis {name}" if len(prof.axis_names) > 1 else ""
+        fail(f"--voltage {voltage:g} V is outside profile {prof.name!r}'s{axis} limits "
              f"[{lim.v_min:g}, {lim.v_max:g}] V")
     if hold_s > 60:
         fail(f"--hold {hold_s:g} s: at most 60 s")
     with opened_stage(prof) as stage:
-        r = runner.move_and_read(stage, voltage, lim, prof.sample_rate_hz, hold_s)
-        out_v = stage.voltage()
+        r = runner.move_and_read(stage, voltage, lim, prof.sample_rate_hz, hold_s, channel)
+        out_v = stage.voltage(channel)
     if as_json:
         click.echo(_json({"output_V": out_v, "reading_um": r.mean_um, "reading_sd_um": r.sd_um,
                           "samples": r.samples}))
@@ -227,13 +263,33 @@ def set_voltage(profile_path: str | None, voltage: float, hold_s: float, as_json
                f"over {hold_s:g} s, sd {r.sd_um:.4f} um)")
 
 
+def _channel(prof: Any, axis_name: str | None, channel: int | None) -> int:
+    """The channel ``--axis`` or ``--channel`` names (0 if neither); exit 2 naming a wrong one."""
+    names = prof.axis_names
+    if axis_name is not None and channel is not None:
+        raise click.UsageError("give --axis or --channel, not both")
+    if axis_name is not None:
+        if axis_name not in names:
+            fail(f"--axis {axis_name}: profile {prof.name!r} has axes {', '.join(names)}")
+        return int(names.index(axis_name))
+    if channel is not None and channel >= len(names):
+        fail(f"--channel {channel}: profile {prof.name!r} has {len(names)} axis/axes "
+             f"(channels 0 .. {len(names) - 1})")
+    return channel or 0
+
+
 @main.command()
 @click.option("--profile", "profile_path", help=PROFILE_HELP)
 def safe(profile_path: str | None) -> None:
-    """Stop the stage and ramp its output to 0 V (the safe state)."""
+    """Stop the stage and ramp every output to 0 V (the safe state)."""
     prof = load_profile_or_exit(profile_path)
     from afmctl.drivers import open_stage
     with open_stage(prof) as stage:
         stage.safe_state()
-        st = stage.status()
-    click.echo(f"safe: stopped, output {st.output_v:g} V")
+        out = stage.voltages()
+    if out.size == 1:
+        click.echo(f"safe: stopped, output {out[0]:g} V")
+        return
+    names = list(prof.axis_names) + [f"channel {c}" for c in range(len(prof.axis_names), out.size)]
+    click.echo("safe: stopped, outputs " + ", ".join(f"{n} {v:g} V" for n, v in zip(names, out,
+                                                                                   strict=False)))

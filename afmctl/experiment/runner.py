@@ -189,22 +189,31 @@ class Reading:
 
 
 def move_and_read(stage: PlayingStage, target_v: float, limits: Any, sample_rate_hz: float,
-                  hold_s: float = 0.1) -> Reading:
-    """Bring the output to ``target_v`` (V) along a raised-cosine ramp at a quarter of the usable
-    slew rate (as track's ramps), hold it ``hold_s`` seconds and read the sensor over the hold:
-    one waveform, checked by the guard and played as any run; the output then stays at
-    ``target_v``. With ``target_v`` the present output nothing moves: it only reads."""
+                  hold_s: float = 0.1, channel: int = 0) -> Reading:
+    """Bring the output of ``channel`` to ``target_v`` (V) along a raised-cosine ramp at a
+    quarter of the usable slew rate (as track's ramps), hold it ``hold_s`` seconds and read its
+    sensor over the hold: one waveform, checked by the guard and played as any run (on a stage of
+    several channels the others hold their outputs); the output then stays at ``target_v``. With
+    ``target_v`` the present output nothing moves: it only reads."""
     from afmctl import guard
     dt = 1.0 / sample_rate_hz
-    start = stage.voltage()
+    held_v = stage.voltages() if channel else None  # type: ignore[attr-defined]
+    start = stage.voltage() if held_v is None else float(held_v[channel])
     rate = 0.25 * limits.max_rate_v_per_ms * 1e3
     ramp = (track.raised_cosine(start, target_v, track.ramp_samples(target_v - start, rate, dt))
             if target_v != start else np.zeros(0))
     n_hold = max(2, int(round(hold_s * sample_rate_hz)))
     v = np.concatenate([ramp, np.full(n_hold, float(target_v))])
     guard.check(v, dt, limits, start, "the move")
-    rec = stage.play(v)
-    held = rec.displacement_um[ramp.size:][rec.valid[ramp.size:]]
+    if held_v is None:
+        rec = stage.play(v)
+        disp, valid = rec.displacement_um, rec.valid
+    else:
+        wave = np.tile(held_v, (v.size, 1))
+        wave[:, channel] = v
+        rec = stage.play(wave)
+        disp, valid = rec.displacement_um[:, channel], rec.valid[:, channel]
+    held = disp[ramp.size:][valid[ramp.size:]]
     if held.size == 0:
         return Reading(float(target_v), float("nan"), float("nan"), 0)
     return Reading(float(target_v), float(np.mean(held)), float(np.std(held)), int(held.size))

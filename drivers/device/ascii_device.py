@@ -9,6 +9,8 @@ from collections.abc import Callable
 import numpy as np
 
 from afmctl.drivers.ascii_protocol import (
+    CHANNEL_COMMANDS,
+    CHANNELS_VERSION,
     MAX_CHUNK,
     MAX_LINE,
     PROTOCOL_VERSION,
@@ -20,9 +22,10 @@ from afmctl.drivers.ascii_protocol import (
     split_frame,
     status_line,
 )
-from afmctl.drivers.device.emulator import IDENTITY, Emulator
+from afmctl.drivers.device.emulator import IDENTITY, IDENTITY_CHANNELS, Emulator
 from afmctl.drivers.protocol import ERRORS
 from afmctl.errors import DeviceError, FrameError
+from afmctl.files.profile import Limits
 
 
 class AsciiDevice:
@@ -38,30 +41,41 @@ class AsciiDevice:
     def __init__(self, emulator: Emulator, clock: Callable[[], float]) -> None:
         self.em = emulator
         self.clock = clock
+        several = emulator.channels > 1
+        version = CHANNELS_VERSION if several else PROTOCOL_VERSION
+        self._per_channel: dict[str, Callable[[list[str], float, int], str]] = {
+            "SVA": lambda a, t, c: self._ok(self.em.set_voltage(_float(a, 0, 1), t, c)),
+            "VOL?": lambda a, t, c: self._query(a, lambda: fmt(self.em.output(t, c))),
+            "WAV": self._wav,
+            "DRR?": self._drr,
+            "LIM?": lambda a, t, c: self._query(a, lambda: " ".join(fmt(x) for x in _limits(
+                self.em.channel_limits_of(c)))),
+        }
+        assert set(self._per_channel) == set(CHANNEL_COMMANDS)
         self._commands: dict[str, Callable[[list[str], float], str]] = {
-            "*IDN?": lambda a, t: self._noargs(a, IDENTITY),
-            "VER?": lambda a, t: self._noargs(a, str(PROTOCOL_VERSION)),
-            "SVA": lambda a, t: self._ok(self.em.set_voltage(_float(a, 0, 1), t)),
-            "VOL?": lambda a, t: self._noargs(a, fmt(self.em.status(t).output_v)),
+            "*IDN?": lambda a, t: self._noargs(a, IDENTITY_CHANNELS if several else IDENTITY),
+            "VER?": lambda a, t: self._noargs(a, str(version)),
             "WTR": lambda a, t: self._ok(self.em.set_sample_rate(_float(a, 0, 1), t)),
             "WTR?": lambda a, t: self._noargs(a, fmt(self.em.status(t).sample_rate_hz)),
             "WTL": lambda a, t: self._ok(self.em.set_table_length(_int(a, 0, 1), t)),
             "WTL?": lambda a, t: self._noargs(a, str(self.em.status(t).table_length)),
-            "WAV": self._wav,
             "WGO": self._wgo,
             "WGS": lambda a, t: self._ok(self.em.start_stream(_int(a, 0, 1), t)),
             "POS?": lambda a, t: self._noargs(a, str(self.em.status(t).play_position)),
-            "CAP?": lambda a, t: self._noargs(a, f"{self.em.table.size} {self.em.rec_u.size}"),
+            "CAP?": lambda a, t: self._noargs(a, f"{self.em.tables.shape[1]} "
+                                                 f"{self.em.rec_global.size}"),
             "DRL?": lambda a, t: self._noargs(a, str(self.em.status(t).recorder_fill)),
-            "DRR?": self._drr,
             "STA?": lambda a, t: self._noargs(a, status_line(self.em.status(t))),
             "ERR?": lambda a, t: self._noargs(a, str(self.em.pop_error(t))),
-            "LIM?": lambda a, t: self._noargs(a, " ".join(fmt(x) for x in (
-                self.em.limits.v_min, self.em.limits.v_max, self.em.limits.slew_v_per_ms))),
             "SAFE": lambda a, t: self._bare(a, lambda: self.em.safe_state(t)),
             "HB": lambda a, t: self._bare(a, lambda: self.em.heartbeat(t)),
             "WDT": lambda a, t: self._ok(self.em.set_watchdog(_float(a, 0, 1), t)),
         }
+        for word, handler in self._per_channel.items():
+            self._commands[word] = lambda a, t, h=handler: h(a, t, 0)  # type: ignore[misc]
+        if several:
+            self._commands["CHN?"] = lambda a, t: self._noargs(a, str(self.em.channels))
+            self._commands["CH"] = self._ch
 
     def handle_framed(self, line: str) -> str | None:
         """One received line (framed or typed by hand; its CR LF taken off, one character per
@@ -113,11 +127,34 @@ class AsciiDevice:
             raise DeviceError(2, "query takes no arguments")
         return reply
 
-    def _wav(self, args: list[str], now: float) -> str:
+    @staticmethod
+    def _query(args: list[str], reply: Callable[[], str]) -> str:
+        """A query of one channel: its arguments are checked (error 2) before the channel (6)."""
+        if args:
+            raise DeviceError(2, "query takes no arguments")
+        return reply()
+
+    def _ch(self, args: list[str], now: float) -> str:
+        """``CH <c> <command> <arguments>``: a per-channel command applied to channel ``c``
+        (§3.6): 2 without a channel that is an integer or without a command, 1 for an unknown
+        command word, 2 for a command that is not per-channel; the channel's range (6) is the
+        command's to check, after its arguments."""
+        channel = _int(args, 0, None)
+        if len(args) < 2:
+            raise DeviceError(2, "CH <channel> <command> [arguments]")
+        word = args[1].upper()
+        if word not in self._commands:
+            raise DeviceError(1, args[1])
+        if word not in self._per_channel:
+            raise DeviceError(2, f"{args[1]} is not a per-channel command")
+        return self._per_channel[word](args[2:], now, channel)
+
+    def _wav(self, args: list[str], now: float, channel: int) -> str:
         first, n = _int(args, 0, None), _int(args, 1, None)
         if not 1 <= n <= MAX_CHUNK or len(args) != 2 + n:
             raise DeviceError(2, f"WAV <first> <n <= {MAX_CHUNK}> then n values")
-        self.em.write_table(first, np.array([_float(args, i) for i in range(2, 2 + n)]), now)
+        self.em.write_table(first, np.array([_float(args, i) for i in range(2, 2 + n)]), now,
+                            channel)
         return "OK"
 
     def _wgo(self, args: list[str], now: float) -> str:
@@ -128,12 +165,16 @@ class AsciiDevice:
             self.em.start(cycles, now)
         return "OK"
 
-    def _drr(self, args: list[str], now: float) -> str:
+    def _drr(self, args: list[str], now: float, channel: int) -> str:
         first, n = _int(args, 0, 2), _int(args, 1, 2)
         if not 1 <= n <= MAX_CHUNK:
             raise DeviceError(2, f"DRR? <first> <n <= {MAX_CHUNK}>")
-        u, v = self.em.read_recorder(first, n, now)
+        u, v = self.em.read_recorder(first, n, now, channel)
         return f"{first} {n} " + " ".join(f"{fmt(a)} {fmt(b)}" for a, b in zip(u, v, strict=True))
+
+
+def _limits(lim: Limits) -> tuple[float, float, float]:
+    return lim.v_min, lim.v_max, lim.slew_v_per_ms
 
 
 def _arg(args: list[str], i: int, count: int | None) -> str:

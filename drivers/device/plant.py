@@ -33,7 +33,7 @@ from afmctl.model import effects as fx
 from afmctl.model import hysteresis as hy
 from afmctl.model import transducer as td
 
-__all__ = ["EmulatorConfig", "Physics", "PhysicsState", "NOISE_BLOCK", "HIDDEN_RANGES",
+__all__ = ["EmulatorConfig", "Physics", "PhysicsState", "NOISE_BLOCK", "block_noise", "HIDDEN_RANGES",
            "HIDDEN_SEED", "hidden_effect", "hidden_cases", "with_hidden_effect",
            "expected_readback"]
 
@@ -41,6 +41,19 @@ FloatArray = NDArray[np.float64]
 
 #: Sensor noise is drawn in blocks of this many samples, keyed by (seed, run, 0, block).
 NOISE_BLOCK = 4096
+
+def block_noise(key: tuple[int, ...], first: int, n: int) -> FloatArray:
+    """Unit Gaussian noise of samples ``first .. first+n-1``, shape (n,): blocks of
+    :data:`NOISE_BLOCK` drawn from ``numpy.random.default_rng((*key, block))``, so a function of the
+    global sample index only (a run played in pieces draws what one long run draws)."""
+    if n <= 0:
+        return np.zeros(0)
+    b0, b1 = first // NOISE_BLOCK, (first + n - 1) // NOISE_BLOCK
+    z = np.concatenate([np.random.default_rng((*key, b)).standard_normal(NOISE_BLOCK)
+                        for b in range(b0, b1 + 1)])
+    off = first - b0 * NOISE_BLOCK
+    return z[off:off + n]
+
 
 @dataclass(frozen=True)
 class PhysicsState:
@@ -81,13 +94,7 @@ class Physics:
         A function of the global sample index only (blocks of :data:`NOISE_BLOCK` keyed by
         ``(seed, run, 0, block)``), so a run played in pieces draws what one long run draws.
         """
-        if n <= 0:
-            return np.zeros(0)
-        b0, b1 = first // NOISE_BLOCK, (first + n - 1) // NOISE_BLOCK
-        z = np.concatenate([np.random.default_rng((self.config.seed, run_index, 0, b))
-                            .standard_normal(NOISE_BLOCK) for b in range(b0, b1 + 1)])
-        off = first - b0 * NOISE_BLOCK
-        return self.config.noise_um * z[off:off + n]
+        return self.config.noise_um * block_noise((self.config.seed, run_index, 0), first, n)
 
     def draws(self, run_index: int, n: int) -> tuple[float, FloatArray]:
         """Applied-voltage gain and sensor noise (um, shape (n,)) of the first ``n`` samples of run

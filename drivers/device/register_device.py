@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 from afmctl.drivers.device.emulator import Emulator
 from afmctl.drivers.register_map import (
+    CHANNELS_MAP_VERSION,
     DEVICE_BUSY,
     HR,
     ILLEGAL_ADDRESS,
@@ -38,18 +39,27 @@ _HR_FIELDS = [_Field(a, s) for a, s in ((HR.COMMAND, 1), (HR.CYCLES, 2), (HR.TAB
                                         (HR.DC_VOLTAGE, 2), (HR.HEARTBEAT, 1),
                                         (HR.WATCHDOG_S, 2), (HR.SAMPLE_RATE, 2),
                                         (HR.RECORDER_PAGE, 1), (HR.STREAM_TOTAL, 2))]
+_CHANNEL_FIELDS = [*_HR_FIELDS, _Field(HR.CHANNEL, 1)]
 
 
 class RegisterDevice:
     """Serve an :class:`~afmctl.drivers.device.emulator.Emulator` as the register map.
 
     ``read`` and ``write`` return registers or a Modbus exception code (int); a refusal also sets
-    the device's last error (``IR.LAST_ERROR``).
+    the device's last error (``IR.LAST_ERROR``). A device of several channels serves map 3: the
+    per-channel fields address the channel selected in ``HR.CHANNEL`` (docs/reference/protocol.md
+    §4.4); one of a single channel serves map 2, as before.
     """
 
     def __init__(self, emulator: Emulator, clock: Callable[[], float]) -> None:
         self.em = emulator
         self.clock = clock
+        several = emulator.channels > 1
+        self.version = CHANNELS_MAP_VERSION if several else MAP_VERSION
+        self.status_end = IR.CHANNEL_STATUS_END if several else IR.STATUS_END
+        self.control_end = HR.CHANNEL_CONTROL_END if several else HR.CONTROL_END
+        self.fields = _CHANNEL_FIELDS if several else _HR_FIELDS
+        self.channel = 0
         self.cycles = 1
         self.stream_total = 0
         self.page = 0
@@ -60,14 +70,14 @@ class RegisterDevice:
     # -- reads ---------------------------------------------------------------------------------
     def read_input(self, address: int, count: int) -> list[int] | int:
         now = self.clock()
-        if address + count <= IR.STATUS_END:
+        if address + count <= self.status_end:
             return self._status_regs(now)[address:address + count]
         for base in (IR.DISPLACEMENT, IR.VOLTAGE):
             off = address - base
             if 0 <= off and off + count <= 2 * PAGE_SAMPLES and off % 2 == 0 and count % 2 == 0:
                 first = self.page * PAGE_SAMPLES + off // 2
                 try:
-                    u, v = self.em.read_recorder(first, count // 2, now)
+                    u, v = self.em.read_recorder(first, count // 2, now, self.channel)
                 except DeviceError:
                     return ILLEGAL_ADDRESS
                 return f32_regs(u if base == IR.DISPLACEMENT else v)
@@ -79,20 +89,27 @@ class RegisterDevice:
                 | StatusBit.WATCHDOG_ARMED * s.watchdog_armed
                 | StatusBit.WATCHDOG_EXPIRED * s.watchdog_expired
                 | StatusBit.READ_ONLY * s.read_only)
-        return ([MAP_VERSION, bits, s.last_error] + u32_regs(s.recorder_fill)
+        regs = ([self.version, bits, s.last_error] + u32_regs(s.recorder_fill)
                 + f32_regs([s.output_v, s.sample_rate_hz, lim.v_min, lim.v_max, lim.slew_v_per_ms])
                 + u32_regs(s.table_length) + u32_regs(s.run_count)
-                + u32_regs(self.em.rec_u.size) + u32_regs(self.em.table.size)
+                + u32_regs(self.em.rec_global.size) + u32_regs(self.em.tables.shape[1])
                 + f32_regs([s.watchdog_s]) + u32_regs(s.play_position) + u32_regs(s.run_samples))
+        if self.version == MAP_VERSION:
+            return regs
+        c = self.channel
+        mine = self.em.channel_limits[c]
+        return regs + [self.em.channels] + f32_regs([self.em.outputs[c], mine.v_min, mine.v_max,
+                                                     mine.slew_v_per_ms])
 
     def read_holding(self, address: int, count: int) -> list[int] | int:
-        if address + count > HR.CONTROL_END:
+        if address + count > self.control_end:
             return ILLEGAL_ADDRESS
-        s = self.em.status(self.clock())
+        now = self.clock()
+        s = self.em.status(now)
         regs = ([self.command] + u32_regs(self.cycles) + u32_regs(s.table_length)
-                + f32_regs([s.output_v]) + [self.heartbeat]
+                + f32_regs([self.em.output(now, self.channel)]) + [self.heartbeat]
                 + f32_regs([s.watchdog_s, s.sample_rate_hz]) + [self.page]
-                + u32_regs(self.stream_total))
+                + u32_regs(self.stream_total) + [self.channel])
         return regs[address:address + count]
 
     # -- writes --------------------------------------------------------------------------------
@@ -102,7 +119,7 @@ class RegisterDevice:
             return self._upload(values, 1, UPLOAD_BLOCK_SAMPLES)
         if address == HR.STREAM_FIRST:
             return self._upload(values, 2, 1)
-        fields = [f for f in _HR_FIELDS if f.address < address + len(values)
+        fields = [f for f in self.fields if f.address < address + len(values)
                   and address < f.address + f.size]
         if not fields or fields[0].address < address or \
                 fields[-1].address + fields[-1].size > address + len(values):
@@ -124,7 +141,7 @@ class RegisterDevice:
         elif address == HR.TABLE_LENGTH:
             self.em.set_table_length(regs_u32(regs), now)
         elif address == HR.DC_VOLTAGE:
-            self.em.set_voltage(float(regs_f32(regs)[0]), now)
+            self.em.set_voltage(float(regs_f32(regs)[0]), now, self.channel)
         elif address == HR.HEARTBEAT:
             self.em.heartbeat(now)
             self.heartbeat = regs[0]
@@ -136,6 +153,9 @@ class RegisterDevice:
             self.page = regs[0]
         elif address == HR.STREAM_TOTAL:
             self.stream_total = regs_u32(regs)
+        elif address == HR.CHANNEL:
+            self.em.output(now, regs[0])  # error 6 unless the device has that channel
+            self.channel = regs[0]
 
     def _command(self, cmd: int, now: float) -> None:
         if cmd == Cmd.START:
@@ -159,7 +179,8 @@ class RegisterDevice:
             return ILLEGAL_ADDRESS
         index = values[0] if index_regs == 1 else regs_u32(values[:2])
         try:
-            self.em.write_table(index * unit, regs_f32(values[index_regs:]), self.clock())
+            self.em.write_table(index * unit, regs_f32(values[index_regs:]), self.clock(),
+                                self.channel)
         except DeviceError as exc:
             return DEVICE_BUSY if exc.code == 5 else ILLEGAL_VALUE
         return None

@@ -128,7 +128,7 @@ def test_watchdog_defaults_to_twice_the_timeout_and_must_exceed_it(tmp_path: Pat
 def test_shipped_profiles_by_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     assert load_profile("lab-modbus").name == "lab-modbus"
     with pytest.raises(FileFormatError,
-                       match="shipped: emulated, emulated-foreign, lab-modbus, lab-serial"):
+                       match="shipped: emulated, emulated-foreign, emulated-xy, emulated-xy-foreign, lab-modbus, lab-serial"):
         load_profile("lab-modbuss")
     monkeypatch.chdir(tmp_path)  # a file of that name in the working directory wins
     (tmp_path / "emulated").write_text(LAB_SERIAL.read_text())
