@@ -103,10 +103,10 @@ def raster(size: tuple[float, float], pixels: int, lines: int, line_rate: float,
     setup = xs.Setup(frame, axes, coupling, wanted, dt)
     out = check_output_dir(Path(out_dir) if out_dir else timestamped("afmctl-scan"), "--out",
                            OUTPUTS, False, measured=("run_*.csv",))
-    meta = {"profile": prof.name, "model": about, "frame": frame.label(),
-            "sample_rate_Hz": prof.sample_rate_hz}
+    meta = {"profile": prof.name, "model": model_path, "model_kind": about,
+            "frame": frame.label(), "sample_rate_Hz": prof.sample_rate_hz}
     say(f"{frame.label()}, centre {frame.centre_um[0]:.4g}, {frame.centre_um[1]:.4g} um; "
-        f"model: {about}; coupling " + ("fed forward" if coupling else "not fed forward (none "
+        f"model: {model_path} ({about}); coupling " + ("fed forward" if coupling else "not fed forward (none "
                                          "known)"))
     runs: list[Any] = []
     with opened_stage(prof) as stage:
@@ -127,7 +127,8 @@ def raster(size: tuple[float, float], pixels: int, lines: int, line_rate: float,
                 say(f"interrupted ({type(exc).__name__}): the finished frames and their files "
                     f"are kept in {out}/")
             raise
-    data = _write(runs, setup, out, meta)
+    from afmctl.experiment import runner
+    data = runner.json_ready(xs.summary(runs, setup, meta))  # as written after the last frame
     _report(data, out)
     if as_json:
         click.echo(json.dumps(data, allow_nan=False))
@@ -158,7 +159,7 @@ def _placed(frame: Any, axes: Any, centre: tuple[float, float] | None) -> Any:
     return frame
 
 
-def _write(runs: list[Any], setup: Any, out: Path, meta: dict[str, Any]) -> dict[str, Any]:
+def _write(runs: list[Any], setup: Any, out: Path, meta: dict[str, Any]) -> None:
     """summary.json, scan.gwy and scan.png of every finished frame (replaced after each)."""
     from afmctl import plots
     from afmctl.experiment import runner
@@ -173,7 +174,6 @@ def _write(runs: list[Any], setup: Any, out: Path, meta: dict[str, Any]) -> dict
                   (fr.centre_um[0] - fr.width_um / 2, fr.centre_um[1] - fr.height_um / 2),
                   {"frame": fr.label(), "angle_deg": fr.angle_deg, **meta})
         plots.save_figure(plots.scan_figure(runs), out / "scan.png")
-    return data
 
 
 def _report(data: dict[str, Any], out: Path) -> None:

@@ -96,11 +96,11 @@ def model_for_scan(profile: Any, model_path: str | None, calibrate: bool
     if modelfile.file_version(tomlfile.load(model_path)) != modelfile.XY_VERSION:
         model, env, _ = xymodelfile.read_axis(model_path, "x")
         axes = {n: raster.AxisPlan(model, axis_limits(profile, n), env) for n in raster.AXES}
-        return axes, None, f"{model_path} (one-axis model, used for both axes; no coupling)"
+        return axes, None, "one-axis model, used for both axes; no coupling"
     both = xymodelfile.read(model_path)
     axes = {n: raster.AxisPlan(both.axes[n], axis_limits(profile, n),
                                xymodelfile.read_axis(model_path, n)[1]) for n in raster.AXES}
-    return axes, dict(both.coupling), f"{model_path} (two axes and their coupling)"
+    return axes, dict(both.coupling), "two axes and their coupling"
 
 
 def corrected(setup: Setup, wf: raster.XYWaveform, u: FloatArray) -> FloatArray:

@@ -1,0 +1,229 @@
+"""Issue 26 figures: raster scans on two-axis stages, each axis through its own inverse.
+
+Stages: foreign x/y stages (:func:`afmctl.drivers.device.foreign.xy_stage.xy_stages`: two
+hysteretic actuators of other kinds and formulas than afmctl's model, a 3-DOF structure whose
+shared mode couples the axes, flexures that move the other axis slightly nonlinearly). On each,
+the stage's own two-axis sweep set (:func:`~afmctl.drivers.device.foreign.xy_sweeps.write_sweep_set`)
+is identified by ``afmctl identify``'s two-axis fit (:func:`afmctl.fit.xyidentify.fit`: each axis's
+model and the coupling both ways); the scan plans with that model, never with the stage's own
+parameters. ``--cache DIR`` keeps the identified models (``<stage>.toml``) for later runs.
+
+Frames: 128 pixels x 64 lines, square, centred in the identified reach, 60 x 60 um or the largest
+that fits (``frame_um``), and 10 x 10 um at 10 lines/s (``small``); at 1 line/s 8 lines (the
+image's statistics are per line; 64 s frames would only take longer). Played on the plant in
+pure simulation (:func:`~afmctl.drivers.device.foreign.xy_stage.run`), the readings with each
+axis's gauge noise. Judged on the pixel grid against the **noise-free readings** (the plant's
+position in the sensors' frame), except ``learned_over_noise``, which is the readings' own
+image-region RMS error over their noise, as learning judges it.
+
+Figures (each with the worst over the stages and every stage's value):
+
+* ``fast_rms_pct_by_rate``: image-region RMS of the fast-axis error, % of the frame width, at 1,
+  10, 30 and 100 lines/s, the open-loop inverse and the paper's linear filter beside it;
+* ``registration_px``: trace vs retrace (RMS over the image, pixels) at 10 lines/s, inverse;
+* ``slow_deviation_px``: RMS slow-axis error in line pitches at 10 lines/s, inverse;
+* ``decoupling_db``: the line-synchronous slow motion (the y motion the fast x causes) at
+  10 lines/s without and with the coupling's feed-forward (inverse both times), and the reduction
+  in dB; ``floor_um`` is twice the y gauge noise over the image's pixels' mean (what the noise-free
+  readings cannot go below is 0: the figure is the model's);
+* ``learned_over_noise``: after at most 5 learned frames at 30 lines/s
+  (:func:`afmctl.experiment.scanlearn.learn`, both axes), the best frame's image-region RMS over
+  the noise (the larger axis);
+* ``frame_seconds_compute``: host time to plan one 128 x 64 frame at 10 lines/s (both axes, both
+  filters, guard included) and make its images.
+
+Run: ``python benchmarks/bench_scan.py --json`` (last line one JSON object); ``--stages N``
+for the first N stages (default 4).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses as dc
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from afmctl.drivers.device.foreign import xy_stage as xys
+from afmctl.drivers.device.foreign import xy_sweeps
+from afmctl.experiment import scan as xs
+from afmctl.experiment import scanlearn
+from afmctl.files import xymodelfile, xysweepfile
+from afmctl.fit import xyidentify
+from afmctl.guard import Limits
+from afmctl.planning import raster as rs
+from afmctl.planning import scanimage as si
+
+RATE_HZ = 10000.0
+DT = 1.0 / RATE_HZ
+RATES = (1.0, 10.0, 30.0, 100.0)
+PIXELS, LINES = 128, 64
+LINES_AT_1_HZ = 8
+MAX_FRAME_UM = 60.0
+LEARN_FRAMES = 5
+
+
+class PlantStage:
+    """A foreign x/y plant as a stage: ``play`` of (N, 2) voltages block by block, readings with
+    each axis's gauge noise; ``last_clean`` keeps the noise-free readings of the last play."""
+
+    channels = 2
+
+    def __init__(self, stage: xys.XYStage, seed: int) -> None:
+        self.stage, self.state = stage, xys.initial_state(stage)
+        self.rng = np.random.default_rng(seed)
+        self.v = np.zeros(2)
+        self.last_clean = np.zeros((0, 2))
+
+    def voltages(self) -> np.ndarray:
+        return self.v.copy()
+
+    def play(self, v: np.ndarray, on_block: Any = None, **_: Any) -> np.ndarray:
+        _, clean, self.state = xys.run(self.stage, v, RATE_HZ, self.state)
+        read = clean + xys.noise_um(self.stage) * self.rng.standard_normal(clean.shape)
+        if on_block is not None:
+            on_block(0, v, read, np.ones(v.shape, dtype=bool))
+        self.v, self.last_clean = np.asarray(v[-1], dtype=float), clean
+        return read
+
+
+def limits(stage: xys.XYStage) -> dict[str, Limits]:
+    """Each axis's guard limits: its drive range, the sweeps' 50 V/ms."""
+    return {n: Limits(lo, hi, xy_sweeps.SLEW_V_PER_MS, 100.0, 2.0)
+            for n, (lo, hi) in zip(rs.AXES, stage.drive_range_V, strict=True)}
+
+
+def identified(stage: xys.XYStage, cache: Path | None) -> tuple[Any, float]:
+    """The stage's two-axis model identified from its own sweep set (cached), and the seconds."""
+    path = None if cache is None else cache / f"{stage.name}.toml"
+    if path is not None and path.exists():
+        return xymodelfile.read(path), 0.0
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as d:
+        files = xy_sweeps.write_sweep_set(stage, d, np.random.default_rng(11))
+        fit = xyidentify.fit(xysweepfile.read_set(files) or [])
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        xymodelfile.write(fit.model, path, "identified by benchmarks/bench_scan.py")
+    return fit.model, time.perf_counter() - t0
+
+
+def scan(plant: PlantStage, axes: dict[str, rs.AxisPlan], coupling: Any, frame: rs.Frame,
+         filters: tuple[str, ...] = ("inverse", "linear")) -> dict[str, Any]:
+    """Plan and play one frame per filter; figures of merit on the noise-free readings."""
+    t0 = time.perf_counter()
+    axes = rs.replace_start(axes, plant.voltages())
+    plans = rs.plan(frame, axes, DT, coupling, filters)
+    grid = rs.pixel_grid(frame, DT)
+    compute = time.perf_counter() - t0
+    out: dict[str, Any] = {"compute_s": compute}
+    for name, wf in plans.items():
+        plant.play(wf.voltage_v)
+        t1 = time.perf_counter()
+        out[name] = si.merit(frame, si.images(frame, grid, plant.last_clean[wf.tracking]))
+        out["compute_s"] += time.perf_counter() - t1
+    return out
+
+
+def frame_size(reach: dict[str, tuple[float, float]]) -> float:
+    """The largest square frame up to 60 um that fits the reach at its centre (whole um)."""
+    probe = rs.Frame(MAX_FRAME_UM, MAX_FRAME_UM, PIXELS, LINES, 10.0, centre(reach))
+    return float(min(MAX_FRAME_UM, math.floor(MAX_FRAME_UM * rs.largest_scale(probe, reach))))
+
+
+def centre(reach: dict[str, tuple[float, float]]) -> tuple[float, float]:
+    return tuple(0.5 * (lo + hi) for lo, hi in reach.values())  # type: ignore[return-value]
+
+
+def bench_stage(stage: xys.XYStage, cache: Path | None, say: Any) -> dict[str, Any]:
+    model, fit_s = identified(stage, cache)
+    lim = limits(stage)
+    axes = {n: rs.AxisPlan(model.axes[n], lim[n]) for n in rs.AXES}
+    coupling = dict(model.coupling)
+    reach = rs.reach(axes)
+    size = frame_size(reach)
+    base = rs.Frame(size, size, PIXELS, LINES, 10.0, centre(reach))
+    plant = PlantStage(stage, 7)
+    row: dict[str, Any] = {"frame_um": size, "identify_s": round(fit_s, 1),
+                           "noise_um": [float(x) for x in xys.noise_um(stage)],
+                           "fast_rms_pct_by_rate": {"inverse": {}, "linear": {}}}
+    for rate in RATES:
+        fr = dc.replace(base, line_rate_hz=rate, lines=LINES_AT_1_HZ if rate == 1 else LINES)
+        got = scan(plant, axes, coupling, fr)
+        for f in ("inverse", "linear"):
+            row["fast_rms_pct_by_rate"][f][f"{rate:g}"] = got[f]["fast_rms_pct"]
+        if rate == 10:
+            row["registration_px"] = got["inverse"]["registration_px"]
+            row["slow_deviation_px"] = got["inverse"]["slow_deviation_px"]
+            row["frame_seconds_compute"] = got["compute_s"]
+            with_ff = got["inverse"]["slow_line_synchronous_um"]
+            without = scan(plant, axes, None, fr, ("inverse",))["inverse"][
+                "slow_line_synchronous_um"]
+            row["decoupling"] = {"without_um": without, "with_um": with_ff,
+                                 "db": si.decoupling_db(without, with_ff)}
+        say(f"{stage.name}: {rate:g} lines/s done")
+    small = scan(plant, axes, coupling, dc.replace(base, width_um=10.0, height_um=10.0))
+    row["small_10um_fast_rms_pct"] = {f: small[f]["fast_rms_pct"] for f in ("inverse", "linear")}
+    with tempfile.TemporaryDirectory() as d:
+        setup = xs.Setup(dc.replace(base, line_rate_hz=30.0), axes, coupling, ("inverse",), DT)
+        got = scanlearn.learn(plant, setup, LEARN_FRAMES, Path(d), {})
+    row["learned_over_noise"] = got.runs[got.best].merit["over_noise"]
+    row["learning"] = {"frames": len(got.runs) - 1, "stop": got.stop,
+                       "over_noise_by_frame": [r.merit["over_noise"] for r in got.runs]}
+    say(f"{stage.name}: {json.dumps(row)}")
+    return row
+
+
+def collect(rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The JSON object: each figure's worst over the stages and every stage's value."""
+    def worst(get: Any, pick: Any = max) -> float:
+        return float(pick(get(r) for r in rows.values()))
+
+    by_rate = {f: {f"{r:g}": worst(lambda x, f=f, r=r: x["fast_rms_pct_by_rate"][f][f"{r:g}"])
+                   for r in RATES} for f in ("inverse", "linear")}
+    return {
+        "fast_rms_pct_by_rate": {**by_rate, "frame_um": {k: r["frame_um"] for k, r in rows.items()},
+                                 "small_10um": {k: r["small_10um_fast_rms_pct"]
+                                                for k, r in rows.items()},
+                                 "stages": {k: r["fast_rms_pct_by_rate"] for k, r in rows.items()}},
+        "registration_px": {"worst": worst(lambda r: r["registration_px"]),
+                            "stages": {k: r["registration_px"] for k, r in rows.items()}},
+        "slow_deviation_px": {"worst": worst(lambda r: r["slow_deviation_px"]),
+                              "stages": {k: r["slow_deviation_px"] for k, r in rows.items()}},
+        "decoupling_db": {"worst": worst(lambda r: r["decoupling"]["db"], min),
+                          "stages": {k: r["decoupling"] for k, r in rows.items()}},
+        "learned_over_noise": {"worst": worst(lambda r: r["learned_over_noise"]),
+                               "stages": {k: r["learning"] for k, r in rows.items()}},
+        "frame_seconds_compute": {"max": worst(lambda r: r["frame_seconds_compute"]),
+                                  "stages": {k: r["frame_seconds_compute"]
+                                             for k, r in rows.items()}},
+    }
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true", help="last line: one JSON object")
+    ap.add_argument("--stages", type=int, default=4, help="the first N foreign stages")
+    ap.add_argument("--cache", type=Path, default=None, help="keep identified models here")
+    args = ap.parse_args(argv)
+
+    def say(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    rows = {s.name: bench_stage(s, args.cache, say) for s in xys.xy_stages()[:args.stages]}
+    data = collect(rows)
+    if args.json:
+        print(json.dumps(data, allow_nan=True))
+    else:
+        print(json.dumps(data, indent=2))
+    return data
+
+
+if __name__ == "__main__":
+    main()
