@@ -6,7 +6,9 @@ shared mode couples the axes, flexures that move the other axis slightly nonline
 the stage's own two-axis sweep set (:func:`~afmctl.drivers.device.foreign.xy_sweeps.write_sweep_set`)
 is identified by ``afmctl identify``'s two-axis fit (:func:`afmctl.fit.xyidentify.fit`: each axis's
 model and the coupling both ways); the scan plans with that model, never with the stage's own
-parameters. ``--cache DIR`` keeps the identified models (``<stage>.toml``) for later runs.
+parameters. ``--cache DIR`` keeps the identified models (``<stage>-<settings>.toml``) for later
+runs; ``--identify quick`` (default: the parametric model, one start, no Preisach-grid
+alternative) or ``full`` (``afmctl identify``'s defaults, several times slower).
 
 Frames: 128 pixels x 64 lines, square, centred in the identified reach, 60 x 60 um or the largest
 that fits (``frame_um``), and 10 x 10 um at 10 lines/s (``small``); at 1 line/s 8 lines (the
@@ -55,6 +57,7 @@ from afmctl.drivers.device.foreign import xy_sweeps
 from afmctl.experiment import scan as xs
 from afmctl.experiment import scanlearn
 from afmctl.files import xymodelfile, xysweepfile
+from afmctl.fit import identify as idf
 from afmctl.fit import xyidentify
 from afmctl.guard import Limits
 from afmctl.planning import raster as rs
@@ -67,6 +70,9 @@ PIXELS, LINES = 128, 64
 LINES_AT_1_HZ = 8
 MAX_FRAME_UM = 60.0
 LEARN_FRAMES = 5
+#: Identification settings (``--identify``): ``quick`` fits the parametric model once (no
+#: Preisach-grid alternative, one start), ``full`` is ``afmctl identify``'s default.
+IDENTIFY = {"quick": idf.Settings(representation="hem", restarts=1), "full": idf.Settings()}
 
 
 class PlantStage:
@@ -99,15 +105,15 @@ def limits(stage: xys.XYStage) -> dict[str, Limits]:
             for n, (lo, hi) in zip(rs.AXES, stage.drive_range_V, strict=True)}
 
 
-def identified(stage: xys.XYStage, cache: Path | None) -> tuple[Any, float]:
+def identified(stage: xys.XYStage, cache: Path | None, how: str) -> tuple[Any, float]:
     """The stage's two-axis model identified from its own sweep set (cached), and the seconds."""
-    path = None if cache is None else cache / f"{stage.name}.toml"
+    path = None if cache is None else cache / f"{stage.name}-{how}.toml"
     if path is not None and path.exists():
         return xymodelfile.read(path), 0.0
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as d:
         files = xy_sweeps.write_sweep_set(stage, d, np.random.default_rng(11))
-        fit = xyidentify.fit(xysweepfile.read_set(files) or [])
+        fit = xyidentify.fit(xysweepfile.read_set(files) or [], IDENTIFY[how])
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         xymodelfile.write(fit.model, path, "identified by benchmarks/bench_scan.py")
@@ -141,8 +147,9 @@ def centre(reach: dict[str, tuple[float, float]]) -> tuple[float, float]:
     return tuple(0.5 * (lo + hi) for lo, hi in reach.values())  # type: ignore[return-value]
 
 
-def bench_stage(stage: xys.XYStage, cache: Path | None, say: Any) -> dict[str, Any]:
-    model, fit_s = identified(stage, cache)
+def bench_stage(stage: xys.XYStage, cache: Path | None, how: str, say: Any) -> dict[str, Any]:
+    model, fit_s = identified(stage, cache, how)
+    say(f"{stage.name}: identified ({fit_s:.0f} s)")
     lim = limits(stage)
     axes = {n: rs.AxisPlan(model.axes[n], lim[n]) for n in rs.AXES}
     coupling = dict(model.coupling)
@@ -211,12 +218,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--json", action="store_true", help="last line: one JSON object")
     ap.add_argument("--stages", type=int, default=4, help="the first N foreign stages")
     ap.add_argument("--cache", type=Path, default=None, help="keep identified models here")
+    ap.add_argument("--identify", choices=sorted(IDENTIFY), default="quick",
+                    help="identification settings (quick: the parametric model, one start)")
     args = ap.parse_args(argv)
 
     def say(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
-    rows = {s.name: bench_stage(s, args.cache, say) for s in xys.xy_stages()[:args.stages]}
+    rows = {s.name: bench_stage(s, args.cache, args.identify, say)
+            for s in xys.xy_stages()[:args.stages]}
     data = collect(rows)
     if args.json:
         print(json.dumps(data, allow_nan=True))
