@@ -122,7 +122,9 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
              plots_dir: str | None, force: bool) -> None:
     """Fit the stage model jointly to SWEEP_FILES and write it to the model file OUTPUT.
 
-    Sweeps in the order they were recorded. Exit status: 0 a model was written, 1 the fit gave
+    Sweeps in the order they were recorded. Two-axis sweep files (voltage_x_V, voltage_y_V, ...)
+    give a two-axis model: each axis and the coupling both ways (--json adds ``axes`` and
+    ``coupling``). Exit status: 0 a model was written, 1 the fit gave
     no finite model (nothing written), 2 bad input. The model written is the best the fit found,
     converged or not (``success``) and at its sensor noise or not (``at_noise_floor``): each
     sweep's fit RMS is reported against its sensor noise (estimated from the data), and a fit
@@ -130,9 +132,15 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
     """
     from afmctl.files import modelfile
     from afmctl.files import sweepfile as sweeps
+    from afmctl.files import xysweepfile
     from afmctl.fit import identify as idf
 
     settings = fit_settings(profile)
+    xy = xysweepfile.read_set(sweep_files)
+    if xy is not None:
+        from afmctl.cli.xyidentify import identify_xy
+        identify_xy(xy, sweep_files, settings, output, as_json, plots_dir, force)
+        return
     data = [sweeps.read_complete(f) for f in sweep_files]
     check_output_file(output, "-o", force)
     if plots_dir is not None:

@@ -45,8 +45,14 @@ SLOW_SHARE = 0.25
 RESOLUTION_HZ = 0.5
 #: Estimates with a lower coherence are left out of the fit (the source explains too little).
 MIN_COHERENCE = 0.5
+#: Estimates where the source's power lies more than this below its peak are left out: a
+#: triangle's far harmonics and the band above a multisine's carry the source's noise and the
+#: products of any nonlinearity (a flexure's arc turns a triangle's comb into a denser one).
+SOURCE_RANGE_DB = 60.0
+#: Estimates the fitted form leaves this many robust sigmas away are outliers (:func:`fit_form`).
+OUTLIER = 5.0
 #: The coherence is clipped here (a single segment has coherence 1 and no variance estimate).
-MAX_COHERENCE = 0.999
+MAX_COHERENCE = 0.99
 #: Frequencies of the reported response: at least 30 log-spaced from 1 Hz to 200 Hz or more.
 REPORT_HZ = (1.0, 300.0, 40)
 #: Range of the mode's natural frequency, Hz, and of its damping ratio, searched by the fit.
@@ -67,12 +73,13 @@ class Record:
 @dataclass(frozen=True)
 class Spectrum:
     """Cross-spectral estimates of the response: frequency (Hz), H (um/um), 1-sigma of each of
-    its real and imaginary parts (um/um) and coherence."""
+    its real and imaginary parts (um/um), coherence and the index of the file of each."""
 
     freq_hz: FloatArray
     h: ComplexArray
     sigma: FloatArray
     coherence: FloatArray
+    file: NDArray[np.intp]
 
 
 @dataclass(frozen=True)
@@ -81,7 +88,8 @@ class CouplingFit:
 
     ``coupling`` is the low-order form; ``static``/``static_stderr`` the low-passed regression's
     estimate; ``covariance`` that of ``(static, log mode_hz, log damping, gain_hp, gain_bp)``;
-    ``band_hz`` the frequencies the cross-spectral estimates covered; ``rms_over_sigma`` the
+    ``spectrum`` the cross-spectral estimates the form was fitted to and ``band_hz`` the
+    frequencies they covered (``dropped`` were left out as outliers); ``rms_over_sigma`` the
     weighted RMS residual of the low-order fit (1 when the form explains the estimates to within
     their scatter).
     """
@@ -94,6 +102,12 @@ class CouplingFit:
     band_hz: tuple[float, float]
     rms_over_sigma: float
     files: tuple[str, ...] = ()
+    dropped: int = 0
+
+    @property
+    def stderr(self) -> tuple[float, ...]:
+        """1-sigma of ``(static, ln mode_hz, ln damping, gain_hp, gain_bp)``."""
+        return tuple(float(x) for x in np.sqrt(np.maximum(np.diag(self.covariance), 0.0)))
 
     def response(self, freq_hz: FloatArray) -> tuple[ComplexArray, FloatArray, FloatArray]:
         """The fitted response at ``freq_hz`` and the 1-sigma of its gain (um/um) and phase (deg),
@@ -115,7 +129,7 @@ class CouplingFit:
     def to_dict(self, freq_hz: FloatArray) -> dict[str, Any]:
         """JSON-ready: the form's parameters with 1-sigma and the response at ``freq_hz``."""
         c = self.coupling
-        sd = np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+        sd = self.stderr
         h, sg, sp = self.response(freq_hz)
         lo, hi = self.band_hz
         return {
@@ -127,6 +141,7 @@ class CouplingFit:
             "gain_bp": c.gain_bp, "gain_bp_stderr": float(sd[4]),
             "reference_um": c.reference_um, "band_hz": [lo, hi],
             "rms_over_sigma": self.rms_over_sigma, "files": list(self.files),
+            "estimates": int(self.spectrum.freq_hz.size), "dropped": self.dropped,
             "frf": [{"freq_hz": float(f), "gain": float(abs(v)),
                      "phase_deg": float(np.degrees(np.angle(v))), "gain_stderr": float(a),
                      "phase_stderr_deg": float(b), "measured": bool(lo <= f <= hi)}
@@ -198,28 +213,33 @@ def spectrum(records: Sequence[Record], resolution_hz: float = RESOLUTION_HZ,
              min_coherence: float = MIN_COHERENCE) -> Spectrum:
     """H1 estimates ``S_st / S_ss`` of every file (Welch, Hann, half-overlapping segments of
     ``1 / resolution_hz`` s or a third of the file), kept where the coherence reaches
-    ``min_coherence``, from the first nonzero frequency to a quarter of the sample rate."""
+    ``min_coherence`` and the source's power is within :data:`SOURCE_RANGE_DB` of its peak, from
+    the first nonzero frequency to a quarter of the sample rate."""
     out: list[FloatArray] = []
-    for r in records:
+    for i, r in enumerate(records):
         fs = 1.0 / r.dt_s
-        nper = int(min(round(fs / resolution_hz), r.source_um.size // 3))
+        n = r.source_um.size
+        nper = int(min(round(fs / resolution_hz), n // 3))
         if nper < 16:
             continue
+        nper = 2 * n // (math.ceil(2 * n / nper) + 1) // 2 * 2  # the segments tile the file
         kw = {"fs": fs, "nperseg": nper, "noverlap": nper // 2, "detrend": "linear"}
         f, sss = signal.welch(r.source_um, **kw)
         _, stt = signal.welch(r.target_um, **kw)
         _, sst = signal.csd(r.source_um, r.target_um, **kw)
-        n_seg = 1 + (r.source_um.size - nper) // (nper - nper // 2)
+        n_seg = 1 + (n - nper) // (nper // 2)
         with np.errstate(divide="ignore", invalid="ignore"):
             h = sst / sss
             coh = np.clip(np.abs(sst) ** 2 / (sss * stt), 0.0, MAX_COHERENCE)
             sigma = np.sqrt((1 - coh) / (2 * n_seg * coh)) * np.abs(h)
-        keep = (f > 0) & (f <= fs / 4) & np.isfinite(h) & (coh >= min_coherence)
+        strong = sss >= np.max(sss[1:]) * 10 ** (-SOURCE_RANGE_DB / 10)
+        keep = (f > 0) & (f <= fs / 4) & np.isfinite(h) & (coh >= min_coherence) & strong
         out.append(np.column_stack([f[keep], h[keep].real, h[keep].imag, sigma[keep],
-                                    coh[keep]]))
-    rows = np.concatenate(out) if out else np.empty((0, 5))
+                                    coh[keep], np.full(int(keep.sum()), i)]))
+    rows = np.concatenate(out) if out else np.empty((0, 6))
     rows = rows[np.argsort(rows[:, 0], kind="stable")]
-    return Spectrum(rows[:, 0], rows[:, 1] + 1j * rows[:, 2], rows[:, 3], rows[:, 4])
+    return Spectrum(rows[:, 0], rows[:, 1] + 1j * rows[:, 2], rows[:, 3], rows[:, 4],
+                    rows[:, 5].astype(np.intp))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -253,44 +273,92 @@ def _weighted(sp: Spectrum, static: tuple[float, float]
     return y, w
 
 
-def _design(nl: FloatArray, sp: Spectrum, w: FloatArray) -> FloatArray:
+def _local(sp: Spectrum, known: bool) -> FloatArray:
+    """Columns of each file's local static offset (real rows of its estimates), when the static
+    gain is known from the low-passed regression (else none: the estimates fix it)."""
+    files = np.unique(sp.file) if known else np.empty(0, dtype=np.intp)
+    real = (sp.file[:, None] == files[None, :]).astype(float)
+    return np.vstack([real, np.zeros_like(real), np.zeros((1, files.size))])
+
+
+def _design(nl: FloatArray, sp: Spectrum, w: FloatArray, local: FloatArray) -> FloatArray:
     b = _basis(nl[0], nl[1], sp.freq_hz)
     a = np.vstack([b.real, b.imag, [[1.0, 0.0, 0.0]]])
-    return a * w[:, None]
+    return np.hstack([a, local]) * w[:, None]
 
 
-def _project(nl: FloatArray, sp: Spectrum, y: FloatArray, w: FloatArray
+def _project(nl: FloatArray, sp: Spectrum, y: FloatArray, w: FloatArray, local: FloatArray
              ) -> tuple[FloatArray, FloatArray]:
-    a = _design(nl, sp, w)
-    beta, *_ = np.linalg.lstsq(a, y, rcond=None)
+    a = _design(nl, sp, w, local)
+    norm = np.maximum(np.linalg.norm(a, axis=0), 1e-300)
+    an = a / norm  # normal equations of the scaled columns: a few columns, thousands of rows
+    beta = np.linalg.pinv(an.T @ an, rcond=1e-12) @ (an.T @ y) / norm
     return beta, a @ beta - y
 
 
-def fit_form(sp: Spectrum, static: tuple[float, float], reference_um: float = 0.0
-             ) -> tuple[cp.Coupling, FloatArray, float]:
-    """The low-order form fitted to the estimates ``sp`` and the static ``(value, 1-sigma)``.
-
-    Returns the coupling, the covariance of ``(static, log mode_hz, log damping, gain_hp,
-    gain_bp)`` (Gauss-Newton, ``s^2 (J^T J)^+``, ``s^2`` at least 1: the estimates' own scatter)
-    and the weighted RMS residual.
-    """
+def _solve(sp: Spectrum, static: tuple[float, float]
+           ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The form on ``sp``: ``(static, log mode, log damping, gain_hp, gain_bp)``, each file's
+    local offset (zeros without a known static gain), the weighted residual, the weights and the
+    columns of the local offsets."""
     y, w = _weighted(sp, static)
+    local = _local(sp, bool(w[-1] > 0))
     lo = np.log([MODE_RANGE_HZ[0], DAMPING_RANGE[0]])
     hi = np.log([MODE_RANGE_HZ[1], DAMPING_RANGE[1]])
     grid = [(m, d) for m in np.linspace(lo[0], hi[0], 40) for d in np.linspace(lo[1], hi[1], 10)]
-    cost = [float(np.sum(_project(np.array(g), sp, y, w)[1] ** 2)) for g in grid]
+    cost = [float(np.sum(_project(np.array(g), sp, y, w, local)[1] ** 2)) for g in grid]
     x0 = np.array(grid[int(np.argmin(cost))])
-    sol = optimize.least_squares(lambda nl: _project(nl, sp, y, w)[1], x0, bounds=(lo, hi),
-                                 x_scale=1.0)
-    beta, resid = _project(sol.x, sp, y, w)
-    p = np.array([beta[0], sol.x[0], sol.x[1], beta[1], beta[2]])
-    jac = _jacobian(p, sp, w)
-    dof = max(y.size - p.size, 1)
+    sol = optimize.least_squares(lambda nl: _project(nl, sp, y, w, local)[1], x0,
+                                 bounds=(lo, hi), x_scale=1.0)
+    beta, resid = _project(sol.x, sp, y, w, local)
+    offsets = np.zeros(int(sp.file.max(initial=-1)) + 1)
+    if local.shape[1]:
+        offsets[np.unique(sp.file)] = beta[3:]
+    return (np.array([beta[0], sol.x[0], sol.x[1], beta[1], beta[2]]), offsets, resid, w,
+            local)
+
+
+def _subset(sp: Spectrum, keep: NDArray[np.bool_]) -> Spectrum:
+    return Spectrum(sp.freq_hz[keep], sp.h[keep], sp.sigma[keep], sp.coherence[keep],
+                    sp.file[keep])
+
+
+def fit_form(sp: Spectrum, static: tuple[float, float], reference_um: float = 0.0
+             ) -> tuple[cp.Coupling, FloatArray, float, NDArray[np.bool_]]:
+    """The low-order form fitted to the estimates ``sp`` and the static ``(value, 1-sigma)``.
+
+    A flexure's arc makes the static gain depend on where the source is: a file that excites it
+    about another position than the full-range sweeps' middle sees another local static gain.
+    When the static gain is known (finite 1-sigma), each file's estimates therefore get their own
+    real offset and the static gain is the low-passed regression's (over full-range sweeps: the
+    slope at the middle of the range); the files share the shape of the dynamic part.
+
+    Estimates the form leaves more than :data:`OUTLIER` robust sigmas away are dropped and the
+    form refitted (up to three times): a nonlinearity's product at a harmonic the source barely
+    has (an arc squares a triangle: even harmonics in the target, hardly any in the source) is
+    coherent and looks precise, but is no response of the coupling.
+
+    Returns the coupling, the covariance of ``(static, log mode_hz, log damping, gain_hp,
+    gain_bp)`` (Gauss-Newton, ``s^2 (J^T J)^+``, ``s^2`` at least 1: the estimates' own scatter),
+    the weighted RMS residual and which estimates were kept.
+    """
+    keep = np.ones(sp.freq_hz.size, dtype=bool)
+    for _ in range(3):
+        sub = _subset(sp, keep)
+        p, offsets, resid, w, local = _solve(sub, static)
+        r = np.abs(sp.h - _h(p, sp.freq_hz) - offsets[sp.file]) / sp.sigma
+        scale = max(1.4826 * float(np.median(r[keep])), 1.0)
+        new = r <= OUTLIER * scale
+        if np.array_equal(new, keep) or new.sum() < 3:
+            break
+        keep = new
+    jac = np.hstack([_jacobian(p, sub, w), local * w[:, None]])
+    dof = max(resid.size - jac.shape[1], 1)
     s2 = max(float(np.sum(resid ** 2)) / dof, 1.0)
-    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    cov = s2 * np.linalg.pinv(jac.T @ jac)[:5, :5]
     c = cp.Coupling(float(p[0]), math.exp(p[1]), math.exp(p[2]), float(p[3]), float(p[4]),
                     reference_um)
-    return c, cov, math.sqrt(float(np.sum(resid ** 2)) / y.size)
+    return c, cov, math.sqrt(float(np.sum(resid ** 2)) / resid.size), keep
 
 
 def _jacobian(p: FloatArray, sp: Spectrum, w: FloatArray) -> FloatArray:
@@ -328,7 +396,7 @@ def identify(records: Sequence[Record], reference_um: float = 0.0) -> CouplingFi
     if sp.freq_hz.size < 3:
         raise FitInputError("the source's motion explains the target's at too few frequencies "
                             "(coherence below %g)" % MIN_COHERENCE)
-    c, cov, rms = fit_form(sp, (static[0], max(static[1], 1e-12)), reference_um)
-    return CouplingFit(c, static[0], static[1], cov, sp,
-                       (float(sp.freq_hz[0]), float(sp.freq_hz[-1])), rms,
-                       tuple(r.name for r in records))
+    c, cov, rms, keep = fit_form(sp, (static[0], max(static[1], 1e-12)), reference_um)
+    return CouplingFit(c, static[0], static[1], cov, _subset(sp, keep),
+                       (float(sp.freq_hz[keep][0]), float(sp.freq_hz[keep][-1])), rms,
+                       tuple(r.name for r in records), int((~keep).sum()))

@@ -91,15 +91,24 @@ def coupling_records(sweeps: Sequence[XYSweep], target: str) -> list[fc.Record]:
             for s in sweeps if s.moving == (AXES[j],)]
 
 
-def axis_sweeps(sweeps: Sequence[XYSweep], axis: str, c: cp.Coupling) -> list[Sweep]:
-    """Axis ``axis`` of the files where it moves, its displacement less what the other axis's
-    measured displacement causes through ``c``."""
-    j = 1 - AXES.index(axis)
+def axis_sweeps(sweeps: Sequence[XYSweep], axis: str, couplings: dict[str, cp.Coupling]
+                ) -> list[Sweep]:
+    """Axis ``axis`` of the files where it moves (not as a dynamic excitation), its displacement
+    less what the other axis's *own* motion causes in it.
+
+    The other axis's own motion is its measured displacement less what this axis caused in it
+    (to first order in the coupling): where the other axis is held that is a constant, and this
+    axis's reading is its own; the coupling there goes round the loop (this axis moves the other,
+    which moves this one back by ``c_xy c_yx``, about 1e-4) and is part of this axis's motion.
+    """
+    i, j = AXES.index(axis), 1 - AXES.index(axis)
+    here, back = couplings[direction(axis, AXES[j])], couplings[direction(AXES[j], axis)]
     out = []
     for s in sweeps:
         if axis in s.moving and not excitation(s, axis):
             one = s.axis(axis)
-            caused = cp.caused(c, s.displacement_um[:, j], s.dt)
+            own = s.displacement_um[:, j] - cp.caused(back, s.displacement_um[:, i], s.dt)
+            caused = cp.caused(here, own, s.dt)
             out.append(replace(one, displacement_um=one.displacement_um - caused))
     return out
 
@@ -172,8 +181,8 @@ def fit(sweeps: Sequence[XYSweep], settings: idf.Settings = idf.Settings(),
         say(f"coupling {d} ({target} caused by {_other(target)}): static {cf.coupling.static:.5g}"
             f" um/um ({cf.coupling.static_db:.1f} dB), mode {cf.coupling.mode_hz:.4g} Hz, "
             f"estimates {cf.band_hz[0]:.3g} ... {cf.band_hz[1]:.4g} Hz")
-    tasks = [(a, axis_sweeps(sweeps, a, couplings[direction(a, _other(a))].coupling), settings)
-             for a in AXES]
+    found = {d: c.coupling for d, c in couplings.items()}
+    tasks = [(a, axis_sweeps(sweeps, a, found), settings) for a in AXES]
     say(f"fitting axes {', '.join(AXES)} ({min(jobs, len(AXES))} at a time) ...")
     if jobs <= 1:
         results = [_fit_axis(t, say) for t in tasks]
