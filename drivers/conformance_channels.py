@@ -21,6 +21,7 @@ from afmctl.drivers import register_map as rm
 from afmctl.drivers.conformance import (
     SLOW_RATE_HZ,
     Bench,
+    Failure,
     HostLate,
     NotApplicable,
     clear_error,
@@ -175,9 +176,10 @@ def _both_run(bench: Bench, y: Axis, channels: int) -> str:
 
 
 def _stream(bench: Bench, y: Axis, channels: int) -> str:
-    """§2.14(h): a stream of channels 0 and 1 through a 128-sample table, refilled per channel as
+    """§2.14(h): a stream of channels 0 and 1 through a 256-sample table, refilled per channel as
     it plays, ends at N with every channel recorded (an underrun the host caused: host late)."""
-    stage, n, length, block = bench.stage, 512, 128, 32
+    stage, n, length = bench.stage, 768, 256
+    block = min(64, stage.upload_chunk)
     with rate(bench, SLOW_RATE_HZ):
         x_wave = stream_wave(bench, n, SLOW_RATE_HZ)
         y_wave = x_wave * min(1.0, abs(y.top / bench.top)) * np.sign(y.top * bench.top)
@@ -193,13 +195,15 @@ def _stream(bench: Bench, y: Axis, channels: int) -> str:
                     written += block
                 else:
                     time.sleep(0.002)
-        except StageError as refused:  # a block refused because the run stopped meanwhile
-            if stage.status().running:
-                raise
-            expect(stage.status().last_error == 10, "§2.14(h)",
-                   f"a block of samples {written}.. refused ({refused}) while the stream played")
+        except StageError as refused:  # refused: the run stopped meanwhile (the refusal's code
+            st = settled_position(stage)  # is now the last error), or a wrong refusal
+            if st.running or st.play_position < written:
+                raise Failure("§2.14(h)", f"a block of samples {written}.. refused ({refused}) "
+                                          f"with the stream at {st.play_position}") from None
+            raise HostLate(f"the stream's refill fell behind: stopped at sample "
+                           f"{st.play_position}, the first not yet written") from None
         st = settled_position(stage)
-        if st.last_error == 10:
+        if st.last_error == 10 and st.play_position >= written:
             raise HostLate(f"the stream's refill fell behind at sample {st.play_position}")
         expect(st.play_position == n and st.last_error == 0, "§2.14(h)",
                f"a stream of two channels ended at {st.play_position} of {n}, error "

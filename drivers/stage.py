@@ -168,7 +168,9 @@ class StageBase(abc.ABC):
         """The device's own limits of ``channel``: v_min (V), v_max (V), slew (V/ms)."""
 
     def voltage(self, channel: int = 0) -> float:
-        """Output voltage of ``channel`` now, V."""
+        """Output voltage of ``channel`` now, V (this default knows channel 0's only)."""
+        if channel:
+            raise NotImplementedError(f"{type(self).__name__} reads channel 0's output only")
         return self.status().output_v
 
     def voltages(self) -> NDArray[np.float64]:
@@ -377,9 +379,10 @@ class StageBase(abc.ABC):
             on channel ``c`` (the profile's axis ``axis_names[c]``).
         on_block : callable, optional
             ``on_block(first_index, voltage_v, displacement_um, valid)`` with arrays of shape (m,)
-            or (m, C) like the waveform (V, um, bool) for samples ``first_index .. first_index+m-1``; the blocks are in order,
-            contiguous and cover ``[0, N)`` even when the run fails (samples never measured are
-            NaN with ``valid=False``), unless on_block itself raised.
+            or (m, C) like the waveform (V, um, bool) for samples ``first_index ..
+            first_index+m-1``; the blocks are in order, contiguous and cover ``[0, N)`` even when
+            the run fails (samples never measured are NaN with ``valid=False``), unless on_block
+            itself raised.
         poll_s : float
             Pause between polls when there is nothing to do, s.
         timeout_s : float, optional

@@ -63,3 +63,51 @@ def test_a_malformed_two_axis_profile_is_one_line_naming_the_key(
     res = CliRunner().invoke(main, ["status", "--profile", str(path), "--no-read"])
     assert res.exit_code == 2 and len(res.stderr.strip().splitlines()) == 1, res.output
     assert key in res.stderr and "Traceback" not in res.output
+
+
+@pytest.mark.parametrize(("old", "new", "key"), [
+    ("coupling_dB = -35.0", "coupling_dB = -20.0", "emulator.xy_foreign.coupling_dB"),
+    ("v_min_V = 0.0", "v_min_V = -100.0", "emulator.xy_foreign.seed"),
+    ("seed = 25", "sead = 25", "emulator.xy_foreign.sead"),
+])
+def test_a_malformed_foreign_xy_profile_is_one_line_naming_the_key(
+        old: str, new: str, key: str, tmp_path: Path) -> None:
+    text = (PROFILES / "emulated-xy-foreign.toml").read_text()
+    assert old in text
+    path = tmp_path / "xyf.toml"
+    path.write_text(text.replace(old, new, 1))
+    res = CliRunner().invoke(main, ["safe", "--profile", str(path)])
+    assert res.exit_code == 2 and key in res.stderr and "Traceback" not in res.output, res.output
+
+
+def test_emulate_serves_the_xy_stage_on_serial_protocol_4_and_map_3() -> None:
+    """``afmctl emulate --profile emulated-xy``: one device of two channels behind both wires."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from afmctl.drivers.modbus_link import ModbusStage
+    from afmctl.drivers.serial_link import SerialStage
+    from afmctl.files.profile import ModbusTcpTransport, shipped_profile
+    from tests.harness.paths import REPO
+
+    xy = shipped_profile("emulated-xy")
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-m", "afmctl", "emulate", "--profile", "emulated-xy",
+                             "--modbus-port", "0", "--no-rtu"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert proc.stdout is not None
+        where = dict(proc.stdout.readline().strip().split(": ", 1) for _ in range(2))
+        host, port = where["modbus-tcp"].rsplit(":", 1)
+        with ModbusStage(xy, ModbusTcpTransport(host, int(port), timeout_s=5.0)) as stage:
+            assert (stage.version, stage.channels) == (3, 2)
+            stage.set_voltage(2.0, channel=1)
+        with SerialStage(xy, where["serial"], timeout_s=5.0) as stage:
+            assert (stage.version, stage.channels) == (4, 2)
+            assert stage.voltages().tolist() == [0.0, 2.0]  # one device behind both wires
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
