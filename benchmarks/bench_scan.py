@@ -1,6 +1,8 @@
 """Issue 26 figures: raster scans on two-axis stages, each axis through its own inverse.
 
-Stages: foreign x/y stages (:func:`afmctl.drivers.device.foreign.xy_stage.xy_stages`: two
+Stages: the shipped emulated x/y stage (``emulated-xy``, played in-process through the stage
+interface on a device clock 4x real time; its two-axis sweep set, the foreign stages' design on
+its ranges, recorded through the same interface), and foreign x/y stages (:func:`afmctl.drivers.device.foreign.xy_stage.xy_stages`: two
 hysteretic actuators of other kinds and formulas than afmctl's model, a 3-DOF structure whose
 shared mode couples the axes, flexures that move the other axis slightly nonlinearly). On each,
 the stage's own two-axis sweep set (:func:`~afmctl.drivers.device.foreign.xy_sweeps.write_sweep_set`)
@@ -15,7 +17,8 @@ that fits (``frame_um``), and 10 x 10 um at 10 lines/s (``small``); at 1 line/s 
 image's statistics are per line; 64 s frames would only take longer). Played on the plant in
 pure simulation (:func:`~afmctl.drivers.device.foreign.xy_stage.run`), the readings with each
 axis's gauge noise. Judged on the pixel grid against the **noise-free readings** (the plant's
-position in the sensors' frame), except ``learned_over_noise``, which is the readings' own
+position in the sensors' frame; on the emulated stage, whose device gives only its readings, the
+readings: its 0.02-0.025 um gauge noise is in its figures), except ``learned_over_noise``, which is the readings' own
 image-region RMS error over their noise, as learning judges it.
 
 Figures (each with the worst over the stages and every stage's value):
@@ -73,6 +76,60 @@ LEARN_FRAMES = 5
 #: Identification settings (``--identify``): ``quick`` fits the parametric model once (no
 #: Preisach-grid alternative, one start), ``full`` is ``afmctl identify``'s default.
 IDENTIFY = {"quick": idf.Settings(representation="hem", restarts=1), "full": idf.Settings()}
+
+
+class EmulatedStage:
+    """The emulated x/y stage through the stage interface; ``last_clean`` holds the last play's
+    readings (the device gives no others)."""
+
+    channels = 2
+
+    def __init__(self, stage: Any) -> None:
+        self.stage = stage
+        self.last_clean = np.zeros((0, 2))
+
+    def voltages(self) -> np.ndarray:
+        return np.asarray(self.stage.voltages(), dtype=float)
+
+    def play(self, v: np.ndarray, on_block: Any = None, **kw: Any) -> np.ndarray:
+        rec = self.stage.play(v, on_block, **kw)
+        self.last_clean = rec.displacement_um
+        return rec
+
+
+def emulated_sweeps(stage: Any, prof: Any) -> list[Any]:
+    """The foreign stages' two-axis design (:mod:`~afmctl.drivers.device.foreign.xy_sweeps`) on the
+    emulated stage's ranges, band half its shared mode, recorded through the stage interface."""
+    from types import SimpleNamespace
+
+    ranges = [SimpleNamespace(drive_range_V=(lim.v_min, lim.v_max))
+              for lim in (xs.axis_limits(prof, n) for n in rs.AXES)]
+    band = 0.5 * min(c.mode_hz for c in dict(prof.emulator.coupling).values())
+    fake = SimpleNamespace(actuators=ranges)
+    plans = xy_sweeps._held_files(fake, 0, band) + xy_sweeps._held_files(fake, 1, band)
+    out = []
+    for plan in plans:
+        start = np.asarray(stage.voltages(), dtype=float)
+        steps = int(np.ceil(np.max(np.abs(plan.voltage_V[0] - start)) / 2.0)) + 2
+        stage.play(np.linspace(start, plan.voltage_V[0], steps))
+        rec = stage.play(plan.voltage_V)
+        out.append(xysweepfile.from_arrays(plan.voltage_V, rec.displacement_um, RATE_HZ,
+                                           {**plan.meta, "sample_rate_hz": f"{RATE_HZ:g}",
+                                            "layer_thickness_um": "100.0"}, plan.name))
+    return out
+
+
+def emulated_model(stage: Any, prof: Any, cache: Path | None, how: str) -> tuple[Any, float]:
+    """The emulated stage's two-axis model identified from its recorded set (cached)."""
+    path = None if cache is None else cache / f"emulated-xy-{how}.toml"
+    if path is not None and path.exists():
+        return xymodelfile.read(path), 0.0
+    t0 = time.perf_counter()
+    fit = xyidentify.fit(emulated_sweeps(stage, prof), IDENTIFY[how])
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        xymodelfile.write(fit.model, path, "identified by benchmarks/bench_scan.py")
+    return fit.model, time.perf_counter() - t0
 
 
 class PlantStage:
@@ -152,13 +209,37 @@ def bench_stage(stage: xys.XYStage, cache: Path | None, how: str, say: Any) -> d
     say(f"{stage.name}: identified ({fit_s:.0f} s)")
     lim = limits(stage)
     axes = {n: rs.AxisPlan(model.axes[n], lim[n]) for n in rs.AXES}
-    coupling = dict(model.coupling)
+    row = bench_frames(PlantStage(stage, 7), axes, dict(model.coupling), stage.name, say)
+    return {**row, "identify_s": round(fit_s, 1),
+            "noise_um": [float(x) for x in xys.noise_um(stage)]}
+
+
+def bench_emulated(cache: Path | None, how: str, say: Any) -> dict[str, Any]:
+    from afmctl.drivers.inprocess import InProcessStage, accelerated
+    from afmctl.files.profile import load_profile
+
+    prof = load_profile("emulated-xy")
+    # the whole of every run in the device's table: a loaded host refilling a stream at 4x real
+    # time underran it (the device then stops, as it must)
+    big = 1 << 21
+    prof = dc.replace(prof, emulator=dc.replace(prof.emulator, table_capacity=big,
+                                                recorder_capacity=big))
+    with InProcessStage(prof, clock=accelerated(4.0)) as dev:
+        model, fit_s = emulated_model(dev, prof, cache, how)
+        say(f"emulated-xy: identified ({fit_s:.0f} s)")
+        axes = {n: rs.AxisPlan(model.axes[n], xs.axis_limits(prof, n)) for n in rs.AXES}
+        row = bench_frames(EmulatedStage(dev), axes, dict(model.coupling), "emulated-xy", say)
+    return {**row, "identify_s": round(fit_s, 1),
+            "noise_um": [prof.axis(n).emulator.noise_um for n in rs.AXES]}
+
+
+def bench_frames(plant: Any, axes: dict[str, rs.AxisPlan], coupling: dict[str, Any], name: str,
+                 say: Any) -> dict[str, Any]:
+    """Every figure on one stage (see the module docstring)."""
     reach = rs.reach(axes)
     size = frame_size(reach)
     base = rs.Frame(size, size, PIXELS, LINES, 10.0, centre(reach))
-    plant = PlantStage(stage, 7)
-    row: dict[str, Any] = {"frame_um": size, "identify_s": round(fit_s, 1),
-                           "noise_um": [float(x) for x in xys.noise_um(stage)],
+    row: dict[str, Any] = {"frame_um": size,
                            "fast_rms_pct_by_rate": {"inverse": {}, "linear": {}}}
     for rate in RATES:
         fr = dc.replace(base, line_rate_hz=rate, lines=LINES_AT_1_HZ if rate == 1 else LINES)
@@ -174,7 +255,7 @@ def bench_stage(stage: xys.XYStage, cache: Path | None, how: str, say: Any) -> d
                 "slow_line_synchronous_um"]
             row["decoupling"] = {"without_um": without, "with_um": with_ff,
                                  "db": si.decoupling_db(without, with_ff)}
-        say(f"{stage.name}: {rate:g} lines/s done")
+        say(f"{name}: {rate:g} lines/s done")
     small = scan(plant, axes, coupling, dc.replace(base, width_um=10.0, height_um=10.0))
     row["small_10um_fast_rms_pct"] = {f: small[f]["fast_rms_pct"] for f in ("inverse", "linear")}
     with tempfile.TemporaryDirectory() as d:
@@ -183,7 +264,7 @@ def bench_stage(stage: xys.XYStage, cache: Path | None, how: str, say: Any) -> d
     row["learned_over_noise"] = got.runs[got.best].merit["over_noise"]
     row["learning"] = {"frames": len(got.runs) - 1, "stop": got.stop,
                        "over_noise_by_frame": [r.merit["over_noise"] for r in got.runs]}
-    say(f"{stage.name}: {json.dumps(row)}")
+    say(f"{name}: {json.dumps(row)}")
     return row
 
 
@@ -218,6 +299,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--json", action="store_true", help="last line: one JSON object")
     ap.add_argument("--stages", type=int, default=4, help="the first N foreign stages")
     ap.add_argument("--cache", type=Path, default=None, help="keep identified models here")
+    ap.add_argument("--no-emulated", action="store_true", help="foreign stages only")
     ap.add_argument("--identify", choices=sorted(IDENTIFY), default="quick",
                     help="identification settings (quick: the parametric model, one start)")
     args = ap.parse_args(argv)
@@ -225,8 +307,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     def say(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
-    rows = {s.name: bench_stage(s, args.cache, args.identify, say)
-            for s in xys.xy_stages()[:args.stages]}
+    rows = {} if args.no_emulated else {"emulated-xy": bench_emulated(args.cache, args.identify,
+                                                                      say)}
+    rows.update({s.name: bench_stage(s, args.cache, args.identify, say)
+                 for s in xys.xy_stages()[:args.stages]})
     data = collect(rows)
     if args.json:
         print(json.dumps(data, allow_nan=True))
