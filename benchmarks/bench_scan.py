@@ -38,7 +38,9 @@ Figures (each with the worst over the stages and every stage's value):
   filters, guard included) and make its images.
 
 Run: ``python benchmarks/bench_scan.py --json`` (last line one JSON object); ``--stages N``
-for the first N stages (default 4).
+for the first N foreign stages (default 4); ``--stage NAME`` for one stage, whose row
+``--cache DIR`` keeps (``<stage>-<settings>-row.json``): stages run apart are then collected by a
+last run over them all.
 """
 
 from __future__ import annotations
@@ -300,6 +302,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--stages", type=int, default=4, help="the first N foreign stages")
     ap.add_argument("--cache", type=Path, default=None, help="keep identified models here")
     ap.add_argument("--no-emulated", action="store_true", help="foreign stages only")
+    ap.add_argument("--stage", action="append", default=None,
+                    help="only this stage (emulated-xy or foreign-xy-N; repeatable); with "
+                         "--cache each stage's row is kept and reused")
     ap.add_argument("--identify", choices=sorted(IDENTIFY), default="quick",
                     help="identification settings (quick: the parametric model, one start)")
     args = ap.parse_args(argv)
@@ -307,10 +312,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     def say(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
-    rows = {} if args.no_emulated else {"emulated-xy": bench_emulated(args.cache, args.identify,
-                                                                      say)}
-    rows.update({s.name: bench_stage(s, args.cache, args.identify, say)
-                 for s in xys.xy_stages()[:args.stages]})
+    names = ([] if args.no_emulated else ["emulated-xy"]) + [
+        st.name for st in xys.xy_stages()[:args.stages]]
+    stages = {st.name: st for st in xys.xy_stages()}
+    rows = {}
+    for name in args.stage or names:
+        row_path = None if args.cache is None else args.cache / f"{name}-{args.identify}-row.json"
+        if row_path is not None and row_path.exists():
+            rows[name] = json.loads(row_path.read_text())
+            continue
+        rows[name] = (bench_emulated(args.cache, args.identify, say) if name == "emulated-xy"
+                      else bench_stage(stages[name], args.cache, args.identify, say))
+        if row_path is not None:
+            row_path.write_text(json.dumps(rows[name]))
     data = collect(rows)
     if args.json:
         print(json.dumps(data, allow_nan=True))

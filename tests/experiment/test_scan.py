@@ -97,7 +97,7 @@ def test_an_interrupt_keeps_every_finished_frame(nominal, tmp_path: Path) -> Non
 def test_learning_both_axes_reaches_near_the_noise_and_replays(nominal, tmp_path: Path) -> None:  # noqa: ANN001
     s = setup(nominal, frames=1, filters=("inverse",))
     runs: list[xs.FrameRun] = []
-    got = scanlearn.learn_then_scan(plant(nominal), s, 3, tmp_path, {}, None, None, runs)
+    got = scanlearn.learn_then_scan(plant(nominal), s, 2, tmp_path, {}, None, None, runs)
     first, best = got.runs[0].merit["over_noise"], got.runs[got.best].merit["over_noise"]
     assert best < first / 4
     assert got.noise_um["x"] == pytest.approx(0.02, rel=0.3)
