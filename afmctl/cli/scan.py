@@ -65,8 +65,8 @@ def scan() -> None:
               help="Model file: a two-axis model (each axis and the coupling), or a one-axis "
                    "model used for both axes (then no coupling is fed forward).")
 @click.option("--calibrate", is_flag=True,
-              help="Record two-axis sweeps and identify the model first (moves both axes over "
-                   "their whole ranges).")
+              help="Record two-axis sweeps and identify the model first: not available for "
+                   "two axes yet (refused; give --model).")
 @click.option("--filter", "filters", type=click.Choice(["inverse", "linear", "both"]),
               default="both", show_default=True,
               help="Each axis's model inverse (Algorithm 3), the paper's linear filter, or both "

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from afmctl import guard
-from afmctl.errors import EnvelopeError
+from afmctl.errors import EnvelopeError, InputError
 from afmctl.experiment import runner
 from afmctl.experiment import scan as xs
 from afmctl.files import waveformfile
@@ -133,7 +133,6 @@ def learn_then_scan(stage: runner.PlayingStage, setup: xs.Setup, iterations: int
     """Learn the frame (:func:`learn`), save its waveform, then play it ``setup.frame.frames``
     times (``run_frameNNN_learned.csv``; the same frame every time)."""
     if setup.frame.direction == "bounce":
-        from afmctl.errors import InputError
         raise InputError("--learn-frames learns one frame: scan it --direction up or down")
     runs = [] if done is None else done
     got = learn(stage, setup, iterations, out, meta, say, on_frame, runs)

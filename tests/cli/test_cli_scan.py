@@ -9,10 +9,12 @@ import json
 from pathlib import Path
 
 import gwyfile
+import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from afmctl.cli import main
-from afmctl.files import runfile, xymodelfile
+from afmctl.files import runfile, waveformfile, xymodelfile
 from afmctl.files.profile import load_profile
 from afmctl.model.xy import XYModel
 from tests.harness.xy_plant import detuned
@@ -78,3 +80,25 @@ def test_a_line_rate_beyond_the_clock_is_refused(tmp_path: Path) -> None:
                                     "10", "--pixels", "32", "--lines", "4", "--line-rate",
                                     "1000", "--out", str(tmp_path / "o")])
     assert res.exit_code == 2 and "at most 500 lines/s" in res.stderr
+
+
+def test_play_replays_a_two_axis_waveform_file(tmp_path: Path) -> None:
+    n = 2000
+    t = np.arange(n) * 1e-4
+    v = np.column_stack([20 * np.sin(np.pi * t / t[-1]), -15 * np.sin(np.pi * t / t[-1])])
+    d = np.full((n, 2), np.nan)
+    d[500:1500] = 1.0
+    wave = tmp_path / "w.csv"
+    wave.write_text(waveformfile.format_text(t, v, d, {"profile": "emulated-xy"}))
+    res = CliRunner().invoke(main, ["play", str(wave), "--profile", "emulated-xy", "--out",
+                                    str(tmp_path / "p"), "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.stdout.strip().splitlines()[-1])
+    run = runfile.read(tmp_path / "p" / "run_play.csv")
+    assert run.complete and run.voltage_v == pytest.approx(v, abs=1e-5)
+    err = run.displacement_um[500:1500] - 1.0
+    assert data["axes"]["y"]["rms_um"] == pytest.approx(
+        float(np.sqrt(np.mean(err[:, 1] ** 2))), rel=1e-6)
+    one = CliRunner().invoke(main, ["play", str(wave), "--profile", "emulated", "--out",
+                                    str(tmp_path / "q")])
+    assert one.exit_code == 2 and "two-axis waveform" in one.stderr
