@@ -64,7 +64,7 @@ from afmctl.experiment import scanlearn
 from afmctl.files import xymodelfile, xysweepfile
 from afmctl.fit import identify as idf
 from afmctl.fit import xyidentify
-from afmctl.guard import Limits
+from afmctl.guard import Limits, LimitError
 from afmctl.planning import raster as rs
 from afmctl.planning import scanimage as si
 
@@ -75,6 +75,7 @@ PIXELS, LINES = 128, 64
 LINES_AT_1_HZ = 8
 MAX_FRAME_UM = 60.0
 LEARN_FRAMES = 5
+FRAME_SHARE = 0.9
 #: Identification settings (``--identify``): ``quick`` fits the parametric model once (no
 #: Preisach-grid alternative, one start), ``full`` is ``afmctl identify``'s default.
 IDENTIFY = {"quick": idf.Settings(representation="hem", restarts=1), "full": idf.Settings()}
@@ -184,10 +185,15 @@ def scan(plant: PlantStage, axes: dict[str, rs.AxisPlan], coupling: Any, frame: 
     """Plan and play one frame per filter; figures of merit on the noise-free readings."""
     t0 = time.perf_counter()
     axes = rs.replace_start(axes, plant.voltages())
-    plans = rs.plan(frame, axes, DT, coupling, filters)
+    try:
+        plans = rs.plan(frame, axes, DT, coupling, filters)
+    except LimitError as exc:  # the linear filter's line beyond the limits: the inverse alone
+        if "linear" not in filters or "linear" not in str(exc):
+            raise
+        plans = rs.plan(frame, axes, DT, coupling, ("inverse",))
     grid = rs.pixel_grid(frame, DT)
     compute = time.perf_counter() - t0
-    out: dict[str, Any] = {"compute_s": compute}
+    out: dict[str, Any] = {"compute_s": compute, "linear": {"fast_rms_pct": None}}
     for name, wf in plans.items():
         plant.play(wf.voltage_v)
         t1 = time.perf_counter()
@@ -197,9 +203,11 @@ def scan(plant: PlantStage, axes: dict[str, rs.AxisPlan], coupling: Any, frame: 
 
 
 def frame_size(reach: dict[str, tuple[float, float]]) -> float:
-    """The largest square frame up to 60 um that fits the reach at its centre (whole um)."""
+    """The largest square frame up to 60 um that fits 90 % of the reach at its centre (whole
+    um): the linear filter's line needs more voltage than the inverse near the reach's ends."""
     probe = rs.Frame(MAX_FRAME_UM, MAX_FRAME_UM, PIXELS, LINES, 10.0, centre(reach))
-    return float(min(MAX_FRAME_UM, math.floor(MAX_FRAME_UM * rs.largest_scale(probe, reach))))
+    scale = FRAME_SHARE * rs.largest_scale(probe, reach)
+    return float(min(MAX_FRAME_UM, math.floor(MAX_FRAME_UM * scale)))
 
 
 def centre(reach: dict[str, tuple[float, float]]) -> tuple[float, float]:
@@ -272,8 +280,9 @@ def bench_frames(plant: Any, axes: dict[str, rs.AxisPlan], coupling: dict[str, A
 
 def collect(rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """The JSON object: each figure's worst over the stages and every stage's value."""
-    def worst(get: Any, pick: Any = max) -> float:
-        return float(pick(get(r) for r in rows.values()))
+    def worst(get: Any, pick: Any = max) -> float | None:
+        vals = [v for v in (get(r) for r in rows.values()) if v is not None]
+        return float(pick(vals)) if vals else None
 
     by_rate = {f: {f"{r:g}": worst(lambda x, f=f, r=r: x["fast_rms_pct_by_rate"][f][f"{r:g}"])
                    for r in RATES} for f in ("inverse", "linear")}

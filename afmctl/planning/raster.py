@@ -395,6 +395,11 @@ def plan(frame: Frame, axes: Mapping[str, AxisPlan], dt_s: float,
                                         envelope=ax.envelope, extrapolate=extrapolate)
         except ReachError as exc:
             raise FrameReachError(f"axis {name}: {exc}; scan a smaller frame") from None
+        except guard.LimitError as exc:
+            hint = ("; the paper's linear filter needs more voltage than the inverse at the "
+                    "frame's extremes: scan a smaller frame, or --filter inverse"
+                    if str(exc).startswith("linear") else "")
+            raise guard.LimitError(f"axis {name}: {exc}{hint}") from None
     out = {}
     for f in filters:
         ws = {n: per_axis[n][f] for n in AXES}
