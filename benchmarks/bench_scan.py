@@ -13,7 +13,9 @@ runs; ``--identify quick`` (default: the parametric model, one start, no Preisac
 alternative) or ``full`` (``afmctl identify``'s defaults, several times slower).
 
 Frames: 128 pixels x 64 lines, square, centred in the identified reach, 60 x 60 um or the largest
-that fits (``frame_um``), and 10 x 10 um at 10 lines/s (``small``); at 1 line/s 8 lines (the
+that fits 90 % of the reach and in which the linear filter's waveform passes the guard too (its
+line needs more voltage than the inverse near the reach's ends; ``frame_um``), and 10 x 10 um at
+10 lines/s (``small``); at 1 line/s 8 lines (the
 image's statistics are per line; 64 s frames would only take longer). Played on the plant in
 pure simulation (:func:`~afmctl.drivers.device.foreign.xy_stage.run`), the readings with each
 axis's gauge noise. Judged on the pixel grid against the **noise-free readings** (the plant's
@@ -210,6 +212,21 @@ def frame_size(reach: dict[str, tuple[float, float]]) -> float:
     return float(min(MAX_FRAME_UM, math.floor(MAX_FRAME_UM * scale)))
 
 
+def both_filters_size(axes: dict[str, rs.AxisPlan], reach: dict[str, tuple[float, float]]
+                      ) -> float:
+    """:func:`frame_size`, shrunk in 10 % steps until the linear filter's waveform passes the
+    guard too (a two-line frame at 10 lines/s is planned to see; at least 10 um)."""
+    size = frame_size(reach)
+    while size > 10.0:
+        probe = rs.Frame(size, size, PIXELS, 2, 10.0, centre(reach))
+        try:
+            rs.plan(probe, axes, DT, None, ("inverse", "linear"))
+            break
+        except LimitError:
+            size = max(10.0, float(math.floor(0.9 * size)))
+    return size
+
+
 def centre(reach: dict[str, tuple[float, float]]) -> tuple[float, float]:
     return tuple(0.5 * (lo + hi) for lo, hi in reach.values())  # type: ignore[return-value]
 
@@ -247,7 +264,7 @@ def bench_frames(plant: Any, axes: dict[str, rs.AxisPlan], coupling: dict[str, A
                  say: Any) -> dict[str, Any]:
     """Every figure on one stage (see the module docstring)."""
     reach = rs.reach(axes)
-    size = frame_size(reach)
+    size = both_filters_size(axes, reach)
     base = rs.Frame(size, size, PIXELS, LINES, 10.0, centre(reach))
     row: dict[str, Any] = {"frame_um": size,
                            "fast_rms_pct_by_rate": {"inverse": {}, "linear": {}}}
