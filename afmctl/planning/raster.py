@@ -337,12 +337,6 @@ class XYWaveform:
     def time_s(self) -> FloatArray:
         return np.arange(self.voltage_v.shape[0]) * self.dt_s
 
-    def axis(self, name: str) -> track.Waveform:
-        """One axis as the one-axis planner's waveform (for scoring and the run files)."""
-        k = AXES.index(name)
-        return track.Waveform(self.filter, self.dt_s, self.voltage_v[:, k],
-                              self.desired_um[:, k], self.tracking, self.horizons.get(name, ()))
-
 
 def targets(traj: Trajectories, coupling: Mapping[str, cp.Coupling] | None
             ) -> dict[str, FloatArray]:

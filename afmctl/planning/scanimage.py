@@ -16,6 +16,7 @@ Figures of merit (:func:`merit`), all over the image region (the overscan exclud
 * **line-synchronous slow motion**: the part of the slow error that repeats with the fast axis
   (the slow error less each line's mean): the motion the fast axis causes on the slow one through
   the coupling (what the feed-forward cancels), RMS um;
+* per line (trace and retrace together): the RMS fast and slow error, um;
 * the sensor noise of each axis (:func:`afmctl.planning.ilc.noise_estimate`, from the readings).
 """
 
@@ -115,6 +116,9 @@ def merit(frame: Frame, img: Images, measured_um: FloatArray | None = None) -> d
         "error_x_rms_um": _rms(img.error_x_um), "error_y_rms_um": _rms(img.error_y_um),
         "missing_pixels": int(np.sum(~np.isfinite(img.x_um) | ~np.isfinite(img.y_um))),
     }
+    lines = per_line(img)
+    data["fast_rms_um_by_line"] = [float(x) for x in lines["fast_rms_um"]]
+    data["slow_rms_um_by_line"] = [float(x) for x in lines["slow_rms_um"]]
     if measured_um is not None:
         data["noise_um"] = {n: ilc.noise_estimate(measured_um[:, k])
                             for k, n in enumerate(("x", "y"))}

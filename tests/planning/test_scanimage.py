@@ -50,6 +50,7 @@ def test_a_delay_shows_as_registration_of_twice_the_lag() -> None:
     m = si.merit(FRAME, img)
     assert m["registration_px"] == pytest.approx(2 * lag / FRAME.pixel_um)
     assert m["fast_rms_pct"] == pytest.approx(100 * lag / 20.0)
+    assert m["fast_rms_um_by_line"] == pytest.approx([lag] * 8)
 
 
 def test_line_synchronous_slow_motion_is_what_repeats_with_the_fast_axis() -> None:
