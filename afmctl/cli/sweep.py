@@ -63,8 +63,16 @@ def _v_range(v_range: tuple[float, float] | None, prof) -> tuple[float, float]: 
 @click.option("--resume", is_flag=True,
               help="Record only the sweeps missing from --out (an interrupted one again); the "
                    "files already there are kept.")
+@click.option("--axes", "axes", default=None, metavar="x,y",
+              help="On a two-axis stage: record the two-axis set (each axis's standard "
+                   "triangles with the other held mid-range, then a multisine per axis for the "
+                   "coupling's dynamics) as two-axis sweep files.")
+@click.option("--band-hz", "band_hz", type=Finite(minimum=1.0), default=None,
+              help="With --axes: the multisine's top frequency, Hz (default: half the lowest "
+                   "resonance of the profile's emulated axes; a lab profile must give it).")
 def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] | None,
-          design: str, only: tuple[str, ...], resume: bool) -> None:
+          design: str, only: tuple[str, ...], resume: bool, axes: str | None,
+          band_hz: float | None) -> None:
     """Record the standard identification set over the stage's voltage range: triangles at
     0.279, 5.58 and 27.9 Hz (Fig. 2) and nested minor loops at 0.1 Hz (Fig. 1(b)); with
     `--design separating` also a sweep of holds, fast steps and a multisine (`separating.csv`).
@@ -77,6 +85,13 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
     from afmctl.experiment import runner as experiment
     from afmctl.planning import sweepdesign
     prof = load_profile_or_exit(profile_path)
+    if axes is not None:
+        from afmctl.cli.xysweep import sweep_xy
+        if v_range is not None or only or resume or design != "standard":
+            raise InputError("--axes records the whole two-axis set over each axis's range: "
+                             "without --v-range, --only, --resume or --design")
+        sweep_xy(prof, axes, Path(out_dir), band_hz)
+        return
     lo, hi = _v_range(v_range, prof)
     designed = sweepdesign.design_set(design, prof.sample_rate_hz,
                                  prof.limits.max_rate_v_per_ms * 1e3, (lo, hi))

@@ -119,6 +119,11 @@ def track_options(fn: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--dry-run", is_flag=True,
                      help="Send nothing; write DIR/waveform_<filter>.csv."),
         click.option("--json", "as_json", is_flag=True, help="Print the summary JSON on stdout."),
+        click.option("--axis", "axis", type=click.Choice(["x", "y"]), default=None,
+                     help="On a two-axis stage: the axis to drive (its channel, model and "
+                          "limits); the other holds its present output, and how far it moved is "
+                          "reported (held_axis in summary.json and --json). --model may be a "
+                          "two-axis model file."),
         click.option("--condition/--no-condition", default=True, show_default=True,
                      help="Start with one slow excursion to the profile's voltage limits that "
                           "wipes out the stage's hysteresis memory; --no-condition skips it and "
@@ -275,13 +280,22 @@ def _track(make_desired: Callable[[float], Any], check: Callable[[float], None],
            profile_path: str | None, model_path: str | None, calibrate: bool, recalibrate: bool,
            filters: str, out_dir: str | None, force: bool, dry_run: bool, as_json: bool,
            condition: bool, extrapolate: bool, learn: int = 0, learn_cutoff: float = 600.0,
-           learn_region: str = "all", centre: bool = False) -> None:
+           learn_region: str = "all", centre: bool = False, axis: str | None = None,
+           opened: Any = None) -> None:
+    if axis is not None:
+        from afmctl.cli.xytrack import on_axis
+        on_axis(axis, profile_path, model_path, (calibrate, recalibrate, learn),
+                out_dir, force,
+                lambda m, o, opened: _track(
+                    make_desired, check, profile_path, m, False, False, filters, o, force,
+                    dry_run, as_json, condition, extrapolate, centre=centre, opened=opened))
+        return
     if model_path is not None and (calibrate or recalibrate):
         raise InputError("--model and --calibrate/--recalibrate exclude each other")
     if learn and dry_run:
         raise InputError("--learn learns from measurements: it cannot be combined with "
                          "--dry-run")
-    prof = load_profile_or_exit(profile_path)
+    prof = load_profile_or_exit(profile_path) if opened is None else opened.profile
     check(prof.sample_rate_hz)
     if learn:
         from afmctl.cli.play import learn_track
@@ -305,7 +319,7 @@ def _track(make_desired: Callable[[float], Any], check: Callable[[float], None],
                  cal)
         return
     outcomes: dict[str, Any] = {}
-    with opened_stage(prof) as stage:
+    with (opened_stage(prof) if opened is None else opened.stage()) as stage:
         cal = _model(prof, stage, model_path, calibrate, recalibrate, profile_path)
         _warn(cal)
         desired = _placed(desired, cal, prof, centre)
@@ -316,6 +330,8 @@ def _track(make_desired: Callable[[float], Any], check: Callable[[float], None],
             if outcomes and not isinstance(exc, SystemExit):  # keep what was played
                 _report(prof, cal, outcomes, desired, out, meta, False, interrupted=exc)
             raise
+        if opened is not None:
+            meta["held_axis"] = opened.report(stage)
     _report(prof, cal, outcomes, desired, out, meta, as_json)
 
 

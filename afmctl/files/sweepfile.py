@@ -48,16 +48,16 @@ MEMORY_REACH = 0.995
 
 
 @dataclass(frozen=True)
-class Sweep:
-    """One recorded sweep.
+class Recorded:
+    """A recorded history on a uniform clock: what one-axis and two-axis sweeps share.
 
     Parameters
     ----------
     time_s : ndarray, shape (N,)
         Sample instants, s, strictly increasing and uniform.
-    voltage_v : ndarray, shape (N,)
-        Voltage held from each instant to the next, V.
-    displacement_um : ndarray, shape (N,)
+    voltage_v : ndarray, shape (N,) or (N, 2)
+        Voltage held from each instant to the next, V (a column per axis for two axes).
+    displacement_um : ndarray, shape (N,) or (N, 2)
         Measured displacement at each instant, um (arbitrary sensor zero).
     meta : dict
         Metadata from the ``#`` lines (strings).
@@ -77,6 +77,15 @@ class Sweep:
         return float((self.time_s[-1] - self.time_s[0]) / (self.time_s.size - 1))
 
     @property
+    def name(self) -> str:
+        return Path(self.path).name if self.path else self.meta.get("name", "sweep")
+
+
+@dataclass(frozen=True)
+class Sweep(Recorded):
+    """One recorded sweep of one axis: :class:`Recorded` with arrays of shape (N,)."""
+
+    @property
     def thickness_um(self) -> float | None:
         """Layer thickness from the metadata, um, or None if the file does not say."""
         val = self.meta.get("layer_thickness_um")
@@ -86,10 +95,6 @@ class Sweep:
     def frequency_hz(self) -> float | None:
         val = self.meta.get("frequency_hz")
         return None if val is None else float(val)
-
-    @property
-    def name(self) -> str:
-        return Path(self.path).name if self.path else self.meta.get("name", "sweep")
 
     @property
     def memory_index(self) -> int:
@@ -445,9 +450,14 @@ class SweepStream:
 
 def write(sweep: Sweep, path: str | Path) -> None:
     """Write ``sweep`` atomically (temporary file, then rename)."""
+    write_atomic(path, format_text(sweep))
+
+
+def write_atomic(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file and a rename: never half a file."""
     p = Path(path)
     tmp = p.with_name(p.name + ".partial")
-    tmp.write_text(format_text(sweep), encoding="utf-8")
+    tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, p)
 
 
@@ -455,5 +465,5 @@ def from_arrays(voltage_v: FloatArray, displacement_um: FloatArray, sample_rate_
                 meta: Mapping[str, str] | None = None, path: str = "") -> Sweep:
     """A :class:`Sweep` on the uniform clock ``t_k = k / sample_rate_hz``."""
     v = np.asarray(voltage_v, dtype=float)
-    return Sweep(np.arange(v.size) / sample_rate_hz, v, np.asarray(displacement_um, dtype=float),
-                 dict(meta or {}), path)
+    return Sweep(np.arange(v.shape[0]) / sample_rate_hz, v,
+                 np.asarray(displacement_um, dtype=float), dict(meta or {}), path)

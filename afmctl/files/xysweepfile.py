@@ -24,9 +24,8 @@ one-axis keys) for everything one-axis code does.
 from __future__ import annotations
 
 import io
-import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -45,37 +44,9 @@ HELD_SPAN_V = 1e-6
 
 
 @dataclass(frozen=True)
-class XYSweep:
-    """One recorded sweep of a two-axis stage.
-
-    Parameters
-    ----------
-    time_s : ndarray, shape (N,)
-        Sample instants, s, strictly increasing and uniform.
-    voltage_v : ndarray, shape (N, 2)
-        Voltage of axis x (column 0) and y (column 1) held from each instant to the next, V.
-    displacement_um : ndarray, shape (N, 2)
-        Measured displacement of each axis, um (each sensor's zero arbitrary).
-    meta : dict
-        Metadata from the ``#`` lines (strings).
-    path : str
-        Where it was read from ("" if built in memory).
-    """
-
-    time_s: FloatArray
-    voltage_v: FloatArray
-    displacement_um: FloatArray
-    meta: Mapping[str, str] = field(default_factory=dict)
-    path: str = ""
-
-    @property
-    def dt(self) -> float:
-        """Sample period, s."""
-        return float((self.time_s[-1] - self.time_s[0]) / (self.time_s.size - 1))
-
-    @property
-    def name(self) -> str:
-        return Path(self.path).name if self.path else self.meta.get("name", "sweep")
+class XYSweep(sw.Recorded):
+    """One recorded sweep of a two-axis stage: :class:`~afmctl.files.sweepfile.Recorded` with
+    ``voltage_v`` and ``displacement_um`` of shape (N, 2), axis x in column 0 and y in column 1."""
 
     @property
     def moving(self) -> tuple[str, ...]:
@@ -161,15 +132,11 @@ def format_text(sweep: XYSweep) -> str:
 
 def write(sweep: XYSweep, path: str | Path) -> None:
     """Write ``sweep`` atomically (temporary file, then rename)."""
-    p = Path(path)
-    tmp = p.with_name(p.name + ".partial")
-    tmp.write_text(format_text(sweep), encoding="utf-8")
-    os.replace(tmp, p)
+    sw.write_atomic(path, format_text(sweep))
 
 
 def from_arrays(voltage_v: FloatArray, displacement_um: FloatArray, sample_rate_hz: float,
                 meta: Mapping[str, str] | None = None, path: str = "") -> XYSweep:
     """An :class:`XYSweep` on the uniform clock ``t_k = k / sample_rate_hz`` (arrays (N, 2))."""
-    v = np.asarray(voltage_v, dtype=float)
-    return XYSweep(np.arange(v.shape[0]) / sample_rate_hz, v,
-                   np.asarray(displacement_um, dtype=float), dict(meta or {}), path)
+    s = sw.from_arrays(voltage_v, displacement_um, sample_rate_hz, meta, path)
+    return XYSweep(s.time_s, s.voltage_v, s.displacement_um, s.meta, s.path)

@@ -279,3 +279,81 @@ def design_set(design: str, sample_rate_hz: float, max_rate_v_per_s: float,
         out.append((SEPARATING_NAME, reps, v,
                     {"design": design, "segments": segments_text(segs, sample_rate_hz)}))
     return out
+
+
+# ----------------------------------------------------------------------------------------------
+# two axes (afmctl sweep --axes x,y)
+# ----------------------------------------------------------------------------------------------
+
+#: The coupling's excitation: lines 1 Hz apart (periods of 1 s), this many periods.
+XY_PERIODS = 4
+#: Its peak excursion about mid-range, as a fraction of the axis's span.
+XY_EXCURSION = 0.3
+
+
+def coupling_multisine(mid_v: float, span_v: float, band_hz: float, max_rate_v_per_s: float,
+                       sample_rate_hz: float) -> FloatArray:
+    """A Schroeder-phased multisine about ``mid_v``: lines at 1, 2, 3 ... Hz up to ``band_hz``
+    (at most 24 of them, log-spaced above 12 Hz), each period 1 s, :data:`XY_PERIODS` periods,
+    equal amplitudes scaled so the excursion is at most ``XY_EXCURSION`` of ``span_v`` and the
+    slew at most ``SLEW_USE`` of ``max_rate_v_per_s``. Starts and ends at ``mid_v``.
+
+    Examples
+    --------
+    >>> v = coupling_multisine(0.0, 300.0, 100.0, 5e4, 10_000.0)
+    >>> v.size, float(v[0]), float(v[-1]), bool(np.max(np.abs(v)) <= 90.0 + 1e-9)
+    (40001, 0.0, 0.0, True)
+    """
+    lines = np.unique(np.round(np.geomspace(1.0, max(band_hz, 2.0), 24)))
+    n = int(round(sample_rate_hz))
+    t = np.arange(n) / sample_rate_hz
+    k = np.arange(1, lines.size + 1)
+    phase = -np.pi * k * (k - 1) / lines.size  # Schroeder: a low crest factor
+    shape = np.sum(np.sin(2 * np.pi * lines[:, None] * t + phase[:, None]), axis=0)
+    shape -= shape[0]
+    rate = np.max(np.abs(np.diff(shape))) * sample_rate_hz
+    scale = min(XY_EXCURSION * span_v / np.max(np.abs(shape)),
+                SLEW_USE * max_rate_v_per_s / rate)
+    v = np.concatenate([np.tile(mid_v + scale * shape, XY_PERIODS), [mid_v]])
+    return v
+
+
+def xy_design(sample_rate_hz: float, v_ranges: dict[str, tuple[float, float]],
+              max_rates_v_per_s: dict[str, float], band_hz: float
+              ) -> list[tuple[str, float, FloatArray, dict[str, str]]]:
+    """A two-axis identification set as (name, frequency_hz, voltage_v (N, 2), meta).
+
+    For each axis in turn (x, then y): the standard triangles (0.279, 5.58, 27.9 Hz over its
+    range, :func:`standard_set` without the minor loops) with the other axis held at the middle of
+    its range, then :func:`coupling_multisine` up to ``band_hz`` (about half the first resonance)
+    about the middle of its range, the other still held: what identifies each axis, and the
+    coupling both ways with its dynamics. Each file holds one axis constant; the recorder moves
+    the held axis there between files.
+
+    Examples
+    --------
+    >>> d = xy_design(1000.0, {"x": (0.0, 150.0), "y": (-100.0, 100.0)},
+    ...               {"x": 5e4, "y": 4e4}, 100.0)
+    >>> [n for n, _, _, _ in d]  # doctest: +NORMALIZE_WHITESPACE
+    ['x_triangle_0.279hz', 'x_triangle_5.58hz', 'x_triangle_27.9hz', 'x_multisine',
+     'y_triangle_0.279hz', 'y_triangle_5.58hz', 'y_triangle_27.9hz', 'y_multisine']
+    >>> float(d[0][2][0, 1]), float(d[4][2][0, 0])
+    (0.0, 75.0)
+    """
+    axes = ("x", "y")
+    out = []
+    for i, a in enumerate(axes):
+        other = axes[1 - i]
+        lo, hi = v_ranges[a]
+        held = 0.5 * sum(v_ranges[other])
+        waves = [(f"{a}_{n}", f, v) for n, f, v in
+                 standard_set(sample_rate_hz=sample_rate_hz, v_range=(lo, hi))[:3]]
+        waves.append((f"{a}_multisine", 1.0, coupling_multisine(
+            0.5 * (lo + hi), hi - lo, band_hz, max_rates_v_per_s[a], sample_rate_hz)))
+        for name, f, v in waves:
+            both = np.empty((v.size, 2))
+            both[:, i], both[:, 1 - i] = v, held
+            out.append((name, f, both, {"design": "xy", "swept_axis": a,
+                                        f"held_voltage_{other}_V": f"{held:g}",
+                                        "band_hz": f"{band_hz:g}"}))
+    return out

@@ -1,0 +1,60 @@
+"""``afmctl sweep --axes x,y``: record a two-axis identification set."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import click
+
+from afmctl.cli.base import check_output_dir, make_dir, opened_stage, say
+from afmctl.errors import InputError
+
+
+def first_resonance_hz(prof: Any) -> float | None:
+    """The lowest natural frequency ``sqrt(k / m) / 2 pi`` of the emulated axes' rods, Hz (None
+    for a profile without an emulated model)."""
+    freqs = []
+    for a in prof.axis_names:
+        em = prof.axis(a).emulator
+        if em is None or em.plant_model is None:
+            return None
+        rod = em.model.rod
+        freqs.append(math.sqrt(rod.k / rod.m) / (2 * math.pi))
+    return min(freqs)
+
+
+def sweep_xy(prof: Any, axes: str, out: Path, band_hz: float | None) -> None:
+    """Design, check and record the two-axis set (:func:`afmctl.planning.sweepdesign.xy_design`)."""
+    from afmctl.experiment import xyrecord
+    from afmctl.planning import sweepdesign
+    if tuple(a.strip() for a in axes.split(",")) != ("x", "y"):
+        raise InputError(f"--axes {axes}: the two-axis set is --axes x,y")
+    if prof.axis_names != ("x", "y"):
+        raise InputError(f"--axes x,y: profile {prof.name!r} has axes "
+                         f"{', '.join(prof.axis_names)} (a two-axis profile declares [axes])")
+    if band_hz is None:
+        first = first_resonance_hz(prof)
+        if first is None:
+            raise InputError("--axes x,y: give --band-hz (about half the stage's first "
+                             "resonance): the profile does not model its axes")
+        band_hz = 0.5 * first
+    limits = {a: prof.axis(a).limits for a in ("x", "y")}
+    design = sweepdesign.xy_design(
+        prof.sample_rate_hz, {a: (lim.v_min, lim.v_max) for a, lim in limits.items()},
+        {a: lim.max_rate_v_per_ms * 1e3 for a, lim in limits.items()}, band_hz)
+    xyrecord.check_design(design, 1.0 / prof.sample_rate_hz, limits)
+    check_output_dir(out, "--out", [f"{d[0]}.csv" for d in design], force=False)
+    meta = {"profile": prof.name, "sample_rate_hz": f"{prof.sample_rate_hz:g}",
+            "layer_thickness_x_um": f"{prof.axis('x').thickness_um:g}",
+            "layer_thickness_y_um": f"{prof.axis('y').thickness_um:g}",
+            "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    with opened_stage(prof) as stage:
+        if stage.channels != 2:
+            raise InputError(f"--axes x,y: the stage reports {stage.channels} channel(s)")
+        say(f"recording {len(design)} two-axis sweep(s), coupling band {band_hz:g} Hz ...")
+        for p in xyrecord.record(stage, design, prof.sample_rate_hz, limits,
+                                 make_dir(out, "--out"), meta, say):
+            click.echo(str(p))
