@@ -175,3 +175,23 @@ def test_a_y_amplifier_beyond_the_devices_channel_1_is_named() -> None:
     with InProcessStage(wide, emulator=Emulator(XY)) as stage:
         with pytest.raises(LimitMismatchError, match=r"\[axis\.y\.amplifier\].*of channel 1"):
             stage.check_limits()
+
+
+def test_the_xy_plant_adds_the_coupling_of_afmctl_model_coupling_in_pieces_as_in_one() -> None:
+    """The plant's y reading is y's own plant plus ``caused(c_yx, x)`` (afmctl.model.coupling's
+    response from rest), also when the run is played in two pieces (the mode's state carried)."""
+    from afmctl.drivers.device.emulator import plant
+    from afmctl.model.coupling import caused
+    physics = plant(XY, RATE)
+    v = x_only(3000, 120.0, 20.0)
+    v[:, 1] = 10.0 * np.sin(2 * np.pi * 7.0 * np.arange(3000) / RATE)
+    whole, _, _ = physics.respond(v, physics.initial())
+    first, _, state = physics.respond(v[:1234], physics.initial())
+    rest, _, _ = physics.respond(v[1234:], state)
+    np.testing.assert_allclose(np.vstack([first, rest]), whole, atol=1e-9)
+    own = [p.respond(v[:, c], p.initial())[0] for c, p in enumerate(physics.plants)]
+    coupling = dict(XY.emulator.coupling)  # type: ignore[union-attr]
+    np.testing.assert_allclose(whole[:, 1] - own[1], caused(coupling["yx"], own[0], 1 / RATE),
+                               atol=1e-6)
+    np.testing.assert_allclose(whole[:, 0] - own[0], caused(coupling["xy"], own[1], 1 / RATE),
+                               atol=1e-6)
