@@ -187,8 +187,12 @@ class Device:
         self.play_until(now)
         run = self.run
         if (run is None or not run["active"] or run["played"] >= run["n"]) and now > self.t_plant:
-            self.plant.idle(self.out, now - self.t_plant)  # the output held while idle
+            self.plant.idle(self.dac(), now - self.t_plant)  # the output held while idle
             self.t_plant = now
+
+    def dac(self) -> float:
+        """What the DAC holds (what the plant sees while idle)."""
+        return self.out
 
     def play_until(self, now: float) -> None:
         """Each sample is checked when its hold begins (a stale slot or a steep step in a stream
@@ -201,39 +205,54 @@ class Device:
         begun = min(run["n"], elapsed + 1)
         first = run["played"]
         ks = np.arange(first, max(first, begun))
-        batch = self.values[ks % self.length] if self.length else np.zeros(0)
+        batch = self.batch(ks, run)
         fault, k = 0, begun
         if run["stream"]:
-            stale = np.flatnonzero(self.holds[ks % self.length] != ks)
-            steep = np.flatnonzero(np.abs(np.diff(batch, prepend=run["last"]))
-                                   > self.step_limit())
-            if self.defect == "stream-plays-stale":
-                stale = stale[:0]
-            if self.defect == "stream-slew-unchecked":
-                steep = steep[:0]
-            for code, where in ((10, stale), (4, steep)):
+            for code, where in zip((10, 4), self.stream_faults(ks, batch, run), strict=True):
                 if where.size and first + int(where[0]) < k:
                     fault, k = code, first + int(where[0])
         done = min(k, elapsed) - first  # holds complete: played
         if done > 0:
-            v = batch[:done].astype(float)
+            v = batch[:done]
             u, mean = self.plant.play(v, dt)
-            stack = v if self.records_command else mean
-            if self.defect == "declares-command-records-output":
-                stack = mean + 0.01
-            ks = np.arange(first, first + done)
-            keep = ks % 997 != 996 if self.defect == "recorder-loses-entries" else ks >= 0
-            self.rec[ks[keep] % self.rec_cap] = np.column_stack([u, stack])[keep]
-            self.rec_k[ks[keep] % self.rec_cap] = ks[keep]
-            run["played"], run["last"] = first + done, float(v[-1])
-            self.out = float(v[-1])
+            self.record(np.arange(first, first + done), v, u, mean)
+            run["played"], run["last"] = first + done, self.hold(v[-1])
         if fault:
             return self.fault(run, k, fault)
         if k - first > done:
-            self.out = float(batch[done])  # the sample being held (§2.2(f))
+            self.hold(batch[done])  # the sample being held (§2.2(f))
         if run["played"] >= run["n"]:
             run["active"] = run["n"] > self.visible(now)  # running until the last is readable
             self.t_plant = run["t0"] + run["n"] * dt
+
+    def batch(self, ks: np.ndarray, run: dict) -> np.ndarray:
+        """The samples ``ks`` of the run."""
+        return self.values[ks % self.length] if self.length else np.zeros(0)
+
+    def stream_faults(self, ks: np.ndarray, batch: np.ndarray, run: dict
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Offsets into ``ks`` of stale slots (§2.4(d)) and of steps beyond the slew (§2.4(e))."""
+        stale = np.flatnonzero(self.holds[ks % self.length] != ks)
+        steep = np.flatnonzero(np.abs(np.diff(batch, prepend=run["last"])) > self.step_limit())
+        if self.defect == "stream-plays-stale":
+            stale = stale[:0]
+        if self.defect == "stream-slew-unchecked":
+            steep = steep[:0]
+        return stale, steep
+
+    def record(self, ks: np.ndarray, v: np.ndarray, u: np.ndarray, mean: np.ndarray) -> None:
+        """The recorder's entries of the played samples ``ks``: reading and stack voltage."""
+        stack = v if self.records_command else mean
+        if self.defect == "declares-command-records-output":
+            stack = mean + 0.01
+        keep = ks % 997 != 996 if self.defect == "recorder-loses-entries" else ks >= 0
+        self.rec[ks[keep] % self.rec_cap] = np.column_stack([u, stack])[keep]
+        self.rec_k[ks[keep] % self.rec_cap] = ks[keep]
+
+    def hold(self, sample: np.ndarray) -> float:
+        """Put ``sample`` on the DAC (the output, §2.2(f)); returns it."""
+        self.out = float(sample)
+        return self.out
 
     def visible(self, now: float) -> int:
         """The play position: samples played and readable (§2.2(c))."""
@@ -435,6 +454,13 @@ class Device:
         self.run = {"t0": now, "n": n, "stream": stream, "played": 0, "active": True,
                     "rate": self.rate, "last": self.out}
 
+    def start_check(self, count: int, wrap: bool) -> None:
+        """A start's checks (§2.6(e)): the first ``count`` samples, from the output, and the
+        wrap from the last to the first when ``wrap``."""
+        table = self.values[:count]
+        first = None if self.defect == "wgs-start-slew-unchecked" else self.out
+        self.in_range(np.concatenate([table, table[:1]]) if wrap else table, first)
+
     def wgo(self, args: list[str], now: float) -> str:
         cycles = ints(args, 1, self.defect)[0]
         if cycles == 0:
@@ -445,13 +471,11 @@ class Device:
         self.writable(now)
         if cycles < 1 or max(self.length, 1) * cycles > self.rec_cap:
             raise Refused(6)
-        table = self.values[:self.length]
         stale_ok = self.defect == "wgo-plays-stale-slots" and (self.holds[:self.length] >= 0).all()
         if not (self.complete(self.length) or stale_ok or
                 self.defect == "incomplete-table-starts" and self.length):
             raise Refused(9)
-        wrap = table[:1] if cycles > 1 and self.defect != "start-wrap-unchecked" else table[:0]
-        self.in_range(np.concatenate([table, wrap]), self.out)
+        self.start_check(self.length, cycles > 1 and self.defect != "start-wrap-unchecked")
         self.begin(self.length * cycles, False, now)
         return "OK"
 
@@ -463,8 +487,7 @@ class Device:
         need = min(self.length, n)
         if need == 0 or not self.complete(need):
             raise Refused(9)
-        first = None if self.defect == "wgs-start-slew-unchecked" else self.out
-        self.in_range(self.values[:need], first)
+        self.start_check(need, False)
         self.begin(n, True, now)
         return "OK"
 
@@ -472,6 +495,7 @@ class Device:
         first, n = ints(args, 2, self.defect)
         if not 1 <= n <= 256:
             raise Refused(2)
+        rec = self.recorder()
         if first < 0:
             raise Refused(6)
         seen = self.visible(now)
@@ -479,10 +503,14 @@ class Device:
         for k in range(first, first + n):
             if (k < seen or self.defect == "recorder-not-cleared") and \
                     self.rec_k[k % self.rec_cap] == k:
-                words += [num(x) for x in self.rec[k % self.rec_cap]]
+                words += [num(x) for x in rec[k % self.rec_cap]]
             else:
                 words += ["nan", "nan"]
         return " ".join(words)
+
+    def recorder(self) -> np.ndarray:
+        """The recorder ``DRR?`` reads: (capacity, 2) entries."""
+        return self.rec
 
     def safe(self, args: list[str], now: float) -> str:
         if self.read_only and self.defect == "read-only-refuses-safe":
