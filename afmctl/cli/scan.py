@@ -65,8 +65,9 @@ def scan() -> None:
               help="Model file: a two-axis model (each axis and the coupling), or a one-axis "
                    "model used for both axes (then no coupling is fed forward).")
 @click.option("--calibrate", is_flag=True,
-              help="Record two-axis sweeps and identify the model first: not available for "
-                   "two axes yet (refused; give --model).")
+              help="Record the two-axis sweep set (sweep --axes x,y's) on the stage and identify "
+                   "both axes and the coupling first, into DIR/calibration/ and "
+                   "DIR/model_xy.toml (moves both axes over their whole ranges).")
 @click.option("--filter", "filters", type=click.Choice(["inverse", "linear", "both"]),
               default="both", show_default=True,
               help="Each axis's model inverse (Algorithm 3), the paper's linear filter, or both "
@@ -95,14 +96,16 @@ def raster(size: tuple[float, float], pixels: int, lines: int, line_rate: float,
                          f"needs a two-axis stage with axes x, y (e.g. --profile emulated-xy)")
     dt = 1.0 / prof.sample_rate_hz
     _check_rate(line_rate, lines, prof.sample_rate_hz)
-    axes, coupling, about = xs.model_for_scan(prof, model_path, calibrate)
+    out = check_output_dir(Path(out_dir) if out_dir else timestamped("afmctl-scan"), "--out",
+                           OUTPUTS, False, measured=("run_*.csv",))
+    if calibrate:
+        model_path = _calibrated(prof, profile_path, out)
+    axes, coupling, about = xs.model_for_scan(prof, model_path)
     frame = rs.Frame(size[0], size[1], pixels, lines, line_rate, (0.0, 0.0), angle, slow,
                      direction, overscan, frames)
     frame = _placed(frame, axes, centre)
     wanted = ("inverse", "linear") if filters == "both" else (filters,)
     setup = xs.Setup(frame, axes, coupling, wanted, dt)
-    out = check_output_dir(Path(out_dir) if out_dir else timestamped("afmctl-scan"), "--out",
-                           OUTPUTS, False, measured=("run_*.csv",))
     meta = {"profile": prof.name, "model": model_path, "model_kind": about,
             "frame": frame.label(), "sample_rate_Hz": prof.sample_rate_hz}
     say(f"{frame.label()}, centre {frame.centre_um[0]:.4g}, {frame.centre_um[1]:.4g} um; "
@@ -132,6 +135,45 @@ def raster(size: tuple[float, float], pixels: int, lines: int, line_rate: float,
     _report(data, out)
     if as_json:
         click.echo(json.dumps(data, allow_nan=False))
+
+
+def _calibrated(prof: Any, profile_path: str | None, out: Path) -> str:
+    """``--calibrate``: record ``sweep --axes x,y``'s set on the stage into OUT/calibration/,
+    identify it (``identify``'s two-axis fit, the profile's ``[identify]`` settings) and write
+    OUT/model_xy.toml; its path."""
+    from afmctl.cli.base import fit_settings
+    from afmctl.cli.xysweep import first_resonance_hz
+    from afmctl.errors import FitError
+    from afmctl.experiment import xyrecord
+    from afmctl.files import xymodelfile, xysweepfile
+    from afmctl.fit import xyidentify
+    from afmctl.planning import sweepdesign
+    band = first_resonance_hz(prof)
+    if band is None:
+        raise InputError("--calibrate: the profile does not model its axes (their first "
+                         "resonance sets the coupling band): record `afmctl sweep --axes x,y "
+                         "--band-hz F`, identify it, and give --model")
+    limits = {a: prof.axis(a).limits for a in prof.axis_names}
+    design = sweepdesign.xy_design(
+        prof.sample_rate_hz, {a: (lim.v_min, lim.v_max) for a, lim in limits.items()},
+        {a: lim.max_rate_v_per_ms * 1e3 for a, lim in limits.items()}, 0.5 * band)
+    meta = {"profile": prof.name, "sample_rate_hz": f"{prof.sample_rate_hz:g}",
+            **{f"layer_thickness_{a}_um": f"{prof.axis(a).thickness_um:g}" for a in limits}}
+    say(f"calibrating: recording {len(design)} two-axis sweeps over each axis's range, then "
+        f"identifying both axes and the coupling ...")
+    with opened_stage(prof) as stage:
+        paths = xyrecord.record(stage, design, prof.sample_rate_hz, limits,
+                                make_dir(out / "calibration", "--out"), meta, say)
+    result = xyidentify.fit(xysweepfile.read_set(paths) or [], fit_settings(profile_path),
+                            progress=say)
+    if not result.finite:
+        raise FitError("--calibrate: the two-axis fit gave no finite model (the sweeps are "
+                       f"kept in {out}/calibration)")
+    path = out / "model_xy.toml"
+    xymodelfile.write(result.model, path, "afmctl scan raster --calibrate",
+                      {a: r.envelope for a, r in result.axes.items()})
+    say(f"wrote {path}")
+    return str(path)
 
 
 def _check_rate(line_rate: float, lines: int, sample_rate_hz: float) -> None:

@@ -81,7 +81,7 @@ def axis_limits(profile: Any, name: str) -> Any:
     return profile.axis(name).limits if hasattr(profile, "axis") else profile.limits
 
 
-def model_for_scan(profile: Any, model_path: str | None, calibrate: bool
+def model_for_scan(profile: Any, model_path: str | None
                    ) -> tuple[dict[str, raster.AxisPlan], dict[str, cp.Coupling] | None, str]:
     """Each axis's model, limits and envelope, the coupling to feed forward (None: none known)
     and a description of where they came from.
@@ -89,13 +89,10 @@ def model_for_scan(profile: Any, model_path: str | None, calibrate: bool
     A two-axis model file (each axis's model and the coupling both ways) gives everything; a
     one-axis model file is used for both axes, with no coupling fed forward (said so).
     """
-    if calibrate:
-        raise InputError("--calibrate is not available for two axes yet: record a two-axis "
-                         "sweep set, identify it (`afmctl identify`), and give --model")
     if model_path is None:
         raise InputError("a raster scan needs a model: --model M (a two-axis model file, from "
                          "`afmctl identify` on two-axis sweeps, or a one-axis one for both "
-                         "axes)")
+                         "axes), or --calibrate")
     if modelfile.file_version(tomlfile.load(model_path)) != modelfile.XY_VERSION:
         model, env, _ = xymodelfile.read_axis(model_path, "x")
         axes = {n: raster.AxisPlan(model, axis_limits(profile, n), env) for n in raster.AXES}
