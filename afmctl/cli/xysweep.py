@@ -33,8 +33,8 @@ def sweep_xy(prof: Any, axes: str, out: Path, band_hz: float | None) -> None:
     if tuple(a.strip() for a in axes.split(",")) != ("x", "y"):
         raise InputError(f"--axes {axes}: the two-axis set is --axes x,y")
     if prof.axis_names != ("x", "y"):
-        raise InputError(f"--axes x,y: profile {prof.name!r} has axes "
-                         f"{', '.join(prof.axis_names)} (a two-axis profile declares [axes])")
+        raise InputError(f"--axes x,y: profile {prof.name!r} is not a two-axis profile (axes "
+                         f"{', '.join(prof.axis_names)}; a two-axis profile declares [axes])")
     if band_hz is None:
         first = first_resonance_hz(prof)
         if first is None:
