@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -57,8 +58,8 @@ def scan() -> None:
 @click.option("--frames", type=click.IntRange(min=1), default=1, show_default=True,
               help="Frames to scan (each its own run files).")
 @click.option("--learn-frames", type=click.IntRange(min=0), default=0, show_default=True,
-              help="Learn the frame from up to N repeated frames first (both axes at once), "
-                   "then scan --frames frames with the learned waveform.")
+              help="Learn the frame from up to N repeated frames first (both axes at once, "
+                   "through the inverse), then scan --frames frames with the learned waveform.")
 @click.option("--profile", "profile_path", type=click.Path(dir_okay=False),
               help="A two-axis stage profile (e.g. emulated-xy).")
 @click.option("--model", "model_path", type=click.Path(dir_okay=False),
@@ -89,6 +90,8 @@ def raster(size: tuple[float, float], pixels: int, lines: int, line_rate: float,
     from afmctl.planning import raster as rs
     if model_path is not None and calibrate:
         raise InputError("--model and --calibrate exclude each other")
+    if learn_frames and direction == "bounce":
+        raise InputError("--learn-frames learns one frame: scan it --direction up or down")
     prof = load_profile_or_exit(profile_path)
     names = tuple(getattr(prof, "axis_names", ("x",)))
     if names != rs.AXES:
@@ -108,33 +111,42 @@ def raster(size: tuple[float, float], pixels: int, lines: int, line_rate: float,
     setup = xs.Setup(frame, axes, coupling, wanted, dt)
     meta = {"profile": prof.name, "model": model_path, "model_kind": about,
             "frame": frame.label(), "sample_rate_Hz": prof.sample_rate_hz}
+    fed = "fed forward" if coupling else "not fed forward (none known)"
     say(f"{frame.label()}, centre {frame.centre_um[0]:.4g}, {frame.centre_um[1]:.4g} um; "
-        f"model: {model_path} ({about}); coupling " + ("fed forward" if coupling else "not fed forward (none "
-                                         "known)"))
+        f"model: {model_path} ({about}); coupling {fed}")
+    runs = _scan(prof, setup, learn_frames, out, meta)
+    from afmctl.experiment import runner
+    data = runner.json_ready(xs.summary(runs, setup, meta))  # as written after the last frame
+    _report(data, out)
+    if as_json:
+        click.echo(json.dumps(data, allow_nan=False))
+
+
+def _scan(prof: Any, setup: Any, learn_frames: int, out: Path, meta: dict[str, Any]
+          ) -> list[Any]:
+    """Play the frames (after learning, with ``learn_frames``); every finished frame's files
+    written as it ends, and kept on an interrupt (the stage ends safe)."""
+    from afmctl.experiment import scan as xs
+    from afmctl.experiment import scanlearn
     runs: list[Any] = []
     with opened_stage(prof) as stage:
         if getattr(stage, "channels", 1) != 2:
             raise InputError(f"the stage of profile {prof.name!r} reports "
                              f"{getattr(stage, 'channels', 1)} channel(s): a raster scan needs 2")
         make_dir(out, "--out")
+        written = partial(_write, setup=setup, out=out, meta=meta)
         try:
             if learn_frames:
-                from afmctl.experiment import scanlearn
-                scanlearn.learn_then_scan(stage, setup, learn_frames, out, meta, say,
-                                   lambda done: _write(done, setup, out, meta), runs)
+                scanlearn.learn_then_scan(stage, setup, learn_frames, out, meta, say, written,
+                                          runs)
             else:
-                xs.run(stage, setup, out, meta, say, lambda done: _write(done, setup, out, meta),
-                       runs)
+                xs.run(stage, setup, out, meta, say, written, runs)
         except BaseException as exc:
             if runs and not isinstance(exc, SystemExit):
                 say(f"interrupted ({type(exc).__name__}): the finished frames and their files "
                     f"are kept in {out}/")
             raise
-    from afmctl.experiment import runner
-    data = runner.json_ready(xs.summary(runs, setup, meta))  # as written after the last frame
-    _report(data, out)
-    if as_json:
-        click.echo(json.dumps(data, allow_nan=False))
+    return runs
 
 
 def _calibrated(prof: Any, profile_path: str | None, out: Path) -> str:
