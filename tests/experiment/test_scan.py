@@ -13,7 +13,7 @@ import pytest
 from afmctl.experiment import scan as xs
 from afmctl.experiment import scanlearn
 from afmctl.files import runfile, waveformfile
-from afmctl.files.profile import default_profile
+from afmctl.files.profile import Profile, default_profile
 from afmctl.model.coupling import Coupling
 from afmctl.planning import raster as rs
 from afmctl.planning import scanimage as si
@@ -25,23 +25,24 @@ COUPLING = {"yx": Coupling(0.015, 420.0, 0.03, 0.02, 0.05),
 
 
 @pytest.fixture(scope="module")
-def nominal():  # noqa: ANN201
+def nominal() -> Profile:
     return default_profile()
 
 
-def plant(nominal) -> XYPlant:  # noqa: ANN001
+def plant(nominal: Profile) -> XYPlant:
     m = nominal.emulator.model
     return XYPlant({"x": detuned(m, 1.01, 0.99, 1.02), "y": detuned(m, 0.98, 1.01, 0.97)},
                    COUPLING, DT, noise_um=0.02, seed=5)
 
 
-def setup(nominal, frames: int = 1, filters=("inverse", "linear"), **kw) -> xs.Setup:  # noqa: ANN001
+def setup(nominal: Profile, frames: int = 1, filters: tuple[str, ...] = ("inverse", "linear"),
+          **kw: str) -> xs.Setup:
     fr = rs.Frame(16.0, 8.0, 32, 6, 40.0, centre_um=(8.0, 6.0), frames=frames, **kw)
     axes = {n: rs.AxisPlan(nominal.emulator.model, nominal.limits) for n in rs.AXES}
     return xs.Setup(fr, axes, COUPLING, filters, DT)
 
 
-def test_frames_stream_into_run_files_that_rebuild_the_images(nominal, tmp_path: Path) -> None:  # noqa: ANN001
+def test_frames_stream_into_run_files_that_rebuild_the_images(nominal: Profile, tmp_path: Path) -> None:
     s = setup(nominal, frames=2, direction="bounce")
     lines: list[str] = []
     runs = xs.run(plant(nominal), s, tmp_path, {"profile": "test"}, lines.append)
@@ -70,7 +71,7 @@ def test_frames_stream_into_run_files_that_rebuild_the_images(nominal, tmp_path:
     assert data["ratio_linear_over_inverse_fast_rms"] > 1
 
 
-def test_an_interrupt_keeps_every_finished_frame(nominal, tmp_path: Path) -> None:  # noqa: ANN001
+def test_an_interrupt_keeps_every_finished_frame(nominal: Profile, tmp_path: Path) -> None:
     s = setup(nominal, frames=3, filters=("inverse",))
     stage = plant(nominal)
     finished: list[int] = []
@@ -94,7 +95,7 @@ def test_an_interrupt_keeps_every_finished_frame(nominal, tmp_path: Path) -> Non
     assert stage.safe and np.all(stage.voltages() == 0)
 
 
-def test_learning_both_axes_reaches_near_the_noise_and_replays(nominal, tmp_path: Path) -> None:  # noqa: ANN001
+def test_learning_both_axes_reaches_near_the_noise_and_replays(nominal: Profile, tmp_path: Path) -> None:
     s = setup(nominal, frames=1, filters=("inverse",))
     runs: list[xs.FrameRun] = []
     got = scanlearn.learn_then_scan(plant(nominal), s, 2, tmp_path, {}, None, None, runs)
