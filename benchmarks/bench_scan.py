@@ -78,6 +78,9 @@ LINES_AT_1_HZ = 8
 MAX_FRAME_UM = 60.0
 LEARN_FRAMES = 5
 FRAME_SHARE = 0.9
+#: The figures of a frame whose waveform no inversion horizon keeps within the limits (refused
+#: before anything moves: the stage cannot scan it at that rate).
+REFUSED: dict[str, Any] = {"fast_rms_pct": None}
 #: Identification settings (``--identify``): ``quick`` fits the parametric model once (no
 #: Preisach-grid alternative, one start), ``full`` is ``afmctl identify``'s default.
 IDENTIFY = {"quick": idf.Settings(representation="hem", restarts=1), "full": idf.Settings()}
@@ -191,7 +194,7 @@ def scan(plant: PlantStage, axes: dict[str, rs.AxisPlan], coupling: Any, frame: 
         plans = rs.plan(frame, axes, DT, coupling, filters)
     except LimitError as exc:  # the linear filter's line beyond the limits: the inverse alone
         if "linear" not in filters or "linear" not in str(exc):
-            raise
+            return {"compute_s": None, "refused": str(exc), **{f: REFUSED for f in filters}}
         plans = rs.plan(frame, axes, DT, coupling, ("inverse",))
     grid = rs.pixel_grid(frame, DT)
     compute = time.perf_counter() - t0
@@ -273,6 +276,8 @@ def bench_frames(plant: Any, axes: dict[str, rs.AxisPlan], coupling: dict[str, A
         got = scan(plant, axes, coupling, fr)
         for f in ("inverse", "linear"):
             row["fast_rms_pct_by_rate"][f][f"{rate:g}"] = got[f]["fast_rms_pct"]
+        if "refused" in got:
+            row.setdefault("refused", {})[f"{rate:g}"] = got["refused"]
         if rate == 10:
             row["registration_px"] = got["inverse"]["registration_px"]
             row["slow_deviation_px"] = got["inverse"]["slow_deviation_px"]
