@@ -74,11 +74,22 @@ _EXPORTS: dict[str, str] = {
     # learning
     "LearningLaw": "afmctl.planning.ilc:Law",
     "learn": "afmctl.experiment.learn:run",
+    # raster scans (two axes)
+    "AxisPlan": "afmctl.planning.raster:AxisPlan",
+    "RasterFrame": "afmctl.planning.raster:Frame",
+    "ScanSetup": "afmctl.experiment.scan:Setup",
+    "plan_raster": "afmctl.planning.raster:plan",
+    "raster_images": "afmctl.planning.scanimage:images",
+    "raster_merit": "afmctl.planning.scanimage:merit",
+    "pixel_grid": "afmctl.planning.raster:pixel_grid",
+    "scan_raster": "afmctl.experiment.scan:run",
+    "write_gwy": "afmctl.files.gwy:write",
     # errors
     "AfmctlError": "afmctl.errors:AfmctlError",
     "EnvelopeError": "afmctl.errors:EnvelopeError",
     "FileFormatError": "afmctl.errors:FileFormatError",
     "FitError": "afmctl.errors:FitError",
+    "FrameReachError": "afmctl.errors:FrameReachError",
     "InputError": "afmctl.errors:InputError",
     "LimitError": "afmctl.errors:LimitError",
     "ReachError": "afmctl.errors:ReachError",

@@ -11,6 +11,7 @@ kind                       what it means                                        
 :class:`OutputError`       an output that cannot or must not be written                 2
 :class:`LimitError`        a waveform outside the stage's voltage, slew or current      2
 :class:`ReachError`       a trajectory beyond what the stage can reach                 2
+:class:`FrameReachError`   a raster frame beyond the stage's reach (names what fits)    2
 :class:`EnvelopeError`     a waveform outside the model's validity envelope             2
 :class:`StageError`        the stage or its link failed (a refusal, a timeout, a loss)  1
 :class:`StageTimeoutError` the stage did not finish or answer within its bound          1
@@ -73,6 +74,11 @@ class LimitError(InputError):
 class ReachError(LimitError):
     """A trajectory that asks for a displacement the model cannot give within the voltage limits
     (refused before anything moves, never clipped)."""
+
+
+class FrameReachError(ReachError):
+    """A raster frame beyond the stage's reach on either axis (refused before anything moves,
+    naming the largest frame of the same shape that fits)."""
 
 
 class EnvelopeError(InputError):

@@ -23,6 +23,7 @@ from afmctl.files.sweepfile import Sweep
 if TYPE_CHECKING:
     from afmctl.experiment.learn import Result
     from afmctl.experiment.runner import Outcome
+    from afmctl.experiment.scan import FrameRun
     from afmctl.planning.track import Desired
 
 FloatArray = NDArray[np.float64]
@@ -223,4 +224,33 @@ def learn_figure(result: Result, desired: Desired) -> Figure:
     for a in ax:
         a.grid(alpha=0.3)
         a.legend(loc="best", fontsize=8)
+    return fig
+
+
+
+def scan_figure(runs: list[FrameRun]) -> Figure:
+    """``scan.png``: for the last frame of each filter (side by side), the fast-axis error of the
+    trace and the retrace, the slow-axis error of the trace, and the trace/retrace registration
+    (pixels), each image line by line as the frame was scanned (rows by increasing slow
+    coordinate); a row's colour scale is shared by the filters, so they compare at a glance."""
+    cols = list({r.filter: r for r in runs}.values())
+    rows = (("fast error, trace", "um", "fast_rms_um", lambda r: r.images.error_fast_um[0]),
+            ("fast error, retrace", "um", "fast_rms_um", lambda r: r.images.error_fast_um[1]),
+            ("slow error, trace", "px", "slow_deviation_px",
+             lambda r: r.images.error_slow_um[0]),
+            ("registration trace - retrace", "px", "registration_px",
+             lambda r: r.images.registration_px))
+    fig = Figure(figsize=(4.2 * len(cols) + 1.2, 12), layout="constrained")
+    ax = np.array(fig.subplots(len(rows), len(cols), squeeze=False))
+    for i, (what, unit, key, get) in enumerate(rows):
+        imgs = [get(r) for r in cols]
+        lim = max((float(np.nanmax(np.abs(m))) for m in imgs if np.isfinite(m).any()),
+                  default=0.0) or 1.0
+        for j, (r, img) in enumerate(zip(cols, imgs, strict=True)):
+            im = ax[i, j].imshow(img, origin="lower", aspect="auto", cmap="RdBu_r",
+                                 vmin=-lim, vmax=lim, interpolation="nearest")
+            ax[i, j].set(title=f"{r.filter}, frame {r.index}: {what}\nRMS {r.merit[key]:.3g} "
+                               f"{unit}", xlabel="pixel", ylabel="line")
+        fig.colorbar(im, ax=ax[i, :].tolist(), shrink=0.9,
+                     label="um" if "error" in what else "pixels")
     return fig

@@ -7,7 +7,7 @@ Exit codes: 0 success; 1 the stage failed or a fit gave no finite model; 2 bad i
 stderr, nothing written); 130 interrupted (the stage was put in its safe state).
 """
 
-from afmctl.cli import diagnose, identify, play, score, stage, sweep, track  # noqa: F401 (registers commands)
+from afmctl.cli import diagnose, identify, play, scan, score, stage, sweep, track  # noqa: F401 (registers commands)
 from afmctl.cli.base import main
 
 __all__ = ["main"]

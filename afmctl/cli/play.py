@@ -119,7 +119,9 @@ def _tracking(desired_um: Any) -> slice:
                    "with its reference_um column).")
 def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: str | None,
          as_json: bool, relearn: int) -> None:
-    """Replay a saved waveform (time_s,voltage_V[,desired_um] CSV, e.g. a learned one).
+    """Replay a saved waveform (time_s,voltage_V[,desired_um] CSV, e.g. a learned one; or a
+    two-axis one, time_s,voltage_x_V,voltage_y_V[,desired_x_um,desired_y_um], on a two-axis
+    stage).
 
     The waveform passes the same guard as track's (nothing is sent otherwise); its run file,
     summary.json, play.png and scores (against desired_um, if the file has it) are track's. A
@@ -145,9 +147,12 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     if abs(w.dt_s - dt) > 1e-6 * dt + 1e-9:
         fail(f"the waveform is sampled every {w.dt_s * 1e3:.6g} ms; profile {prof.name!r} "
              f"plays every {dt * 1e3:.6g} ms")
-    model = modelfile.read(model_path) if model_path else None
     for line in header_warnings(w.meta, prof.name, model_path, Path(wave).name):
         click.echo(line, err=True)
+    if w.voltage_v.ndim == 2:
+        _play_xy(w, prof, Path(wave).name, out_dir, as_json)
+        return
+    model = modelfile.read(model_path) if model_path else None
     if relearn:
         _relearn(w, Path(wave), prof, model, model_path, relearn, out_dir, as_json)
         return
@@ -229,6 +234,48 @@ def _relearn(w: Any, wave: Path, prof: Any, model: Any, model_path: str | None,
         learn_track(desired, prof, model, model_path, stage, iterations, {},
                     seed if seed in ("inverse", "linear") else "inverse", (True, False),
                     out_dir, as_json, resume=resume)
+
+
+def _play_xy(w: Any, prof: Any, name: str, out_dir: str | None, as_json: bool) -> None:
+    """Replay a two-axis waveform (``scan raster --learn-frames``'s) on a two-axis stage: every
+    channel through its axis's guard, one two-axis run file, each axis's error against its
+    desired column where the file has one."""
+    import numpy as np
+
+    from afmctl import guard
+    from afmctl.experiment import runner as experiment
+    from afmctl.experiment import scan as xs
+    from afmctl.planning import raster
+    names = tuple(getattr(prof, "axis_names", ("x",)))
+    if names != raster.AXES:
+        fail(f"{name} is a two-axis waveform; profile {prof.name!r} has axes "
+             f"{', '.join(names)} (e.g. --profile emulated-xy)")
+    dt = 1.0 / prof.sample_rate_hz
+    rows = np.flatnonzero(np.isfinite(w.desired_um).all(axis=1))
+    tracking = slice(int(rows[0]), int(rows[-1]) + 1) if rows.size else slice(0, 0)
+    wf = raster.XYWaveform("play", dt, w.voltage_v, w.desired_um, tracking, {}, False)
+    with opened_stage(prof) as stage:
+        start = stage.voltages()
+        for k, axis in enumerate(raster.AXES):
+            guard.check(w.voltage_v[:, k], dt, xs.axis_limits(prof, axis), float(start[k]),
+                        f"waveform, axis {axis}")
+        out = _out_dir(out_dir, "afmctl-play")
+        meta = {"profile": prof.name, "waveform": name, "sample_rate_Hz": prof.sample_rate_hz}
+        u, _, complete = experiment.stream(stage, wf, out / "run_play.csv", meta,
+                                           progress_printer(True))
+    err = u[tracking] - w.desired_um[tracking]
+    axes = {a: {"rms_um": float(np.sqrt(np.nanmean(err[:, k] ** 2))) if rows.size else None,
+                "max_um": float(np.nanmax(np.abs(err[:, k]))) if rows.size else None}
+            for k, a in enumerate(raster.AXES)}
+    data = {**meta, "samples": int(w.voltage_v.shape[0]), "complete": complete, "axes": axes}
+    for a, m in axes.items():
+        if m["rms_um"] is not None:
+            click.echo(f"play axis {a}: RMS {m['rms_um']:.4f} um, max {m['max_um']:.4f} um "
+                       f"(against the file's desired_{a}_um)", err=True)
+    experiment.write_summary(data, out / "summary.json")
+    click.echo(f"wrote {out}/run_play.csv, summary.json", err=True)
+    if as_json:
+        click.echo(json.dumps(experiment.json_ready(data)))
 
 
 def header_warnings(meta: dict[str, str], profile: str, model_path: str | None,

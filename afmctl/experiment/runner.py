@@ -23,7 +23,7 @@ from afmctl.errors import SamplesLostError
 from afmctl.files import runfile
 from afmctl.model import effects as fx
 from afmctl.model import transducer as tr
-from afmctl.planning import track
+from afmctl.planning import raster, track
 
 FloatArray = NDArray[np.float64]
 Progress = Callable[[str, int, int], None]
@@ -74,8 +74,9 @@ class Outcome:
                 "run_file": self.run_file.name}
 
 
-def stream(stage: PlayingStage, wf: track.Waveform, path: Path, meta: Mapping[str, object],
-           progress: Progress | None = None) -> tuple[FloatArray, FloatArray, bool]:
+def stream(stage: PlayingStage, wf: track.Waveform | raster.XYWaveform, path: Path,
+           meta: Mapping[str, object], progress: Progress | None = None,
+           axes: tuple[str, ...] = raster.AXES) -> tuple[FloatArray, FloatArray, bool]:
     """Play ``wf`` on ``stage``, appending each block to the run file ``path`` as it arrives.
 
     Returns (displacement_um, voltage_v, complete); samples never received are NaN. Any exception
@@ -88,26 +89,30 @@ def stream(stage: PlayingStage, wf: track.Waveform, path: Path, meta: Mapping[st
     only their reading was lost) or the run ends: normally, all played; after a failure, the
     trailing ones were never played (or not known to have been) and are written without a
     voltage, status ``not played``.
+
+    A waveform of several axes (``voltage_v`` of shape (N, C), a raster scan's) plays on ``C``
+    channels at once and is written with one column per axis (``axes`` names them).
     """
-    n = wf.voltage_v.size
-    u = np.full(n, np.nan)
-    v = np.full(n, np.nan)
+    n = wf.voltage_v.shape[0]
+    u = np.full(wf.voltage_v.shape, np.nan)
+    v = np.full(wf.voltage_v.shape, np.nan)
     t = wf.time_s
     held = [n]  # first sample of the unrecorded rows not yet written (n: none)
 
     def write(writer: runfile.RunWriter, start: int, stop: int, played: bool) -> None:
         sl = slice(start, stop)
-        volt = wf.voltage_v[sl] if played else np.full(stop - start, np.nan)
+        volt = wf.voltage_v[sl] if played else np.full(wf.voltage_v[sl].shape, np.nan)
         writer.write(np.arange(start, stop), t[sl], wf.desired_um[sl], volt, u[sl],
                      None if played else "not played")
 
-    with runfile.RunWriter(path, {**meta, "filter": wf.filter, "samples": n}) as writer:
+    with runfile.RunWriter(path, {**meta, "filter": wf.filter, "samples": n},
+                           axes if wf.voltage_v.ndim == 2 else ()) as writer:
 
         def on_block(first: int, volt: FloatArray, disp: FloatArray, valid: Any) -> None:
             sl = slice(first, first + len(disp))
             u[sl] = np.where(valid, disp, np.nan)
             v[sl] = volt
-            recorded = np.flatnonzero(np.isfinite(volt))
+            recorded = np.flatnonzero(np.isfinite(volt).reshape(len(volt), -1).all(axis=1))
             start = min(held[0], first)
             last = first + int(recorded[-1]) + 1 if recorded.size else start
             if last > start:

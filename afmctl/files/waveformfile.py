@@ -17,6 +17,13 @@ on the conditioning and the ramps) and, when present, is what a replay is scored
 (Algorithm 3's target: the desired trajectory plus what learning added), which a replay that
 re-learns (``afmctl play --relearn``) starts from. Any ``time_s,voltage_V`` file with ``#``
 metadata lines (or none) is a waveform file.
+
+A two-axis waveform (what ``afmctl scan raster --learn-frames`` writes) has a voltage and a
+desired column per axis, channel 0 x and 1 y::
+
+    time_s,voltage_x_V,voltage_y_V,desired_x_um,desired_y_um
+
+and :class:`WaveformFile`'s arrays then have shape (N, 2).
 """
 
 from __future__ import annotations
@@ -34,12 +41,15 @@ from afmctl.files import sweepfile as sweeps
 
 FloatArray = NDArray[np.float64]
 FORMAT_VERSION = 1
+#: The axes of a two-axis waveform file, in channel order.
+AXES = ("x", "y")
 
 
 @dataclass(frozen=True)
 class WaveformFile:
-    """A waveform read back: samples every ``dt_s`` seconds, desired NaN where absent, the
-    learned reference (um, NaN where absent) or None without that column."""
+    """A waveform read back: samples every ``dt_s`` seconds, desired NaN where absent, shape (N,)
+    or, for a two-axis file, (N, 2); the learned reference (um, NaN where absent) or None without
+    that column (one-axis files only)."""
 
     meta: dict[str, str]
     dt_s: float
@@ -51,14 +61,27 @@ class WaveformFile:
 def format_text(time_s: FloatArray, voltage_v: FloatArray, desired_um: FloatArray,
                 meta: Mapping[str, object], reference_um: FloatArray | None = None) -> str:
     """The file's text: metadata, header, one row per sample (desired and the optional
-    reference empty where NaN)."""
+    reference empty where NaN); a two-axis file for voltages of shape (N, 2)."""
     head = {"afmctl-waveform": FORMAT_VERSION, **meta}
     lines = [f"# {k}: {str(v).replace(chr(10), ' ')}" for k, v in head.items()]
-    cols = [desired_um] if reference_um is None else [desired_um, reference_um]
-    lines.append("time_s,voltage_V,desired_um" + ("" if reference_um is None else ",reference_um"))
-    lines += [f"{t:.7f},{v:.6f}," + ",".join('' if math.isnan(x) else f'{x:.6f}' for x in xs)
-              for t, v, *xs in zip(time_s, voltage_v, *cols, strict=True)]
+    two = np.ndim(voltage_v) == 2
+    n = len(time_s)
+    extra = () if reference_um is None else ("reference_um",)
+    lines.append(",".join((*_columns(two), *extra)))
+    v2 = np.asarray(voltage_v, dtype=float).reshape(n, -1)
+    d2 = np.asarray(desired_um, dtype=float).reshape(n, -1)
+    if reference_um is not None:
+        d2 = np.column_stack([d2, np.asarray(reference_um, dtype=float).reshape(n, -1)])
+    lines += [f"{t:.7f}," + ",".join(f"{x:.6f}" for x in v) + ","
+              + ",".join("" if math.isnan(x) else f"{x:.6f}" for x in d)
+              for t, v, d in zip(time_s, v2, d2, strict=True)]
     return "\n".join(lines) + "\n"
+
+
+def _columns(two: bool) -> tuple[str, ...]:
+    if not two:
+        return ("time_s", "voltage_V", "desired_um")
+    return ("time_s", *(f"voltage_{a}_V" for a in AXES), *(f"desired_{a}_um" for a in AXES))
 
 
 def _cells(where: str, n: int, row: list[str], width: int) -> list[float]:
@@ -91,7 +114,8 @@ def parse(text: str, where: str = "<waveform>") -> WaveformFile:
             meta[key.strip()] = val.strip()
         elif header is None:
             header = [c.strip() for c in line.split(",")]
-            for col in ("time_s", "voltage_V"):
+            wanted = ("time_s", "voltage_x_V" if "voltage_x_V" in header else "voltage_V")
+            for col in (*wanted, *(("voltage_y_V",) if "voltage_x_V" in header else ())):
                 if col not in header:
                     raise FileFormatError(f"{where}: missing column {col}")
         else:
@@ -99,8 +123,8 @@ def parse(text: str, where: str = "<waveform>") -> WaveformFile:
     if header is None or len(rows) < 2:
         raise FileFormatError(f"{where}: no header or fewer than 2 samples")
     data = np.array(rows)
-    t, v = data[:, header.index("time_s")], data[:, header.index("voltage_V")]
-    d = data[:, header.index("desired_um")] if "desired_um" in header else np.full(t.size, np.nan)
+    t = data[:, header.index("time_s")]
+    v, d = _channels(data, header, "voltage_x_V" in header)
     r = data[:, header.index("reference_um")] if "reference_um" in header else None
     if not (np.isfinite(t).all() and np.isfinite(v).all()):
         raise FileFormatError(f"{where}: time_s and voltage_V must be finite in every row")
@@ -109,6 +133,18 @@ def parse(text: str, where: str = "<waveform>") -> WaveformFile:
     if dt <= 0 or np.max(np.abs(steps - dt)) > 1e-3 * dt + 1e-7:
         raise FileFormatError(f"{where}: time_s must increase in equal steps")
     return WaveformFile(meta, dt, v, d, r)
+
+
+def _channels(data: FloatArray, header: list[str], two: bool) -> tuple[FloatArray, FloatArray]:
+    """The voltage and desired columns, (N,) or (N, 2) for a two-axis file (desired NaN where
+    absent)."""
+    cols = _columns(two)[1:]
+    half = len(cols) // 2
+    missing = np.full(data.shape[0], np.nan)
+    got = [data[:, header.index(c)] if c in header else missing for c in cols]
+    if not two:
+        return got[0], got[1]
+    return np.column_stack(got[:half]), np.column_stack(got[half:])
 
 
 def read(path: str | Path) -> WaveformFile:

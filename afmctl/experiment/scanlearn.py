@@ -1,0 +1,152 @@
+"""Learning a raster frame frame by frame, then scanning with what was learned.
+
+The law is ``track --learn``'s (:mod:`afmctl.planning.ilc`), on both axes at once: frame 0 plays
+each axis's inverse of its target (the desired trajectory with the coupling fed forward,
+:func:`afmctl.planning.raster.targets`); every next frame corrects each axis's **reference**,
+``r_{j+1} = r_j + Q[L e_j]``, from that axis's measured error inside the image (the overscan and
+its turnarounds learn nothing, so a fast scan does not keep sharpening its corners), and plans
+it again through that axis's inverse. The y error includes the y motion x causes that the
+feed-forward left: the y reference learns it away with the rest (and likewise x). ``L`` and
+``Q`` are tuned per axis on frame 0 (:func:`afmctl.planning.ilc.tune`, the line rate's
+harmonics).
+
+Every frame's waveform passes the guard and the envelope before it is sent; one that would not
+ends learning with the best frame so far, as do the noise floor (both axes' image-region RMS
+error within :attr:`~afmctl.planning.ilc.Law.floor_factor` of their noise, estimated from the
+readings) and a diverging error (worse than :attr:`~afmctl.planning.ilc.Law.diverge_factor`
+times the best). The best frame's waveform is then what ``--frames`` plays, and is saved
+(``waveform_learned.csv``, a two-axis waveform file ``afmctl play`` replays).
+"""
+
+from __future__ import annotations
+
+import dataclasses as dc
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from afmctl import guard
+from afmctl.errors import EnvelopeError, InputError
+from afmctl.experiment import runner
+from afmctl.experiment import scan as xs
+from afmctl.files import waveformfile
+from afmctl.planning import ilc, raster, track
+
+DEFAULT_LAW = ilc.Law()
+
+
+@dataclass(frozen=True)
+class Learned:
+    """The learning frames played (``runs``), the best one's index, why learning stopped, and
+    each axis's noise estimate (um)."""
+
+    runs: tuple[xs.FrameRun, ...]
+    best: int
+    stop: str
+    noise_um: dict[str, float]
+
+    @property
+    def waveform(self) -> raster.XYWaveform:
+        return self.runs[self.best].waveform
+
+
+def _errors(run: xs.FrameRun, traj: raster.Trajectories) -> dict[str, np.ndarray]:
+    """Each axis's error (desired minus readings, um) over the tracking part."""
+    return {n: traj.axis(n) - run.scored_um[:, k] for k, n in enumerate(raster.AXES)}
+
+
+def over_noise(errors: Mapping[str, np.ndarray], region: np.ndarray,
+               noise: Mapping[str, float]) -> float:
+    """The larger of the two axes' image-region RMS error over its noise."""
+    return max(ilc.rms(errors[n][region]) / noise[n] for n in raster.AXES)
+
+
+def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Path,
+          meta: Mapping[str, object], say: Callable[[str], None] | None = None,
+          on_frame: xs.OnFrame | None = None, done: list[xs.FrameRun] | None = None,
+          law: ilc.Law = DEFAULT_LAW) -> Learned:
+    """Play frame 0 and up to ``iterations`` learning frames (``run_learnNN.csv``); see the
+    module docstring."""
+    frame, dt = setup.frame, setup.dt_s
+    traj = raster.trajectories(frame, dt, 0)
+    region = raster.image_mask(frame, dt)
+    desired = {n: track.Desired(dt, traj.axis(n), frame.line_s, max(float(np.ptp(traj.axis(n))),
+                                                                   frame.pixel_um), n)
+               for n in raster.AXES}
+    refs = raster.targets(traj, setup.coupling)
+    runs = [] if done is None else done
+    mine: list[xs.FrameRun] = []
+    tunings: dict[str, ilc.Tuning] = {}
+    noise: dict[str, float] = {}
+    score: list[float] = []
+    stop = "iterations done"
+    for j in range(iterations + 1):
+        t0 = time.perf_counter()
+        if j:
+            refs = {n: ilc.next_reference(refs[n], errors[n], desired[n], law, tunings[n], region)
+                    for n in raster.AXES}
+        axes = raster.replace_start(setup.axes, np.asarray(stage.voltages(), dtype=float))
+        try:
+            wf = raster.plan(frame, axes, dt, setup.coupling, ("inverse",), 0, setup.extrapolate,
+                             aims=refs)["inverse"]
+        except (guard.LimitError, EnvelopeError) as exc:
+            stop = f"refused: {exc}"
+            break
+        wf = dc.replace(wf, filter=f"learn{j:02d}")
+        path = out / f"run_{wf.filter}.csv"
+        show = None if say is None else xs.progress(frame, 0, wf, say, 1 / dt, 0)
+        measured = runner.stream(stage, wf, path, {**meta, "learning_frame": j}, show)
+        run = xs.judge(setup, 0, wf, measured, path, time.perf_counter() - t0)
+        runs.append(run)
+        mine.append(run)
+        errors = _errors(run, traj)
+        if j == 0:
+            noise = {n: ilc.noise_estimate(errors[n][region]) for n in raster.AXES}
+            tunings = {n: ilc.tune(refs[n], traj.axis(n) - errors[n], desired[n], law, noise[n])
+                       for n in raster.AXES}
+        score.append(over_noise(errors, region, noise))
+        run.merit["over_noise"] = score[-1]
+        if on_frame is not None:
+            on_frame(runs)
+        if score[-1] <= law.floor_factor:
+            stop = f"noise floor: {score[-1]:.3g} x the noise (both axes, image region)"
+            break
+        if score[-1] > law.diverge_factor * min(score):
+            stop = f"diverging: frame {j} at {score[-1]:.3g} x the noise, best {min(score):.3g}"
+            break
+    return Learned(tuple(mine), int(np.argmin(score)), stop, noise)
+
+
+def waveform_text(wf: raster.XYWaveform, meta: Mapping[str, object]) -> str:
+    """``waveform_learned.csv``: the whole two-axis waveform with its desired tracking part."""
+    return waveformfile.format_text(wf.time_s, wf.voltage_v, wf.desired_um, dict(meta))
+
+
+def learn_then_scan(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Path,
+                    meta: Mapping[str, object], say: Callable[[str], None] | None = None,
+                    on_frame: xs.OnFrame | None = None, done: list[xs.FrameRun] | None = None
+                    ) -> Learned:
+    """Learn the frame (:func:`learn`), save its waveform, then play it ``setup.frame.frames``
+    times (``run_frameNNN_learned.csv``; the same frame every time)."""
+    if setup.frame.direction == "bounce":
+        raise InputError("--learn-frames learns one frame: scan it --direction up or down")
+    runs = [] if done is None else done
+    got = learn(stage, setup, iterations, out, meta, say, on_frame, runs)
+    if say is not None:
+        say(f"learning: {len(got.runs)} frames, best frame {got.best} "
+            f"({got.runs[got.best].merit['over_noise']:.3g} x the noise); stopped: {got.stop}")
+    wf = dc.replace(got.waveform, filter="learned")
+    runner.atomic_write(out / "waveform_learned.csv",
+                        waveform_text(wf, {**meta, "learning_frame": got.best}))
+    for index in range(setup.frame.frames):
+        path = out / f"run_frame{index:03d}_learned.csv"
+        show = None if say is None else xs.progress(setup.frame, index, wf, say, 1 / setup.dt_s,
+                                                    setup.frame.frames - index - 1)
+        measured = runner.stream(stage, wf, path, {**meta, "frame": index}, show)
+        runs.append(xs.judge(setup, 0, wf, measured, path, 0.0))
+        if on_frame is not None:
+            on_frame(runs)
+    return got
