@@ -20,9 +20,9 @@ from afmctl import guard
 from afmctl.errors import SamplesLostError
 from afmctl.experiment import runner
 from afmctl.files import xysweepfile as xs
+from afmctl.model.xy import AXES
 
 FloatArray = NDArray[np.float64]
-AXES = ("x", "y")
 Design = Sequence[tuple[str, float, FloatArray, Mapping[str, str]]]
 
 

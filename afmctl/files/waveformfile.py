@@ -38,11 +38,10 @@ from numpy.typing import NDArray
 
 from afmctl.errors import FileFormatError
 from afmctl.files import sweepfile as sweeps
+from afmctl.model.xy import AXES
 
 FloatArray = NDArray[np.float64]
 FORMAT_VERSION = 1
-#: The axes of a two-axis waveform file, in channel order.
-AXES = ("x", "y")
 
 
 @dataclass(frozen=True)

@@ -33,9 +33,9 @@ from numpy.typing import NDArray
 
 from afmctl.errors import SweepFormatError
 from afmctl.files import sweepfile as sw
+from afmctl.model.xy import AXES
 
 FloatArray = NDArray[np.float64]
-AXES = ("x", "y")
 COLUMNS = ("time_s", "voltage_x_V", "voltage_y_V", "displacement_x_um", "displacement_y_um")
 #: Metadata keys that may differ per axis (``<stem>_<axis>_<unit>``), and their one-axis key.
 AXIS_KEYS = {"layer_thickness": "um", "frequency": "hz"}

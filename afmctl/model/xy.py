@@ -13,10 +13,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from afmctl.model.coupling import Coupling
-from afmctl.model.transducer import Transducer
+if TYPE_CHECKING:  # annotations only: the file rooms take AXES from here without numba or scipy
+    from afmctl.model.coupling import Coupling
+    from afmctl.model.transducer import Transducer
 
+#: The axes of a two-axis stage, in channel order (channel 0 is x).
 AXES = ("x", "y")
 DIRECTIONS = ("yx", "xy")
 

@@ -45,10 +45,10 @@ from afmctl.errors import FrameReachError, InputError, ReachError
 from afmctl.files.modelfile import Envelope
 from afmctl.model import coupling as cp
 from afmctl.model import transducer as tr
+from afmctl.model.xy import AXES
 from afmctl.planning import track
 
 FloatArray = NDArray[np.float64]
-AXES = ("x", "y")
 #: Fraction of each axis's quasi-static reach kept free for the rod's dynamics at the corners.
 REACH_MARGIN = 0.02
 #: Lead lines before the image (slow axis at the first row; not imaged).
