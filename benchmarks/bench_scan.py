@@ -111,7 +111,7 @@ def emulated_sweeps(stage: Any, prof: Any) -> list[Any]:
     from types import SimpleNamespace
 
     ranges = [SimpleNamespace(drive_range_V=(lim.v_min, lim.v_max))
-              for lim in (xs.axis_limits(prof, n) for n in rs.AXES)]
+              for lim in (prof.axis(n).limits for n in rs.AXES)]
     band = 0.5 * min(c.mode_hz for c in dict(prof.emulator.coupling).values())
     fake = SimpleNamespace(actuators=ranges)
     plans = xy_sweeps._held_files(fake, 0, band) + xy_sweeps._held_files(fake, 1, band)
@@ -257,7 +257,7 @@ def bench_emulated(cache: Path | None, how: str, say: Any) -> dict[str, Any]:
     with InProcessStage(prof, clock=accelerated(4.0)) as dev:
         model, fit_s = emulated_model(dev, prof, cache, how)
         say(f"emulated-xy: identified ({fit_s:.0f} s)")
-        axes = {n: rs.AxisPlan(model.axes[n], xs.axis_limits(prof, n)) for n in rs.AXES}
+        axes = {n: rs.AxisPlan(model.axes[n], prof.axis(n).limits) for n in rs.AXES}
         row = bench_frames(EmulatedStage(dev), axes, dict(model.coupling), "emulated-xy", say)
     return {**row, "identify_s": round(fit_s, 1),
             "noise_um": [prof.axis(n).emulator.noise_um for n in rs.AXES]}

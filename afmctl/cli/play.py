@@ -244,9 +244,8 @@ def _play_xy(w: Any, prof: Any, name: str, out_dir: str | None, as_json: bool) -
 
     from afmctl import guard
     from afmctl.experiment import runner as experiment
-    from afmctl.experiment import scan as xs
     from afmctl.planning import raster
-    names = tuple(getattr(prof, "axis_names", ("x",)))
+    names = prof.axis_names
     if names != raster.AXES:
         fail(f"{name} is a two-axis waveform; profile {prof.name!r} has axes "
              f"{', '.join(names)} (e.g. --profile emulated-xy)")
@@ -257,7 +256,7 @@ def _play_xy(w: Any, prof: Any, name: str, out_dir: str | None, as_json: bool) -
     with opened_stage(prof) as stage:
         start = stage.voltages()
         for k, axis in enumerate(raster.AXES):
-            guard.check(w.voltage_v[:, k], dt, xs.axis_limits(prof, axis), float(start[k]),
+            guard.check(w.voltage_v[:, k], dt, prof.axis(axis).limits, float(start[k]),
                         f"waveform, axis {axis}")
         out = _out_dir(out_dir, "afmctl-play")
         meta = {"profile": prof.name, "waveform": name, "sample_rate_Hz": prof.sample_rate_hz}

@@ -93,7 +93,7 @@ def raster(size: tuple[float, float], pixels: int, lines: int, line_rate: float,
     if learn_frames and direction == "bounce":
         raise InputError("--learn-frames learns one frame: scan it --direction up or down")
     prof = load_profile_or_exit(profile_path)
-    names = tuple(getattr(prof, "axis_names", ("x",)))
+    names = prof.axis_names
     if names != rs.AXES:
         raise InputError(f"profile {prof.name!r} has axes {', '.join(names)}: a raster scan "
                          f"needs a two-axis stage with axes x, y (e.g. --profile emulated-xy)")

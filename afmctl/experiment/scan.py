@@ -76,11 +76,6 @@ class FrameRun:
 OnFrame = Callable[[list[FrameRun]], None]
 
 
-def axis_limits(profile: Any, name: str) -> Any:
-    """The guard limits of axis ``name`` of a profile (a one-axis profile's for any name)."""
-    return profile.axis(name).limits if hasattr(profile, "axis") else profile.limits
-
-
 def model_for_scan(profile: Any, model_path: str | None
                    ) -> tuple[dict[str, raster.AxisPlan], dict[str, cp.Coupling] | None, str]:
     """Each axis's model, limits and envelope, the coupling to feed forward (None: none known)
@@ -95,10 +90,10 @@ def model_for_scan(profile: Any, model_path: str | None
                          "axes), or --calibrate")
     if modelfile.file_version(tomlfile.load(model_path)) != modelfile.XY_VERSION:
         model, env, _ = xymodelfile.read_axis(model_path, "x")
-        axes = {n: raster.AxisPlan(model, axis_limits(profile, n), env) for n in raster.AXES}
+        axes = {n: raster.AxisPlan(model, profile.axis(n).limits, env) for n in raster.AXES}
         return axes, None, "one-axis model, used for both axes; no coupling"
     both = xymodelfile.read(model_path)
-    axes = {n: raster.AxisPlan(both.axes[n], axis_limits(profile, n),
+    axes = {n: raster.AxisPlan(both.axes[n], profile.axis(n).limits,
                                xymodelfile.read_axis(model_path, n)[1]) for n in raster.AXES}
     return axes, dict(both.coupling), "two axes and their coupling"
 
