@@ -28,6 +28,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize
+from threadpoolctl import threadpool_limits
 
 from afmctl.errors import FitInputError
 from afmctl.files import modelfile as mf
@@ -582,6 +583,13 @@ def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
     >>> fit([s]).sweeps[0].rms_um < 0.05
     True
     """
+    # small dense algebra: more BLAS threads only contend (as in diagnose)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _fit(sweeps, settings, progress)
+
+
+def _fit(sweeps: Sequence[Sweep], settings: Settings,
+         progress: Callable[[str], None] | None) -> FitResult:
     say = progress or (lambda _msg: None)
     t0 = time.perf_counter()
     thickness, known = resolve_thickness(sweeps, settings)

@@ -69,6 +69,13 @@ FloatArray = NDArray[np.float64]
 TOL_SHARE = 1e-3
 #: Largest change of log f_n or log zeta in one Gauss-Newton step (a trust region).
 MAX_LOG_STEP = 0.5
+#: Levenberg damping of each held-out fold's fit toward the full fit (``mu diag(G)``, the least
+#: :func:`gauss_newton` uses): the model has a valley the linearization cannot see (a constant
+#: added to ``Q`` is undone by a new gain and ``s``, exactly), along which an undamped fold fit
+#: slides to where the exact model is 100x the noise off.
+HELDOUT_DAMPING = 1e-6
+#: The rod's coarse search (:func:`refit_rod`): natural frequencies x damping ratios, log-spaced.
+ROD_GRID = (24, 8)
 #: Bounds of the rod's damping ratio (those of the parametric fit).
 ZETA_BOUNDS = (0.003, 5.0)
 
@@ -231,6 +238,44 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
     return Run(th, cost, it, converged)
 
 
+def refit_rod(prob: Problem, th: Theta) -> Theta:
+    """The rod's natural frequency and damping, and each sweep's offset, by least squares with the
+    hysteresis and creep held at ``th``: ``g(Q~)`` does not depend on the rod, so each trial is
+    one filter pass per sweep. A coarse grid over the frequency bounds and damping ratios first
+    (Gauss-Newton's rod prior, a trust region sized to the whole set's noise, cannot walk far
+    on the fast sweep's evidence alone), then a local least-squares polish from the best point
+    and from ``th``'s; the better of that and ``th`` is returned."""
+    forces = prob.forces(th)
+
+    def residual(x: FloatArray) -> FloatArray:
+        fn, zeta = math.exp(float(x[0])), math.exp(float(x[1]))
+        out = []
+        for g, dt, m, y in zip(forces, prob.data.dts, prob.data.masks, prob.data.y, strict=True):
+            r = y - rod_filter(g, fn, zeta, dt)[m]
+            out.append(r - np.mean(r))
+        return np.concatenate(out)
+
+    lo = np.log([prob.fn_bounds[0], ZETA_BOUNDS[0]])
+    hi = np.log([prob.fn_bounds[1], ZETA_BOUNDS[1]])
+    coarse = [np.array([f, z]) for f in np.linspace(math.log(50.0), hi[0], ROD_GRID[0])
+              for z in np.linspace(math.log(0.01), math.log(2.0), ROD_GRID[1])]
+    here = np.array([th.log_fn, th.log_zeta])
+    sse = [float(np.sum(residual(x) ** 2)) for x in coarse]
+    best = here
+    for x0 in (coarse[int(np.argmin(sse))], here):
+        sol = optimize.least_squares(residual, np.clip(x0, lo + 1e-9, hi - 1e-9),
+                                     bounds=(lo, hi), x_scale=0.1, max_nfev=60)
+        if sol.cost * 2 < float(np.sum(residual(best) ** 2)):
+            best = sol.x
+    out = th.copy()
+    out.log_fn, out.log_zeta = float(best[0]), float(best[1])
+    fn, zeta = math.exp(out.log_fn), math.exp(out.log_zeta)
+    out.offsets = np.array([float(np.mean(y - rod_filter(g, fn, zeta, dt)[m]))
+                            for g, dt, m, y in zip(forces, prob.data.dts, prob.data.masks,
+                                                   prob.data.y, strict=True)])
+    return out
+
+
 def _pack(th: Theta, creep: bool, rod: bool) -> FloatArray:
     """The inverse of :func:`_unpack`."""
     parts = [th.w, [th.r], th.c if creep else [], [th.s]]
@@ -270,6 +315,8 @@ def heldout(prob: Problem, th: Theta, pen: FloatArray, lam_rel: Sequence[float],
         parts.append((a.T @ a, a.T @ b))
     g_all = sum(p[0] for p in parts)
     h_all = sum(p[1] for p in parts)
+    x_th = np.concatenate((th.w, [th.r], th.offsets))
+    diag = np.diag(g_all).copy()
     dtd = pen.T @ pen
     scale = float(np.trace(g_all[:k, :k])) / max(float(np.trace(dtd)), 1e-300)
     out: dict[float, FloatArray] = {}
@@ -277,9 +324,9 @@ def heldout(prob: Problem, th: Theta, pen: FloatArray, lam_rel: Sequence[float],
         sse = np.zeros(n_s)
         count = np.zeros(n_s)
         for q in range(FOLDS):
-            g = g_all - parts[q][0]  # fit on the other folds
+            g = g_all - parts[q][0] + HELDOUT_DAMPING * np.diag(diag)  # the other folds
             g[:k, :k] += lam_r * scale * dtd
-            x = bounded_solve(g, h_all - parts[q][1], k + 1)
+            x = bounded_solve(g, h_all - parts[q][1] + HELDOUT_DAMPING * diag * x_th, k + 1)
             fitted = th.copy()
             fitted.w, fitted.r, fitted.offsets = x[:k].copy(), float(x[k]), x[k + 1:].copy()
             for i, (y, u, f) in enumerate(zip(prob.data.y, prob.predict(fitted), folds,
@@ -446,7 +493,9 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     say(f"Preisach grid {ec.size} x {ei.size} from {settings.coef_coercive} x "
         f"{settings.coef_interaction} coefficients ({grid.active.size} the sweeps move), "
         f"starts {', '.join(prob.starts)}")
-    plain = gauss_newton(prob, th, pen, lam0, False, settings.max_iter // 4)
+    plain = gauss_newton(prob, refit_rod(prob, th), pen, lam0, False, settings.max_iter // 4)
+    plain = gauss_newton(prob, refit_rod(prob, plain.theta), pen, lam0, False,
+                         settings.max_iter // 4)
     q_range = max(float(np.ptp(q)) for q in prob.hysteretic(plain.theta))
     prob.set_thresholds([f * q_range for f in settings.creep_thresholds])
     runs = {False: plain, True: gauss_newton(prob, with_elements(plain.theta), pen, lam0, True,

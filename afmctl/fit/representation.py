@@ -15,9 +15,10 @@ the two are compared by their **held-out** error against each sweep's sensor noi
   knows nothing outside the cells the sweeps switched.
 
 Speed: after the HEM's first start, if some sweep is more than :data:`EARLY` times its noise
-(the HEM's family does not describe the stage), the grid is fitted at once; if it then reaches
-the noise floor on every sweep in-sample and its worst held-out error is :data:`DECISIVE` times
-below the HEM's, the HEM's restarts and refinements are skipped.
+(the HEM's family does not describe the stage), the grid is fitted at once; if its worst held-out error is then :data:`DECISIVE` times below
+the HEM's, the HEM's restarts and refinements are skipped (on the out-of-family stages of the
+benches they never closed such a gap: a Prandtl-Ishlinskii stage's HEM went from 12.6x to 7.5x
+the noise in 110 s of restarts, polishing and a general density, against the grid's 2.7x).
 """
 
 from __future__ import annotations
@@ -85,11 +86,11 @@ class Grid:
         if self.settings.representation == "hem" or float(np.max(ratio)) <= EARLY:
             return False
         fit = self.run(space.starts, sol.x)
-        self.decided = bool(np.max(fit.insample_over_noise) <= _floor()
-                            and DECISIVE * np.max(fit.heldout_rms_um / self.noise)
+        self.decided = bool(DECISIVE * np.max(fit.heldout_rms_um / self.noise)
                             < float(np.max(ratio)))
         if self.decided:
-            self.say("  the grid is at the noise floor far below the paper's model: no restarts")
+            self.say(f"  the grid's held-out error is over {DECISIVE:g}x below the paper's "
+                     "model's: no restarts")
         return self.decided
 
     def choose(self, hem: idf.FitResult, prob: idf.Problem, space: pz.LognormalSpace,
@@ -152,12 +153,6 @@ def first_start(prob: idf.Problem, space: pz.LognormalSpace, sol: optimize.Optim
                          int(sol.status), str(sol.message), prob.nfev, time.perf_counter() - t0,
                          known, sol.x, {}, idf.envelope(prob.sweeps, model.thickness_um),
                          restarts, bool(np.all(np.isfinite(sol.x))))
-
-
-def _floor() -> float:
-    from afmctl.fit import identify as idf
-
-    return idf.FLOOR
 
 
 def _grid_figures(fit: pf.PreisachFit, noise: FloatArray) -> dict[str, Any]:
