@@ -102,3 +102,19 @@ def test_play_replays_a_two_axis_waveform_file(tmp_path: Path) -> None:
     one = CliRunner().invoke(main, ["play", str(wave), "--profile", "emulated", "--out",
                                     str(tmp_path / "q")])
     assert one.exit_code == 2 and "two-axis waveform" in one.stderr
+
+
+def test_play_refuses_a_two_axis_waveform_outside_an_axis_limits_before_its_folder(
+        tmp_path: Path) -> None:
+    """y beyond its own range (+-120 V; x's is +-150 V): one line naming the axis, exit 2, no
+    output folder (the stage's own guard, StageBase.check_waveform, called before it is made)."""
+    t = np.arange(4000) * 1e-4
+    v = np.column_stack([100 * np.sin(np.pi * t / t[-1]), 130 * np.sin(np.pi * t / t[-1])])
+    wave = tmp_path / "w.csv"
+    wave.write_text(waveformfile.format_text(t, v, np.full((t.size, 2), np.nan),
+                                             {"profile": "emulated-xy"}))
+    res = CliRunner().invoke(main, ["play", str(wave), "--profile", "emulated-xy", "--out",
+                                    str(tmp_path / "p")])
+    assert res.exit_code == 2 and res.stderr.count("\n") == 1, res.output
+    assert "axis y (channel 1)" in res.stderr and "above the limit 120" in res.stderr
+    assert not (tmp_path / "p").exists()
