@@ -47,15 +47,18 @@ def test_scan_both_filters_writes_every_file(tmp_path: Path) -> None:
     assert set(data["filters"]) == {"inverse", "linear"} and data["feedforward"] is True
     inv, lin = data["filters"]["inverse"], data["filters"]["linear"]
     assert inv["registration_px"] < lin["registration_px"]
-    for name in ("run_frame000_inverse.csv", "run_frame000_linear.csv"):
+    names = ("run_frame001_inverse.csv", "run_frame001_linear.csv")
+    for name in names:
         run = runfile.read(out / name)
         assert run.complete and run.axes == ("x", "y") and run.voltage_v.shape[1] == 2
     obj = gwyfile.load(str(out / "scan.gwy"))
     titles = [obj[k] for k in obj if k.endswith("/data/title")]
-    assert "frame 0 inverse: error fast trace" in titles and len(titles) == 24
+    assert "frame 1 inverse: error fast trace" in titles and len(titles) == 24  # from 1
     assert obj["/0/data"].data.shape == (4, 32)
     assert (out / "scan.png").stat().st_size > 10_000
     assert "fast RMS" in res.stderr and "line 4/4" in res.stderr
+    assert res.stderr.count("frame 1/1 inverse: line 1/4,") == 1  # the first progress line once
+    assert inv["frames"][0]["frame"] == 1 and inv["frames"][0]["run_file"] == names[0]
 
 
 def test_a_one_axis_profile_is_refused(tmp_path: Path) -> None:

@@ -49,6 +49,9 @@ def test_frames_stream_into_run_files_that_rebuild_the_images(nominal: Profile, 
     assert [(r.index, r.filter) for r in runs] == [(0, "inverse"), (0, "linear"),
                                                    (1, "inverse"), (1, "linear")]
     assert any("frame 2/2 linear: line 6/6" in line for line in lines)
+    said = [line.split(", ETA")[0] for line in lines]  # frames and lines counted from 1, each
+    assert len(said) == len(set(said)) and "frame 1/2 inverse: line 1/6" in said  # said once
+    assert not any("frame 0" in line or "line 0/" in line for line in lines)
     for r in runs:
         back = runfile.read(r.run_file)
         assert back.complete and back.axes == ("x", "y")
@@ -67,7 +70,10 @@ def test_frames_stream_into_run_files_that_rebuild_the_images(nominal: Profile, 
             or inv["decoupling_db"] > 20)
     assert inv["slow_line_synchronous_without_feedforward_um"] > 3 * inv["noise_um"]["y"]
     data = xs.summary(runs, s, {"profile": "test"})
-    assert data["filters"]["inverse"]["frames"][1]["frame"] == 1
+    assert [(f["frame"], f["run_file"]) for f in data["filters"]["inverse"]["frames"]] == [
+        (1, "run_frame001_inverse.csv"), (2, "run_frame002_inverse.csv")]
+    assert {t.split(":")[0] for t in xs.gwy_channels(runs)} == {
+        "frame 1 inverse", "frame 1 linear", "frame 2 inverse", "frame 2 linear"}
     assert data["ratio_linear_over_inverse_fast_rms"] > 1
 
 
@@ -89,8 +95,8 @@ def test_an_interrupt_keeps_every_finished_frame(nominal: Profile, tmp_path: Pat
     with pytest.raises(KeyboardInterrupt):
         xs.run(stage, s, tmp_path, {}, None, lambda runs: finished.append(len(runs)), done)
     assert finished == [1] and len(done) == 1
-    assert runfile.read(tmp_path / "run_frame000_inverse.csv").complete
-    cut = runfile.read(tmp_path / "run_frame001_inverse.csv")
+    assert runfile.read(tmp_path / "run_frame001_inverse.csv").complete
+    cut = runfile.read(tmp_path / "run_frame002_inverse.csv")
     assert not cut.complete and "KeyboardInterrupt" in cut.end
     assert stage.safe and np.all(stage.voltages() == 0)
 
