@@ -102,7 +102,7 @@ def test_an_interrupt_keeps_every_finished_frame(nominal: Profile, tmp_path: Pat
 
 
 def test_learning_both_axes_reaches_near_the_noise_and_replays(nominal: Profile, tmp_path: Path) -> None:
-    s = setup(nominal, frames=1, filters=("inverse",))
+    s = setup(nominal, frames=2, filters=("inverse",))
     runs: list[xs.FrameRun] = []
     got = scanlearn.learn_then_scan(plant(nominal), s, 2, tmp_path, {}, None, None, runs)
     first, best = got.runs[0].merit["over_noise"], got.runs[got.best].merit["over_noise"]
@@ -110,6 +110,10 @@ def test_learning_both_axes_reaches_near_the_noise_and_replays(nominal: Profile,
     assert got.noise_um["x"] == pytest.approx(0.02, rel=0.3)
     replay = runs[-1]
     assert replay.filter == "learned"
+    # the learned waveform played twice: frames 1 and 2, each its own file and images
+    assert [(r.number, r.run_file.name) for r in runs[-2:]] == [
+        (1, "run_frame001_learned.csv"), (2, "run_frame002_learned.csv")]
+    assert {"frame 1 learned: x trace", "frame 2 learned: x trace"} <= set(xs.gwy_channels(runs))
     assert replay.merit["fast_rms_um"] < 2 * got.runs[got.best].merit["fast_rms_um"]
     w = waveformfile.read(tmp_path / "waveform_learned.csv")
     assert w.voltage_v.shape[1] == 2
