@@ -1,7 +1,6 @@
 """Recording a two-axis set on the emulated x/y stage (what `afmctl sweep --axes x,y` does), and
 its refusals before anything moves."""
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -114,12 +113,12 @@ def test_ctrl_c_in_sweep_axes_keeps_the_file_in_progress_and_resume_completes_th
     the kept x_multisine.incomplete.csv; `--resume` then records the two missing files, removes
     the incomplete one and leaves the set complete."""
     import os
-    import signal
     import subprocess
     import sys
 
     from afmctl.cli.xysweep import first_resonance_hz
     from tests.harness.paths import REPO
+    from tests.harness.sigint import interrupt_when
 
     out = tmp_path / "s"
     out.mkdir()
@@ -137,18 +136,8 @@ def test_ctrl_c_in_sweep_axes_keeps_the_file_in_progress_and_resume_completes_th
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONPATH": str(REPO)})
     partial = out / "x_multisine.incomplete.csv"
-    deadline = time.monotonic() + 60
-    try:
-        while time.monotonic() < deadline and proc.poll() is None and (
-                not partial.exists() or partial.read_text().count("\n") < 3000):
-            time.sleep(0.05)
-        assert proc.poll() is None, proc.communicate()
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+    err = interrupt_when(proc, lambda: partial.exists()
+                         and partial.read_text().count("\n") >= 3000)
     assert proc.returncode == 130, err
     last = err.strip().splitlines()[-1]
     assert last.startswith("afmctl: error: interrupted; the stage was sent to its safe state")
