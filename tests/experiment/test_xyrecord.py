@@ -156,3 +156,17 @@ def test_ctrl_c_in_sweep_axes_keeps_the_file_in_progress_and_resume_completes_th
     full = xs.read(out / "x_multisine.csv")
     assert full.time_s.size == 40_001 and full.meta["swept_axis"] == "x"
     np.testing.assert_allclose(full.voltage_v[:kept.time_s.size], kept.voltage_v, atol=1e-6)
+
+
+def test_ctrl_c_between_runs_sends_every_channel_to_0_v() -> None:
+    """A Ctrl-C while no run plays (a sweep's rest, with y held at 30 V) inside a command's
+    stage: the stage is sent to its safe state all the same (``play`` only makes its own runs
+    safe)."""
+    from afmctl.cli.base import opened_stage
+    from afmctl.experiment import runner
+
+    with pytest.raises(KeyboardInterrupt), opened_stage(XY) as stage:
+        runner.move_and_read(stage, 30.0, LIMITS["y"], XY.sample_rate_hz, 0.01, 1)
+        np.testing.assert_allclose(stage.voltages(), [0.0, 30.0], atol=1e-4)
+        raise KeyboardInterrupt
+    np.testing.assert_array_equal(stage.voltages(), [0.0, 0.0])
