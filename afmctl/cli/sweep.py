@@ -150,8 +150,9 @@ def record_each(names: list[str], out: Path, record: Callable[[str, Path], objec
     """``record(name, out/<name>.csv)`` for each sweep in turn, its path on stdout once complete.
 
     ``record`` streams into ``<name>.incomplete.csv``
-    (:func:`afmctl.experiment.runner.record_sweep`); on Ctrl-C (the stage's ``play`` has sent it to its safe state) one line says
-    what was kept and exit 130; an earlier interrupted attempt superseded is said removed."""
+    (:func:`afmctl.experiment.runner.record_sweep`); on Ctrl-C (the stage sent to its safe state
+    by ``play`` and :func:`afmctl.cli.base.opened_stage`) one line says what was kept and exit
+    130; an earlier interrupted attempt superseded is said removed."""
     from afmctl.experiment.runner import incomplete_path
     for name in names:
         path = out / f"{name}.csv"

@@ -7,10 +7,10 @@ each axis through its own inverse, the coupling fed forward, every channel throu
 and the envelope), then each filter's waveform is played and streamed into its own run file
 (``run_frameNNN_<filter>.csv``, NNN the frame's number counted from 1 as everything a user reads
 names it: progress, image titles, ``summary.json``; created new: measured data is never
-overwritten) as the samples arrive. After every finished frame ``on_frame`` gets everything so far (write the summary and
-images there: an interrupt then keeps every finished frame); the stage's ``play`` puts the
-stage in its safe state on any error or interrupt, and the run file of the frame in progress is
-kept, marked interrupted.
+overwritten) as the samples arrive. After every finished frame ``on_frame`` gets everything so
+far (write the summary and images there: an interrupt then keeps every finished frame); the
+stage's ``play`` puts the stage in its safe state on any error or interrupt, and the run file of
+the frame in progress is kept, marked interrupted.
 
 The readings are scored as the stage's position: corrected for each axis model's sensor effects
 (delay, gauge), as ``track`` does; the run files keep the raw readings.
