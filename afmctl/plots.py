@@ -249,7 +249,7 @@ def scan_figure(runs: list[FrameRun]) -> Figure:
         for j, (r, img) in enumerate(zip(cols, imgs, strict=True)):
             im = ax[i, j].imshow(img, origin="lower", aspect="auto", cmap="RdBu_r",
                                  vmin=-lim, vmax=lim, interpolation="nearest")
-            ax[i, j].set(title=f"{r.filter}, frame {r.index}: {what}\nRMS {r.merit[key]:.3g} "
+            ax[i, j].set(title=f"{r.filter}, frame {r.number}: {what}\nRMS {r.merit[key]:.3g} "
                                f"{unit}", xlabel="pixel", ylabel="line")
         fig.colorbar(im, ax=ax[i, :].tolist(), shrink=0.9,
                      label="um" if "error" in what else "pixels")

@@ -421,19 +421,11 @@ class StageBase(abc.ABC):
         not yet delivered are handed to ``on_block`` (read back if the link still works, else
         missing), and the exception propagates.
         """
-        v = np.asarray(waveform_v, dtype=np.float32)
-        v = v.ravel() if v.ndim < 2 else v
-        if v.size == 0:
-            raise ValueError("empty waveform")
-        names = self.profile.axis_names
-        if v.ndim == 2 and not v.shape[1] == self.channels == len(names):
-            raise ValueError(f"a waveform of {v.shape[1]} channels for a device of "
-                             f"{self.channels} and a profile of {len(names)} axes: give shape "
-                             f"(N,) or (N, C) with C channels and axes")
+        v = self._as_sent(waveform_v)
         player = Player(self, v, on_block, poll_s)
         try:
             self.check_limits()
-            self._guard(v)
+            self.check_waveform(v)
             self._ensure_rate()
             return player.run(timeout_s)
         except (guard.LimitError, LinkCapacityError, LimitMismatchError):
@@ -454,9 +446,32 @@ class StageBase(abc.ABC):
         finally:
             self._deadline = None
 
-    def _guard(self, v: NDArray[np.float32]) -> None:
-        """Every channel of ``v`` against its own axis profile's limits, from its present output
-        (:func:`afmctl.guard.check`); nothing is sent."""
+    def _as_sent(self, waveform_v: ArrayLike) -> NDArray[np.float32]:
+        """``waveform_v`` as :meth:`play` sends it (float32, shape (N,) or (N, C)); ValueError
+        for an empty one or one of another number of channels than the device and profile."""
+        v = np.asarray(waveform_v, dtype=np.float32)
+        v = v.ravel() if v.ndim < 2 else v
+        if v.size == 0:
+            raise ValueError("empty waveform")
+        names = self.profile.axis_names
+        if v.ndim == 2 and not v.shape[1] == self.channels == len(names):
+            raise ValueError(f"a waveform of {v.shape[1]} channels for a device of "
+                             f"{self.channels} and a profile of {len(names)} axes: give shape "
+                             f"(N,) or (N, C) with C channels and axes")
+        return v
+
+    def check_waveform(self, waveform_v: ArrayLike) -> None:
+        """The guard of :meth:`play`: every channel of ``waveform_v`` (shape (N,) or (N, C), V, as
+        sent: float32) against its own axis profile's limits, from the channel's present output
+        (:func:`afmctl.guard.check`). Nothing is sent; a command calls it to refuse a waveform
+        before it writes anything, and :meth:`play` calls it again before it sends.
+
+        Raises
+        ------
+        afmctl.guard.LimitError
+            A sample or step outside the limits (the message names the axis on two).
+        """
+        v = self._as_sent(waveform_v)
         cols = v[:, None] if v.ndim == 1 else v
         names = self.profile.axis_names
         for c in range(cols.shape[1]):

@@ -137,14 +137,23 @@ class Finite(click.ParamType):
 
 @contextmanager
 def opened_stage(profile: Any) -> Iterator[Any]:
-    """``afmctl.drivers.open_stage(profile)``, remembering that this command touched a stage."""
+    """``afmctl.drivers.open_stage(profile)``, remembering that this command touched a stage.
+
+    Ctrl-C anywhere inside sends the stage to its safe state (every channel to 0 V) before the
+    KeyboardInterrupt goes on: ``play`` does it for a Ctrl-C during a run, this for one between
+    runs (a sweep's rest before it plays, a ramp being planned), where outputs may be held away
+    from 0 V. If that fails too, its error (a lost link) is what the command reports."""
     from afmctl.drivers import open_stage
     ctx = click.get_current_context(silent=True)
     if ctx is not None:
         ctx.meta[STAGE_OPENED] = True
     with open_stage(profile) as stage:
         stage.check_limits()  # the profile's limits against the device's, before anything moves
-        yield stage
+        try:
+            yield stage
+        except KeyboardInterrupt:
+            stage.safe_state()
+            raise
 
 
 def load_profile_or_exit(path: str | None):  # noqa: ANN201 (Profile)

@@ -131,7 +131,7 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     """
     import numpy as np
 
-    from afmctl import guard, plots
+    from afmctl import plots
     from afmctl.errors import FileFormatError
     from afmctl.experiment import learn
     from afmctl.experiment import runner as experiment
@@ -160,7 +160,7 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     tracking = _tracking(w.desired_um)
     wf = track.Waveform("play", dt, w.voltage_v, w.desired_um, tracking)
     with opened_stage(prof) as stage:
-        guard.check(w.voltage_v, dt, prof.limits, stage.voltage(), "waveform")
+        stage.check_waveform(w.voltage_v)  # refused before the folder is made, nothing sent
         out = _out_dir(out_dir, "afmctl-play")
         meta = {"profile": prof.name, "waveform": Path(wave).name,
                 "trajectory": w.meta.get("trajectory", "none"),
@@ -239,12 +239,11 @@ def _relearn(w: Any, wave: Path, prof: Any, model: Any, model_path: str | None,
 def _play_xy(w: Any, prof: Any, name: str, out_dir: str | None, as_json: bool) -> None:
     """Replay a two-axis waveform (``scan raster --learn-frames``'s) on a two-axis stage: every
     channel through its axis's guard, one two-axis run file, each axis's error against its
-    desired column where the file has one."""
+    desired column where the file has one (:func:`afmctl.planning.scanimage.axis_errors`)."""
     import numpy as np
 
-    from afmctl import guard
     from afmctl.experiment import runner as experiment
-    from afmctl.planning import raster
+    from afmctl.planning import raster, scanimage
     names = prof.axis_names
     if names != raster.AXES:
         fail(f"{name} is a two-axis waveform; profile {prof.name!r} has axes "
@@ -254,21 +253,15 @@ def _play_xy(w: Any, prof: Any, name: str, out_dir: str | None, as_json: bool) -
     tracking = slice(int(rows[0]), int(rows[-1]) + 1) if rows.size else slice(0, 0)
     wf = raster.XYWaveform("play", dt, w.voltage_v, w.desired_um, tracking, {}, False)
     with opened_stage(prof) as stage:
-        start = stage.voltages()
-        for k, axis in enumerate(raster.AXES):
-            guard.check(w.voltage_v[:, k], dt, prof.axis(axis).limits, float(start[k]),
-                        f"waveform, axis {axis}")
+        stage.check_waveform(w.voltage_v)  # refused before the folder is made, nothing sent
         out = _out_dir(out_dir, "afmctl-play")
         meta = {"profile": prof.name, "waveform": name, "sample_rate_Hz": prof.sample_rate_hz}
         u, _, complete = experiment.stream(stage, wf, out / "run_play.csv", meta,
                                            progress_printer(True))
-    err = u[tracking] - w.desired_um[tracking]
-    axes = {a: {"rms_um": float(np.sqrt(np.nanmean(err[:, k] ** 2))) if rows.size else None,
-                "max_um": float(np.nanmax(np.abs(err[:, k]))) if rows.size else None}
-            for k, a in enumerate(raster.AXES)}
+    axes = scanimage.axis_errors(u[tracking], w.desired_um[tracking])
     data = {**meta, "samples": int(w.voltage_v.shape[0]), "complete": complete, "axes": axes}
     for a, m in axes.items():
-        if m["rms_um"] is not None:
+        if np.isfinite(m["rms_um"]):
             click.echo(f"play axis {a}: RMS {m['rms_um']:.4f} um, max {m['max_um']:.4f} um "
                        f"(against the file's desired_{a}_um)", err=True)
     experiment.write_summary(data, out / "summary.json")

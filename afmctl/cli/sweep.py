@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import click
@@ -87,10 +88,10 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
     prof = load_profile_or_exit(profile_path)
     if axes is not None:
         from afmctl.cli.xysweep import sweep_xy
-        if v_range is not None or only or resume or design != "standard":
+        if v_range is not None or only or design != "standard":
             raise InputError("--axes records the whole two-axis set over each axis's range: "
-                             "without --v-range, --only, --resume or --design")
-        sweep_xy(prof, axes, Path(out_dir), band_hz)
+                             "without --v-range, --only or --design")
+        sweep_xy(prof, axes, Path(out_dir), band_hz, resume)
         return
     lo, hi = _v_range(v_range, prof)
     designed = sweepdesign.design_set(design, prof.sample_rate_hz,
@@ -103,15 +104,8 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
     for name, _, v, _ in chosen:  # the stage refuses too; fail before anything is written
         guard.check(v, 1.0 / prof.sample_rate_hz, prof.limits, what=name)
     out = Path(out_dir)
-    done = [w[0] for w in chosen if (out / f"{w[0]}.csv").exists()]
-    if done and not resume:
-        raise InputError(f"--out {out}: {done[0]}.csv exists (measured data is never "
-                         f"overwritten): add --resume to record only what is missing, or choose "
-                         f"another folder")
-    chosen = [w for w in chosen if w[0] not in done]
-    check_output_dir(out, "--out", [f"{w[0]}.csv" for w in chosen], force=False)
-    for name in done:
-        say(f"{out / (name + '.csv')}: already recorded, kept")
+    todo = to_record([w[0] for w in chosen], out, resume)
+    chosen = [w for w in chosen if w[0] in todo]
     meta = {"profile": prof.name, "layer_thickness_um": f"{prof.thickness_um:g}",
             "sample_rate_hz": f"{prof.sample_rate_hz:g}", "v_range_V": f"{lo:g} {hi:g}",
             "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
@@ -126,18 +120,51 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
                     f"every sweep starts")
                 experiment.move_and_read(stage, float(chosen[0][2][0]), prof.limits,
                                          prof.sample_rate_hz, 0.01)
-        for name, freq, v, kinds in chosen:
-            path = out / f"{name}.csv"
-            partial = experiment.incomplete_path(path)
-            earlier = partial.exists()
-            try:
-                experiment.record_sweep(stage, name, freq, v, prof.sample_rate_hz,
-                                        {**meta, **kinds}, show, path)
-            except KeyboardInterrupt:
-                kept = (f"the sweep in progress is kept in {partial}, marked incomplete"
-                        if partial.exists() else "no sample of the sweep in progress had arrived")
-                fail(f"interrupted; the stage was sent to its safe state; {kept}; rerun with "
-                     f"--resume to record what is missing", 130)
-            if earlier:
-                say(f"{partial}: the interrupted attempt, superseded by {path}: removed")
-            click.echo(str(path))
+        entries = {w[0]: w for w in chosen}
+
+        def one(name: str, path: Path) -> None:
+            _, freq, v, kinds = entries[name]
+            experiment.record_sweep(stage, name, freq, v, prof.sample_rate_hz,
+                                    {**meta, **kinds}, show, path)
+
+        record_each(list(entries), out, one)
+
+
+def to_record(names: list[str], out: Path, resume: bool) -> list[str]:
+    """The sweeps of ``names`` still to record into ``out``: those without a complete
+    ``<name>.csv`` there. One there without ``resume`` is refused (measured data is never
+    overwritten); with it, each is said kept. ``out`` is checked writable for the rest."""
+    done = [n for n in names if (out / f"{n}.csv").exists()]
+    if done and not resume:
+        raise InputError(f"--out {out}: {done[0]}.csv exists (measured data is never "
+                         f"overwritten): add --resume to record only what is missing, or choose "
+                         f"another folder")
+    todo = [n for n in names if n not in done]
+    check_output_dir(out, "--out", [f"{n}.csv" for n in todo], force=False)
+    for name in done:
+        say(f"{out / (name + '.csv')}: already recorded, kept")
+    return todo
+
+
+def record_each(names: list[str], out: Path, record: Callable[[str, Path], object]) -> None:
+    """``record(name, out/<name>.csv)`` for each sweep in turn, its path on stdout once complete.
+
+    ``record`` streams into ``<name>.incomplete.csv``
+    (:func:`afmctl.experiment.runner.record_sweep`); on Ctrl-C (the stage sent to its safe state
+    by ``play`` and :func:`afmctl.cli.base.opened_stage`) one line says what was kept and exit
+    130; an earlier interrupted attempt superseded is said removed."""
+    from afmctl.experiment.runner import incomplete_path
+    for name in names:
+        path = out / f"{name}.csv"
+        partial = incomplete_path(path)
+        earlier = partial.exists()
+        try:
+            record(name, path)
+        except KeyboardInterrupt:
+            kept = (f"the sweep in progress is kept in {partial}, marked incomplete"
+                    if partial.exists() else "no sample of the sweep in progress had arrived")
+            fail(f"interrupted; the stage was sent to its safe state; {kept}; rerun with "
+                 f"--resume to record what is missing", 130)
+        if earlier:
+            say(f"{partial}: the interrupted attempt, superseded by {path}: removed")
+        click.echo(str(path))

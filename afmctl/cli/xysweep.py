@@ -7,9 +7,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-import click
-
-from afmctl.cli.base import check_output_dir, make_dir, opened_stage, say
+from afmctl.cli.base import make_dir, opened_stage, progress_printer, say
+from afmctl.cli.sweep import record_each, to_record
 from afmctl.errors import InputError
 
 
@@ -26,8 +25,10 @@ def first_resonance_hz(prof: Any) -> float | None:
     return min(freqs)
 
 
-def sweep_xy(prof: Any, axes: str, out: Path, band_hz: float | None) -> None:
-    """Design, check and record the two-axis set (:func:`afmctl.planning.sweepdesign.xy_design`)."""
+def sweep_xy(prof: Any, axes: str, out: Path, band_hz: float | None, resume: bool) -> None:
+    """Design, check and record the two-axis set (:func:`afmctl.planning.sweepdesign.xy_design`),
+    each file streamed as it records and, with ``resume``, only the files missing from ``out``
+    (as the one-axis set: :func:`afmctl.cli.sweep.to_record`, :func:`afmctl.cli.sweep.record_each`)."""
     from afmctl.experiment import xyrecord
     from afmctl.planning import sweepdesign
     if tuple(a.strip() for a in axes.split(",")) != ("x", "y"):
@@ -46,15 +47,22 @@ def sweep_xy(prof: Any, axes: str, out: Path, band_hz: float | None) -> None:
         prof.sample_rate_hz, {a: (lim.v_min, lim.v_max) for a, lim in limits.items()},
         {a: lim.max_rate_v_per_ms * 1e3 for a, lim in limits.items()}, band_hz)
     xyrecord.check_design(design, 1.0 / prof.sample_rate_hz, limits)
-    check_output_dir(out, "--out", [f"{d[0]}.csv" for d in design], force=False)
+    todo = to_record([d[0] for d in design], out, resume)
+    entries = {d[0]: d for d in design if d[0] in todo}
     meta = {"profile": prof.name, "sample_rate_hz": f"{prof.sample_rate_hz:g}",
             "layer_thickness_x_um": f"{prof.axis('x').thickness_um:g}",
             "layer_thickness_y_um": f"{prof.axis('y').thickness_um:g}",
             "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    show = progress_printer(False)
     with opened_stage(prof) as stage:
         if stage.channels != 2:
             raise InputError(f"--axes x,y: the stage reports {stage.channels} channel(s)")
-        say(f"recording {len(design)} two-axis sweep(s), coupling band {band_hz:g} Hz ...")
-        for p in xyrecord.record(stage, design, prof.sample_rate_hz, limits,
-                                 make_dir(out, "--out"), meta, say):
-            click.echo(str(p))
+        if entries:
+            say(f"recording {len(entries)} two-axis sweep(s), coupling band {band_hz:g} Hz ...")
+            make_dir(out, "--out")
+
+        def one(name: str, path: Path) -> None:
+            xyrecord.record_one(stage, entries[name], prof.sample_rate_hz, limits, path, meta,
+                                show)
+
+        record_each(list(entries), out, one)

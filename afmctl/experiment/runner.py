@@ -313,7 +313,8 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
                  progress: Progress | None = None, path: Path | None = None,
                  settle_s: float = SETTLE_S) -> Any:
     """Play one identification waveform, after ``settle_s`` at rest (:data:`SETTLE_S`), and
-    return it as a :class:`afmctl.files.sweepfile.Sweep`.
+    return it as a :class:`afmctl.files.sweepfile.Sweep` (``voltage_v`` of shape (N,)) or a
+    two-axis :class:`afmctl.files.xysweepfile.XYSweep` (shape (N, 2), a column per channel).
 
     The sweep's ``voltage_V`` is the commanded voltage (what a filter controls); a sweep that lost
     samples is refused rather than patched. With ``path``, the samples are also streamed as they
@@ -321,21 +322,25 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
     start that received none leaves no file, and an earlier interrupted attempt's file stays until
     then); when the sweep completes it is written to ``path`` and the incomplete file removed
     (the whole sweep supersedes it), otherwise (interrupt, lost samples, stage failure) it stays
-    as a valid sweep file of the samples received in order, ending ``# end: interrupted (...)``.
+    as a valid sweep file of the samples received in order (every channel's, for two axes),
+    ending ``# end: interrupted (...)``.
     """
     from afmctl.files import sweepfile as sweeps
+    from afmctl.files import xysweepfile
 
+    kind = xysweepfile if np.ndim(voltage_v) == 2 else sweeps
     meta = {**(meta or {}), "frequency_hz": f"{frequency_hz:g}"}
     n = len(voltage_v)
-    got = np.full(n, np.nan)
+    got = np.full(np.shape(voltage_v), np.nan)
     streamed = incomplete_path(path) if path is not None else None
-    stream = sweeps.SweepStream(streamed, meta, sample_rate_hz) if streamed is not None else None
-    done = [0]  # samples received in order so far (what the incomplete file holds)
+    stream = (sweeps.SweepStream(streamed, meta, sample_rate_hz, kind.COLUMNS)
+              if streamed is not None else None)
+    done = [0]  # samples received in order so far, on every channel (what the file holds)
 
     def on_block(first: int, volt: FloatArray, disp: FloatArray, valid: Any) -> None:
         got[first:first + len(disp)] = np.where(valid, disp, np.nan)
         old = prefix = done[0]
-        while prefix < n and np.isfinite(got[prefix]):
+        while prefix < n and np.isfinite(got[prefix]).all():
             prefix += 1
         done[0] = prefix
         if stream is not None and prefix > old:  # the first samples replace an earlier attempt's
@@ -349,9 +354,9 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
         lost = int((~np.asarray(rec.valid)).sum())
         if lost:
             raise SamplesLostError(f"sweep {name}: {lost} samples were not received; record it again")
-        sweep = sweeps.from_arrays(voltage_v, rec.displacement_um, sample_rate_hz, meta, name)
+        sweep = kind.from_arrays(voltage_v, rec.displacement_um, sample_rate_hz, meta, name)
         if path is not None:
-            sweeps.write(sweep, path)
+            kind.write(sweep, path)
     except BaseException as exc:
         if stream is not None:
             stream.close(interrupted=f"{type(exc).__name__}: {exc}".replace("\n", " "))

@@ -5,11 +5,12 @@ Talks to the stage only through the interface of :mod:`drivers` (an object passe
 outputs. Every frame is planned from the stage's present outputs (:func:`afmctl.planning.raster.plan`:
 each axis through its own inverse, the coupling fed forward, every channel through the guard
 and the envelope), then each filter's waveform is played and streamed into its own run file
-(``run_frameNNN_<filter>.csv``, created new: measured data is never overwritten) as the samples
-arrive. After every finished frame ``on_frame`` gets everything so far (write the summary and
-images there: an interrupt then keeps every finished frame); the stage's ``play`` puts the
-stage in its safe state on any error or interrupt, and the run file of the frame in progress is
-kept, marked interrupted.
+(``run_frameNNN_<filter>.csv``, NNN the frame's number counted from 1 as everything a user reads
+names it: progress, image titles, ``summary.json``; created new: measured data is never
+overwritten) as the samples arrive. After every finished frame ``on_frame`` gets everything so
+far (write the summary and images there: an interrupt then keeps every finished frame); the
+stage's ``play`` puts the stage in its safe state on any error or interrupt, and the run file of
+the frame in progress is kept, marked interrupted.
 
 The readings are scored as the stage's position: corrected for each axis model's sensor effects
 (delay, gauge), as ``track`` does; the run files keep the raw readings.
@@ -55,9 +56,12 @@ class Setup:
 class FrameRun:
     """One filter's play of one frame: the waveform, the readings (raw, and corrected for the
     models' sensor effects, the tracking part, shape (n, 2)), its images and figures of merit,
-    the host's compute time for the frame's plan (s)."""
+    the host's compute time for the frame's plan (s). ``index`` is the planned frame it follows
+    (from 0: its slow direction, its pixel grid), ``number`` the frame as a user reads it
+    (from 1: run file names, titles, ``summary.json``)."""
 
     index: int
+    number: int
     waveform: raster.XYWaveform
     displacement_um: FloatArray
     scored_um: FloatArray
@@ -109,8 +113,9 @@ def corrected(setup: Setup, wf: raster.XYWaveform, u: FloatArray) -> FloatArray:
 
 
 def judge(setup: Setup, index: int, wf: raster.XYWaveform, measured: tuple[Any, ...],
-          path: Path, compute_s: float) -> FrameRun:
-    """A played frame's images and figures of merit, from :func:`runner.stream`'s triple."""
+          path: Path, compute_s: float, number: int | None = None) -> FrameRun:
+    """A played frame's images and figures of merit, from :func:`runner.stream`'s triple
+    (``number``: the frame's number for the user, default ``index + 1``)."""
     u, _, complete = measured
     scored = corrected(setup, wf, u)[wf.tracking]
     frame = setup.frame
@@ -126,7 +131,8 @@ def judge(setup: Setup, index: int, wf: raster.XYWaveform, measured: tuple[Any, 
         merit["slow_line_synchronous_without_feedforward_um"] = est
         merit["decoupling_db"] = scanimage.decoupling_db(est, merit["slow_line_synchronous_um"])
         merit["decoupling_from"] = "model estimate (the feed-forward's correction added back)"
-    return FrameRun(index, wf, u, scored, img, merit, complete, path, compute_s, ff)
+    return FrameRun(index, index + 1 if number is None else number, wf, u, scored, img, merit,
+                    complete, path, compute_s, ff)
 
 
 def feedforward(setup: Setup, index: int, dt_s: float) -> FloatArray:
@@ -136,21 +142,28 @@ def feedforward(setup: Setup, index: int, dt_s: float) -> FloatArray:
     return np.column_stack([traj.axis(n) - aims[n] for n in raster.AXES])
 
 
-def progress(frame: raster.Frame, index: int, wf: raster.XYWaveform, say: Callable[[str], None],
+def run_path(out: Path, number: int, name: str) -> Path:
+    """The run file of frame ``number`` (from 1) played by filter ``name``."""
+    return out / f"run_frame{number:03d}_{name}.csv"
+
+
+def progress(frame: raster.Frame, number: int, wf: raster.XYWaveform, say: Callable[[str], None],
               sample_rate_hz: float, frames_left: int) -> runner.Progress:
-    """Progress lines: frame, filter, line and the time left (this run and the frames after)."""
-    last = [0.0]
+    """Progress lines: frame ``number`` of the frames and the line being scanned (both counted
+    from 1; before the image, line 1), the filter, and the time left (this run and the frames
+    after); a line when the line scanned changes, at most every :data:`PROGRESS_EVERY_S`."""
+    last = [0.0, 0]  # when the last line was said, and its line
     per_line = frame.line_s * sample_rate_hz
 
     def show(name: str, done: int, total: int) -> None:
         now = time.monotonic()
-        if now - last[0] < PROGRESS_EVERY_S and done < total:
-            return
-        last[0] = now
-        line = int(np.clip((done - wf.tracking.start) / per_line - raster.LEAD_LINES, 0,
+        line = int(np.clip((done - wf.tracking.start) // per_line - raster.LEAD_LINES + 1, 1,
                            frame.lines))
+        if line == last[1] or (now - last[0] < PROGRESS_EVERY_S and done < total):
+            return
+        last[:] = [now, line]
         eta = (total - done) / sample_rate_hz + frames_left * total / sample_rate_hz
-        say(f"frame {index + 1}/{frame.frames} {name}: line {line}/{frame.lines}, "
+        say(f"frame {number}/{frame.frames} {name}: line {line}/{frame.lines}, "
             f"ETA {eta:.0f} s")
 
     return show
@@ -176,11 +189,11 @@ def run(stage: runner.PlayingStage, setup: Setup, out: Path, meta: Mapping[str, 
                             setup.extrapolate)
         compute = time.perf_counter() - t0
         for name, wf in plans.items():
-            path = out / f"run_frame{index:03d}_{name}.csv"
+            path = run_path(out, index + 1, name)
             show = (None if say is None else
-                    progress(frame, index, wf, say, rate,
-                              (frame.frames - index - 1) * len(plans)))
-            measured = runner.stream(stage, wf, path, {**meta, "frame": index}, show)
+                    progress(frame, index + 1, wf, say, rate,
+                             (frame.frames - index - 1) * len(plans)))
+            measured = runner.stream(stage, wf, path, {**meta, "frame": index + 1}, show)
             runs.append(judge(setup, index, wf, measured, path, compute))
         if on_frame is not None:
             on_frame(runs)
@@ -203,7 +216,7 @@ def summary(runs: list[FrameRun], setup: Setup, meta: Mapping[str, object]) -> d
     for name in dict.fromkeys(r.filter for r in runs):
         mine = [r for r in runs if r.filter == name]
         data["filters"][name] = {
-            **mine[-1].merit, "frames": [{"frame": r.index, **r.merit, "complete": r.complete,
+            **mine[-1].merit, "frames": [{"frame": r.number, **r.merit, "complete": r.complete,
                                           "run_file": r.run_file.name} for r in mine],
             "compute_s_per_frame": float(np.mean([r.compute_s for r in mine])),
             "horizons": {k: list(v) for k, v in mine[-1].waveform.horizons.items()}}
@@ -215,9 +228,10 @@ def summary(runs: list[FrameRun], setup: Setup, meta: Mapping[str, object]) -> d
 
 
 def gwy_channels(runs: list[FrameRun]) -> dict[str, FloatArray]:
-    """Every image of every run for ``scan.gwy``, by title (``frame 0 inverse: x trace``), um."""
+    """Every image of every run for ``scan.gwy``, by title (``frame 1 inverse: x trace``, the
+    frame counted from 1), um."""
     out = {}
     for r in runs:
         for name, img in r.images.channels().items():
-            out[f"frame {r.index} {r.filter}: {name.replace('_', ' ')}"] = img
+            out[f"frame {r.number} {r.filter}: {name.replace('_', ' ')}"] = img
     return out

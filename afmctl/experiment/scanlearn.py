@@ -97,7 +97,7 @@ def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Pat
             break
         wf = dc.replace(wf, filter=f"learn{j:02d}")
         path = out / f"run_{wf.filter}.csv"
-        show = None if say is None else xs.progress(frame, 0, wf, say, 1 / dt, 0)
+        show = None if say is None else xs.progress(frame, 1, wf, say, 1 / dt, 0)
         measured = runner.stream(stage, wf, path, {**meta, "learning_frame": j}, show)
         run = xs.judge(setup, 0, wf, measured, path, time.perf_counter() - t0)
         runs.append(run)
@@ -130,7 +130,7 @@ def learn_then_scan(stage: runner.PlayingStage, setup: xs.Setup, iterations: int
                     on_frame: xs.OnFrame | None = None, done: list[xs.FrameRun] | None = None
                     ) -> Learned:
     """Learn the frame (:func:`learn`), save its waveform, then play it ``setup.frame.frames``
-    times (``run_frameNNN_learned.csv``; the same frame every time)."""
+    times (``run_frameNNN_learned.csv``, NNN from 1; the same frame every time)."""
     if setup.frame.direction == "bounce":
         raise InputError("--learn-frames learns one frame: scan it --direction up or down")
     runs = [] if done is None else done
@@ -141,12 +141,12 @@ def learn_then_scan(stage: runner.PlayingStage, setup: xs.Setup, iterations: int
     wf = dc.replace(got.waveform, filter="learned")
     runner.atomic_write(out / "waveform_learned.csv",
                         waveform_text(wf, {**meta, "learning_frame": got.best}))
-    for index in range(setup.frame.frames):
-        path = out / f"run_frame{index:03d}_learned.csv"
-        show = None if say is None else xs.progress(setup.frame, index, wf, say, 1 / setup.dt_s,
-                                                    setup.frame.frames - index - 1)
-        measured = runner.stream(stage, wf, path, {**meta, "frame": index}, show)
-        runs.append(xs.judge(setup, 0, wf, measured, path, 0.0))
+    for number in range(1, setup.frame.frames + 1):
+        path = xs.run_path(out, number, wf.filter)
+        show = None if say is None else xs.progress(setup.frame, number, wf, say, 1 / setup.dt_s,
+                                                    setup.frame.frames - number)
+        measured = runner.stream(stage, wf, path, {**meta, "frame": number}, show)
+        runs.append(xs.judge(setup, 0, wf, measured, path, 0.0, number))
         if on_frame is not None:
             on_frame(runs)
     return got

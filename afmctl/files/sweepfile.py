@@ -352,15 +352,20 @@ def read_all(paths: str | Path | Sequence[str | Path]) -> list[Sweep]:
     return [read(p) for p in paths]
 
 
-def read_complete(path: str | Path) -> Sweep:
-    """:func:`read`, refusing a sweep that was interrupted while it recorded (``afmctl sweep``
+def complete_text(path: str | Path) -> str:
+    """:func:`read_text`, refusing a sweep that was interrupted while it recorded (``afmctl sweep``
     streams into ``<name>.incomplete.csv`` and ends it ``# end: interrupted (...)``): a fit on
     part of a sweep, or on it beside its completed rerun, would be judged on the wrong data."""
     text = read_text(path)
     if any(ln.startswith("# end: interrupted") for ln in text.splitlines()[-3:]):
         raise SweepFormatError(f"{path}: an interrupted sweep (ends '# end: interrupted'); record "
                                f"the rest with afmctl sweep --resume and fit the complete file")
-    return parse(text, str(path))
+    return text
+
+
+def read_complete(path: str | Path) -> Sweep:
+    """:func:`read`, refusing an interrupted sweep (:func:`complete_text`)."""
+    return parse(complete_text(path), str(path))
 
 
 def read_trajectory(path: str | Path) -> tuple[FloatArray, FloatArray]:
@@ -397,23 +402,24 @@ def measured_kind(path: str | Path) -> str:
     if any(c.lower().startswith(("displacement", "position")) for c in cells):
         return "measured displacements"  # e.g. track's run.csv: displacement_um_<filter>
     return ""
-    return ""
 
 
-def _header(meta: Mapping[str, str]) -> str:
-    return "".join(f"# {key}: {val}\n" for key, val in meta.items()) + ",".join(COLUMNS) + "\n"
+def _header(meta: Mapping[str, str], columns: Sequence[str] = COLUMNS) -> str:
+    return "".join(f"# {key}: {val}\n" for key, val in meta.items()) + ",".join(columns) + "\n"
 
 
 def _write_rows(fh: Any, time_s: FloatArray, voltage_v: FloatArray,
                 displacement_um: FloatArray) -> None:
-    np.savetxt(fh, np.column_stack([time_s, voltage_v, displacement_um]), delimiter=",",
-               fmt=("%.7f", "%.6f", "%.6f"))
+    """Rows ``time_s, voltage(s), displacement(s)``: arrays of shape (N,) or (N, C)."""
+    rows = np.column_stack([time_s, voltage_v, displacement_um])
+    np.savetxt(fh, rows, delimiter=",", fmt=("%.7f",) + ("%.6f",) * (rows.shape[1] - 1))
 
 
-def format_text(sweep: Sweep) -> str:
-    """The text of a sweep file for ``sweep``."""
+def format_text(sweep: Recorded, columns: Sequence[str] = COLUMNS) -> str:
+    """The text of a sweep file for ``sweep`` (``columns``: its header, one voltage and one
+    displacement column per axis)."""
     out = io.StringIO()
-    out.write(_header(sweep.meta))
+    out.write(_header(sweep.meta, columns))
     _write_rows(out, sweep.time_s, sweep.voltage_v, sweep.displacement_um)
     return out.getvalue()
 
@@ -422,17 +428,22 @@ class SweepStream:
     """A sweep file written as its samples arrive, in order: created with the first of them (a
     sweep that received none leaves no file), flushed and fsynced per block, and ended
     ``# end: interrupted (...)`` if the sweep is cut short (it then still reads as a sweep of the
-    samples it holds). The same format as :func:`write`."""
+    samples it holds). The same format as :func:`write`; ``columns`` names the header's columns
+    (:data:`COLUMNS`; a two-axis file's, :data:`afmctl.files.xysweepfile.COLUMNS`, takes samples
+    of shape (m, 2))."""
 
-    def __init__(self, path: Path, meta: Mapping[str, str], sample_rate_hz: float) -> None:
+    def __init__(self, path: Path, meta: Mapping[str, str], sample_rate_hz: float,
+                 columns: Sequence[str] = COLUMNS) -> None:
         self.path, self.meta, self.sample_rate_hz = path, dict(meta), sample_rate_hz
+        self.columns = tuple(columns)
         self._fh: Any = None
 
     def append(self, first: int, voltage_v: FloatArray, displacement_um: FloatArray) -> None:
-        """Samples ``first ...`` (their time from the sample rate), V and um."""
+        """Samples ``first ...`` (their time from the sample rate), V and um, shape (m,) or
+        (m, C) as the columns."""
         if self._fh is None:
             self._fh = open(self.path, "w", encoding="utf-8")  # noqa: SIM115 (closed in close)
-            self._fh.write(_header(self.meta))
+            self._fh.write(_header(self.meta, self.columns))
         t = np.arange(first, first + len(voltage_v)) / self.sample_rate_hz
         _write_rows(self._fh, t, voltage_v, displacement_um)
         self._fh.flush()

@@ -23,7 +23,6 @@ one-axis keys) for everything one-axis code does.
 
 from __future__ import annotations
 
-import io
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,12 +92,10 @@ def parse(text: str, where: str = "<sweep>") -> XYSweep:
 
 def read(path: str | Path) -> XYSweep:
     """Read a two-axis sweep file; :class:`SweepFormatError` (one line) on anything wrong,
-    including an interrupted recording (``# end: interrupted``) and a one-axis file."""
-    text = sw.read_text(path)
-    if any(ln.startswith("# end: interrupted") for ln in text.splitlines()[-3:]):
-        raise SweepFormatError(f"{path}: an interrupted sweep (ends '# end: interrupted'); record "
-                               f"it again and fit the complete file")
-    return parse(text, str(path))
+    including an interrupted recording (``# end: interrupted``: see
+    :func:`afmctl.files.sweepfile.complete_text`; :func:`parse` reads its rows) and a one-axis
+    file."""
+    return parse(sw.complete_text(path), str(path))
 
 
 def is_xy_file(path: str | Path) -> bool:
@@ -123,11 +120,7 @@ def read_set(paths: Sequence[str | Path]) -> list[XYSweep] | None:
 
 def format_text(sweep: XYSweep) -> str:
     """The text of a two-axis sweep file for ``sweep``."""
-    out = io.StringIO()
-    out.write("".join(f"# {k}: {v}\n" for k, v in sweep.meta.items()) + ",".join(COLUMNS) + "\n")
-    np.savetxt(out, np.column_stack([sweep.time_s, sweep.voltage_v, sweep.displacement_um]),
-               delimiter=",", fmt=("%.7f", "%.6f", "%.6f", "%.6f", "%.6f"))
-    return out.getvalue()
+    return sw.format_text(sweep, COLUMNS)
 
 
 def write(sweep: XYSweep, path: str | Path) -> None:

@@ -18,6 +18,8 @@ Figures of merit (:func:`merit`), all over the image region (the overscan exclud
   the coupling (what the feed-forward cancels), RMS um;
 * per line (trace and retrace together): the RMS fast and slow error, um;
 * the sensor noise of each axis (:func:`afmctl.planning.ilc.noise_estimate`, from the readings).
+
+:func:`axis_errors` scores any two-axis run (a replayed waveform, no frame) per axis.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl.planning import ilc
-from afmctl.planning.raster import Frame, PixelGrid
+from afmctl.planning.raster import AXES, Frame, PixelGrid
 
 FloatArray = NDArray[np.float64]
 DIRECTIONS = ("trace", "retrace")
@@ -93,6 +95,21 @@ def _max(x: FloatArray) -> float:
     return float(np.max(np.abs(x))) if x.size else float("nan")
 
 
+def axis_errors(measured_um: FloatArray, desired_um: FloatArray) -> dict[str, dict[str, float]]:
+    """Each axis's error, measured minus desired (arrays of shape (N, 2), column 0 x), um: its
+    RMS (``rms_um``) and largest magnitude (``max_um``) over the samples where both are known
+    (missing ones left out, never filled in; NaN for an axis with none).
+
+    Examples
+    --------
+    >>> e = axis_errors(np.array([[1.0, 0.0], [3.0, np.nan]]), np.array([[0.0, 0.0], [0.0, 1.0]]))
+    >>> e["x"]["rms_um"] == math.sqrt(5.0), e["x"]["max_um"], e["y"]["rms_um"]
+    (True, 3.0, 0.0)
+    """
+    err = np.asarray(measured_um, dtype=float) - np.asarray(desired_um, dtype=float)
+    return {a: {"rms_um": _rms(err[:, k]), "max_um": _max(err[:, k])} for k, a in enumerate(AXES)}
+
+
 def line_synchronous(error_slow_um: FloatArray) -> FloatArray:
     """The slow error less each line's mean (trace and retrace together), um: what repeats with
     the fast axis, shape as given."""
@@ -121,7 +138,7 @@ def merit(frame: Frame, img: Images, measured_um: FloatArray | None = None) -> d
     data["slow_rms_um_by_line"] = [float(x) for x in lines["slow_rms_um"]]
     if measured_um is not None:
         data["noise_um"] = {n: ilc.noise_estimate(measured_um[:, k])
-                            for k, n in enumerate(("x", "y"))}
+                            for k, n in enumerate(AXES)}
     return data
 
 

@@ -47,15 +47,18 @@ def test_scan_both_filters_writes_every_file(tmp_path: Path) -> None:
     assert set(data["filters"]) == {"inverse", "linear"} and data["feedforward"] is True
     inv, lin = data["filters"]["inverse"], data["filters"]["linear"]
     assert inv["registration_px"] < lin["registration_px"]
-    for name in ("run_frame000_inverse.csv", "run_frame000_linear.csv"):
+    names = ("run_frame001_inverse.csv", "run_frame001_linear.csv")
+    for name in names:
         run = runfile.read(out / name)
         assert run.complete and run.axes == ("x", "y") and run.voltage_v.shape[1] == 2
     obj = gwyfile.load(str(out / "scan.gwy"))
     titles = [obj[k] for k in obj if k.endswith("/data/title")]
-    assert "frame 0 inverse: error fast trace" in titles and len(titles) == 24
+    assert "frame 1 inverse: error fast trace" in titles and len(titles) == 24  # from 1
     assert obj["/0/data"].data.shape == (4, 32)
     assert (out / "scan.png").stat().st_size > 10_000
     assert "fast RMS" in res.stderr and "line 4/4" in res.stderr
+    assert res.stderr.count("frame 1/1 inverse: line 1/4,") == 1  # the first progress line once
+    assert inv["frames"][0]["frame"] == 1 and inv["frames"][0]["run_file"] == names[0]
 
 
 def test_a_one_axis_profile_is_refused(tmp_path: Path) -> None:
@@ -102,3 +105,19 @@ def test_play_replays_a_two_axis_waveform_file(tmp_path: Path) -> None:
     one = CliRunner().invoke(main, ["play", str(wave), "--profile", "emulated", "--out",
                                     str(tmp_path / "q")])
     assert one.exit_code == 2 and "two-axis waveform" in one.stderr
+
+
+def test_play_refuses_a_two_axis_waveform_outside_an_axis_limits_before_its_folder(
+        tmp_path: Path) -> None:
+    """y beyond its own range (+-120 V; x's is +-150 V): one line naming the axis, exit 2, no
+    output folder (the stage's own guard, StageBase.check_waveform, called before it is made)."""
+    t = np.arange(4000) * 1e-4
+    v = np.column_stack([100 * np.sin(np.pi * t / t[-1]), 130 * np.sin(np.pi * t / t[-1])])
+    wave = tmp_path / "w.csv"
+    wave.write_text(waveformfile.format_text(t, v, np.full((t.size, 2), np.nan),
+                                             {"profile": "emulated-xy"}))
+    res = CliRunner().invoke(main, ["play", str(wave), "--profile", "emulated-xy", "--out",
+                                    str(tmp_path / "p")])
+    assert res.exit_code == 2 and res.stderr.count("\n") == 1, res.output
+    assert "axis y (channel 1)" in res.stderr and "above the limit 120" in res.stderr
+    assert not (tmp_path / "p").exists()

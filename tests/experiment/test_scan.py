@@ -49,6 +49,9 @@ def test_frames_stream_into_run_files_that_rebuild_the_images(nominal: Profile, 
     assert [(r.index, r.filter) for r in runs] == [(0, "inverse"), (0, "linear"),
                                                    (1, "inverse"), (1, "linear")]
     assert any("frame 2/2 linear: line 6/6" in line for line in lines)
+    said = [line.split(", ETA")[0] for line in lines]  # frames and lines counted from 1, each
+    assert len(said) == len(set(said)) and "frame 1/2 inverse: line 1/6" in said  # said once
+    assert not any("frame 0" in line or "line 0/" in line for line in lines)
     for r in runs:
         back = runfile.read(r.run_file)
         assert back.complete and back.axes == ("x", "y")
@@ -67,7 +70,10 @@ def test_frames_stream_into_run_files_that_rebuild_the_images(nominal: Profile, 
             or inv["decoupling_db"] > 20)
     assert inv["slow_line_synchronous_without_feedforward_um"] > 3 * inv["noise_um"]["y"]
     data = xs.summary(runs, s, {"profile": "test"})
-    assert data["filters"]["inverse"]["frames"][1]["frame"] == 1
+    assert [(f["frame"], f["run_file"]) for f in data["filters"]["inverse"]["frames"]] == [
+        (1, "run_frame001_inverse.csv"), (2, "run_frame002_inverse.csv")]
+    assert {t.split(":")[0] for t in xs.gwy_channels(runs)} == {
+        "frame 1 inverse", "frame 1 linear", "frame 2 inverse", "frame 2 linear"}
     assert data["ratio_linear_over_inverse_fast_rms"] > 1
 
 
@@ -89,14 +95,14 @@ def test_an_interrupt_keeps_every_finished_frame(nominal: Profile, tmp_path: Pat
     with pytest.raises(KeyboardInterrupt):
         xs.run(stage, s, tmp_path, {}, None, lambda runs: finished.append(len(runs)), done)
     assert finished == [1] and len(done) == 1
-    assert runfile.read(tmp_path / "run_frame000_inverse.csv").complete
-    cut = runfile.read(tmp_path / "run_frame001_inverse.csv")
+    assert runfile.read(tmp_path / "run_frame001_inverse.csv").complete
+    cut = runfile.read(tmp_path / "run_frame002_inverse.csv")
     assert not cut.complete and "KeyboardInterrupt" in cut.end
     assert stage.safe and np.all(stage.voltages() == 0)
 
 
 def test_learning_both_axes_reaches_near_the_noise_and_replays(nominal: Profile, tmp_path: Path) -> None:
-    s = setup(nominal, frames=1, filters=("inverse",))
+    s = setup(nominal, frames=2, filters=("inverse",))
     runs: list[xs.FrameRun] = []
     got = scanlearn.learn_then_scan(plant(nominal), s, 2, tmp_path, {}, None, None, runs)
     first, best = got.runs[0].merit["over_noise"], got.runs[got.best].merit["over_noise"]
@@ -104,6 +110,10 @@ def test_learning_both_axes_reaches_near_the_noise_and_replays(nominal: Profile,
     assert got.noise_um["x"] == pytest.approx(0.02, rel=0.3)
     replay = runs[-1]
     assert replay.filter == "learned"
+    # the learned waveform played twice: frames 1 and 2, each its own file and images
+    assert [(r.number, r.run_file.name) for r in runs[-2:]] == [
+        (1, "run_frame001_learned.csv"), (2, "run_frame002_learned.csv")]
+    assert {"frame 1 learned: x trace", "frame 2 learned: x trace"} <= set(xs.gwy_channels(runs))
     assert replay.merit["fast_rms_um"] < 2 * got.runs[got.best].merit["fast_rms_um"]
     w = waveformfile.read(tmp_path / "waveform_learned.csv")
     assert w.voltage_v.shape[1] == 2

@@ -9,7 +9,7 @@ from click.testing import CliRunner
 
 from afmctl.cli import main
 from afmctl.drivers import open_stage
-from afmctl.errors import LimitError
+from afmctl.errors import LimitError, SweepFormatError
 from afmctl.experiment import xyrecord
 from afmctl.files import xysweepfile as xs
 from afmctl.files.profile import shipped_profile
@@ -61,3 +61,112 @@ def test_sweep_axes_refusals_exit_2(tmp_path: Path, argv: list[str], words: str)
     res = CliRunner().invoke(main, ["sweep", *argv, "--out", str(tmp_path / "out")])
     assert res.exit_code == 2 and words in res.stderr
     assert not (tmp_path / "out").exists()
+
+
+# ----------------------------------------------------------------------------------------------
+# issue 25 leftover: a two-axis sweep streams as it records; an interrupt keeps what arrived
+# ----------------------------------------------------------------------------------------------
+
+
+def test_an_interrupted_two_axis_sweep_keeps_its_rows_and_a_rerun_supersedes_them(
+        tmp_path: Path) -> None:
+    """Ctrl-C (a KeyboardInterrupt where it lands: between blocks, in the progress callback) in
+    the middle of a two-axis file: its NAME.incomplete.csv holds the rows received on both
+    channels, readable with the header's units and marked interrupted; both outputs are at 0 V;
+    recording the file again replaces it with the whole file."""
+    rate = XY.sample_rate_hz
+    entry = _file("y_tri", 1, sd.loop(5.58, -100.0, 100.0, 2, rate), 30.0)
+    n = entry[2].shape[0]
+    path = tmp_path / "y_tri.csv"
+
+    def interrupt(what: str, done: int, total: int) -> None:
+        if done >= 0.4 * total:
+            raise KeyboardInterrupt
+
+    with open_stage(XY) as stage:
+        with pytest.raises(KeyboardInterrupt):
+            xyrecord.record_one(stage, entry, rate, LIMITS, path, {"profile": XY.name}, interrupt)
+        np.testing.assert_array_equal(stage.voltages(), [0.0, 0.0])  # every channel safe
+        partial = tmp_path / "y_tri.incomplete.csv"
+        assert sorted(p.name for p in tmp_path.iterdir()) == [partial.name]
+        text = partial.read_text()
+        assert ",".join(xs.COLUMNS) in text.splitlines()  # the header, units in every name
+        assert text.rstrip().splitlines()[-1].startswith("# end: interrupted (KeyboardInterrupt")
+        with pytest.raises(SweepFormatError, match="--resume"):
+            xs.read(partial)  # identify refuses it ...
+        kept = xs.parse(text, str(partial))  # ... but every row that arrived is there
+        assert 0.4 * n <= kept.time_s.size < n and kept.meta["frequency_hz"] == "5.58"
+        np.testing.assert_allclose(kept.voltage_v, entry[2][:kept.time_s.size], atol=1e-6)
+        assert np.ptp(kept.displacement_um[:, 1]) > 20 and np.isfinite(kept.displacement_um).all()
+        whole = xyrecord.record_one(stage, entry, rate, LIMITS, path, {"profile": XY.name})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["y_tri.csv"]  # superseded, removed
+    again = xs.read(path)
+    assert again.time_s.size == n and again.moving == ("y",)
+    np.testing.assert_allclose(again.displacement_um, whole.displacement_um, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_sweep_axes_keeps_the_file_in_progress_and_resume_completes_the_set(
+        tmp_path: Path) -> None:
+    """A real SIGINT to a real `afmctl sweep --axes x,y --resume` (six files of the set already
+    there, kept untouched; x_multisine and y_triangle_27.9hz missing): exit 130, one line naming
+    the kept x_multisine.incomplete.csv; `--resume` then records the two missing files, removes
+    the incomplete one and leaves the set complete."""
+    import os
+    import subprocess
+    import sys
+
+    from afmctl.cli.xysweep import first_resonance_hz
+    from tests.harness.paths import REPO
+    from tests.harness.sigint import interrupt_when
+
+    out = tmp_path / "s"
+    out.mkdir()
+    design = sd.xy_design(XY.sample_rate_hz, {a: (v.v_min, v.v_max) for a, v in LIMITS.items()},
+                          {a: v.max_rate_v_per_ms * 1e3 for a, v in LIMITS.items()},
+                          0.5 * first_resonance_hz(XY))  # the band sweep --axes takes
+    missing = {"x_multisine", "y_triangle_27.9hz"}
+    there = {}
+    for name, _, v, _ in design:
+        if name not in missing:  # a short stand-in for the file recorded earlier
+            xs.write(xs.from_arrays(v[:50], 0.1 * v[:50], XY.sample_rate_hz), out / f"{name}.csv")
+            there[name] = (out / f"{name}.csv").read_bytes()
+    argv = [sys.executable, "-m", "afmctl", "sweep", "--axes", "x,y", "--profile", "emulated-xy",
+            "--out", str(out), "--resume"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": str(REPO)})
+    partial = out / "x_multisine.incomplete.csv"
+    err = interrupt_when(proc, lambda: partial.exists()
+                         and partial.read_text().count("\n") >= 3000)
+    assert proc.returncode == 130, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("afmctl: error: interrupted; the stage was sent to its safe state")
+    assert str(partial) in last and "--resume" in last
+    assert err.count("already recorded, kept") == 6
+    kept = xs.parse(partial.read_text(), str(partial))
+    assert 2000 < kept.time_s.size < 40_001 and kept.moving == ("x",)
+    assert kept.meta["profile"] == "emulated-xy" and kept.meta["layer_thickness_y_um"]
+    res = CliRunner().invoke(main, ["sweep", "--axes", "x,y", "--profile", "emulated-xy",
+                                    "--out", str(out), "--resume"])
+    assert res.exit_code == 0, res.output
+    assert res.stdout.split() == [str(out / "x_multisine.csv"), str(out / "y_triangle_27.9hz.csv")]
+    assert f"{partial}: the interrupted attempt, superseded" in res.stderr
+    assert sorted(p.name for p in out.iterdir()) == sorted(f"{d[0]}.csv" for d in design)
+    assert all((out / f"{n}.csv").read_bytes() == b for n, b in there.items())
+    full = xs.read(out / "x_multisine.csv")
+    assert full.time_s.size == 40_001 and full.meta["swept_axis"] == "x"
+    np.testing.assert_allclose(full.voltage_v[:kept.time_s.size], kept.voltage_v, atol=1e-6)
+
+
+def test_ctrl_c_between_runs_sends_every_channel_to_0_v() -> None:
+    """A Ctrl-C while no run plays (a sweep's rest, with y held at 30 V) inside a command's
+    stage: the stage is sent to its safe state all the same (``play`` only makes its own runs
+    safe)."""
+    from afmctl.cli.base import opened_stage
+    from afmctl.experiment import runner
+
+    with pytest.raises(KeyboardInterrupt), opened_stage(XY) as stage:
+        runner.move_and_read(stage, 30.0, LIMITS["y"], XY.sample_rate_hz, 0.01, 1)
+        np.testing.assert_allclose(stage.voltages(), [0.0, 30.0], atol=1e-4)
+        raise KeyboardInterrupt
+    np.testing.assert_array_equal(stage.voltages(), [0.0, 0.0])

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -27,6 +26,7 @@ from afmctl.planning import track
 from benchmarks import campaign
 from tests.harness.emulated import ScriptedPort, long_waveform, small_buffers, stage_on
 from tests.harness.paths import PROFILES, REPO
+from tests.harness.sigint import interrupt_when
 
 ROOT = REPO
 
@@ -182,20 +182,9 @@ def test_sigint_to_track_leaves_the_stage_safe_and_a_valid_partial_file(
              "20", "--periods", "30", "--profile", str(prof), "--model", str(model), "--filter",
              "inverse", "--out", str(out)], env=env, stdout=subprocess.PIPE,
             stderr=subprocess.PIPE, text=True)
-        try:
-            run_file = out / "run_inverse.csv"
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline and proc.poll() is None:
-                if run_file.exists() and len(runfile.read(run_file).seq) > 2000:
-                    break
-                time.sleep(0.1)
-            assert proc.poll() is None, proc.communicate()
-            proc.send_signal(signal.SIGINT)
-            _, err = proc.communicate(timeout=30)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+        run_file = out / "run_inverse.csv"
+        err = interrupt_when(proc, lambda: run_file.exists()
+                             and len(runfile.read(run_file).seq) > 2000)
         with SerialStage(profile, srv.url, timeout_s=2.0) as stage:
             st = stage.status()
     assert proc.returncode == 130, err

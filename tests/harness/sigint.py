@@ -1,0 +1,26 @@
+"""A real SIGINT to a real ``afmctl`` process, sent once it has got far enough."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import time
+from collections.abc import Callable
+
+
+def interrupt_when(proc: subprocess.Popen[str], ready: Callable[[], bool],
+                   timeout_s: float = 60.0) -> str:
+    """Send SIGINT to ``proc`` once ``ready()`` (polled every 50 ms, up to ``timeout_s``), wait
+    for it to end and return its stderr. The test fails if it ended before; it is killed if it
+    outlives the interrupt by 30 s."""
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline and proc.poll() is None and not ready():
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGINT)
+        return proc.communicate(timeout=30)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
