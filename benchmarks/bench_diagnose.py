@@ -278,7 +278,7 @@ def family_row(name: str) -> dict[str, Any]:
     case = family_sets.cases_named(name, family_sets.FAMILY_CASES
                                    + family_sets.OTHER_FORM_CASES)[0]
     with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
-        sweeps = family_sets.record(s, Path(tmp) / "sweeps")
+        sweeps = family_sets.record(s, Path(tmp) / "sweeps", reversals=False)
         d = dg.diagnose(sweeps, dg.Settings(jobs=1))
     present = {c for c in ("creep" if case.creep else None, case.effect) if c}
     named = d.cause

@@ -13,7 +13,8 @@ diagnose's causes (:mod:`afmctl.drivers.device.foreign.family_physics`).
 
 :func:`session` opens a stage with a :class:`Probe` that keeps each run's true position (the run
 re-simulated from the device's state when it began, no gauge, no noise, in the readings' frame);
-:func:`record` records the three standard triangles through it; :func:`identified` fits them
+:func:`record` records the three standard triangles and the reversal curves
+(``afmctl sweep --design reversals``) through it; :func:`identified` fits them
 (``afmctl.fit.identify.fit``, default settings), optionally kept in a cache folder so the four
 benches fit each stage once (``--family-cache DIR``). :func:`profile_toml` writes a stage as a
 profile file for ``afmctl emulate --profile``.
@@ -220,9 +221,25 @@ def session(case: Case) -> Iterator[Session]:
         yield Session(case, prof, Probe(stage), clock)
 
 
-def record(s: Session, folder: Path) -> list[Any]:
-    """The three standard triangles over the drive range, recorded through the driver."""
-    return calibration.record_standard(s.probe, s.profile, folder)
+def record(s: Session, folder: Path, reversals: bool = True) -> list[Any]:
+    """The three standard triangles over the drive range and (``reversals``) the reversal
+    curves of ``afmctl sweep --design reversals``, recorded through the driver: what identify
+    asks for on a stage off the paper's model family (without them the grid's interior, every
+    minor loop a tracking triangle makes, is the smoothing's guess)."""
+    from afmctl.experiment import runner
+    from afmctl.files import sweepfile
+    from afmctl.planning import sweepdesign
+
+    sweeps = calibration.record_standard(s.probe, s.profile, folder)
+    if reversals:
+        lim = s.profile.limits
+        name, freq, v, meta = sweepdesign.reversals_sweep(
+            (lim.v_min, lim.v_max), s.profile.sample_rate_hz, lim.max_rate_v_per_ms * 1e3)
+        rec = runner.record_sweep(s.probe, name, freq, v, s.profile.sample_rate_hz,
+                                  {"layer_thickness_um": f"{s.profile.thickness_um:g}", **meta})
+        sweepfile.write(rec, folder / f"{name}.csv")
+        sweeps.append(sweepfile.read(folder / f"{name}.csv"))
+    return sweeps
 
 
 def identified(case: Case, sweeps: list[Any], noise_um: float, cache: Path | None

@@ -99,6 +99,19 @@ def _report(result: Any, data: Any = None, reach: str = "", loops: str = "") -> 
     return "\n".join(lines)
 
 
+def _warn_few_reversals(result: Any) -> None:
+    """The Preisach grid kept on sweeps that reverse at few voltages inside their range: its
+    interior (every minor loop a tracking waveform makes) is the smoothing's guess."""
+    from afmctl.fit import representation as rep
+
+    n = result.representations.get("preisach", {}).get("interior_reversals")
+    if result.representation == "preisach" and n is not None and n < rep.REVERSALS_NEEDED:
+        click.echo(f"warning: the Preisach grid was fitted to sweeps that reverse at {n} "
+                   f"voltage(s) inside their range: minor loops inside it are the smoothing's "
+                   f"guess; record `afmctl sweep --design reversals` (reversal curves) and "
+                   f"identify with them", err=True)
+
+
 def _warn_above_floor(result: Any) -> None:
     """Name on stderr every sweep the best fit leaves above 2x its sensor noise."""
     for s in result.above_floor():
@@ -168,6 +181,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
                                        settings.window_s):
                 say(f"wrote {p}")
     _warn_above_floor(result)
+    _warn_few_reversals(result)
     loops = closure.check(data, [s.noise_um for s in result.sweeps])
     if loops["close"] is False:
         click.echo(f"warning: {loops['text']}", err=True)

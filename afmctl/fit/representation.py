@@ -47,6 +47,11 @@ FloatArray = NDArray[np.float64]
 EARLY = 5.0
 #: The grid's worst held-out error this many times below the HEM's: the HEM's restarts are moot.
 DECISIVE = 3.0
+#: Reversals farther than this share of the range from its ends are inside it.
+EDGE = 0.05
+#: Below this many interior reversal voltages the grid's interior is the smoothing's guess (the
+#: CLI says so and suggests ``afmctl sweep --design reversals``, which has 7 of each kind).
+REVERSALS_NEEDED = 4
 #: The grid is kept only if its worst held-out error is below this share of the HEM's.
 MARGIN = 0.9
 
@@ -113,7 +118,8 @@ class Grid:
             "hem": {"worst_over_noise": hem_worst, "heldout_note": "error on the held-out "
                     "blocks from the full fit (about ten parameters: optimism ~ p/N)",
                     "per_sweep_over_noise": [s.rms_over_noise for s in hem.sweeps]},
-            "preisach": _grid_figures(fit, self.noise),
+            "preisach": {**_grid_figures(fit, self.noise),
+                         "interior_reversals": interior_reversals(self.sweeps)},
         }
         self.say(f"representation: {figures['chosen']} ({why})")
         if not keep_grid:
@@ -153,6 +159,35 @@ def first_start(prob: idf.Problem, space: pz.LognormalSpace, sol: optimize.Optim
                          int(sol.status), str(sol.message), prob.nfev, time.perf_counter() - t0,
                          known, sol.x, {}, idf.envelope(prob.sweeps, model.thickness_um),
                          restarts, bool(np.all(np.isfinite(sol.x))))
+
+
+def interior_reversals(sweeps: Sequence[Sweep]) -> int:
+    """How many distinct voltages (to 2 % of the range) the sweeps reverse at inside their range
+    (more than :data:`EDGE` of it from either end): the up/down reversal pairs a Preisach grid
+    learns its interior from. Triangles over the whole range have none.
+
+    Examples
+    --------
+    >>> from afmctl.files.sweepfile import from_arrays
+    >>> tri = from_arrays(np.interp(np.arange(41), [0, 10, 30, 40], [0, 150, 0, 0]), np.zeros(41),
+    ...                   1e3)
+    >>> inner = from_arrays(np.interp(np.arange(41), [0, 10, 20, 30, 40], [0, 150, 60, 150, 0]),
+    ...                     np.zeros(41), 1e3)
+    >>> interior_reversals([tri]), interior_reversals([tri, inner])
+    (0, 1)
+    """
+    lo = min(float(np.min(s.voltage_v)) for s in sweeps)
+    hi = max(float(np.max(s.voltage_v)) for s in sweeps)
+    span = max(hi - lo, 1e-12)
+    levels = set()
+    for s in sweeps:
+        d = np.diff(np.asarray(s.voltage_v, float))
+        moving = np.flatnonzero(d != 0)
+        turns = moving[1:][np.sign(d[moving[1:]]) != np.sign(d[moving[:-1]])]
+        for u in (np.asarray(s.voltage_v, float)[turns] - lo) / span:
+            if EDGE < u < 1 - EDGE:
+                levels.add(round(float(u) * 50))
+    return len(levels)
 
 
 def _grid_figures(fit: pf.PreisachFit, noise: FloatArray) -> dict[str, Any]:

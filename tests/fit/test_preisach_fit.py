@@ -65,7 +65,7 @@ def test_nnls_recovers_the_density_of_an_independent_preisach_operator() -> None
 
 
 @pytest.fixture(scope="module")
-def creeping(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+def creeping(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, str]:
     """identify on the independent plant with 1.5 % per decade of creep, through the CLI."""
     folder = tmp_path_factory.mktemp("creep")
     files = []
@@ -75,16 +75,21 @@ def creeping(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
         files.append(str(path))
     res = CliRunner().invoke(main, ["identify", *files, "-o", str(folder / "m.toml"), "--json"])
     assert res.exit_code == 0, res.output
-    return folder / "m.toml", json.loads(res.stdout)
+    return folder / "m.toml", json.loads(res.stdout), res.stderr
 
 
-def test_identify_chooses_the_grid_and_reaches_the_noise_floor(creeping: tuple[Path, dict]) -> None:
-    path, doc = creeping
+def test_identify_chooses_the_grid_and_reaches_the_noise_floor(
+        creeping: tuple[Path, dict, str]) -> None:
+    path, doc, stderr = creeping
     assert doc["representation"] == "preisach" and doc["at_noise_floor"] is True
     figures = doc["representations"]
     assert figures["chosen"] == "preisach"
     assert figures["preisach"]["worst_heldout_over_noise"] < 1.5
     assert figures["hem"]["worst_over_noise"] > 5  # the paper's model is off its family here
+    # nested loops from 0 V reverse at 2 voltages inside the range: too few for the grid's
+    # interior, and identify says which sweep design would give it the rest
+    assert figures["preisach"]["interior_reversals"] == 2
+    assert "--design reversals" in stderr
     assert all(s["rms_over_noise"] <= 1.5 for s in doc["sweeps"])
     model = modelfile.read(path)
     assert isinstance(model.polarization, pr.PreisachGrid) and model.creep is not None
@@ -120,3 +125,44 @@ def test_a_bipolar_stage_with_a_lightly_damped_rod_is_fitted_and_judged_at_its_n
     assert np.max(fit.heldout_rms_um / stage.noise_um) < 1.5
     rod = fit.model.rod
     assert np.sqrt(rod.k / rod.m) / (2 * np.pi) == pytest.approx(2000.0, rel=0.05)
+
+
+def test_reversal_curves_let_the_grid_predict_a_minor_loop_it_never_saw() -> None:
+    """On the family plant's unipolar Preisach stage (non-separable, off-centre density), a grid
+    fitted to full-range triangles alone knows the major loop only: a 50 <-> 117 V loop (a
+    tracking triangle's) is the smoothing's guess. With the reversal curves of ``afmctl sweep
+    --design reversals`` beside the triangles it is predicted near the noise; identify's figures
+    count the interior reversal voltages (0 for triangles, 7 with the curves)."""
+    from afmctl.drivers.device.foreign import family_stage as fs
+    from afmctl.fit import representation as rep
+
+    rng = np.random.default_rng(7)
+    stage = fs.random_family_stage(rng, "preisach", (0.0, 150.0), resonance_hz=3000.0,
+                                   damping=0.3, noise_um=0.015)
+    rate = 5000.0
+    designs = {"tri_1Hz": sd.loop(1.0, 0.0, 150.0, 2, rate),
+               "tri_5.58Hz": sd.loop(5.58, 0.0, 150.0, 4, rate),
+               "reversals": sd.reversals_sweep((0.0, 150.0), rate, 1e6)[2],
+               "minor": np.concatenate((np.linspace(0.0, 50.0, 835)[1:],
+                                        50.0 + sd.loop(1.0, 0.0, 67.0, 2, rate)[1:],
+                                        np.linspace(50.0, 0.0, 835)[1:]))}
+    state = fs.initial_state(stage)
+    sweeps = {}
+    for name, v in designs.items():
+        _, reading, state = fs.run(stage, v, rate, state)
+        sweeps[name] = sw.from_arrays(v, reading + rng.normal(0.0, stage.noise_um, v.size), rate,
+                                      {"layer_thickness_um": "100"}, path=name)
+    errors = {}
+    for label, names in (("triangles", ["tri_1Hz", "tri_5.58Hz"]),
+                         ("with reversals", ["tri_1Hz", "tri_5.58Hz", "reversals"])):
+        used = [sweeps[n] for n in names]
+        fit = pf.fit(data_of(used), [("positive",) + ("previous",) * (len(used) - 1)],
+                     (3000.0, 0.3), 100.0, 0.05)
+        assert np.max(fit.insample_over_noise) < 1.3, label
+        pred = idf.predict_set(fit.model, [*used, sweeps["minor"]],
+                               [*fit.starts, "previous"], [*fit.offsets, 0.0])[-1]
+        errors[label] = float(np.std(sweeps["minor"].displacement_um - pred)) / stage.noise_um
+    assert rep.interior_reversals([sweeps[n] for n in ("tri_1Hz", "tri_5.58Hz")]) == 0
+    assert rep.interior_reversals([sweeps["reversals"]]) == 7
+    assert errors["with reversals"] < 3.0, errors
+    assert errors["triangles"] > 3 * errors["with reversals"], errors

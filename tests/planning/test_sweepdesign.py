@@ -170,3 +170,25 @@ def test_every_sweep_ends_exactly_where_it_started(v_range: tuple[float, float])
     for name, _, v, _ in sd.design_set("separating", 10_000.0, 5e4, v_range):
         assert v[0] == 0.0 and v[-1] == 0.0, (name, v[-1])
         assert np.abs(np.diff(v)).max() <= 5.0, name  # no step: within 50 V/ms at 10 kHz
+
+
+@pytest.mark.parametrize("v_range", [(0.0, 150.0), (-30.0, 150.0), (-150.0, 150.0)])
+def test_reversals_design_adds_first_order_reversal_curves(v_range: tuple[float, float]) -> None:
+    """The standard set and one sweep from each end of the range to 7 voltages evenly inside it
+    and back, at the 5.58 Hz triangle's slew (or half the amplifier's, if slower), starting and
+    ending at the safe output."""
+    rate, max_rate = 10_000.0, 1.5e3
+    out = sd.design_set("reversals", rate, max_rate, v_range)
+    assert [n for n, _, _, _ in out][:4] == [n for n, _, _ in sd.standard_set(
+        sample_rate_hz=rate, v_range=v_range)]
+    name, _, v, meta = out[-1]
+    lo, hi = v_range
+    v0 = min(max(0.0, lo), hi)
+    assert name == "reversals" and meta["design"] == "reversals"
+    assert v[0] == v0 and v[-1] == v0 and v.min() == lo and v.max() == hi
+    assert np.max(np.abs(np.diff(v))) * rate <= sd.SLEW_USE * max_rate * (1 + 1e-9)
+    d = np.sign(np.diff(v))
+    turns = v[1:-1][d[1:] != d[:-1]]
+    inner = lo + (hi - lo) * np.arange(1, 8) / 8
+    for u in inner:  # each level reversed at twice: coming up from v_lo and down from v_hi
+        assert np.sum(np.isclose(turns, u)) == 2
