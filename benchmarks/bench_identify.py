@@ -153,9 +153,9 @@ def foreign(n: int, seed: int, keep: Path | None) -> dict[str, object]:
             "foreign_seed": seed, "foreign_rows": rows}
 
 
-def family_stage(name: str, cache: Path | None) -> dict[str, object]:
-    """Record and identify one out-of-family stage (:mod:`family_sets`)."""
-    case = family_sets.cases_named(name)[0]
+def family_stage(name: str, cache: Path | None, design: str) -> dict[str, object]:
+    """Record and identify one out-of-family stage (:mod:`family_sets`) from ``design``."""
+    case = family_sets.cases_named(name, design=design)[0]
     with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
         sweeps = family_sets.record(s, Path(tmp) / "sweeps")
         fit = family_sets.identified(case, sweeps, s.noise_um, cache)
@@ -166,13 +166,14 @@ def family_stage(name: str, cache: Path | None) -> dict[str, object]:
             "success": fit["success"], "seconds": fit["seconds"], "cached": fit["cached"]}
 
 
-def family(names: str, jobs: int, cache: Path | None) -> dict[str, object]:
+def family(names: str, jobs: int, cache: Path | None, design: str) -> dict[str, object]:
     """``family_*`` figures over the out-of-family stages (all, or those ``names`` lists)."""
     from concurrent.futures import ProcessPoolExecutor
 
     cases = family_sets.cases_named(names)
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        rows = list(pool.map(family_stage, [c.name for c in cases], [cache] * len(cases)))
+        rows = list(pool.map(family_stage, [c.name for c in cases], [cache] * len(cases),
+                             [design] * len(cases)))
     for r in rows:
         print(f"  {r['stage']:18s}: RMS / noise "
               + " / ".join(f"{x:.2f}" for x in r["rms_over_noise"])  # type: ignore[attr-defined]
@@ -198,7 +199,8 @@ def main() -> int:
     out: dict[str, object] = {}
     if args.family != "none":
         print("out-of-family stages ...", file=sys.stderr)
-        out.update(family(args.family, args.family_jobs, args.family_cache))
+        out.update(family(args.family, args.family_jobs, args.family_cache,
+                          args.family_design))
     if args.family_only:
         print(json.dumps(out))
         return 0

@@ -324,11 +324,11 @@ def family_row(case: family_sets.Case, cache: Path | None, tmp: Path) -> dict[st
     return row
 
 
-def family(names: str, cache: Path | None) -> dict[str, Any]:
+def family(names: str, cache: Path | None, design: str = "reversals") -> dict[str, Any]:
     """The ``family_*`` keys."""
     rows = []
     with tempfile.TemporaryDirectory() as td:
-        for case in family_sets.cases_named(names):
+        for case in family_sets.cases_named(names, design=design):
             rows.append(family_row(case, cache, Path(td) / case.name))
     return {"family_stages": len(rows), "family_learn_ok": sum(r["ok"] for r in rows),
             "family_replay_ok": sum(r["replay_ok"] for r in rows),
@@ -368,7 +368,8 @@ def main() -> None:
                          "foreign:earlier (implies --stages-only)")
     family_sets.add_arguments(ap)
     args = ap.parse_args()
-    fam = {} if args.family == "none" or args.stage else family(args.family, args.family_cache)
+    fam = ({} if args.family == "none" or args.stage else
+           family(args.family, args.family_cache, args.family_design))
     if args.family_only:
         print(json.dumps(fam))
         return

@@ -123,9 +123,10 @@ def family_row(case: family_sets.Case, cache: Path | None, periods: float) -> di
     return row
 
 
-def family(names: str, cache: Path | None, periods: float) -> dict[str, Any]:
+def family(names: str, cache: Path | None, periods: float, design: str = "reversals"
+           ) -> dict[str, Any]:
     """The ``family_*`` and ``bouc_wen_*`` keys over the unipolar out-of-family stages."""
-    cases = [c for c in family_sets.cases_named(names) if not c.bipolar]
+    cases = [c for c in family_sets.cases_named(names, design=design) if not c.bipolar]
     rows = [family_row(c, cache, periods) for c in cases]
     pp = [r["ratio_min"] for r in rows if r["family"] != "bouc-wen"]
     bw = [r["ratio_min"] for r in rows if r["family"] == "bouc-wen"]
@@ -141,7 +142,8 @@ def main() -> None:
                     help="periods per experiment (default: track's)")
     family_sets.add_arguments(ap)
     args = ap.parse_args()
-    fam = {} if args.family == "none" else family(args.family, args.family_cache, args.periods)
+    fam = {} if args.family == "none" else family(args.family, args.family_cache, args.periods,
+                                                  args.family_design)
     if args.family_only:
         print(json.dumps(fam))
         return

@@ -56,6 +56,7 @@ class Case:
     seed: int = 0
     density: str = "random"
     effect: str | None = None
+    reversals: bool = True  # identified with the reversal curves (--family-design reversals)
 
     @property
     def spec(self) -> FamilySpec:
@@ -93,6 +94,8 @@ def _family_cases() -> tuple[Case, ...]:
 #: The out-of-family stages: 4 per family (unipolar / bipolar, with / without creep) and two
 #: with frame drift.
 FAMILY_CASES = _family_cases()
+#: Identification sets a stage can be identified from (``--family-design``).
+DESIGNS = ("reversals", "standard")
 #: Second forms of diagnose's causes, two stages each, on in-family (separable) Preisach stages.
 OTHER_FORMS = ("amplifier-lag", "thermal-relaxation", "second-mode", "sensor-delay",
                "sensor-nonlinearity", "voltage-gain-drift")
@@ -103,26 +106,29 @@ OTHER_FORM_CASES = tuple(Case(f"other-{c}-{k}", "preisach", seed=400 + 10 * i + 
 
 def add_arguments(ap: argparse.ArgumentParser, cache: bool = True) -> None:
     """A bench's flags for its out-of-family part: ``--family-only``, ``--family NAMES`` and
-    (``cache``) ``--family-cache DIR``."""
+    (``cache``: the benches that identify) ``--family-cache DIR`` and ``--family-design``."""
     ap.add_argument("--family-only", action="store_true",
                     help="only the out-of-family stages (issue 23)")
     ap.add_argument("--family", default="", help="comma-separated out-of-family stages "
                                                  "(default: all; 'none': no such stage)")
     if cache:
+        ap.add_argument("--family-design", choices=DESIGNS, default="reversals",
+                        help="the identification set recorded on each stage: the standard "
+                             "triangles, or those and the reversal curves (default)")
         ap.add_argument("--family-cache", type=Path, default=None,
                         help="reuse (or keep) each stage's fit in this folder")
 
 
-def cases_named(names: str, pool: tuple[Case, ...] = FAMILY_CASES) -> tuple[Case, ...]:
-    """The cases of ``pool`` whose names are listed (comma-separated; empty: all)."""
-    if not names:
-        return pool
-    want = names.split(",")
+def cases_named(names: str, pool: tuple[Case, ...] = FAMILY_CASES,
+                design: str = "reversals") -> tuple[Case, ...]:
+    """The cases of ``pool`` whose names are listed (comma-separated; empty: all), identified
+    from ``design`` (one of :data:`DESIGNS`)."""
+    want = names.split(",") if names else [c.name for c in pool]
     known = {c.name: c for c in pool}
     bad = [n for n in want if n not in known]
     if bad:
         raise ValueError(f"unknown stage(s) {bad} (known: {', '.join(known)})")
-    return tuple(known[n] for n in want)
+    return tuple(dc.replace(known[n], reversals=design == "reversals") for n in want)
 
 
 def profile(case: Case) -> Profile:
@@ -221,11 +227,12 @@ def session(case: Case) -> Iterator[Session]:
         yield Session(case, prof, Probe(stage), clock)
 
 
-def record(s: Session, folder: Path, reversals: bool = True) -> list[Any]:
-    """The three standard triangles over the drive range and (``reversals``) the reversal
-    curves of ``afmctl sweep --design reversals``, recorded through the driver: what identify
-    asks for on a stage off the paper's model family (without them the grid's interior, every
-    minor loop a tracking triangle makes, is the smoothing's guess)."""
+def record(s: Session, folder: Path, reversals: bool | None = None) -> list[Any]:
+    """The three standard triangles over the drive range and (``reversals``, default the case's)
+    the reversal curves of ``afmctl sweep --design reversals``, recorded through the driver: what
+    identify asks for on a stage off the paper's model family (without them the grid's interior,
+    every minor loop a tracking triangle makes, is the smoothing's guess)."""
+    reversals = s.case.reversals if reversals is None else reversals
     from afmctl.experiment import runner
     from afmctl.files import sweepfile
     from afmctl.planning import sweepdesign
@@ -247,7 +254,8 @@ def identified(case: Case, sweeps: list[Any], noise_um: float, cache: Path | Non
     """``identify.fit`` on ``sweeps`` (default settings): ``model``, ``seconds``,
     ``rms_over_noise`` (per sweep, against the true noise), ``success``; read from
     ``cache/<case>/`` when it holds them, written there otherwise."""
-    folder = None if cache is None else cache / case.name
+    folder = None if cache is None else cache / (case.name if case.reversals
+                                                 else f"{case.name}-standard")
     if folder is not None and (folder / "fit.json").is_file():
         info = json.loads((folder / "fit.json").read_text())
         return {**info, "model": modelfile.read(folder / "model.toml"), "cached": True}
