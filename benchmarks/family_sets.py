@@ -232,20 +232,20 @@ def record(s: Session, folder: Path, reversals: bool | None = None) -> list[Any]
     the reversal curves of ``afmctl sweep --design reversals``, recorded through the driver: what
     identify asks for on a stage off the paper's model family (without them the grid's interior,
     every minor loop a tracking triangle makes, is the smoothing's guess)."""
-    reversals = s.case.reversals if reversals is None else reversals
     from afmctl.experiment import runner
     from afmctl.files import sweepfile
     from afmctl.planning import sweepdesign
 
     sweeps = calibration.record_standard(s.probe, s.profile, folder)
-    if reversals:
+    if s.case.reversals if reversals is None else reversals:
         lim = s.profile.limits
         name, freq, v, meta = sweepdesign.reversals_sweep(
             (lim.v_min, lim.v_max), s.profile.sample_rate_hz, lim.max_rate_v_per_ms * 1e3)
-        rec = runner.record_sweep(s.probe, name, freq, v, s.profile.sample_rate_hz,
-                                  {"layer_thickness_um": f"{s.profile.thickness_um:g}", **meta})
-        sweepfile.write(rec, folder / f"{name}.csv")
-        sweeps.append(sweepfile.read(folder / f"{name}.csv"))
+        path = folder / f"{name}.csv"  # written once complete, read back as a lab's file
+        runner.record_sweep(s.probe, name, freq, v, s.profile.sample_rate_hz,
+                            {"layer_thickness_um": f"{s.profile.thickness_um:g}", **meta},
+                            path=path)
+        sweeps.append(sweepfile.read(path))
     return sweeps
 
 
@@ -253,7 +253,8 @@ def identified(case: Case, sweeps: list[Any], noise_um: float, cache: Path | Non
                ) -> dict[str, Any]:
     """``identify.fit`` on ``sweeps`` (default settings): ``model``, ``seconds``,
     ``rms_over_noise`` (per sweep, against the true noise), ``success``; read from
-    ``cache/<case>/`` when it holds them, written there otherwise."""
+    ``cache/<case>/`` (``cache/<case>-standard/`` for the triangles alone) when it holds them,
+    written there otherwise."""
     folder = None if cache is None else cache / (case.name if case.reversals
                                                  else f"{case.name}-standard")
     if folder is not None and (folder / "fit.json").is_file():

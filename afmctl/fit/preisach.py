@@ -261,12 +261,12 @@ def refit_rod(prob: Problem, th: Theta) -> Theta:
               for z in np.linspace(math.log(0.01), math.log(2.0), ROD_GRID[1])]
     here = np.array([th.log_fn, th.log_zeta])
     sse = [float(np.sum(residual(x) ** 2)) for x in coarse]
-    best = here
+    best, best_sse = here, float(np.sum(residual(here) ** 2))
     for x0 in (coarse[int(np.argmin(sse))], here):
         sol = optimize.least_squares(residual, np.clip(x0, lo + 1e-9, hi - 1e-9),
                                      bounds=(lo, hi), x_scale=0.1, max_nfev=60)
-        if sol.cost * 2 < float(np.sum(residual(best) ** 2)):
-            best = sol.x
+        if 2 * sol.cost < best_sse:
+            best, best_sse = sol.x, 2 * float(sol.cost)
     out = th.copy()
     out.log_fn, out.log_zeta = float(best[0]), float(best[1])
     fn, zeta = math.exp(out.log_fn), math.exp(out.log_zeta)

@@ -15,10 +15,11 @@ the two are compared by their **held-out** error against each sweep's sensor noi
   knows nothing outside the cells the sweeps switched.
 
 Speed: after the HEM's first start, if some sweep is more than :data:`EARLY` times its noise
-(the HEM's family does not describe the stage), the grid is fitted at once; if its worst held-out error is then :data:`DECISIVE` times below
-the HEM's, the HEM's restarts and refinements are skipped (on the out-of-family stages of the
-benches they never closed such a gap: a Prandtl-Ishlinskii stage's HEM went from 12.6x to 7.5x
-the noise in 110 s of restarts, polishing and a general density, against the grid's 2.7x).
+(the HEM's family does not describe the stage), the grid is fitted at once; if its worst
+held-out error is then :data:`DECISIVE` times below the HEM's, the HEM's restarts and
+refinements are skipped (on the out-of-family stages of the benches they never closed such a
+gap: a Prandtl-Ishlinskii stage's HEM went from 12.6x to 7.5x the noise in 110 s of restarts,
+polishing and a general density, against the grid's 2.7x).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from numpy.typing import NDArray
 from afmctl.files.sweepfile import Sweep
 from afmctl.fit import preisach as pf
 from afmctl.fit import uncertainty as unc
+from afmctl.fit.parametrization import turning_points
 from afmctl.model import preisach as pr
 
 if TYPE_CHECKING:
@@ -181,10 +183,8 @@ def interior_reversals(sweeps: Sequence[Sweep]) -> int:
     span = max(hi - lo, 1e-12)
     levels = set()
     for s in sweeps:
-        d = np.diff(np.asarray(s.voltage_v, float))
-        moving = np.flatnonzero(d != 0)
-        turns = moving[1:][np.sign(d[moving[1:]]) != np.sign(d[moving[:-1]])]
-        for u in (np.asarray(s.voltage_v, float)[turns] - lo) / span:
+        v = np.asarray(s.voltage_v, float)
+        for u in (v[turning_points(v)[1:-1]] - lo) / span:  # the ends are no reversals
             if EDGE < u < 1 - EDGE:
                 levels.add(round(float(u) * 50))
     return len(levels)
