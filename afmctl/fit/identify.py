@@ -278,7 +278,7 @@ def resolve_thickness(sweeps: Sequence[Sweep], settings: Settings) -> tuple[floa
 # ----------------------------------------------------------------------------------------------
 
 
-def _start_state(model: td.Transducer, start: str, v0: float,
+def start_state(model: td.Transducer, start: str, v0: float,
                  previous: hy.PolarizationState | None) -> td.StageState:
     """Stage state before a sweep's first sample ``v0`` (V): the hysteresis ``start`` (one of
     :data:`afmctl.fit.parametrization.STARTS`), then ``v0`` applied quasi-statically, rod at rest."""
@@ -293,7 +293,7 @@ def _reading(model: td.Transducer, voltage_v: FloatArray, dt: float, gain: float
     chain = fx.compile_chain(model.effects, dt)
     v = gain * np.asarray(voltage_v, dtype=float)
     v, _ = fx.lag(chain, v, float(v[0]))
-    st = _start_state(model, start, float(v[0]), previous)
+    st = start_state(model, start, float(v[0]), previous)
     u, _, end = td.simulate(td.compile_model(model, dt), v, st)
     return fx.measure(chain, u, *fx.rest(chain, float(u[0])))[0], end.polarization
 
@@ -332,6 +332,14 @@ def _error(name: str, sweep: Sweep, predicted: FloatArray, window_s: Window, sta
     return SweepError(name, float(np.sqrt(np.mean(err ** 2))), float(np.max(np.abs(err))),
                       float(np.ptp(sweep.displacement_um[m])), int(m.sum()),
                       ns.sensor_noise_um(sweep.displacement_um), start, offset_um)
+
+
+def judge_set(sweeps: Sequence[Sweep], predicted: Sequence[FloatArray], starts: Sequence[str],
+              offsets_um: Sequence[float], window_s: Window = None) -> tuple[SweepError, ...]:
+    """Each sweep's error against its prediction (:func:`predict_set`), with the start and the
+    sensor zero it was predicted with."""
+    return tuple(_error(s.path or s.name, s, u, window_s, start, float(off))
+                 for s, u, start, off in zip(sweeps, predicted, starts, offsets_um, strict=True))
 
 
 def sweep_error(model: td.Transducer, sweep: Sweep, window_s: Window = None,
@@ -636,9 +644,7 @@ def _fit(sweeps: Sequence[Sweep], settings: Settings,
     else:
         predicted = predict_set(model, sweeps, space.starts, offsets)
     env = envelope(sweeps, thickness)
-    errors = tuple(_error(s.path or s.name, s, u, settings.window_s, start, float(off))
-                   for s, u, start, off in zip(sweeps, predicted, space.starts, offsets,
-                                               strict=True))
+    errors = judge_set(sweeps, predicted, space.starts, offsets, settings.window_s)
     cov, names = unc.covariance(final, sol.x, beta, prob.y)
     finite = bool(np.all(np.isfinite(sol.x)) and np.all(np.isfinite(beta)))
     hem = FitResult(model, unc.estimates(final, sol.x, beta, cov, settings.scales), errors,

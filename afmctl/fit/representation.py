@@ -133,9 +133,8 @@ class Grid:
         from afmctl.fit import identify as idf
 
         model = fit.model  # judged with each sweep's own history: sensor zero, creep transient
-        errors = tuple(idf._error(s.path or s.name, s, u, self.settings.window_s, st, float(off))
-                       for s, u, st, off in zip(self.sweeps, fit.predicted, fit.starts,
-                                                fit.offsets, strict=True))
+        errors = idf.judge_set(self.sweeps, fit.predicted, fit.starts, fit.offsets,
+                               self.settings.window_s)
         how = "converged" if fit.converged else "stopped on its budget"
         msg = f"Preisach grid: Gauss-Newton {how} after {fit.iterations} steps"
         return idf.FitResult(
@@ -154,9 +153,8 @@ def first_start(prob: idf.Problem, space: pz.LognormalSpace, sol: optimize.Optim
     beta, _ = pz.project(space.design(sol.x), prob.y)
     model = idf._model(space, sol.x, prob.y, thickness)
     predicted = idf.predict_set(model, prob.sweeps, space.starts, beta[2:])
-    errors = tuple(idf._error(s.path or s.name, s, u, prob.settings.window_s, st, float(off))
-                   for s, u, st, off in zip(prob.sweeps, predicted, space.starts, beta[2:],
-                                            strict=True))
+    errors = idf.judge_set(prob.sweeps, predicted, space.starts, beta[2:],
+                           prob.settings.window_s)
     return idf.FitResult(model, (), errors, bool(sol.success and sol.status > 0),
                          int(sol.status), str(sol.message), prob.nfev, time.perf_counter() - t0,
                          known, sol.x, {}, idf.envelope(prob.sweeps, model.thickness_um),

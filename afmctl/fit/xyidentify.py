@@ -13,6 +13,10 @@ is held at a constant voltage, and files where both move. The steps:
    The two axes are independent problems and are fitted in two worker processes at once. Files
    where the axis carries a dynamic excitation (a chirp, a multisine: :func:`excitation`) are
    there for the coupling and are left out of the axis fit.
+3. Each axis's second mechanical mode (:mod:`afmctl.fit.modes`), started at the shared modes the
+   coupling found: a structural mode the axes share moves each of them a little and rings after
+   every turning point of a fast sweep, below or above the axis's own resonance. It is kept
+   where it brings the axis's worst sweep well down (:data:`afmctl.fit.modes.KEEP_BELOW`).
 
 The coupling acts on the source's displacement relative to ``reference_um``: the source's mean
 measured displacement over the files the target's model was fitted on (there the target's model
@@ -36,6 +40,7 @@ from afmctl.files.sweepfile import Sweep
 from afmctl.files.xysweepfile import AXES, XYSweep
 from afmctl.fit import coupling as fc
 from afmctl.fit import identify as idf
+from afmctl.fit import modes
 from afmctl.fit import parametrization as pz
 from afmctl.model import coupling as cp
 from afmctl.model.xy import XYModel, direction
@@ -182,7 +187,8 @@ def fit(sweeps: Sequence[XYSweep], settings: idf.Settings = idf.Settings(),
             f" um/um ({cf.coupling.static_db:.1f} dB), mode {cf.coupling.mode_hz:.4g} Hz, "
             f"estimates {cf.band_hz[0]:.3g} ... {cf.band_hz[1]:.4g} Hz")
     found = {d: c.coupling for d, c in couplings.items()}
-    tasks = [(a, axis_sweeps(sweeps, a, found), settings) for a in AXES]
+    modes_hz = tuple(c.mode_hz for c in found.values())
+    tasks = [(a, axis_sweeps(sweeps, a, found), settings, modes_hz) for a in AXES]
     say(f"fitting axes {', '.join(AXES)} ({min(jobs, len(AXES))} at a time) ...")
     if jobs <= 1:
         results = [_fit_axis(t, say) for t in tasks]
@@ -197,10 +203,13 @@ def fit(sweeps: Sequence[XYSweep], settings: idf.Settings = idf.Settings(),
     return XYFitResult(axes, couplings, time.perf_counter() - t0)
 
 
-def _fit_axis(task: tuple[str, list[Sweep], idf.Settings],
+def _fit_axis(task: tuple[str, list[Sweep], idf.Settings, tuple[float, ...]],
               say: Callable[[str], None] | None = None) -> idf.FitResult:
-    axis, data, settings = task
-    return idf.fit(data, settings, None if say is None else (lambda m: say(f"[{axis}] {m}")))
+    """One axis's model (:func:`afmctl.fit.identify.fit`), then its second mode
+    (:func:`afmctl.fit.modes.refined`) started at the coupling's shared modes ``modes_hz``."""
+    axis, data, settings, modes_hz = task
+    result = idf.fit(data, settings, None if say is None else (lambda m: say(f"[{axis}] {m}")))
+    return modes.refined(result, data, modes_hz, settings.window_s)
 
 
 def _ignore_interrupt() -> None:

@@ -1,0 +1,248 @@
+"""A second mechanical mode of an axis, identified with its hysteresis held.
+
+An axis of an x/y stage moves mostly through its own resonance (the rod (16)), and a little
+through a structural mode the axes share: the coupling fit finds that mode's frequency
+(:attr:`afmctl.model.coupling.Coupling.mode_hz`), which may lie below the axis's own. A one-mode
+rod cannot follow it: after every turning point of a fast triangle the shared mode rings, and the
+axis's fit stays far above its noise on that sweep alone (foreign-xy-1: a 150 Hz mode carrying
+4.4 % of x's stroke, 32x the noise on the 23 Hz triangle, 2.8x on the slowest).
+
+The hysteresis and its static displacement ``g`` (um: the rod's force over its stiffness) are
+held; the rod and the mode are fitted to the readings by variable projection::
+
+    y_s = a (L[g_s] + g2 M1[L[g_s]] + r2 M2[L[g_s]]) + offset_s,
+
+``L`` the rod (16) at unit DC gain, ``M1`` and ``M2`` the spring and damper parts of the mode of
+:class:`afmctl.model.effects.SecondMode` (its ``gain`` ``g2`` and ``rate_gain`` ``r2``), ``a`` a
+common scale (the mode's DC gain ``1 + g2`` is absorbed so that slow sweeps stay where they were).
+The nonlinear parameters are the rod's and the mode's frequencies and dampings, started at the
+given frequencies (the coupling's modes) and at fractions of the rod's. Pure numerics: no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize
+
+from afmctl.files.sweepfile import Sweep
+from afmctl.fit import identify as idf
+from afmctl.fit import uncertainty as unc
+from afmctl.fit.preisach_problem import rod_filter
+from afmctl.model import effects as fx
+from afmctl.model import transducer as td
+from afmctl.model.rod import UM_PER_M
+
+FloatArray = NDArray[np.float64]
+#: Mode frequencies tried when none are given, as fractions of the rod's resonance.
+SEED_FRACTIONS = (0.35, 0.5, 0.7, 1.4, 2.0)
+#: Mode damping ratios tried at every seed frequency.
+SEED_DAMPINGS = (0.02, 0.06)
+#: Polished from this many of the best seeds.
+POLISHED = 3
+#: Evaluations of each least-squares run.
+MAX_NFEV = 60
+#: The mode is kept only if it brings the worst sweep's RMS (over its noise) below this share of
+#: the fit without it: a ringing mode shows on the fast sweeps, far above the noise.
+KEEP_BELOW = 0.8
+
+
+@dataclass(frozen=True)
+class ModeFit:
+    """The rod and mode found (:class:`afmctl.model.effects.SecondMode`), the common scale ``a``,
+    each sweep's sensor zero (um) and RMS over its noise without and with the mode."""
+
+    mode: fx.SecondMode
+    natural_hz: float
+    damping_ratio: float
+    scale: float
+    offsets_um: tuple[float, ...]
+    before: tuple[float, ...]
+    after: tuple[float, ...]
+
+    @property
+    def kept(self) -> bool:
+        """The mode lowers the worst sweep's RMS below :data:`KEEP_BELOW` of the fit without."""
+        return max(self.after) < KEEP_BELOW * max(self.before)
+
+    def to_dict(self) -> dict[str, object]:
+        m = self.mode
+        return {"kept": self.kept, "frequency_Hz": m.frequency_hz,
+                "damping_ratio": m.damping_ratio, "gain": m.gain, "rate_gain": m.rate_gain,
+                "rod_natural_Hz": self.natural_hz, "rod_damping_ratio": self.damping_ratio,
+                "per_sweep_over_noise_without": list(self.before),
+                "per_sweep_over_noise_with": list(self.after)}
+
+
+def static_um(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str]
+              ) -> list[FloatArray]:
+    """Per sweep (recorded in sequence, each from its start): the rod's static displacement
+    ``f / k`` (um) for the force (16) the model's hysteresis (and creep) gives."""
+    out, prev = [], None
+    for s, start in zip(sweeps, starts, strict=True):
+        st = idf.start_state(model, start, float(s.voltage_v[0]), prev)
+        _, p, end = td.simulate(td.compile_model(model, s.dt), s.voltage_v, st)
+        out.append(model.rod.force(p) / model.rod.k * UM_PER_M)
+        prev = end.polarization
+    return out
+
+
+def _mode_parts(u: FloatArray, f_hz: float, zeta: float, dt: float) -> tuple[FloatArray,
+                                                                              FloatArray]:
+    """``M1[u]`` and ``M2[u]``: the mode's displacement per unit gain and per unit rate gain."""
+    parts = []
+    for gain, rate in ((1.0, 0.0), (0.0, 1.0)):
+        chain = fx.compile_chain(fx.Effects(second_mode=fx.SecondMode(f_hz, zeta, gain, rate)), dt)
+        parts.append(fx.position(chain, u) - u)
+    return parts[0], parts[1]
+
+
+class _Problem:
+    """Weighted rows of every sweep (each sweep weighs the same, in units of its noise)."""
+
+    def __init__(self, g: Sequence[FloatArray], sweeps: Sequence[Sweep], noise: FloatArray,
+                 window_s: idf.Window) -> None:
+        self.g, self.dts = list(g), [s.dt for s in sweeps]
+        self.masks = [s.mask(window_s) for s in sweeps]
+        self.y = [s.displacement_um[m] for s, m in zip(sweeps, self.masks, strict=True)]
+        n = np.array([m.sum() for m in self.masks], dtype=float)
+        self.noise = noise
+        self.w = np.sqrt(n.mean() / n) / noise
+
+    def columns(self, z: FloatArray) -> list[FloatArray]:
+        """Per sweep on its judged samples: ``L[g]`` for the rod ``exp(z[:2])`` (Hz, damping
+        ratio), and with a mode ``exp(z[2:])`` also ``M1[L[g]]`` and ``M2[L[g]]``."""
+        fn, zn = np.exp(z[:2])
+        out = []
+        for g, dt, m in zip(self.g, self.dts, self.masks, strict=True):
+            u = rod_filter(g, fn, zn, dt)
+            cols = [u]
+            if z.size > 2:
+                cols += _mode_parts(u, *np.exp(z[2:]), dt)
+            out.append(np.column_stack(cols)[m])
+        return out
+
+    def solve(self, z: FloatArray) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
+        """The linear parameters (``a``, with a mode ``a g2`` and ``a r2``, then the sensor zeros),
+        the weighted residual and each sweep's unweighted residual."""
+        cols = self.columns(z)
+        n_s, k = len(cols), cols[0].shape[1]
+        rows = []
+        for s, c in enumerate(cols):
+            ind = np.zeros((c.shape[0], n_s))
+            ind[:, s] = 1.0
+            rows.append(self.w[s] * np.hstack((c, ind)))
+        a = np.vstack(rows)
+        b = np.concatenate([w * y for w, y in zip(self.w, self.y, strict=True)])
+        beta = np.linalg.lstsq(a, b, rcond=None)[0]
+        per = [y - c @ beta[:k] - beta[k + s] for s, (y, c) in enumerate(zip(self.y, cols,
+                                                                            strict=True))]
+        return beta, b - a @ beta, per
+
+    def polish(self, z0: Sequence[FloatArray], lo: FloatArray, hi: FloatArray
+               ) -> optimize.OptimizeResult:
+        """The best of least-squares runs from each of ``z0`` within the bounds."""
+        runs = [optimize.least_squares(lambda z: self.solve(z)[1], np.clip(z, lo, hi),
+                                       bounds=(lo, hi), diff_step=1e-5, max_nfev=MAX_NFEV)
+                for z in z0]
+        return min(runs, key=lambda r: float(r.cost))
+
+    def ratios(self, per: Sequence[FloatArray]) -> tuple[float, ...]:
+        return tuple(float(np.sqrt(np.mean(r ** 2)) / n) for r, n in zip(per, self.noise,
+                                                                          strict=True))
+
+
+def fit(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str], noise: FloatArray,
+        seeds_hz: Sequence[float] = (), window_s: idf.Window = None) -> ModeFit:
+    """Fit the rod and a second mode to ``sweeps`` with ``model``'s hysteresis held.
+
+    Parameters
+    ----------
+    model : Transducer
+        An identified model (its effects are not used).
+    sweeps : sequence of Sweep
+        In the order they were recorded; ``starts`` their hysteresis states
+        (:data:`afmctl.fit.parametrization.STARTS`), ``noise`` their sensor noise (um).
+    seeds_hz : sequence of float
+        Mode frequencies to start from (Hz), e.g. the coupling's shared modes; without them,
+        fractions of the rod's resonance (:data:`SEED_FRACTIONS`).
+    window_s : Window
+        The samples each sweep is judged on (as identify's).
+    """
+    prob = _Problem(static_um(model, sweeps, starts), sweeps, np.asarray(noise, float), window_s)
+    rod = np.log([model.rod.natural_hz, model.rod.damping_ratio])
+    nyquist = 0.5 / max(s.dt for s in sweeps)
+    lo = np.concatenate((rod + np.log([0.5, 0.1]), np.log([2.0, 0.002])))
+    hi = np.concatenate((rod + np.log([2.0, 10.0]), np.log([0.9 * nyquist, 0.5])))
+    lo[1], hi[1] = max(lo[1], math.log(0.002)), min(hi[1], 0.0)
+    rod_hz = model.rod.natural_hz
+    freqs = [f for f in list(seeds_hz) or [k * rod_hz for k in SEED_FRACTIONS]
+             if lo[2] < math.log(f) < hi[2]]
+    seeds = [np.concatenate((rod, np.log([f, z]))) for f in freqs for z in SEED_DAMPINGS]
+    plain = prob.polish([rod], lo[:2], hi[:2])
+    ranked = sorted(seeds, key=lambda z: float(np.sum(prob.solve(z)[1] ** 2)))[:POLISHED]
+    best = prob.polish(ranked, lo, hi)
+    beta, _, per = prob.solve(best.x)
+    fn, zn, f2, z2 = (float(v) for v in np.exp(best.x))
+    a, g2 = float(beta[0]), float(beta[1] / beta[0])
+    zeros = tuple(float(b) / (1.0 + g2) for b in beta[3:])  # the mode moves the rod's zero too
+    return ModeFit(fx.SecondMode(f2, z2, g2, float(beta[2]) / a), fn, zn, a, zeros,
+                   prob.ratios(prob.solve(plain.x)[2]), prob.ratios(per))
+
+
+def with_mode(model: td.Transducer, found: ModeFit) -> td.Transducer:
+    """``model`` with the rod and mode of ``found``: the force scaled by ``a``, the rod's mass and
+    damping set for its new resonance (stiffness kept), the mode among its effects, the sensor
+    zero the last sweep's."""
+    r = model.rod
+    w = 2 * math.pi * found.natural_hz
+    m = r.k / (w * w)
+    rod = replace(r, m=m, c=2 * found.damping_ratio * math.sqrt(r.k * m), a1=found.scale * r.a1,
+                  a2=found.scale * r.a2, offset_um=found.offsets_um[-1])
+    return replace(model, rod=rod, effects=replace(model.effects, second_mode=found.mode))
+
+
+#: The rod's estimates a mode's fit restates (the rod was refitted with it).
+_ROD_ESTIMATES = {"natural_frequency": "natural_hz", "damping_ratio": "damping_ratio", "c": "c",
+                  "a1": "a1", "a2": "a2", "offset": "offset_um", "m": "m"}
+
+
+def _restated(parameters: Sequence[unc.Estimate], model: td.Transducer,
+              mode: fx.SecondMode) -> tuple[unc.Estimate, ...]:
+    """``parameters`` with the rod's values of ``model`` (no interval: not re-estimated) and the
+    mode's four."""
+    rod = model.rod
+    out = [replace(p, value=float(getattr(rod, _ROD_ESTIMATES[p.name])), stderr=math.nan)
+           if p.name in _ROD_ESTIMATES and not p.fixed else p for p in parameters]
+    return tuple(out + [unc.Estimate("mode_frequency", mode.frequency_hz, math.nan, "Hz"),
+                        unc.Estimate("mode_damping_ratio", mode.damping_ratio, math.nan, "1"),
+                        unc.Estimate("mode_gain", mode.gain, math.nan, "1"),
+                        unc.Estimate("mode_rate_gain", mode.rate_gain, math.nan, "1")])
+
+
+def refined(result: idf.FitResult, sweeps: Sequence[Sweep], seeds_hz: Sequence[float] = (),
+            window_s: idf.Window = None) -> idf.FitResult:
+    """``result`` (identify's, on ``sweeps``) with a second mode (:func:`fit`) where it is kept
+    (:attr:`ModeFit.kept`): the model, its parameters and every sweep's error restated; the
+    mode's figures under ``representations["second_mode"]`` either way. Not tried on a fit
+    already at its noise floor (:attr:`afmctl.fit.identify.FitResult.at_noise_floor`): there is
+    nothing left for a mode to explain."""
+    if result.at_noise_floor:
+        return replace(result, representations={**result.representations, "second_mode": {
+            "kept": False, "skipped": "every sweep at its noise floor"}})
+    starts = [s.start for s in result.sweeps]
+    found = fit(result.model, sweeps, starts, np.array([s.noise_um for s in result.sweeps]),
+                seeds_hz, window_s)
+    figures = {**result.representations, "second_mode": found.to_dict()}
+    if not found.kept:
+        return replace(result, representations=figures)
+    model = with_mode(result.model, found)
+    predicted = idf.predict_set(model, sweeps, starts, found.offsets_um)
+    return replace(result, model=model, sweeps=idf.judge_set(sweeps, predicted, starts,
+                                                             found.offsets_um, window_s),
+                   parameters=_restated(result.parameters, model, found.mode),
+                   representations=figures)
