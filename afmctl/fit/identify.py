@@ -233,8 +233,9 @@ class FitResult:
 
     @property
     def zero_index(self) -> int:
-        """The sweep whose sensor zero is the model's (:func:`zero_index`)."""
-        return zero_index(self.sweeps)
+        """The sweep whose sensor zero is the model's (:func:`afmctl.fit.parametrization.zero_sweep`
+        of the sweeps' starts)."""
+        return pz.zero_sweep([s.start for s in self.sweeps])
 
     def offsets_disagreeing(self) -> list[SweepError]:
         """The sweeps whose sensor zero differs from the model's by more than :data:`OFFSET_AGREE`
@@ -271,19 +272,6 @@ class FitResult:
             "sensor_zero_file": self.sweeps[self.zero_index].file,
             "offsets_disagree": bool(self.offsets_disagreeing()),
         }
-
-
-def zero_index(errors: Sequence[SweepError]) -> int:
-    """The sweep whose sensor zero a fit's model keeps: :func:`afmctl.fit.parametrization.zero_sweep`
-    by the sweeps' starts and fit RMS over noise (the best-fitted sweep in the model's initial
-    state's history)."""
-    return pz.zero_sweep([e.start for e in errors], [e.rms_over_noise for e in errors])
-
-
-def zeroed(model: td.Transducer, errors: Sequence[SweepError]) -> td.Transducer:
-    """``model`` with the sensor zero of the sweep :func:`zero_index` names."""
-    off = errors[zero_index(errors)].offset_um
-    return replace(model, rod=replace(model.rod, offset_um=float(off)))
 
 
 def _finite(v: float) -> float | None:
@@ -674,8 +662,8 @@ def _fit(sweeps: Sequence[Sweep], settings: Settings,
                                                strict=True))
     cov, names = unc.covariance(final, sol.x, beta, prob.y)
     finite = bool(np.all(np.isfinite(sol.x)) and np.all(np.isfinite(beta)))
-    est = unc.estimates(final, sol.x, beta, cov, settings.scales, zero_index(errors))
-    hem = FitResult(zeroed(model, errors), est, errors,
+    est = unc.estimates(final, sol.x, beta, cov, settings.scales, pz.zero_sweep(final.starts))
+    hem = FitResult(model, est, errors,
                     bool(ok and finite), int(sol.status), str(sol.message), prob.nfev,
                     time.perf_counter() - t0, known, x_lognormal,
                     unc.summary(names, np.concatenate((sol.x, beta)), cov), env, restarts, finite)

@@ -132,11 +132,10 @@ class Grid:
                 figures: dict[str, Any]) -> idf.FitResult:
         from afmctl.fit import identify as idf
 
-        # judged with each sweep's own history: sensor zero, creep transient
+        model = fit.model  # judged with each sweep's own history: sensor zero, creep transient
         errors = tuple(idf._error(s.path or s.name, s, u, self.settings.window_s, st, float(off))
                        for s, u, st, off in zip(self.sweeps, fit.predicted, fit.starts,
                                                 fit.offsets, strict=True))
-        model = idf.zeroed(fit.model, errors)
         how = "converged" if fit.converged else "stopped on its budget"
         msg = f"Preisach grid: Gauss-Newton {how} after {fit.iterations} steps"
         return idf.FitResult(
@@ -158,7 +157,7 @@ def first_start(prob: idf.Problem, space: pz.LognormalSpace, sol: optimize.Optim
     errors = tuple(idf._error(s.path or s.name, s, u, prob.settings.window_s, st, float(off))
                    for s, u, st, off in zip(prob.sweeps, predicted, space.starts, beta[2:],
                                             strict=True))
-    return idf.FitResult(idf.zeroed(model, errors), (), errors, bool(sol.success and sol.status > 0),
+    return idf.FitResult(model, (), errors, bool(sol.success and sol.status > 0),
                          int(sol.status), str(sol.message), prob.nfev, time.perf_counter() - t0,
                          known, sol.x, {}, idf.envelope(prob.sweeps, model.thickness_um),
                          restarts, bool(np.all(np.isfinite(sol.x))))

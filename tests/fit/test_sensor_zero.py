@@ -1,6 +1,6 @@
-"""The model's sensor zero (issue 23): the offset of a sweep in the history of the model's initial
-state that the model fits best, never a misfit sweep's offset from another start; offsets that
-disagree are said (``offsets_disagree``, a warning on stderr).
+"""The model's sensor zero (issue 23): the offset of the last sweep in the history of the model's
+initial state, never a misfit sweep's offset from another start; offsets that disagree are said
+(``offsets_disagree``, a warning on stderr).
 
 The data come from the independently written Bouc-Wen stage
 (:mod:`afmctl.drivers.device.foreign.family_stage`, the benches' bw-u: no Preisach-type model fits
@@ -24,6 +24,7 @@ from afmctl.cli import main
 from afmctl.drivers.device.foreign import family_stage as fst
 from afmctl.files import sweepfile as sw
 from afmctl.fit import identify as idf
+from afmctl.fit import parametrization as pz
 from afmctl.planning import sweepdesign as sd
 from tests.harness.emulated import SAMPLE_RATE_HZ
 
@@ -50,6 +51,17 @@ def _bouc_wen_set() -> tuple[list[sw.Sweep], sw.Sweep]:
     v = 75.0 + sd.voltage_triangle(13.95, 75.0, 5, RATE_HZ)
     _, reading, _ = fst.run(stage, v, RATE_HZ, state)
     return recorded, sw.from_arrays(v, reading, RATE_HZ, _meta(13.95), "unseen")
+
+
+def test_zero_sweep_is_the_last_in_the_initial_states_history() -> None:
+    """Same start as the first sweep, or ``previous`` after such a sweep; a first ``previous``
+    is the depoled state (:func:`afmctl.fit.parametrization.with_initial`)."""
+    assert pz.zero_sweep(("negative", "negative", "previous", "depoled")) == 2
+    assert pz.zero_sweep(("negative", "previous", "positive", "previous")) == 1
+    assert pz.zero_sweep(("negative", "positive", "previous", "negative")) == 3
+    assert pz.zero_sweep(("depoled",) * 3) == 2
+    assert pz.zero_sweep(("previous", "depoled", "previous")) == 2
+    assert pz.zero_sweep(("positive",)) == 0
 
 
 def test_model_keeps_the_sensor_zero_of_its_initial_states_sweeps() -> None:
