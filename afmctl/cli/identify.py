@@ -120,6 +120,18 @@ def _warn_above_floor(result: Any) -> None:
                    f"misses something there: run `afmctl diagnose` on these sweeps", err=True)
 
 
+def _warn_offsets(result: Any) -> None:
+    """Name on stderr every sweep whose sensor zero disagrees with the model's."""
+    z = result.sweeps[result.zero_index]
+    for s in result.offsets_disagreeing():
+        click.echo(f"warning: {Path(s.file).name}: sensor zero {s.offset_um:.4g} um (start "
+                   f"{s.start}) is {abs(s.offset_um - z.offset_um):.4g} um from the model's, "
+                   f"{z.offset_um:.4g} um of {Path(z.file).name} (start {z.start}): the sensor "
+                   f"was re-zeroed between them, or that start does not fit the sweep and its "
+                   f"offset absorbed the misfit; positions planned from the model are in "
+                   f"{Path(z.file).name}'s frame", err=True)
+
+
 @main.command()
 @click.argument("sweep_files", nargs=-1, required=True)
 @click.option("--profile", "profile", default=None, help="Stage profile, a file or a shipped "
@@ -181,6 +193,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
                                        settings.window_s):
                 say(f"wrote {p}")
     _warn_above_floor(result)
+    _warn_offsets(result)
     _warn_few_reversals(result)
     loops = closure.check(data, [s.noise_um for s in result.sweeps])
     if loops["close"] is False:

@@ -368,7 +368,8 @@ class ExtendedSpace:
         if name == "sensor-nonlinearity":  # positions in the frame of the gauge's calibration
             shift, scale, gauge = fx.position_frame(gauge, self.calibration_um)
             beta = np.concatenate((scale * beta[:2], shift + scale * beta[2:]))
-        model = self.base.model(z[:6], np.array([beta[0], beta[1], beta[-1]]), thickness_um)
+        zero = beta[self.n_rod + pz.zero_sweep(self.base.starts)]
+        model = self.base.model(z[:6], np.array([beta[0], beta[1], zero]), thickness_um)
         offsets = tuple(float(b) for b in beta[self.n_rod:])
         gains = tuple([1.0] * len(self.preps))
         if name == "thermal-relaxation":

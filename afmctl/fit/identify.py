@@ -51,6 +51,9 @@ FLOOR = 1.5
 WARN = 2.0
 #: A different start state must lower the sum of squares by this many noise variances.
 START_MARGIN = 25.0
+#: Two sweeps' sensor zeros disagree when they differ by more than this many times the larger of
+#: their fit RMS (or noise): more than a misfit's mean could shift a fitted offset.
+OFFSET_AGREE = 5.0
 #: Above this many times its noise on some sweep, the fit tries a general coercive density
 #: (kept if it lowers the sum of squares by more than 2 noise variances per added parameter).
 REFINE = 1.25
@@ -228,6 +231,20 @@ class FitResult:
         """The sweeps whose fit RMS exceeds ``factor`` times their sensor noise."""
         return [s for s in self.sweeps if not s.rms_over_noise <= factor]
 
+    @property
+    def zero_index(self) -> int:
+        """The sweep whose sensor zero is the model's (:func:`afmctl.fit.parametrization.zero_sweep`
+        of the sweeps' starts)."""
+        return pz.zero_sweep([s.start for s in self.sweeps])
+
+    def offsets_disagreeing(self) -> list[SweepError]:
+        """The sweeps whose sensor zero differs from the model's by more than :data:`OFFSET_AGREE`
+        times the larger fit RMS (or noise) of the two: the sensor was re-zeroed between them, or
+        the sweep's start state does not fit it and its offset absorbed the misfit."""
+        z = self.sweeps[self.zero_index]
+        return [s for s in self.sweeps if abs(s.offset_um - z.offset_um)
+                > OFFSET_AGREE * max(s.rms_um, z.rms_um, s.noise_um, z.noise_um)]
+
     def record(self, by: str = "identify") -> mf.FitRecord:
         """The model file's ``[fit]`` record: flagged when a sweep is left above :data:`WARN`
         times its sensor noise (the model misses something there)."""
@@ -252,6 +269,8 @@ class FitResult:
             "envelope": None if self.envelope is None else self.envelope.to_dict(),
             "finite": self.finite, "representation": self.representation,
             "representations": self.representations,
+            "sensor_zero_file": self.sweeps[self.zero_index].file,
+            "offsets_disagree": bool(self.offsets_disagreeing()),
         }
 
 
@@ -554,9 +573,11 @@ def _with_nodes(model: td.Transducer, n_c: int, space: pz.LognormalSpace,
 
 
 def _model(space: Space, x: FloatArray, y: FloatArray, thickness_um: float) -> td.Transducer:
-    """The physical model at ``x`` (gains projected; the sensor zero of the last sweep)."""
+    """The physical model at ``x`` (gains projected; the sensor zero of the sweep
+    :func:`afmctl.fit.parametrization.zero_sweep` names)."""
     beta, _ = pz.project(space.design(x), y)
-    return space.model(x, np.array([beta[0], beta[1], beta[-1]]), thickness_um)
+    return space.model(x, np.array([beta[0], beta[1], beta[2 + pz.zero_sweep(space.starts)]]),
+                       thickness_um)
 
 
 def fit(sweeps: Sequence[Sweep], settings: Settings = Settings(),
@@ -647,7 +668,8 @@ def _fit(sweeps: Sequence[Sweep], settings: Settings,
     errors = judge_set(sweeps, predicted, space.starts, offsets, settings.window_s)
     cov, names = unc.covariance(final, sol.x, beta, prob.y)
     finite = bool(np.all(np.isfinite(sol.x)) and np.all(np.isfinite(beta)))
-    hem = FitResult(model, unc.estimates(final, sol.x, beta, cov, settings.scales), errors,
+    est = unc.estimates(final, sol.x, beta, cov, settings.scales, pz.zero_sweep(final.starts))
+    hem = FitResult(model, est, errors,
                     bool(ok and finite), int(sol.status), str(sol.message), prob.nfev,
                     time.perf_counter() - t0, known, x_lognormal,
                     unc.summary(names, np.concatenate((sol.x, beta)), cov), env, restarts, finite)

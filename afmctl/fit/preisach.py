@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from scipy import optimize
 from threadpoolctl import threadpool_limits
 
+from afmctl.fit import parametrization as pz
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.preisach_problem import (
     BLOCKS,
@@ -411,7 +412,7 @@ def build(th: Theta, prob: Problem, scales_mass: float, thickness_um: float,
     k = scales_mass * (2 * math.pi * fn) ** 2
     rod = rd.Rod(m=scales_mass, c=2 * zeta * math.sqrt(k * scales_mass), k=k,
                  a1=1e-6 * k / kappa, a2=1e-6 * k * th.s / kappa ** 2,
-                 offset_um=float(th.offsets[-1]))
+                 offset_um=float(th.offsets[pz.zero_sweep(prob.starts)]))
     cp = cr.Creep(tuple(float(t) for t in prob.el_tau), tuple(float(c) for c in th.c),
                   tuple(float(r) * kappa for r in prob.el_thr)) if creep and th.c.any() else None
     first = prob.starts[0] if prob.starts[0] != "previous" else "depoled"

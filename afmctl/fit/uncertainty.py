@@ -75,11 +75,12 @@ def covariance(space: Space, x: FloatArray, beta: FloatArray,
 
 
 def estimates(space: Space, x: FloatArray, beta: FloatArray, cov: FloatArray,
-              scales: pz.Scales) -> tuple[Estimate, ...]:
+              scales: pz.Scales, zero: int = -1) -> tuple[Estimate, ...]:
     """Delta-method 1-sigma for the physical parameters (:func:`afmctl.fit.parametrization.describe`
-    of the model with the last sweep's offset); ``m`` and ``P_R`` reported as fixed."""
+    of the model with sweep ``zero``'s offset, default the last); ``m`` and ``P_R`` reported as
+    fixed."""
     n = x.size
-    pick = np.r_[np.arange(n + 2), x.size + beta.size - 1]  # x, g1, g2, last offset
+    pick = np.r_[np.arange(n + 2), n + 2 + zero % (beta.size - 2)]  # x, g1, g2, its offset
     p = np.concatenate((x, beta))[pick]
     sub = cov[np.ix_(pick, pick)]
 
