@@ -31,6 +31,7 @@ from scipy import optimize
 
 from afmctl.files.sweepfile import Sweep
 from afmctl.fit import identify as idf
+from afmctl.fit import parametrization as pz
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.preisach_problem import rod_filter
 from afmctl.model import effects as fx
@@ -194,15 +195,15 @@ def fit(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str], no
                    prob.ratios(prob.solve(plain.x)[2]), prob.ratios(per))
 
 
-def with_mode(model: td.Transducer, found: ModeFit) -> td.Transducer:
+def with_mode(model: td.Transducer, found: ModeFit, starts: Sequence[str]) -> td.Transducer:
     """``model`` with the rod and mode of ``found``: the force scaled by ``a``, the rod's mass and
     damping set for its new resonance (stiffness kept), the mode among its effects, the sensor
-    zero the last sweep's."""
+    zero that of the sweep :func:`afmctl.fit.parametrization.zero_sweep` names for ``starts``."""
     r = model.rod
     w = 2 * math.pi * found.natural_hz
     m = r.k / (w * w)
     rod = replace(r, m=m, c=2 * found.damping_ratio * math.sqrt(r.k * m), a1=found.scale * r.a1,
-                  a2=found.scale * r.a2, offset_um=found.offsets_um[-1])
+                  a2=found.scale * r.a2, offset_um=found.offsets_um[pz.zero_sweep(starts)])
     return replace(model, rod=rod, effects=replace(model.effects, second_mode=found.mode))
 
 
@@ -240,7 +241,7 @@ def refined(result: idf.FitResult, sweeps: Sequence[Sweep], seeds_hz: Sequence[f
     figures = {**result.representations, "second_mode": found.to_dict()}
     if not found.kept:
         return replace(result, representations=figures)
-    model = with_mode(result.model, found)
+    model = with_mode(result.model, found, starts)
     predicted = idf.predict_set(model, sweeps, starts, found.offsets_um)
     return replace(result, model=model, sweeps=idf.judge_set(sweeps, predicted, starts,
                                                              found.offsets_um, window_s),
