@@ -55,7 +55,8 @@ KEEP_BELOW = 0.8
 @dataclass(frozen=True)
 class ModeFit:
     """The rod and mode found (:class:`afmctl.model.effects.SecondMode`), the common scale ``a``,
-    each sweep's sensor zero (um) and RMS over its noise without and with the mode."""
+    each sweep's rod zero (um; the readings' zero over ``1 + gain``) and RMS over its noise
+    without the mode (``before``: the rod refitted alone) and with it (``after``)."""
 
     mode: fx.SecondMode
     natural_hz: float
@@ -181,8 +182,10 @@ def fit(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str], no
     hi = np.concatenate((rod + np.log([2.0, 10.0]), np.log([0.9 * nyquist, 0.5])))
     lo[1], hi[1] = max(lo[1], math.log(0.002)), min(hi[1], 0.0)
     rod_hz = model.rod.natural_hz
-    freqs = [f for f in list(seeds_hz) or [k * rod_hz for k in SEED_FRACTIONS]
-             if lo[2] < math.log(f) < hi[2]]
+    def within(freqs: Sequence[float]) -> list[float]:
+        return [f for f in freqs if lo[2] < math.log(f) < hi[2]]
+
+    freqs = within(seeds_hz) or within([k * rod_hz for k in SEED_FRACTIONS])
     seeds = [np.concatenate((rod, np.log([f, z]))) for f in freqs for z in SEED_DAMPINGS]
     plain = prob.polish([rod], lo[:2], hi[:2])
     ranked = sorted(seeds, key=lambda z: float(np.sum(prob.solve(z)[1] ** 2)))[:POLISHED]
