@@ -22,12 +22,14 @@ given frequencies (the coupling's modes) and at fractions of the rod's. Pure num
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize
+from threadpoolctl import threadpool_limits
 
 from afmctl.files.sweepfile import Sweep
 from afmctl.fit import identify as idf
@@ -50,6 +52,16 @@ MAX_NFEV = 60
 #: The mode is kept only if it brings the worst sweep's RMS (over its noise) below this share of
 #: the fit without it: a ringing mode shows on the fast sweeps, far above the noise.
 KEEP_BELOW = 0.8
+#: ... and leaves no sweep worse than this times identify's own fit (a "mode" that trades the
+#: slow sweeps for the fast one stands in for something else: an amplifier lag, a latency).
+NO_WORSE = 1.05
+#: The mode's frequency is searched within these factors of the given seeds (Hz).
+SEED_SPAN = (0.7, 1.4)
+#: Bounds of the mode's damping ratio.
+DAMPING_BOUNDS = (0.005, 0.3)
+#: Gains of a physical mode (:class:`afmctl.model.effects.SecondMode`): ``gain`` within these
+#: (a mode that carries as much of the stroke as the rod is not a second mode of it).
+GAIN_BOUNDS = (-0.5, 1.0)
 
 
 @dataclass(frozen=True)
@@ -65,17 +77,33 @@ class ModeFit:
     offsets_um: tuple[float, ...]
     before: tuple[float, ...]
     after: tuple[float, ...]
+    identified: tuple[float, ...]
+    converged: bool
+
+    @property
+    def physical(self) -> bool:
+        """The mode's gain within :data:`GAIN_BOUNDS` and its zeros (the anti-resonance) in the
+        left half-plane (``damping_ratio + rate_gain > 0``): its inverse is then exact."""
+        m = self.mode
+        return GAIN_BOUNDS[0] < m.gain < GAIN_BOUNDS[1] and m.damping_ratio + m.rate_gain > 0
 
     @property
     def kept(self) -> bool:
-        """The mode lowers the worst sweep's RMS below :data:`KEEP_BELOW` of the fit without."""
-        return max(self.after) < KEEP_BELOW * max(self.before)
+        """A :attr:`physical` mode that lowers the worst sweep's RMS below :data:`KEEP_BELOW` of
+        the fit without it and leaves no sweep worse than :data:`NO_WORSE` times identify's."""
+        return (self.physical and max(self.after) < KEEP_BELOW * max(self.before)
+                and all(a <= NO_WORSE * i for a, i in zip(self.after, self.identified,
+                                                          strict=True)))
 
     def to_dict(self) -> dict[str, object]:
+        """JSON-ready: ``kept``, the mode's and the rod's parameters, the solver's word and each
+        sweep's RMS over its noise in identify's fit, without the mode and with it."""
         m = self.mode
-        return {"kept": self.kept, "frequency_Hz": m.frequency_hz,
+        return {"kept": self.kept, "physical": self.physical, "converged": self.converged,
+                "frequency_Hz": m.frequency_hz,
                 "damping_ratio": m.damping_ratio, "gain": m.gain, "rate_gain": m.rate_gain,
                 "rod_natural_Hz": self.natural_hz, "rod_damping_ratio": self.damping_ratio,
+                "per_sweep_over_noise_identified": list(self.identified),
                 "per_sweep_over_noise_without": list(self.before),
                 "per_sweep_over_noise_with": list(self.after)}
 
@@ -154,39 +182,52 @@ class _Problem:
         return min(runs, key=lambda r: float(r.cost))
 
     def ratios(self, per: Sequence[FloatArray]) -> tuple[float, ...]:
+        """Each sweep's RMS residual over its noise."""
         return tuple(float(np.sqrt(np.mean(r ** 2)) / n) for r, n in zip(per, self.noise,
                                                                           strict=True))
 
 
 def fit(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str], noise: FloatArray,
-        seeds_hz: Sequence[float] = (), window_s: idf.Window = None) -> ModeFit:
+        identified: Sequence[float], seeds_hz: Sequence[float] = (),
+        window_s: idf.Window = None) -> ModeFit:
     """Fit the rod and a second mode to ``sweeps`` with ``model``'s hysteresis held.
 
     Parameters
     ----------
     model : Transducer
-        An identified model (its effects are not used).
+        An identified model of the paper's form, without effects (:func:`refined` checks).
     sweeps : sequence of Sweep
         In the order they were recorded; ``starts`` their hysteresis states
         (:data:`afmctl.fit.parametrization.STARTS`), ``noise`` their sensor noise (um).
+    identified : sequence of float
+        Each sweep's RMS over its noise in the fit that made ``model`` (what :attr:`ModeFit.kept`
+        may not make worse).
     seeds_hz : sequence of float
-        Mode frequencies to start from (Hz), e.g. the coupling's shared modes; without them,
-        fractions of the rod's resonance (:data:`SEED_FRACTIONS`).
+        Mode frequencies to start from (Hz), e.g. the coupling's shared modes: the mode is then
+        searched within :data:`SEED_SPAN` of them; without them, at fractions of the rod's
+        resonance (:data:`SEED_FRACTIONS`), anywhere from 2 Hz to 0.9 of the Nyquist frequency.
     window_s : Window
         The samples each sweep is judged on (as identify's).
+
+    Returns
+    -------
+    ModeFit
+        The best mode found, kept or not (:attr:`ModeFit.kept`).
     """
     prob = _Problem(static_um(model, sweeps, starts), sweeps, np.asarray(noise, float), window_s)
     rod = np.log([model.rod.natural_hz, model.rod.damping_ratio])
     nyquist = 0.5 / max(s.dt for s in sweeps)
-    lo = np.concatenate((rod + np.log([0.5, 0.1]), np.log([2.0, 0.002])))
-    hi = np.concatenate((rod + np.log([2.0, 10.0]), np.log([0.9 * nyquist, 0.5])))
+    given = [f for f in seeds_hz if 2.0 < f < 0.9 * nyquist]
+    span = (SEED_SPAN[0] * min(given), SEED_SPAN[1] * max(given)) if given else (2.0, nyquist)
+    lo = np.concatenate((rod + np.log([0.5, 0.1]),
+                         np.log([max(span[0], 2.0), DAMPING_BOUNDS[0]])))
+    hi = np.concatenate((rod + np.log([2.0, 10.0]),
+                         np.log([min(span[1], 0.9 * nyquist), DAMPING_BOUNDS[1]])))
     lo[1], hi[1] = max(lo[1], math.log(0.002)), min(hi[1], 0.0)
-    rod_hz = model.rod.natural_hz
-    def within(freqs: Sequence[float]) -> list[float]:
-        return [f for f in freqs if lo[2] < math.log(f) < hi[2]]
-
-    freqs = within(seeds_hz) or within([k * rod_hz for k in SEED_FRACTIONS])
-    seeds = [np.concatenate((rod, np.log([f, z]))) for f in freqs for z in SEED_DAMPINGS]
+    freqs = given or [f for f in (k * model.rod.natural_hz for k in SEED_FRACTIONS)
+                      if lo[2] < math.log(f) < hi[2]]
+    seeds = [np.clip(np.concatenate((rod, np.log([f, z]))), lo, hi) for f in freqs
+             for z in SEED_DAMPINGS]
     plain = prob.polish([rod], lo[:2], hi[:2])
     ranked = sorted(seeds, key=lambda z: float(np.sum(prob.solve(z)[1] ** 2)))[:POLISHED]
     best = prob.polish(ranked, lo, hi)
@@ -195,24 +236,26 @@ def fit(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str], no
     a, g2 = float(beta[0]), float(beta[1] / beta[0])
     zeros = tuple(float(b) / (1.0 + g2) for b in beta[3:])  # the mode moves the rod's zero too
     return ModeFit(fx.SecondMode(f2, z2, g2, float(beta[2]) / a), fn, zn, a, zeros,
-                   prob.ratios(prob.solve(plain.x)[2]), prob.ratios(per))
+                   prob.ratios(prob.solve(plain.x)[2]), prob.ratios(per), tuple(identified),
+                   bool(best.success and best.status > 0))
 
 
 def with_mode(model: td.Transducer, found: ModeFit, starts: Sequence[str]) -> td.Transducer:
-    """``model`` with the rod and mode of ``found``: the force scaled by ``a``, the rod's mass and
-    damping set for its new resonance (stiffness kept), the mode among its effects, the sensor
-    zero that of the sweep :func:`afmctl.fit.parametrization.zero_sweep` names for ``starts``."""
+    """``model`` with the rod and mode of ``found``: the rod's stiffness and damping set for its
+    new resonance (its mass kept: a convention of the fit), the force scaled so that the static
+    displacement is ``a`` times the old, the mode among its effects, the sensor zero that of the
+    sweep :func:`afmctl.fit.parametrization.zero_sweep` names for ``starts``."""
     r = model.rod
-    w = 2 * math.pi * found.natural_hz
-    m = r.k / (w * w)
-    rod = replace(r, m=m, c=2 * found.damping_ratio * math.sqrt(r.k * m), a1=found.scale * r.a1,
-                  a2=found.scale * r.a2, offset_um=found.offsets_um[pz.zero_sweep(starts)])
+    k = r.m * (2 * math.pi * found.natural_hz) ** 2
+    f = found.scale * k / r.k
+    rod = replace(r, k=k, c=2 * found.damping_ratio * math.sqrt(k * r.m), a1=f * r.a1,
+                  a2=f * r.a2, offset_um=found.offsets_um[pz.zero_sweep(starts)])
     return replace(model, rod=rod, effects=replace(model.effects, second_mode=found.mode))
 
 
 #: The rod's estimates a mode's fit restates (the rod was refitted with it).
-_ROD_ESTIMATES = {"natural_frequency": "natural_hz", "damping_ratio": "damping_ratio", "c": "c",
-                  "a1": "a1", "a2": "a2", "offset": "offset_um", "m": "m"}
+_ROD_ESTIMATES = {"natural_frequency": "natural_hz", "damping_ratio": "damping_ratio", "k": "k",
+                  "c": "c", "a1": "a1", "a2": "a2", "offset": "offset_um"}
 
 
 def _restated(parameters: Sequence[unc.Estimate], model: td.Transducer,
@@ -231,22 +274,33 @@ def _restated(parameters: Sequence[unc.Estimate], model: td.Transducer,
 def refined(result: idf.FitResult, sweeps: Sequence[Sweep], seeds_hz: Sequence[float] = (),
             window_s: idf.Window = None) -> idf.FitResult:
     """``result`` (identify's, on ``sweeps``) with a second mode (:func:`fit`) where it is kept
-    (:attr:`ModeFit.kept`): the model, its parameters and every sweep's error restated; the
-    mode's figures under ``representations["second_mode"]`` either way. Not tried on a fit
-    already at its noise floor (:attr:`afmctl.fit.identify.FitResult.at_noise_floor`): there is
-    nothing left for a mode to explain."""
-    if result.at_noise_floor:
+    (:attr:`ModeFit.kept`): the model, its parameters and every sweep's error restated (the
+    uncertainty's intervals, computed without the mode, are marked so); the mode's figures under
+    ``representations["second_mode"]`` either way. Not tried on a fit already at its noise floor
+    (:attr:`afmctl.fit.identify.FitResult.at_noise_floor`: nothing is left for a mode to
+    explain), on a fit that is not finite, or on a model with effects of its own."""
+    why = ("every sweep at its noise floor" if result.at_noise_floor else
+           "the fit is not finite" if not result.finite else
+           "the model has effects of its own" if result.model.effects != fx.Effects() else None)
+    if why is not None:
         return replace(result, representations={**result.representations, "second_mode": {
-            "kept": False, "skipped": "every sweep at its noise floor"}})
+            "kept": False, "skipped": why}})
+    t0 = time.perf_counter()
     starts = [s.start for s in result.sweeps]
-    found = fit(result.model, sweeps, starts, np.array([s.noise_um for s in result.sweeps]),
-                seeds_hz, window_s)
+    with threadpool_limits(limits=1, user_api="blas"):  # small dense algebra, as identify's
+        found = fit(result.model, sweeps, starts, np.array([s.noise_um for s in result.sweeps]),
+                    [s.rms_over_noise for s in result.sweeps], seeds_hz, window_s)
     figures = {**result.representations, "second_mode": found.to_dict()}
+    seconds = result.seconds + time.perf_counter() - t0
     if not found.kept:
-        return replace(result, representations=figures)
+        return replace(result, representations=figures, seconds=seconds)
     model = with_mode(result.model, found, starts)
     predicted = idf.predict_set(model, sweeps, starts, found.offsets_um)
+    note = (f"computed before the rod was refitted with a second mode at "
+            f"{found.mode.frequency_hz:.4g} Hz: they hold for the model without it")
     return replace(result, model=model, sweeps=idf.judge_set(sweeps, predicted, starts,
                                                              found.offsets_um, window_s),
                    parameters=_restated(result.parameters, model, found.mode),
-                   representations=figures)
+                   uncertainty={**result.uncertainty, "note": note} if result.uncertainty else {},
+                   message=f"{result.message}; a second mode at {found.mode.frequency_hz:.4g} Hz",
+                   seconds=seconds, representations=figures)

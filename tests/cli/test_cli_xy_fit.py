@@ -57,6 +57,13 @@ def test_identify_two_axes_json_contract_and_coupling(foreign_set, tmp_path: Pat
         assert {"sweeps", "parameters", "envelope", "uncertainty", "at_noise_floor"} <= set(
             doc["axes"][a])
         assert len(doc["axes"][a]["sweeps"]) == 2  # triangles; the excitation is the coupling's
+        mode = doc["axes"][a]["representations"]["second_mode"]  # tried, or why not
+        if mode.get("kept"):  # x here: the shared mode, found from the coupling's estimate
+            assert abs(mode["frequency_Hz"] / xst.mode_hz(stage.structure) - 1) < 0.05, mode
+            assert max(mode["per_sweep_over_noise_with"]) < max(
+                mode["per_sweep_over_noise_identified"])
+        else:
+            assert "skipped" in mode or "kept" in mode, mode
     c = doc["coupling"]
     mode = xst.mode_hz(stage.structure)
     for d in ("yx", "xy"):
