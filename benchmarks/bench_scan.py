@@ -8,9 +8,12 @@ shared mode couples the axes, flexures that move the other axis slightly nonline
 the stage's own two-axis sweep set (:func:`~afmctl.drivers.device.foreign.xy_sweeps.write_sweep_set`)
 is identified by ``afmctl identify``'s two-axis fit (:func:`afmctl.fit.xyidentify.fit`: each axis's
 model and the coupling both ways); the scan plans with that model, never with the stage's own
-parameters. ``--cache DIR`` keeps the identified models (``<stage>-<settings>.toml``) for later
+parameters. ``--cache DIR`` keeps the identified models (``<stage>-<settings>[-reversals].toml``) for later
 runs; ``--identify quick`` (default: the parametric model, one start, no Preisach-grid
-alternative) or ``full`` (``afmctl identify``'s defaults, several times slower).
+alternative) or ``full`` (``afmctl identify``'s defaults, several times slower). ``--design
+reversals`` (the default) records each axis's reversal curves after the writer's set
+(:func:`reversal_plans`: what ``afmctl sweep --axes x,y --design reversals`` adds; a raster's
+fast axis runs minor loops), ``writer`` the writer's set alone.
 
 Frames: 128 pixels x 64 lines, square, centred in the identified reach, 60 x 60 um or the largest
 that fits 90 % of the reach and in which the linear filter's waveform passes the guard too (its
@@ -68,6 +71,7 @@ from afmctl.fit import identify as idf
 from afmctl.fit import xyidentify
 from afmctl.guard import Limits, LimitError
 from afmctl.planning import raster as rs
+from afmctl.planning import sweepdesign as sd
 from afmctl.planning import scanimage as si
 
 RATE_HZ = 10000.0
@@ -84,6 +88,9 @@ REFUSED: dict[str, Any] = {"fast_rms_pct": None}
 #: Identification settings (``--identify``): ``quick`` fits the parametric model once (no
 #: Preisach-grid alternative, one start), ``full`` is ``afmctl identify``'s default.
 IDENTIFY = {"quick": idf.Settings(representation="hem", restarts=1), "full": idf.Settings()}
+#: Foreign stages' sweep sets (``--design``): the writer's own, or with :func:`reversal_plans`
+#: (the default); the cache's file names carry the suffix.
+DESIGN_KEY = {"writer": "", "reversals": "-reversals"}
 
 
 class EmulatedStage:
@@ -170,14 +177,33 @@ def limits(stage: xys.XYStage) -> dict[str, Limits]:
             for n, (lo, hi) in zip(rs.AXES, stage.drive_range_V, strict=True)}
 
 
-def identified(stage: xys.XYStage, cache: Path | None, how: str) -> tuple[Any, float]:
-    """The stage's two-axis model identified from its own sweep set (cached), and the seconds."""
-    path = None if cache is None else cache / f"{stage.name}-{how}.toml"
+def reversal_plans(stage: xys.XYStage) -> list[xy_sweeps.XYPlan]:
+    """``afmctl sweep --axes x,y --design reversals``'s extra files on the stage: each axis's
+    reversal curves (:func:`afmctl.planning.sweepdesign.reversals_sweep`, at the writer's design
+    slew) with the other held mid-range."""
+    out = []
+    for i, (lo, hi) in enumerate(stage.drive_range_V):
+        name, f, v, meta = sd.reversals_sweep(
+            (lo, hi), xy_sweeps.RATE_HZ, xy_sweeps.DESIGN_SLEW_V_PER_MS * 1e3)
+        both = np.full((v.size, 2), 0.5 * sum(stage.drive_range_V[1 - i]))
+        both[:, i] = v
+        out.append(xy_sweeps.XYPlan(f"xy_{rs.AXES[i]}_{name}", both, {
+            **meta, "frequency_hz": f"{f:g}", "swept_axis": rs.AXES[i],
+            "sample_rate_hz": f"{xy_sweeps.RATE_HZ:g}", "layer_thickness_um": "100.0"}))
+    return out
+
+
+def identified(stage: xys.XYStage, cache: Path | None, how: str, design: str
+               ) -> tuple[Any, float]:
+    """The stage's two-axis model identified from its own sweep set (``design`` "reversals":
+    with :func:`reversal_plans` after it; cached), and the seconds."""
+    path = None if cache is None else cache / f"{stage.name}-{how}{DESIGN_KEY[design]}.toml"
     if path is not None and path.exists():
         return xymodelfile.read(path), 0.0
     t0 = time.perf_counter()
+    extra = reversal_plans(stage) if design == "reversals" else []
     with tempfile.TemporaryDirectory() as d:
-        files = xy_sweeps.write_sweep_set(stage, d, np.random.default_rng(11))
+        files = xy_sweeps.write_sweep_set(stage, d, np.random.default_rng(11), extra=extra)
         fit = xyidentify.fit(xysweepfile.read_set(files) or [], IDENTIFY[how])
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -234,8 +260,9 @@ def centre(reach: dict[str, tuple[float, float]]) -> tuple[float, float]:
     return tuple(0.5 * (lo + hi) for lo, hi in reach.values())  # type: ignore[return-value]
 
 
-def bench_stage(stage: xys.XYStage, cache: Path | None, how: str, say: Any) -> dict[str, Any]:
-    model, fit_s = identified(stage, cache, how)
+def bench_stage(stage: xys.XYStage, cache: Path | None, how: str, design: str, say: Any
+                ) -> dict[str, Any]:
+    model, fit_s = identified(stage, cache, how, design)
     say(f"{stage.name}: identified ({fit_s:.0f} s)")
     lim = limits(stage)
     axes = {n: rs.AxisPlan(model.axes[n], lim[n]) for n in rs.AXES}
@@ -338,6 +365,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                          "--cache each stage's row is kept and reused")
     ap.add_argument("--identify", choices=sorted(IDENTIFY), default="quick",
                     help="identification settings (quick: the parametric model, one start)")
+    ap.add_argument("--design", choices=sorted(DESIGN_KEY), default="reversals",
+                    help="foreign stages' sweep sets: the writer's alone, or with each axis's "
+                         "reversal curves (afmctl sweep --axes x,y --design reversals)")
     args = ap.parse_args(argv)
 
     def say(msg: str) -> None:
@@ -348,12 +378,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     stages = {st.name: st for st in xys.xy_stages()}
     rows = {}
     for name in args.stage or names:
-        row_path = None if args.cache is None else args.cache / f"{name}-{args.identify}-row.json"
+        key = f"{args.identify}{'' if name == 'emulated-xy' else DESIGN_KEY[args.design]}"
+        row_path = None if args.cache is None else args.cache / f"{name}-{key}-row.json"
         if row_path is not None and row_path.exists():
             rows[name] = json.loads(row_path.read_text())
             continue
         rows[name] = (bench_emulated(args.cache, args.identify, say) if name == "emulated-xy"
-                      else bench_stage(stages[name], args.cache, args.identify, say))
+                      else bench_stage(stages[name], args.cache, args.identify, args.design, say))
         if row_path is not None:
             row_path.write_text(json.dumps(rows[name]))
     data = collect(rows)

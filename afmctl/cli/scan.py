@@ -168,7 +168,8 @@ def _calibrated(prof: Any, profile_path: str | None, out: Path) -> str:
     limits = {a: prof.axis(a).limits for a in prof.axis_names}
     design = sweepdesign.xy_design(
         prof.sample_rate_hz, {a: (lim.v_min, lim.v_max) for a, lim in limits.items()},
-        {a: lim.max_rate_v_per_ms * 1e3 for a, lim in limits.items()}, 0.5 * band)
+        {a: lim.max_rate_v_per_ms * 1e3 for a, lim in limits.items()}, 0.5 * band,
+        "reversals")  # the fast axis runs minor loops: the curves show them (sweepdesign)
     meta = {"profile": prof.name, "sample_rate_hz": f"{prof.sample_rate_hz:g}",
             **{f"layer_thickness_{a}_um": f"{prof.axis(a).thickness_um:g}" for a in limits}}
     say(f"calibrating: recording {len(design)} two-axis sweeps over each axis's range, then "

@@ -61,7 +61,8 @@ def _v_range(v_range: tuple[float, float] | None, prof) -> tuple[float, float]: 
               help="standard: the paper's set; separating: the same and one more sweep of holds, "
                    "fast steps and a multisine that tell causes apart for `afmctl diagnose`; "
                    "reversals: the same and first-order reversal curves (`reversals.csv`), for "
-                   "a stage off the paper's model family (the Preisach grid's interior).")
+                   "a stage off the paper's model family (the Preisach grid's interior); with --axes "
+                   "each axis's curves after its triangles.")
 @click.option("--only", multiple=True, metavar="NAME",
               help="Record only this sweep of the set (repeatable), e.g. triangle_27.9hz.")
 @click.option("--resume", is_flag=True,
@@ -92,10 +93,10 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
     prof = load_profile_or_exit(profile_path)
     if axes is not None:
         from afmctl.cli.xysweep import sweep_xy
-        if v_range is not None or only or design != "standard":
+        if v_range is not None or only or design == "separating":
             raise InputError("--axes records the whole two-axis set over each axis's range: "
-                             "without --v-range, --only or --design")
-        sweep_xy(prof, axes, Path(out_dir), band_hz, resume)
+                             "without --v-range, --only or --design separating")
+        sweep_xy(prof, axes, Path(out_dir), band_hz, resume, design)
         return
     lo, hi = _v_range(v_range, prof)
     designed = sweepdesign.design_set(design, prof.sample_rate_hz,

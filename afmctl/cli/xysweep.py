@@ -25,8 +25,10 @@ def first_resonance_hz(prof: Any) -> float | None:
     return min(freqs)
 
 
-def sweep_xy(prof: Any, axes: str, out: Path, band_hz: float | None, resume: bool) -> None:
-    """Design, check and record the two-axis set (:func:`afmctl.planning.sweepdesign.xy_design`),
+def sweep_xy(prof: Any, axes: str, out: Path, band_hz: float | None, resume: bool,
+             design: str = "standard") -> None:
+    """Design, check and record the two-axis set (:func:`afmctl.planning.sweepdesign.xy_design`;
+    ``design`` "standard" or "reversals"),
     each file streamed as it records and, with ``resume``, only the files missing from ``out``
     (as the one-axis set: :func:`afmctl.cli.sweep.to_record`, :func:`afmctl.cli.sweep.record_each`)."""
     from afmctl.experiment import xyrecord
@@ -45,7 +47,7 @@ def sweep_xy(prof: Any, axes: str, out: Path, band_hz: float | None, resume: boo
     limits = {a: prof.axis(a).limits for a in ("x", "y")}
     design = sweepdesign.xy_design(
         prof.sample_rate_hz, {a: (lim.v_min, lim.v_max) for a, lim in limits.items()},
-        {a: lim.max_rate_v_per_ms * 1e3 for a, lim in limits.items()}, band_hz)
+        {a: lim.max_rate_v_per_ms * 1e3 for a, lim in limits.items()}, band_hz, design)
     xyrecord.check_design(design, 1.0 / prof.sample_rate_hz, limits)
     todo = to_record([d[0] for d in design], out, resume)
     entries = {d[0]: d for d in design if d[0] in todo}

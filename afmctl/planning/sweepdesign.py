@@ -373,7 +373,7 @@ def coupling_multisine(mid_v: float, span_v: float, band_hz: float, max_rate_v_p
 
 
 def xy_design(sample_rate_hz: float, v_ranges: dict[str, tuple[float, float]],
-              max_rates_v_per_s: dict[str, float], band_hz: float
+              max_rates_v_per_s: dict[str, float], band_hz: float, design: str = "standard"
               ) -> list[tuple[str, float, FloatArray, dict[str, str]]]:
     """A two-axis identification set as (name, frequency_hz, voltage_v (N, 2), meta).
 
@@ -382,7 +382,10 @@ def xy_design(sample_rate_hz: float, v_ranges: dict[str, tuple[float, float]],
     its range, then :func:`coupling_multisine` up to ``band_hz`` (about half the first resonance)
     about the middle of its range, the other still held: what identifies each axis, and the
     coupling both ways with its dynamics. Each file holds one axis constant; the recorder moves
-    the held axis there between files.
+    the held axis there between files. ``design="reversals"`` adds each axis's
+    :func:`reversals_sweep` after its triangles (``<axis>_reversals``): a raster's fast axis runs
+    minor loops inside its range, which triangles over the whole range do not show a Preisach-type
+    model (foreign-xy-1's 60 um frame: an open-loop error loop of +-1 um about the minor loop).
 
     Examples
     --------
@@ -394,7 +397,7 @@ def xy_design(sample_rate_hz: float, v_ranges: dict[str, tuple[float, float]],
     >>> float(d[0][2][0, 1]), float(d[4][2][0, 0])
     (0.0, 75.0)
     """
-    axes = ("x", "y")
+    axes, tag = ("x", "y"), "xy" if design == "standard" else f"xy-{design}"
     out = []
     for i, a in enumerate(axes):
         other = axes[1 - i]
@@ -402,12 +405,15 @@ def xy_design(sample_rate_hz: float, v_ranges: dict[str, tuple[float, float]],
         held = 0.5 * sum(v_ranges[other])
         waves = [(f"{a}_{n}", f, v) for n, f, v in
                  standard_set(sample_rate_hz=sample_rate_hz, v_range=(lo, hi))[:3]]
+        if design == "reversals":
+            name, f, v, _ = reversals_sweep((lo, hi), sample_rate_hz, max_rates_v_per_s[a])
+            waves.append((f"{a}_{name}", f, v))
         waves.append((f"{a}_multisine", 1.0, coupling_multisine(
             0.5 * (lo + hi), hi - lo, band_hz, max_rates_v_per_s[a], sample_rate_hz)))
         for name, f, v in waves:
             both = np.empty((v.size, 2))
             both[:, i], both[:, 1 - i] = v, held
-            out.append((name, f, both, {"design": "xy", "swept_axis": a,
+            out.append((name, f, both, {"design": tag, "swept_axis": a,
                                         f"held_voltage_{other}_V": f"{held:g}",
                                         "band_hz": f"{band_hz:g}"}))
     return out

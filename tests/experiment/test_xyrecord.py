@@ -47,9 +47,32 @@ def test_a_sample_outside_an_axis_limits_is_refused_before_anything_moves(tmp_pa
     bad = [_file("y_too_far", 1, np.linspace(0.0, 130.0, 2000), 0.0)]  # y's range is +-120 V
     with pytest.raises(LimitError, match="axis y"):
         xyrecord.check_design(bad, 1.0 / XY.sample_rate_hz, LIMITS)
-    ok = sd.xy_design(XY.sample_rate_hz, {a: (v.v_min, v.v_max) for a, v in LIMITS.items()},
-                      {a: v.max_rate_v_per_ms * 1e3 for a, v in LIMITS.items()}, 125.0)
-    xyrecord.check_design(ok, 1.0 / XY.sample_rate_hz, LIMITS)  # the design keeps to both
+    for design in ("standard", "reversals"):
+        ok = sd.xy_design(XY.sample_rate_hz, {a: (v.v_min, v.v_max) for a, v in LIMITS.items()},
+                          {a: v.max_rate_v_per_ms * 1e3 for a, v in LIMITS.items()}, 125.0,
+                          design)
+        xyrecord.check_design(ok, 1.0 / XY.sample_rate_hz, LIMITS)  # the design keeps to both
+
+
+def test_the_reversals_design_adds_each_axis_reversal_curves_the_other_held() -> None:
+    """``--design reversals``: each axis's first-order reversal curves after its triangles, over
+    its whole range, reversing inside it; the other axis held where its triangles held it."""
+    ranges = {a: (v.v_min, v.v_max) for a, v in LIMITS.items()}
+    design = sd.xy_design(XY.sample_rate_hz, ranges,
+                          {a: v.max_rate_v_per_ms * 1e3 for a, v in LIMITS.items()}, 125.0,
+                          "reversals")
+    names = [d[0] for d in design]
+    assert names.index("x_reversals") == names.index("x_triangle_27.9hz") + 1
+    assert names.index("y_reversals") == names.index("y_triangle_27.9hz") + 1
+    for i, a in enumerate(("x", "y")):
+        v = design[names.index(f"{a}_reversals")][2]
+        held = design[names.index(f"{a}_triangle_0.279hz")][2][0, 1 - i]
+        assert np.all(v[:, 1 - i] == held)
+        lo, hi = ranges[a]
+        assert v[:, i].min() == pytest.approx(lo) and v[:, i].max() == pytest.approx(hi)
+        turns = np.flatnonzero(np.diff(np.sign(np.diff(v[:, i]))) != 0)
+        inside = v[turns + 1, i]
+        assert np.sum((inside > lo + 0.05 * (hi - lo)) & (inside < hi - 0.05 * (hi - lo))) >= 4
 
 
 @pytest.mark.parametrize("argv, words", [

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import io
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -204,7 +205,7 @@ def record(stage: XYStage, plans: list[XYPlan], rng: np.random.Generator | None
 
 
 def write_sweep_set(stage: XYStage, out_dir: str | Path, rng: np.random.Generator, *,
-                    design: str = "mixed") -> list[Path]:
+                    design: str = "mixed", extra: Sequence[XYPlan] = ()) -> list[Path]:
     """Record ``design`` on ``stage`` (:func:`record`) and write one file per plan.
 
     Parameters
@@ -216,6 +217,8 @@ def write_sweep_set(stage: XYStage, out_dir: str | Path, rng: np.random.Generato
         The sensor noise.
     design : str
         One of :data:`DESIGNS`.
+    extra : sequence of XYPlan
+        Files recorded after the design's, numbered on from them (e.g. a host's own sweeps).
 
     Returns
     -------
@@ -225,6 +228,8 @@ def write_sweep_set(stage: XYStage, out_dir: str | Path, rng: np.random.Generato
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     plans = design_plans(stage, design)
+    plans += [XYPlan(f"{len(plans) + i:02d}_{p.name}", p.voltage_V, p.meta)
+              for i, p in enumerate(extra, 1)]
     paths = []
     for plan, reading in zip(plans, record(stage, plans, rng), strict=True):
         path = out / f"{plan.name}.csv"
