@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses as dc
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -247,19 +247,19 @@ class Resume:
 
 
 @dataclass
-class _Step:
+class Step:
     """The step of the law (a fraction of ``rho``) and where the next step starts: halved, from
     the best iteration, after an iteration worse than the best (never below the law's
-    ``min_step``)."""
+    ``min_step``). Shared by the raster's learning (:mod:`afmctl.experiment.scanlearn`)."""
 
     scale: float = 1.0
     start: int = 0
 
-    def after(self, done: list[Iteration], law: ilc.Law) -> bool:
-        """Update after the last iteration of ``done``; True if it was worse than the best at
-        the smallest step already (no step left to try)."""
-        rep = [x.repeatable_um for x in done]
-        b, j = int(np.nanargmin(rep)), len(done) - 1
+    def after(self, rep: Sequence[float], law: ilc.Law) -> bool:
+        """Update after the last of the iterations whose errors are ``rep`` (any one scale:
+        um, or over the noise); True if it was worse than the best at the smallest step
+        already (no step left to try)."""
+        b, j = int(np.nanargmin(rep)), len(rep) - 1
         if rep[j] <= rep[b] or j == 0:
             self.start = j
             return False
@@ -270,7 +270,7 @@ class _Step:
         return True
 
 
-def next_reference(done: list[Iteration], step: _Step, desired: track.Desired, law: ilc.Law,
+def next_reference(done: list[Iteration], step: Step, desired: track.Desired, law: ilc.Law,
                    tuning: ilc.Tuning, region: NDArray[np.bool_] | None) -> FloatArray:
     """``r_{j+1}``: the law's step (scaled by ``step``) from ``step.start``'s reference and
     learned error, shifted from the slow offset predicted for that run to the one predicted for
@@ -319,7 +319,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         wf = plan_reference(p, desired, ref)
     done: list[Iteration] = []
     compute: list[float] = []
-    noise, best, stop, sigma, step = float("nan"), 0, "iterations done", 0.0, _Step()
+    noise, best, stop, sigma, step = float("nan"), 0, "iterations done", 0.0, Step()
     region = ilc.imaging_mask(desired, first_period=True) if law.region == "imaging" else None
     for j in range(iterations + 1):
         if j:
@@ -359,7 +359,8 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         s_rms = (0.0 if it.gain_direction_um is None
                  else ilc.rms(it.gain_direction_um[ilc.steady_part(desired)]))
         floor = ilc.resolution(noise, sigma, s_rms, len(done))
-        stop = stop_rule(done, step.after(done, law), floor, noise, law, sigma) or stop
+        stop = stop_rule(done, step.after([x.repeatable_um for x in done], law), floor, noise,
+                         law, sigma) or stop
         if stop != "iterations done":
             break
     return Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma)

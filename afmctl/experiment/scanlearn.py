@@ -14,7 +14,11 @@ Every frame's waveform passes the guard and the envelope before it is sent; one 
 ends learning with the best frame so far, as do the noise floor (both axes' image-region RMS
 error within :attr:`~afmctl.planning.ilc.Law.floor_factor` of their noise, estimated from the
 readings) and a diverging error (worse than :attr:`~afmctl.planning.ilc.Law.diverge_factor`
-times the best). The best frame's waveform is then what ``--frames`` plays, and is saved
+times the best at the smallest step). As ``track --learn`` (:class:`afmctl.experiment.learn.Step`),
+a frame worse than the best sends the next step from the best frame at half the step, down to
+:attr:`~afmctl.planning.ilc.Law.min_step` (foreign-xy-4 at 30 lines/s: 16.8, 4.30, 3.09x the
+noise, then 4.59x and learning stopped as diverging with the whole step every frame). The best
+frame's waveform is then what ``--frames`` plays, and is saved
 (``waveform_learned.csv``, a two-axis waveform file ``afmctl play`` replays).
 """
 
@@ -30,6 +34,7 @@ import numpy as np
 
 from afmctl import guard
 from afmctl.errors import EnvelopeError, InputError
+from afmctl.experiment import learn as onelearn
 from afmctl.experiment import runner
 from afmctl.experiment import scan as xs
 from afmctl.files import waveformfile
@@ -82,12 +87,14 @@ def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Pat
     tunings: dict[str, ilc.Tuning] = {}
     noise: dict[str, float] = {}
     score: list[float] = []
+    learned: list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]] = []  # refs, errors
+    step = onelearn.Step()
     stop = "iterations done"
     for j in range(iterations + 1):
         t0 = time.perf_counter()
         if j:
-            refs = {n: ilc.next_reference(refs[n], errors[n], desired[n], law, tunings[n], region)
-                    for n in raster.AXES}
+            refs = _next(learned[step.start], desired, dc.replace(law, gain=law.gain * step.scale),
+                         tunings, region)
         axes = raster.replace_start(setup.axes, np.asarray(stage.voltages(), dtype=float))
         try:
             wf = raster.plan(frame, axes, dt, setup.coupling, ("inverse",), 0, setup.extrapolate,
@@ -103,6 +110,7 @@ def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Pat
         runs.append(run)
         mine.append(run)
         errors = _errors(run, traj)
+        learned.append((refs, errors))
         if j == 0:
             noise = {n: ilc.noise_estimate(errors[n][region]) for n in raster.AXES}
             tunings = {n: ilc.tune(refs[n], traj.axis(n) - errors[n], desired[n], law, noise[n])
@@ -114,10 +122,21 @@ def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Pat
         if score[-1] <= law.floor_factor:
             stop = f"noise floor: {score[-1]:.3g} x the noise (both axes, image region)"
             break
-        if score[-1] > law.diverge_factor * min(score):
-            stop = f"diverging: frame {j} at {score[-1]:.3g} x the noise, best {min(score):.3g}"
+        if step.after(score, law) and score[-1] > law.diverge_factor * min(score):
+            stop = (f"diverging: frame {j} at {score[-1]:.3g} x the noise, best "
+                    f"{min(score):.3g}, at the smallest step ({law.min_step:g} rho)")
             break
     return Learned(tuple(mine), int(np.argmin(score)), stop, noise)
+
+
+def _next(start: tuple[dict[str, np.ndarray], dict[str, np.ndarray]],
+          desired: Mapping[str, track.Desired], law: ilc.Law, tunings: Mapping[str, ilc.Tuning],
+          region: np.ndarray) -> dict[str, np.ndarray]:
+    """Each axis's next reference: the law's step from the frame ``start`` (its references and
+    errors)."""
+    refs, errors = start
+    return {n: ilc.next_reference(refs[n], errors[n], desired[n], law, tunings[n], region)
+            for n in raster.AXES}
 
 
 def waveform_text(wf: raster.XYWaveform, meta: Mapping[str, object]) -> str:
