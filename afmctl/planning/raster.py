@@ -341,18 +341,25 @@ class XYWaveform:
 def targets(traj: Trajectories, coupling: Mapping[str, cp.Coupling] | None
             ) -> dict[str, FloatArray]:
     """The targets each axis's inverse aims at (um): the desired trajectory less the motion the
-    other axis's desired trajectory causes through the coupling (``"yx"``: y caused by x), so the
-    stage's coupling adds it back (first order: the coupling of the correction itself, a
-    coupling's square, -50 dB and below, is left)."""
+    other axis's *own* motion causes through the coupling (``"yx"``: y caused by x).
+
+    Each axis's model was identified (:func:`afmctl.fit.xyidentify.axis_sweeps`) on its readings
+    less what the other axis's own motion (its readings less what this axis caused in them)
+    causes; the same here, with the desired trajectories for the readings: the other axis's
+    own motion is its target less what this axis's target causes in it. Aiming at the other's
+    *desired* motion instead leaves the loop ``c_xy c_yx`` out: on foreign-xy-1 (5.6 % each
+    way) a 0.32 % gain error of the fast axis, 0.22 um across a 60 um frame.
+    """
     x, y = traj.x_um, traj.y_um
     if not coupling:
         return {"x": x, "y": y}
-    out = {"x": x.copy(), "y": y.copy()}
-    if "xy" in coupling:
-        out["x"] = x - cp.caused(coupling["xy"], y, traj.dt_s)
-    if "yx" in coupling:
-        out["y"] = y - cp.caused(coupling["yx"], x, traj.dt_s)
-    return out
+    dt = traj.dt_s
+
+    def by(d: str, source: FloatArray) -> FloatArray:
+        return cp.caused(coupling[d], source, dt) if d in coupling else np.zeros(source.size)
+
+    own = {"x": x - by("xy", y), "y": y - by("yx", x)}
+    return {"x": x - by("xy", own["y"]), "y": y - by("yx", own["x"])}
 
 
 def _pad(w: track.Waveform, before: int, total: int, start_v: float) -> FloatArray:

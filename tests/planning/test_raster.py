@@ -148,3 +148,43 @@ def test_plans_align_both_axes_and_guard_each_channel() -> None:
                                                                              v_max=5.0))}
     with pytest.raises(guard.LimitError):
         rs.plan(fr, tight, DT, filters=("inverse",))
+
+
+def test_targets_aim_each_axis_as_its_model_was_identified() -> None:
+    """A linear x/y plant coupled statically both ways (x = xa + 0.06 y, y = ya - 0.05 x, the
+    loop solved exactly): each axis's model taken the way the two-axis fit takes it
+    (:func:`afmctl.fit.xyidentify.axis_sweeps` on files where one axis moves and the other is
+    held), then a raster's targets through those models: the stage lands on the frame to the
+    coupling's third order (0.008 um). Aiming at the other axis's desired motion instead of its
+    own left the loop ``c_xy c_yx`` (0.3 %) as a gain error: 0.13 um."""
+    from afmctl.files import xysweepfile as xsf
+    from afmctl.fit import xyidentify as xi
+
+    cxy, cyx = 0.06, -0.05
+
+    def plant(xa: np.ndarray, ya: np.ndarray) -> np.ndarray:
+        det = 1 - cxy * cyx
+        return np.column_stack(((xa + cxy * ya) / det, (ya + cyx * xa) / det))
+
+    ramp, n = np.linspace(0.0, 80.0, 2000), 2000
+    files = [np.column_stack((ramp, np.full(n, 30.0))), np.column_stack((np.full(n, 40.0), ramp))]
+    sweeps = [xsf.from_arrays(v, plant(v[:, 0], v[:, 1]), 1000.0, {}, f"f{i}")
+              for i, v in enumerate(files)]
+    found = {"xy": cp.Coupling(cxy, reference_um=xi.reference_um(sweeps, "x")),
+             "yx": cp.Coupling(cyx, reference_um=xi.reference_um(sweeps, "y"))}
+    maps = {}
+    for a in ("x", "y"):
+        (s,) = xi.axis_sweeps(sweeps, a, found)
+        maps[a] = np.polyfit(s.voltage_v, s.displacement_um, 1)  # the axis's (linear) model
+    t = np.linspace(0.0, 1.0, 3000)
+    traj = rs.Trajectories(t[1] - t[0], 10 + 70 * np.abs(2 * ((5 * t) % 1) - 1), 10 + 60 * t)
+    for aims, tol in ((rs.targets(traj, found), 0.02), (_first_order(traj, found), None)):
+        v = {a: (aims[a] - maps[a][1]) / maps[a][0] for a in ("x", "y")}
+        miss = np.abs(plant(v["x"], v["y"]) - np.column_stack((traj.x_um, traj.y_um))).max()
+        assert miss < tol if tol else miss > 0.08, miss
+
+
+def _first_order(traj: rs.Trajectories, c: dict[str, cp.Coupling]) -> dict[str, np.ndarray]:
+    """The targets before: each axis's desired less what the other's *desired* causes."""
+    return {"x": traj.x_um - cp.caused(c["xy"], traj.y_um, traj.dt_s),
+            "y": traj.y_um - cp.caused(c["yx"], traj.x_um, traj.dt_s)}
