@@ -14,11 +14,12 @@ Every frame's waveform passes the guard and the envelope before it is sent; one 
 ends learning with the best frame so far, as do the noise floor (both axes' image-region RMS
 error within :attr:`~afmctl.planning.ilc.Law.floor_factor` of their noise, estimated from the
 readings) and a diverging error (worse than :attr:`~afmctl.planning.ilc.Law.diverge_factor`
-times the best at the smallest step). As ``track --learn`` (:class:`afmctl.experiment.learn.Step`),
-a frame worse than the best sends the next step from the best frame at half the step, down to
-:attr:`~afmctl.planning.ilc.Law.min_step` (foreign-xy-4 at 30 lines/s: 16.8, 4.30, 3.09x the
-noise, then 4.59x and learning stopped as diverging with the whole step every frame). The best
-frame's waveform is then what ``--frames`` plays, and is saved
+times the best with an axis at the smallest step). As ``track --learn``
+(:class:`afmctl.experiment.learn.Step`), each axis whose error grew past its best sends its next
+step from its best frame at half the step, down to :attr:`~afmctl.planning.ilc.Law.min_step`;
+the other axis goes on (foreign-xy-4 at 30 lines/s: x 17.3, 4.41, 2.34, 1.80x its noise while y
+went 5.27, 2.39, 3.11, 4.60x, chasing the motion x's changing waveform causes in it; with one
+whole step for both, learning stopped as diverging at 4.6x). The best frame's waveform is then what ``--frames`` plays, and is saved
 (``waveform_learned.csv``, a two-axis waveform file ``afmctl play`` replays).
 """
 
@@ -88,13 +89,14 @@ def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Pat
     noise: dict[str, float] = {}
     score: list[float] = []
     learned: list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]] = []  # refs, errors
-    step = onelearn.Step()
+    steps = {n: onelearn.Step() for n in raster.AXES}
+    by_axis: dict[str, list[float]] = {n: [] for n in raster.AXES}
     stop = "iterations done"
     for j in range(iterations + 1):
         t0 = time.perf_counter()
         if j:
-            refs = _next(learned[step.start], desired, dc.replace(law, gain=law.gain * step.scale),
-                         tunings, region)
+            refs = {n: _next(learned[steps[n].start], n, desired[n], law, steps[n], tunings[n],
+                             region) for n in raster.AXES}
         axes = raster.replace_start(setup.axes, np.asarray(stage.voltages(), dtype=float))
         try:
             wf = raster.plan(frame, axes, dt, setup.coupling, ("inverse",), 0, setup.extrapolate,
@@ -116,27 +118,30 @@ def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Pat
             tunings = {n: ilc.tune(refs[n], traj.axis(n) - errors[n], desired[n], law, noise[n])
                        for n in raster.AXES}
         score.append(over_noise(errors, region, noise))
+        for n in raster.AXES:
+            by_axis[n].append(ilc.rms(errors[n][region]) / noise[n])
         run.merit["over_noise"] = score[-1]
         if on_frame is not None:
             on_frame(runs)
         if score[-1] <= law.floor_factor:
             stop = f"noise floor: {score[-1]:.3g} x the noise (both axes, image region)"
             break
-        if step.after(score, law) and score[-1] > law.diverge_factor * min(score):
+        no_step_left = [steps[n].after(by_axis[n], law) for n in raster.AXES]
+        if any(no_step_left) and score[-1] > law.diverge_factor * min(score):
             stop = (f"diverging: frame {j} at {score[-1]:.3g} x the noise, best "
                     f"{min(score):.3g}, at the smallest step ({law.min_step:g} rho)")
             break
     return Learned(tuple(mine), int(np.argmin(score)), stop, noise)
 
 
-def _next(start: tuple[dict[str, np.ndarray], dict[str, np.ndarray]],
-          desired: Mapping[str, track.Desired], law: ilc.Law, tunings: Mapping[str, ilc.Tuning],
-          region: np.ndarray) -> dict[str, np.ndarray]:
-    """Each axis's next reference: the law's step from the frame ``start`` (its references and
-    errors)."""
+def _next(start: tuple[dict[str, np.ndarray], dict[str, np.ndarray]], axis: str,
+          desired: track.Desired, law: ilc.Law, step: onelearn.Step, tuning: ilc.Tuning,
+          region: np.ndarray) -> np.ndarray:
+    """Axis ``axis``'s next reference: the law's step (scaled by ``step``) from the frame
+    ``start`` (its references and errors)."""
     refs, errors = start
-    return {n: ilc.next_reference(refs[n], errors[n], desired[n], law, tunings[n], region)
-            for n in raster.AXES}
+    return ilc.next_reference(refs[axis], errors[axis], desired,
+                              dc.replace(law, gain=law.gain * step.scale), tuning, region)
 
 
 def waveform_text(wf: raster.XYWaveform, meta: Mapping[str, object]) -> str:
