@@ -226,10 +226,11 @@ def hysteresis(theta: FloatArray, fields: Sequence[FloatArray], n_coercive: int,
 QCache = dict[tuple[bytes, int, tuple[str, ...]], tuple[FloatArray, hy.PolarizationState]]
 
 
-def zero_sweep(starts: Sequence[str]) -> int:
+def zero_sweep(starts: Sequence[str], skip: Sequence[int] = ()) -> int:
     """Index of the sweep whose sensor zero (offset) is the model's: the last of the sweeps whose
     start is the first sweep's (the model's initial state, :func:`with_initial`) or, all the way
-    back, where such a sweep left the stage (``previous``).
+    back, where such a sweep left the stage (``previous``); not one of ``skip`` (sweeps held out
+    of the fit), unless every such sweep is.
 
     A sweep's offset is fitted together with its start: the hysterons its field cannot switch
     keep the start's orientation, a constant in the polarization that the offset absorbs. A
@@ -245,7 +246,7 @@ def zero_sweep(starts: Sequence[str]) -> int:
     for i in range(1, len(starts)):
         if starts[i] == first or (starts[i] == "previous" and chained[-1] == i - 1):
             chained.append(i)
-    return chained[-1]
+    return next((i for i in reversed(chained) if i not in skip), chained[-1])
 
 
 def with_initial(model: td.Transducer, starts: Sequence[str]) -> td.Transducer:

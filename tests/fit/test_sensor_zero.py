@@ -62,12 +62,17 @@ def test_zero_sweep_is_the_last_in_the_initial_states_history() -> None:
     assert pz.zero_sweep(("depoled",) * 3) == 2
     assert pz.zero_sweep(("previous", "depoled", "previous")) == 2
     assert pz.zero_sweep(("positive",)) == 0
+    assert pz.zero_sweep(("negative", "previous", "previous"), skip=(2,)) == 1  # held out
+    assert pz.zero_sweep(("negative",), skip=(0,)) == 0  # nothing else: the fit's own
 
 
 def test_model_keeps_the_sensor_zero_of_its_initial_states_sweeps() -> None:
     """The model, run from its initial state, predicts a triangle the stage plays after the set
     in its true position (to within a few times the fit's error on the triangles); with the
-    reversal curves' offset as its zero it was 16 um off."""
+    reversal curves' offset as its zero it was 16 um off. The curves' loops do not close and the
+    fit missed them far more than the triangles (40x the noise against 5-6x): the model is
+    fitted again without them (afmctl.fit.openloops), every triangle fits better, the curves
+    are judged held out, and their zero is not the model's."""
     sweeps, unseen = _bouc_wen_set()
     res = idf.fit(sweeps, idf.Settings(representation="hem", density="parametric", restarts=3))
     fitted = max(s.rms_um for s in res.sweeps[:3])
@@ -76,9 +81,13 @@ def test_model_keeps_the_sensor_zero_of_its_initial_states_sweeps() -> None:
     zero = res.sweeps[res.zero_index]
     assert res.model.rod.offset_um == zero.offset_um and zero.start in (res.model.initial,
                                                                         "previous")
-    far = [s.file for s in res.sweeps if abs(s.offset_um - zero.offset_um) > 1.0]
-    assert [s.file for s in res.offsets_disagreeing()] == far
-    assert res.to_dict()["offsets_disagree"] is bool(far)
+    assert not [s.file for s in res.offsets_disagreeing() if s.file.startswith("triangle")]
+    left = res.representations["left_out"]
+    assert left["files"] == ["reversals"] and res.held_out == (3,) and res.zero_index != 3
+    with_them = left["per_sweep_over_noise_with_them"]
+    assert all(s.rms_over_noise < w for s, w in zip(res.sweeps[:3], with_them[:3], strict=True))
+    assert res.sweeps[3].rms_over_noise > 4 * max(s.rms_over_noise for s in res.sweeps[:3])
+
 
 
 def test_cli_warns_when_sensor_zeros_disagree(tmp_path: Path,
