@@ -285,21 +285,26 @@ def refined(result: idf.FitResult, sweeps: Sequence[Sweep], seeds_hz: Sequence[f
     if why is not None:
         return replace(result, representations={**result.representations, "second_mode": {
             "kept": False, "skipped": why}})
+    from afmctl.fit import openloops  # it judges identify's results, as here
+
     t0 = time.perf_counter()
-    starts = [s.start for s in result.sweeps]
+    on = [i for i in range(len(sweeps)) if i not in result.held_out]  # what the model was fitted on
+    used = [sweeps[i] for i in on]
+    starts = [result.sweeps[i].start for i in on]
     with threadpool_limits(limits=1, user_api="blas"):  # small dense algebra, as identify's
-        found = fit(result.model, sweeps, starts, np.array([s.noise_um for s in result.sweeps]),
-                    [s.rms_over_noise for s in result.sweeps], seeds_hz, window_s)
+        found = fit(result.model, used, starts,
+                    np.array([result.sweeps[i].noise_um for i in on]),
+                    [result.sweeps[i].rms_over_noise for i in on], seeds_hz, window_s)
     figures = {**result.representations, "second_mode": found.to_dict()}
     seconds = result.seconds + time.perf_counter() - t0
     if not found.kept:
         return replace(result, representations=figures, seconds=seconds)
     model = with_mode(result.model, found, starts)
-    predicted = idf.predict_set(model, sweeps, starts, found.offsets_um)
     note = (f"computed before the rod was refitted with a second mode at "
             f"{found.mode.frequency_hz:.4g} Hz: they hold for the model without it")
-    return replace(result, model=model, sweeps=idf.judge_set(sweeps, predicted, starts,
-                                                             found.offsets_um, window_s),
+    return replace(result, model=model,
+                   sweeps=openloops.judged(model, sweeps, result.held_out, starts,
+                                           found.offsets_um, window_s),
                    parameters=_restated(result.parameters, model, found.mode),
                    uncertainty={**result.uncertainty, "note": note} if result.uncertainty else {},
                    message=f"{result.message}; a second mode at {found.mode.frequency_hz:.4g} Hz",

@@ -7,11 +7,12 @@ fit then trades the triangles for them and is worse everywhere. On the out-of-fa
 the curves stayed at 42.7x the noise against 3.3-4.0x on the triangles; on foreign-xy-2's
 Bouc-Wen y axis at 270x against 5-9x, and the raster's slow axis landed 8.8 pixels off.
 
-A sweep is left out when it reverses inside its range (:func:`afmctl.fit.representation.interior_reversals`:
-it carries minor loops), its loops are open, and the fit's error on it is more than
-:data:`SPOILS` times the median of the other sweeps' (and the worst of all). The model is then fitted again without it,
-and it is judged (held out) by that model, recorded in sequence with the rest; the result says
-so under ``representations["left_out"]``. Pure numerics: no I/O.
+A sweep is left out when it reverses inside its range
+(:func:`afmctl.fit.representation.interior_reversals`: it carries minor loops), its loops are
+open, and the fit's error on it is the worst of all and more than :data:`SPOILS` times the median
+of the other sweeps'. The model is then fitted again without it, and it is judged (held out) by
+that model, recorded in sequence with the rest (:func:`judged`); the result says so under
+``representations["left_out"]``. Pure numerics: no I/O.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from afmctl.files.sweepfile import Sweep
 from afmctl.fit import closure
 from afmctl.fit import identify as idf
 from afmctl.fit import representation as rep
+from afmctl.model import transducer as td
 
 #: A sweep of open minor loops is left out when its error is more than this many times the median
 #: of the other sweeps' (each over its noise; the median: the sweep spoils the others' fit too,
@@ -65,21 +67,28 @@ def without_spoilers(result: idf.FitResult, sweeps: Sequence[Sweep], settings: i
         f"without it")
     kept = [s for i, s in enumerate(sweeps) if i not in out]
     inner = fitter(kept, settings, progress)
-    starts, offsets, it = [], [], iter(inner.sweeps)
-    for i in range(len(sweeps)):
-        e = None if i in out else next(it)
-        starts.append("previous" if e is None else e.start)
-        offsets.append(0.0 if e is None else e.offset_um)
-    predicted = idf.predict_set(inner.model, sweeps, starts, offsets)
-    for i in out:  # the held-out sweep's own sensor zero
-        m = sweeps[i].mask(settings.window_s)
-        offsets[i] = float(np.mean((sweeps[i].displacement_um - predicted[i])[m]))
-        predicted[i] = predicted[i] + offsets[i]
     left: dict[str, Any] = {
         "files": names, "why": f"minor loops open and fitted at more than {SPOILS:g}x the "
         "median of the other sweeps (no return-point memory: no Preisach-type model fits them)",
         "per_sweep_over_noise_with_them": [s.rms_over_noise for s in result.sweeps]}
-    return replace(inner, sweeps=idf.judge_set(sweeps, predicted, starts, offsets,
-                                               settings.window_s),
+    return replace(inner, sweeps=judged(inner.model, sweeps, out, [e.start for e in inner.sweeps],
+                                        [e.offset_um for e in inner.sweeps], settings.window_s),
                    representations={**inner.representations, "left_out": left},
                    held_out=tuple(out))
+
+
+def judged(model: td.Transducer, sweeps: Sequence[Sweep], held_out: Sequence[int],
+           starts: Sequence[str], offsets_um: Sequence[float], window_s: idf.Window
+           ) -> tuple[idf.SweepError, ...]:
+    """Every sweep's error under ``model``: the fitted ones (all but ``held_out``, whose
+    ``starts`` and ``offsets_um`` these are, in order) with theirs, the held-out ones from where
+    the sweep before left the stage, each with the sensor zero that fits it best."""
+    fitted = iter(zip(starts, offsets_um, strict=True))
+    pairs = [("previous", 0.0) if i in held_out else next(fitted) for i in range(len(sweeps))]
+    all_starts, offsets = [p[0] for p in pairs], [p[1] for p in pairs]
+    predicted = idf.predict_set(model, sweeps, all_starts, offsets)
+    for i in held_out:  # the held-out sweep's own sensor zero
+        m = sweeps[i].mask(window_s)
+        offsets[i] = float(np.mean((sweeps[i].displacement_um - predicted[i])[m]))
+        predicted[i] = predicted[i] + offsets[i]
+    return idf.judge_set(sweeps, predicted, all_starts, offsets, window_s)
