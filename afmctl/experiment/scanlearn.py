@@ -19,8 +19,9 @@ times the best with an axis at the smallest step). As ``track --learn``
 step from its best frame at half the step, down to :attr:`~afmctl.planning.ilc.Law.min_step`;
 the other axis goes on (foreign-xy-4 at 30 lines/s: x 17.3, 4.41, 2.34, 1.80x its noise while y
 went 5.27, 2.39, 3.11, 4.60x, chasing the motion x's changing waveform causes in it; with one
-whole step for both, learning stopped as diverging at 4.6x). The best frame's waveform is then what ``--frames`` plays, and is saved
-(``waveform_learned.csv``, a two-axis waveform file ``afmctl play`` replays).
+whole step for both, learning stopped as diverging at 4.6x). The best frame's waveform is then
+what ``--frames`` plays, and is saved (``waveform_learned.csv``, a two-axis waveform file
+``afmctl play`` replays).
 """
 
 from __future__ import annotations
@@ -62,12 +63,6 @@ class Learned:
 def _errors(run: xs.FrameRun, traj: raster.Trajectories) -> dict[str, np.ndarray]:
     """Each axis's error (desired minus readings, um) over the tracking part."""
     return {n: traj.axis(n) - run.scored_um[:, k] for k, n in enumerate(raster.AXES)}
-
-
-def over_noise(errors: Mapping[str, np.ndarray], region: np.ndarray,
-               noise: Mapping[str, float]) -> float:
-    """The larger of the two axes' image-region RMS error over its noise."""
-    return max(ilc.rms(errors[n][region]) / noise[n] for n in raster.AXES)
 
 
 def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Path,
@@ -117,9 +112,9 @@ def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Pat
             noise = {n: ilc.noise_estimate(errors[n][region]) for n in raster.AXES}
             tunings = {n: ilc.tune(refs[n], traj.axis(n) - errors[n], desired[n], law, noise[n])
                        for n in raster.AXES}
-        score.append(over_noise(errors, region, noise))
         for n in raster.AXES:
             by_axis[n].append(ilc.rms(errors[n][region]) / noise[n])
+        score.append(max(by_axis[n][-1] for n in raster.AXES))  # the larger axis's
         run.merit["over_noise"] = score[-1]
         if on_frame is not None:
             on_frame(runs)

@@ -33,6 +33,7 @@ from threadpoolctl import threadpool_limits
 
 from afmctl.files.sweepfile import Sweep
 from afmctl.fit import identify as idf
+from afmctl.fit import openloops
 from afmctl.fit import parametrization as pz
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.preisach_problem import rod_filter
@@ -285,8 +286,6 @@ def refined(result: idf.FitResult, sweeps: Sequence[Sweep], seeds_hz: Sequence[f
     if why is not None:
         return replace(result, representations={**result.representations, "second_mode": {
             "kept": False, "skipped": why}})
-    from afmctl.fit import openloops  # it judges identify's results, as here
-
     t0 = time.perf_counter()
     on = [i for i in range(len(sweeps)) if i not in result.held_out]  # what the model was fitted on
     used = [sweeps[i] for i in on]

@@ -34,7 +34,7 @@ from afmctl.model import transducer as td
 #: foreign-xy-2's Bouc-Wen y axis had its fast triangle at 76x beside the curves' 229x).
 SPOILS = 4.0
 
-Fitter = Callable[[Sequence[Sweep], "idf.Settings", Callable[[str], None] | None], "idf.FitResult"]
+Fitter = Callable[[Sequence[Sweep], idf.Settings, Callable[[str], None] | None], idf.FitResult]
 
 
 def spoiling(sweeps: Sequence[Sweep], result: idf.FitResult) -> list[int]:
@@ -44,9 +44,9 @@ def spoiling(sweeps: Sequence[Sweep], result: idf.FitResult) -> list[int]:
     out = []
     for i, (s, e) in enumerate(zip(sweeps, result.sweeps, strict=True)):
         others = [r for j, r in enumerate(ratios) if j != i]
-        if (others and rep.interior_reversals([s]) >= rep.REVERSALS_NEEDED
-                and ratios[i] >= max(others) and ratios[i] > SPOILS * float(np.median(others))
-                and closure.check([s], [e.noise_um])["close"] is False):
+        if (others and ratios[i] >= max(others) and ratios[i] > SPOILS * float(np.median(others))
+                and rep.interior_reversals([s]) >= rep.REVERSALS_NEEDED
+                and closure.check([s], [e.noise_um])["close"] is False):  # the cheap tests first
             out.append(i)
     return out if len(out) < len(sweeps) else []
 
