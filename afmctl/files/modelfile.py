@@ -89,6 +89,16 @@ creep (:mod:`afmctl.model.creep`)::
     weights = [0.004, 0.003, ...]
     thresholds_C_per_m2 = [0.0, 0.0, ...]       # play half-widths (optional, default 0)
 
+or a Bouc-Wen polarization (:mod:`afmctl.model.boucwen`, whose minor loops need not close)::
+
+    [polarization]
+    type = "bouc-wen"
+    reversible_C_per_m2_per_MV_per_m = 0.21
+    rate_C_per_m2_per_MV_per_m = -0.05         # A (< 0: the loop subtracted, x = d V - h)
+    saturation_C_per_m2 = 0.031                # h_s
+    kappa = -1.7                               # the branch toward zero
+    exponent = 1.8                             # n
+
 ``identify`` writes version 3 only for a model that needs it (versions 1 and 2 are still read, and
 a model of the paper's form is still written as version 2).
 """
@@ -104,6 +114,7 @@ from typing import Any
 from afmctl.errors import FileFormatError
 from afmctl.files.tomlfile import Table, dumps, load
 from afmctl.model import hysteresis as hy
+from afmctl.model.boucwen import BoucWen
 from afmctl.model.creep import Creep
 from afmctl.model.effects import Effects, SecondMode
 from afmctl.model.preisach import PreisachGrid
@@ -252,11 +263,17 @@ def _density_dict(d: hy.Lognormal | hy.Normal | hy.Discrete) -> dict[str, Any]:
 
 
 def version_for(model: Transducer) -> int:
-    """The lowest format version that holds ``model`` (3 for a Preisach grid or creep)."""
-    return 3 if isinstance(model.polarization, PreisachGrid) or model.creep is not None else 2
+    """The lowest format version that holds ``model`` (3 for a Preisach grid, Bouc-Wen or
+    creep)."""
+    return 3 if (isinstance(model.polarization, (PreisachGrid, BoucWen))
+                 or model.creep is not None) else 2
 
 
-def _polarization_dict(pol: hy.Polarization | PreisachGrid) -> dict[str, Any]:
+def _polarization_dict(pol: hy.Polarization | PreisachGrid | BoucWen) -> dict[str, Any]:
+    if isinstance(pol, BoucWen):
+        return {"type": "bouc-wen", "reversible_C_per_m2_per_MV_per_m": pol.reversible,
+                "rate_C_per_m2_per_MV_per_m": pol.rate, "saturation_C_per_m2": pol.saturation,
+                "kappa": pol.kappa, "exponent": pol.exponent}
     if isinstance(pol, PreisachGrid):
         return {"type": "preisach", "coercive_MV_per_m": list(pol.coercive),
                 "interaction_MV_per_m": list(pol.interaction),
@@ -407,6 +424,18 @@ def _preisach(p: Table) -> PreisachGrid:
         raise p.fail("weights_C_per_m2", str(exc)) from None
 
 
+def _bouc_wen(p: Table) -> BoucWen:
+    try:
+        return BoucWen(p.number("reversible_C_per_m2_per_MV_per_m", nonnegative=True),
+                       p.number("rate_C_per_m2_per_MV_per_m"),
+                       p.number("saturation_C_per_m2", positive=True), p.number("kappa"),
+                       p.number("exponent", positive=True))
+    except ValueError as exc:
+        if isinstance(exc, FileFormatError):
+            raise
+        raise p.fail("rate_C_per_m2_per_MV_per_m", str(exc)) from None
+
+
 def _creep(t: Table | None) -> Creep | None:
     if t is None:
         return None
@@ -423,8 +452,9 @@ def from_table(t: Table) -> Transducer:
     """Build a model from the tables of a model file (or a profile's ``emulator.model``)."""
     p = t.table("polarization")
     assert p is not None
-    if p.string("type", "hem", choices=("hem", "preisach")) == "preisach":
-        return _transducer(t, _preisach(p), None)
+    kind = p.string("type", "hem", choices=("hem", "preisach", "bouc-wen"))
+    if kind != "hem":
+        return _transducer(t, _preisach(p) if kind == "preisach" else _bouc_wen(p), None)
     coercive = _density(p.table("coercive"), ("lognormal", "discrete"))  # type: ignore[arg-type]
     if isinstance(coercive, hy.Discrete) and min(coercive.nodes) <= 0:
         raise p.fail("coercive.nodes_MV_per_m", "coercive-field nodes must be > 0")
@@ -445,13 +475,14 @@ def from_table(t: Table) -> Transducer:
     return _transducer(t, pol, effects)
 
 
-def _transducer(t: Table, pol: hy.Polarization | PreisachGrid,
+def _transducer(t: Table, pol: hy.Polarization | PreisachGrid | BoucWen,
                 effects: Effects | None) -> Transducer:
     """The rest of the model around its polarization: rod, thickness, effects, creep."""
     if effects is None:
         effects, thermal = effects_from_table(t.table("effects", required=False))
         if thermal is not None:
-            raise t.fail("effects.thermal_relaxation", "a Preisach grid has no thermal kernel")
+            raise t.fail("effects.thermal_relaxation", "a Preisach grid or Bouc-Wen model has no "
+                         "thermal kernel")
     r = t.table("rod")
     assert r is not None
     rod = Rod(m=r.number("m_kg", positive=True), c=r.number("c_Ns_per_m", nonnegative=True),

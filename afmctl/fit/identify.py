@@ -107,10 +107,11 @@ class Settings:
         Nodes of the discrete coercive density.
     smoothing : float
         Tikhonov weight lambda of the discrete density's second differences (dimensionless).
-    representation : {"auto", "hem", "preisach"}
+    representation : {"auto", "hem", "preisach", "bouc-wen"}
         ``auto``: when the parametric HEM stays above the noise floor, also fit the Preisach grid
-        with creep (:mod:`afmctl.fit.preisach`) and keep whichever has the lower held-out error
-        (:mod:`afmctl.fit.representation`); ``hem`` never; ``preisach`` always keeps the grid.
+        with creep (:mod:`afmctl.fit.preisach`) and Bouc-Wen (:mod:`afmctl.fit.boucwen`) and keep
+        whichever has the lower held-out error (:mod:`afmctl.fit.representation`); ``hem``
+        never; ``preisach`` and ``bouc-wen`` always keep that one.
     """
 
     mass_kg: float = 0.05
@@ -125,7 +126,7 @@ class Settings:
     density: Literal["auto", "parametric", "discrete"] = "auto"
     n_density_nodes: int = 24
     smoothing: float = 1e-6
-    representation: Literal["auto", "hem", "preisach"] = "auto"
+    representation: Literal["auto", "hem", "preisach", "bouc-wen"] = "auto"
 
     @property
     def scales(self) -> pz.Scales:
@@ -153,7 +154,7 @@ def settings_from_table(t: Table | None, base: Settings = Settings()) -> Setting
         n_density_nodes=t.integer("n_density_nodes", base.n_density_nodes, minimum=3),
         smoothing=t.number("smoothing", base.smoothing, nonnegative=True),
         representation=t.string("representation", base.representation,  # type: ignore[arg-type]
-                                choices=("auto", "hem", "preisach")))
+                                choices=("auto", "hem", "preisach", "bouc-wen")))
     t.reject_unknown()
     return settings
 
@@ -679,7 +680,7 @@ def _fit(sweeps: Sequence[Sweep], settings: Settings,
                     bool(ok and finite), int(sol.status), str(sol.message), prob.nfev,
                     time.perf_counter() - t0, known, x_lognormal,
                     unc.summary(names, np.concatenate((sol.x, beta)), cov), env, restarts, finite)
-    if settings.representation == "preisach" or (settings.representation == "auto"
-                                                  and not hem.at_noise_floor):
+    if settings.representation in ("preisach", "bouc-wen") or (settings.representation == "auto"
+                                                               and not hem.at_noise_floor):
         return other.choose(hem, prob, space, sol)
     return hem

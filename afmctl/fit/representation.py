@@ -1,18 +1,21 @@
-"""Which representation ``identify`` keeps: the paper's parametric HEM, or the Preisach grid.
+"""Which representation ``identify`` keeps: the paper's parametric HEM, the Preisach grid, or
+Bouc-Wen.
 
 The homogenized energy model with lognormal/normal densities (six nonlinear parameters) is fitted
 first: on a stage of its family it reaches the sensor noise and nothing more is done. When it stays
 above the noise floor, the Preisach grid with creep (:mod:`afmctl.fit.preisach`: a non-separable
 density on a grid, fitted as a regularized non-negative least-squares problem) is fitted too, and
-the two are compared by their **held-out** error against each sweep's sensor noise:
+and so is a Bouc-Wen model (:mod:`afmctl.fit.boucwen`: eight parameters, rate independent but
+without return-point memory, so its minor loops need not close, which no Preisach-type model can
+fit), and they are compared by their **held-out** error against each sweep's sensor noise:
 
 * the grid's is measured: it is fitted on three of four folds of residual blocks and judged on
   the fourth, each in turn;
-* the HEM's is its error on the same samples from the full fit: with about ten parameters
-  against thousands of samples its optimism is of order ``p / N`` (well below 1 %), which favours
-  the HEM slightly. The grid must also beat it by :data:`MARGIN`: the HEM is cheaper to run,
-  smaller to store, and extrapolates beyond the identified range by its physics; the grid
-  knows nothing outside the cells the sweeps switched.
+* the HEM's and Bouc-Wen's are their errors on the same samples from the full fit: with about
+  ten parameters against thousands of samples their optimism is of order ``p / N`` (well below
+  1 %). The grid and Bouc-Wen must beat the HEM by :data:`MARGIN` (the paper's model extrapolates
+  beyond the identified range by its physics; the grid knows nothing outside the cells the
+  sweeps switched), and the lower of the two wins between them.
 
 Speed: after the HEM's first start, if some sweep is more than :data:`EARLY` times its noise
 (the HEM's family does not describe the stage), the grid is fitted at once; if its worst
@@ -33,9 +36,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl.files.sweepfile import Sweep
+from afmctl.fit import boucwen as bf
 from afmctl.fit import preisach as pf
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.parametrization import turning_points
+from afmctl.model import boucwen as bm
 from afmctl.model import preisach as pr
 
 if TYPE_CHECKING:
@@ -59,13 +64,15 @@ MARGIN = 0.9
 
 
 class Grid:
-    """The Preisach grid as identify's alternative: fitted at most once, then compared."""
+    """The Preisach grid and Bouc-Wen as identify's alternatives: each fitted at most once, then
+    compared."""
 
     def __init__(self, sweeps: Sequence[Sweep], thickness_um: float, settings: idf.Settings,
                  noise: FloatArray, say: Callable[[str], None], t0: float) -> None:
         self.sweeps, self.thickness, self.settings = list(sweeps), thickness_um, settings
         self.noise, self.say, self.t0 = noise, say, t0
         self.fit: pf.PreisachFit | None = None
+        self.bw: bf.BoucWenFit | None = None
         self.decided = False
 
     def data(self) -> pf.Data:
@@ -87,10 +94,25 @@ class Grid:
                               self.settings.mass_kg, say=self.say)
         return self.fit
 
+    def bouc_wen(self, starts: Sequence[str], x_hem: FloatArray) -> bf.BoucWenFit | None:
+        """Fit Bouc-Wen once (None if no shape has a loop), from the HEM's starts or each sweep
+        from where the one before left the stage (a Bouc-Wen stage forgets nothing)."""
+        if self.bw is None:
+            self.say("fitting a Bouc-Wen model (its minor loops need not close) ...")
+            rod0 = math.exp(float(x_hem[4])), math.exp(float(x_hem[5]))
+            chained = [(first,) + ("previous",) * (len(starts) - 1)
+                       for first in ("depoled", "negative", "positive")]
+            try:
+                self.bw = bf.fit(self.data(), [tuple(starts), *chained], rod0, self.thickness,
+                                 self.settings.mass_kg, self.settings.p_r, say=self.say)
+            except ValueError as exc:
+                self.say(f"  no Bouc-Wen fit: {exc}")
+        return self.bw
+
     def early(self, space: pz.LognormalSpace, sol: optimize.OptimizeResult,
               ratio: FloatArray) -> bool:
         """After the HEM's first start: True if the grid makes its restarts moot."""
-        if self.settings.representation == "hem" or float(np.max(ratio)) <= EARLY:
+        if self.settings.representation not in ("auto", "preisach") or float(np.max(ratio)) <= EARLY:
             return False
         fit = self.run(space.starts, sol.x)
         self.decided = bool(DECISIVE * np.max(fit.heldout_rms_um / self.noise)
@@ -102,46 +124,56 @@ class Grid:
 
     def choose(self, hem: idf.FitResult, prob: idf.Problem, space: pz.LognormalSpace,
                sol: optimize.OptimizeResult) -> idf.FitResult:
-        """``hem``, or the grid's result if its held-out error is lower (by :data:`MARGIN`), with
-        both representations' figures under ``representations``."""
+        """``hem``, or the grid's or Bouc-Wen's result if its held-out error is lower (by
+        :data:`MARGIN`), with every representation's figures under ``representations``."""
         from dataclasses import replace
 
-        fit = self.run(space.starts, sol.x)
-        hem_worst = max(s.rms_over_noise for s in hem.sweeps)
-        grid_worst = float(np.max(fit.heldout_rms_um / self.noise))
-        forced = self.settings.representation == "preisach"
-        keep_grid = forced or grid_worst < MARGIN * hem_worst
-        why = ("asked for (--profile [identify] representation)" if forced else
-               f"held-out worst {grid_worst:.2f}x the noise against the paper's model's "
-               f"{hem_worst:.2f}x")
-        figures = {
-            "chosen": "preisach" if keep_grid else "hem",
-            "why": why,
-            "hem": {"worst_over_noise": hem_worst, "heldout_note": "error on the held-out "
+        want = self.settings.representation
+        grid = self.run(space.starts, sol.x) if want in ("auto", "preisach") else None
+        bw = self.bouc_wen(space.starts, sol.x) if want in ("auto", "bouc-wen") else None
+        worst = {"hem": max(s.rms_over_noise for s in hem.sweeps)}
+        if grid is not None:
+            worst["preisach"] = float(np.max(grid.heldout_rms_um / self.noise))
+        if bw is not None:
+            worst["bouc-wen"] = float(np.max(bw.heldout_rms_um / self.noise))
+        chosen = want if want in worst else min(
+            worst, key=lambda k: worst[k] / (1.0 if k == "hem" else MARGIN))
+        why = ("asked for (--profile [identify] representation)" if chosen == want else
+               "held-out worst " + ", ".join(f"{k} {v:.2f}x" for k, v in worst.items())
+               + " the noise")
+        figures: dict[str, Any] = {
+            "chosen": chosen, "why": why,
+            "hem": {"worst_over_noise": worst["hem"], "heldout_note": "error on the held-out "
                     "blocks from the full fit (about ten parameters: optimism ~ p/N)",
-                    "per_sweep_over_noise": [s.rms_over_noise for s in hem.sweeps]},
-            "preisach": {**_grid_figures(fit, self.noise),
-                         "interior_reversals": interior_reversals(self.sweeps)},
-        }
-        self.say(f"representation: {figures['chosen']} ({why})")
-        if not keep_grid:
-            return replace(hem, representations=figures)
-        return self._result(hem, prob, fit, figures)
+                    "per_sweep_over_noise": [s.rms_over_noise for s in hem.sweeps]}}
+        if grid is not None:
+            figures["preisach"] = {**_grid_figures(grid, self.noise),
+                                   "interior_reversals": interior_reversals(self.sweeps)}
+        if bw is not None:
+            figures["bouc_wen"] = bf.figures(bw, self.noise)
+        self.say(f"representation: {chosen} ({why})")
+        if chosen == "preisach" and grid is not None:
+            return self._result(hem, prob, grid, figures, estimates(grid.model, grid))
+        if chosen == "bouc-wen" and bw is not None:
+            return self._result(hem, prob, bw, figures, bw_estimates(bw))
+        return replace(hem, representations=figures)
 
-    def _result(self, hem: idf.FitResult, prob: idf.Problem, fit: pf.PreisachFit,
-                figures: dict[str, Any]) -> idf.FitResult:
+    def _result(self, hem: idf.FitResult, prob: idf.Problem,
+                fit: pf.PreisachFit | bf.BoucWenFit, figures: dict[str, Any],
+                est: tuple[unc.Estimate, ...]) -> idf.FitResult:
         from afmctl.fit import identify as idf
 
         model = fit.model  # judged with each sweep's own history: sensor zero, creep transient
         errors = idf.judge_set(self.sweeps, fit.predicted, fit.starts, fit.offsets,
                                self.settings.window_s)
         how = "converged" if fit.converged else "stopped on its budget"
-        msg = f"Preisach grid: Gauss-Newton {how} after {fit.iterations} steps"
+        name = "Preisach grid: Gauss-Newton" if figures["chosen"] == "preisach" else "Bouc-Wen"
+        msg = f"{name} {how} after {fit.iterations} steps"
         return idf.FitResult(
-            model, estimates(model, fit), errors, fit.converged, 1 if fit.converged else 0, msg,
+            model, est, errors, fit.converged, 1 if fit.converged else 0, msg,
             prob.nfev + fit.iterations, time.perf_counter() - self.t0, hem.thickness_known, hem.x,
             fit.uncertainty, hem.envelope, hem.restarts, bool(np.isfinite(fit.offsets).all()),
-            "preisach", figures)
+            figures["chosen"], figures)
 
 
 def first_start(prob: idf.Problem, space: pz.LognormalSpace, sol: optimize.OptimizeResult,
@@ -229,4 +261,31 @@ def estimates(model: Any, fit: pf.PreisachFit) -> tuple[unc.Estimate, ...]:
                         unc.Estimate("p_scale", fit.p_scale, 0.0, "C/m^2", fixed=True)])
 
 
-__all__ = ["Grid", "EARLY", "DECISIVE", "MARGIN", "estimates", "first_start"]
+def bw_estimates(fit: bf.BoucWenFit) -> tuple[unc.Estimate, ...]:
+    """The Bouc-Wen model's parameters: the rod (16) and the operator (1-sigma of the rod's and
+    the shape's from the fit's uncertainty; the physical scales are conventions)."""
+    rod, bw = fit.model.rod, fit.model.polarization
+    assert isinstance(bw, bm.BoucWen)
+    sd = fit.uncertainty.get("parameters", {})
+
+    def err(name: str, scale: float = 1.0) -> float:
+        v = sd.get(name, {}).get("stderr")
+        return float("nan") if v is None else float(v) * scale
+
+    return (unc.Estimate("natural_frequency", rod.natural_hz, rod.natural_hz * err("log_fn"), "Hz"),
+            unc.Estimate("damping_ratio", rod.damping_ratio,
+                         rod.damping_ratio * err("log_zeta"), "1"),
+            unc.Estimate("k", rod.k, float("nan"), "N/m"),
+            unc.Estimate("c", rod.c, float("nan"), "N s/m"),
+            unc.Estimate("a1", rod.a1, float("nan"), "N/(C/m^2)"),
+            unc.Estimate("a2", rod.a2, float("nan"), "N/(C/m^2)^2"),
+            unc.Estimate("offset", rod.offset_um, float("nan"), "um"),
+            unc.Estimate("reversible_slope", bw.reversible, float("nan"), "(C/m^2)/(MV/m)"),
+            unc.Estimate("bouc_wen_rate", bw.rate, float("nan"), "(C/m^2)/(MV/m)"),
+            unc.Estimate("bouc_wen_saturation", bw.saturation, float("nan"), "C/m^2"),
+            unc.Estimate("bouc_wen_kappa", bw.kappa, err("kappa"), "1"),
+            unc.Estimate("bouc_wen_exponent", bw.exponent, err("n"), "1"),
+            unc.Estimate("m", rod.m, 0.0, "kg", fixed=True))
+
+
+__all__ = ["Grid", "EARLY", "DECISIVE", "MARGIN", "estimates", "bw_estimates", "first_start"]

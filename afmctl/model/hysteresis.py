@@ -58,6 +58,12 @@ KIND_GRID = 1
 KIND_THERMAL = 2
 #: A non-separable weight matrix on a (coercive, interaction) grid (:mod:`afmctl.model.preisach`).
 KIND_MATRIX = 3
+#: A Bouc-Wen operator (:mod:`afmctl.model.boucwen`): state ``(h, E_last)``.
+KIND_BOUC_WEN = 4
+#: Largest change of the Bouc-Wen ``h`` over one RK4 substep, as a share of ``h_s``.
+BW_SUBSTEP = 0.02
+#: Most Bouc-Wen substeps in one sample.
+BW_MAX_SUBSTEPS = 5000
 
 
 @dataclass(frozen=True)
@@ -224,6 +230,8 @@ class Kernel:
     def state_size(self) -> int:
         if self.kind == KIND_THERMAL:  # x_+ per hysteron and their switched total
             return self.ec.size * self.ei.size + 1
+        if self.kind == KIND_BOUC_WEN:  # h and the last field
+            return 2
         return self.ec.size
 
 
@@ -276,6 +284,13 @@ def initial_state(params: Polarization, how: Initial | NDArray = "depoled") -> P
         (for the ``normal`` kernel it is read on the E_I quantile nodes of ``n_interaction``).
     """
     k = build_kernel(params)
+    if k.kind == KIND_BOUC_WEN:
+        if not isinstance(how, str) or how not in ("depoled", "positive", "negative"):
+            raise ValueError(f"unknown initial state {how!r} for a Bouc-Wen model")
+        if how == "depoled":  # h = 0 at zero field, as the play outputs of the other kernels
+            return PolarizationState(k.kind, np.zeros(2))
+        h0 = (1.0 if how == "positive" else -1.0) * math.copysign(k.ec[1], k.ec[0])
+        return PolarizationState(k.kind, np.array([h0, np.nan]))  # saturated at the first field
     ni, nj = k.ec.size, k.ei.size
     if isinstance(how, str):
         delta = {"depoled": np.where(k.ei[None, :] > 0, 1.0, -1.0) * np.ones((ni, 1)),
@@ -336,6 +351,8 @@ def _step(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: n
         return (e * wtot + mean) / eta + p_r * acc
     if kind == 3:
         return (e * wtot + mean) / eta + p_r * _matrix_step(e, st, out, ec, ei, cw, sigma)
+    if kind == 4:
+        return (e * wtot + mean) / eta + _bouc_wen_step(e, st, out, ec)
     if kind == 1:
         wi_tot = cw[nj]
         for i in range(ni):
@@ -397,6 +414,41 @@ def _matrix_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray, ei: 
 
 
 @nb.njit(cache=True)
+def _bouc_wen_slope(h: float, s: float, a: float, hs: float, kappa: float, n: float) -> float:
+    q = 1.0 if s * a * h > 0.0 else kappa  # |h| grows: 1; toward zero: kappa
+    return a * (1.0 - q * abs(h / hs) ** n)
+
+
+@nb.njit(cache=True)
+def _bouc_wen_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray) -> float:
+    """Bouc-Wen ``h`` (:mod:`afmctl.model.boucwen`, ``ec = [A, h_s, kappa, n]``) after the field
+    moves monotonically from ``st[1]`` to ``e`` (MV/m) from ``st[0]``: RK4 in ``E``; ``out`` (may
+    alias ``st``) gets ``(h, e)``. A NaN ``st[1]`` (no field yet) takes ``e`` as it is."""
+    h, e0 = st[0], st[1]
+    a, hs, kappa, n = ec[0], ec[1], ec[2], ec[3]
+    de = 0.0 if math.isnan(e0) else e - e0
+    if de != 0.0:
+        s = 1.0 if de > 0.0 else -1.0
+        m = min(max(1, int(math.ceil(abs(de) * a / (BW_SUBSTEP * hs)))), BW_MAX_SUBSTEPS)
+        d = de / m
+        for _ in range(m):
+            k1 = _bouc_wen_slope(h, s, a, hs, kappa, n)
+            k2 = _bouc_wen_slope(h + 0.5 * d * k1, s, a, hs, kappa, n)
+            k3 = _bouc_wen_slope(h + 0.5 * d * k2, s, a, hs, kappa, n)
+            k4 = _bouc_wen_slope(h + d * k3, s, a, hs, kappa, n)
+            h += d * (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
+    out[0] = h
+    out[1] = e
+    return h
+
+
+@nb.njit(cache=True)
+def banded(kind: int) -> bool:
+    """Whether the kernel has a quiet band (:func:`_quiet_band`): play outputs or relays."""
+    return kind == 0 or kind == 1 or kind == 3
+
+
+@nb.njit(cache=True)
 def _quiet_band(kind: int, st: np.ndarray, ec: np.ndarray, ei: np.ndarray) -> tuple[float, float]:
     """Open field interval (MV/m) inside which no relay of the state ``st`` can switch.
 
@@ -429,7 +481,7 @@ def _run(kind: int, e: np.ndarray, dt: np.ndarray, st: np.ndarray, ec: np.ndarra
             p[k] = e[k] * lin + off + p_switch
             continue
         p[k] = _step(kind, e[k], dt[k], st, st, ec, wc, ei, cw, scal)
-        if kind != 2:
+        if banded(kind):
             p_switch = p[k] - (e[k] * lin + off)
             lo, hi = _quiet_band(kind, st, ec, ei)
     return p

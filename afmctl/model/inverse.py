@@ -34,7 +34,7 @@ from afmctl.model import creep as cr
 from afmctl.model import hysteresis as hy
 from afmctl.model import transducer as tr
 from afmctl.model.creep import _update as _creep_update
-from afmctl.model.hysteresis import _quiet_band, _step
+from afmctl.model.hysteresis import _quiet_band, _step, banded
 
 FloatArray = NDArray[np.float64]
 _NONE = np.zeros(0)  # no creep elements
@@ -125,7 +125,7 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
     e_prev, p_prev, slope = e_init, p_init, floor
     g1, g2 = gain * a1 * 1e6, gain * a2 * 1e6
     lin, off = scal[5] / scal[0], scal[6] / scal[0]
-    lo, hi = _quiet_band(kind, st, ec, ei) if kind != 2 else (0.0, -1.0)
+    lo, hi = _quiet_band(kind, st, ec, ei) if banded(kind) else (0.0, -1.0)
     p_switch = p_init - (e_init * lin + off)
     for k in range(n):
         u_out[k] = x[0] * 1e6 + offset
@@ -152,7 +152,7 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
             e, p, err[k], slope = _solve(kind, target[k], e_prev, y0, slope, floor, e_min, e_max,
                                          dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2, creep, tol)
             st[:] = sc  # commit the accepted trial's memory
-            if kind != 2:
+            if banded(kind):
                 lo, hi = _quiet_band(kind, st, ec, ei)
                 p_switch = p - (e * lin + off)
         pt = p + creep

@@ -1,0 +1,275 @@
+"""Identification of the Bouc-Wen polarization (:mod:`afmctl.model.boucwen`) from sweeps.
+
+In the frame of the Preisach grid's fit (:mod:`afmctl.fit.preisach`), the reading is::
+
+    u = L[g(Q)] + offset_s,    g(Q) = Q + s Q^2,    Q = r E + c eta(E),              (um)
+
+with ``L`` the rod (16) at unit DC gain (exact ZOH, (18)), ``eta`` the Bouc-Wen variable
+normalized to its saturation (``eta' = a (1 - q |eta|^n)``, ``q = 1`` away from zero, ``kappa``
+toward it: a Bouc-Wen model with ``A = a h_s``), and the gain fixed by convention in ``g``. Eight
+parameters (``log a, kappa, n, r, c, s, log f_n, log zeta``) are fitted by least squares
+(:func:`scipy.optimize.least_squares`, trust region, bounds), each sweep's residual weighted by
+its sensor noise, its offset projected out (the mean of its residual). The start is the best of a
+few shapes (``a, kappa, n``) with ``r, c`` solved linearly, the rod at the HEM fit's.
+
+Eight parameters against thousands of samples: the in-sample error is the held-out one to within
+``p / N`` (as for the HEM, :mod:`afmctl.fit.representation`), and is what identify compares.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize
+
+from afmctl.fit import parametrization as pz
+from afmctl.fit import uncertainty as unc
+from afmctl.fit.preisach_problem import Data, rod_filter
+from afmctl.model import boucwen as bwm
+from afmctl.model import hysteresis as hy
+from afmctl.model import rod as rd
+from afmctl.model import transducer as td
+
+FloatArray = NDArray[np.float64]
+#: Shapes tried for the start: ``a`` times the field range, ``kappa``, ``n``.
+START_SHAPES = tuple(itertools.product((1.0, 3.0, 8.0), (-2.0, -0.5, 0.5), (1.0, 2.0)))
+#: Least-squares evaluations allowed (8 parameters: about 60 Jacobians).
+MAX_NFEV = 600
+#: Evaluations each start assignment gets before the best is fitted to convergence.
+SCREEN_NFEV = 12
+#: Relative step of the finite-difference Jacobian (the RK4 substep count is a step function
+#: of ``a``: steps below it see its jumps).
+DIFF_STEP = 1e-5
+#: Bounds of the rod's damping ratio.
+ZETA_BOUNDS = (1e-3, 2.0)
+#: The fitted parameters, in order.
+NAMES = ("log_a", "kappa", "n", "r", "c", "s", "log_fn", "log_zeta")
+
+
+@dataclass(frozen=True)
+class BoucWenFit:
+    """Outcome of :func:`fit` (the attributes identify reads, as :class:`~afmctl.fit.preisach.
+    PreisachFit`'s).
+
+    Attributes
+    ----------
+    model : transducer.Transducer
+        The Bouc-Wen polarization, the rod, the model's sensor zero.
+    starts : tuple of str
+        Each sweep's start state.
+    offsets : ndarray
+        Each sweep's sensor zero, um.
+    heldout_rms_um : ndarray
+        Per sweep, the RMS on its judged samples, um (in-sample: see the module).
+    iterations, converged, seconds
+        Function evaluations, whether the solver met its tolerance, wall time (s).
+    predicted : list of ndarray
+        The fit's readings on every sample of each sweep (um), with the sweep's sensor zero.
+    parameters : dict
+        The fitted shape in the normalized frame (``a`` in 1/(MV/m), ``kappa``, ``n``, ``s`` in
+        1/um, the rod).
+    uncertainty : dict
+        :func:`afmctl.fit.uncertainty.summary` of those parameters (offsets projected out).
+    """
+
+    model: td.Transducer
+    starts: tuple[str, ...]
+    offsets: FloatArray
+    heldout_rms_um: FloatArray
+    iterations: int
+    converged: bool
+    seconds: float
+    predicted: list[FloatArray]
+    parameters: dict[str, float]
+    uncertainty: dict[str, Any]
+
+
+class Problem:
+    """The sweeps, their start states, and the model's readings for a parameter vector."""
+
+    def __init__(self, data: Data, starts: Sequence[str]) -> None:
+        self.data, self.starts = data, tuple(starts)
+        lo = min(float(np.min(e)) for e in data.fields)
+        hi = max(float(np.max(e)) for e in data.fields)
+        self.span = max(hi - lo, 1e-9)
+        self.weights = [np.full(int(m.sum()), 1.0 / n) for m, n in zip(data.masks, data.noise,
+                                                                        strict=True)]
+
+    def shape(self, log_a: float, kappa: float, n: float) -> list[FloatArray]:
+        """``eta`` per sweep (every sample), the sweeps in sequence from their starts."""
+        bw = bwm.BoucWen(0.0, math.exp(log_a), 1.0, kappa, n)
+        k = bw.build_kernel()
+        out, prev = [], None
+        for e, start in zip(self.data.fields, self.starts, strict=True):
+            st = prev if start == "previous" and prev is not None else hy.initial_state(
+                bw, "depoled" if start == "previous" else start)
+            q, prev = hy.run(k, e, st)
+            out.append(q)
+        return out
+
+    def readings(self, x: FloatArray) -> list[FloatArray]:
+        """``L[g(Q)]`` per sweep (every sample), without offsets."""
+        log_a, kappa, n, r, c, s, log_fn, log_zeta = x
+        fn, zeta = math.exp(log_fn), math.exp(log_zeta)
+        out = []
+        for e, eta, dt in zip(self.data.fields, self.shape(log_a, kappa, n), self.data.dts,
+                              strict=True):
+            q = r * e + c * eta
+            out.append(rod_filter(q + s * q * q, fn, zeta, dt))
+        return out
+
+    def offsets(self, u: list[FloatArray]) -> FloatArray:
+        return np.array([float(np.mean(y - p[m])) for y, p, m in
+                         zip(self.data.y, u, self.data.masks, strict=True)])
+
+    def residual(self, x: FloatArray) -> FloatArray:
+        u = self.readings(x)
+        if not all(np.all(np.isfinite(p)) for p in u):
+            return np.full(sum(w.size for w in self.weights), 1e6)
+        off = self.offsets(u)
+        return np.concatenate([(y - p[m] - o) * w for y, p, m, o, w in
+                               zip(self.data.y, u, self.data.masks, off, self.weights,
+                                   strict=True)])
+
+
+def _linear_start(prob: Problem, log_a: float, kappa: float, n: float) -> tuple[float, float,
+                                                                                  float]:
+    """``r, c`` of the quasi-static fit ``y = r E + c eta + offset_s`` and its weighted SSE."""
+    rows, rhs = [], []
+    k = len(prob.data.fields)
+    for i, (e, eta, m, y, noise) in enumerate(zip(prob.data.fields, prob.shape(log_a, kappa, n),
+                                                  prob.data.masks, prob.data.y, prob.data.noise,
+                                                  strict=True)):
+        cols = np.zeros((int(m.sum()), 2 + k))
+        cols[:, 0], cols[:, 1], cols[:, 2 + i] = e[m], eta[m], 1.0
+        rows.append(cols / noise)
+        rhs.append(y / noise)
+    a, b = np.vstack(rows), np.concatenate(rhs)
+    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+    return float(sol[0]), float(sol[1]), float(np.sum((a @ sol - b) ** 2))
+
+
+def start(prob: Problem, rod0: tuple[float, float]) -> FloatArray:
+    """The best of :data:`START_SHAPES` by its quasi-static linear fit, rod at ``rod0``."""
+    best: tuple[float, FloatArray] | None = None
+    for a_span, kappa, n in START_SHAPES:
+        log_a = math.log(a_span / prob.span)
+        r, c, sse = _linear_start(prob, log_a, kappa, n)
+        if c != 0 and (best is None or sse < best[0]):
+            best = (sse, np.array([log_a, kappa, n, max(r, 0.0), c, 0.0,
+                                   math.log(rod0[0]), math.log(rod0[1])]))
+    if best is None:
+        raise ValueError("no Bouc-Wen shape has a loop (c = 0)")
+    return best[1]
+
+
+def _bounds(prob: Problem, x0: FloatArray) -> tuple[FloatArray, FloatArray]:
+    nyquist = 0.5 / min(prob.data.dts)
+    sign = 1.0 if x0[4] > 0 else -1.0  # the loop's sense: c keeps the start's sign
+    lo = np.array([math.log(0.05 / prob.span), bwm.KAPPA_BOUNDS[0], 1.0, 0.0,
+                   1e-9 * abs(x0[4]) if sign > 0 else -np.inf, -np.inf, math.log(0.5),
+                   math.log(ZETA_BOUNDS[0])])
+    hi = np.array([math.log(200.0 / prob.span), bwm.KAPPA_BOUNDS[1], 4.0, np.inf,
+                   np.inf if sign > 0 else -1e-9 * abs(x0[4]), np.inf, math.log(20 * nyquist),
+                   math.log(ZETA_BOUNDS[1])])
+    return lo, hi
+
+
+def build(x: FloatArray, prob: Problem, offsets: FloatArray, mass_kg: float, thickness_um: float,
+          p_scale: float) -> td.Transducer:
+    """The physical model of ``x``: ``P = k_s Q`` with ``k_s`` making the largest ``|Q|`` over the
+    sweeps ``p_scale`` (C/m^2), so ``r = k_s r_Q``, ``h_s = k_s |c|``, ``A = a k_s c``; the rod
+    ``k = m (2 pi f_n)^2``, ``a1 = 1e-6 k / k_s``, ``a2 = 1e-6 k s / k_s^2`` (as
+    :func:`afmctl.fit.preisach.build`)."""
+    log_a, kappa, n, r, c, s, log_fn, log_zeta = (float(v) for v in x)
+    q_max = max(float(np.max(np.abs(r * e + c * eta))) for e, eta in
+                zip(prob.data.fields, prob.shape(log_a, kappa, n), strict=True)) or 1.0
+    ks = p_scale / q_max
+    pol = bwm.BoucWen(r * ks, math.exp(log_a) * c * ks, abs(c) * ks, kappa, n)
+    fn, zeta = math.exp(log_fn), math.exp(log_zeta)
+    k = mass_kg * (2 * math.pi * fn) ** 2
+    rod = rd.Rod(m=mass_kg, c=2 * zeta * math.sqrt(k * mass_kg), k=k, a1=1e-6 * k / ks,
+                 a2=1e-6 * k * s / ks ** 2, offset_um=float(offsets[pz.zero_sweep(prob.starts)]))
+    first = prob.starts[0] if prob.starts[0] != "previous" else "depoled"
+    return td.Transducer(pol, rod, thickness_um, initial=first)  # type: ignore[arg-type]
+
+
+def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
+        thickness_um: float, mass_kg: float, p_scale: float,
+        say: Callable[[str], None] | None = None) -> BoucWenFit:
+    """Fit the Bouc-Wen model to ``data``.
+
+    Parameters
+    ----------
+    data : Data
+        The sweeps as :mod:`afmctl.fit.preisach` sees them.
+    starts_candidates : sequence of sequences of str
+        Start assignments to try (each sweep's start state,
+        :data:`afmctl.fit.parametrization.STARTS`): each is fitted for :data:`SCREEN_NFEV`
+        evaluations, the best to convergence (a Bouc-Wen stage remembers its whole history, so
+        the assignment matters more than for a Preisach-type one).
+    rod0 : (float, float)
+        Starting natural frequency (Hz) and damping ratio (e.g. the HEM fit's).
+    thickness_um, mass_kg, p_scale : float
+        Layer thickness (um), the fixed effective mass (kg) and polarization scale (C/m^2): scale
+        conventions, as the other representations'.
+    """
+    say = say or (lambda _m: None)
+    t0 = time.perf_counter()
+    rod = (min(max(rod0[0], 1.0), 0.4 / min(data.dts)),
+           min(max(rod0[1], ZETA_BOUNDS[0]), ZETA_BOUNDS[1]))
+    best: tuple[float, Problem, FloatArray] | None = None
+    for starts in dict.fromkeys(tuple(c) for c in starts_candidates):
+        cand = Problem(data, starts)
+        x0 = start(cand, rod)
+        lo, hi = _bounds(cand, x0)
+        trial = optimize.least_squares(cand.residual, np.clip(x0, lo, hi), bounds=(lo, hi),
+                                       x_scale="jac", max_nfev=SCREEN_NFEV, diff_step=DIFF_STEP)
+        if best is None or trial.cost < best[0]:
+            best = (float(trial.cost), cand, trial.x)
+    assert best is not None
+    _, prob, x1 = best
+    lo, hi = _bounds(prob, x1)
+    sol = optimize.least_squares(prob.residual, x1, bounds=(lo, hi), x_scale="jac",
+                                 max_nfev=MAX_NFEV, diff_step=DIFF_STEP)
+    u = prob.readings(sol.x)
+    off = prob.offsets(u)
+    predicted = [p + o for p, o in zip(u, off, strict=True)]
+    rms = np.array([float(np.sqrt(np.mean((y - p[m]) ** 2))) for y, p, m in
+                    zip(data.y, predicted, data.masks, strict=True)])
+    seconds = time.perf_counter() - t0
+    say(f"  Bouc-Wen: {sol.nfev} evaluations, {seconds:.1f} s; RMS / noise per sweep "
+        + " / ".join(f"{v:.2f}" for v in rms / data.noise))
+    return BoucWenFit(build(sol.x, prob, off, mass_kg, thickness_um, p_scale), prob.starts, off,
+                      rms, int(sol.nfev), bool(sol.status > 0), seconds, predicted,
+                      {k: float(v) for k, v in zip(NAMES, sol.x, strict=True)},
+                      _uncertainty(sol))
+
+
+def _uncertainty(sol: optimize.OptimizeResult) -> dict[str, Any]:
+    """``s^2 (J^T J)^+`` at the solution (the residuals are already over each sweep's noise)."""
+    j = np.asarray(sol.jac, float)
+    dof = max(j.shape[0] - j.shape[1], 1)
+    cov = np.linalg.pinv(j.T @ j) * (2.0 * float(sol.cost) / dof)
+    return unc.summary(NAMES, np.asarray(sol.x, float), cov)
+
+
+def figures(fit_: BoucWenFit, noise: FloatArray) -> dict[str, Any]:
+    """What ``identify --json`` says of the Bouc-Wen fit (``representations.bouc_wen``)."""
+    pol = fit_.model.polarization
+    assert isinstance(pol, bwm.BoucWen)
+    return {"worst_heldout_over_noise": float(np.max(fit_.heldout_rms_um / noise)),
+            "heldout_over_noise": [float(v) for v in fit_.heldout_rms_um / noise],
+            "heldout_note": "in-sample error of eight parameters (optimism ~ p/N)",
+            "kappa": pol.kappa, "exponent": pol.exponent, "evaluations": fit_.iterations,
+            "seconds": round(fit_.seconds, 3)}
+
+
+__all__ = ["BoucWenFit", "Problem", "fit", "build", "start", "figures", "START_SHAPES"]
