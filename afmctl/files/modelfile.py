@@ -98,7 +98,7 @@ or a Bouc-Wen polarization (:mod:`afmctl.model.boucwen`, whose minor loops need 
     saturation_C_per_m2 = 0.031                # h_s
     kappa = -1.7                               # the branch toward zero
     exponent = 1.8                             # n
-
+    poling_MV_per_m = [0.0, 1.5]               # where "negative" / "positive" saturate
 ``identify`` writes version 3 only for a model that needs it (versions 1 and 2 are still read, and
 a model of the paper's form is still written as version 2).
 """
@@ -273,7 +273,9 @@ def _polarization_dict(pol: hy.Polarization | PreisachGrid | BoucWen) -> dict[st
     if isinstance(pol, BoucWen):
         return {"type": "bouc-wen", "reversible_C_per_m2_per_MV_per_m": pol.reversible,
                 "rate_C_per_m2_per_MV_per_m": pol.rate, "saturation_C_per_m2": pol.saturation,
-                "kappa": pol.kappa, "exponent": pol.exponent}
+                "kappa": pol.kappa, "exponent": pol.exponent,
+                **({"poling_MV_per_m": list(pol.poling_mv_m)}
+                   if all(math.isfinite(f) for f in pol.poling_mv_m) else {})}
     if isinstance(pol, PreisachGrid):
         return {"type": "preisach", "coercive_MV_per_m": list(pol.coercive),
                 "interaction_MV_per_m": list(pol.interaction),
@@ -429,7 +431,9 @@ def _bouc_wen(p: Table) -> BoucWen:
         return BoucWen(p.number("reversible_C_per_m2_per_MV_per_m", nonnegative=True),
                        p.number("rate_C_per_m2_per_MV_per_m"),
                        p.number("saturation_C_per_m2", positive=True), p.number("kappa"),
-                       p.number("exponent", positive=True))
+                       p.number("exponent", positive=True),
+                       p.numbers("poling_MV_per_m") if p.has("poling_MV_per_m")  # type: ignore[arg-type]
+                       else (math.nan, math.nan))
     except ValueError as exc:
         if isinstance(exc, FileFormatError):
             raise

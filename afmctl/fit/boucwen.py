@@ -42,8 +42,6 @@ FloatArray = NDArray[np.float64]
 START_SHAPES = tuple(itertools.product((1.0, 3.0, 8.0), (-2.0, -0.5, 0.5), (1.0, 2.0)))
 #: Least-squares evaluations allowed (8 parameters: about 60 Jacobians).
 MAX_NFEV = 600
-#: Evaluations each start assignment gets before the best is fitted to convergence.
-SCREEN_NFEV = 12
 #: Relative step of the finite-difference Jacobian (the RK4 substep count is a step function
 #: of ``a``: steps below it see its jumps).
 DIFF_STEP = 1e-5
@@ -98,13 +96,13 @@ class Problem:
         self.data, self.starts = data, tuple(starts)
         lo = min(float(np.min(e)) for e in data.fields)
         hi = max(float(np.max(e)) for e in data.fields)
-        self.span = max(hi - lo, 1e-9)
+        self.span, self.poling = max(hi - lo, 1e-9), (lo, hi)
         self.weights = [np.full(int(m.sum()), 1.0 / n) for m, n in zip(data.masks, data.noise,
                                                                         strict=True)]
 
     def shape(self, log_a: float, kappa: float, n: float) -> list[FloatArray]:
         """``eta`` per sweep (every sample), the sweeps in sequence from their starts."""
-        bw = bwm.BoucWen(0.0, math.exp(log_a), 1.0, kappa, n)
+        bw = bwm.BoucWen(0.0, math.exp(log_a), 1.0, kappa, n, self.poling)
         k = bw.build_kernel()
         out, prev = [], None
         for e, start in zip(self.data.fields, self.starts, strict=True):
@@ -192,7 +190,7 @@ def build(x: FloatArray, prob: Problem, offsets: FloatArray, mass_kg: float, thi
     q_max = max(float(np.max(np.abs(r * e + c * eta))) for e, eta in
                 zip(prob.data.fields, prob.shape(log_a, kappa, n), strict=True)) or 1.0
     ks = p_scale / q_max
-    pol = bwm.BoucWen(r * ks, math.exp(log_a) * c * ks, abs(c) * ks, kappa, n)
+    pol = bwm.BoucWen(r * ks, math.exp(log_a) * c * ks, abs(c) * ks, kappa, n, prob.poling)
     fn, zeta = math.exp(log_fn), math.exp(log_zeta)
     k = mass_kg * (2 * math.pi * fn) ** 2
     rod = rd.Rod(m=mass_kg, c=2 * zeta * math.sqrt(k * mass_kg), k=k, a1=1e-6 * k / ks,
@@ -212,9 +210,9 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
         The sweeps as :mod:`afmctl.fit.preisach` sees them.
     starts_candidates : sequence of sequences of str
         Start assignments to try (each sweep's start state,
-        :data:`afmctl.fit.parametrization.STARTS`): each is fitted for :data:`SCREEN_NFEV`
-        evaluations, the best to convergence (a Bouc-Wen stage remembers its whole history, so
-        the assignment matters more than for a Preisach-type one).
+        :data:`afmctl.fit.parametrization.STARTS`), each fitted; the lowest cost is kept (a
+        Bouc-Wen stage remembers its whole history: the assignment matters more than for a
+        Preisach-type one, and a short screening picked wrongly).
     rod0 : (float, float)
         Starting natural frequency (Hz) and damping ratio (e.g. the HEM fit's).
     thickness_um, mass_kg, p_scale : float
@@ -225,20 +223,17 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     t0 = time.perf_counter()
     rod = (min(max(rod0[0], 1.0), 0.4 / min(data.dts)),
            min(max(rod0[1], ZETA_BOUNDS[0]), ZETA_BOUNDS[1]))
-    best: tuple[float, Problem, FloatArray] | None = None
+    best: tuple[Problem, optimize.OptimizeResult] | None = None
     for starts in dict.fromkeys(tuple(c) for c in starts_candidates):
         cand = Problem(data, starts)
         x0 = start(cand, rod)
         lo, hi = _bounds(cand, x0)
         trial = optimize.least_squares(cand.residual, np.clip(x0, lo, hi), bounds=(lo, hi),
-                                       x_scale="jac", max_nfev=SCREEN_NFEV, diff_step=DIFF_STEP)
-        if best is None or trial.cost < best[0]:
-            best = (float(trial.cost), cand, trial.x)
+                                       x_scale="jac", max_nfev=MAX_NFEV, diff_step=DIFF_STEP)
+        if best is None or trial.cost < best[1].cost:
+            best = (cand, trial)
     assert best is not None
-    _, prob, x1 = best
-    lo, hi = _bounds(prob, x1)
-    sol = optimize.least_squares(prob.residual, x1, bounds=(lo, hi), x_scale="jac",
-                                 max_nfev=MAX_NFEV, diff_step=DIFF_STEP)
+    prob, sol = best
     u = prob.readings(sol.x)
     off = prob.offsets(u)
     predicted = [p + o for p, o in zip(u, off, strict=True)]

@@ -58,6 +58,11 @@ class BoucWen:
         Shape of the branch toward zero (dimensionless, in :data:`KAPPA_BOUNDS`).
     exponent : float
         ``n`` (dimensionless, in :data:`EXPONENT_BOUNDS`).
+    poling_mv_m : (float, float)
+        The fields the initial states are poled at, MV/m (the range the stage is driven over):
+        ``positive`` is ``h`` saturated at the upper one (a long ramp up to it), then brought to
+        the first field; ``negative`` saturated at the lower one. NaN: saturated at the first
+        field itself.
 
     Examples
     --------
@@ -72,6 +77,7 @@ class BoucWen:
     saturation: float
     kappa: float
     exponent: float
+    poling_mv_m: tuple[float, float] = (math.nan, math.nan)
 
     #: No thermal activation (rate independent).
     thermal = None
@@ -89,6 +95,9 @@ class BoucWen:
             raise ValueError(f"Bouc-Wen kappa must be in {KAPPA_BOUNDS}, got {self.kappa}")
         if not EXPONENT_BOUNDS[0] <= self.exponent <= EXPONENT_BOUNDS[1]:
             raise ValueError(f"Bouc-Wen exponent must be in {EXPONENT_BOUNDS}, got {self.exponent}")
+        lo, hi = self.poling_mv_m
+        if math.isinf(lo) or math.isinf(hi) or (lo > hi):
+            raise ValueError("Bouc-Wen poling fields must be finite (or NaN) and lo <= hi")
 
     @property
     def kind(self) -> int:
@@ -101,10 +110,11 @@ class BoucWen:
         return 1.0 / max(self.reversible if self.rate > 0 else 0.0, 1e-3 * abs(self.rate))
 
     def build_kernel(self) -> hy.Kernel:
-        """Packed arrays of the ``KIND_BOUC_WEN`` kernel: ``ec = [A, h_s, kappa, n]``."""
-        ec = np.array([self.rate, self.saturation, self.kappa, self.exponent])
+        """Packed arrays of the ``KIND_BOUC_WEN`` kernel: ``ec = [A, h_s, kappa, n, E_lo, E_hi]``
+        (the poling fields)."""
+        ec = np.array([self.rate, self.saturation, self.kappa, self.exponent, *self.poling_mv_m])
         scal = np.array([1.0, 1.0, 0.0, 0.0, 0.0, self.reversible, 0.0])
-        return hy.Kernel(hy.KIND_BOUC_WEN, ec, np.ones(4), np.zeros(0), np.zeros(0),
+        return hy.Kernel(hy.KIND_BOUC_WEN, ec, np.ones(ec.size), np.zeros(0), np.zeros(0),
                          np.zeros(1), scal)
 
     def hysteretic_range(self) -> float:

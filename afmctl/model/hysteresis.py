@@ -289,8 +289,9 @@ def initial_state(params: Polarization, how: Initial | NDArray = "depoled") -> P
             raise ValueError(f"unknown initial state {how!r} for a Bouc-Wen model")
         if how == "depoled":  # h = 0 at zero field, as the play outputs of the other kernels
             return PolarizationState(k.kind, np.zeros(2))
-        h0 = (1.0 if how == "positive" else -1.0) * math.copysign(k.ec[1], k.ec[0])
-        return PolarizationState(k.kind, np.array([h0, np.nan]))  # saturated at the first field
+        up = how == "positive"  # saturated at the poling field (NaN: at the first field)
+        h0 = (1.0 if up else -1.0) * math.copysign(k.ec[1], k.ec[0])
+        return PolarizationState(k.kind, np.array([h0, k.ec[5] if up else k.ec[4]]))
     ni, nj = k.ec.size, k.ei.size
     if isinstance(how, str):
         delta = {"depoled": np.where(k.ei[None, :] > 0, 1.0, -1.0) * np.ones((ni, 1)),
@@ -429,7 +430,7 @@ def _bouc_wen_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray) ->
     de = 0.0 if math.isnan(e0) else e - e0
     if de != 0.0:
         s = 1.0 if de > 0.0 else -1.0
-        m = min(max(1, int(math.ceil(abs(de) * a / (BW_SUBSTEP * hs)))), BW_MAX_SUBSTEPS)
+        m = min(max(1, int(math.ceil(abs(de * a) / (BW_SUBSTEP * hs)))), BW_MAX_SUBSTEPS)
         d = de / m
         for _ in range(m):
             k1 = _bouc_wen_slope(h, s, a, hs, kappa, n)
