@@ -40,8 +40,9 @@ from afmctl.model import transducer as td
 FloatArray = NDArray[np.float64]
 #: Shapes tried for the start: ``a`` times the field range, ``kappa``, ``n``.
 START_SHAPES = tuple(itertools.product((1.0, 3.0, 8.0), (-2.0, -0.5, 0.5), (1.0, 2.0)))
-#: Least-squares evaluations allowed (8 parameters: about 60 Jacobians).
-MAX_NFEV = 600
+#: Least-squares evaluations allowed per start assignment (a Bouc-Wen stage's fit converged in
+#: 10-50; a Preisach stage's, which Bouc-Wen cannot fit, ran 300 at ~1 s each at 10 kHz).
+MAX_NFEV = 100
 #: Relative step of the finite-difference Jacobian (the RK4 substep count is a step function
 #: of ``a``: steps below it see its jumps).
 DIFF_STEP = 1e-5

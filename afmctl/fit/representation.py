@@ -5,9 +5,9 @@ The homogenized energy model with lognormal/normal densities (six nonlinear para
 first: on a stage of its family it reaches the sensor noise and nothing more is done. When it stays
 above the noise floor, the Preisach grid with creep (:mod:`afmctl.fit.preisach`: a non-separable
 density on a grid, fitted as a regularized non-negative least-squares problem) is fitted too, and
-and so is a Bouc-Wen model (:mod:`afmctl.fit.boucwen`: eight parameters, rate independent but
-without return-point memory, so its minor loops need not close, which no Preisach-type model can
-fit), and they are compared by their **held-out** error against each sweep's sensor noise:
+and, if some measured minor loop stays open (:mod:`afmctl.fit.closure`), so is a Bouc-Wen model
+(:mod:`afmctl.fit.boucwen`: eight parameters, rate independent but without return-point memory,
+so its minor loops need not close, which no Preisach-type model can fit); they are compared by their **held-out** error against each sweep's sensor noise:
 
 * the grid's is measured: it is fitted on three of four folds of residual blocks and judged on
   the fourth, each in turn;
@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 
 from afmctl.files.sweepfile import Sweep
 from afmctl.fit import boucwen as bf
+from afmctl.fit import closure
 from afmctl.fit import preisach as pf
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.parametrization import turning_points
@@ -130,7 +131,9 @@ class Grid:
 
         want = self.settings.representation
         grid = self.run(space.starts, sol.x) if want in ("auto", "preisach") else None
-        bw = self.bouc_wen(space.starts, sol.x) if want in ("auto", "bouc-wen") else None
+        loops = closure.check(self.sweeps, self.noise)["close"]
+        bw = (self.bouc_wen(space.starts, sol.x) if want == "bouc-wen"
+              or (want == "auto" and loops is False) else None)
         worst = {"hem": max(s.rms_over_noise for s in hem.sweeps)}
         if grid is not None:
             worst["preisach"] = float(np.max(grid.heldout_rms_um / self.noise))
@@ -149,8 +152,9 @@ class Grid:
         if grid is not None:
             figures["preisach"] = {**_grid_figures(grid, self.noise),
                                    "interior_reversals": interior_reversals(self.sweeps)}
-        if bw is not None:
-            figures["bouc_wen"] = bf.figures(bw, self.noise)
+        figures["bouc_wen"] = (bf.figures(bw, self.noise) if bw is not None else
+                               {"skipped": "the minor loops close (or none returns): a "
+                                "Preisach-type stage" if loops is not False else "not fitted"})
         self.say(f"representation: {chosen} ({why})")
         if chosen == "preisach" and grid is not None:
             return self._result(hem, prob, grid, figures, estimates(grid.model, grid))

@@ -9,8 +9,15 @@ the Preisach grid stay far above the noise on it (bw-u of the benches: 42.7x and
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
+from click.testing import CliRunner
+
+from afmctl.cli import main
+from afmctl.files import modelfile as mf
 
 from afmctl.drivers.device.foreign import family_stage as fst
 from afmctl.files import sweepfile as sw
@@ -18,6 +25,7 @@ from afmctl.fit import boucwen as bf
 from afmctl.fit import identify as idf
 from afmctl.fit import preisach_problem as pp
 from afmctl.model import inverse as inv
+from afmctl.model.boucwen import BoucWen
 from afmctl.model import transducer as td
 from afmctl.planning import sweepdesign as sd
 
@@ -97,3 +105,23 @@ def test_inverse_tracks_the_foreign_stage(stage_and_set: tuple, fitted: bf.BoucW
         errs.append(float(np.sqrt(np.mean((reading[1:][judged] - target[1:-1][judged]) ** 2))))
     assert errs[0] < 2 * stage.noise_um, errs
     assert errs[0] * 10 < errs[1], errs
+
+
+@pytest.mark.slow
+def test_identify_chooses_bouc_wen_through_the_cli(stage_and_set: tuple, tmp_path) -> None:
+    """``afmctl identify --json`` on the set: the paper's model and the grid stay far above the
+    noise, the loops are open, Bouc-Wen is fitted and kept, and its model file reads back."""
+    _, _, sweeps = stage_and_set
+    files = []
+    for s in sweeps:
+        files.append(str(tmp_path / f"{s.name}.csv"))
+        sw.write(s, Path(files[-1]))
+    res = CliRunner().invoke(main, ["identify", *files, "-o", str(tmp_path / "m.toml"), "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    figures = doc["representations"]
+    assert doc["representation"] == figures["chosen"] == "bouc-wen", figures["why"]
+    assert figures["bouc_wen"]["worst_heldout_over_noise"] < 2.0
+    assert figures["hem"]["worst_over_noise"] > 3 * figures["bouc_wen"]["worst_heldout_over_noise"]
+    assert doc["minor_loops"]["close"] is False
+    assert isinstance(mf.read(tmp_path / "m.toml").polarization, BoucWen)
