@@ -2,17 +2,18 @@
 
 In the frame of the Preisach grid's fit (:mod:`afmctl.fit.preisach`), the reading is::
 
-    u = L[g(Q)] + offset_s,    g(Q) = Q + s Q^2,    Q = r E + c eta(E),              (um)
+    u = L[g(Q~)] + offset_s,   g(Q) = Q + s Q^2,    Q = r E + c eta(E),              (um)
+    Q~ = Q + w sum_j z_j[Q]    (creep elements of :mod:`afmctl.model.creep`, equal weights)
 
 with ``L`` the rod (16) at unit DC gain (exact ZOH, (18)), ``eta`` the Bouc-Wen variable
 normalized to its saturation (``eta' = a (1 - q |eta|^n)``, ``q = 1`` away from zero, ``kappa``
-toward it: a Bouc-Wen model with ``A = a h_s``), and the gain fixed by convention in ``g``. Eight
-parameters (``log a, kappa, n, r, c, s, log f_n, log zeta``) are fitted by least squares
+toward it: a Bouc-Wen model with ``A = a h_s``), and the gain fixed by convention in ``g``. Nine
+parameters (``log a, kappa, n, r, c, s, log f_n, log zeta, w``) are fitted by least squares
 (:func:`scipy.optimize.least_squares`, trust region, bounds), each sweep's residual weighted by
 its sensor noise, its offset projected out (the mean of its residual). The start is the best of a
 few shapes (``a, kappa, n``) with ``r, c`` solved linearly, the rod at the HEM fit's.
 
-Eight parameters against thousands of samples: the in-sample error is the held-out one to within
+Nine parameters against thousands of samples: the in-sample error is the held-out one to within
 ``p / N`` (as for the HEM, :mod:`afmctl.fit.representation`), and is what identify compares.
 """
 
@@ -33,6 +34,7 @@ from afmctl.fit import parametrization as pz
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.preisach_problem import Data, rod_filter
 from afmctl.model import boucwen as bwm
+from afmctl.model import creep as cr
 from afmctl.model import hysteresis as hy
 from afmctl.model import rod as rd
 from afmctl.model import transducer as td
@@ -48,8 +50,13 @@ MAX_NFEV = 100
 DIFF_STEP = 1e-5
 #: Bounds of the rod's damping ratio.
 ZETA_BOUNDS = (1e-3, 2.0)
-#: The fitted parameters, in order.
-NAMES = ("log_a", "kappa", "n", "r", "c", "s", "log_fn", "log_zeta")
+#: The fitted parameters, in order (``creep``: weight per creep element).
+NAMES = ("log_a", "kappa", "n", "r", "c", "s", "log_fn", "log_zeta", "creep")
+#: Creep elements (:mod:`afmctl.model.creep`): two per decade, 10 ms to 1000 s, equal weights: a
+#: straight line against log time, one parameter.
+CREEP_TAUS_S = cr.DEFAULT_TAUS_S
+#: Start, upper bound and least weight kept (below it: no creep) per element.
+CREEP_START, CREEP_MAX, CREEP_MIN = 1e-3, 0.05, 1e-5
 
 
 @dataclass(frozen=True)
@@ -114,13 +121,15 @@ class Problem:
         return out
 
     def readings(self, x: FloatArray) -> list[FloatArray]:
-        """``L[g(Q)]`` per sweep (every sample), without offsets."""
-        log_a, kappa, n, r, c, s, log_fn, log_zeta = x
+        """``L[g(Q~)]`` per sweep (every sample), without offsets; ``Q~`` is ``Q`` with its creep
+        (at rest at each sweep's start, as identify judges a sweep)."""
+        log_a, kappa, n, r, c, s, log_fn, log_zeta, w = x
         fn, zeta = math.exp(log_fn), math.exp(log_zeta)
+        creep = creep_of(w)
         out = []
         for e, eta, dt in zip(self.data.fields, self.shape(log_a, kappa, n), self.data.dts,
                               strict=True):
-            q = r * e + c * eta
+            q, _ = cr.run(creep, r * e + c * eta, dt, cr.rest_state(creep, r * e[0] + c * eta[0]))
             out.append(rod_filter(q + s * q * q, fn, zeta, dt))
         return out
 
@@ -163,7 +172,7 @@ def start(prob: Problem, rod0: tuple[float, float]) -> FloatArray:
         r, c, sse = _linear_start(prob, log_a, kappa, n)
         if c != 0 and (best is None or sse < best[0]):
             best = (sse, np.array([log_a, kappa, n, max(r, 0.0), c, 0.0,
-                                   math.log(rod0[0]), math.log(rod0[1])]))
+                                   math.log(rod0[0]), math.log(rod0[1]), 0.0]))
     if best is None:
         raise ValueError("no Bouc-Wen shape has a loop (c = 0)")
     return best[1]
@@ -174,10 +183,10 @@ def _bounds(prob: Problem, x0: FloatArray) -> tuple[FloatArray, FloatArray]:
     sign = 1.0 if x0[4] > 0 else -1.0  # the loop's sense: c keeps the start's sign
     lo = np.array([math.log(0.05 / prob.span), bwm.KAPPA_BOUNDS[0], 1.0, 0.0,
                    1e-9 * abs(x0[4]) if sign > 0 else -np.inf, -np.inf, math.log(0.5),
-                   math.log(ZETA_BOUNDS[0])])
+                   math.log(ZETA_BOUNDS[0]), 0.0])
     hi = np.array([math.log(200.0 / prob.span), bwm.KAPPA_BOUNDS[1], 4.0, np.inf,
                    np.inf if sign > 0 else -1e-9 * abs(x0[4]), np.inf, math.log(20 * nyquist),
-                   math.log(ZETA_BOUNDS[1])])
+                   math.log(ZETA_BOUNDS[1]), CREEP_MAX])
     return lo, hi
 
 
@@ -187,7 +196,7 @@ def build(x: FloatArray, prob: Problem, offsets: FloatArray, mass_kg: float, thi
     sweeps ``p_scale`` (C/m^2), so ``r = k_s r_Q``, ``h_s = k_s |c|``, ``A = a k_s c``; the rod
     ``k = m (2 pi f_n)^2``, ``a1 = 1e-6 k / k_s``, ``a2 = 1e-6 k s / k_s^2`` (as
     :func:`afmctl.fit.preisach.build`)."""
-    log_a, kappa, n, r, c, s, log_fn, log_zeta = (float(v) for v in x)
+    log_a, kappa, n, r, c, s, log_fn, log_zeta, w = (float(v) for v in x)
     q_max = max(float(np.max(np.abs(r * e + c * eta))) for e, eta in
                 zip(prob.data.fields, prob.shape(log_a, kappa, n), strict=True)) or 1.0
     ks = p_scale / q_max
@@ -197,7 +206,16 @@ def build(x: FloatArray, prob: Problem, offsets: FloatArray, mass_kg: float, thi
     rod = rd.Rod(m=mass_kg, c=2 * zeta * math.sqrt(k * mass_kg), k=k, a1=1e-6 * k / ks,
                  a2=1e-6 * k * s / ks ** 2, offset_um=float(offsets[pz.zero_sweep(prob.starts)]))
     first = prob.starts[0] if prob.starts[0] != "previous" else "depoled"
-    return td.Transducer(pol, rod, thickness_um, initial=first)  # type: ignore[arg-type]
+    return td.Transducer(pol, rod, thickness_um, initial=first,  # type: ignore[arg-type]
+                         creep=creep_of(w))
+
+
+def creep_of(weight: float) -> cr.Creep | None:
+    """Log-time creep of ``weight`` per element on :data:`CREEP_TAUS_S` (about twice that per
+    decade), or None below :data:`CREEP_MIN`."""
+    if weight < CREEP_MIN:
+        return None
+    return cr.Creep(CREEP_TAUS_S, (float(weight),) * len(CREEP_TAUS_S))
 
 
 def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
@@ -227,14 +245,12 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     best: tuple[Problem, optimize.OptimizeResult] | None = None
     for starts in dict.fromkeys(tuple(c) for c in starts_candidates):
         cand = Problem(data, starts)
-        x0 = start(cand, rod)
-        lo, hi = _bounds(cand, x0)
-        trial = optimize.least_squares(cand.residual, np.clip(x0, lo, hi), bounds=(lo, hi),
-                                       x_scale="jac", max_nfev=MAX_NFEV, diff_step=DIFF_STEP)
+        trial = _solve(cand, start(cand, rod), creep=False)
         if best is None or trial.cost < best[1].cost:
             best = (cand, trial)
     assert best is not None
-    prob, sol = best
+    prob = best[0]
+    sol = _solve(prob, best[1].x, creep=True)
     u = prob.readings(sol.x)
     off = prob.offsets(u)
     predicted = [p + o for p, o in zip(u, off, strict=True)]
@@ -247,6 +263,25 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
                       rms, int(sol.nfev), bool(sol.status > 0), seconds, predicted,
                       {k: float(v) for k, v in zip(NAMES, sol.x, strict=True)},
                       _uncertainty(sol))
+
+
+def _solve(prob: Problem, x0: FloatArray, creep: bool) -> optimize.OptimizeResult:
+    """Least squares from ``x0``; without ``creep`` its weight is held at 0 (each start
+    assignment is fitted so, and creep added to the best: free from the start, it led one
+    assignment of a creep-free stage to a far minimum with the weight at its bound)."""
+    x0 = np.array(x0, float)
+    x0[-1] = CREEP_START if creep else 0.0  # off its bound: the trust region starts moving
+    lo, hi = _bounds(prob, x0)
+    keep = slice(None) if creep else slice(0, x0.size - 1)
+
+    def residual(x: FloatArray) -> FloatArray:
+        return prob.residual(np.append(x, 0.0) if not creep else x)
+
+    sol = optimize.least_squares(residual, np.clip(x0, lo, hi)[keep], bounds=(lo[keep], hi[keep]),
+                                 x_scale="jac", max_nfev=MAX_NFEV, diff_step=DIFF_STEP)
+    if not creep:
+        sol.x = np.append(sol.x, 0.0)
+    return sol
 
 
 def _uncertainty(sol: optimize.OptimizeResult) -> dict[str, Any]:
@@ -263,8 +298,10 @@ def figures(fit_: BoucWenFit, noise: FloatArray) -> dict[str, Any]:
     assert isinstance(pol, bwm.BoucWen)
     return {"worst_heldout_over_noise": float(np.max(fit_.heldout_rms_um / noise)),
             "heldout_over_noise": [float(v) for v in fit_.heldout_rms_um / noise],
-            "heldout_note": "in-sample error of eight parameters (optimism ~ p/N)",
+            "heldout_note": "in-sample error of nine parameters (optimism ~ p/N)",
             "kappa": pol.kappa, "exponent": pol.exponent, "evaluations": fit_.iterations,
+            "creep_per_decade": None if fit_.model.creep is None else
+            fit_.model.creep.per_decade(),
             "seconds": round(fit_.seconds, 3)}
 
 
