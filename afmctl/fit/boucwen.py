@@ -8,7 +8,7 @@ In the frame of the Preisach grid's fit (:mod:`afmctl.fit.preisach`), the readin
 with ``L`` the rod (16) at unit DC gain (exact ZOH, (18)), ``eta`` the Bouc-Wen variable
 normalized to its saturation (``eta' = a (1 - q |eta|^n)``, ``q = 1`` away from zero, ``kappa``
 toward it: a Bouc-Wen model with ``A = a h_s``), and the gain fixed by convention in ``g``. Nine
-parameters (``log a, kappa, n, r, c, s, log f_n, log zeta, w``) are fitted by least squares
+parameters (``log a, kappa, n, m, c, s, log f_n, log zeta, w``) are fitted by least squares
 (:func:`scipy.optimize.least_squares`, trust region, bounds), each sweep's residual weighted by
 its sensor noise, its offset projected out (the mean of its residual). The start is the best of a
 few shapes (``a, kappa, n``) with ``r, c`` solved linearly, the rod at the HEM fit's.
@@ -51,7 +51,7 @@ DIFF_STEP = 1e-5
 #: Bounds of the rod's damping ratio.
 ZETA_BOUNDS = (1e-3, 2.0)
 #: The fitted parameters, in order (``creep``: weight per creep element).
-NAMES = ("log_a", "kappa", "n", "r", "c", "s", "log_fn", "log_zeta", "creep")
+NAMES = ("log_a", "kappa", "n", "margin", "c", "s", "log_fn", "log_zeta", "creep")
 #: Creep elements (:mod:`afmctl.model.creep`): two per decade, 10 ms to 1000 s, equal weights: a
 #: straight line against log time, one parameter.
 CREEP_TAUS_S = cr.DEFAULT_TAUS_S
@@ -123,8 +123,9 @@ class Problem:
     def readings(self, x: FloatArray) -> list[FloatArray]:
         """``L[g(Q~)]`` per sweep (every sample), without offsets; ``Q~`` is ``Q`` with its creep
         (at rest at each sweep's start, as identify judges a sweep)."""
-        log_a, kappa, n, r, c, s, log_fn, log_zeta, w = x
+        log_a, kappa, n, m, c, s, log_fn, log_zeta, w = x
         fn, zeta = math.exp(log_fn), math.exp(log_zeta)
+        r = reversible(m, c, math.exp(log_a), kappa)
         creep = creep_of(w)
         out = []
         for e, eta, dt in zip(self.data.fields, self.shape(log_a, kappa, n), self.data.dts,
@@ -171,7 +172,8 @@ def start(prob: Problem, rod0: tuple[float, float]) -> FloatArray:
         log_a = math.log(a_span / prob.span)
         r, c, sse = _linear_start(prob, log_a, kappa, n)
         if c != 0 and (best is None or sse < best[0]):
-            best = (sse, np.array([log_a, kappa, n, max(r, 0.0), c, 0.0,
+            margin = max(r - reversible(0.0, c, math.exp(log_a), kappa), 0.0)
+            best = (sse, np.array([log_a, kappa, n, margin, c, 0.0,
                                    math.log(rod0[0]), math.log(rod0[1]), 0.0]))
     if best is None:
         raise ValueError("no Bouc-Wen shape has a loop (c = 0)")
@@ -196,7 +198,8 @@ def build(x: FloatArray, prob: Problem, offsets: FloatArray, mass_kg: float, thi
     sweeps ``p_scale`` (C/m^2), so ``r = k_s r_Q``, ``h_s = k_s |c|``, ``A = a k_s c``; the rod
     ``k = m (2 pi f_n)^2``, ``a1 = 1e-6 k / k_s``, ``a2 = 1e-6 k s / k_s^2`` (as
     :func:`afmctl.fit.preisach.build`)."""
-    log_a, kappa, n, r, c, s, log_fn, log_zeta, w = (float(v) for v in x)
+    log_a, kappa, n, m, c, s, log_fn, log_zeta, w = (float(v) for v in x)
+    r = reversible(m, c, math.exp(log_a), kappa)
     q_max = max(float(np.max(np.abs(r * e + c * eta))) for e, eta in
                 zip(prob.data.fields, prob.shape(log_a, kappa, n), strict=True)) or 1.0
     ks = p_scale / q_max
@@ -208,6 +211,14 @@ def build(x: FloatArray, prob: Problem, offsets: FloatArray, mass_kg: float, thi
     first = prob.starts[0] if prob.starts[0] != "previous" else "depoled"
     return td.Transducer(pol, rod, thickness_um, initial=first,  # type: ignore[arg-type]
                          creep=creep_of(w))
+
+
+def reversible(margin: float, c: float, a: float, kappa: float) -> float:
+    """The reversible slope ``r`` (um per MV/m) whose least ``dQ/dE`` is ``margin``: ``r`` itself
+    for a loop added (``c > 0``: ``dh/dE >= 0`` while ``|h| <= h_s``), ``margin + |c| a max(1,
+    1 - kappa)`` for a loop subtracted (its steepest, just after a reversal at saturation). The
+    fit's ``margin >= 0`` keeps the E-P relation monotone, as Algorithm 3 needs."""
+    return margin + max(-c, 0.0) * a * max(1.0, 1.0 - kappa)
 
 
 def creep_of(weight: float) -> cr.Creep | None:

@@ -39,7 +39,10 @@ Fitter = Callable[[Sequence[Sweep], idf.Settings, Callable[[str], None] | None],
 
 def spoiling(sweeps: Sequence[Sweep], result: idf.FitResult) -> list[int]:
     """Indices of the sweeps to leave out (see the module docstring); none if that would leave
-    no sweep."""
+    no sweep, or if the model is Bouc-Wen (open loops are its physics: leaving them out would
+    take away what it was chosen for)."""
+    if result.representation == "bouc-wen":
+        return []
     ratios = [s.rms_over_noise for s in result.sweeps]
     out = []
     for i, (s, e) in enumerate(zip(sweeps, result.sweeps, strict=True)):

@@ -342,7 +342,8 @@ def internal(model: td.Transducer) -> FloatArray:
     :func:`to_model` for the nonlinear parameters. ValueError for other densities."""
     pol = model.polarization
     if not isinstance(pol, hy.Polarization):
-        raise ValueError("is a Preisach-grid model: diagnose extends the paper's parametric model "
+        kind = "Bouc-Wen" if pol.kernel == "bouc-wen" else "Preisach-grid"
+        raise ValueError(f"is a {kind} model: diagnose extends the paper's parametric model "
                          "(lognormal/normal densities); run it without --model and it fits its "
                          "own")
     if not isinstance(pol.coercive, hy.Lognormal) or not isinstance(pol.interaction, hy.Normal):
@@ -371,6 +372,8 @@ def lognormal_equivalent(model: td.Transducer) -> td.Transducer:
     (1.0, 0.4)
     """
     pol = model.polarization
+    if not isinstance(pol, hy.Polarization):  # a grid or Bouc-Wen: no densities to replace
+        return model
     coercive, interaction = pol.coercive, pol.interaction
     if isinstance(coercive, hy.Discrete):
         x, w = coercive.nodes_weights()

@@ -7,7 +7,8 @@ above the noise floor, the Preisach grid with creep (:mod:`afmctl.fit.preisach`:
 density on a grid, fitted as a regularized non-negative least-squares problem) is fitted too, and
 and, if some measured minor loop stays open (:mod:`afmctl.fit.closure`), so is a Bouc-Wen model
 (:mod:`afmctl.fit.boucwen`: eight parameters, rate independent but without return-point memory,
-so its minor loops need not close, which no Preisach-type model can fit); they are compared by their **held-out** error against each sweep's sensor noise:
+so its minor loops need not close, which no Preisach-type model can fit); they are compared by
+their **held-out** error against each sweep's sensor noise:
 
 * the grid's is measured: it is fitted on three of four folds of residual blocks and judged on
   the fourth, each in turn;
@@ -142,7 +143,8 @@ class Grid:
         chosen = want if want in worst else min(
             worst, key=lambda k: worst[k] / (1.0 if k == "hem" else MARGIN))
         why = ("asked for (--profile [identify] representation)" if chosen == want else
-               "held-out worst " + ", ".join(f"{k} {v:.2f}x" for k, v in worst.items())
+               ("no Bouc-Wen fit (asked for); " if want == "bouc-wen" else "")
+               + "held-out worst " + ", ".join(f"{k} {v:.2f}x" for k, v in worst.items())
                + " the noise")
         figures: dict[str, Any] = {
             "chosen": chosen, "why": why,

@@ -10,14 +10,16 @@ standard description of such a stage: one internal variable ``h`` whose rate fol
 
     P = E r + h,
 
-with ``A`` of either sign: ``A < 0`` is the form ``x = d V - h`` of Low & Guo and Goldfarb &
-Celanovic (the Bouc-Wen loop subtracted from a linear part),
-the classic ``dh = A dE - beta |dE| |h|^(n-1) h - gamma dE |h|^n`` with ``h_s^n = A / (beta +
-gamma)`` (the saturation ``|h| -> h_s`` on a long monotone ramp) and ``kappa = (gamma - beta) /
-(beta + gamma)`` (``kappa < 0``: steeper toward zero than away, the usual convex loop). It is
-rate independent (integrated in ``E``, not in time: RK4 substeps of at most
-:data:`afmctl.model.hysteresis.BW_SUBSTEP` of ``h_s``), and ``dP/dE = r + dh/dE > 0`` whenever
-``|h| <= h_s`` and ``kappa <= 1``: the E-P relation is monotone, so Algorithm 3 inverts it as it inverts (13).
+with ``A`` of either sign (``A < 0`` is the form ``x = d V - h`` of Low & Guo and Goldfarb &
+Celanovic: the Bouc-Wen loop subtracted from a linear part); the classic
+``dh = A dE - beta |dE| |h|^(n-1) h - gamma dE |h|^n`` with ``h_s^n = A / (beta + gamma)``
+(the saturation ``|h| -> h_s`` on a long monotone ramp) and
+``kappa = (gamma - beta) / (beta + gamma)`` (``kappa < 0``: steeper toward zero than away, the
+usual convex loop). It is rate independent (integrated in ``E``, not in time: RK4 substeps of at most
+:data:`afmctl.model.hysteresis.BW_SUBSTEP` of ``h_s``), and ``dP/dE = r + dh/dE >= 0`` whenever
+``|h| <= h_s``, ``kappa <= 1`` and, for ``A < 0``, ``r >= |A| max(1, 1 - kappa)``
+(:attr:`BoucWen.least_slope`, checked): the E-P relation is monotone, so Algorithm 3 inverts it
+as it inverts (13).
 
 The state is ``(h, E_last)``: the compiled kernel is
 :data:`afmctl.model.hysteresis.KIND_BOUC_WEN`; :func:`afmctl.model.hysteresis.run`, the transducer,
@@ -98,6 +100,17 @@ class BoucWen:
         lo, hi = self.poling_mv_m
         if math.isinf(lo) or math.isinf(hi) or (lo > hi):
             raise ValueError("Bouc-Wen poling fields must be finite (or NaN) and lo <= hi")
+        if self.least_slope < -1e-9 * abs(self.rate):  # round-off of a fit at its margin 0
+            raise ValueError(f"Bouc-Wen E-P relation not monotone: the reversible slope "
+                             f"{self.reversible:g} must be at least |A| max(1, 1 - kappa) = "
+                             f"{self.reversible - self.least_slope:g} for A < 0")
+
+    @property
+    def least_slope(self) -> float:
+        """The least ``dP/dE`` over every state with ``|h| <= h_s``, (C/m^2)/(MV/m): ``r`` for
+        ``A > 0`` (``kappa <= 1``), ``r - |A| max(1, 1 - kappa)`` for ``A < 0`` (just after a
+        reversal at saturation)."""
+        return self.reversible - max(-self.rate, 0.0) * max(1.0, 1.0 - self.kappa)
 
     @property
     def kind(self) -> int:
@@ -105,9 +118,9 @@ class BoucWen:
 
     @property
     def eta(self) -> float:
-        """Reciprocal of a lower bound of the slope dP/dE, (MV/m)/(C/m^2): the reversible part's,
-        or a thousandth of ``|A|`` (Algorithm 3 uses it to start its march)."""
-        return 1.0 / max(self.reversible if self.rate > 0 else 0.0, 1e-3 * abs(self.rate))
+        """Reciprocal of a lower bound of the slope dP/dE, (MV/m)/(C/m^2): :attr:`least_slope`,
+        or a thousandth of ``|A|`` if less (Algorithm 3 uses it to start its march)."""
+        return 1.0 / max(self.least_slope, 1e-3 * abs(self.rate))
 
     def build_kernel(self) -> hy.Kernel:
         """Packed arrays of the ``KIND_BOUC_WEN`` kernel: ``ec = [A, h_s, kappa, n, E_lo, E_hi]``

@@ -60,7 +60,8 @@ KIND_THERMAL = 2
 KIND_MATRIX = 3
 #: A Bouc-Wen operator (:mod:`afmctl.model.boucwen`): state ``(h, E_last)``.
 KIND_BOUC_WEN = 4
-#: Largest change of the Bouc-Wen ``h`` over one RK4 substep, as a share of ``h_s``.
+#: Largest change of the Bouc-Wen ``h`` over one RK4 substep, as a share of ``h_s`` (at its
+#: steepest, ``|A| max(1, 1 - kappa)``).
 BW_SUBSTEP = 0.02
 #: Most Bouc-Wen substeps in one sample.
 BW_MAX_SUBSTEPS = 5000
@@ -430,7 +431,8 @@ def _bouc_wen_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray) ->
     de = 0.0 if math.isnan(e0) else e - e0
     if de != 0.0:
         s = 1.0 if de > 0.0 else -1.0
-        m = min(max(1, int(math.ceil(abs(de * a) / (BW_SUBSTEP * hs)))), BW_MAX_SUBSTEPS)
+        steep = abs(de * a) * max(1.0, 1.0 - kappa)  # the largest |dh/dE| is |A| max(1, 1 - kappa)
+        m = min(max(1, int(math.ceil(steep / (BW_SUBSTEP * hs)))), BW_MAX_SUBSTEPS)
         d = de / m
         for _ in range(m):
             k1 = _bouc_wen_slope(h, s, a, hs, kappa, n)

@@ -25,7 +25,8 @@ def _classic(bw_sign: float = 1.0) -> BoucWen:
     """The same operator in the module's parameters: h_s^n = A / (beta + gamma), kappa =
     (gamma - beta) / (beta + gamma)."""
     hs = (A / (BETA + GAMMA)) ** (1 / N)
-    return BoucWen(0.05, bw_sign * A, hs, (GAMMA - BETA) / (BETA + GAMMA), N)
+    r = 0.05 if bw_sign > 0 else 2.5  # monotone: r >= |A| max(1, 1 - kappa) = 2.4 for A < 0
+    return BoucWen(r, bw_sign * A, hs, (GAMMA - BETA) / (BETA + GAMMA), N)
 
 
 def _oracle(fields: list[float], sign: float = 1.0) -> list[float]:
@@ -81,14 +82,28 @@ def test_saturation_and_initial_states() -> None:
         hy.initial_state(bw, np.ones((2, 2)))
     with pytest.raises(ValueError, match="kappa"):
         BoucWen(0.1, 1.0, 0.2, 1.5, 1.0)
+    with pytest.raises(ValueError, match="not monotone"):  # 0.25 < 0.1 max(1, 1 + 2) = 0.3
+        BoucWen(0.25, -0.1, 0.05, -2.0, 2.0)
+
+
+def test_a_monotone_subtracted_loop_is_inverted_from_saturation() -> None:
+    """The reviewer's case at the edge of monotony (r = |A| (1 - kappa) + 2 %): from the poled
+    state, a ramp down and up again through the steepest branch; Algorithm 2 recovers the
+    field that made the polarization, sample by sample (a non-monotone model gave 15 V off)."""
+    bw = BoucWen(0.1 * 1.5 * 1.02, -0.1, 0.05, -0.5, 2.0, (0.0, 1.5))
+    e = np.concatenate([np.linspace(1.5, 0.2, 600), np.linspace(0.2, 1.5, 600)])
+    p, _ = hy.run(bw, e, hy.initial_state(bw, "positive"))
+    res = inv.algorithm2(bw, p, hy.initial_state(bw, "positive"), e_init=1.5)
+    assert np.max(np.abs(res.field_mv_m - e)) < 1e-6
 
 
 def _stage(sign: float) -> td.Transducer:
     k = 1e-3 * (2 * math.pi * 900.0) ** 2
     rod = rd.Rod(m=1e-3, c=2 * 0.15 * math.sqrt(k * 1e-3), k=k, a1=0.4, a2=0.05)
     bw = _classic(sign)
-    if sign < 0:  # the subtracted loop must leave dP/dE > 0
-        bw = BoucWen(3.0 * abs(bw.rate), bw.rate, bw.saturation, bw.kappa, bw.exponent)
+    if sign < 0:  # the subtracted loop must leave dP/dE > 0: r > |A| max(1, 1 - kappa) = 3 |A|
+        bw = BoucWen(4.0 * abs(bw.rate), bw.rate, bw.saturation, bw.kappa, bw.exponent)
+    assert bw.least_slope > 0
     return td.Transducer(bw, rod, 100.0)
 
 
@@ -120,3 +135,20 @@ def test_model_file_round_trip(tmp_path: Path) -> None:
     (tmp_path / "bad.toml").write_text(text)
     with pytest.raises(mf.FileFormatError, match="kappa"):
         mf.read(tmp_path / "bad.toml")
+
+
+def test_diagnose_says_it_needs_the_papers_model(tmp_path: Path) -> None:
+    """``afmctl diagnose --model`` on a Bouc-Wen model: exit 2 and a sentence, no traceback."""
+    from click.testing import CliRunner
+
+    from afmctl.cli import main
+    from afmctl.files import sweepfile as sw
+
+    model = _stage(-1.0)
+    mf.write(model, tmp_path / "m.toml")
+    v = np.interp(np.arange(2000), [0, 1000, 2000], [0.0, 150.0, 0.0])
+    u, _, _ = td.simulate(td.compile_model(model, 1e-3), v, td.initial(model, "depoled", 0.0))
+    sw.write(sw.from_arrays(v, u, 1000.0, {"layer_thickness_um": "100"}), tmp_path / "s.csv")
+    res = CliRunner().invoke(main, ["diagnose", str(tmp_path / "s.csv"), "--model",
+                                    str(tmp_path / "m.toml")])
+    assert res.exit_code == 2 and "is a Bouc-Wen model" in res.output, res.output
