@@ -27,7 +27,7 @@ from afmctl.fit import preisach_problem as pp
 from afmctl.model import inverse as inv
 from afmctl.model.boucwen import BoucWen
 from afmctl.model import transducer as td
-from afmctl.planning import sweepdesign as sd
+from tests.harness import family_set
 
 RATE_HZ = 2000.0
 V_RANGE = (0.0, 150.0)
@@ -37,14 +37,7 @@ THICKNESS_UM = 100.0
 @pytest.fixture(scope="module")
 def stage_and_set() -> tuple[fst.FamilyStage, fst.FamilyState, list[sw.Sweep]]:
     stage = fst.random_family_stage(np.random.default_rng(302), "bouc-wen")
-    state, rng = fst.initial_state(stage), np.random.default_rng(11)
-    plays = [(n, f, v) for n, f, v in sd.standard_set(sample_rate_hz=RATE_HZ, v_range=V_RANGE)[:3]]
-    name, f, v, _ = sd.reversals_sweep(V_RANGE, RATE_HZ, 150e3)
-    recorded = []
-    for n, f, v in plays + [(name, f, v)]:
-        _, reading, state = fst.run(stage, v, RATE_HZ, state)
-        noisy = reading + stage.noise_um * rng.standard_normal(v.size)
-        recorded.append(sw.from_arrays(v, noisy, RATE_HZ, {"layer_thickness_um": "100"}, n))
+    recorded, state = family_set.record(stage, RATE_HZ, V_RANGE, 11)
     return stage, state, recorded
 
 

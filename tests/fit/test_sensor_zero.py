@@ -26,6 +26,7 @@ from afmctl.files import sweepfile as sw
 from afmctl.fit import identify as idf
 from afmctl.fit import parametrization as pz
 from afmctl.planning import sweepdesign as sd
+from tests.harness import family_set
 from tests.harness.emulated import SAMPLE_RATE_HZ
 
 RATE_HZ = 2000.0
@@ -40,14 +41,7 @@ def _bouc_wen_set() -> tuple[list[sw.Sweep], sw.Sweep]:
     """The identification set recorded in sequence (gauge noise added), and the noise-free
     readings of a 13.95 Hz triangle the stage plays after it (not identified from)."""
     stage = fst.random_family_stage(np.random.default_rng(301), "bouc-wen")
-    state, rng = fst.initial_state(stage), np.random.default_rng(7)
-    plays = [(n, f, v) for n, f, v in sd.standard_set(sample_rate_hz=RATE_HZ, v_range=V_RANGE)[:3]]
-    name, f, v, _ = sd.reversals_sweep(V_RANGE, RATE_HZ, 150e3)
-    recorded = []
-    for n, f, v in plays + [(name, f, v)]:
-        _, reading, state = fst.run(stage, v, RATE_HZ, state)
-        noisy = reading + stage.noise_um * rng.standard_normal(v.size)
-        recorded.append(sw.from_arrays(v, noisy, RATE_HZ, _meta(f), n))
+    recorded, state = family_set.record(stage, RATE_HZ, V_RANGE, 7)
     v = 75.0 + sd.voltage_triangle(13.95, 75.0, 5, RATE_HZ)
     _, reading, _ = fst.run(stage, v, RATE_HZ, state)
     return recorded, sw.from_arrays(v, reading, RATE_HZ, _meta(13.95), "unseen")
