@@ -98,10 +98,13 @@ class Grid:
 
     def bouc_wen(self, starts: Sequence[str], x_hem: FloatArray) -> bf.BoucWenFit | None:
         """Fit Bouc-Wen once (None if no shape has a loop), from the HEM's starts or each sweep
-        from where the one before left the stage (a Bouc-Wen stage forgets nothing)."""
+        from where the one before left the stage (a Bouc-Wen stage forgets nothing), its rod
+        started at the grid's (searched on its own) if the grid was fitted, else the HEM's."""
         if self.bw is None:
             self.say("fitting a Bouc-Wen model (its minor loops need not close) ...")
-            rod0 = math.exp(float(x_hem[4])), math.exp(float(x_hem[5]))
+            rod0 = ((self.fit.model.rod.natural_hz, self.fit.model.rod.damping_ratio)
+                    if self.fit is not None else
+                    (math.exp(float(x_hem[4])), math.exp(float(x_hem[5]))))
             chained = [(first,) + ("previous",) * (len(starts) - 1)
                        for first in ("depoled", "negative", "positive")]
             try:
