@@ -7,11 +7,14 @@ In the frame of the Preisach grid's fit (:mod:`afmctl.fit.preisach`), the readin
 
 with ``L`` the rod (16) at unit DC gain (exact ZOH, (18)), ``eta`` the Bouc-Wen variable
 normalized to its saturation (``eta' = a (1 - q |eta|^n)``, ``q = 1`` away from zero, ``kappa``
-toward it: a Bouc-Wen model with ``A = a h_s``), and the gain fixed by convention in ``g``. Nine
-parameters (``log a, kappa, n, m, c, s, log f_n, log zeta, w``) are fitted by least squares
-(:func:`scipy.optimize.least_squares`, trust region, bounds), each sweep's residual weighted by
-its sensor noise, its offset projected out (the mean of its residual). The start is the best of a
-few shapes (``a, kappa, n``) with ``r, c`` solved linearly, the rod at the HEM fit's.
+toward it: a Bouc-Wen model with ``A = a h_s``), the reversible slope ``r`` the margin ``m >= 0``
+above the steepest slope of a subtracted loop (:func:`reversible`: the E-P relation stays
+monotone), and the gain fixed by convention in ``g``. Nine parameters (``log a, kappa, n, m, c,
+s, log f_n, log zeta, w``) are fitted by least squares (:func:`scipy.optimize.least_squares`,
+trust region, bounds), each sweep's residual weighted by its sensor noise, its offset projected
+out (the mean of its residual). Each start assignment is started from the best of a few shapes
+(``a, kappa, n``) with ``r, c`` solved linearly and fitted without creep; the two best get a
+coarse rod search with the hysteresis held (:meth:`Problem.rod_search`) and then creep.
 
 Nine parameters against thousands of samples: the in-sample error is the held-out one to within
 ``p / N`` (as for the HEM, :mod:`afmctl.fit.representation`), and is what identify compares.
@@ -42,8 +45,8 @@ from afmctl.model import transducer as td
 FloatArray = NDArray[np.float64]
 #: Shapes tried for the start: ``a`` times the field range, ``kappa``, ``n``.
 START_SHAPES = tuple(itertools.product((1.0, 3.0, 8.0), (-2.0, -0.5, 0.5), (1.0, 2.0)))
-#: Least-squares evaluations allowed per start assignment (a Bouc-Wen stage's fit converged in
-#: 10-50; a Preisach stage's, which Bouc-Wen cannot fit, ran 300 at ~1 s each at 10 kHz).
+#: Least-squares evaluations allowed per solve (a Bouc-Wen stage's fit converged in 10-50; a
+#: Preisach stage's, which Bouc-Wen cannot fit, ran 300 at ~1 s each at 10 kHz).
 MAX_NFEV = 100
 #: Relative step of the finite-difference Jacobian (the RK4 substep count is a step function
 #: of ``a``: steps below it see its jumps).
