@@ -54,7 +54,7 @@ def start_notes(result: Any, data: Any) -> list[str]:
     one_sided = [s for s, d in zip(result.sweeps, data, strict=True)
                  if (s.start == "negative" and float(d.voltage_v.min()) >= 0)
                  or (s.start == "positive" and float(d.voltage_v.max()) <= 0)]
-    if not one_sided:
+    if not one_sided or result.representation == "bouc-wen":  # poled: over the sweeps' range
         return []
     names = ", ".join(Path(s.file).name for s in one_sided)
     return [f"start: the hysteresis state each sweep is fitted to start from. On {names}, which "
@@ -76,8 +76,9 @@ def _report(result: Any, data: Any = None, reach: str = "", loops: str = "") -> 
         lines.append(f"representation: {result.representations['chosen']} "
                      f"({result.representations['why']})")
     floor = "at" if result.at_noise_floor else "NOT at"
+    n_c = result.model.polarization.n_coercive
     lines.append(f"{floor} the noise floor (every sweep within 1.5x its sensor noise); "
-                 f"N_c = {result.model.polarization.n_coercive}, {result.restarts} restart(s)")
+                 + (f"N_c = {n_c}, " if n_c else "") + f"{result.restarts} restart(s)")
     lines.append(f"{'sweep':32s} {'start':>9s} {'rms um':>9s} {'noise um':>9s} {'rms/noise':>9s} "
                  f"{'max um':>9s} {'rms %':>7s}")
     for s in result.sweeps:
