@@ -206,6 +206,8 @@ def _linear_start(prob: Problem, log_a: float, kappa: float, n: float) -> tuple[
 
 
 def start(prob: Problem, rod0: tuple[float, float]) -> FloatArray:
+    """The best of :data:`START_SHAPES` by its quasi-static linear fit (:func:`_linear_start`),
+    the reversible part as its margin, no quadratic, the rod at ``rod0``, no creep."""
     best: tuple[float, FloatArray] | None = None
     for a_span, kappa, n in START_SHAPES:
         log_a = math.log(a_span / prob.span)

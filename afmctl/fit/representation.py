@@ -4,9 +4,9 @@ Bouc-Wen.
 The homogenized energy model with lognormal/normal densities (six nonlinear parameters) is fitted
 first: on a stage of its family it reaches the sensor noise and nothing more is done. When it stays
 above the noise floor, the Preisach grid with creep (:mod:`afmctl.fit.preisach`: a non-separable
-density on a grid, fitted as a regularized non-negative least-squares problem) is fitted too, and
+density on a grid, fitted as a regularized non-negative least-squares problem) is fitted too,
 and, if some measured minor loop stays open (:mod:`afmctl.fit.closure`), so is a Bouc-Wen model
-(:mod:`afmctl.fit.boucwen`: eight parameters, rate independent but without return-point memory,
+(:mod:`afmctl.fit.boucwen`: nine parameters, rate independent but without return-point memory,
 so its minor loops need not close, which no Preisach-type model can fit); they are compared by
 their **held-out** error against each sweep's sensor noise:
 
@@ -242,59 +242,54 @@ def _grid_figures(fit: pf.PreisachFit, noise: FloatArray) -> dict[str, Any]:
             "candidates_heldout_sse_over_noise": fit.candidates}
 
 
+def _stderr(fit: pf.PreisachFit | bf.BoucWenFit, name: str) -> float:
+    """1-sigma of the fit's internal parameter ``name`` (NaN if it has none)."""
+    v = fit.uncertainty.get("parameters", {}).get(name, {}).get("stderr")
+    return float("nan") if v is None else float(v)
+
+
+def _rod_estimates(fit: pf.PreisachFit | bf.BoucWenFit) -> list[unc.Estimate]:
+    """The rod (16) of a grid's or Bouc-Wen's model (intervals of the natural frequency and
+    damping from their logs'), its sensor zero and the polarization's reversible slope."""
+    rod = fit.model.rod
+    return [unc.Estimate("natural_frequency", rod.natural_hz,
+                         rod.natural_hz * _stderr(fit, "log_fn"), "Hz"),
+            unc.Estimate("damping_ratio", rod.damping_ratio,
+                         rod.damping_ratio * _stderr(fit, "log_zeta"), "1"),
+            unc.Estimate("k", rod.k, float("nan"), "N/m"),
+            unc.Estimate("c", rod.c, float("nan"), "N s/m"),
+            unc.Estimate("a1", rod.a1, float("nan"), "N/(C/m^2)"),
+            unc.Estimate("a2", rod.a2, float("nan"), "N/(C/m^2)^2"),
+            unc.Estimate("offset", rod.offset_um, float("nan"), "um"),
+            unc.Estimate("reversible_slope", fit.model.polarization.reversible, float("nan"),
+                         "(C/m^2)/(MV/m)")]
+
+
 def estimates(model: Any, fit: pf.PreisachFit) -> tuple[unc.Estimate, ...]:
     """The grid model's scalar parameters: the rod (16), the grid, creep (no intervals for the
     density's weights: they are non-negative, judged by held-out error instead)."""
-    rod, grid = model.rod, model.polarization
-    sd = fit.uncertainty.get("parameters", {})
-
-    def rel(name: str) -> float:
-        v = sd.get(name, {}).get("stderr")
-        return float("nan") if v is None else float(v)
-
-    out = [unc.Estimate("natural_frequency", rod.natural_hz, rod.natural_hz * rel("log_fn"), "Hz"),
-           unc.Estimate("damping_ratio", rod.damping_ratio, rod.damping_ratio * rel("log_zeta"),
-                        "1"),
-           unc.Estimate("k", rod.k, float("nan"), "N/m"), unc.Estimate("c", rod.c, float("nan"),
-                                                                        "N s/m"),
-           unc.Estimate("a1", rod.a1, float("nan"), "N/(C/m^2)"),
-           unc.Estimate("a2", rod.a2, float("nan"), "N/(C/m^2)^2"),
-           unc.Estimate("offset", rod.offset_um, float("nan"), "um"),
-           unc.Estimate("reversible_slope", grid.reversible, float("nan"), "(C/m^2)/(MV/m)"),
-           unc.Estimate("hysteretic_range", grid.hysteretic_range(), float("nan"), "C/m^2")]
+    out = _rod_estimates(fit) + [unc.Estimate("hysteretic_range",
+                                              model.polarization.hysteretic_range(),
+                                              float("nan"), "C/m^2")]
     if model.creep is not None:
         out.append(unc.Estimate("creep_per_decade", model.creep.per_decade(), float("nan"), "1"))
         out += [unc.Estimate(f"creep@{t:g}s", c, float("nan"), "1")
                 for t, c in zip(model.creep.tau_s, model.creep.weights, strict=True)]
-    return tuple(out + [unc.Estimate("m", rod.m, 0.0, "kg", fixed=True),
+    return tuple(out + [unc.Estimate("m", model.rod.m, 0.0, "kg", fixed=True),
                         unc.Estimate("p_scale", fit.p_scale, 0.0, "C/m^2", fixed=True)])
 
 
 def bw_estimates(fit: bf.BoucWenFit) -> tuple[unc.Estimate, ...]:
     """The Bouc-Wen model's parameters: the rod (16) and the operator (1-sigma of the rod's and
     the shape's from the fit's uncertainty; the physical scales are conventions)."""
-    rod, bw = fit.model.rod, fit.model.polarization
+    bw = fit.model.polarization
     assert isinstance(bw, bm.BoucWen)
-    sd = fit.uncertainty.get("parameters", {})
-
-    def err(name: str, scale: float = 1.0) -> float:
-        v = sd.get(name, {}).get("stderr")
-        return float("nan") if v is None else float(v) * scale
-
-    return (unc.Estimate("natural_frequency", rod.natural_hz, rod.natural_hz * err("log_fn"), "Hz"),
-            unc.Estimate("damping_ratio", rod.damping_ratio,
-                         rod.damping_ratio * err("log_zeta"), "1"),
-            unc.Estimate("k", rod.k, float("nan"), "N/m"),
-            unc.Estimate("c", rod.c, float("nan"), "N s/m"),
-            unc.Estimate("a1", rod.a1, float("nan"), "N/(C/m^2)"),
-            unc.Estimate("a2", rod.a2, float("nan"), "N/(C/m^2)^2"),
-            unc.Estimate("offset", rod.offset_um, float("nan"), "um"),
-            unc.Estimate("reversible_slope", bw.reversible, float("nan"), "(C/m^2)/(MV/m)"),
-            unc.Estimate("bouc_wen_rate", bw.rate, float("nan"), "(C/m^2)/(MV/m)"),
-            unc.Estimate("bouc_wen_saturation", bw.saturation, float("nan"), "C/m^2"),
-            unc.Estimate("bouc_wen_kappa", bw.kappa, err("kappa"), "1"),
-            unc.Estimate("bouc_wen_exponent", bw.exponent, err("n"), "1"),
-            unc.Estimate("m", rod.m, 0.0, "kg", fixed=True))
+    return tuple(_rod_estimates(fit) + [
+        unc.Estimate("bouc_wen_rate", bw.rate, float("nan"), "(C/m^2)/(MV/m)"),
+        unc.Estimate("bouc_wen_saturation", bw.saturation, float("nan"), "C/m^2"),
+        unc.Estimate("bouc_wen_kappa", bw.kappa, _stderr(fit, "kappa"), "1"),
+        unc.Estimate("bouc_wen_exponent", bw.exponent, _stderr(fit, "n"), "1"),
+        unc.Estimate("m", fit.model.rod.m, 0.0, "kg", fixed=True)])
 
 
 __all__ = ["Grid", "EARLY", "DECISIVE", "MARGIN", "estimates", "bw_estimates", "first_start"]
