@@ -265,31 +265,37 @@ def _rod_estimates(fit: pf.PreisachFit | bf.BoucWenFit) -> list[unc.Estimate]:
                          "(C/m^2)/(MV/m)")]
 
 
+def _creep_estimates(model: Any) -> list[unc.Estimate]:
+    """The model's log-time creep, per decade and per element (none without creep)."""
+    if model.creep is None:
+        return []
+    return [unc.Estimate("creep_per_decade", model.creep.per_decade(), float("nan"), "1")] + [
+        unc.Estimate(f"creep@{t:g}s", c, float("nan"), "1")
+        for t, c in zip(model.creep.tau_s, model.creep.weights, strict=True)]
+
+
 def estimates(model: Any, fit: pf.PreisachFit) -> tuple[unc.Estimate, ...]:
     """The grid model's scalar parameters: the rod (16), the grid, creep (no intervals for the
     density's weights: they are non-negative, judged by held-out error instead)."""
     out = _rod_estimates(fit) + [unc.Estimate("hysteretic_range",
                                               model.polarization.hysteretic_range(),
                                               float("nan"), "C/m^2")]
-    if model.creep is not None:
-        out.append(unc.Estimate("creep_per_decade", model.creep.per_decade(), float("nan"), "1"))
-        out += [unc.Estimate(f"creep@{t:g}s", c, float("nan"), "1")
-                for t, c in zip(model.creep.tau_s, model.creep.weights, strict=True)]
-    return tuple(out + [unc.Estimate("m", model.rod.m, 0.0, "kg", fixed=True),
-                        unc.Estimate("p_scale", fit.p_scale, 0.0, "C/m^2", fixed=True)])
+    return tuple(out + _creep_estimates(model) + [
+        unc.Estimate("m", model.rod.m, 0.0, "kg", fixed=True),
+        unc.Estimate("p_scale", fit.p_scale, 0.0, "C/m^2", fixed=True)])
 
 
 def bw_estimates(fit: bf.BoucWenFit) -> tuple[unc.Estimate, ...]:
-    """The Bouc-Wen model's parameters: the rod (16) and the operator (1-sigma of the rod's and
-    the shape's from the fit's uncertainty; the physical scales are conventions)."""
+    """The Bouc-Wen model's parameters: the rod (16), the operator and its creep (1-sigma of the
+    rod's and the shape's from the fit's uncertainty; the physical scales are conventions)."""
     bw = fit.model.polarization
     assert isinstance(bw, bm.BoucWen)
     return tuple(_rod_estimates(fit) + [
         unc.Estimate("bouc_wen_rate", bw.rate, float("nan"), "(C/m^2)/(MV/m)"),
         unc.Estimate("bouc_wen_saturation", bw.saturation, float("nan"), "C/m^2"),
         unc.Estimate("bouc_wen_kappa", bw.kappa, _stderr(fit, "kappa"), "1"),
-        unc.Estimate("bouc_wen_exponent", bw.exponent, _stderr(fit, "n"), "1"),
-        unc.Estimate("m", fit.model.rod.m, 0.0, "kg", fixed=True)])
+        unc.Estimate("bouc_wen_exponent", bw.exponent, _stderr(fit, "n"), "1")]
+        + _creep_estimates(fit.model) + [unc.Estimate("m", fit.model.rod.m, 0.0, "kg", fixed=True)])
 
 
 __all__ = ["Grid", "EARLY", "DECISIVE", "MARGIN", "estimates", "bw_estimates", "first_start"]

@@ -118,3 +118,18 @@ def test_identify_chooses_bouc_wen_through_the_cli(stage_and_set: tuple, tmp_pat
     assert figures["hem"]["worst_over_noise"] > 3 * figures["bouc_wen"]["worst_heldout_over_noise"]
     assert doc["minor_loops"]["close"] is False
     assert isinstance(mf.read(tmp_path / "m.toml").polarization, BoucWen)
+
+
+def test_estimates_list_the_models_creep(fitted: bf.BoucWenFit) -> None:
+    """The parameters identify reports for a Bouc-Wen model carry its creep, as the grid's do."""
+    from dataclasses import replace
+
+    from afmctl.fit import representation as rep
+
+    names = [e.name for e in rep.bw_estimates(fitted)]
+    assert "bouc_wen_kappa" in names and ("creep_per_decade" in names) == (
+        fitted.model.creep is not None)
+    crept = replace(fitted, model=replace(fitted.model, creep=bf.creep_of(0.005)))
+    by_name = {e.name: e.value for e in rep.bw_estimates(crept)}
+    assert by_name["creep_per_decade"] == pytest.approx(crept.model.creep.per_decade())
+    assert by_name["creep@1000s"] == 0.005
