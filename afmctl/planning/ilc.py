@@ -243,6 +243,10 @@ MIN_HARMONICS = 3
 #: A harmonic's G is measured when the reference's amplitude there exceeds this many standard
 #: errors of the noise (then ``|G^ - G| / |G| <~ 1 / RELIABLE``).
 RELIABLE = 8.0
+#: ... and at least this fraction of a neighbouring harmonic's: a harmonic the reference hardly
+#: drives (a symmetric line's even harmonics) carries the stage's distortion of its neighbours
+#: (the inverse leaves ~1 % of nonlinear error), not its response to the reference there.
+HOLE = 0.1
 
 
 def harmonics(x: FloatArray, t_s: FloatArray, f0_hz: float, n_max: int
@@ -281,7 +285,10 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
     """``L`` and ``Q`` from iteration 0 (reference ``r_0`` and true-position estimate ``y_0``).
 
     For a periodic trajectory, ``G = Y / R`` at every harmonic whose reference amplitude is
-    :data:`RELIABLE` standard errors of the noise or more (steady part). ``Q``'s cut-off is
+    :data:`RELIABLE` standard errors of the noise or more (steady part) and no less than
+    :data:`HOLE` times a neighbour's (a raster line's even harmonics, driven only by the slow
+    axis's leak into it: there ``|G|`` was 5-28 on foreign-xy-1, the distortion of the odd
+    ones, and its fast axis stalled at 7x its noise; interpolated, 1.7x). ``Q``'s cut-off is
     ``law.cutoff_hz``, but never above the last measured harmonic (beyond it nothing is known
     of ``G``, so ``|Q| <= 1/2`` there). The lead ``m`` of the plain law is the delay of
     :func:`lead_samples` (used where too few harmonics are measured, e.g. a sine).
@@ -296,13 +303,19 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
     y = harmonics(np.nan_to_num(position[skip:], nan=float(np.nanmean(position))), t, f0,
                   n_max)[1:]
     se = (noise_um if np.isfinite(noise_um) else 0.0) * np.sqrt(2 / max(t.size, 1))
-    ok = np.abs(r) > max(RELIABLE * se, 1e-9 * np.abs(r).max())
+    ok = (np.abs(r) > max(RELIABLE * se, 1e-9 * np.abs(r).max())) & ~_holes(np.abs(r))
     freqs, g = f0 * np.arange(1, n_max + 1)[ok], y[ok] / r[ok]
     fc = law.cutoff_hz
     if freqs.size >= MIN_HARMONICS:
         fc = min(fc, float(freqs.max()))
     c = q_gain(freqs, dt, fc) * np.abs(1 - law.gain * np.exp(2j * np.pi * freqs * m * dt) * g)
     return Tuning(m, fc, freqs, g, c)
+
+
+def _holes(a: FloatArray) -> NDArray[np.bool_]:
+    """Harmonics whose amplitude ``a`` is below :data:`HOLE` times a neighbour's."""
+    pad = np.concatenate([[0.0], a, [0.0]])
+    return a < HOLE * np.maximum(pad[:-2], pad[2:])
 
 
 def _g_hat(tuning: Tuning, freqs: FloatArray) -> NDArray[np.complex128]:
