@@ -8,7 +8,7 @@ its turnarounds learn nothing, so a fast scan does not keep sharpening its corne
 it again through that axis's inverse. The y error includes the y motion x causes that the
 feed-forward left: the y reference learns it away with the rest (and likewise x). ``L`` and
 ``Q`` are tuned per axis on frame 0 (:func:`afmctl.planning.ilc.tune`, the line rate's
-harmonics).
+harmonics), each axis's reference against its own motion (:func:`_tunings`).
 
 Every frame's waveform passes the guard and the envelope before it is sent; one that would not
 ends learning with the best frame so far, as do the noise floor (both axes' image-region RMS
