@@ -136,10 +136,24 @@ def _tunings(refs: dict[str, np.ndarray], traj: raster.Trajectories,
     causes through the identified coupling (:func:`afmctl.planning.raster.targets` of the
     readings). Against the readings, y's response at the line's harmonics was mostly what x
     caused and the feed-forward left (foreign-xy-1: ``|G|`` 0.18 at 30 Hz for y's own ~1,
-    a learning gain of 2 where 1 was due: y stalled at 9x its noise)."""
-    read = raster.Trajectories(traj.dt_s, traj.x_um - errors["x"], traj.y_um - errors["y"])
-    own = raster.targets(read, setup.coupling)
-    return {n: ilc.tune(refs[n], own[n], desired[n], law, noise[n]) for n in raster.AXES}
+    a learning gain of 2 where 1 was due: y stalled at 9x its noise). A missing reading
+    (NaN) is bridged for the coupling's filter, which would carry it to every later sample of
+    both axes, and missing again in the own motion."""
+    read = {n: traj.axis(n) - errors[n] for n in raster.AXES}
+    gap = ~np.isfinite(read["x"]) | ~np.isfinite(read["y"])
+    bridged = raster.Trajectories(traj.dt_s, _bridged(read["x"]), _bridged(read["y"]))
+    own = raster.targets(bridged, setup.coupling)
+    return {n: ilc.tune(refs[n], np.where(gap, np.nan, own[n]), desired[n], law, noise[n])
+            for n in raster.AXES}
+
+
+def _bridged(x: np.ndarray) -> np.ndarray:
+    """``x`` with its missing samples (NaN) interpolated linearly from the others."""
+    ok = np.isfinite(x)
+    if ok.all() or not ok.any():
+        return x
+    k = np.arange(x.size)
+    return np.interp(k, k[ok], x[ok])
 
 
 def _next(start: tuple[dict[str, np.ndarray], dict[str, np.ndarray]], axis: str,

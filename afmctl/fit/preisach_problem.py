@@ -275,13 +275,13 @@ class Problem:
         """``sum_j c_j Z_j`` linearized in the hysteresis: each element's play held where it
         last moved on ``q``, applied to the columns of ``x`` (N, K) (or to ``x`` (N,))."""
         out = np.zeros(x.shape)
+        cols, into = x.reshape(x.shape[0], -1), out.reshape(x.shape[0], -1)
         n_tau = self.taus.size
         for i, r in enumerate(self.thresholds):
             ci = c[i * n_tau:(i + 1) * n_tau]
             on = ci > 0  # (non-negative least squares leaves many at 0)
             if on.any():
-                idx = cr.play_hold(q, r)[1]
-                out += cr.lag_columns(self.taus[on], ci[on], x[idx], dt)
+                cr.add_lag_columns(into, self.taus[on], ci[on], cols, cr.play_hold(q, r)[1], dt)
         return out
 
     def transients(self, th: Theta) -> list[FloatArray]:

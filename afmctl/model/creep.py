@@ -197,29 +197,34 @@ def lagged(x: FloatArray, tau_s: FloatArray, dt: float, z0: FloatArray) -> Float
 
 
 @nb.njit(cache=True)
-def _columns(x: np.ndarray, a: np.ndarray, c: np.ndarray) -> np.ndarray:
-    n, k = x.shape
-    out = np.empty((n, k))
+def _add_columns(out: np.ndarray, x: np.ndarray, idx: np.ndarray, a: np.ndarray,
+                 c: np.ndarray) -> None:
+    n, k = out.shape
     z = np.empty((a.size, k))
     for j in range(a.size):
-        z[j] = x[0]
+        for i in range(k):
+            z[j, i] = x[idx[0], i]
     for t in range(n):
+        row = idx[t]
         for i in range(k):
             acc = 0.0
+            xv = x[row, i]
             for j in range(a.size):
                 acc += c[j] * z[j, i]
-                z[j, i] = a[j] * z[j, i] + (1.0 - a[j]) * x[t, i]
-            out[t, i] = acc
-    return out
+                z[j, i] = a[j] * z[j, i] + (1.0 - a[j]) * xv
+            out[t, i] += acc
 
 
-def lag_columns(tau_s: FloatArray, weights: FloatArray, x: FloatArray, dt: float) -> FloatArray:
-    """``sum_j c_j z_j`` of linear elements (``tau_s``, ``weights``) on every column of ``x``
-    (N, K) at once, each from rest at its first sample (z before each sample, as in :func:`run`):
-    the creep of every basis column of a fit."""
-    x2 = np.ascontiguousarray(x, dtype=float).reshape(x.shape[0], -1)
+def add_lag_columns(out: FloatArray, tau_s: FloatArray, weights: FloatArray, x: FloatArray,
+                    idx: NDArray[np.int64], dt: float) -> None:
+    """``out += sum_j c_j z_j`` of linear elements (``tau_s``, ``weights``) on every column of
+    ``x[idx]`` (N, K) at once, each from rest at its first sample (z before each sample, as in
+    :func:`run`): the creep of every basis column of a fit, each held where ``idx`` says (a
+    play's last move, :func:`play_hold`). ``x[idx]`` is never copied (for a fit's basis it is
+    hundreds of MB, and the copy took as long as the filtering)."""
     a = np.exp(-float(dt) / np.asarray(tau_s, float))
-    return _columns(x2, a, np.asarray(weights, dtype=float)).reshape(x.shape)
+    _add_columns(out, np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(idx),
+                 a, np.asarray(weights, dtype=float))
 
 
 @nb.njit(cache=True)

@@ -288,7 +288,10 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
     :data:`RELIABLE` standard errors of the noise or more (steady part) and no less than
     :data:`HOLE` times a neighbour's (a raster line's even harmonics, driven only by the slow
     axis's leak into it: there ``|G|`` was 5-28 on foreign-xy-1, the distortion of the odd
-    ones, and its fast axis stalled at 7x its noise; interpolated, 1.7x). ``Q``'s cut-off is
+    ones, and its fast axis stalled at 7x its noise; interpolated, and tuned on its own
+    motion, :func:`afmctl.experiment.scanlearn._tunings`, 1.7x). A small tone legitimately
+    beside a large one (a multi-tone reference) is not measured either: its ``G`` is
+    interpolated from its neighbours. ``Q``'s cut-off is
     ``law.cutoff_hz``, but never above the last measured harmonic (beyond it nothing is known
     of ``G``, so ``|Q| <= 1/2`` there). The lead ``m`` of the plain law is the delay of
     :func:`lead_samples` (used where too few harmonics are measured, e.g. a sine).

@@ -94,3 +94,21 @@ def test_an_element_behind_a_play_keeps_creeping_through_a_small_reversal() -> N
     assert np.all(np.diff(part["linear"][small]) < 0)  # turned with the small reversal
     assert np.all(np.diff(part["play"][small]) > 0)  # still creeping the old way, up
     assert part["play"][1490] < part["play"][990] - 0.05  # a large reversal turns it too
+
+
+def test_lag_columns_of_held_columns_are_the_elements_filters_combined() -> None:
+    """:func:`add_lag_columns` on every column of ``x[idx]`` (held where a play last moved)
+    equals each element's own filter (:func:`lagged`, scipy's lfilter) weighted and summed,
+    added to what ``out`` held."""
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((3000, 4))
+    q = np.cumsum(rng.standard_normal(3000))
+    idx = cr.play_hold(q, 3.0)[1]
+    tau, w, dt = np.array([0.02, 0.3, 5.0]), np.array([0.5, 0.3, 0.2]), 1e-3
+    out = np.ones(x.shape)
+    cr.add_lag_columns(out, tau, w, x, idx, dt)
+    held = x[idx]
+    want = 1.0 + np.column_stack([cr.lagged(held[:, i], tau, dt, np.full(3, held[0, i])) @ w
+                                  for i in range(4)])
+    np.testing.assert_allclose(out, want, atol=1e-12)
+    assert len(set(idx.tolist())) < idx.size  # the play holds: some samples repeat
