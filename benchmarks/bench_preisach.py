@@ -4,7 +4,8 @@ Speed, as ratios measured in the same run: the forward model (:func:`afmctl.mode
 and Algorithm 3 (:func:`afmctl.model.inverse.algorithm3`, horizon 2) on a 27.9 Hz, 0-150 V triangle
 at 10 kHz, for the emulated stage's HEM (its own node count) and for a Preisach grid of the size
 identify fits (32 x 48 cells, with creep); ``grid_over_hem_forward`` and ``grid_over_hem_inverse``
-are the grid's time over the HEM's.
+are the grid's time over the HEM's. ``creep_columns_speedup``: the creep of a fit's basis
+columns computed in place against the basis copied first (:func:`creep_columns`).
 
 Accuracy: ``identify`` (default settings) on each sweep set of ``../shared/data/other-family/``
 (``--data`` overrides), the per-sweep RMS over the set's sensor noise as the README gives it,
@@ -78,6 +79,37 @@ def speed() -> dict[str, float]:
         "hem_forward_us_per_sample"]
     out["grid_over_hem_inverse"] = out["grid_inverse_us_per_sample"] / out[
         "hem_inverse_us_per_sample"]
+    out.update(creep_columns())
+    return out
+
+
+def creep_columns(n: int = 100_000, k: int = 384) -> dict[str, float]:
+    """The creep of a fit's basis columns at a play's held samples (``n`` samples, ``k``
+    columns, three elements: the grid's linearization): in place
+    (:func:`afmctl.model.creep.add_lag_columns`) against the basis copied at the held samples
+    first (the way before, measured here with the same compiled loop on the copy)."""
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((n, k))
+    idx = cr.play_hold(np.cumsum(rng.standard_normal(n)), 5.0)[1]
+    tau, w = np.array([0.01, 0.1, 1.0]), np.array([0.3, 0.2, 0.1])
+    every = np.arange(n)
+
+    def in_place() -> None:
+        cr.add_lag_columns(np.zeros((n, k)), tau, w, x, idx, 1e-4)
+
+    def copied() -> None:
+        out = np.zeros((n, k))
+        out += _lagged_copy(x[idx], tau, w, every)
+
+    in_place()
+    return {"creep_columns_copy_s": best_time(copied), "creep_columns_in_place_s": best_time(
+        in_place), "creep_columns_speedup": best_time(copied) / best_time(in_place)}
+
+
+def _lagged_copy(held: np.ndarray, tau: np.ndarray, w: np.ndarray, every: np.ndarray
+                 ) -> np.ndarray:
+    out = np.zeros(held.shape)
+    cr.add_lag_columns(out, tau, w, held, every, 1e-4)
     return out
 
 
