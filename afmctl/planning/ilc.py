@@ -291,9 +291,9 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
     ones, and its fast axis stalled at 7x its noise; interpolated, and tuned on its own
     motion, :func:`afmctl.experiment.scanlearn._tunings`, 1.7x). A small tone legitimately
     beside a large one (a multi-tone reference) is not measured either: its ``G`` is
-    interpolated from its neighbours. ``Q``'s cut-off is
-    ``law.cutoff_hz``, but never above the last measured harmonic (beyond it nothing is known
-    of ``G``, so ``|Q| <= 1/2`` there). The lead ``m`` of the plain law is the delay of
+    interpolated from its neighbours. ``Q``'s cut-off is ``law.cutoff_hz``, but never above
+    the last measured harmonic (beyond it nothing is known of ``G``, so ``|Q| <= 1/2``
+    there). The lead ``m`` of the plain law is the delay of
     :func:`lead_samples` (used where too few harmonics are measured, e.g. a sine).
     """
     skip = steady_part(desired).start
