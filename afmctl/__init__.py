@@ -54,7 +54,7 @@ _EXPORTS: dict[str, str] = {
     "Transducer": "afmctl.model.transducer:Transducer",
     "simulate": "afmctl.model.transducer:displacement",
     # identify and diagnose
-    "Diagnosis": "afmctl.fit.diagnose:Diagnosis",
+    "Diagnosis": "afmctl.fit.diagnosis:Diagnosis",
     "DiagnoseSettings": "afmctl.fit.diagnose:Settings",
     "FitResult": "afmctl.fit.identify:FitResult",
     "IdentifySettings": "afmctl.fit.identify:Settings",

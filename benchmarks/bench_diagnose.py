@@ -59,6 +59,7 @@ from afmctl.files import sweepfile as sw  # noqa: E402
 from afmctl.files.profile import default_profile  # noqa: E402
 from afmctl.fit import candidates as cd
 from afmctl.fit import diagnose as dg  # noqa: E402
+from afmctl.fit.diagnosis import json_safe  # noqa: E402
 from afmctl.fit import extension as ext  # noqa: E402
 from afmctl.model import transducer as td  # noqa: E402
 from afmctl.planning import sweepdesign as sd  # noqa: E402
@@ -289,6 +290,8 @@ def family_row(name: str) -> dict[str, Any]:
             "noise_um": s.noise_um, "base_over_noise": d.base_over_noise,
             "extended_over_noise": d.extended_over_noise, "closest": d.closest.fitted.name,
             "closest_explained_fraction": d.closest_dict()["explained_fraction"],
+            "drift_hint": any(h["feature"] == "drift" for h in d.suggestions()),
+            "grid": None if d.grid is None else d.grid.as_dict(d.noise_um),
             "seconds": round(d.seconds, 1)}
 
 
@@ -300,6 +303,9 @@ def family_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return {"family_stages": len(fam), "family_wrong_cause": sum(r["wrong"] for r in fam),
             "family_creep_named": sum(r["named"] == "creep" for r in creep),
             "family_creep_stages": len(creep),
+            "family_drift_hinted": sum(r["drift_hint"] for r in fam if r["drift"]),
+            "family_drift_stages": sum(r["drift"] for r in fam),
+            "drift_hint_wrong": sum(r["drift_hint"] for r in rows if not r["drift"]),
             "other_form_named": sum(r["named"] == r["effect"] for r in other),
             "other_form_stages": len(other), "family_rows": rows}
 
@@ -375,7 +381,7 @@ def main() -> None:
         return
     fam = family(args.family, args.other_form, args.jobs)
     if args.family_only:
-        print(json.dumps(dg.json_safe(fam)))
+        print(json.dumps(json_safe(fam)))
         return
     chosen = cases(args.clean)
     if args.indices:
@@ -389,7 +395,7 @@ def main() -> None:
             rows.append(row)
             if args.rows is not None:
                 with args.rows.open("a", encoding="utf-8") as f:
-                    f.write(json.dumps(dg.json_safe(row)) + "\n")
+                    f.write(json.dumps(json_safe(row)) + "\n")
             extra = (f"; track {row['track_base_rms_um']:.4f} -> "
                      f"{row['track_extended_rms_um']:.4f} um" if "track_base_rms_um" in row else "")
             log(f"{row['cause']:20s} s={row['strength']}: named {row['named']:20s} base "
@@ -404,7 +410,7 @@ def main() -> None:
         f"effect {out['none_on_effect']}, unexplained right {out['unexplained_right']}, median "
         f"{out['median_seconds']} s, track {out['track_extended_beats_base']}/{out['track_cases']}")
     if args.json:
-        print(json.dumps(dg.json_safe(out)))
+        print(json.dumps(json_safe(out)))
 
 
 if __name__ == "__main__":

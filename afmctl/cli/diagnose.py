@@ -107,7 +107,7 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     make_dir(out, "--out")
     header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
     names = tuple(Path(f).name for f in sweep_files)
-    modelfile.write(d.base_model, out / "base.toml", header=header + "\nthe paper's model",
+    modelfile.write(d.base_model, out / "base.toml", header=header + f"\n{d.base_name}",
                     fit=_record(d, names, extended=False))
     modelfile.write(d.extended_model, out / "extended.toml",
                     header=header + f"\nextended with: {d.cause}",
@@ -115,7 +115,7 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     before, after = d.predictions(data)
     partial = out / "residuals.partial.png"
     plots.diagnosis_figure(data, before, after, d.base_model.thickness_um,
-                           ("paper's model", f"extended: {d.cause}"), partial)
+                           (d.base_name, f"extended: {d.cause}"), partial)
     partial.replace(out / "residuals.png")
     atomic_write(out / "report.md", diagnosis_report.report(d, "residuals.png"))
     atomic_write(out / "diagnosis.json", text)  # last: marks the folder complete

@@ -1,10 +1,10 @@
 """The Markdown report of ``afmctl diagnose`` (``report.md``): the verdict, its evidence, what
 would tell more, the candidate table and the residuals of the paper's model. Pure text from a
-:class:`afmctl.fit.diagnose.Diagnosis`: no I/O."""
+:class:`afmctl.fit.diagnosis.Diagnosis`: no I/O."""
 
 from __future__ import annotations
 
-from afmctl.fit import diagnose as dg
+from afmctl.fit import diagnosis as dg
 from afmctl.fit.verdict import ratio, required_gain
 
 
@@ -24,7 +24,7 @@ def report(d: dg.Diagnosis, figure: str) -> str:
              "on the second half.", "",
              "| candidate | parameters added | held-out RMS (um) | x noise | gain | needed | fitted |",
              "|---|---:|---:|---:|---:|---:|---|"]
-    for name, j in sorted(d.table.items(), key=lambda kv: kv[1].heldout_rms_um):
+    for name, j in sorted(d.judged.items(), key=lambda kv: kv[1].heldout_rms_um):
         fitted = dg.fitted_text(j.fitted.parameters)
         lines.append(f"| {name} | {j.n_params} | {j.heldout_rms_um:.4f} | "
                      f"{ratio(j.heldout_rms_um, d.noise_um):.2f} | "

@@ -82,7 +82,7 @@ ZETA_BOUNDS = (0.003, 5.0)
 
 __all__ = ["CREEP_TAUS_S", "CREEP_THRESHOLDS", "SMOOTHING", "BLOCKS", "FOLDS", "TRANSIENT_SPAN",
            "Settings", "hat_matrix", "Grid", "make_grid", "basis", "Data", "rod_filter", "Theta",
-           "Problem", "PreisachFit", "fit", "gauss_newton", "heldout", "bounded_solve", "penalty"]
+           "Problem", "PreisachFit", "Runs", "fit", "runs", "gauss_newton", "heldout", "bounded_solve", "penalty"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -461,10 +461,22 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
                     say or (lambda _m: None))
 
 
-def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
-         thickness_um: float, mass_kg: float, settings: Settings,
-         say: Callable[[str], None]) -> PreisachFit:
-    t0 = time.perf_counter()
+@dataclass(frozen=True)
+class Runs:
+    """The grid fitted with and without its creep elements at the middle smoothing: the problem
+    (its start assignment chosen, the elements' thresholds set), the penalty, both fits."""
+
+    problem: Problem
+    penalty: FloatArray
+    smoothing: float
+    plain: Run
+    crept: Run
+
+
+def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
+         settings: Settings, say: Callable[[str], None]) -> Runs:
+    """The start assignment (of ``starts_candidates``) whose first linear step fits best, the
+    fit without creep (the rod searched twice), then with creep from there (:class:`Runs`)."""
     ec, ei, spread = make_grid(data.fields, settings)
     cands = [tuple(s) for s in dict.fromkeys(tuple(s) for s in starts_candidates)]
     mi = hat_matrix(ec.size, settings.coef_coercive)
@@ -477,11 +489,6 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
         return Theta(np.zeros(grid.active.size), 0.0, np.zeros(len(settings.creep_taus_s)), 0.0,
                      math.log(rod0[0]), math.log(rod0[1]),
                      np.array([float(np.mean(y)) for y in data.y]))
-
-    def with_elements(th: Theta) -> Theta:
-        out = th.copy()
-        out.c = np.zeros(prob.el_tau.size)
-        return out
 
     best: tuple[float, Problem, Theta] | None = None
     for starts in cands:  # the start states: one linear step each, the cheapest to compare
@@ -499,15 +506,26 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                          settings.max_iter // 4)
     q_range = max(float(np.ptp(q)) for q in prob.hysteretic(plain.theta))
     prob.set_thresholds([f * q_range for f in settings.creep_thresholds])
-    runs = {False: plain, True: gauss_newton(prob, with_elements(plain.theta), pen, lam0, True,
-                                             settings.max_iter)}
-    for creep, run in runs.items():
+    elements = plain.theta.copy()
+    elements.c = np.zeros(prob.el_tau.size)
+    crept = gauss_newton(prob, elements, pen, lam0, True, settings.max_iter)
+    for creep, run in ((False, plain), (True, crept)):
         say(f"  {'with' if creep else 'without'} creep: RMS / noise per sweep "
             + " / ".join(f"{r:.2f}" for r in prob.ratios(run.theta))
             + f" ({run.iterations} steps{'' if run.converged else ', stopped on its budget'})")
+    return Runs(prob, pen, lam0, plain, crept)
+
+
+def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
+         thickness_um: float, mass_kg: float, settings: Settings,
+         say: Callable[[str], None]) -> PreisachFit:
+    t0 = time.perf_counter()
+    fitted = runs(data, starts_candidates, rod0, settings, say)
+    prob, pen = fitted.problem, fitted.penalty
+    runs_by = {False: fitted.plain, True: fitted.crept}
     scores: dict[str, float] = {}
     choice: tuple[float, bool, float, FloatArray] | None = None
-    for creep, run in runs.items():
+    for creep, run in runs_by.items():
         per = heldout(prob, run.theta, pen, settings.smoothing, creep)
         for lam in per:
             score = float(np.sum(per[lam] ** 2 / data.noise ** 2))
@@ -516,7 +534,7 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                 choice = (score, creep, float(lam), per[lam])
     assert choice is not None
     _, creep, lam, per = choice
-    final = gauss_newton(prob, runs[creep].theta, pen, lam, creep, settings.max_iter)
+    final = gauss_newton(prob, runs_by[creep].theta, pen, lam, creep, settings.max_iter)
     say("  held-out RMS / noise per sweep "
         + " / ".join(f"{r:.2f}" for r in per / data.noise)
         + f" ({'with' if creep else 'without'} creep, smoothing {lam:g}; "
@@ -524,7 +542,7 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     model = build(final.theta, prob, mass_kg, thickness_um, settings.p_scale, creep)
     return PreisachFit(model, prob.starts, final.theta.offsets, per, lam, creep, scores,
                        final.iterations, final.converged, time.perf_counter() - t0,
-                       prob.ratios(final.theta), grid.active.size,
+                       prob.ratios(final.theta), prob.grid.active.size,
                        scalar_uncertainty(prob, final.theta, creep), settings.p_scale,
                        prob.predict(final.theta, full=True))
 

@@ -20,7 +20,7 @@ from click.testing import CliRunner
 from afmctl.cli import main
 from afmctl.experiment import runner as experiment
 from afmctl.files import sweepfile as sw
-from afmctl.fit import candidates, extension
+from afmctl.fit import candidates, extension, verdict
 from afmctl.fit import diagnose as dg
 from afmctl.model import effects as fx
 from afmctl.planning import sweepdesign as sd
@@ -96,9 +96,9 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path: Path, nominal) -> None: 
 
 
 def test_required_gain_grows_with_parameters() -> None:
-    assert dg.required_gain(0) == 1.0
-    assert dg.required_gain(1) == pytest.approx(1.1)
-    assert dg.required_gain(3) == pytest.approx(1.2)
+    assert verdict.required_gain(0) == 1.0
+    assert verdict.required_gain(1) == pytest.approx(1.1)
+    assert verdict.required_gain(3) == pytest.approx(1.2)
 
 
 @pytest.mark.parametrize("effects", [fx.Effects(sensor_delay_samples=5.0),

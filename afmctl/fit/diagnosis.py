@@ -1,0 +1,233 @@
+"""The outcome of ``afmctl diagnose`` (:func:`afmctl.fit.diagnose.diagnose`): the verdict, every
+judged model and what they say, as the report and ``diagnosis.json`` state it. No I/O."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl.files.sweepfile import Sweep
+from afmctl.fit import candidates as cd
+from afmctl.fit import extension as ext
+from afmctl.fit import gridbase as gb
+from afmctl.fit import verdict as vd
+from afmctl.fit.residuals import predicted
+from afmctl.fit.verdict import ratio, required_gain
+from afmctl.model import transducer as td
+
+FloatArray = NDArray[np.float64]
+
+
+def fitted_text(parameters: dict[str, float]) -> str:
+    return ", ".join(f"{k} = {v:.4g}" for k, v in parameters.items())
+
+
+@dataclass(frozen=True)
+class Judged:
+    """One candidate: its fit on the first halves, its RMS error (um) on the second halves
+    (overall and per sweep) and the fit's wall time (s)."""
+
+    fitted: ext.Extended
+    n_params: int
+    heldout_rms_um: float
+    heldout_per_sweep_um: tuple[float, ...]
+    fit_seconds: float
+
+    def as_dict(self, base_rms: float, noise_um: float) -> dict[str, Any]:
+        return {"heldout_rms_um": self.heldout_rms_um, "gain": ratio(base_rms, self.heldout_rms_um),
+                "over_noise": ratio(self.heldout_rms_um, noise_um),
+                "required_gain": required_gain(self.n_params), "parameters_added": self.n_params,
+                "heldout_rms_per_sweep_um": list(self.heldout_per_sweep_um),
+                "fitted": self.fitted.parameters, "fit_success": self.fitted.success,
+                "fit_evaluations": self.fitted.nfev, "fit_seconds": round(self.fit_seconds, 2)}
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """Outcome of :func:`diagnose`: the verdict, held-out RMS (um) of the base and the extended
+    model, the noise floor (um, overall and per sweep), the candidate table, both models fitted on
+    the first halves (the extended one with its per-sweep applied-voltage gains; the base again if no
+    cause is named), the residual signature, the wall time (s), every fitted sensor-side cause
+    with its actuator-side twin (:func:`afmctl.fit.twins.pairs`) and, when the verdict is
+    ``indistinguishable``, the sweep that would separate them
+    (:func:`afmctl.fit.twins.separating_sweep`, with the pair's names), and the Preisach grid
+    without and with creep (:mod:`afmctl.fit.gridbase`) when it was fitted: then a verdict of
+    ``creep`` or ``none`` is the grid's, and the base is the grid without creep."""
+
+    cause: str
+    base_rms_um: float
+    extended_rms_um: float
+    noise_um: float
+    noise_per_sweep_um: tuple[float, ...]
+    table: dict[str, Judged]
+    base: ext.Extended
+    extended: ext.Extended
+    signature: dict[str, Any]
+    seconds: float
+    files: tuple[str, ...]
+    twins: tuple[dict[str, Any], ...] = ()
+    separating: dict[str, Any] | None = None
+    grid: gb.GridBase | None = None
+
+    @property
+    def on_grid(self) -> bool:
+        """Whether the verdict is the Preisach grid's (its base the grid without creep)."""
+        return self.grid is not None and self.cause in ("creep", "none")
+
+    @property
+    def base_name(self) -> str:
+        return "the Preisach grid without creep" if self.on_grid else "the paper's model"
+
+    @property
+    def judged(self) -> dict[str, Judged]:
+        """The candidate table and, when fitted, the grid without and with creep."""
+        if self.grid is None:
+            return self.table
+        g = self.grid
+        return {**self.table,
+                g.plain.name: Judged(g.plain, 0, g.plain_rms_um, g.plain_per_sweep_um, g.seconds),
+                g.crept.name: Judged(g.crept, int(g.crept.model.creep is not None and
+                                                  g.crept.model.creep.size),
+                                     g.crept_rms_um, g.crept_per_sweep_um, g.seconds)}
+
+    @property
+    def gain(self) -> float:
+        return ratio(self.base_rms_um, self.extended_rms_um)
+
+    @property
+    def base_model(self) -> td.Transducer:
+        return self.base.model
+
+    @property
+    def extended_model(self) -> td.Transducer:
+        return self.extended.model
+
+    @property
+    def extended_gains(self) -> tuple[float, ...]:
+        return self.extended.gains
+
+    def predictions(self, sweeps: Sequence[Sweep]) -> tuple[list[FloatArray], list[FloatArray]]:
+        """Readings (um) the base and the extended model (fitted on the first halves) predict
+        for ``sweeps``, each sweep from its start, with its sensor zero and gain."""
+        return predicted(self.base, sweeps), predicted(self.extended, sweeps)
+
+    @property
+    def base_over_noise(self) -> float:
+        return ratio(self.base_rms_um, self.noise_um)
+
+    @property
+    def extended_over_noise(self) -> float:
+        return ratio(self.extended_rms_um, self.noise_um)
+
+    @property
+    def closest(self) -> Judged:
+        """The model (base, candidate or grid) with the smallest held-out RMS."""
+        return min(self.judged.values(), key=lambda j: j.heldout_rms_um)
+
+    @property
+    def explanation(self) -> str:
+        """The verdict's physical reading."""
+        if self.cause == vd.INDISTINGUISHABLE:
+            return cd.INDISTINGUISHABLE
+        if self.on_grid:
+            return gb.CAUSES[self.cause]
+        return cd.CAUSES.get(self.cause, cd.UNEXPLAINED)
+
+    def closest_dict(self) -> dict[str, Any]:
+        """The model nearest the floor: held-out RMS (um), over the noise, the fraction of the
+        base model's misfit it explains (:func:`afmctl.fit.verdict.explained`) and a phrase."""
+        c = self.closest
+        frac = vd.explained(self.base_rms_um, c.heldout_rms_um, self.noise_um)
+        return {"model": c.fitted.name, "heldout_rms_um": c.heldout_rms_um,
+                "over_noise": ratio(c.heldout_rms_um, self.noise_um), "explained_fraction": frac,
+                "text": vd.closest_phrase(c.fitted.name, frac)}
+
+    def suggestions(self) -> list[dict[str, str]]:
+        """What would tell more: the residual's hints when unexplained, the separating sweep
+        when indistinguishable (none otherwise)."""
+        if self.cause == "unexplained":
+            drift = [gb.DRIFT_HINT] if self.grid is not None and self.grid.drift() else []
+            return drift + vd.suggestions(self.signature)
+        if self.separating is not None:
+            s = self.separating
+            return [{"feature": "twins", "reading": f"{s['sensor']} and its actuator-side twin "
+                     f"{s['actuator']} explain these sweeps equally well",
+                     "measure": s["text"]}]
+        return []
+
+    def as_dict(self) -> dict[str, Any]:
+        """The ``diagnosis.json`` object (and ``--json`` output); non-finite numbers are null."""
+        return json_safe({
+            "cause": self.cause, "explanation": self.explanation,
+            "base_rms_um": self.base_rms_um, "extended_rms_um": self.extended_rms_um,
+            "gain": self.gain, "noise_um": self.noise_um,
+            "noise_per_sweep_um": list(self.noise_per_sweep_um),
+            "base_over_noise": self.base_over_noise,
+            "extended_over_noise": self.extended_over_noise,
+            "closest": self.closest_dict(),
+            "evidence": self.evidence(),
+            "suggestions": self.suggestions(),
+            "twins": list(self.twins), "separating_sweep": self.separating,
+            "candidates": {k: j.as_dict(self.base_rms_um, self.noise_um)
+                           for k, j in self.table.items()},
+            "base_model": self.base_name,
+            "grid": None if self.grid is None else self.grid.as_dict(self.noise_um),
+            "extended_gains": list(self.extended_gains),
+            "residuals": self.signature, "sweeps": list(self.files),
+            "seconds": round(self.seconds, 2),
+            "method": "fit on the first half of every sweep, judged on the second half (state "
+                      "carried through); each sweep weighs the same; every held-out RMS read "
+                      "against the noise floor; the model files are the fits on the first "
+                      "halves"})
+
+    def evidence(self) -> str:
+        """One paragraph: why this cause (or none, or unexplained)."""
+        ranked = sorted(self.judged.values(), key=lambda j: j.heldout_rms_um)
+        lines = [f"{j.fitted.name}: held-out {j.heldout_rms_um:.4f} um "
+                 f"({ratio(j.heldout_rms_um, self.noise_um):.2f}x noise), gain "
+                 f"{ratio(self.base_rms_um, j.heldout_rms_um):.2f} (needs "
+                 f"{required_gain(j.n_params):.2f})" for j in ranked[:3]]
+        floor = (f"noise floor {self.noise_um:.4f} um; base model at "
+                 f"{self.base_over_noise:.2f}x noise")
+        if self.cause == "unexplained":
+            c = self.closest
+            head = (f"unexplained: {floor}, the closest model ({c.fitted.name}) at "
+                    f"{ratio(c.heldout_rms_um, self.noise_um):.2f}x: nothing reaches the floor"
+                    f" ({self.closest_dict()['text']})")
+        elif self.separating is not None:
+            s = self.separating
+            sensor, twin = self.table[s["sensor"]], self.table[s["actuator"]]
+            head = (f"indistinguishable: {floor}; {s['sensor']} at "
+                    f"{ratio(sensor.heldout_rms_um, self.noise_um):.2f}x and its actuator-side "
+                    f"twin {s['actuator']} at {ratio(twin.heldout_rms_um, self.noise_um):.2f}x "
+                    f"(the twin must miss by {s['needed']:.2f}x the sensor cause's RMS "
+                    f"to separate them, it misses by "
+                    f"{ratio(twin.heldout_rms_um, sensor.heldout_rms_um):.2f}x): these sweeps do "
+                    f"not tell an effect in the sensor from one before the rod's dynamics, so the "
+                    f"readings are kept uncorrected (the model is the paper's)")
+        else:
+            fitted = fitted_text(self.extended.parameters)
+            head = (f"{self.cause}: {floor}, held-out RMS {self.base_rms_um:.4f} -> "
+                    f"{self.extended_rms_um:.4f} um (gain {self.gain:.2f}, "
+                    f"{self.extended_over_noise:.2f}x noise)" + (f" with {fitted}" if fitted else ""))
+        grid = "" if self.grid is None else (
+            f"; the paper's model and its extensions leave it unexplained (the paper's model at "
+            f"{ratio(self.table['none'].heldout_rms_um, self.noise_um):.2f}x noise), so the "
+            f"Preisach grid was fitted: {self.grid.text(self.noise_um)}")
+        return head + grid + "; best models: " + "; ".join(lines)
+
+
+def json_safe(obj: Any) -> Any:
+    """``obj`` with every non-finite float replaced by None (JSON has no NaN or inf)."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
