@@ -82,7 +82,8 @@ ZETA_BOUNDS = (0.003, 5.0)
 
 __all__ = ["CREEP_TAUS_S", "CREEP_THRESHOLDS", "SMOOTHING", "BLOCKS", "FOLDS", "TRANSIENT_SPAN",
            "Settings", "hat_matrix", "Grid", "make_grid", "basis", "Data", "rod_filter", "Theta",
-           "Problem", "PreisachFit", "Runs", "fit", "runs", "gauss_newton", "heldout", "bounded_solve", "penalty"]
+           "Problem", "PreisachFit", "Runs", "fit", "runs", "gauss_newton", "heldout",
+           "bounded_solve", "penalty"]
 
 
 # ----------------------------------------------------------------------------------------------
