@@ -15,7 +15,12 @@ Given measured sweeps, :func:`diagnose`
 5. analyses the base model's residuals against time, field, field rate, frequency, amplitude,
    turning points, a tone that is no harmonic of the drive, and between sweeps
    (:func:`afmctl.fit.residuals.residual_signature`). The model files are the fits on the first
-   halves.
+   halves;
+6. when the verdict is ``unexplained``, fits the Preisach grid identify chooses off the paper's
+   family, without and with its log-time creep elements (:mod:`afmctl.fit.gridbase`: judged on
+   held-out blocks, as identify judges it): ``creep`` when the elements describe creep, ``none``
+   when the grid alone is at the floor, ``unexplained`` otherwise (with a drift hint when the
+   elements sit on the slowest time constants). The model files are then the grid's.
 
 Pure numerics and data: files and plots are written by the CLI (:mod:`afmctl.cli`).
 """
@@ -409,7 +414,7 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
             separating = _separating(table, job, floor, pairs)
         grid = None
         if cause == "unexplained" and settings.grid:
-            grid = _grid(halves, job, noise, floor, say)
+            grid = _grid(job, noise, floor, say)
             cause = gb.verdict(grid, floor, settings.creep_rule, settings.rule.none_within)
     say(f"verdict: {cause}")
     signature = residual_signature(table["none"].fitted, sweeps)
@@ -425,15 +430,14 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
                      time.perf_counter() - t0, files, tuple(pairs), separating, grid)
 
 
-def _grid(halves: Sequence[Sweep], job: _Job, noise: Sequence[float], floor: float,
+def _grid(job: _Job, noise: Sequence[float], floor: float,
           say: Callable[[str], None]) -> gb.GridBase:
-    """The Preisach grid without and with creep on the first halves, judged on the second
+    """The Preisach grid without and with creep on the whole sweeps, judged on held-out blocks
     (:func:`afmctl.fit.gridbase.judge`), from the paper's model's starts and rod."""
     say("nothing of the paper's family explains the sweeps: fitting the Preisach grid (the "
-        "representation identify chooses off the family) without and with creep on the first "
-        "halves ...")
+        "representation identify chooses off the family) without and with creep ...")
     x0 = job.x0
-    grid = gb.judge(halves, job.sweeps, job.thickness, job.settings.identify.mass_kg, noise,
+    grid = gb.judge(job.sweeps, job.thickness, job.settings.identify.mass_kg, noise,
                     job.data.base.starts, (math.exp(float(x0[4])), math.exp(float(x0[5]))), say,
                     job.settings.grid_fit)
     say(f"  Preisach grid: {grid.text(floor)} ({grid.seconds:.0f} s)")

@@ -112,8 +112,9 @@ class Diagnosis:
         return self.extended.gains
 
     def predictions(self, sweeps: Sequence[Sweep]) -> tuple[list[FloatArray], list[FloatArray]]:
-        """Readings (um) the base and the extended model (fitted on the first halves) predict
-        for ``sweeps``, each sweep from its start, with its sensor zero and gain."""
+        """Readings (um) the base and the extended model (fitted on the first halves; the
+        grid's on the whole sweeps) predict for ``sweeps``, each sweep from its start, with its
+        sensor zero and gain."""
         return predicted(self.base, sweeps), predicted(self.extended, sweeps)
 
     @property

@@ -3,11 +3,15 @@
 When neither the paper's model nor any of its one-effect extensions explains the sweeps
 (``unexplained``), the stage's hysteresis may simply not be of the paper's family: a Preisach
 density that is not separable, a Prandtl-Ishlinskii or Bouc-Wen stage (issue 23). identify then
-chooses the Preisach grid (:mod:`afmctl.fit.preisach`); :func:`judge` fits it on the first halves
-of the sweeps twice, without and with the log-time creep elements of :mod:`afmctl.model.creep`
-(:func:`afmctl.fit.preisach.runs`), and judges both on the second halves exactly as diagnose
-judges its candidates (the state carried from each sweep's start; the root mean of the per-sweep
-mean squares).
+chooses the Preisach grid (:mod:`afmctl.fit.preisach`); :func:`judge` fits it twice, without and
+with the log-time creep elements of :mod:`afmctl.model.creep` (:func:`afmctl.fit.preisach.runs`),
+and judges both as identify judges the grid: on held-out blocks (:func:`afmctl.fit.preisach.heldout`:
+the residual rows cut into blocks dealt to four folds, each fold judged by the fit on the other
+three; the root mean of the per-sweep mean squares). Not on the sweeps' second halves, as
+diagnose judges its candidates: on a bipolar stage's three standard triangles the first halves
+miss the slow sweep's major branch above 0 V (its first half goes up the virgin curve), so a
+first-half grid misses the second half by 40-70x the noise with or without creep, where the
+blocks judge it at 1-3x (preisach-b-creep, docs/results/diagnose.md).
 
 Creep and what is not creep (:class:`CreepRule`; measured on the out-of-family stages,
 docs/results/diagnose.md):
@@ -82,10 +86,10 @@ class CreepRule:
 
 @dataclass(frozen=True)
 class GridBase:
-    """The grid fitted on the first halves, without (``plain``) and with (``crept``) creep, as
-    diagnose's :class:`~afmctl.fit.extension.Extended` (the model, its starts and sensor zeros),
-    each with its held-out RMS (um, overall and per sweep) and readings on the whole sweeps
-    (um); the creep elements' figures and the wall time (s)."""
+    """The grid fitted without (``plain``) and with (``crept``) creep, as diagnose's
+    :class:`~afmctl.fit.extension.Extended` (the model, its starts and sensor zeros), each with
+    its held-out RMS (um, overall and per sweep) and readings on the sweeps (um); the creep
+    elements' figures and the wall time (s)."""
 
     plain: ext.Extended
     crept: ext.Extended
@@ -136,8 +140,9 @@ class GridBase:
                 "creep_share_subsecond": self.short_share,
                 "creep_share_100s_up": self.long_share,
                 "creep_span_decades": self.span_decades, "seconds": round(self.seconds, 2),
-                "method": "the Preisach grid fitted on the first halves without and with its "
-                          "creep elements (10 ms - 1000 s), judged on the second halves"}
+                "method": "the Preisach grid fitted without and with its creep elements "
+                          "(10 ms - 1000 s), each judged on held-out blocks as identify judges "
+                          "it (four folds)"}
 
 
 def shares(tau_s: FloatArray, weights: FloatArray, rule: CreepRule = CreepRule()
@@ -162,27 +167,14 @@ def _data(sweeps: Sequence[Sweep], thickness_um: float, noise_um: Sequence[float
                    np.asarray(noise_um, float))
 
 
-def _heldout(readings: Sequence[FloatArray], sweeps: Sequence[Sweep]
-             ) -> tuple[float, tuple[float, ...]]:
-    """RMS (um) on every sweep's second half: the root mean of the per-sweep mean squares."""
-    mse = []
-    for s, u in zip(sweeps, readings, strict=True):
-        judged = s.mask(None)
-        judged[:s.time_s.size // 2] = False
-        mse.append(float(np.mean((s.displacement_um[judged] - u[judged]) ** 2)))
-    return math.sqrt(float(np.mean(mse))), tuple(math.sqrt(m) for m in mse)
-
-
-def judge(halves: Sequence[Sweep], sweeps: Sequence[Sweep], thickness_um: float,
-          mass_kg: float, noise_um: Sequence[float], starts: Sequence[str],
-          rod0: tuple[float, float], say: Callable[[str], None],
-          settings: pf.Settings = pf.Settings()) -> GridBase:
-    """Fit the grid on ``halves`` without and with creep and judge both on ``sweeps``.
+def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
+          noise_um: Sequence[float], starts: Sequence[str], rod0: tuple[float, float],
+          say: Callable[[str], None], settings: pf.Settings = pf.Settings()) -> GridBase:
+    """Fit the grid on ``sweeps`` without and with creep and judge both on held-out blocks.
 
     Parameters
     ----------
-    halves, sweeps : sequence of Sweep
-        The first halves (fitted) and the whole sweeps (their second halves judged).
+    sweeps : sequence of Sweep
     thickness_um, mass_kg : float
         Layer thickness (um) and the fixed effective mass (kg, a scale convention).
     noise_um : sequence of float
@@ -192,32 +184,38 @@ def judge(halves: Sequence[Sweep], sweeps: Sequence[Sweep], thickness_um: float,
         ``negative`` is tried too.
     rod0 : (float, float)
         Starting natural frequency (Hz) and damping ratio of the rod.
+    settings : afmctl.fit.preisach.Settings
+        The grid's fit (identify's by default).
     """
     t0 = time.perf_counter()
     n = len(sweeps)
     cands = [tuple(starts)] + [(s,) * n for s in ("positive", "depoled", "negative")]
-    fitted = pf.runs(_data(halves, thickness_um, noise_um), cands, rod0, settings, say)
+    fitted = pf.runs(_data(sweeps, thickness_um, noise_um), cands, rod0, settings, say)
     prob = fitted.problem
-    whole = pf.Problem(_data(sweeps, thickness_um, noise_um), prob.grid, prob.starts, prob.taus)
-    whole.set_thresholds(prob.thresholds)
-    out: dict[bool, tuple[ext.Extended, FloatArray, float, tuple[float, ...]]] = {}
+    out: dict[bool, tuple[ext.Extended, list[FloatArray], FloatArray]] = {}
     for creep, run in ((False, fitted.plain), (True, fitted.crept)):
-        readings = whole.predict(run.theta, full=True)
-        rms, per = _heldout(readings, sweeps)
+        per = pf.heldout(prob, run.theta, fitted.penalty, (fitted.smoothing,),
+                         creep)[fitted.smoothing]
         model = pf.build(run.theta, prob, mass_kg, thickness_um, settings.p_scale, creep)
         name = "preisach-grid" + (" with creep" if creep else "")
         out[creep] = (ext.Extended(name, model, (1.0,) * n, {}, run.converged, run.iterations,
                                    np.zeros(0), prob.starts,
                                    tuple(float(o) for o in run.theta.offsets), np.zeros(0)),
-                      readings, rms, per)
+                      prob.predict(run.theta, full=True), per)
     c = fitted.crept.theta.c
     creep = cr.Creep(tuple(float(t) for t in prob.el_tau), tuple(float(w) for w in c),
                      tuple(float(r) for r in prob.el_thr))
     short, long, span = shares(prob.el_tau, c)
-    per_decade = creep.per_decade() if c.any() else 0.0
-    return GridBase(out[False][0], out[True][0], out[False][2], out[True][2], out[False][3],
-                    out[True][3], tuple(out[False][1]), tuple(out[True][1]), per_decade, short,
-                    long, span, time.perf_counter() - t0)
+    (plain, plain_u, plain_per), (crept, crept_u, crept_per) = out[False], out[True]
+    return GridBase(plain, crept, _root_mean(plain_per), _root_mean(crept_per),
+                    tuple(map(float, plain_per)), tuple(map(float, crept_per)), tuple(plain_u),
+                    tuple(crept_u), creep.per_decade() if c.any() else 0.0, short, long, span,
+                    time.perf_counter() - t0)
+
+
+def _root_mean(per_sweep_um: FloatArray) -> float:
+    """The root mean of the per-sweep mean squares (um): every sweep weighs the same."""
+    return math.sqrt(float(np.mean(np.square(per_sweep_um))))
 
 
 def verdict(grid: GridBase, floor_um: float, rule: CreepRule = CreepRule(),
