@@ -89,11 +89,9 @@ class Diagnosis:
         if self.grid is None:
             return self.table
         g = self.grid
-        return {**self.table,
+        return {**self.table,  # (no parameter count: the grid is judged by its own rule)
                 g.plain.name: Judged(g.plain, 0, g.plain_rms_um, g.plain_per_sweep_um, g.seconds),
-                g.crept.name: Judged(g.crept, int(g.crept.model.creep is not None and
-                                                  g.crept.model.creep.size),
-                                     g.crept_rms_um, g.crept_per_sweep_um, g.seconds)}
+                g.crept.name: Judged(g.crept, 0, g.crept_rms_um, g.crept_per_sweep_um, g.seconds)}
 
     @property
     def gain(self) -> float:
@@ -188,7 +186,7 @@ class Diagnosis:
 
     def evidence(self) -> str:
         """One paragraph: why this cause (or none, or unexplained)."""
-        ranked = sorted(self.judged.values(), key=lambda j: j.heldout_rms_um)
+        ranked = sorted(self.table.values(), key=lambda j: j.heldout_rms_um)
         lines = [f"{j.fitted.name}: held-out {j.heldout_rms_um:.4f} um "
                  f"({ratio(j.heldout_rms_um, self.noise_um):.2f}x noise), gain "
                  f"{ratio(self.base_rms_um, j.heldout_rms_um):.2f} (needs "
@@ -220,7 +218,7 @@ class Diagnosis:
             f"; the paper's model and its extensions leave it unexplained (the paper's model at "
             f"{ratio(self.table['none'].heldout_rms_um, self.noise_um):.2f}x noise), so the "
             f"Preisach grid was fitted: {self.grid.text(self.noise_um)}")
-        return head + grid + "; best models: " + "; ".join(lines)
+        return head + grid + "; best of the paper's family: " + "; ".join(lines)
 
 
 def json_safe(obj: Any) -> Any:

@@ -24,12 +24,22 @@ def report(d: dg.Diagnosis, figure: str) -> str:
              "on the second half.", "",
              "| candidate | parameters added | held-out RMS (um) | x noise | gain | needed | fitted |",
              "|---|---:|---:|---:|---:|---:|---|"]
-    for name, j in sorted(d.judged.items(), key=lambda kv: kv[1].heldout_rms_um):
+    for name, j in sorted(d.table.items(), key=lambda kv: kv[1].heldout_rms_um):
         fitted = dg.fitted_text(j.fitted.parameters)
         lines.append(f"| {name} | {j.n_params} | {j.heldout_rms_um:.4f} | "
                      f"{ratio(j.heldout_rms_um, d.noise_um):.2f} | "
                      f"{ratio(d.base_rms_um, j.heldout_rms_um):.2f} | "
                      f"{required_gain(j.n_params):.2f} | {fitted} |")
+    if d.grid is not None:
+        g = d.grid
+        lines += ["", "The Preisach grid (identify's representation off the paper's family), judged "
+                  "on held-out blocks as identify judges it:", "",
+                  "| model | held-out RMS (um) | x noise | per sweep (um) |", "|---|---:|---:|---|"]
+        for name, rms, per in ((g.plain.name, g.plain_rms_um, g.plain_per_sweep_um),
+                               (g.crept.name, g.crept_rms_um, g.crept_per_sweep_um)):
+            lines.append(f"| {name} | {rms:.4f} | {ratio(rms, d.noise_um):.2f} | "
+                         + " / ".join(f"{r:.4f}" for r in per) + " |")
+        lines += ["", f"Creep elements: {g.text(d.noise_um)}."]
     sig = d.signature
     lines += ["", "## Residuals of the paper's model", "",
               "| sweep | frequency (Hz) | RMS (um) | mean (um) | corr. field | corr. field rate "
