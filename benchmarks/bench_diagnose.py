@@ -253,7 +253,7 @@ def right(row: dict[str, Any]) -> bool:
 def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     effect = [r for r in rows if r["cause"] != "none"]
     tracked = [r for r in rows if "track_base_rms_um" in r]
-    labels = ["none", *IN_VOCABULARY, "unexplained", "indistinguishable"]
+    labels = ["none", *IN_VOCABULARY, "creep", "unexplained", "indistinguishable"]
     truths = ["none", *IN_VOCABULARY, *OUT_OF_VOCABULARY]
     confusion = {t: {lab: sum(r["cause"] == t and r["named"] == lab for r in rows)
                      for lab in labels} for t in truths}
@@ -291,7 +291,8 @@ def family_row(name: str) -> dict[str, Any]:
             "extended_over_noise": d.extended_over_noise, "closest": d.closest.fitted.name,
             "closest_explained_fraction": d.closest_dict()["explained_fraction"],
             "drift_hint": any(h["feature"] == "drift" for h in d.suggestions()),
-            "grid": None if d.grid is None else d.grid.as_dict(d.noise_um),
+            "true_creep_per_decade": s.truth.creep.per_decade if s.truth.creep else 0.0,
+            "grid": None if d.grid is None else d.grid.as_dict(),
             "seconds": round(d.seconds, 1)}
 
 
@@ -303,6 +304,8 @@ def family_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return {"family_stages": len(fam), "family_wrong_cause": sum(r["wrong"] for r in fam),
             "family_creep_named": sum(r["named"] == "creep" for r in creep),
             "family_creep_stages": len(creep),
+            "family_none_on_creep_or_drift": sum(r["named"] == "none" for r in fam
+                                                 if r["creep"] or r["drift"]),
             "family_drift_hinted": sum(r["drift_hint"] for r in fam if r["drift"]),
             "family_drift_stages": sum(r["drift"] for r in fam),
             "drift_hint_wrong": sum(r["drift_hint"] for r in rows if not r["drift"]),

@@ -219,7 +219,7 @@ def _space(name: str, job: _Job, progress: ext.Progress | None = None) -> ext.Ex
     linear calibration on the slowest of the recorded sweeps."""
     data = job.data
     cand = cd.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
-                         float(np.exp(job.x0[4])), cd.field_rate_max(data.preps))[name]
+                         pz.rod_of(job.x0)[0], cd.field_rate_max(data.preps))[name]
     return ext.ExtendedSpace(cand, data.preps, data.base, job.settings.identify.field_step,
                              job.range_um, gauge_frame=cd.calibration_frame(job.whole),
                              calibration_um=cd.recorded_calibration(job.sweeps),
@@ -414,8 +414,8 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
             separating = _separating(table, job, floor, pairs)
         grid = None
         if cause == "unexplained" and settings.grid:
-            grid = _grid(job, noise, floor, say)
-            cause = gb.verdict(grid, floor, settings.creep_rule, settings.rule.none_within)
+            grid = _grid(job, noise, say)
+            cause = grid.verdict()
     say(f"verdict: {cause}")
     signature = residual_signature(table["none"].fitted, sweeps)
     files = tuple(s.path or s.name for s in sweeps)
@@ -430,15 +430,13 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
                      time.perf_counter() - t0, files, tuple(pairs), separating, grid)
 
 
-def _grid(job: _Job, noise: Sequence[float], floor: float,
-          say: Callable[[str], None]) -> gb.GridBase:
+def _grid(job: _Job, noise: Sequence[float], say: Callable[[str], None]) -> gb.GridBase:
     """The Preisach grid without and with creep on the whole sweeps, judged on held-out blocks
     (:func:`afmctl.fit.gridbase.judge`), from the paper's model's starts and rod."""
     say("nothing of the paper's family explains the sweeps: fitting the Preisach grid (the "
         "representation identify chooses off the family) without and with creep ...")
-    x0 = job.x0
-    grid = gb.judge(job.sweeps, job.thickness, job.settings.identify.mass_kg, noise,
-                    job.data.base.starts, (math.exp(float(x0[4])), math.exp(float(x0[5]))), say,
-                    job.settings.grid_fit)
-    say(f"  Preisach grid: {grid.text(floor)} ({grid.seconds:.0f} s)")
+    s = job.settings
+    grid = gb.judge(job.sweeps, job.thickness, s.identify.mass_kg, noise, job.data.base.starts,
+                    pz.rod_of(job.x0), say, s.grid_fit, s.creep_rule)
+    say(f"  Preisach grid: {grid.text()} ({grid.seconds:.0f} s)")
     return grid

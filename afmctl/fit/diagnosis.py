@@ -84,14 +84,9 @@ class Diagnosis:
         return "the Preisach grid without creep" if self.on_grid else "the paper's model"
 
     @property
-    def judged(self) -> dict[str, Judged]:
-        """The candidate table and, when fitted, the grid without and with creep."""
-        if self.grid is None:
-            return self.table
-        g = self.grid
-        return {**self.table,  # (no parameter count: the grid is judged by its own rule)
-                g.plain.name: Judged(g.plain, 0, g.plain_rms_um, g.plain_per_sweep_um, g.seconds),
-                g.crept.name: Judged(g.crept, 0, g.crept_rms_um, g.crept_per_sweep_um, g.seconds)}
+    def paper_rms_um(self) -> float:
+        """Held-out RMS of the paper's model (um): the candidates' base."""
+        return self.table["none"].heldout_rms_um
 
     @property
     def gain(self) -> float:
@@ -125,8 +120,8 @@ class Diagnosis:
 
     @property
     def closest(self) -> Judged:
-        """The model (base, candidate or grid) with the smallest held-out RMS."""
-        return min(self.judged.values(), key=lambda j: j.heldout_rms_um)
+        """The model (the paper's or a candidate) with the smallest held-out RMS."""
+        return min(self.table.values(), key=lambda j: j.heldout_rms_um)
 
     @property
     def explanation(self) -> str:
@@ -141,7 +136,7 @@ class Diagnosis:
         """The model nearest the floor: held-out RMS (um), over the noise, the fraction of the
         base model's misfit it explains (:func:`afmctl.fit.verdict.explained`) and a phrase."""
         c = self.closest
-        frac = vd.explained(self.base_rms_um, c.heldout_rms_um, self.noise_um)
+        frac = vd.explained(self.paper_rms_um, c.heldout_rms_um, self.noise_um)
         return {"model": c.fitted.name, "heldout_rms_um": c.heldout_rms_um,
                 "over_noise": ratio(c.heldout_rms_um, self.noise_um), "explained_fraction": frac,
                 "text": vd.closest_phrase(c.fitted.name, frac)}
@@ -172,24 +167,26 @@ class Diagnosis:
             "evidence": self.evidence(),
             "suggestions": self.suggestions(),
             "twins": list(self.twins), "separating_sweep": self.separating,
-            "candidates": {k: j.as_dict(self.base_rms_um, self.noise_um)
+            "candidates": {k: j.as_dict(self.paper_rms_um, self.noise_um)
                            for k, j in self.table.items()},
             "base_model": self.base_name,
-            "grid": None if self.grid is None else self.grid.as_dict(self.noise_um),
+            "grid": None if self.grid is None else self.grid.as_dict(),
             "extended_gains": list(self.extended_gains),
             "residuals": self.signature, "sweeps": list(self.files),
             "seconds": round(self.seconds, 2),
             "method": "fit on the first half of every sweep, judged on the second half (state "
                       "carried through); each sweep weighs the same; every held-out RMS read "
-                      "against the noise floor; the model files are the fits on the first "
-                      "halves"})
+                      "against the noise floor; " + (
+                          "the verdict is the Preisach grid's (grid.method): the model files "
+                          "are its fits on the whole sweeps" if self.on_grid else
+                          "the model files are the fits on the first halves")})
 
     def evidence(self) -> str:
         """One paragraph: why this cause (or none, or unexplained)."""
         ranked = sorted(self.table.values(), key=lambda j: j.heldout_rms_um)
         lines = [f"{j.fitted.name}: held-out {j.heldout_rms_um:.4f} um "
                  f"({ratio(j.heldout_rms_um, self.noise_um):.2f}x noise), gain "
-                 f"{ratio(self.base_rms_um, j.heldout_rms_um):.2f} (needs "
+                 f"{ratio(self.paper_rms_um, j.heldout_rms_um):.2f} (needs "
                  f"{required_gain(j.n_params):.2f})" for j in ranked[:3]]
         floor = (f"noise floor {self.noise_um:.4f} um; base model at "
                  f"{self.base_over_noise:.2f}x noise")
@@ -216,8 +213,11 @@ class Diagnosis:
                     f"{self.extended_over_noise:.2f}x noise)" + (f" with {fitted}" if fitted else ""))
         grid = "" if self.grid is None else (
             f"; the paper's model and its extensions leave it unexplained (the paper's model at "
-            f"{ratio(self.table['none'].heldout_rms_um, self.noise_um):.2f}x noise), so the "
-            f"Preisach grid was fitted: {self.grid.text(self.noise_um)}")
+            f"{ratio(self.paper_rms_um, self.noise_um):.2f}x noise), so the Preisach grid was "
+            f"fitted and judged on held-out blocks: {self.grid.text()}"
+            + ("" if self.cause != "creep" or self.extended_over_noise <= vd.Rule().near else
+               f"; with creep it is still {self.extended_over_noise:.2f}x the noise: the "
+               f"grid's shape or a further effect is left"))
         return head + grid + "; best of the paper's family: " + "; ".join(lines)
 
 

@@ -28,7 +28,7 @@ def report(d: dg.Diagnosis, figure: str) -> str:
         fitted = dg.fitted_text(j.fitted.parameters)
         lines.append(f"| {name} | {j.n_params} | {j.heldout_rms_um:.4f} | "
                      f"{ratio(j.heldout_rms_um, d.noise_um):.2f} | "
-                     f"{ratio(d.base_rms_um, j.heldout_rms_um):.2f} | "
+                     f"{ratio(d.paper_rms_um, j.heldout_rms_um):.2f} | "
                      f"{required_gain(j.n_params):.2f} | {fitted} |")
     if d.grid is not None:
         g = d.grid
@@ -39,7 +39,7 @@ def report(d: dg.Diagnosis, figure: str) -> str:
                                (g.crept.name, g.crept_rms_um, g.crept_per_sweep_um)):
             lines.append(f"| {name} | {rms:.4f} | {ratio(rms, d.noise_um):.2f} | "
                          + " / ".join(f"{r:.4f}" for r in per) + " |")
-        lines += ["", f"Creep elements: {g.text(d.noise_um)}."]
+        lines += ["", f"The grid: {g.text()}."]
     sig = d.signature
     lines += ["", "## Residuals of the paper's model", "",
               "| sweep | frequency (Hz) | RMS (um) | mean (um) | corr. field | corr. field rate "

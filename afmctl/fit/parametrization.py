@@ -352,6 +352,12 @@ def internal(model: td.Transducer) -> FloatArray:
                    pol.eta * pol.p_r, model.rod.natural_hz, model.rod.damping_ratio])
 
 
+def rod_of(x: FloatArray) -> tuple[float, float]:
+    """The rod's natural frequency (Hz) and damping ratio of the internal parameters ``x``
+    (:func:`internal`): a start for the other representations' fits."""
+    return math.exp(float(x[4])), math.exp(float(x[5]))
+
+
 def lognormal_equivalent(model: td.Transducer) -> td.Transducer:
     """``model`` in the lognormal/normal family :func:`internal` takes: a general (discrete)
     coercive density, as identify writes one, replaced by the lognormal with the same mean and

@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from scipy import optimize
 from threadpoolctl import threadpool_limits
 
+from afmctl.files.sweepfile import Sweep
 from afmctl.fit import parametrization as pz
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.preisach_problem import (
@@ -83,7 +84,7 @@ ZETA_BOUNDS = (0.003, 5.0)
 __all__ = ["CREEP_TAUS_S", "CREEP_THRESHOLDS", "SMOOTHING", "BLOCKS", "FOLDS", "TRANSIENT_SPAN",
            "Settings", "hat_matrix", "Grid", "make_grid", "basis", "Data", "rod_filter", "Theta",
            "Problem", "PreisachFit", "Runs", "fit", "runs", "gauss_newton", "heldout",
-           "bounded_solve", "penalty"]
+           "bounded_solve", "penalty", "start_candidates", "sweep_data"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -441,6 +442,23 @@ def _active(data: Data, ec: FloatArray, ei: FloatArray, spread: float, mi: Float
     return np.flatnonzero(coarse.ravel())
 
 
+def sweep_data(sweeps: Sequence[Sweep], thickness_um: float, noise_um: Sequence[float],
+               window_s: tuple[float, float] | None = None) -> Data:
+    """``sweeps`` as the fit sees them: fields (MV/m), the readings (um) on each sweep's judged
+    samples (after its first excursion, within ``window_s``), sample periods and each sweep's
+    sensor noise (um)."""
+    return Data([s.voltage_v / thickness_um for s in sweeps], [s.mask(window_s) for s in sweeps],
+                [s.displacement_um[s.mask(window_s)] for s in sweeps], [s.dt for s in sweeps],
+                np.asarray(noise_um, float))
+
+
+def start_candidates(starts: Sequence[str]) -> list[tuple[str, ...]]:
+    """The start assignments a grid fit tries: ``starts`` (the paper's model's) and every sweep
+    alike from ``positive``, ``depoled`` and ``negative``."""
+    n = len(starts)
+    return [tuple(starts)] + [(s,) * n for s in ("positive", "depoled", "negative")]
+
+
 def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
         thickness_um: float, mass_kg: float, settings: Settings | None = None,
         say: Callable[[str], None] | None = None) -> PreisachFit:
@@ -476,8 +494,25 @@ class Runs:
 
 def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
          settings: Settings, say: Callable[[str], None]) -> Runs:
-    """The start assignment (of ``starts_candidates``) whose first linear step fits best, the
-    fit without creep (the rod searched twice), then with creep from there (:class:`Runs`)."""
+    """The grid fitted without and with creep at the middle smoothing.
+
+    Parameters
+    ----------
+    data : Data
+    starts_candidates : sequence of sequences of str
+        Start assignments to try; the one whose first linear step fits best is kept.
+    rod0 : (float, float)
+        Starting natural frequency (Hz) and damping ratio of the rod.
+    settings : Settings
+    say : callable
+        One-line progress messages.
+
+    Returns
+    -------
+    Runs
+        The fit without creep (the rod searched twice, ``settings.max_iter // 4`` steps after
+        each search), then with creep from there (``settings.max_iter`` steps).
+    """
     ec, ei, spread = make_grid(data.fields, settings)
     cands = [tuple(s) for s in dict.fromkeys(tuple(s) for s in starts_candidates)]
     mi = hat_matrix(ec.size, settings.coef_coercive)

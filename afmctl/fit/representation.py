@@ -28,7 +28,6 @@ polishing and a general density, against the grid's 2.7x).
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
@@ -41,7 +40,7 @@ from afmctl.fit import boucwen as bf
 from afmctl.fit import closure
 from afmctl.fit import preisach as pf
 from afmctl.fit import uncertainty as unc
-from afmctl.fit.parametrization import turning_points
+from afmctl.fit.parametrization import rod_of, turning_points
 from afmctl.model import boucwen as bm
 from afmctl.model import preisach as pr
 
@@ -78,22 +77,15 @@ class Grid:
         self.decided = False
 
     def data(self) -> pf.Data:
-        w = self.settings.window_s
-        return pf.Data([s.voltage_v / self.thickness for s in self.sweeps],
-                       [s.mask(w) for s in self.sweeps],
-                       [s.displacement_um[s.mask(w)] for s in self.sweeps],
-                       [s.dt for s in self.sweeps], np.asarray(self.noise, float))
+        return pf.sweep_data(self.sweeps, self.thickness, self.noise, self.settings.window_s)
 
     def run(self, starts: Sequence[str], x_hem: FloatArray) -> pf.PreisachFit:
         """Fit the grid once: the start assignments tried are the HEM's and every sweep alike."""
         if self.fit is None:
             self.say("fitting the Preisach grid with creep (the paper's model is above its "
                      "noise floor) ...")
-            n = len(self.sweeps)
-            cands = [tuple(starts)] + [(s,) * n for s in ("positive", "depoled", "negative")]
-            fn, zeta = math.exp(float(x_hem[4])), math.exp(float(x_hem[5]))
-            self.fit = pf.fit(self.data(), cands, (fn, zeta), self.thickness,
-                              self.settings.mass_kg, say=self.say)
+            self.fit = pf.fit(self.data(), pf.start_candidates(starts), rod_of(x_hem),
+                              self.thickness, self.settings.mass_kg, say=self.say)
         return self.fit
 
     def bouc_wen(self, starts: Sequence[str], x_hem: FloatArray) -> bf.BoucWenFit | None:
@@ -104,7 +96,7 @@ class Grid:
             self.say("fitting a Bouc-Wen model (its minor loops need not close) ...")
             rod0 = ((self.fit.model.rod.natural_hz, self.fit.model.rod.damping_ratio)
                     if self.fit is not None else
-                    (math.exp(float(x_hem[4])), math.exp(float(x_hem[5]))))
+                    rod_of(x_hem))
             chained = [(first,) + ("previous",) * (len(starts) - 1)
                        for first in ("depoled", "negative", "positive")]
             try:

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from afmctl.drivers.device.foreign import family_stage as fst
+from afmctl.cli.diagnose import _write
 from afmctl.files import modelfile
 from afmctl.files import sweepfile as sw
 from afmctl.fit import diagnose as dg
-from afmctl.fit import diagnosis_report
 from afmctl.fit import gridbase as gb
 from afmctl.fit import identify as idf
 from afmctl.fit import preisach as pf
@@ -53,37 +53,66 @@ def test_shares_of_the_creep_weight() -> None:
     assert gb.shares(taus, np.zeros(22)) == (0.0, 0.0, 0.0)
 
 
+def diagnosed(stage: fst.FamilyStage, seed: int) -> tuple[list[sw.Sweep], dg.Diagnosis]:
+    """The stage's triangles diagnosed with the paper's model alone as the candidate (the grid
+    comes in once it leaves them unexplained)."""
+    sweeps = triangles(stage, seed)
+    fast = idf.Settings(restarts=0, density="parametric")
+    return sweeps, dg.diagnose(sweeps, dg.Settings(identify=fast, candidates=("none",), jobs=1,
+                                                   grid_fit=FAST),
+                               noise_um=[stage.noise_um] * 3)
+
+
 def test_a_creeping_stage_out_of_the_family_is_diagnosed_creep(tmp_path: Path) -> None:
     stage = fst.random_family_stage(np.random.default_rng(11), "preisach", creep=True)
-    sweeps = triangles(stage, 11)
-    fast = idf.Settings(restarts=0, density="parametric")
-    d = dg.diagnose(sweeps, dg.Settings(identify=fast, candidates=("none",), jobs=1,
-                                        grid_fit=FAST), noise_um=[stage.noise_um] * 3)
+    sweeps, d = diagnosed(stage, 11)
     assert d.cause == "creep", d.evidence()
     g = d.grid
     assert g is not None and d.on_grid and g.creep() and not g.drift()
     assert g.gain >= 1.5 and g.short_share >= 0.1 and g.per_decade >= 0.003
-    # the base is the grid without creep, the extension the grid with it, both judged held out
-    assert d.base_rms_um == g.plain_rms_um and d.extended_rms_um == g.crept_rms_um
-    assert d.table["none"].heldout_rms_um > 1.5 * g.crept_rms_um  # the paper's model alone
+    assert d.paper_rms_um > 1.5 * g.crept_rms_um  # the paper's model alone misses it
     assert d.extended_model.creep is not None and d.base_model.creep is None
+    # the CLI's files: the models read back, the report and the JSON name the grid's verdict
+    _write(d, sweeps, tuple(f"{s.path}.csv" for s in sweeps), tmp_path, "{}")
     doc = json.loads(json.dumps(d.as_dict(), allow_nan=False))
-    assert doc["base_model"] == "the Preisach grid without creep"
-    assert doc["grid"]["creep_gain"] == pytest.approx(g.gain)
+    assert doc["base_model"] == "the Preisach grid without creep" and doc["grid"]["creep"]
     assert "creep" in doc["explanation"] and "decade" in doc["evidence"]
-    assert "| preisach-grid with creep |" in diagnosis_report.report(d, "residuals.png")
-    # the extended model file reads back and predicts what was judged
-    modelfile.write(d.extended_model, tmp_path / "extended.toml")
+    assert "Preisach grid" in doc["method"]
+    assert "| preisach-grid with creep |" in (tmp_path / "report.md").read_text()
+    assert "Preisach grid without creep" in (tmp_path / "base.toml").read_text()
     back = modelfile.read(tmp_path / "extended.toml")
+    # what extended.toml predicts is what the grid with creep was judged by
     u = idf.predict_set(back, sweeps, d.extended.starts, d.extended.offsets_um)
     for s, a, b in zip(sweeps, u, g.crept_readings, strict=True):
         assert float(np.max(np.abs(a - b))) < 1e-6 * float(np.ptp(s.displacement_um))
+    assert modelfile.read(tmp_path / "base.toml").creep is None
 
 
 def test_a_drifting_stage_is_not_diagnosed_creep_and_gets_a_drift_hint() -> None:
     stage = fst.random_family_stage(np.random.default_rng(12), "preisach", drift=True)
-    sweeps = triangles(stage, 12)
-    g = gb.judge(sweeps, 100.0, idf.Settings().mass_kg, [stage.noise_um] * 3, ("depoled",) * 3,
-                 (stage.resonance_hz, stage.damping), lambda _m: None, FAST)
-    assert not g.creep() and g.drift(), g.text(stage.noise_um)
-    assert gb.verdict(g, stage.noise_um) == "unexplained"
+    _, d = diagnosed(stage, 12)
+    assert d.grid is not None and not d.grid.creep() and d.grid.drift(), d.evidence()
+    assert d.cause == "unexplained" and not d.on_grid
+    assert d.suggestions()[0] == gb.DRIFT_HINT
+    assert d.base_model.creep is None and d.extended_model.creep is None  # nothing absorbed
+
+
+def grid_of(plain: float, crept: float, per_decade: float = 0.01, short: float = 0.3,
+            long: float = 0.2, span: float = 3.0) -> gb.GridBase:
+    """A GridBase with these figures (held-out RMS in multiples of a floor of 1 um)."""
+    return gb.GridBase(None, None, plain, crept, (plain,), (crept,), (),  # type: ignore[arg-type]
+                       per_decade, short, long, span, 1.0, gb.CreepRule(), 0.0)
+
+
+@pytest.mark.parametrize(("figures", "verdict"), [
+    ({"plain": 10.0, "crept": 2.0}, "creep"),
+    ({"plain": 10.0, "crept": 2.0, "span": 1.0}, "unexplained"),  # one knee: not log-time creep
+    ({"plain": 10.0, "crept": 2.0, "short": 0.05, "long": 0.9}, "unexplained"),  # a drift
+    ({"plain": 10.0, "crept": 6.0}, "unexplained"),  # gain 1.7, but most of the misfit left
+    ({"plain": 3.0, "crept": 2.5}, "unexplained"),  # too small a gain for creep, far from floor
+    ({"plain": 1.4, "crept": 1.3}, "none"),  # the grid alone at the floor
+    ({"plain": 1.4, "crept": 1.3, "short": 0.0, "long": 1.0}, "unexplained"),  # drifting
+    ({"plain": 2.0, "crept": 1.0, "per_decade": 0.001}, "unexplained"),  # no creep to speak of
+], ids=["creep", "knee", "drift", "partial", "small", "none", "none-but-drift", "tiny"])
+def test_the_creep_rule(figures: dict[str, float], verdict: str) -> None:
+    assert grid_of(**figures).verdict() == verdict
