@@ -27,7 +27,7 @@ from afmctl.planning import sweepdesign as sd
 
 RATE_HZ = 5000.0
 #: A coarser grid and fewer Gauss-Newton steps than identify's: the test's budget.
-FAST = pf.Settings(coef_coercive=12, coef_interaction=18, max_iter=20)
+FAST = pf.Settings(coef_coercive=12, coef_interaction=18, max_iter=10)
 
 
 def triangles(stage: fst.FamilyStage, seed: int) -> list[sw.Sweep]:
