@@ -109,10 +109,13 @@ def grid_of(plain: float, crept: float, per_decade: float = 0.01, short: float =
     ({"plain": 10.0, "crept": 2.0, "span": 1.0}, "unexplained"),  # one knee: not log-time creep
     ({"plain": 10.0, "crept": 2.0, "short": 0.05, "long": 0.9}, "unexplained"),  # a drift
     ({"plain": 10.0, "crept": 6.0}, "unexplained"),  # gain 1.7, but most of the misfit left
+    ({"plain": 7.5, "crept": 2.6}, "unexplained"),  # 90 % of it: bw-b's memory, not creep
+    ({"plain": 40.0, "crept": 5.0}, "creep"),  # 98 %: pi-u-creep, its play shape left
     ({"plain": 3.0, "crept": 2.5}, "unexplained"),  # too small a gain for creep, far from floor
     ({"plain": 1.4, "crept": 1.3}, "none"),  # the grid alone at the floor
     ({"plain": 1.4, "crept": 1.3, "short": 0.0, "long": 1.0}, "unexplained"),  # drifting
     ({"plain": 2.0, "crept": 1.0, "per_decade": 0.001}, "unexplained"),  # no creep to speak of
-], ids=["creep", "knee", "drift", "partial", "small", "none", "none-but-drift", "tiny"])
+], ids=["creep", "knee", "drift", "partial", "bouc-wen", "far", "small", "none",
+        "none-but-drift", "tiny"])
 def test_the_creep_rule(figures: dict[str, float], verdict: str) -> None:
     assert grid_of(**figures).verdict() == verdict
