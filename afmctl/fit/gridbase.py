@@ -9,9 +9,10 @@ and judges both as identify judges the grid: on held-out blocks (:func:`afmctl.f
 the residual rows cut into blocks dealt to four folds, each fold judged by the fit on the other
 three; the root mean of the per-sweep mean squares). Not on the sweeps' second halves, as
 diagnose judges its candidates: on a bipolar stage's three standard triangles the first halves
-miss the slow sweep's major branch above 0 V (its first half goes up the virgin curve), so a
-first-half grid misses the second half by 40-70x the noise with or without creep, where the
-blocks judge it at 1-3x (preisach-b-creep, docs/results/diagnose.md).
+miss the slow sweep's major branch above 0 V (its first half goes up the virgin curve: the
+likely reason), and a first-half grid missed preisach-b-creep's second halves by 71 / 10 / 14x
+the noise without creep and 42 / 6 / 5x with it, where the blocks judge it at 39x and 2.4x
+(docs/results/diagnose.md).
 
 Creep and what is not creep (:class:`CreepRule`; measured on the out-of-family stages,
 docs/results/diagnose.md):
