@@ -281,6 +281,7 @@ def family_row(name: str) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
         sweeps = family_sets.record(s, Path(tmp) / "sweeps", reversals=False)
         d = dg.diagnose(sweeps, dg.Settings(jobs=1))
+        tracked = family_track(s, d, sweeps) if d.extended is not d.base else {}
     present = {c for c in ("creep" if case.creep else None, case.effect) if c}
     named = d.cause
     return {"stage": case.name, "family": case.family, "creep": case.creep, "drift": case.drift,
@@ -293,7 +294,35 @@ def family_row(name: str) -> dict[str, Any]:
             "drift_hint": any(h["feature"] == "drift" for h in d.suggestions()),
             "true_creep_per_decade": s.truth.creep.per_decade if s.truth.creep else 0.0,
             "grid": None if d.grid is None else d.grid.as_dict(),
-            "seconds": round(d.seconds, 1)}
+            "seconds": round(d.seconds, 1), **tracked}
+
+
+#: The out-of-family tracking triangles (bench_track's): (Hz, fraction of the span), 3 periods.
+FAMILY_TRIANGLES = ((0.279, 0.45), (27.9, 0.3))
+
+
+def family_track(s: Any, d: dg.Diagnosis, sweeps: list[sw.Sweep]) -> dict[str, Any]:
+    """When diagnose named a cause: each triangle tracked open loop through the inverse of the
+    base and of the extended model diagnose wrote, judged by the stage's true position (RMS
+    after the first period, um; the stage's own re-simulation, no gauge, no noise)."""
+    lo, hi = family_sets.span_of(sweeps)
+    out: dict[str, Any] = {}
+    for freq, frac in FAMILY_TRIANGLES:
+        desired = track.triangle(freq, frac * (hi - lo), 0.5 * (lo + hi), 3,
+                                 1 / s.profile.sample_rate_hz)
+        assert desired.period_s is not None
+        skip = int(round(desired.period_s / desired.dt_s))
+        for name, model in (("base", d.base_model), ("extended", d.extended_model)):
+            key = f"track_{freq:g}hz_{name}_true_rms_um"
+            try:
+                wf = track.plan(model, desired, s.profile.limits, s.probe.voltage())["inverse"]
+            except guard.LimitError as exc:
+                out[key] = None
+                out[f"track_{freq:g}hz_{name}_refused"] = str(exc)
+                continue
+            s.probe.play(wf.voltage_v)
+            out[key] = family_sets.rms((s.probe.positions[-1][wf.tracking] - desired.u_um)[skip:])
+    return out
 
 
 def family_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -309,8 +338,18 @@ def family_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "family_drift_hinted": sum(r["drift_hint"] for r in fam if r["drift"]),
             "family_drift_stages": sum(r["drift"] for r in fam),
             "drift_hint_wrong": sum(r["drift_hint"] for r in rows if not r["drift"]),
+            "family_track_cases": sum("track_0.279hz_base_true_rms_um" in r for r in rows),
+            "family_track_extended_beats_base": sum(_beats(r) for r in rows),
             "other_form_named": sum(r["named"] == r["effect"] for r in other),
             "other_form_stages": len(other), "family_rows": rows}
+
+
+def _beats(row: dict[str, Any]) -> bool:
+    """Whether the extended model tracked every triangle better than the base (true RMS)."""
+    pairs = [(row.get(f"track_{f:g}hz_base_true_rms_um"),
+              row.get(f"track_{f:g}hz_extended_true_rms_um")) for f, _ in FAMILY_TRIANGLES]
+    return all(b is not None and e is not None for b, e in pairs) and all(
+        e < b for b, e in pairs)  # type: ignore[operator]
 
 
 def family(names: str, other: str, jobs: int) -> dict[str, Any]:
@@ -325,7 +364,10 @@ def family(names: str, other: str, jobs: int) -> dict[str, Any]:
             r = rows[-1]
             log(f"  {r['stage']:30s} (want {r['want']}): named {r['named']:20s} base "
                 f"{r['base_over_noise']:.2f}x -> {r['extended_over_noise']:.2f}x noise, closest "
-                f"{r['closest']} ({r['seconds']} s)")
+                f"{r['closest']} ({r['seconds']} s)" + "".join(
+                    f"; {f:g} Hz tracked base / extended {r[f'track_{f:g}hz_base_true_rms_um']} / "
+                    f"{r[f'track_{f:g}hz_extended_true_rms_um']} um" for f, _ in FAMILY_TRIANGLES
+                    if f"track_{f:g}hz_base_true_rms_um" in r))
     rows.sort(key=lambda r: chosen.index(r["stage"]))
     return family_summary(rows)
 
