@@ -297,31 +297,21 @@ def family_row(name: str) -> dict[str, Any]:
             "seconds": round(d.seconds, 1), **tracked}
 
 
-#: The out-of-family tracking triangles (bench_track's): (Hz, fraction of the span), 3 periods.
-FAMILY_TRIANGLES = ((0.279, 0.45), (27.9, 0.3))
-
-
 def family_track(s: Any, d: dg.Diagnosis, sweeps: list[sw.Sweep]) -> dict[str, Any]:
-    """When diagnose named a cause: each triangle tracked open loop through the inverse of the
-    base and of the extended model diagnose wrote, judged by the stage's true position (RMS
-    after the first period, um; the stage's own re-simulation, no gauge, no noise)."""
-    lo, hi = family_sets.span_of(sweeps)
+    """When diagnose named a cause: bench_track's triangles tracked open loop through the
+    inverse of the base and of the extended model diagnose wrote, judged by the stage's true
+    position (:func:`family_sets.tracked`, 3 periods)."""
+    span = family_sets.span_of(sweeps)
     out: dict[str, Any] = {}
-    for freq, frac in FAMILY_TRIANGLES:
-        desired = track.triangle(freq, frac * (hi - lo), 0.5 * (lo + hi), 3,
-                                 1 / s.profile.sample_rate_hz)
-        assert desired.period_s is not None
-        skip = int(round(desired.period_s / desired.dt_s))
+    for freq, frac in family_sets.TRIANGLES:
         for name, model in (("base", d.base_model), ("extended", d.extended_model)):
             key = f"track_{freq:g}hz_{name}_true_rms_um"
             try:
-                wf = track.plan(model, desired, s.profile.limits, s.probe.voltage())["inverse"]
+                out[key] = family_sets.tracked(s, model, freq, frac, span, 3,
+                                               ("inverse",))["inverse"]
             except guard.LimitError as exc:
                 out[key] = None
                 out[f"track_{freq:g}hz_{name}_refused"] = str(exc)
-                continue
-            s.probe.play(wf.voltage_v)
-            out[key] = family_sets.rms((s.probe.positions[-1][wf.tracking] - desired.u_um)[skip:])
     return out
 
 
@@ -347,7 +337,7 @@ def family_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
 def _beats(row: dict[str, Any]) -> bool:
     """Whether the extended model tracked every triangle better than the base (true RMS)."""
     pairs = [(row.get(f"track_{f:g}hz_base_true_rms_um"),
-              row.get(f"track_{f:g}hz_extended_true_rms_um")) for f, _ in FAMILY_TRIANGLES]
+              row.get(f"track_{f:g}hz_extended_true_rms_um")) for f, _ in family_sets.TRIANGLES]
     return all(b is not None and e is not None for b, e in pairs) and all(
         e < b for b, e in pairs)  # type: ignore[operator]
 
@@ -366,7 +356,7 @@ def family(names: str, other: str, jobs: int) -> dict[str, Any]:
                 f"{r['base_over_noise']:.2f}x -> {r['extended_over_noise']:.2f}x noise, closest "
                 f"{r['closest']} ({r['seconds']} s)" + "".join(
                     f"; {f:g} Hz tracked base / extended {r[f'track_{f:g}hz_base_true_rms_um']} / "
-                    f"{r[f'track_{f:g}hz_extended_true_rms_um']} um" for f, _ in FAMILY_TRIANGLES
+                    f"{r[f'track_{f:g}hz_extended_true_rms_um']} um" for f, _ in family_sets.TRIANGLES
                     if f"track_{f:g}hz_base_true_rms_um" in r))
     rows.sort(key=lambda r: chosen.index(r["stage"]))
     return family_summary(rows)

@@ -40,8 +40,6 @@ from afmctl.fit import identify
 from afmctl.planning import track
 
 EXPERIMENTS = ((0.279, 40.56), (0.279, 27.04), (27.9, 27.04))  # (Hz, um peak-to-peak), Figs 9-11
-#: The out-of-family experiments: (Hz, fraction of the span, peak to peak).
-FAMILY_EXPERIMENTS = ((0.279, 0.45), (27.9, 0.3))
 
 if __package__:  # python -m benchmarks.<name>
     from benchmarks import family_sets
@@ -99,27 +97,21 @@ def family_row(case: family_sets.Case, cache: Path | None, periods: float) -> di
         row: dict[str, Any] = {"stage": case.name, "family": case.family, "noise_um": s.noise_um,
                                "identify_worst_over_noise": max(fit["rms_over_noise"])}
         ratios = []
-        for freq, frac in FAMILY_EXPERIMENTS:
-            desired = track.triangle(freq, frac * (hi - lo), 0.5 * (lo + hi), periods,
-                                     1 / s.profile.sample_rate_hz)
+        for freq, frac in family_sets.TRIANGLES:
             key = f"{freq:g}hz"
             try:
-                plans = track.plan(fit["model"], desired, s.profile.limits, s.probe.voltage())
+                true = family_sets.tracked(s, fit["model"], freq, frac, (lo, hi), periods)
             except guard.LimitError as exc:
                 row[f"{key}_refused"] = str(exc)
                 ratios.append(0.0)
                 continue
-            assert desired.period_s is not None
-            skip = int(round(desired.period_s / desired.dt_s))
-            for name, wf in plans.items():
-                s.probe.play(wf.voltage_v)
-                err = s.probe.positions[-1][wf.tracking] - desired.u_um
-                row[f"{key}_{name}_true_rms_um"] = family_sets.rms(err[skip:])
+            for name, value in true.items():
+                row[f"{key}_{name}_true_rms_um"] = value
             ratios.append(row[f"{key}_linear_true_rms_um"] / row[f"{key}_inverse_true_rms_um"])
             row[f"{key}_ratio"] = ratios[-1]
     row["ratio_min"] = min(ratios)
     log(f"  {case.name:18s}: linear / inverse (true) " + ", ".join(
-        f"{row.get(f'{f:g}hz_ratio', 0.0):.1f} at {f:g} Hz" for f, _ in FAMILY_EXPERIMENTS))
+        f"{row.get(f'{f:g}hz_ratio', 0.0):.1f} at {f:g} Hz" for f, _ in family_sets.TRIANGLES))
     return row
 
 

@@ -281,3 +281,28 @@ def span_of(sweeps: list[Any]) -> tuple[float, float]:
 
 def rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.asarray(x) ** 2)))
+
+
+#: The out-of-family tracking triangles: (Hz, fraction of the span), centred in it.
+TRIANGLES = ((0.279, 0.45), (27.9, 0.3))
+
+
+def tracked(s: Session, model: Any, freq: float, frac: float, span: tuple[float, float],
+            periods: float, filters: tuple[str, ...] = ("inverse", "linear")) -> dict[str, float]:
+    """A triangle at ``freq`` over ``frac`` of ``span`` (um, low and high) around its middle,
+    planned through ``model`` and played open loop with each of ``filters`` in turn: each one's
+    TRUE RMS after the first period (um; the stage re-simulated, no gauge, no noise).
+    ``afmctl.guard.LimitError`` if the plan is refused."""
+    from afmctl.planning import track
+
+    lo, hi = span
+    desired = track.triangle(freq, frac * (hi - lo), 0.5 * (lo + hi), periods,
+                             1 / s.profile.sample_rate_hz)
+    plans = track.plan(model, desired, s.profile.limits, s.probe.voltage(), filters)
+    assert desired.period_s is not None
+    skip = int(round(desired.period_s / desired.dt_s))
+    out = {}
+    for name, wf in plans.items():
+        s.probe.play(wf.voltage_v)
+        out[name] = rms((s.probe.positions[-1][wf.tracking] - desired.u_um)[skip:])
+    return out
