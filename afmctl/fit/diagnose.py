@@ -437,6 +437,6 @@ def _grid(job: _Job, noise: Sequence[float], say: Callable[[str], None]) -> gb.G
         "representation identify chooses off the family) without and with creep ...")
     s = job.settings
     grid = gb.judge(job.sweeps, job.thickness, s.identify.mass_kg, noise, job.data.base.starts,
-                    pz.rod_of(job.x0), say, s.grid_fit, s.creep_rule)
+                    pz.rod_of(job.x0), say, s.grid_fit, s.creep_rule, s.rule)
     say(f"  Preisach grid: {grid.text()} ({grid.seconds:.0f} s)")
     return grid

@@ -76,8 +76,13 @@ DRIFT_HINT = {
 
 @dataclass(frozen=True)
 class CreepRule:
-    """When the grid's creep elements name ``creep`` (or a drift), and when the grid alone is
-    ``none``: see the module docstring.
+    """When the grid's creep elements name ``creep`` (or a drift): see the module docstring.
+    Creep and a drift also meet the bar every candidate cause meets (``near`` the floor or
+    ``clearly_explained`` of the misfit explained), and the grid alone is ``none`` within
+    ``none_within`` of the floor: the verdict's own :class:`afmctl.fit.verdict.Rule`. On the
+    Bouc-Wen stage ``bw-b`` (no creep) the elements took 2.9x off the grid's held-out RMS, 90 %
+    of the excess, to 2.6x the noise: a memory the grid lacks, not creep; the six creep stages
+    removed 98.6-99.9 %.
 
     Attributes
     ----------
@@ -88,18 +93,8 @@ class CreepRule:
         ``long_s`` (s).
     gain, drift_gain : float
         Least held-out RMS ratio (without over with creep) for creep and for a drift.
-    near, explained : float
-        The grid with creep must come within ``near`` times the floor or remove at least
-        ``explained`` of the grid's excess variance over it (:func:`afmctl.fit.verdict.explained`):
-        the bar every candidate cause meets (the verdict's rule 3), for creep and for a drift.
-        On the Bouc-Wen stage
-        ``bw-b`` (no creep) the elements took 2.9x off the grid's held-out RMS, 90 % of the
-        excess, to 2.6x the noise: a memory the grid lacks, not creep; the six creep stages
-        removed 98.6-99.9 %.
     decades : float
         Least span (decades) of the time constants holding 80 % of the weight.
-    none_within : float
-        The grid without creep within this many times the floor: ``none`` (the verdict's rule 1).
     """
 
     per_decade: float = 0.003
@@ -107,10 +102,7 @@ class CreepRule:
     long_share: float = 0.5
     gain: float = 1.5
     drift_gain: float = 1.05
-    near: float = 2.0
-    explained: float = 0.95
     decades: float = 1.5
-    none_within: float = 1.5
     short_s: float = 0.32
     long_s: float = 100.0
 
@@ -136,6 +128,7 @@ class GridBase:
     span_decades: float
     floor_um: float
     rule: CreepRule
+    bar: vd.Rule
     seconds: float
 
     @property
@@ -150,8 +143,8 @@ class GridBase:
 
     def _clears(self) -> bool:
         """The grid with creep near the floor, or nearly all of the grid's misfit explained."""
-        r = self.rule
-        return self.crept_rms_um <= r.near * self.floor_um or self.explained >= r.explained
+        b = self.bar
+        return self.crept_rms_um <= b.near * self.floor_um or self.explained >= b.clearly_explained
 
     def creep(self) -> bool:
         """Whether the elements describe log-time creep (the module docstring's rule)."""
@@ -168,12 +161,12 @@ class GridBase:
 
     def verdict(self) -> str:
         """``creep`` (:meth:`creep`); ``none`` if the grid without creep is within
-        ``rule.none_within`` of the floor and its creep elements neither gain ``rule.gain`` nor
+        ``bar.none_within`` of the floor and its creep elements neither gain ``rule.gain`` nor
         sit on a drift; else ``unexplained``."""
         if self.creep():
             return "creep"
         if (not self.drift() and self.gain < self.rule.gain
-                and self.plain_rms_um <= self.rule.none_within * self.floor_um):
+                and self.plain_rms_um <= self.bar.none_within * self.floor_um):
             return "none"
         return "unexplained"
 
@@ -227,7 +220,7 @@ def shares(tau_s: FloatArray, weights: FloatArray, rule: CreepRule = CreepRule()
 def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
           noise_um: Sequence[float], starts: Sequence[str], rod0: tuple[float, float],
           say: Callable[[str], None], settings: pf.Settings = pf.Settings(),
-          rule: CreepRule = CreepRule()) -> GridBase:
+          rule: CreepRule = CreepRule(), bar: vd.Rule = vd.Rule()) -> GridBase:
     """Fit the grid on ``sweeps`` without and with creep and judge both on held-out blocks.
 
     Parameters
@@ -246,6 +239,8 @@ def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
     settings : afmctl.fit.preisach.Settings
         The grid's fit (identify's by default).
     rule : CreepRule
+    bar : afmctl.fit.verdict.Rule
+        The verdict's thresholds (diagnose's).
 
     Returns
     -------
@@ -277,7 +272,7 @@ def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
     return GridBase(p_fit, c_fit, _root_mean(p_per), _root_mean(c_per),
                     tuple(map(float, p_per)), tuple(map(float, c_per)),
                     tuple(prob.predict(fitted.crept.theta, full=True)), per_decade, short, long,
-                    span, vd.floor(noise_um), rule, time.perf_counter() - t0)
+                    span, vd.floor(noise_um), rule, bar, time.perf_counter() - t0)
 
 
 def _root_mean(per_sweep_um: FloatArray) -> float:

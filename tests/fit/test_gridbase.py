@@ -23,6 +23,7 @@ from afmctl.fit import diagnose as dg
 from afmctl.fit import gridbase as gb
 from afmctl.fit import identify as idf
 from afmctl.fit import preisach as pf
+from afmctl.fit import verdict as vd
 from afmctl.planning import sweepdesign as sd
 
 RATE_HZ = 5000.0
@@ -103,7 +104,7 @@ def grid_of(plain: float, crept: float, per_decade: float = 0.01, short: float =
             long: float = 0.2, span: float = 3.0) -> gb.GridBase:
     """A GridBase with these figures (held-out RMS in multiples of a floor of 1 um)."""
     return gb.GridBase(None, None, plain, crept, (plain,), (crept,), (),  # type: ignore[arg-type]
-                       per_decade, short, long, span, 1.0, gb.CreepRule(), 0.0)
+                       per_decade, short, long, span, 1.0, gb.CreepRule(), vd.Rule(), 0.0)
 
 
 @pytest.mark.parametrize(("figures", "verdict"), [
