@@ -189,6 +189,37 @@ def _rod_columns(phi: np.ndarray, gam: np.ndarray, x: np.ndarray) -> np.ndarray:
     return out
 
 
+@nb.njit(cache=True)
+def _rod_rows(phi: np.ndarray, gam: np.ndarray, x: np.ndarray, scale: np.ndarray,
+              rows: np.ndarray, out: np.ndarray, col0: int) -> None:
+    n, k = x.shape
+    p = x[0] * scale[0]
+    v = np.zeros(k)
+    r = 0
+    for t in range(n):
+        take = r < rows.size and rows[r] == t
+        for j in range(k):
+            if take:
+                out[r, col0 + j] = p[j]
+            f = scale[t] * x[t, j]
+            p_new = phi[0, 0] * p[j] + phi[0, 1] * v[j] + gam[0] * f
+            v[j] = phi[1, 0] * p[j] + phi[1, 1] * v[j] + gam[1] * f
+            p[j] = p_new
+        if take:
+            r += 1
+
+
+def rod_rows(x: FloatArray, scale: FloatArray, fn: float, zeta: float, dt: float,
+             rows: NDArray[np.intp], out: FloatArray, col0: int) -> None:
+    """``out[:, col0:col0 + K] = L[scale * x][rows]`` for ``x`` (N, K): :func:`rod_filter` of
+    the scaled columns written straight into a design's rows (no full-rate temporaries)."""
+    d = pz.unit_oscillator_zoh(fn, zeta, dt)
+    w2 = (2 * math.pi * fn) ** 2
+    x2 = np.ascontiguousarray(x, dtype=float).reshape(x.shape[0], -1)
+    _rod_rows(d.phi, d.gamma * w2, x2, np.ascontiguousarray(scale, dtype=float),
+              np.ascontiguousarray(rows, dtype=np.int64), out, col0)
+
+
 def rod_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
     """``L[x]`` along axis 0 (each column): the rod (16) normalized to unit DC gain (exact ZOH,
     (18)), at rest with the first sample; :func:`afmctl.fit.parametrization.unit_filter` for
@@ -271,10 +302,12 @@ class Problem:
             out.append(cr.lagged(y, self.taus, dt, np.full(self.taus.size, y[0])))
         return np.hstack(out)
 
-    def crept(self, x: FloatArray, q: FloatArray, c: FloatArray, dt: float) -> FloatArray:
+    def crept(self, x: FloatArray, q: FloatArray, c: FloatArray, dt: float,
+              out: FloatArray | None = None) -> FloatArray:
         """``sum_j c_j Z_j`` linearized in the hysteresis: each element's play held where it
-        last moved on ``q``, applied to the columns of ``x`` (N, K) (or to ``x`` (N,))."""
-        out = np.zeros(x.shape)
+        last moved on ``q``, applied to the columns of ``x`` (N, K) (or to ``x`` (N,)); added to
+        ``out`` (C-contiguous, ``x``'s shape) if given, else to zeros."""
+        out = np.zeros(x.shape) if out is None else out
         cols, into = x.reshape(x.shape[0], -1), out.reshape(x.shape[0], -1)
         n_tau = self.taus.size
         for i, r in enumerate(self.thresholds):
@@ -338,24 +371,26 @@ class Problem:
             m0 = 1.0 + 2.0 * th.s * qt
             cp, ce, held = p, e, 0.0
             if creep and th.c.any():
-                cp = p + self.crept(p, q, th.c, dt)
-                ce = e + self.crept(e, q, th.c, dt)
+                cp = self.crept(p, q, th.c, dt, p.copy())
+                ce = self.crept(e, q, th.c, dt, e.copy())
                 held = self.crept(q, q, th.c, dt)
             g = qt + th.s * qt * qt
             lg = rod_filter(g, fn, zeta, dt)
-            cols = [rod_filter(m0[:, None] * cp, fn, zeta, dt)[m],
-                    rod_filter(m0 * ce, fn, zeta, dt)[m, None]]
+            rows = np.flatnonzero(m)
+            k, n_z = p.shape[1], z.shape[1]
+            a = np.zeros((rows.size, k + 1 + n_z + 3 + n_s + n_d))
+            rod_rows(cp, m0, fn, zeta, dt, rows, a, 0)
+            rod_rows(ce, m0, fn, zeta, dt, rows, a, k)
             if creep:
-                cols.append(rod_filter(m0[:, None] * z, fn, zeta, dt)[m])
-            cols += [rod_filter(qt * qt, fn, zeta, dt)[m, None],
-                     ((rod_filter(g, fn * math.exp(step), zeta, dt) - lg) / step)[m, None],
-                     ((rod_filter(g, fn, zeta * math.exp(step), dt) - lg) / step)[m, None]]
-            ind = np.zeros((int(m.sum()), n_s + n_d))
-            ind[:, i] = 1.0
+                rod_rows(z, m0, fn, zeta, dt, rows, a, k + 1)
+            j = k + 1 + n_z
+            a[:, j] = rod_filter(qt * qt, fn, zeta, dt)[m]
+            a[:, j + 1] = ((rod_filter(g, fn * math.exp(step), zeta, dt) - lg) / step)[m]
+            a[:, j + 2] = ((rod_filter(g, fn, zeta * math.exp(step), dt) - lg) / step)[m]
+            a[:, j + 3 + i] = 1.0
             if creep and self.n_trans[i]:
-                ind[:, n_s + d_at[i]:n_s + d_at[i + 1]] = rod_filter(
-                    m0[:, None] * self.trans[i], fn, zeta, dt)[m]
-            designs.append(np.hstack(cols + [ind]))
+                rod_rows(self.trans[i], m0, fn, zeta, dt, rows, a, j + 3 + n_s + d_at[i])
+            designs.append(a)
             rhs.append(y - rod_filter(qt - m0 * (qt + held), fn, zeta, dt)[m])
         return designs, rhs
 

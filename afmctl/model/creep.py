@@ -200,18 +200,18 @@ def lagged(x: FloatArray, tau_s: FloatArray, dt: float, z0: FloatArray) -> Float
 def _add_columns(out: np.ndarray, x: np.ndarray, idx: np.ndarray, a: np.ndarray,
                  c: np.ndarray) -> None:
     n, k = out.shape
-    z = np.empty((a.size, k))
-    for j in range(a.size):
-        for i in range(k):
-            z[j, i] = x[idx[0], i]
+    z = np.empty((k, a.size))  # each column's elements side by side: the inner loop is contiguous
+    for i in range(k):
+        for j in range(a.size):
+            z[i, j] = x[idx[0], i]
     for t in range(n):
         row = idx[t]
         for i in range(k):
             acc = 0.0
             xv = x[row, i]
             for j in range(a.size):
-                acc += c[j] * z[j, i]
-                z[j, i] = a[j] * z[j, i] + (1.0 - a[j]) * xv
+                acc += c[j] * z[i, j]
+                z[i, j] = a[j] * z[i, j] + (1.0 - a[j]) * xv
             out[t, i] += acc
 
 
