@@ -111,8 +111,9 @@ def loop_gaps(sweep: Sweep, noise_um: float) -> tuple[list[Gap], int]:
 def check(sweeps: Sequence[Sweep], noise_um: Sequence[float]) -> dict[str, Any]:
     """The closure of every minor loop of ``sweeps`` (``noise_um``: each sweep's sensor noise):
     ``checked`` and ``open`` loops, ``unsteady`` ones (not checked: a pass not quasi-static),
-    ``close`` (None: no loop checked, so the sweeps cannot tell), the widest gap (``worst``: sweep, voltage, time, gap and its standard
-    error in um, gap over the noise) and one sentence (``text``)."""
+    ``close`` (None: no loop checked, so the sweeps cannot tell), the widest gap (``worst``:
+    sweep, voltage, time, gap and its standard error in um, gap over the noise) and one
+    sentence (``text``)."""
     found = [loop_gaps(s, n) for s, n in zip(sweeps, noise_um, strict=True)]
     gaps = [g for each, _ in found for g in each]
     opened = [g for g in gaps if g.open]
