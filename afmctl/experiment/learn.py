@@ -283,6 +283,19 @@ def next_reference(done: list[Iteration], step: Step, desired: track.Desired, la
     return ref - (pred - src.predicted_offset_um)
 
 
+def retuned(done: list[Iteration], tuning: ilc.Tuning, desired: track.Desired, law: ilc.Law,
+            noise: float) -> ilc.Tuning:
+    """``tuning`` with ``G^`` re-measured on the last step where it stalled
+    (:func:`afmctl.planning.ilc.retune`; as it was before a second iteration)."""
+    if len(done) < 2:
+        return tuning
+    a, b = done[-2], done[-1]
+    assert a.reference_um is not None and b.reference_um is not None
+    assert a.learned_um is not None and b.learned_um is not None
+    return ilc.retune(tuning, (a.reference_um, b.reference_um), (a.learned_um, b.learned_um),
+                      desired, law, noise)
+
+
 def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Desired,
         limits: guard.Limits, out: Path, meta: Mapping[str, object], iterations: int,
         law: ilc.Law = DEFAULT_LAW, truth: tr.Transducer | None = None, seed: str = "inverse",
@@ -324,6 +337,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     for j in range(iterations + 1):
         if j:
             t0 = time.perf_counter()
+            tuning = retuned(done, tuning, desired, law, noise)
             ref = next_reference(done, step, desired, law, tuning, region)
             try:
                 wf = plan_reference(p, desired, ref)

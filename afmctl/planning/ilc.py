@@ -102,7 +102,7 @@ region of a raster line: the central 80 % of every ramp between turning points (
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -238,6 +238,13 @@ MIN_RUNS_SPREAD = 3
 #: tell it (:func:`predicted_offset`): a steady drift keeps its step (1), creep relaxing in
 #: log-time shrinks it (ln(3/2) / ln 2 = 0.58 for the second run after a rest); half splits them.
 FIRST_RATIO = 0.5
+#: A learning step stalled at a harmonic when its error kept more than this share of itself (a
+#: full step on the right ``G^`` keeps ``|1 - Q|``: 0.12 at 363 Hz under a 600 Hz ``Q``; a
+#: halved safe step 0.56) (:func:`retune`).
+STALLED = 0.7
+#: ... and ``G^`` is replaced there only if the step's ``dY / dR`` differs from it by more than
+#: this (relative).
+RETUNE_CHANGE = 0.25
 #: Fewest reliably measured harmonics for the per-harmonic inverse of ``G``.
 MIN_HARMONICS = 3
 #: A harmonic's G is measured when the reference's amplitude there exceeds this many standard
@@ -311,8 +318,58 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
     fc = law.cutoff_hz
     if freqs.size >= MIN_HARMONICS:
         fc = min(fc, float(freqs.max()))
-    c = q_gain(freqs, dt, fc) * np.abs(1 - law.gain * np.exp(2j * np.pi * freqs * m * dt) * g)
-    return Tuning(m, fc, freqs, g, c)
+    return Tuning(m, fc, freqs, g, _contraction(freqs, g, m, dt, fc, law))
+
+
+def _contraction(freqs: FloatArray, g: NDArray[np.complex128], lead: int, dt: float,
+                 cutoff_hz: float, law: Law) -> FloatArray:
+    """``|Q (1 - rho z^m G)|`` at ``freqs`` (:attr:`Tuning.contraction`)."""
+    return q_gain(freqs, dt, cutoff_hz) * np.abs(
+        1 - law.gain * np.exp(2j * np.pi * freqs * lead * dt) * g)
+
+
+def retune(tuning: Tuning, refs: tuple[FloatArray, FloatArray],
+           errors: tuple[FloatArray, FloatArray], desired: track.Desired, law: Law,
+           noise_um: float) -> Tuning:
+    """``G^`` re-measured as ``dY / dR`` where a learning step stalled (pure numerics).
+
+    ``Y / R`` of iteration 0 takes all of the position at a harmonic for the reference's
+    response. Where the model leaves an error there that the reference does not drive (the
+    rod ringing at its resonance after every turnaround), that error biases it: on
+    pi-u-creep's 13th harmonic (363 Hz, on its 367 Hz rod) ``Y / R`` was 0.52 - 1.18j where the
+    steps measured ``dY / dR`` = 0.96-0.99, and learning lost only 5 % of that harmonic's error
+    per iteration (4.0x the noise after five). The step from ``refs[0]`` to ``refs[1]`` (with
+    the learned errors ``errors``, um) measures the local gain directly: at every measured
+    harmonic where the error kept more than :data:`STALLED` of itself, the step there was
+    :data:`RELIABLE` standard errors of the noise or more, and its ``dY / dR`` differs from
+    ``G^`` by more than :data:`RETUNE_CHANGE` (relative), ``G^`` becomes ``dY / dR``. Elsewhere
+    it stays (a weakly excited harmonic's ``dY / dR`` carries the loop's shape change with the
+    offset, not the gain)."""
+    if not tuning.harmonic or desired.period_s is None:
+        return tuning
+    skip = steady_part(desired).start
+    dt, f0 = desired.dt_s, 1 / desired.period_s
+    t = np.arange(skip, desired.u_um.size) * dt
+    n = np.rint(tuning.freqs_hz / f0).astype(int)
+    n_max = int(n.max())
+
+    def at(x: FloatArray) -> NDArray[np.complex128]:
+        x = x[skip:]
+        return harmonics(np.where(np.isfinite(x), x, 0.0), t, f0, n_max)[n]
+
+    r0, r1 = at(refs[0]), at(refs[1])
+    e0, e1 = at(errors[0]), at(errors[1])
+    d_r = r1 - r0
+    secant = (e0 - e1) / np.where(d_r == 0, 1.0, d_r)  # dY, with y = u - e
+    se = (noise_um if np.isfinite(noise_um) else 0.0) * np.sqrt(2 / max(t.size, 1))
+    update = ((np.abs(e1) > STALLED * np.abs(e0)) & (np.abs(d_r) > RELIABLE * se)
+              & (np.abs(e0) > RELIABLE * se)
+              & (np.abs(secant - tuning.g) > RETUNE_CHANGE * np.abs(tuning.g)))
+    if not update.any():
+        return tuning
+    g = np.where(update, secant, tuning.g)
+    return replace(tuning, g=g, contraction=_contraction(tuning.freqs_hz, g, tuning.lead, dt,
+                                                         tuning.cutoff_hz, law))
 
 
 def _holes(a: FloatArray) -> NDArray[np.bool_]:
