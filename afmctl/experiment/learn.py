@@ -292,8 +292,9 @@ def retuned(done: list[Iteration], tuning: ilc.Tuning, desired: track.Desired, l
     a, b = done[-2], done[-1]
     assert a.reference_um is not None and b.reference_um is not None
     assert a.learned_um is not None and b.learned_um is not None
-    return ilc.retune(tuning, (a.reference_um, b.reference_um), (a.learned_um, b.learned_um),
-                      desired, law, noise)
+    return ilc.retune(tuning, (a.reference_um, b.reference_um),
+                      (desired.u_um - a.learned_um, desired.u_um - b.learned_um),
+                      (a.learned_um, b.learned_um), desired, law, noise)
 
 
 def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Desired,

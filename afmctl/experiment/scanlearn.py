@@ -90,6 +90,7 @@ def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Pat
     for j in range(iterations + 1):
         t0 = time.perf_counter()
         if j:
+            tunings = _retuned(learned, tunings, traj, desired, setup, law, noise)
             refs = {n: _next(learned[steps[n].start], n, desired[n], law, steps[n], tunings[n],
                              region) for n in raster.AXES}
         axes = raster.replace_start(setup.axes, np.asarray(stage.voltages(), dtype=float))
@@ -139,12 +140,33 @@ def _tunings(refs: dict[str, np.ndarray], traj: raster.Trajectories,
     a learning gain of 2 where 1 was due: y stalled at 9x its noise). A missing reading
     (NaN) is bridged for the coupling's filter, which would carry it to every later sample of
     both axes, and missing again in the own motion."""
+    own = _own(traj, errors, setup)
+    return {n: ilc.tune(refs[n], own[n], desired[n], law, noise[n]) for n in raster.AXES}
+
+
+def _own(traj: raster.Trajectories, errors: dict[str, np.ndarray], setup: xs.Setup
+         ) -> dict[str, np.ndarray]:
+    """Each axis's own motion in a frame (um): its readings less what the other axis's own
+    motion causes through the identified coupling (NaN where a reading is missing)."""
     read = {n: traj.axis(n) - errors[n] for n in raster.AXES}
     gap = ~np.isfinite(read["x"]) | ~np.isfinite(read["y"])
     bridged = raster.Trajectories(traj.dt_s, _bridged(read["x"]), _bridged(read["y"]))
     own = raster.targets(bridged, setup.coupling)
-    return {n: ilc.tune(refs[n], np.where(gap, np.nan, own[n]), desired[n], law, noise[n])
-            for n in raster.AXES}
+    return {n: np.where(gap, np.nan, own[n]) for n in raster.AXES}
+
+
+def _retuned(learned: list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]],
+             tunings: dict[str, ilc.Tuning], traj: raster.Trajectories,
+             desired: dict[str, track.Desired], setup: xs.Setup, law: ilc.Law,
+             noise: dict[str, float]) -> dict[str, ilc.Tuning]:
+    """Each axis's ``G^`` re-measured on the last frame's step where it stalled
+    (:func:`afmctl.planning.ilc.retune`, on the axes' own motions as :func:`_tunings`)."""
+    if len(learned) < 2:
+        return tunings
+    (r0, e0), (r1, e1) = learned[-2], learned[-1]
+    y0, y1 = _own(traj, e0, setup), _own(traj, e1, setup)
+    return {n: ilc.retune(tunings[n], (r0[n], r1[n]), (y0[n], y1[n]), (e0[n], e1[n]),
+                          desired[n], law, noise[n]) for n in raster.AXES}
 
 
 def _bridged(x: np.ndarray) -> np.ndarray:

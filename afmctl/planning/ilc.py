@@ -329,8 +329,8 @@ def _contraction(freqs: FloatArray, g: NDArray[np.complex128], lead: int, dt: fl
 
 
 def retune(tuning: Tuning, refs: tuple[FloatArray, FloatArray],
-           errors: tuple[FloatArray, FloatArray], desired: track.Desired, law: Law,
-           noise_um: float) -> Tuning:
+           positions: tuple[FloatArray, FloatArray], errors: tuple[FloatArray, FloatArray],
+           desired: track.Desired, law: Law, noise_um: float) -> Tuning:
     """``G^`` re-measured as ``dY / dR`` where a learning step stalled (pure numerics).
 
     ``Y / R`` of iteration 0 takes all of the position at a harmonic for the reference's
@@ -338,8 +338,9 @@ def retune(tuning: Tuning, refs: tuple[FloatArray, FloatArray],
     rod ringing at its resonance after every turnaround), that error biases it: on
     pi-u-creep's 13th harmonic (363 Hz, on its 367 Hz rod) ``Y / R`` was 0.52 - 1.18j where the
     steps measured ``dY / dR`` = 0.96-0.99, and learning lost only 5 % of that harmonic's error
-    per iteration (4.0x the noise after five). The step from ``refs[0]`` to ``refs[1]`` (with
-    the learned errors ``errors``, um) measures the local gain directly: at every measured
+    per iteration (4.0x the noise after five). The step from ``refs[0]`` to ``refs[1]`` (moving
+    the stage from ``positions[0]`` to ``positions[1]``, with the learned errors ``errors``;
+    um, the position as :func:`tune` took it) measures the local gain directly: at every measured
     harmonic where the error kept more than :data:`STALLED` of itself, the step there was
     :data:`RELIABLE` standard errors of the noise or more, and its ``dY / dR`` differs from
     ``G^`` by more than :data:`RETUNE_CHANGE` (relative), ``G^`` becomes ``dY / dR``. Elsewhere
@@ -355,12 +356,14 @@ def retune(tuning: Tuning, refs: tuple[FloatArray, FloatArray],
 
     def at(x: FloatArray) -> NDArray[np.complex128]:
         x = x[skip:]
-        return harmonics(np.where(np.isfinite(x), x, 0.0), t, f0, n_max)[n]
+        ok = np.isfinite(x)
+        return harmonics(np.where(ok, x, np.mean(x[ok]) if ok.any() else 0.0), t, f0,
+                         n_max)[n]
 
     r0, r1 = at(refs[0]), at(refs[1])
     e0, e1 = at(errors[0]), at(errors[1])
     d_r = r1 - r0
-    secant = (e0 - e1) / np.where(d_r == 0, 1.0, d_r)  # dY, with y = u - e
+    secant = (at(positions[1]) - at(positions[0])) / np.where(d_r == 0, 1.0, d_r)
     se = (noise_um if np.isfinite(noise_um) else 0.0) * np.sqrt(2 / max(t.size, 1))
     update = ((np.abs(e1) > STALLED * np.abs(e0)) & (np.abs(d_r) > RELIABLE * se)
               & (np.abs(e0) > RELIABLE * se)
