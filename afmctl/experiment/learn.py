@@ -292,18 +292,21 @@ def next_reference(done: list[Iteration], step: Step, desired: track.Desired, la
     return ref - (pred - src.predicted_offset_um)
 
 
-def retuned(done: list[Iteration], tuning: ilc.Tuning, desired: track.Desired, law: ilc.Law,
-            noise: float) -> ilc.Tuning:
-    """``tuning`` with ``G^`` re-measured on the last step where it stalled
-    (:func:`afmctl.planning.ilc.retune`; as it was before a second iteration)."""
-    if len(done) < 2:
+def retuned(done: list[Iteration], taken: tuple[int, float] | None, tuning: ilc.Tuning,
+            desired: track.Desired, law: ilc.Law, noise: float,
+            region: NDArray[np.bool_] | None) -> ilc.Tuning:
+    """``tuning`` with ``G^`` re-measured where the last step stalled
+    (:func:`afmctl.planning.ilc.retune`): the step ``taken`` (the iteration it started from and
+    its scale) that made the last of ``done``; as it was without one."""
+    if taken is None:
         return tuning
-    a, b = done[-2], done[-1]
+    a, b = done[taken[0]], done[-1]
     assert a.reference_um is not None and b.reference_um is not None
     assert a.learned_um is not None and b.learned_um is not None
     return ilc.retune(tuning, (a.reference_um, b.reference_um),
                       (desired.u_um - a.learned_um, desired.u_um - b.learned_um),
-                      (a.learned_um, b.learned_um), desired, law, noise)
+                      (a.learned_um, b.learned_um), desired,
+                      dc.replace(law, gain=law.gain * taken[1]), noise, region)
 
 
 def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Desired,
@@ -344,11 +347,13 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     compute: list[float] = []
     noise, best, stop, sigma, step = float("nan"), 0, "iterations done", 0.0, Step()
     region = ilc.imaging_mask(desired, first_period=True) if law.region == "imaging" else None
+    taken: tuple[int, float] | None = None  # the last step: where it started, its scale
     for j in range(iterations + 1):
         if j:
             t0 = time.perf_counter()
-            tuning = retuned(done, tuning, desired, law, noise)
+            tuning = retuned(done, taken, tuning, desired, law, noise, region)
             ref = next_reference(done, step, desired, law, tuning, region)
+            taken = (step.start, step.scale)
             try:
                 wf = plan_reference(p, desired, ref)
             except (guard.LimitError, track.EnvelopeError) as exc:

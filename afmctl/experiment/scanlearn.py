@@ -86,13 +86,16 @@ def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Pat
     learned: list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]] = []  # refs, errors
     steps = {n: onelearn.Step() for n in raster.AXES}
     by_axis: dict[str, list[float]] = {n: [] for n in raster.AXES}
+    taken: dict[str, tuple[int, float]] = {}  # each axis's last step: its start, its scale
     stop = "iterations done"
     for j in range(iterations + 1):
         t0 = time.perf_counter()
         if j:
-            tunings = _retuned(learned, tunings, traj, desired, setup, law, noise)
+            tunings = _retuned(learned, taken, tunings, traj, desired, setup, law, noise,
+                               region)
             refs = {n: _next(learned[steps[n].start], n, desired[n], law, steps[n], tunings[n],
                              region) for n in raster.AXES}
+            taken = {n: (steps[n].start, steps[n].scale) for n in raster.AXES}
         axes = raster.replace_start(setup.axes, np.asarray(stage.voltages(), dtype=float))
         try:
             wf = raster.plan(frame, axes, dt, setup.coupling, ("inverse",), 0, setup.extrapolate,
@@ -156,17 +159,24 @@ def _own(traj: raster.Trajectories, errors: dict[str, np.ndarray], setup: xs.Set
 
 
 def _retuned(learned: list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]],
-             tunings: dict[str, ilc.Tuning], traj: raster.Trajectories,
-             desired: dict[str, track.Desired], setup: xs.Setup, law: ilc.Law,
-             noise: dict[str, float]) -> dict[str, ilc.Tuning]:
-    """Each axis's ``G^`` re-measured on the last frame's step where it stalled
-    (:func:`afmctl.planning.ilc.retune`, on the axes' own motions as :func:`_tunings`)."""
-    if len(learned) < 2:
+             taken: dict[str, tuple[int, float]], tunings: dict[str, ilc.Tuning],
+             traj: raster.Trajectories, desired: dict[str, track.Desired], setup: xs.Setup,
+             law: ilc.Law, noise: dict[str, float], region: np.ndarray) -> dict[str, ilc.Tuning]:
+    """Each axis's ``G^`` re-measured where its last step (``taken``: the frame it started
+    from, its scale) stalled (:func:`afmctl.planning.ilc.retune`, on the axes' own motions as
+    :func:`_tunings`)."""
+    if not taken:
         return tunings
-    (r0, e0), (r1, e1) = learned[-2], learned[-1]
-    y0, y1 = _own(traj, e0, setup), _own(traj, e1, setup)
-    return {n: ilc.retune(tunings[n], (r0[n], r1[n]), (y0[n], y1[n]), (e0[n], e1[n]),
-                          desired[n], law, noise[n]) for n in raster.AXES}
+    r1, e1 = learned[-1]
+    y1 = _own(traj, e1, setup)
+    out = {}
+    for n, (start, scale) in taken.items():
+        r0, e0 = learned[start]
+        y0 = _own(traj, e0, setup)
+        out[n] = ilc.retune(tunings[n], (r0[n], r1[n]), (y0[n], y1[n]), (e0[n], e1[n]),
+                            desired[n], dc.replace(law, gain=law.gain * scale), noise[n],
+                            region)
+    return out
 
 
 def _bridged(x: np.ndarray) -> np.ndarray:

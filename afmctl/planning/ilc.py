@@ -36,7 +36,8 @@ the rod and any plant effects it knows; learning removes only what the model mis
 
 for all frequencies ``omega``. With ``L = rho / G^`` that is ``|Q| |1 - rho G / G^| < 1``:
 it holds wherever the measured ``G^`` is within ``|G^ - G| < |G|`` of the truth (for
-``rho = 1``), which the 8-standard-error threshold on each measured harmonic keeps; where
+``rho = 1``), which the 8-standard-error threshold on each measured harmonic keeps (and, where
+a later step stalls and ``G^`` is re-measured on it, :func:`retune`'s guards); where
 ``|G| < 1 / max_boost`` the cap gives ``|1 - rho max_boost |G||`` < 1, slower but converging.
 With the plain law ``L = rho z^m`` (``G = 1`` assumed) it needs ``|1 - rho e^{j omega m T}
 G| < 1``: the phase of ``G e^{j omega m T}`` within 60 degrees for ``|G| = 1``, which an
@@ -102,6 +103,7 @@ region of a raster line: the central 80 % of every ramp between turning points (
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -210,7 +212,8 @@ def lead_samples(reference: FloatArray, position: FloatArray, skip: int, max_lea
 
 @dataclass(frozen=True)
 class Tuning:
-    """The learning filter ``L`` and ``Q``'s cut-off, fixed after iteration 0.
+    """The learning filter ``L`` and ``Q``'s cut-off, set on iteration 0 (``G^`` re-measured
+    where a later step stalls, :func:`retune`).
 
     ``freqs_hz`` are the trajectory's harmonics where iteration 0 measured the plant ``G`` seen
     through the inverse (``g``: ``Y / R`` there); with at least :data:`MIN_HARMONICS` of them
@@ -238,12 +241,9 @@ MIN_RUNS_SPREAD = 3
 #: tell it (:func:`predicted_offset`): a steady drift keeps its step (1), creep relaxing in
 #: log-time shrinks it (ln(3/2) / ln 2 = 0.58 for the second run after a rest); half splits them.
 FIRST_RATIO = 0.5
-#: A learning step stalled at a harmonic when its error kept more than this share of itself (a
-#: full step on the right ``G^`` keeps ``|1 - Q|``: 0.12 at 363 Hz under a 600 Hz ``Q``; a
-#: halved safe step 0.56) (:func:`retune`).
-STALLED = 0.7
-#: ... and ``G^`` is replaced there only if the step's ``dY / dR`` differs from it by more than
-#: this (relative).
+#: ``G^`` is re-measured (:func:`retune`) only where ``Q`` passes at least this much ...
+RETUNE_Q = 0.5
+#: ... and only if the step's ``dY / dR`` differs from it by more than this (relative).
 RETUNE_CHANGE = 0.25
 #: Fewest reliably measured harmonics for the per-harmonic inverse of ``G``.
 MIN_HARMONICS = 3
@@ -330,7 +330,8 @@ def _contraction(freqs: FloatArray, g: NDArray[np.complex128], lead: int, dt: fl
 
 def retune(tuning: Tuning, refs: tuple[FloatArray, FloatArray],
            positions: tuple[FloatArray, FloatArray], errors: tuple[FloatArray, FloatArray],
-           desired: track.Desired, law: Law, noise_um: float) -> Tuning:
+           desired: track.Desired, law: Law, noise_um: float,
+           region: NDArray[np.bool_] | None = None) -> Tuning:
     """``G^`` re-measured as ``dY / dR`` where a learning step stalled (pure numerics).
 
     ``Y / R`` of iteration 0 takes all of the position at a harmonic for the reference's
@@ -338,21 +339,32 @@ def retune(tuning: Tuning, refs: tuple[FloatArray, FloatArray],
     rod ringing at its resonance after every turnaround), that error biases it: on
     pi-u-creep's 13th harmonic (363 Hz, on its 367 Hz rod) ``Y / R`` was 0.52 - 1.18j where the
     steps measured ``dY / dR`` = 0.96-0.99, and learning lost only 5 % of that harmonic's error
-    per iteration (4.0x the noise after five). The step from ``refs[0]`` to ``refs[1]`` (moving
-    the stage from ``positions[0]`` to ``positions[1]``, with the learned errors ``errors``;
-    um, the position as :func:`tune` took it) measures the local gain directly: at every measured
-    harmonic where the error kept more than :data:`STALLED` of itself, the step there was
-    :data:`RELIABLE` standard errors of the noise or more, and its ``dY / dR`` differs from
-    ``G^`` by more than :data:`RETUNE_CHANGE` (relative), ``G^`` becomes ``dY / dR``. Elsewhere
-    it stays (a weakly excited harmonic's ``dY / dR`` carries the loop's shape change with the
-    offset, not the gain)."""
-    if not tuning.harmonic or desired.period_s is None:
+    per iteration (4.0x the noise after five).
+
+    The step from ``refs[0]`` to ``refs[1]`` (um; ``law.gain`` the step's own, its scale
+    included) moved the stage from ``positions[0]`` to ``positions[1]`` (um, the position as
+    :func:`tune` took it) and left the learned errors ``errors`` (um; learned only in
+    ``region``, as :func:`next_reference` does). It measures the local gain directly.
+    ``G^`` becomes ``dY / dR`` at every measured harmonic where:
+
+    * ``Q`` passes at least :data:`RETUNE_Q` (above the cut-off a right step also keeps most
+      of the error, and the secant there is mostly noise);
+    * the step stalled: the error kept more than half way between what a right ``G^`` leaves,
+      ``|1 - rho Q|``, and all of itself;
+    * the error before, and the step's response (``|dY|`` and ``|G^ dR|``), were each
+      :data:`RELIABLE` standard errors of two runs' noise or more;
+    * ``dY / dR`` differs from ``G^`` by more than :data:`RETUNE_CHANGE` (relative).
+
+    Elsewhere it stays (a weakly excited harmonic's ``dY / dR`` carries the loop's change of
+    shape with the offset, not the gain). Without a finite noise figure nothing is re-measured.
+    """
+    if not tuning.harmonic or desired.period_s is None or not np.isfinite(noise_um):
         return tuning
     skip = steady_part(desired).start
     dt, f0 = desired.dt_s, 1 / desired.period_s
     t = np.arange(skip, desired.u_um.size) * dt
     n = np.rint(tuning.freqs_hz / f0).astype(int)
-    n_max = int(n.max())
+    n_max = _n_max(desired, law)
 
     def at(x: FloatArray) -> NDArray[np.complex128]:
         x = x[skip:]
@@ -360,13 +372,18 @@ def retune(tuning: Tuning, refs: tuple[FloatArray, FloatArray],
         return harmonics(np.where(ok, x, np.mean(x[ok]) if ok.any() else 0.0), t, f0,
                          n_max)[n]
 
-    r0, r1 = at(refs[0]), at(refs[1])
-    e0, e1 = at(errors[0]), at(errors[1])
-    d_r = r1 - r0
-    secant = (at(positions[1]) - at(positions[0])) / np.where(d_r == 0, 1.0, d_r)
-    se = (noise_um if np.isfinite(noise_um) else 0.0) * np.sqrt(2 / max(t.size, 1))
-    update = ((np.abs(e1) > STALLED * np.abs(e0)) & (np.abs(d_r) > RELIABLE * se)
-              & (np.abs(e0) > RELIABLE * se)
+    def learned(e: FloatArray) -> NDArray[np.complex128]:
+        keep = np.isfinite(e) if region is None else np.isfinite(e) & region
+        return at(np.where(keep, e, 0.0))
+
+    d_r, d_y = at(refs[1]) - at(refs[0]), at(positions[1]) - at(positions[0])
+    e0, e1 = learned(errors[0]), learned(errors[1])
+    secant = d_y / np.where(d_r == 0, 1.0, d_r)
+    q = q_gain(tuning.freqs_hz, dt, tuning.cutoff_hz)
+    right = np.abs(1 - law.gain * q)
+    big = RELIABLE * math.sqrt(2.0) * noise_um * math.sqrt(2 / max(t.size, 1))
+    update = ((q >= RETUNE_Q) & (np.abs(e1) > 0.5 * (1 + right) * np.abs(e0))
+              & (np.abs(e0) > big) & (np.minimum(np.abs(d_y), np.abs(tuning.g * d_r)) > big)
               & (np.abs(secant - tuning.g) > RETUNE_CHANGE * np.abs(tuning.g)))
     if not update.any():
         return tuning
