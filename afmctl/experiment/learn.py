@@ -451,10 +451,11 @@ def offset_checked(it: Iteration, first: Iteration, desired: track.Desired, nois
     if (it.reference_um is None or first.reference_um is None or not np.isfinite(noise)
             or it.conditioning_misfit_um <= OFFSET_AGREE * math.sqrt(2.0) * noise):
         return it
-    moved = float(np.nanmean((first.error_um - it.error_um)[steady]))  # y = u - e
-    shift = float(np.mean((it.reference_um - first.reference_um)[steady]))
-    if not np.isfinite(moved):
+    diff = (first.error_um - it.error_um)[steady]  # y = u - e
+    if not np.isfinite(diff).any():
         return it
+    moved = float(np.nanmean(diff))
+    shift = float(np.mean((it.reference_um - first.reference_um)[steady]))
     return dc.replace(it, offset_um=moved - shift, gain_change=0.0, offset_from="tracking")
 
 

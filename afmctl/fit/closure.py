@@ -133,9 +133,12 @@ def check(sweeps: Sequence[Sweep], noise_um: Sequence[float]) -> dict[str, Any]:
 
 def _text(out: dict[str, Any], worst: Gap | None) -> str:
     if worst is None:
-        slow = " at a quasi-static pace" if out["unsteady"] else ""
-        return (f"minor loops: none of these sweeps returns to a reversal point{slow}, so "
-                f"return-point memory cannot be checked")
+        if out["unsteady"]:
+            return (f"minor loops: {out['unsteady']} return to their reversal point, but the "
+                    f"quadratic does not describe their passes (not quasi-static: ringing, or "
+                    f"sharper than the sweep resolves), so return-point memory is not checked")
+        return ("minor loops: none of these sweeps returns to a reversal point, so return-point "
+                "memory cannot be checked")
     where = (f"{abs(worst.gap_um):.4f} um ({abs(worst.gap_um) / worst.noise_um:.1f}x the noise, "
              f"{abs(worst.gap_um) / max(worst.stderr_um, 1e-300):.0f} standard errors) at "
              f"{worst.voltage_v:g} V in {worst.sweep}")
@@ -143,7 +146,8 @@ def _text(out: dict[str, Any], worst: Gap | None) -> str:
         rang = f" ({out['unsteady']} not quasi-static, not checked)" if out["unsteady"] else ""
         return (f"minor loops close: {out['checked']} checked{rang}, the widest gap {where}: "
                 f"consistent with a Preisach-type hysteresis (return-point memory)")
-    return (f"minor loops do NOT close: {out['open']} of {out['checked']} open, the widest by "
+    rang = f" ({out['unsteady']} not quasi-static, not checked)" if out["unsteady"] else ""
+    return (f"minor loops do NOT close: {out['open']} of {out['checked']} open{rang}, the widest by "
             f"{where}. The stage has no return-point memory (a rate-independent hysteresis "
             f"that is not of Preisach type, such as Bouc-Wen), or it creeps or drifts between "
             f"the passes; no Preisach-type model (the paper's, the Preisach grid) fits such "

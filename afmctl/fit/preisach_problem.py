@@ -212,12 +212,20 @@ def _rod_rows(phi: np.ndarray, gam: np.ndarray, x: np.ndarray, scale: np.ndarray
 def rod_rows(x: FloatArray, scale: FloatArray, fn: float, zeta: float, dt: float,
              rows: NDArray[np.intp], out: FloatArray, col0: int) -> None:
     """``out[:, col0:col0 + K] = L[scale * x][rows]`` for ``x`` (N, K): :func:`rod_filter` of
-    the scaled columns written straight into a design's rows (no full-rate temporaries)."""
+    the scaled columns written straight into a design's rows (no full-rate temporaries).
+    ``rows`` are sample indices, strictly increasing, within ``x``; ``out`` is float64 with one
+    row per index (the compiled loop checks no bounds, so this does)."""
+    x2 = np.ascontiguousarray(x, dtype=float).reshape(x.shape[0], -1)
+    idx = np.ascontiguousarray(rows, dtype=np.int64)
+    n = x2.shape[0]
+    if (idx.ndim != 1 or (idx.size and (idx[0] < 0 or idx[-1] >= n or np.any(np.diff(idx) <= 0)))
+            or np.shape(scale) != (n,) or out.dtype != np.float64 or out.shape[0] != idx.size
+            or not 0 <= col0 <= out.shape[1] - x2.shape[1]):
+        raise ValueError("rod_rows: rows must be increasing sample indices within x, scale one "
+                         "per sample, out float64 with a row per index and room from col0")
     d = pz.unit_oscillator_zoh(fn, zeta, dt)
     w2 = (2 * math.pi * fn) ** 2
-    x2 = np.ascontiguousarray(x, dtype=float).reshape(x.shape[0], -1)
-    _rod_rows(d.phi, d.gamma * w2, x2, np.ascontiguousarray(scale, dtype=float),
-              np.ascontiguousarray(rows, dtype=np.int64), out, col0)
+    _rod_rows(d.phi, d.gamma * w2, x2, np.ascontiguousarray(scale, dtype=float), idx, out, col0)
 
 
 def rod_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
@@ -306,7 +314,8 @@ class Problem:
               out: FloatArray | None = None) -> FloatArray:
         """``sum_j c_j Z_j`` linearized in the hysteresis: each element's play held where it
         last moved on ``q``, applied to the columns of ``x`` (N, K) (or to ``x`` (N,)); added to
-        ``out`` (C-contiguous, ``x``'s shape) if given, else to zeros."""
+        ``out`` (``x``'s shape, not ``x`` itself: rows of ``x`` are read after ``out``'s are
+        written) if given, else to zeros."""
         out = np.zeros(x.shape) if out is None else out
         cols, into = x.reshape(x.shape[0], -1), out.reshape(x.shape[0], -1)
         n_tau = self.taus.size

@@ -104,6 +104,5 @@ def test_a_stage_that_does_not_forget_has_its_offset_measured_on_the_tracking_pa
         rms = true_rms(s.probe, 0, res, desired)
     later = res.iterations[1:]
     assert later and all(it.offset_from == "tracking" for it in later)
-    assert all(it.conditioning_misfit_um > 5 * np.sqrt(2) * res.noise_um for it in later)
     assert all(abs(it.offset_um) < 5 * s.noise_um for it in later)
     assert max(rms) < 2 * rms[0], rms  # measured before: 0.021 -> 0.029 -> 1.89 um
