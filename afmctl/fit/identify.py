@@ -38,8 +38,16 @@ from afmctl.fit import noise as ns
 from afmctl.fit import parametrization as pz
 from afmctl.fit import representation as rep
 from afmctl.fit import uncertainty as unc
+from afmctl.fit.prediction import (
+    SweepError,
+    finite_or_none,
+    judge_set,
+    predict,
+    predict_set,
+    start_state,
+    sweep_error,
+)
 from afmctl.fit.uncertainty import Estimate
-from afmctl.model import effects as fx
 from afmctl.model import hysteresis as hy
 from afmctl.model import transducer as td
 
@@ -65,7 +73,8 @@ POLISH_MAX_NODES = 512
 DISCRETIZATION_UM = 0.01
 
 __all__ = ["Estimate", "FitResult", "Settings", "SweepError", "fit", "predict", "predict_set",
-           "sweep_error", "envelope", "n_coercive_for", "resolve_thickness", "FLOOR", "WARN"]
+           "judge_set", "start_state", "sweep_error", "envelope", "n_coercive_for",
+           "resolve_thickness", "FLOOR", "WARN"]
 
 
 @dataclass(frozen=True)
@@ -160,44 +169,6 @@ def settings_from_table(t: Table | None, base: Settings = Settings()) -> Setting
 
 
 @dataclass(frozen=True)
-class SweepError:
-    """Error of a model on one sweep (over its judged window), um, against its sensor noise.
-
-    ``noise_um`` is the sweep's sensor noise estimated from its data alone
-    (:func:`afmctl.fit.noise.sensor_noise_um`); ``start`` the hysteresis state the sweep was taken
-    to start from (one of :data:`afmctl.fit.parametrization.STARTS`) and ``offset_um`` its sensor zero.
-    """
-
-    file: str
-    rms_um: float
-    max_um: float
-    range_um: float
-    n_samples: int
-    noise_um: float = float("nan")
-    start: str = "depoled"
-    offset_um: float = float("nan")
-
-    @property
-    def rms_pct(self) -> float:
-        return 100.0 * self.rms_um / self.range_um
-
-    @property
-    def max_pct(self) -> float:
-        return 100.0 * self.max_um / self.range_um
-
-    @property
-    def rms_over_noise(self) -> float:
-        return self.rms_um / self.noise_um if self.noise_um > 0 else float("inf")
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"file": self.file, "rms_um": self.rms_um, "max_um": self.max_um,
-                "range_um": self.range_um, "rms_pct": self.rms_pct, "max_pct": self.max_pct,
-                "n_samples": self.n_samples, "noise_um": _finite(self.noise_um),
-                "rms_over_noise": _finite(self.rms_over_noise), "start": self.start,
-                "offset_um": _finite(self.offset_um)}
-
-
-@dataclass(frozen=True)
 class FitResult:
     """Outcome of :func:`fit`: the model, parameters, per-sweep errors and the solver's status.
 
@@ -264,7 +235,7 @@ class FitResult:
             "nfev": self.nfev, "seconds": round(self.seconds, 3), "restarts": self.restarts,
             "thickness_known": self.thickness_known, "at_noise_floor": self.at_noise_floor,
             "n_coercive": self.model.polarization.n_coercive,
-            "parameters": {p.name: {"value": _finite(p.value), "stderr": _finite(p.stderr),
+            "parameters": {p.name: {"value": finite_or_none(p.value), "stderr": finite_or_none(p.stderr),
                                     "unit": p.unit, "fixed": p.fixed} for p in self.parameters},
             "sweeps": [s.to_dict() for s in self.sweeps],
             "uncertainty": self.uncertainty,
@@ -274,11 +245,6 @@ class FitResult:
             "sensor_zero_file": self.sweeps[self.zero_index].file,
             "offsets_disagree": bool(self.offsets_disagreeing()),
         }
-
-
-def _finite(v: float) -> float | None:
-    """JSON has no NaN/inf: non-finite values become null."""
-    return float(v) if np.isfinite(v) else None
 
 
 def resolve_thickness(sweeps: Sequence[Sweep], settings: Settings) -> tuple[float, bool]:
@@ -292,84 +258,6 @@ def resolve_thickness(sweeps: Sequence[Sweep], settings: Settings) -> tuple[floa
         return known.pop(), True
     fallback = settings.fallback_thickness_um
     return (fallback, True) if fallback is not None else (1.0, False)
-
-
-# ----------------------------------------------------------------------------------------------
-# predictions of a model on sweeps
-# ----------------------------------------------------------------------------------------------
-
-
-def start_state(model: td.Transducer, start: str, v0: float,
-                 previous: hy.PolarizationState | None) -> td.StageState:
-    """Stage state before a sweep's first sample ``v0`` (V): the hysteresis ``start`` (one of
-    :data:`afmctl.fit.parametrization.STARTS`), then ``v0`` applied quasi-statically, rod at rest."""
-    if start == "previous" and previous is not None:
-        p, ps = hy.run(model.polarization, np.array([v0 / model.thickness_um]), previous)
-        return td.at_rest(model, ps, float(p[0]))
-    return td.initial(model, "depoled" if start == "previous" else start, v0)  # type: ignore[arg-type]
-
-
-def _reading(model: td.Transducer, voltage_v: FloatArray, dt: float, gain: float, start: str,
-             previous: hy.PolarizationState | None) -> tuple[FloatArray, hy.PolarizationState]:
-    chain = fx.compile_chain(model.effects, dt)
-    v = gain * np.asarray(voltage_v, dtype=float)
-    v, _ = fx.lag(chain, v, float(v[0]))
-    st = start_state(model, start, float(v[0]), previous)
-    u, _, end = td.simulate(td.compile_model(model, dt), v, st)
-    return fx.measure(chain, u, *fx.rest(chain, float(u[0])))[0], end.polarization
-
-
-def predict(model: td.Transducer, voltage_v: FloatArray, dt: float, gain: float = 1.0,
-            start: str = "depoled") -> FloatArray:
-    """Displacement (um) the model predicts for a voltage history, as the sensor reads it.
-
-    From the hysteresis state ``start`` (default depoled) with the first voltage applied
-    quasi-statically, through the model's effects (:mod:`afmctl.model.effects`, none for a model of
-    the paper's form) with applied-voltage gain ``gain``.
-    """
-    return _reading(model, voltage_v, dt, gain, start, None)[0]
-
-
-def predict_set(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str],
-                offsets_um: Sequence[float] | None = None,
-                gains: Sequence[float] | None = None) -> list[FloatArray]:
-    """Predicted readings (um) of a set of sweeps recorded in sequence, each from its start
-    (``previous``: where the sweep before left the hysteresis), with its own sensor zero
-    ``offsets_um`` (default: the model's; it is the rod's zero, so the model's sensor effects see
-    it) and applied-voltage gain ``gains`` (default 1)."""
-    out, prev = [], None
-    offs = offsets_um if offsets_um is not None else [model.rod.offset_um] * len(sweeps)
-    for s, start, off, g in zip(sweeps, starts, offs, gains or [1.0] * len(sweeps), strict=True):
-        zeroed = replace(model, rod=replace(model.rod, offset_um=float(off)))
-        u, prev = _reading(zeroed, s.voltage_v, s.dt, g, start, prev)
-        out.append(u)
-    return out
-
-
-def _error(name: str, sweep: Sweep, predicted: FloatArray, window_s: Window, start: str,
-           offset_um: float) -> SweepError:
-    m = sweep.mask(window_s)
-    err = (sweep.displacement_um - predicted)[m]
-    return SweepError(name, float(np.sqrt(np.mean(err ** 2))), float(np.max(np.abs(err))),
-                      float(np.ptp(sweep.displacement_um[m])), int(m.sum()),
-                      ns.sensor_noise_um(sweep.displacement_um), start, offset_um)
-
-
-def judge_set(sweeps: Sequence[Sweep], predicted: Sequence[FloatArray], starts: Sequence[str],
-              offsets_um: Sequence[float], window_s: Window = None) -> tuple[SweepError, ...]:
-    """Each sweep's error against its prediction (:func:`predict_set`), with the start and the
-    sensor zero it was predicted with."""
-    return tuple(_error(s.path or s.name, s, u, window_s, start, float(off))
-                 for s, u, start, off in zip(sweeps, predicted, starts, offsets_um, strict=True))
-
-
-def sweep_error(model: td.Transducer, sweep: Sweep, window_s: Window = None,
-                start: str = "depoled") -> SweepError:
-    """RMS, max and range (um) of ``measured - predicted`` on ``sweep`` (within ``window_s``),
-    with the sweep's sensor noise."""
-    return _error(sweep.path or sweep.name, sweep, predict(model, sweep.voltage_v, sweep.dt,
-                                                           start=start),
-                  window_s, start, model.rod.offset_um)
 
 
 def n_coercive_for(model: td.Transducer, fields: Sequence[FloatArray],
