@@ -337,7 +337,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     t0 = time.perf_counter()
     p, wf = planner(model, desired, limits, start_v, seed, condition, envelope, extrapolate)
     ref = desired.u_um.copy()
-    tuning = ilc.Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex), np.zeros(0))
+    tuning = ilc.Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex))
     if resume is not None:
         ref, tuning = resume.reference_um.copy(), resume.tuning or tuning
         if resume.horizons:  # the kept run's (grown) horizons

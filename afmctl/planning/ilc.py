@@ -218,15 +218,13 @@ class Tuning:
     ``freqs_hz`` are the trajectory's harmonics where iteration 0 measured the plant ``G`` seen
     through the inverse (``g``: ``Y / R`` there); with at least :data:`MIN_HARMONICS` of them
     ``L = rho / G^`` per harmonic (``G^``: ``g`` interpolated, 1 at DC), otherwise
-    ``L = rho z^lead``. ``contraction`` is ``|Q (1 - rho z^m G)|`` at ``freqs_hz`` for the
-    plain gain-and-lead law (what ``G`` alone would let it do).
+    ``L = rho z^lead``.
     """
 
     lead: int
     cutoff_hz: float
     freqs_hz: FloatArray
     g: NDArray[np.complex128]
-    contraction: FloatArray
 
     @property
     def harmonic(self) -> bool:
@@ -306,7 +304,7 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
     skip = steady_part(desired).start
     m = lead_samples(reference, position, skip, law.max_lead_samples)
     if desired.period_s is None:
-        return Tuning(m, law.cutoff_hz, np.zeros(0), np.zeros(0, complex), np.zeros(0))
+        return Tuning(m, law.cutoff_hz, np.zeros(0), np.zeros(0, complex))
     dt, f0, n_max = desired.dt_s, 1 / desired.period_s, _n_max(desired, law)
     t = np.arange(skip, reference.size) * dt
     r = harmonics(reference[skip:], t, f0, n_max)[1:]
@@ -318,14 +316,7 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
     fc = law.cutoff_hz
     if freqs.size >= MIN_HARMONICS:
         fc = min(fc, float(freqs.max()))
-    return Tuning(m, fc, freqs, g, _contraction(freqs, g, m, dt, fc, law))
-
-
-def _contraction(freqs: FloatArray, g: NDArray[np.complex128], lead: int, dt: float,
-                 cutoff_hz: float, law: Law) -> FloatArray:
-    """``|Q (1 - rho z^m G)|`` at ``freqs`` (:attr:`Tuning.contraction`)."""
-    return q_gain(freqs, dt, cutoff_hz) * np.abs(
-        1 - law.gain * np.exp(2j * np.pi * freqs * lead * dt) * g)
+    return Tuning(m, fc, freqs, g)
 
 
 def retune(tuning: Tuning, refs: tuple[FloatArray, FloatArray],
@@ -387,9 +378,7 @@ def retune(tuning: Tuning, refs: tuple[FloatArray, FloatArray],
               & (np.abs(secant - tuning.g) > RETUNE_CHANGE * np.abs(tuning.g)))
     if not update.any():
         return tuning
-    g = np.where(update, secant, tuning.g)
-    return replace(tuning, g=g, contraction=_contraction(tuning.freqs_hz, g, tuning.lead, dt,
-                                                         tuning.cutoff_hz, law))
+    return replace(tuning, g=np.where(update, secant, tuning.g))
 
 
 def _holes(a: FloatArray) -> NDArray[np.bool_]:
