@@ -174,22 +174,6 @@ class Data:
 
 
 @nb.njit(cache=True)
-def _rod_columns(phi: np.ndarray, gam: np.ndarray, x: np.ndarray) -> np.ndarray:
-    n, k = x.shape
-    out = np.empty((n, k))
-    p = x[0].copy()
-    v = np.zeros(k)
-    for t in range(n):
-        for j in range(k):
-            out[t, j] = p[j]
-            f = x[t, j]
-            p_new = phi[0, 0] * p[j] + phi[0, 1] * v[j] + gam[0] * f
-            v[j] = phi[1, 0] * p[j] + phi[1, 1] * v[j] + gam[1] * f
-            p[j] = p_new
-    return out
-
-
-@nb.njit(cache=True)
 def _rod_rows(phi: np.ndarray, gam: np.ndarray, x: np.ndarray, scale: np.ndarray,
               rows: np.ndarray, out: np.ndarray, col0: int) -> None:
     n, k = x.shape
@@ -223,19 +207,26 @@ def rod_rows(x: FloatArray, scale: FloatArray, fn: float, zeta: float, dt: float
             or not 0 <= col0 <= out.shape[1] - x2.shape[1]):
         raise ValueError("rod_rows: rows must be increasing sample indices within x, scale one "
                          "per sample, out float64 with a row per index and room from col0")
+    _rod_rows(*_rod_coefficients(fn, zeta, dt), x2, np.ascontiguousarray(scale, dtype=float),
+              idx, out, col0)
+
+
+def _rod_coefficients(fn: float, zeta: float, dt: float) -> tuple[FloatArray, FloatArray]:
+    """The rod's ZOH transition matrix and its input column scaled to unit DC gain."""
     d = pz.unit_oscillator_zoh(fn, zeta, dt)
-    w2 = (2 * math.pi * fn) ** 2
-    _rod_rows(d.phi, d.gamma * w2, x2, np.ascontiguousarray(scale, dtype=float), idx, out, col0)
+    return d.phi, d.gamma * (2 * math.pi * fn) ** 2
 
 
 def rod_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
     """``L[x]`` along axis 0 (each column): the rod (16) normalized to unit DC gain (exact ZOH,
     (18)), at rest with the first sample; :func:`afmctl.fit.parametrization.unit_filter` for
-    many columns at once."""
-    d = pz.unit_oscillator_zoh(fn, zeta, dt)
-    w2 = (2 * math.pi * fn) ** 2
+    many columns at once (:func:`rod_rows` at every sample, unscaled)."""
     x2 = np.ascontiguousarray(x, dtype=float).reshape(x.shape[0], -1)
-    return _rod_columns(d.phi, d.gamma * w2, x2).reshape(x.shape)
+    n = x2.shape[0]
+    out = np.empty(x2.shape)
+    _rod_rows(*_rod_coefficients(fn, zeta, dt), x2, np.ones(n), np.arange(n, dtype=np.int64),
+              out, 0)
+    return out.reshape(x.shape)
 
 
 @dataclass
