@@ -167,12 +167,12 @@ def _retuned(learned: list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]],
     :func:`_tunings`)."""
     if not taken:
         return tunings
-    r1, e1 = learned[-1]
-    y1 = _own(traj, e1, setup)
+    last = len(learned) - 1
+    own = {k: _own(traj, learned[k][1], setup) for k in {last, *(s for s, _ in taken.values())}}
+    (r1, e1), y1 = learned[last], own[last]
     out = {}
     for n, (start, scale) in taken.items():
-        r0, e0 = learned[start]
-        y0 = _own(traj, e0, setup)
+        (r0, e0), y0 = learned[start], own[start]
         out[n] = ilc.retune(tunings[n], (r0[n], r1[n]), (y0[n], y1[n]), (e0[n], e1[n]),
                             desired[n], dc.replace(law, gain=law.gain * scale), noise[n],
                             region)

@@ -142,11 +142,10 @@ def _text(out: dict[str, Any], worst: Gap | None) -> str:
     where = (f"{abs(worst.gap_um):.4f} um ({abs(worst.gap_um) / worst.noise_um:.1f}x the noise, "
              f"{abs(worst.gap_um) / max(worst.stderr_um, 1e-300):.0f} standard errors) at "
              f"{worst.voltage_v:g} V in {worst.sweep}")
+    rang = f" ({out['unsteady']} not quasi-static, not checked)" if out["unsteady"] else ""
     if out["close"]:
-        rang = f" ({out['unsteady']} not quasi-static, not checked)" if out["unsteady"] else ""
         return (f"minor loops close: {out['checked']} checked{rang}, the widest gap {where}: "
                 f"consistent with a Preisach-type hysteresis (return-point memory)")
-    rang = f" ({out['unsteady']} not quasi-static, not checked)" if out["unsteady"] else ""
     return (f"minor loops do NOT close: {out['open']} of {out['checked']} open{rang}, the widest by "
             f"{where}. The stage has no return-point memory (a rate-independent hysteresis "
             f"that is not of Preisach type, such as Bouc-Wen), or it creeps or drifts between "
