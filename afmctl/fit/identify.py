@@ -34,6 +34,7 @@ from afmctl.errors import FitInputError
 from afmctl.files import modelfile as mf
 from afmctl.files.sweepfile import Sweep
 from afmctl.files.tomlfile import Table
+from afmctl.fit import density as dn
 from afmctl.fit import noise as ns
 from afmctl.fit import parametrization as pz
 from afmctl.fit import representation as rep
@@ -300,7 +301,7 @@ def envelope(sweeps: Sequence[Sweep], thickness_um: float) -> mf.Envelope:
 # ----------------------------------------------------------------------------------------------
 
 
-Space = pz.LognormalSpace | pz.DiscreteSpace
+Space = pz.LognormalSpace | dn.DiscreteSpace
 
 
 @dataclass
@@ -541,10 +542,11 @@ def _fit(sweeps: Sequence[Sweep], settings: Settings,
     worst = float(np.max(prob.per_sweep(sol.fun)))
     if settings.density == "discrete" or (settings.density == "auto" and worst > REFINE):
         beta, _ = pz.project(space.design(sol.x), prob.y)
-        disc, x0 = pz.DiscreteSpace.around(np.exp(sol.x), preps, settings.scales,
+        disc, x0 = dn.DiscreteSpace.around(np.exp(sol.x), preps, settings.scales,
                                            settings.n_density_nodes, settings.smoothing,
                                            float(beta[0]), space.starts)
         say(f"general coercive density ({settings.n_density_nodes} nodes) ...")
+        x0 = disc.refined(x0, prob.y)
         dsol = _solve(disc, x0, prob)
         gain = 2 * (sol.cost - dsol.cost) / float(np.mean(prob.noise ** 2))
         say(f"  {dsol.message} (status {dsol.status}); RMS / noise per sweep "

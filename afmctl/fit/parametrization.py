@@ -20,8 +20,9 @@ with ``L`` the unit-DC-gain second-order filter of natural frequency ``f_n`` and
 design matrix ``[L[Q], L[Q^2], 1]`` and, with ``beta``, to a :class:`~afmctl.model.transducer.Transducer`.
 
 Two spaces: :class:`LognormalSpace` (``nu_1`` lognormal, ``nu_2`` normal: six parameters) and
-:class:`DiscreteSpace` (``nu_1`` a general nonnegative density on fixed nodes, smoothed by a
-Tikhonov penalty on its second differences; ``nu_2`` normal), as in Section 2.2 of the paper.
+:class:`afmctl.fit.density.DiscreteSpace` (``nu_1`` a general nonnegative density, piecewise linear
+between fixed nodes, smoothed by a Tikhonov penalty on its second differences; ``nu_2`` normal), as
+in Section 2.2 of the paper.
 """
 
 from __future__ import annotations
@@ -471,107 +472,3 @@ class LognormalSpace:
 
     def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
         return with_initial(to_model(np.exp(x), beta, self.scales, thickness_um), self.starts)
-
-
-@dataclass(frozen=True)
-class _Basis:
-    field: FloatArray  # full rate (interpolated like Q), MV/m
-    h: FloatArray      # (N, K) per-node hysteresis columns, full rate
-    le: FloatArray     # L[field] on the mask
-    lh: FloatArray     # (M, K) L[h] on the mask
-
-
-class DiscreteSpace:
-    """``x = (c_1 ... c_K, log sigma_I, log f_n, log zeta)`` with ``c_i = r v_i >= 0`` the
-    weights (MV/m) of a general coercive density on fixed nodes ``E_c,i`` (Section 2.2: the
-    ``N_i`` discretized density values estimated by least squares), smoothed by the penalty
-    ``sqrt(lambda N) g1 D2 c`` (second differences, um) appended to the residual."""
-
-    def __init__(self, preps: Sequence[Prepared], scales: Scales, nodes: FloatArray,
-                 smoothing: float, g1: float, starts: Sequence[str] | None = None) -> None:
-        self.preps, self.scales, self.nodes = list(preps), scales, np.asarray(nodes, float)
-        self.starts = tuple(starts or ["depoled"] * len(self.preps))
-        self.names = tuple(f"c@{e:.4g}" for e in self.nodes) + (
-            "log_std_MV_per_m", "log_natural_hz", "log_damping_ratio")
-        n_obs = sum(int(p.mask.sum()) for p in self.preps)
-        self.weight = math.sqrt(smoothing * n_obs) * abs(g1)
-        self._h: dict[float, list[FloatArray]] = {}
-        self._b: dict[tuple[float, float, float], list[_Basis]] = {}
-        self.x_scale: str | float = "jac"  # weights (MV/m) and logs mixed
-
-    @classmethod
-    def around(cls, theta: FloatArray, preps: Sequence[Prepared], scales: Scales, n_nodes: int,
-               smoothing: float, g1: float,
-               starts: Sequence[str] | None = None) -> tuple[DiscreteSpace, FloatArray]:
-        """Nodes spanning +-3 sigma_ln of a lognormal fit ``theta`` (capped at twice the peak
-        field) and the starting ``x`` that reproduces it."""
-        median, sig, std, r, fn, zeta = theta
-        e_max, _ = extent(preps)
-        lo, hi = median * math.exp(-3 * sig), min(median * math.exp(3 * sig), 2 * e_max)
-        nodes = np.geomspace(lo, max(hi, 1.5 * lo), n_nodes)
-        dens = np.exp(-0.5 * (np.log(nodes / median) / sig) ** 2) / nodes
-        cells = hy.Discrete(tuple(nodes), tuple(np.ones(n_nodes))).nodes_weights()[1]
-        c = r * dens * cells / float(np.sum(dens * cells))
-        space = cls(preps, scales, nodes, smoothing, g1, starts)
-        return space, np.concatenate((c, np.log([std, fn, zeta])))
-
-    def _columns_h(self, std: float) -> list[FloatArray]:
-        """``erf(y_i / (sqrt(2) sigma_I))`` per node at the full rate (cached per sigma_I)."""
-        if std not in self._h:
-            if len(self._h) > 4:
-                self._h.clear()
-            fields = [p.field[p.keep] for p in self.preps]
-            per_node = [run_from(hy.Polarization(1.0, 1.0, hy.Discrete((float(n),), (1.0,)),
-                                                 hy.Normal(std)), fields, self.starts)
-                        for n in self.nodes]
-            self._h[std] = [np.column_stack([_full_rate(p, q[i] - fields[i]) for q in per_node])
-                            for i, p in enumerate(self.preps)]
-        return self._h[std]
-
-    def _basis(self, std: float, fn: float, zeta: float) -> list[_Basis]:
-        """Per sweep: field, ``H`` and their filtered ``L[E]``, ``L[H]`` on the mask. ``Q`` and
-        ``L[Q]`` are linear in the weights ``c``, so only ``L[Q^2]`` is filtered per evaluation."""
-        key = (std, fn, zeta)
-        if key not in self._b:
-            if len(self._b) > 4:
-                self._b.clear()
-            out = []
-            for p, h in zip(self.preps, self._columns_h(std), strict=True):
-                e = _full_rate(p, p.field[p.keep])
-                le = unit_filter(e, fn, zeta, p.dt)[p.mask]
-                lh = np.column_stack([unit_filter(col, fn, zeta, p.dt)[p.mask] for col in h.T])
-                out.append(_Basis(e, h, le, lh))
-            self._b[key] = out
-        return self._b[key]
-
-    def design(self, x: FloatArray) -> FloatArray:
-        k = self.nodes.size
-        c = x[:k]
-        std, fn, zeta = (float(v) for v in np.exp(x[k:]))
-        blocks = []
-        for p, b in zip(self.preps, self._basis(std, fn, zeta), strict=True):
-            q = b.field + b.h @ c
-            lq2 = unit_filter(q * q, fn, zeta, p.dt)[p.mask]
-            blocks.append(np.column_stack((b.le + b.lh @ c, lq2)))
-        return np.hstack((np.vstack(blocks), offset_columns(self.preps)))
-
-    def penalty(self, x: FloatArray) -> FloatArray:
-        return self.weight * np.diff(x[:self.nodes.size], 2)
-
-    def bounds(self) -> tuple[FloatArray, FloatArray]:
-        e_max, nyq = extent(self.preps)
-        k = self.nodes.size
-        lo = np.concatenate((np.zeros(k), np.log([1e-3 * e_max, 0.5, 0.003])))
-        hi = np.concatenate((np.full(k, 100 * e_max), np.log([10 * e_max, 20 * nyq, 5.0])))
-        return lo, hi
-
-    def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
-        k = self.nodes.size
-        c = np.maximum(x[:k], 0.0)
-        r = float(c.sum()) or 1e-12
-        cells = hy.Discrete(tuple(self.nodes), tuple(np.ones(k))).nodes_weights()[1]
-        dens = hy.Discrete(tuple(self.nodes), tuple(float(v) for v in c / r / cells))
-        std, fn, zeta = np.exp(x[k:])
-        pol = hy.Polarization(1.0, 1.0, dens, hy.Normal(float(std)))
-        return with_initial(build_model(pol, r, fn, zeta, beta, self.scales, thickness_um),
-                            self.starts)

@@ -9,6 +9,7 @@ import pytest
 from afmctl.drivers.device import plant
 from afmctl.files import modelfile
 from afmctl.files import sweepfile as sw
+from afmctl.fit import density as dn
 from afmctl.fit import identify as idf
 from afmctl.model.transducer import Transducer
 from afmctl.planning import sweepdesign as sd
@@ -70,7 +71,9 @@ def test_discrete_density_fit(emulate: Callable[..., sw.Sweep]) -> None:
     assert res.success and res.sweeps[0].rms_um <= 1.5 * NOISE_UM
     dens = res.model.polarization.coercive
     assert all(v >= 0 for v in dens.values)  # type: ignore[union-attr]
-    assert sum(1 for p in res.parameters if p.name.startswith("coercive_density@")) == 24
+    # the density, linear between its 24 nodes, as the model holds it: on the quadrature nodes
+    n_quadrature = dn.SUBNODES * (24 - 1)
+    assert sum(1 for p in res.parameters if p.name.startswith("coercive_density@")) == n_quadrature
 
 
 def test_model_file_round_trip_predicts_the_same(standard_fit: idf.FitResult,

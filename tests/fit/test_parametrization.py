@@ -3,6 +3,7 @@ import pytest
 
 from afmctl.files import sweepfile as sw
 from afmctl.fit import identify as idf
+from afmctl.fit import density as dn
 from afmctl.fit import parametrization as pz
 from afmctl.model.transducer import Transducer
 from afmctl.planning import sweepdesign as sd
@@ -50,7 +51,7 @@ def test_discrete_space_reproduces_its_lognormal_start(true_model: Transducer) -
     s = sw.from_arrays(v, idf.predict(true_model, v, 5e-4), 2000.0)
     prep = pz.prepare(s, 100.0, 0.0, None)
     theta = np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25])
-    space, x0 = pz.DiscreteSpace.around(theta, [prep], pz.Scales(), 48, 0.0, 25.7)
+    space, x0 = dn.DiscreteSpace.around(theta, [prep], pz.Scales(), 48, 0.0, 25.7)
     lognormal = pz.LognormalSpace([prep], pz.Scales(), 256)
     a_d, a_l = space.design(x0), lognormal.design(np.log(theta))
     assert np.max(np.abs(a_d[:, 0] - a_l[:, 0])) < 0.01 * np.ptp(a_l[:, 0])
@@ -85,7 +86,7 @@ def test_every_space_gives_its_model_the_first_sweeps_start(starts: tuple[str, .
     theta = np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25])
     beta = np.array([25.7, 0.4, 0.0])
     lognormal = pz.LognormalSpace(preps, pz.Scales(), 64, starts or None)
-    discrete, x0 = pz.DiscreteSpace.around(theta, preps, pz.Scales(), 16, 0.0, 25.7,
+    discrete, x0 = dn.DiscreteSpace.around(theta, preps, pz.Scales(), 16, 0.0, 25.7,
                                            starts or None)
     assert lognormal.model(np.log(theta), beta, 100.0).initial == initial
     assert discrete.model(x0, beta, 100.0).initial == initial
@@ -105,12 +106,14 @@ def test_a_general_density_model_starts_the_lognormal_fits_where_it_is(
     s = sw.from_arrays(v, idf.predict(true_model, v, 5e-4), 2000.0)
     prep = pz.prepare(s, 100.0, 0.0, None)
     theta = np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25])
-    space, x0 = pz.DiscreteSpace.around(theta, [prep], pz.Scales(), 24, 0.0, 25.7)
+    space, x0 = dn.DiscreteSpace.around(theta, [prep], pz.Scales(), 24, 0.0, 25.7)
     general = space.model(x0, np.array([25.7, 0.4, 0.0]), 100.0)
     with pytest.raises(ValueError, match="lognormal"):
         pz.internal(general)
     x = pz.internal(pz.lognormal_equivalent(general))
-    np.testing.assert_allclose(np.exp(x), theta, rtol=0.03)  # +-3 sigma nodes: 1-2 % low sigma
+    # the nodes stop where no hysteron of the sweep can switch (1.65 MV/m here, 1.25 sigma_ln
+    # above the median): the lognormal's tail beyond is cut, sigma_ln comes out 4 % low
+    np.testing.assert_allclose(np.exp(x), theta, rtol=0.05)
     modelfile.write(general, tmp_path / "general.toml")
     sweep = tmp_path / "short.csv"
     sw.write(sw.from_arrays(v[:50], 0.1 * v[:50], 2000.0, {"layer_thickness_um": "100"}), sweep)

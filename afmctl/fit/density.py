@@ -1,0 +1,260 @@
+"""A general coercive-field density for identify: piecewise linear between fixed nodes (Section 2.2).
+
+The paper allows ``nu_1`` any nonnegative density, its ``N_i`` discretized values estimated by least
+squares. :class:`DiscreteSpace` writes it as ``K`` weights on equally spaced nodes from 0 up
+(``E_c = 0`` included: a stage's density need not vanish at small coercive fields, as a
+lognormal's does; a Gaussian lobe cut at 0 is of the paper's family and out of a lognormal's
+reach), the density linear between them and integrated on :data:`SUBNODES` quadrature nodes per
+cell, so ``K`` parameters describe a smooth density without the sawtooth of ``K`` plays.
+
+A fit in this space from the lognormal's density alone stalls (the weights below the lognormal's
+support start at 0 and a finite-difference solver does not move them far): :meth:`DiscreteSpace.refined`
+first solves the problem linearized in the weights, with the gains, by bounded least squares
+(a few Gauss-Newton steps), and identify's solver starts from there.
+
+Pure numerics: no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize
+
+from afmctl.fit.parametrization import (
+    Prepared,
+    Scales,
+    at_full_rate,
+    build_model,
+    extent,
+    offset_columns,
+    project,
+    run_from,
+    unit_filter,
+    with_initial,
+)
+from afmctl.model import hysteresis as hy
+from afmctl.model import transducer as td
+
+FloatArray = NDArray[np.float64]
+#: Quadrature nodes per cell between two of the density's nodes.
+SUBNODES = 4
+#: Damped Gauss-Newton steps of :meth:`DiscreteSpace.refined`, at most (refused ones included);
+#: it stops earlier once a step lowers the sum of squares by less than :data:`REFINE_TOL` of it.
+REFINE_STEPS = 12
+REFINE_TOL = 1e-3
+#: The search for ``sigma_I`` spans its start times exp(+-STD_SPAN), in at most STD_EVALS steps.
+STD_SPAN = 0.7
+STD_EVALS = 12
+
+
+@dataclass(frozen=True)
+class _Basis:
+    field: FloatArray  # full rate (interpolated like Q), MV/m
+    h: FloatArray      # (N, K) per-node hysteresis columns, full rate
+    le: FloatArray     # L[field] on the mask
+    lh: FloatArray     # (M, K) L[h] on the mask
+
+
+def hats(nodes: FloatArray, sub: int = SUBNODES) -> tuple[FloatArray, FloatArray]:
+    """Quadrature nodes (MV/m, ``sub`` per cell at the cells' midpoints) and the matrix ``T``
+    (quadrature nodes x ``nodes``) of each node's hat function there, divided by ``sub``: a
+    density linear between ``nodes`` with weight ``c_i`` at node ``i`` puts ``T @ c`` on the
+    quadrature nodes (an inner node's column sums to 1, the two end nodes' to 1/2)."""
+    h = float(nodes[1] - nodes[0])
+    fine = (np.arange(sub * (nodes.size - 1)) + 0.5) * h / sub + float(nodes[0])
+    t = np.maximum(0.0, 1.0 - np.abs(fine[:, None] - nodes[None, :]) / h) / sub
+    return fine, t
+
+
+class DiscreteSpace:
+    """``x = (c_1 ... c_K, log sigma_I, log f_n, log zeta)`` with ``c_i = r nu_1(E_c,i) h >= 0``
+    the weights (MV/m) of a general coercive density, linear between equally spaced nodes
+    ``E_c,i`` (step ``h``, the first at 0; Section 2.2: the discretized density values estimated
+    by least squares), smoothed by the penalty ``sqrt(lambda N) g1 D2 c`` (second differences,
+    um) appended to the residual."""
+
+    def __init__(self, preps: Sequence[Prepared], scales: Scales, nodes: FloatArray,
+                 smoothing: float, g1: float, starts: Sequence[str] | None = None) -> None:
+        self.preps, self.scales, self.nodes = list(preps), scales, np.asarray(nodes, float)
+        self.fine, self.hat = hats(self.nodes)
+        self.starts = tuple(starts or ["depoled"] * len(self.preps))
+        self.names = tuple(f"c@{e:.4g}" for e in self.nodes) + (
+            "log_std_MV_per_m", "log_natural_hz", "log_damping_ratio")
+        n_obs = sum(int(p.mask.sum()) for p in self.preps)
+        self.weight = math.sqrt(smoothing * n_obs) * abs(g1)
+        self._h: dict[float, list[FloatArray]] = {}
+        self._b: dict[tuple[float, float, float], list[_Basis]] = {}
+        self.x_scale: str | float = "jac"  # weights (MV/m) and logs mixed
+
+    @classmethod
+    def around(cls, theta: FloatArray, preps: Sequence[Prepared], scales: Scales, n_nodes: int,
+               smoothing: float, g1: float,
+               starts: Sequence[str] | None = None) -> tuple[DiscreteSpace, FloatArray]:
+        """Nodes from 0 to the largest coercive field that can switch, the lower of the
+        lognormal fit ``theta``'s ``median exp(3 sigma_ln)`` and half the sweeps' field range
+        plus 3 sigma_I (a play of half-width ``E_c`` moves only when the field travels more
+        than ``2 E_c``; a hysteron beyond never switches, a constant the gains absorb), and the
+        starting ``x`` that reproduces the lognormal's density there."""
+        median, sig, std, r, fn, zeta = theta
+        lo = min(float(np.min(p.field)) for p in preps)
+        hi = max(float(np.max(p.field)) for p in preps)
+        top = min(median * math.exp(3 * sig), 0.5 * (hi - lo) + 3 * std)
+        nodes = np.linspace(0.0, top, n_nodes)
+        space = cls(preps, scales, nodes, smoothing, g1, starts)
+        x = np.maximum(space.fine, 1e-12 * top)
+        dens = np.exp(-0.5 * (np.log(x / median) / sig) ** 2) / x
+        # weights at the nodes whose hats put the lognormal's mass on the quadrature nodes
+        c, *_ = np.linalg.lstsq(space.hat, dens / dens.sum(), rcond=None)
+        c = np.maximum(c, 0.0)
+        return space, np.concatenate((r * c / float(space.hat.sum(axis=0) @ c),
+                                      np.log([std, fn, zeta])))
+
+    def _columns_h(self, std: float) -> list[FloatArray]:
+        """Per node, its hat's share of ``erf(y_j / (sqrt(2) sigma_I))`` over the quadrature
+        nodes ``j`` at the full rate (cached per sigma_I)."""
+        if std not in self._h:
+            if len(self._h) > 4:
+                self._h.clear()
+            fields = [p.field[p.keep] for p in self.preps]
+            per_node = [run_from(hy.Polarization(1.0, 1.0, hy.Discrete((float(n),), (1.0,)),
+                                                 hy.Normal(std)), fields, self.starts)
+                        for n in self.fine]
+            self._h[std] = [np.column_stack([at_full_rate(p.field.size, p.keep, q[i] - fields[i])
+                                             for q in per_node]) @ self.hat
+                            for i, p in enumerate(self.preps)]
+        return self._h[std]
+
+    def _basis(self, std: float, fn: float, zeta: float) -> list[_Basis]:
+        """Per sweep: field, ``H`` and their filtered ``L[E]``, ``L[H]`` on the mask. ``Q`` and
+        ``L[Q]`` are linear in the weights ``c``, so only ``L[Q^2]`` is filtered per evaluation."""
+        key = (std, fn, zeta)
+        if key not in self._b:
+            if len(self._b) > 4:
+                self._b.clear()
+            out = []
+            for p, h in zip(self.preps, self._columns_h(std), strict=True):
+                e = at_full_rate(p.field.size, p.keep, p.field[p.keep])
+                le = unit_filter(e, fn, zeta, p.dt)[p.mask]
+                lh = np.column_stack([unit_filter(col, fn, zeta, p.dt)[p.mask] for col in h.T])
+                out.append(_Basis(e, h, le, lh))
+            self._b[key] = out
+        return self._b[key]
+
+    def design(self, x: FloatArray) -> FloatArray:
+        k = self.nodes.size
+        c = x[:k]
+        std, fn, zeta = (float(v) for v in np.exp(x[k:]))
+        blocks = []
+        for p, b in zip(self.preps, self._basis(std, fn, zeta), strict=True):
+            q = b.field + b.h @ c
+            lq2 = unit_filter(q * q, fn, zeta, p.dt)[p.mask]
+            blocks.append(np.column_stack((b.le + b.lh @ c, lq2)))
+        return np.hstack((np.vstack(blocks), offset_columns(self.preps)))
+
+    def _jacobian(self, c: FloatArray, g: tuple[float, float], fn: float, zeta: float,
+                  basis: Sequence[_Basis]) -> FloatArray:
+        """Columns of the linearized model in ``(c, g1, g2, zeros)``: ``g1 L[H_i] + 2 g2
+        L[Q H_i]``, ``L[Q]``, ``L[Q^2]`` and one sensor zero per sweep."""
+        blocks = []
+        for p, b in zip(self.preps, basis, strict=True):
+            q = b.field + b.h @ c
+            lqh = np.column_stack([unit_filter(q * col, fn, zeta, p.dt)[p.mask]
+                                   for col in b.h.T])
+            lq2 = unit_filter(q * q, fn, zeta, p.dt)[p.mask]
+            blocks.append(np.column_stack((g[0] * b.lh + 2 * g[1] * lqh, b.le + b.lh @ c, lq2)))
+        return np.hstack((np.vstack(blocks), offset_columns(self.preps)))
+
+    @property
+    def _d2(self) -> FloatArray:
+        """The smoothing penalty's matrix: weighted second differences of the weights."""
+        return self.weight * np.diff(np.eye(self.nodes.size), 2, axis=0)
+
+    def _cost(self, c: FloatArray, rest: FloatArray, y: FloatArray
+              ) -> tuple[float, FloatArray, FloatArray]:
+        """Sum of squares (penalty included), gains and residual at weights ``c``."""
+        beta, res = project(self.design(np.concatenate((c, rest))), y)
+        return float(res @ res + np.sum((self._d2 @ c) ** 2)), beta, res
+
+    def refined(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        """``x`` with its weights fitted to the problem linearized in them (:meth:`_weights`) and
+        ``sigma_I`` chosen by a bounded scalar search around ``x``'s (the weights refitted at
+        each, from the best so far; the rod held): the weights and the interaction width trade
+        off, and a width a few per cent off the lognormal fit's held the weights at 6x the noise
+        on a stage the right width takes to the floor. A start from which the solver reaches
+        densities the lognormal's support left out."""
+        k = self.nodes.size
+        best = [self._weights(x, y)]
+        costs = {float(x[k]): self._cost(best[0][:k], best[0][k:], y)[0]}
+
+        def cost(log_std: float) -> float:
+            trial = self._weights(np.concatenate((best[0][:k], [log_std], x[k + 1:])), y)
+            value = self._cost(trial[:k], trial[k:], y)[0]
+            if value < min(costs.values()):
+                best[0] = trial
+            costs[log_std] = value
+            return value
+
+        optimize.minimize_scalar(cost, bounds=(float(x[k]) - STD_SPAN, float(x[k]) + STD_SPAN),
+                                 method="bounded", options={"xatol": 0.01, "maxiter": STD_EVALS})
+        return best[0]
+
+    def _weights(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        """``x`` with its weights moved by damped Gauss-Newton steps (Levenberg-Marquardt) of the
+        problem linearized in the weights and the gains (``sigma_I`` and the rod held), each a
+        bounded linear least-squares solve that keeps every weight nonnegative, with the
+        smoothing penalty; a step is kept only if it lowers the sum of squares. Weights of
+        hysterons that never switch are a constant the gains absorb: the damping holds them."""
+        k, rest = self.nodes.size, x[self.nodes.size:]
+        c = x[:k].copy()
+        std, fn, zeta = (float(v) for v in np.exp(rest))
+        basis = self._basis(std, fn, zeta)
+        d2 = self._d2
+        cost, beta, res = self._cost(c, rest, y)
+        mu = 1e-3
+        for _ in range(REFINE_STEPS):
+            jac = self._jacobian(c, (float(beta[0]), float(beta[1])), fn, zeta, basis)
+            m = jac.shape[1] - k
+            scale = np.linalg.norm(jac[:, :k], axis=0) + 1e-300
+            damp = np.hstack((np.diag(math.sqrt(mu) * scale), np.zeros((k, m))))
+            a = np.vstack((jac, np.hstack((d2, np.zeros((d2.shape[0], m)))), damp))
+            b = np.concatenate((res, -d2 @ c, np.zeros(k)))
+            lo = np.concatenate((-c, np.full(m, -np.inf)))
+            step = optimize.lsq_linear(a, b, bounds=(lo, np.full(k + m, np.inf)),
+                                       method="bvls").x
+            trial = np.maximum(c + step[:k], 0.0)
+            new, nbeta, nres = self._cost(trial, rest, y)
+            if new >= cost:
+                mu *= 8.0
+                continue
+            done = new > cost * (1 - REFINE_TOL)
+            c, cost, beta, res, mu = trial, new, nbeta, nres, mu / 4.0
+            if done:
+                break
+        return np.concatenate((c, rest))
+
+    def penalty(self, x: FloatArray) -> FloatArray:
+        return self.weight * np.diff(x[:self.nodes.size], 2)
+
+    def bounds(self) -> tuple[FloatArray, FloatArray]:
+        e_max, nyq = extent(self.preps)
+        k = self.nodes.size
+        lo = np.concatenate((np.zeros(k), np.log([1e-3 * e_max, 0.5, 0.003])))
+        hi = np.concatenate((np.full(k, 100 * e_max), np.log([10 * e_max, 20 * nyq, 5.0])))
+        return lo, hi
+
+    def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
+        """The model: the density on the quadrature nodes (values linear between the nodes)."""
+        k = self.nodes.size
+        m = self.hat @ np.maximum(x[:k], 0.0)
+        r = float(m.sum()) or 1e-12
+        cell = float(self.fine[1] - self.fine[0])
+        dens = hy.Discrete(tuple(self.fine), tuple(float(v) for v in m / r / cell))
+        std, fn, zeta = np.exp(x[k:])
+        pol = hy.Polarization(1.0, 1.0, dens, hy.Normal(float(std)))
+        return with_initial(build_model(pol, r, fn, zeta, beta, self.scales, thickness_um),
+                            self.starts)
