@@ -1,16 +1,17 @@
 """A general coercive-field density for identify: piecewise linear between fixed nodes (Section 2.2).
 
 The paper allows ``nu_1`` any nonnegative density, its ``N_i`` discretized values estimated by least
-squares. :class:`DiscreteSpace` writes it as ``K`` weights on equally spaced nodes from 0 up
-(``E_c = 0`` included: a stage's density need not vanish at small coercive fields, as a
-lognormal's does; a Gaussian lobe cut at 0 is of the paper's family and out of a lognormal's
-reach), the density linear between them and integrated on :data:`SUBNODES` quadrature nodes per
-cell, so ``K`` parameters describe a smooth density without the sawtooth of ``K`` plays.
+squares. :class:`DiscreteSpace` writes it as ``K`` weights on nodes from 0 up (``E_c = 0``
+included: a stage's density need not vanish at small coercive fields, as a lognormal's does; a
+Gaussian lobe cut at 0 is of the paper's family and out of a lognormal's reach), the density
+linear between them and integrated on :data:`SUBNODES` quadrature nodes per cell, so ``K``
+parameters describe a smooth density without the sawtooth of ``K`` plays.
 
-A fit in this space from the lognormal's density alone stalls (the weights below the lognormal's
-support start at 0 and a finite-difference solver does not move them far): :meth:`DiscreteSpace.refined`
-first solves the problem linearized in the weights, with the gains, by bounded least squares
-(a few Gauss-Newton steps), and identify's solver starts from there.
+A fit in this space from the lognormal's density alone stalls (the weights below the
+lognormal's support start at 0 and a finite-difference solver does not move them far):
+:meth:`DiscreteSpace.refined` first solves the problem linearized in the weights, with the
+gains, by bounded least squares (damped Gauss-Newton steps, inside a search over sigma_I), and
+identify's solver starts from there.
 
 Pure numerics: no I/O.
 """
@@ -62,21 +63,29 @@ class _Basis:
 
 def hats(nodes: FloatArray, sub: int = SUBNODES) -> tuple[FloatArray, FloatArray]:
     """Quadrature nodes (MV/m, ``sub`` per cell at the cells' midpoints) and the matrix ``T``
-    (quadrature nodes x ``nodes``) of each node's hat function there, divided by ``sub``: a
-    density linear between ``nodes`` with weight ``c_i`` at node ``i`` puts ``T @ c`` on the
-    quadrature nodes (an inner node's column sums to 1, the two end nodes' to 1/2)."""
-    h = float(nodes[1] - nodes[0])
-    fine = (np.arange(sub * (nodes.size - 1)) + 0.5) * h / sub + float(nodes[0])
-    t = np.maximum(0.0, 1.0 - np.abs(fine[:, None] - nodes[None, :]) / h) / sub
+    (quadrature nodes x ``nodes``): a density linear between ``nodes`` with value
+    ``c_i / hbar`` at node ``i`` (``hbar`` the mean cell) puts ``T @ c`` on the quadrature
+    nodes, each its value there times its share of the cell (on equal cells an inner node's
+    column sums to 1, the two end nodes' to 1/2)."""
+    widths = np.diff(nodes)
+    frac = (np.arange(sub) + 0.5) / sub
+    fine = (nodes[:-1, None] + widths[:, None] * frac[None, :]).ravel()
+    cell = np.repeat(np.arange(widths.size), sub)
+    f = np.tile(frac, widths.size)
+    share = widths[cell] / sub / float(np.mean(widths))
+    t = np.zeros((fine.size, nodes.size))
+    rows = np.arange(fine.size)
+    t[rows, cell] = (1.0 - f) * share
+    t[rows, cell + 1] = f * share
     return fine, t
 
 
 class DiscreteSpace:
-    """``x = (c_1 ... c_K, log sigma_I, log f_n, log zeta)`` with ``c_i = r nu_1(E_c,i) h >= 0``
-    the weights (MV/m) of a general coercive density, linear between equally spaced nodes
-    ``E_c,i`` (step ``h``, the first at 0; Section 2.2: the discretized density values estimated
-    by least squares), smoothed by the penalty ``sqrt(lambda N) g1 D2 c`` (second differences,
-    um) appended to the residual."""
+    """``x = (c_1 ... c_K, log sigma_I, log f_n, log zeta)`` with ``c_i = r nu_1(E_c,i) hbar >= 0``
+    the weights (MV/m) of a general coercive density, linear between the nodes ``E_c,i`` (the
+    first at 0, ``hbar`` their mean spacing; Section 2.2: the discretized density values
+    estimated by least squares), smoothed by the penalty ``sqrt(lambda N) g1 D2 c`` (second
+    differences, um) appended to the residual."""
 
     def __init__(self, preps: Sequence[Prepared], scales: Scales, nodes: FloatArray,
                  smoothing: float, g1: float, starts: Sequence[str] | None = None) -> None:
@@ -96,23 +105,26 @@ class DiscreteSpace:
                smoothing: float, g1: float,
                starts: Sequence[str] | None = None) -> tuple[DiscreteSpace, FloatArray]:
         """Nodes from 0 to the largest coercive field that can switch, the lower of the
-        lognormal fit ``theta``'s ``median exp(3 sigma_ln)`` and half the sweeps' field range
-        plus 3 sigma_I (a play of half-width ``E_c`` moves only when the field travels more
-        than ``2 E_c``; a hysteron beyond never switches, a constant the gains absorb), and the
-        starting ``x`` that reproduces the lognormal's density there."""
+        lognormal fit ``theta``'s ``median exp(3 sigma_ln)`` and the sweeps' peak field (a play
+        of half-width ``E_c`` started at or between the poled states moves only when the field
+        leaves ``+-E_c`` about its output; a hysteron beyond never switches, a constant the gains
+        absorb): geometric over the lognormal's support from ``median exp(-3 sigma_ln)`` (where
+        its mass is), equally spaced below it (a quarter of the nodes); and the starting ``x``
+        that reproduces the lognormal's density on them."""
         median, sig, std, r, fn, zeta = theta
-        lo = min(float(np.min(p.field)) for p in preps)
-        hi = max(float(np.max(p.field)) for p in preps)
-        top = min(median * math.exp(3 * sig), 0.5 * (hi - lo) + 3 * std)
-        nodes = np.linspace(0.0, top, n_nodes)
+        top = min(median * math.exp(3 * sig), extent(preps)[0])
+        bottom = median * math.exp(-3 * sig)
+        if bottom < 0.5 * top:
+            k0 = max(2, n_nodes // 4)
+            nodes = np.concatenate((np.linspace(0.0, bottom, k0, endpoint=False),
+                                    np.geomspace(bottom, top, n_nodes - k0)))
+        else:
+            nodes = np.linspace(0.0, top, n_nodes)
         space = cls(preps, scales, nodes, smoothing, g1, starts)
-        x = np.maximum(space.fine, 1e-12 * top)
+        x = np.maximum(nodes, 1e-12 * top)
         dens = np.exp(-0.5 * (np.log(x / median) / sig) ** 2) / x
-        # weights at the nodes whose hats put the lognormal's mass on the quadrature nodes
-        c, *_ = np.linalg.lstsq(space.hat, dens / dens.sum(), rcond=None)
-        c = np.maximum(c, 0.0)
-        return space, np.concatenate((r * c / float(space.hat.sum(axis=0) @ c),
-                                      np.log([std, fn, zeta])))
+        c = r * dens / float(space.hat.sum(axis=0) @ dens)
+        return space, np.concatenate((c, np.log([std, fn, zeta])))
 
     def _columns_h(self, std: float) -> list[FloatArray]:
         """Per node, its hat's share of ``erf(y_j / (sqrt(2) sigma_I))`` over the quadrature
@@ -252,8 +264,8 @@ class DiscreteSpace:
         k = self.nodes.size
         m = self.hat @ np.maximum(x[:k], 0.0)
         r = float(m.sum()) or 1e-12
-        cell = float(self.fine[1] - self.fine[0])
-        dens = hy.Discrete(tuple(self.fine), tuple(float(v) for v in m / r / cell))
+        cells = hy.Discrete(tuple(self.fine), tuple(np.ones(self.fine.size))).nodes_weights()[1]
+        dens = hy.Discrete(tuple(self.fine), tuple(float(v) for v in m / r / cells))
         std, fn, zeta = np.exp(x[k:])
         pol = hy.Polarization(1.0, 1.0, dens, hy.Normal(float(std)))
         return with_initial(build_model(pol, r, fn, zeta, beta, self.scales, thickness_um),

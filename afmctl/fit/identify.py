@@ -64,8 +64,12 @@ START_MARGIN = 25.0
 #: their fit RMS (or noise): more than a misfit's mean could shift a fitted offset.
 OFFSET_AGREE = 5.0
 #: Above this many times its noise on some sweep, the fit tries a general coercive density
-#: (kept if it lowers the sum of squares by more than 2 noise variances per added parameter).
+#: (kept if it lowers the sum of squares by more than 2 noise variances per added parameter and
+#: leaves no sweep more than :data:`REFINE_WORSE` times its lognormal misfit: the density is
+#: quasi-static and shared by every sweep, so a density that trades the slow sweep for a fast
+#: one is absorbing dynamics, e.g. a mode below the rod ringing after the fast triangle's corners).
 REFINE = 1.25
+REFINE_WORSE = 1.1
 #: The fit is polished with more coercive nodes if they change a sweep by this share of its noise.
 POLISH_SHARE = 0.3
 #: At most this many coercive nodes during the fit (the model itself gets N_c).
@@ -551,7 +555,9 @@ def _fit(sweeps: Sequence[Sweep], settings: Settings,
         gain = 2 * (sol.cost - dsol.cost) / float(np.mean(prob.noise ** 2))
         say(f"  {dsol.message} (status {dsol.status}); RMS / noise per sweep "
             + " / ".join(f"{r:.2f}" for r in prob.per_sweep(dsol.fun)))
-        if settings.density == "discrete" or gain > 2 * (x0.size - sol.x.size):
+        worse = float(np.max(prob.per_sweep(dsol.fun) / prob.per_sweep(sol.fun)))
+        if settings.density == "discrete" or (gain > 2 * (x0.size - sol.x.size)
+                                              and worse <= REFINE_WORSE):
             final, sol = disc, dsol
             ok = ok and dsol.success and dsol.status > 0
     beta, _ = pz.project(final.design(sol.x), prob.y)
