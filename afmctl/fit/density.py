@@ -44,7 +44,8 @@ from afmctl.model import transducer as td
 FloatArray = NDArray[np.float64]
 #: Quadrature nodes per cell between two of the density's nodes.
 SUBNODES = 4
-#: Damped Gauss-Newton steps of :meth:`DiscreteSpace.refined`, at most (refused ones included);
+#: Damped Gauss-Newton steps per weight fit of :meth:`DiscreteSpace.refined`, at most (refused
+#: ones included);
 #: it stops earlier once a step lowers the sum of squares by less than :data:`REFINE_TOL` of it.
 REFINE_STEPS = 12
 REFINE_TOL = 1e-3
@@ -62,8 +63,8 @@ class _Basis:
 
 
 def hats(nodes: FloatArray, sub: int = SUBNODES) -> tuple[FloatArray, FloatArray]:
-    """Quadrature nodes (MV/m, ``sub`` per cell at the cells' midpoints) and the matrix ``T``
-    (quadrature nodes x ``nodes``): a density linear between ``nodes`` with value
+    """Quadrature nodes (MV/m, ``sub`` per cell, at the midpoints of its ``sub`` equal parts) and
+    the matrix ``T`` (quadrature nodes x ``nodes``): a density linear between ``nodes`` with value
     ``c_i / hbar`` at node ``i`` (``hbar`` the mean cell) puts ``T @ c`` on the quadrature
     nodes, each its value there times its share of the cell (on equal cells an inner node's
     column sums to 1, the two end nodes' to 1/2)."""
@@ -90,6 +91,8 @@ class DiscreteSpace:
     def __init__(self, preps: Sequence[Prepared], scales: Scales, nodes: FloatArray,
                  smoothing: float, g1: float, starts: Sequence[str] | None = None) -> None:
         self.preps, self.scales, self.nodes = list(preps), scales, np.asarray(nodes, float)
+        if self.nodes.size < 3 or self.nodes[0] < 0 or np.any(np.diff(self.nodes) <= 0):
+            raise ValueError("a general density needs at least 3 increasing nodes from >= 0")
         self.fine, self.hat = hats(self.nodes)
         self.starts = tuple(starts or ["depoled"] * len(self.preps))
         self.names = tuple(f"c@{e:.4g}" for e in self.nodes) + (
@@ -105,25 +108,33 @@ class DiscreteSpace:
                smoothing: float, g1: float,
                starts: Sequence[str] | None = None) -> tuple[DiscreteSpace, FloatArray]:
         """Nodes from 0 to the largest coercive field that can switch, the lower of the
-        lognormal fit ``theta``'s ``median exp(3 sigma_ln)`` and the sweeps' peak field (a play
-        of half-width ``E_c`` started at or between the poled states moves only when the field
-        leaves ``+-E_c`` about its output; a hysteron beyond never switches, a constant the gains
-        absorb): geometric over the lognormal's support from ``median exp(-3 sigma_ln)`` (where
-        its mass is), equally spaced below it (a quarter of the nodes); and the starting ``x``
-        that reproduces the lognormal's density on them."""
+        lognormal fit ``theta``'s ``median exp(3 sigma_ln)`` and the sweeps' peak field (plus
+        3 sigma_I, capped at the peak field again, when a sweep starts poled or where another
+        left it: a poled play follows the field at ``E +- E_c`` and its ``erf`` saturates only
+        ``3 sigma_I`` beyond; a depoled one moves only once the field passes ``+-E_c``). A
+        hysteron beyond never switches: a constant the gains absorb. Geometric over the
+        lognormal's support from ``median exp(-3 sigma_ln)`` (where its mass is), equally spaced
+        below it (a quarter of the nodes), or equally spaced throughout when that support
+        starts above half the top. The starting ``x`` puts the lognormal's mass (normalized
+        over all coercive fields, so the hysterons beyond the top are left out, not pushed
+        onto the nodes) on them; a flat density if none of it is within reach."""
         median, sig, std, r, fn, zeta = theta
-        top = min(median * math.exp(3 * sig), extent(preps)[0])
+        e_max, _ = extent(preps)
+        poled = any(start != "depoled" for start in (starts or ()))
+        top = min(median * math.exp(3 * sig), e_max + (min(3 * std, e_max) if poled else 0.0))
         bottom = median * math.exp(-3 * sig)
-        if bottom < 0.5 * top:
-            k0 = max(2, n_nodes // 4)
+        k0 = min(max(2, n_nodes // 4), n_nodes - 2)
+        if bottom < 0.5 * top and k0 >= 1:
             nodes = np.concatenate((np.linspace(0.0, bottom, k0, endpoint=False),
                                     np.geomspace(bottom, top, n_nodes - k0)))
         else:
             nodes = np.linspace(0.0, top, n_nodes)
         space = cls(preps, scales, nodes, smoothing, g1, starts)
         x = np.maximum(nodes, 1e-12 * top)
-        dens = np.exp(-0.5 * (np.log(x / median) / sig) ** 2) / x
-        c = r * dens / float(space.hat.sum(axis=0) @ dens)
+        pdf = np.exp(-0.5 * (np.log(x / median) / sig) ** 2) / (x * sig * math.sqrt(2 * math.pi))
+        c = r * pdf * float(np.mean(np.diff(nodes)))
+        if not np.any(c > 0):
+            c = np.full(n_nodes, r / n_nodes)
         return space, np.concatenate((c, np.log([std, fn, zeta])))
 
     def _columns_h(self, std: float) -> list[FloatArray]:
@@ -195,10 +206,11 @@ class DiscreteSpace:
     def refined(self, x: FloatArray, y: FloatArray) -> FloatArray:
         """``x`` with its weights fitted to the problem linearized in them (:meth:`_weights`) and
         ``sigma_I`` chosen by a bounded scalar search around ``x``'s (the weights refitted at
-        each, from the best so far; the rod held): the weights and the interaction width trade
-        off, and a width a few per cent off the lognormal fit's held the weights at 6x the noise
-        on a stage the right width takes to the floor. A start from which the solver reaches
-        densities the lognormal's support left out."""
+        each, from the best so far, so the searched cost depends on the path; the best point is
+        kept; the rod held): the weights and the interaction width trade off, and a width a few
+        per cent off the lognormal fit's held the weights at 6x the noise on a stage the right
+        width takes to the floor. A start from which the solver reaches densities the
+        lognormal's support left out."""
         k = self.nodes.size
         best = [self._weights(x, y)]
         costs = {float(x[k]): self._cost(best[0][:k], best[0][k:], y)[0]}
@@ -227,15 +239,17 @@ class DiscreteSpace:
         basis = self._basis(std, fn, zeta)
         d2 = self._d2
         cost, beta, res = self._cost(c, rest, y)
-        mu = 1e-3
+        mu, jac = 1e-3, None
         for _ in range(REFINE_STEPS):
-            jac = self._jacobian(c, (float(beta[0]), float(beta[1])), fn, zeta, basis)
-            m = jac.shape[1] - k
-            scale = np.linalg.norm(jac[:, :k], axis=0) + 1e-300
+            if jac is None:  # a refused step keeps c: the same Jacobian, more damping
+                jac = self._jacobian(c, (float(beta[0]), float(beta[1])), fn, zeta, basis)
+                m = jac.shape[1] - k
+                scale = np.linalg.norm(jac[:, :k], axis=0)
+                scale = np.maximum(scale, 1e-8 * float(scale.max()) + 1e-300)
+                lo = np.concatenate((-c, np.full(m, -np.inf)))
+                b = np.concatenate((res, -d2 @ c, np.zeros(k)))
             damp = np.hstack((np.diag(math.sqrt(mu) * scale), np.zeros((k, m))))
             a = np.vstack((jac, np.hstack((d2, np.zeros((d2.shape[0], m)))), damp))
-            b = np.concatenate((res, -d2 @ c, np.zeros(k)))
-            lo = np.concatenate((-c, np.full(m, -np.inf)))
             step = optimize.lsq_linear(a, b, bounds=(lo, np.full(k + m, np.inf)),
                                        method="bvls").x
             trial = np.maximum(c + step[:k], 0.0)
@@ -244,12 +258,14 @@ class DiscreteSpace:
                 mu *= 8.0
                 continue
             done = new > cost * (1 - REFINE_TOL)
-            c, cost, beta, res, mu = trial, new, nbeta, nres, mu / 4.0
+            c, cost, beta, res, mu, jac = trial, new, nbeta, nres, mu / 4.0, None
             if done:
                 break
         return np.concatenate((c, rest))
 
     def penalty(self, x: FloatArray) -> FloatArray:
+        """Second differences of the weights by node index (on the geometric nodes a straight
+        density is penalized a little too: the penalty only smooths, at lambda = 1e-6)."""
         return self.weight * np.diff(x[:self.nodes.size], 2)
 
     def bounds(self) -> tuple[FloatArray, FloatArray]:
@@ -260,7 +276,10 @@ class DiscreteSpace:
         return lo, hi
 
     def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
-        """The model: the density on the quadrature nodes (values linear between the nodes)."""
+        """The model: the density on the quadrature nodes, each value its node's mass over the
+        midpoint cell :class:`~afmctl.model.hysteresis.Discrete` gives it (the quadrature is the
+        design's exactly; next to a node between unequal cells a value differs from the linear
+        density by a few per cent, its mass does not)."""
         k = self.nodes.size
         m = self.hat @ np.maximum(x[:k], 0.0)
         r = float(m.sum()) or 1e-12

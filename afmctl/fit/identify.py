@@ -65,9 +65,10 @@ START_MARGIN = 25.0
 OFFSET_AGREE = 5.0
 #: Above this many times its noise on some sweep, the fit tries a general coercive density
 #: (kept if it lowers the sum of squares by more than 2 noise variances per added parameter and
-#: leaves no sweep more than :data:`REFINE_WORSE` times its lognormal misfit: the density is
-#: quasi-static and shared by every sweep, so a density that trades the slow sweep for a fast
-#: one is absorbing dynamics, e.g. a mode below the rod ringing after the fast triangle's corners).
+#: leaves no sweep above its noise and more than :data:`REFINE_WORSE` times its lognormal
+#: misfit: the density is quasi-static and shared by every sweep, so a density that trades the
+#: slow sweep for a fast one absorbs dynamics, e.g. a mode below the rod ringing after the fast
+#: triangle's corners).
 REFINE = 1.25
 REFINE_WORSE = 1.1
 #: The fit is polished with more coercive nodes if they change a sweep by this share of its noise.
@@ -114,9 +115,10 @@ class Settings:
         stays above :data:`FLOOR` times its sensor noise.
     density : {"auto", "parametric", "discrete"}
         ``discrete`` refines the lognormal fit with a general coercive density; ``auto`` tries
-        that refinement when a sweep stays above :data:`REFINE` times its noise and keeps it if
-        it lowers the sum of squares by more than 2 noise variances per added parameter;
-        ``parametric`` never does.
+        that refinement (:mod:`afmctl.fit.density`) when a sweep stays above :data:`REFINE`
+        times its noise and keeps it if it lowers the sum of squares by more than 2 noise
+        variances per added parameter without leaving a sweep above its noise and more than
+        :data:`REFINE_WORSE` times worse; ``parametric`` never does.
     n_density_nodes : int
         Nodes of the discrete coercive density.
     smoothing : float
@@ -555,9 +557,10 @@ def _fit(sweeps: Sequence[Sweep], settings: Settings,
         gain = 2 * (sol.cost - dsol.cost) / float(np.mean(prob.noise ** 2))
         say(f"  {dsol.message} (status {dsol.status}); RMS / noise per sweep "
             + " / ".join(f"{r:.2f}" for r in prob.per_sweep(dsol.fun)))
-        worse = float(np.max(prob.per_sweep(dsol.fun) / prob.per_sweep(sol.fun)))
+        before, after = prob.per_sweep(sol.fun), prob.per_sweep(dsol.fun)
+        traded = bool(np.any((after > REFINE_WORSE * before) & (after > 1.0)))
         if settings.density == "discrete" or (gain > 2 * (x0.size - sol.x.size)
-                                              and worse <= REFINE_WORSE):
+                                              and not traded):
             final, sol = disc, dsol
             ok = ok and dsol.success and dsol.status > 0
     beta, _ = pz.project(final.design(sol.x), prob.y)

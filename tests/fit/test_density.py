@@ -8,6 +8,8 @@ the noise."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -44,8 +46,25 @@ def test_hats_put_a_linear_density_on_the_quadrature_nodes() -> None:
 def test_a_density_cut_at_zero_coercive_field_reaches_the_noise(seed: int) -> None:
     s, noise = nested_loops(seed)
     settings = idf.Settings(representation="hem", restarts=0)
-    lognormal = idf.fit([s], settings.__class__(**{**settings.__dict__, "density": "parametric"}))
-    general = idf.fit([s], settings.__class__(**{**settings.__dict__, "density": "discrete"}))
+    lognormal = idf.fit([s], replace(settings, density="parametric"))
+    general = idf.fit([s], replace(settings, density="discrete"))
     over = [r.sweeps[0].rms_um / noise for r in (lognormal, general)]
     assert over[1] <= 1.5, over
     assert over[0] >= 2.0 * over[1], over
+
+
+@pytest.mark.parametrize(("n_nodes", "median"), [(3, 1.0), (24, 4.5)])
+def test_the_start_is_finite_for_few_nodes_and_a_lognormal_out_of_reach(n_nodes: int,
+                                                                      median: float) -> None:
+    """Three nodes still reach the top; a narrow lognormal wholly above the peak field (1.5
+    MV/m) gives a flat start, not 0/0."""
+    from afmctl.fit import parametrization as pz
+    v = sd.voltage_triangle(5.58, 150.0, 1, 2000.0)
+    prep = pz.prepare(sw.from_arrays(v, 0.1 * v, 2000.0), 100.0, 0.0, None)
+    theta = np.array([median, 0.02 if median > 2 else 0.4, 0.3, 0.36, 250.0, 0.25])
+    space, x0 = dn.DiscreteSpace.around(theta, [prep], pz.Scales(), n_nodes, 1e-6, 25.7)
+    assert space.nodes.size == n_nodes and space.nodes[0] == 0.0
+    assert space.nodes[-1] == pytest.approx(min(median * np.exp(3 * theta[1]),
+                                                pz.extent([prep])[0]))
+    assert np.all(np.isfinite(x0)) and np.all(x0[:n_nodes] >= 0) and np.any(x0[:n_nodes] > 0)
+    assert np.all(np.isfinite(space.design(x0)))

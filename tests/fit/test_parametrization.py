@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from afmctl.files import sweepfile as sw
-from afmctl.fit import identify as idf
 from afmctl.fit import density as dn
+from afmctl.fit import identify as idf
 from afmctl.fit import parametrization as pz
 from afmctl.model.transducer import Transducer
 from afmctl.planning import sweepdesign as sd
@@ -50,7 +50,9 @@ def test_discrete_space_reproduces_its_lognormal_start(true_model: Transducer) -
     v = sd.voltage_triangle(5.58, 150.0, 1, 2000.0)
     s = sw.from_arrays(v, idf.predict(true_model, v, 5e-4), 2000.0)
     # a 40 um layer: the sweep's peak field (3.75 MV/m) reaches past the lognormal's +3 sigma_ln,
-    # so every node of it can switch (the space stops its nodes at the peak field)
+    # so the nodes (which stop at the peak field) hold all of its mass and the model's
+    # hysteretic weight r, the mass on the nodes, is the lognormal's (on 100 um it is 84 % of it:
+    # the hysterons that never switch are left out)
     prep = pz.prepare(s, 40.0, 0.0, None)
     theta = np.array([1.0, 0.4, 0.3, 0.36, 250.0, 0.25])
     space, x0 = dn.DiscreteSpace.around(theta, [prep], pz.Scales(), 48, 0.0, 25.7)
@@ -59,7 +61,7 @@ def test_discrete_space_reproduces_its_lognormal_start(true_model: Transducer) -
     assert np.max(np.abs(a_d[:, 0] - a_l[:, 0])) < 0.01 * np.ptp(a_l[:, 0])
     model = space.model(x0, np.array([25.7, 0.4, 0.0]), 100.0)
     assert sum(w for w in model.polarization.coercive.nodes_weights()[1]) == pytest.approx(1.0)
-    assert model.polarization.eta == pytest.approx(0.36 / 0.3)
+    assert model.polarization.eta == pytest.approx(0.36 / 0.3, rel=2e-3)  # the quadrature's
 
 
 @pytest.mark.parametrize(("fn", "zeta", "dt"), [(250.0, 0.25, 1e-4), (100.0, 1.0, 1e-3),
