@@ -81,6 +81,20 @@ def hats(nodes: FloatArray, sub: int = SUBNODES) -> tuple[FloatArray, FloatArray
     return fine, t
 
 
+def reach(preps: Sequence[Prepared], starts: Sequence[str], std: float) -> float:
+    """The largest coercive field (MV/m) whose hysterons the sweeps move, over their field range
+    ``lo .. hi``. A play of half-width ``E_c`` moves once the field travels ``2 E_c`` (half the
+    range). From the depoled state (output 0) it moves once the field passes ``+-E_c``. Poled
+    positive, its output starts at the first field plus ``E_c`` and follows ``E + E_c`` down,
+    so its ``erf((E + E_c) / (sqrt(2) sigma_I))`` moves while ``E_c < -lo + 3 sigma_I``
+    (negative: ``E_c < hi + 3 sigma_I``). ``previous`` carries the start before it."""
+    lo = min(float(np.min(p.field)) for p in preps)
+    hi = max(float(np.max(p.field)) for p in preps)
+    bounds = {"depoled": max(-lo, hi), "positive": -lo + 3 * std, "negative": hi + 3 * std}
+    chain = [s for s in starts if s != "previous"] or ["depoled"]
+    return max([0.5 * (hi - lo)] + [bounds[s] for s in chain])
+
+
 class DiscreteSpace:
     """``x = (c_1 ... c_K, log sigma_I, log f_n, log zeta)`` with ``c_i = r nu_1(E_c,i) hbar >= 0``
     the weights (MV/m) of a general coercive density, linear between the nodes ``E_c,i`` (the
@@ -107,21 +121,16 @@ class DiscreteSpace:
     def around(cls, theta: FloatArray, preps: Sequence[Prepared], scales: Scales, n_nodes: int,
                smoothing: float, g1: float,
                starts: Sequence[str] | None = None) -> tuple[DiscreteSpace, FloatArray]:
-        """Nodes from 0 to the largest coercive field that can switch, the lower of the
-        lognormal fit ``theta``'s ``median exp(3 sigma_ln)`` and the sweeps' peak field (plus
-        3 sigma_I, capped at the peak field again, when a sweep starts poled or where another
-        left it: a poled play follows the field at ``E +- E_c`` and its ``erf`` saturates only
-        ``3 sigma_I`` beyond; a depoled one moves only once the field passes ``+-E_c``). A
-        hysteron beyond never switches: a constant the gains absorb. Geometric over the
-        lognormal's support from ``median exp(-3 sigma_ln)`` (where its mass is), equally spaced
-        below it (a quarter of the nodes), or equally spaced throughout when that support
-        starts above half the top. The starting ``x`` puts the lognormal's mass (normalized
-        over all coercive fields, so the hysterons beyond the top are left out, not pushed
-        onto the nodes) on them; a flat density if none of it is within reach."""
+        """Nodes from 0 to the largest coercive field that can switch (the lower of the
+        lognormal fit ``theta``'s ``median exp(3 sigma_ln)`` and :func:`reach`; a hysteron
+        beyond never switches, a constant the gains absorb): geometric over the lognormal's
+        support from ``median exp(-3 sigma_ln)`` (where its mass is), equally spaced below it
+        (a quarter of the nodes), or equally spaced throughout when that support starts above
+        half the top. The starting ``x`` puts the lognormal's mass (normalized over all coercive
+        fields, so the hysterons beyond the top are left out, not pushed onto the nodes) on
+        them; a flat density if none of it is within reach."""
         median, sig, std, r, fn, zeta = theta
-        e_max, _ = extent(preps)
-        poled = any(start != "depoled" for start in (starts or ()))
-        top = min(median * math.exp(3 * sig), e_max + (min(3 * std, e_max) if poled else 0.0))
+        top = min(median * math.exp(3 * sig), reach(preps, starts or (), std))
         bottom = median * math.exp(-3 * sig)
         k0 = min(max(2, n_nodes // 4), n_nodes - 2)
         if bottom < 0.5 * top and k0 >= 1:
