@@ -82,17 +82,19 @@ def hats(nodes: FloatArray, sub: int = SUBNODES) -> tuple[FloatArray, FloatArray
 
 
 def reach(preps: Sequence[Prepared], starts: Sequence[str], std: float) -> float:
-    """The largest coercive field (MV/m) whose hysterons the sweeps move, over their field range
-    ``lo .. hi``. A play of half-width ``E_c`` moves once the field travels ``2 E_c`` (half the
-    range). From the depoled state (output 0) it moves once the field passes ``+-E_c``. Poled
-    positive, its output starts at the first field plus ``E_c`` and follows ``E + E_c`` down,
-    so its ``erf((E + E_c) / (sqrt(2) sigma_I))`` moves while ``E_c < -lo + 3 sigma_I``
-    (negative: ``E_c < hi + 3 sigma_I``). ``previous`` carries the start before it."""
+    """The largest coercive field (MV/m) whose hysterons' ``H = erf(y / (sqrt(2) sigma_I))``
+    the sweeps change, over their field range ``lo .. hi``; ``y`` is the play output of
+    half-width ``E_c``, and ``H`` moves only while ``y`` is within about ``3 sigma_I`` of 0.
+    Depoled (``y = 0``), a play moves off 0 once the field passes ``+-E_c``: up to the peak
+    field. Poled positive, ``y`` starts at the first field plus ``E_c`` and is never below
+    ``lo + E_c``: ``E_c < -lo + 3 sigma_I`` (negative: ``E_c < hi + 3 sigma_I``); on a
+    unipolar stage poled positive only the coercive fields below ``3 sigma_I`` switch.
+    ``previous`` carries the start before it."""
     lo = min(float(np.min(p.field)) for p in preps)
     hi = max(float(np.max(p.field)) for p in preps)
     bounds = {"depoled": max(-lo, hi), "positive": -lo + 3 * std, "negative": hi + 3 * std}
     chain = [s for s in starts if s != "previous"] or ["depoled"]
-    return max([0.5 * (hi - lo)] + [bounds[s] for s in chain])
+    return max(bounds[s] for s in chain)
 
 
 class DiscreteSpace:

@@ -68,3 +68,24 @@ def test_the_start_is_finite_for_few_nodes_and_a_lognormal_out_of_reach(n_nodes:
                                                 pz.extent([prep])[0]))
     assert np.all(np.isfinite(x0)) and np.all(x0[:n_nodes] >= 0) and np.any(x0[:n_nodes] > 0)
     assert np.all(np.isfinite(space.design(x0)))
+
+
+def test_reach_is_the_largest_coercive_field_a_start_lets_move() -> None:
+    """A 0 -> 150 V triangle on 100 um (0 .. 1.5 MV/m, sigma_I 0.1): depoled, every play the
+    field passes moves ``H``; poled positive, ``y >= E_c`` throughout and only ``E_c`` below
+    3 sigma_I change ``H``; poled negative, the plays follow the field up to 3 sigma_I past the
+    peak; a ``previous`` start carries the one before it. Checked against the hysterons."""
+    from afmctl.fit import parametrization as pz
+    from afmctl.model import hysteresis as hy
+    v = 0.5 * (sd.voltage_triangle(5.58, 150.0, 1, 2000.0) + 150.0)  # 0 .. 150 V
+    prep = pz.prepare(sw.from_arrays(v, 0.1 * v, 2000.0), 100.0, 0.0, None)
+    lo, hi = float(np.min(prep.field)), float(np.max(prep.field))
+    assert lo == pytest.approx(0.0, abs=0.01)
+    cases = {("depoled",): hi, ("positive", "previous"): 0.3 - lo, ("negative",): hi + 0.3}
+    for starts, want in cases.items():
+        got = dn.reach([prep] * len(starts), starts, 0.1)
+        assert got == pytest.approx(want, rel=1e-3)
+        for ec, moves in ((0.8 * got, True), (1.2 * got, False)):  # 3 sigma_I: a soft edge
+            pol = hy.Polarization(1.0, 1.0, hy.Discrete((ec,), (1.0,)), hy.Normal(0.1))
+            h = pz.run_from(pol, [prep.field], starts[:1])[0] - prep.field
+            assert (np.ptp(h) > 0.01) == moves, (starts, ec, np.ptp(h))
