@@ -45,8 +45,8 @@ FloatArray = NDArray[np.float64]
 #: Quadrature nodes per cell between two of the density's nodes.
 SUBNODES = 4
 #: Damped Gauss-Newton steps per weight fit of :meth:`DiscreteSpace.refined`, at most (refused
-#: ones included);
-#: it stops earlier once a step lowers the sum of squares by less than :data:`REFINE_TOL` of it.
+#: ones included); a fit stops earlier once a step lowers the sum of squares by less than
+#: :data:`REFINE_TOL` of it.
 REFINE_STEPS = 12
 REFINE_TOL = 1e-3
 #: The search for ``sigma_I`` spans its start times exp(+-STD_SPAN), in at most STD_EVALS steps.
