@@ -190,18 +190,18 @@ class DiscreteSpace:
             blocks.append(np.column_stack((b.le + b.lh @ c, lq2)))
         return np.hstack((np.vstack(blocks), offset_columns(self.preps)))
 
-    def _jacobian(self, c: FloatArray, g: tuple[float, float], fn: float, zeta: float,
-                  basis: Sequence[_Basis]) -> FloatArray:
+    def _jacobian(self, c: FloatArray, beta: FloatArray, design: FloatArray, fn: float,
+                  zeta: float, basis: Sequence[_Basis]) -> FloatArray:
         """Columns of the linearized model in ``(c, g1, g2, zeros)``: ``g1 L[H_i] + 2 g2
-        L[Q H_i]``, ``L[Q]``, ``L[Q^2]`` and one sensor zero per sweep."""
+        L[Q H_i]`` per weight, then the ``design`` at ``c`` (``L[Q]``, ``L[Q^2]`` and one sensor
+        zero per sweep) with its gains ``beta``."""
         blocks = []
         for p, b in zip(self.preps, basis, strict=True):
             q = b.field + b.h @ c
             lqh = np.column_stack([unit_filter(q * col, fn, zeta, p.dt)[p.mask]
                                    for col in b.h.T])
-            lq2 = unit_filter(q * q, fn, zeta, p.dt)[p.mask]
-            blocks.append(np.column_stack((g[0] * b.lh + 2 * g[1] * lqh, b.le + b.lh @ c, lq2)))
-        return np.hstack((np.vstack(blocks), offset_columns(self.preps)))
+            blocks.append(beta[0] * b.lh + 2 * beta[1] * lqh)
+        return np.hstack((np.vstack(blocks), design))
 
     @property
     def _d2(self) -> FloatArray:
@@ -209,10 +209,11 @@ class DiscreteSpace:
         return self.weight * np.diff(np.eye(self.nodes.size), 2, axis=0)
 
     def _cost(self, c: FloatArray, rest: FloatArray, y: FloatArray
-              ) -> tuple[float, FloatArray, FloatArray]:
-        """Sum of squares (penalty included), gains and residual at weights ``c``."""
-        beta, res = project(self.design(np.concatenate((c, rest))), y)
-        return float(res @ res + np.sum((self._d2 @ c) ** 2)), beta, res
+              ) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+        """Sum of squares (penalty included), gains, residual and design at weights ``c``."""
+        design = self.design(np.concatenate((c, rest)))
+        beta, res = project(design, y)
+        return float(res @ res + np.sum((self._d2 @ c) ** 2)), beta, res, design
 
     def refined(self, x: FloatArray, y: FloatArray) -> FloatArray:
         """``x`` with its weights fitted to the problem linearized in them (:meth:`_weights`) and
@@ -223,12 +224,11 @@ class DiscreteSpace:
         width takes to the floor. A start from which the solver reaches densities the
         lognormal's support left out."""
         k = self.nodes.size
-        best = [self._weights(x, y)]
-        costs = {float(x[k]): self._cost(best[0][:k], best[0][k:], y)[0]}
+        first, value = self._weights(x, y)
+        best, costs = [first], {float(x[k]): value}
 
         def cost(log_std: float) -> float:
-            trial = self._weights(np.concatenate((best[0][:k], [log_std], x[k + 1:])), y)
-            value = self._cost(trial[:k], trial[k:], y)[0]
+            trial, value = self._weights(np.concatenate((best[0][:k], [log_std], x[k + 1:])), y)
             if value < min(costs.values()):
                 best[0] = trial
             costs[log_std] = value
@@ -238,22 +238,23 @@ class DiscreteSpace:
                                  method="bounded", options={"xatol": 0.01, "maxiter": STD_EVALS})
         return best[0]
 
-    def _weights(self, x: FloatArray, y: FloatArray) -> FloatArray:
+    def _weights(self, x: FloatArray, y: FloatArray) -> tuple[FloatArray, float]:
         """``x`` with its weights moved by damped Gauss-Newton steps (Levenberg-Marquardt) of the
         problem linearized in the weights and the gains (``sigma_I`` and the rod held), each a
         bounded linear least-squares solve that keeps every weight nonnegative, with the
         smoothing penalty; a step is kept only if it lowers the sum of squares. Weights of
-        hysterons that never switch are a constant the gains absorb: the damping holds them."""
+        hysterons that never switch are a constant the gains absorb: the damping holds them. Also
+        the sum of squares there."""
         k, rest = self.nodes.size, x[self.nodes.size:]
         c = x[:k].copy()
         std, fn, zeta = (float(v) for v in np.exp(rest))
         basis = self._basis(std, fn, zeta)
         d2 = self._d2
-        cost, beta, res = self._cost(c, rest, y)
+        cost, beta, res, design = self._cost(c, rest, y)
         mu, jac = 1e-3, None
         for _ in range(REFINE_STEPS):
             if jac is None:  # a refused step keeps c: the same Jacobian, more damping
-                jac = self._jacobian(c, (float(beta[0]), float(beta[1])), fn, zeta, basis)
+                jac = self._jacobian(c, beta, design, fn, zeta, basis)
                 m = jac.shape[1] - k
                 scale = np.linalg.norm(jac[:, :k], axis=0)
                 scale = np.maximum(scale, 1e-8 * float(scale.max()) + 1e-300)
@@ -264,15 +265,16 @@ class DiscreteSpace:
             step = optimize.lsq_linear(a, b, bounds=(lo, np.full(k + m, np.inf)),
                                        method="bvls").x
             trial = np.maximum(c + step[:k], 0.0)
-            new, nbeta, nres = self._cost(trial, rest, y)
+            new, nbeta, nres, ndesign = self._cost(trial, rest, y)
             if new >= cost:
                 mu *= 8.0
                 continue
             done = new > cost * (1 - REFINE_TOL)
-            c, cost, beta, res, mu, jac = trial, new, nbeta, nres, mu / 4.0, None
+            c, cost, beta, res, design = trial, new, nbeta, nres, ndesign
+            mu, jac = mu / 4.0, None
             if done:
                 break
-        return np.concatenate((c, rest))
+        return np.concatenate((c, rest)), cost
 
     def penalty(self, x: FloatArray) -> FloatArray:
         """Second differences of the weights by node index (on the geometric nodes a straight

@@ -555,9 +555,9 @@ def _fit(sweeps: Sequence[Sweep], settings: Settings,
         x0 = disc.refined(x0, prob.y)
         dsol = _solve(disc, x0, prob)
         gain = 2 * (sol.cost - dsol.cost) / float(np.mean(prob.noise ** 2))
-        say(f"  {dsol.message} (status {dsol.status}); RMS / noise per sweep "
-            + " / ".join(f"{r:.2f}" for r in prob.per_sweep(dsol.fun)))
         before, after = prob.per_sweep(sol.fun), prob.per_sweep(dsol.fun)
+        say(f"  {dsol.message} (status {dsol.status}); RMS / noise per sweep "
+            + " / ".join(f"{r:.2f}" for r in after))
         traded = bool(np.any((after > REFINE_WORSE * before) & (after > 1.0)))
         if settings.density == "discrete" or (gain > 2 * (x0.size - sol.x.size)
                                               and not traded):
