@@ -38,7 +38,8 @@ Figures (each with the worst over the stages and every stage's value):
   readings cannot go below is 0: the figure is the model's);
 * ``learned_over_noise``: after at most 5 learned frames at 30 lines/s
   (:func:`afmctl.experiment.scanlearn.learn`, both axes), the best frame's image-region RMS over
-  the noise (the larger axis);
+  the noise (the larger axis); per stage (``stages``) the frames, why learning stopped, every
+  frame's figure (``over_noise_by_frame``) and each axis's learning cut-off (``cutoff_hz``);
 * ``frame_seconds_compute``: host time to plan one 128 x 64 frame at 10 lines/s (both axes, both
   filters, guard included) and make its images.
 
@@ -322,7 +323,8 @@ def bench_frames(plant: Any, axes: dict[str, rs.AxisPlan], coupling: dict[str, A
         got = scanlearn.learn(plant, setup, LEARN_FRAMES, Path(d), {})
     row["learned_over_noise"] = got.runs[got.best].merit["over_noise"]
     row["learning"] = {"frames": len(got.runs) - 1, "stop": got.stop,
-                       "over_noise_by_frame": [r.merit["over_noise"] for r in got.runs]}
+                       "over_noise_by_frame": [r.merit["over_noise"] for r in got.runs],
+                       "cutoff_hz": got.cutoffs_hz}
     say(f"{name}: {json.dumps(row)}")
     return row
 

@@ -8,7 +8,9 @@ its turnarounds learn nothing, so a fast scan does not keep sharpening its corne
 it again through that axis's inverse. The y error includes the y motion x causes that the
 feed-forward left: the y reference learns it away with the rest (and likewise x). ``L`` and
 ``Q`` are tuned per axis on frame 0 (:func:`afmctl.planning.ilc.tune`, the line rate's
-harmonics), each axis's reference against its own motion (:func:`_tunings`).
+harmonics), each axis's reference against its own motion (:func:`_tunings`); each axis's ``Q``
+may rise from 600 Hz to 1.2 kHz up to where that axis stops following its model
+(:data:`DEFAULT_LAW`, :func:`afmctl.planning.ilc.reach_hz`).
 
 Every frame's waveform passes the guard and the envelope before it is sent; one that would not
 ends learning with the best frame so far, as do the noise floor (both axes' image-region RMS
@@ -42,18 +44,21 @@ from afmctl.experiment import scan as xs
 from afmctl.files import waveformfile
 from afmctl.planning import ilc, raster, track
 
-DEFAULT_LAW = ilc.Law()
+#: The raster's law: ``track --learn``'s, its cut-off free to rise per axis to 1.2 kHz (a rod's
+#: ringing after the fast axis's turnarounds sits near 1 kHz on foreign-xy-3).
+DEFAULT_LAW = ilc.Law(cutoff_max_hz=1200.0)
 
 
 @dataclass(frozen=True)
 class Learned:
-    """The learning frames played (``runs``), the best one's index, why learning stopped, and
-    each axis's noise estimate (um)."""
+    """The learning frames played (``runs``), the best one's index, why learning stopped, each
+    axis's noise estimate (um) and the cut-off of its ``Q`` (Hz; :func:`ilc.reach_hz`)."""
 
     runs: tuple[xs.FrameRun, ...]
     best: int
     stop: str
     noise_um: dict[str, float]
+    cutoffs_hz: dict[str, float]
 
     @property
     def waveform(self) -> raster.XYWaveform:
@@ -129,7 +134,8 @@ def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Pat
             stop = (f"diverging: frame {j} at {score[-1]:.3g} x the noise, best "
                     f"{min(score):.3g}, at the smallest step ({law.min_step:g} rho)")
             break
-    return Learned(tuple(mine), int(np.argmin(score)), stop, noise)
+    return Learned(tuple(mine), int(np.argmin(score)), stop, noise,
+                   {n: t.cutoff_hz for n, t in tunings.items()})
 
 
 def _tunings(refs: dict[str, np.ndarray], traj: raster.Trajectories,
@@ -215,7 +221,8 @@ def learn_then_scan(stage: runner.PlayingStage, setup: xs.Setup, iterations: int
     got = learn(stage, setup, iterations, out, meta, say, on_frame, runs)
     if say is not None:
         say(f"learning: {len(got.runs)} frames, best frame {got.best} "
-            f"({got.runs[got.best].merit['over_noise']:.3g} x the noise); stopped: {got.stop}")
+            f"({got.runs[got.best].merit['over_noise']:.3g} x the noise); stopped: {got.stop}; "
+            + ", ".join(f"{n} learned up to {f:.0f} Hz" for n, f in got.cutoffs_hz.items()))
     wf = dc.replace(got.waveform, filter="learned")
     runner.atomic_write(out / "waveform_learned.csv",
                         waveform_text(wf, {**meta, "learning_frame": got.best}))

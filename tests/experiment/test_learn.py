@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import dataclasses as dc
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from scipy import signal
 
 from afmctl import plots
 from afmctl.cli import main
@@ -114,6 +116,44 @@ def test_a_harmonic_the_reference_hardly_drives_is_not_measured() -> None:
     for _ in range(3):
         r = ilc.next_reference(r, desired.u_um - plant(r), desired, ilc.Law(), tuning)
     assert ilc.rms((desired.u_um - plant(r))[steady]) < 0.05 * e0  # measured: 0.17, stalled
+
+
+def _through(b: np.ndarray, a: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """A linear plant: the reference through the digital filter ``b / a`` from rest at r[0]."""
+    def plant(r: np.ndarray) -> np.ndarray:
+        return r[0] + signal.lfilter(b, a, r - r[0])
+    return plant
+
+
+def test_the_cutoff_rises_only_while_the_stage_follows_the_model() -> None:
+    """``Q``'s cut-off may rise from 600 Hz to ``cutoff_max_hz`` (1.2 kHz) on a 27.9 Hz triangle:
+    * a stage whose response rolls off where its model does not (a 2nd-order Butterworth at
+      900 Hz: ``|G|`` 0.82 at 753 Hz, under 0.8 from 809 Hz on) gets a cut-off above 700 Hz and
+      below that first short harmonic;
+    * a dip at a resonance the model puts a little off (1000 Hz against 1020 Hz, damping 0.01:
+      ``|G|`` 0.45 at one harmonic, 1.7 and 0.75 beside it) leaves it at 1.2 kHz;
+    * a law without ``cutoff_max_hz`` keeps 600 Hz."""
+    desired = track.triangle(27.9, 20.0, 0.0, 6, DT)
+    law = ilc.Law(cutoff_max_hz=1200.0)
+    rolloff = _through(*signal.butter(2, 900.0, fs=1 / DT))
+    tuning = ilc.tune(desired.u_um, rolloff(desired.u_um), desired, law, 0.0)
+    first_short = 29 * 27.9
+    shortfall = np.abs(tuning.g) < ilc.FOLLOWS
+    assert not shortfall[tuning.freqs_hz < first_short - 1].any()
+    assert shortfall[np.abs(tuning.freqs_hz - first_short) < 1].all()
+    assert 700.0 < tuning.cutoff_hz < first_short
+    w1, w2 = (2 / DT * np.tan(np.pi * f * DT) for f in (1000.0, 1020.0))  # prewarped
+    zeta = 0.01
+    b, a = signal.bilinear([w1**2 / w2**2, 2 * zeta * w2 * w1**2 / w2**2, w1**2],
+                           [1.0, 2 * zeta * w1, w1**2], fs=1 / DT)
+    misplaced = ilc.tune(desired.u_um, _through(b, a)(desired.u_um), desired, law, 0.0)
+    near = np.abs(misplaced.freqs_hz - 1020.0) < 28
+    assert np.all(np.abs(misplaced.g[near]) < 0.5)  # the dip is measured
+    assert misplaced.cutoff_hz == 1200.0
+    assert ilc.tune(desired.u_um, rolloff(desired.u_um), desired, ilc.Law(), 0.0
+                    ).cutoff_hz == 600.0
+    with pytest.raises(ValueError, match="highest cut-off"):
+        ilc.Law(cutoff_hz=600.0, cutoff_max_hz=500.0)
 
 
 def test_a_stalled_harmonic_is_retuned_on_the_step_it_took() -> None:
