@@ -328,9 +328,12 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
     ones, and its fast axis stalled at 7x its noise; interpolated, and tuned on its own
     motion, :func:`afmctl.experiment.scanlearn._tunings`, 1.7x). A small tone legitimately
     beside a large one (a multi-tone reference) is not measured either: its ``G`` is
-    interpolated from its neighbours. ``Q``'s cut-off is ``law.cutoff_hz``, but never above
+    interpolated from its neighbours. ``G`` is measured up to twice the highest cut-off the
+    law allows (:attr:`Law.band_hz`); ``Q``'s cut-off is ``law.cutoff_hz``, raised towards
+    ``law.cutoff_max_hz`` while the stage follows the model (:func:`reach_hz`), but never above
     the last measured harmonic (beyond it nothing is known of ``G``, so ``|Q| <= 1/2``
-    there). The lead ``m`` of the plain law is the delay of
+    there); the measured ``G`` is kept up to twice that cut-off (:func:`with_cutoff`). The
+    lead ``m`` of the plain law is the delay of
     :func:`lead_samples` (used where too few harmonics are measured, e.g. a sine).
     """
     skip = steady_part(desired).start
@@ -352,21 +355,22 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
 
 
 def reach_hz(freqs_hz: FloatArray, g: NDArray[np.complex128], law: Law) -> float:
-    """``Q``'s cut-off from the ``G`` measured at ``freqs_hz``: ``law.cutoff_hz``, raised up to
-    ``law.cutoff_max_hz`` while the stage follows the model: up to the last measured harmonic
-    before the first of :data:`SUSTAINED` in a row where ``|G|`` is below :data:`FOLLOWS`. A
-    stage that rolls off where its model does not (foreign-xy-4's x: ``|G|`` 0.92, 0.80, 0.66,
-    0.53 from 630 to 810 Hz) made learning jump to 69x its noise at a fixed 1.2 kHz cut-off
-    (and to 24x at 750 Hz, after four good frames), while a dip at a rod resonance the model
-    puts a little off (foreign-xy-3's x: 0.80, 0.42, 1.86 at 0.99-1.11 kHz) is what the higher
-    cut-off learns away (2.3x -> 1.25x its noise)."""
+    """``Q``'s cut-off from the ``G`` measured at ``freqs_hz`` (increasing): ``law.cutoff_hz``,
+    raised up to ``law.cutoff_max_hz`` while the stage follows the model: up to the last
+    measured harmonic before the first of :data:`SUSTAINED` measured ones in a row where
+    ``|G|`` is below :data:`FOLLOWS` (a harmonic beyond the last measured one counts as short:
+    nothing says the stage follows there). A run that starts below ``law.cutoff_hz`` keeps
+    that. A stage that rolls off where its model does not (foreign-xy-4's x: ``|G|`` 0.92,
+    0.80, 0.66, 0.53 from 630 to 810 Hz) made learning jump to 69x its noise at a fixed 1.2 kHz
+    cut-off (and to 24x at 750 Hz, after four good frames), while a dip at a rod resonance the
+    model puts a little off (foreign-xy-3's x: 0.80, 0.42, 1.86 at 0.99-1.11 kHz) is what the
+    higher cut-off learns away (2.3x -> 1.25x its noise)."""
     if law.cutoff_max_hz is None:
         return law.cutoff_hz
-    short = np.abs(g) < FOLLOWS
-    band = np.flatnonzero((freqs_hz > law.cutoff_hz) & (freqs_hz <= law.cutoff_max_hz))
-    for i in band:
-        if short[i:i + SUSTAINED].size == SUSTAINED and short[i:i + SUSTAINED].all():
-            return max(law.cutoff_hz, float(freqs_hz[i - 1]))
+    short = np.concatenate((np.abs(g) < FOLLOWS, np.ones(SUSTAINED, dtype=bool)))
+    for i in np.flatnonzero(freqs_hz <= law.cutoff_max_hz):
+        if short[i:i + SUSTAINED].all():
+            return max(law.cutoff_hz, float(freqs_hz[i - 1]) if i else 0.0)
     return law.cutoff_max_hz
 
 

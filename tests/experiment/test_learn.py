@@ -156,6 +156,22 @@ def test_the_cutoff_rises_only_while_the_stage_follows_the_model() -> None:
         ilc.Law(cutoff_hz=600.0, cutoff_max_hz=500.0)
 
 
+@pytest.mark.parametrize(("freqs", "gains", "want"), [
+    ([700.0, 1400.0, 2100.0], [0.5, 0.4, 0.3], 600.0),  # short from the first: no rise
+    ([510.0, 570.0, 630.0, 690.0, 750.0], [0.7, 0.7, 0.7, 1.0, 1.0], 600.0),  # began below 600
+    ([630.0, 690.0, 750.0, 810.0], [1.0, 1.0, 1.0, 0.7], 750.0),  # short where measuring ends
+    ([630.0, 690.0, 750.0, 810.0, 870.0], [1.0, 0.5, 1.0, 0.5, 1.0], 1200.0),  # never 3 in a row
+])
+def test_the_cutoff_rise_at_the_ends_of_the_measured_harmonics(freqs: list[float],
+                                                               gains: list[float],
+                                                               want: float) -> None:
+    """:func:`ilc.reach_hz` at the edges: never above ``cutoff_max_hz`` nor below
+    ``cutoff_hz``; a shortfall that began below the cut-off, or that runs into the end of what
+    was measured (where nothing says the stage follows), raises nothing past it."""
+    law = ilc.Law(cutoff_max_hz=1200.0)
+    assert ilc.reach_hz(np.array(freqs), np.array(gains, dtype=complex), law) == want
+
+
 def test_a_stalled_harmonic_is_retuned_on_the_step_it_took() -> None:
     """A plant that tracks its reference (G = 1) but rings at 363 Hz, the 13th harmonic of a
     27.9 Hz triangle, by 0.08 um whatever the reference (a rod excited by every turnaround),
