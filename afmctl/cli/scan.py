@@ -114,31 +114,34 @@ def raster(size: tuple[float, float], pixels: int, lines: int, line_rate: float,
     fed = "fed forward" if coupling else "not fed forward (none known)"
     say(f"{frame.label()}, centre {frame.centre_um[0]:.4g}, {frame.centre_um[1]:.4g} um; "
         f"model: {model_path} ({about}); coupling {fed}")
-    runs = _scan(prof, setup, learn_frames, out, meta)
+    runs, learning = _scan(prof, setup, learn_frames, out, meta)
     from afmctl.experiment import runner
-    data = runner.json_ready(xs.summary(runs, setup, meta))  # as written after the last frame
+    data = runner.json_ready({**xs.summary(runs, setup, meta), **learning})  # as written last
     _report(data, out)
     if as_json:
         click.echo(json.dumps(data, allow_nan=False))
 
 
 def _scan(prof: Any, setup: Any, learn_frames: int, out: Path, meta: dict[str, Any]
-          ) -> list[Any]:
+          ) -> tuple[list[Any], dict[str, Any]]:
     """Play the frames (after learning, with ``learn_frames``); every finished frame's files
-    written as it ends, and kept on an interrupt (the stage ends safe)."""
+    written as it ends, and kept on an interrupt (the stage ends safe). The frames, and what
+    learning did (``{"learning": ...}`` once it has ended, in every summary after it)."""
     from afmctl.experiment import scan as xs
     from afmctl.experiment import scanlearn
     runs: list[Any] = []
+    learning: dict[str, Any] = {}
     with opened_stage(prof) as stage:
         if getattr(stage, "channels", 1) != 2:
             raise InputError(f"the stage of profile {prof.name!r} reports "
                              f"{getattr(stage, 'channels', 1)} channel(s): a raster scan needs 2")
         make_dir(out, "--out")
-        written = partial(_write, setup=setup, out=out, meta=meta)
+        written = partial(_write, setup=setup, out=out, meta=meta, extra=learning)
         try:
             if learn_frames:
-                scanlearn.learn_then_scan(stage, setup, learn_frames, out, meta, say, written,
-                                          runs)
+                scanlearn.learn_then_scan(
+                    stage, setup, learn_frames, out, meta, say, written, runs,
+                    lambda got: learning.update(learning=got.to_dict()))
             else:
                 xs.run(stage, setup, out, meta, say, written, runs)
         except BaseException as exc:
@@ -146,7 +149,7 @@ def _scan(prof: Any, setup: Any, learn_frames: int, out: Path, meta: dict[str, A
                 say(f"interrupted ({type(exc).__name__}): the finished frames and their files "
                     f"are kept in {out}/")
             raise
-    return runs
+    return runs, learning
 
 
 def _calibrated(prof: Any, profile_path: str | None, out: Path) -> str:
@@ -214,13 +217,15 @@ def _placed(frame: Any, axes: Any, centre: tuple[float, float] | None) -> Any:
     return frame
 
 
-def _write(runs: list[Any], setup: Any, out: Path, meta: dict[str, Any]) -> None:
-    """summary.json, scan.gwy and scan.png of every finished frame (replaced after each)."""
+def _write(runs: list[Any], setup: Any, out: Path, meta: dict[str, Any],
+           extra: dict[str, Any]) -> None:
+    """summary.json (with ``extra``'s keys), scan.gwy and scan.png of every finished frame
+    (replaced after each)."""
     from afmctl import plots
     from afmctl.experiment import runner
     from afmctl.experiment import scan as xs
     from afmctl.files import gwy
-    data = runner.json_ready(xs.summary(runs, setup, meta))
+    data = runner.json_ready({**xs.summary(runs, setup, meta), **extra})
     fr = setup.frame
     with writing(out / "summary.json", "--out"):
         runner.write_summary(data, out / "summary.json")

@@ -33,6 +33,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -63,6 +64,16 @@ class Learned:
     @property
     def waveform(self) -> raster.XYWaveform:
         return self.runs[self.best].waveform
+
+    def to_dict(self) -> dict[str, Any]:
+        """``summary.json``'s ``learning``: the frames learned (frame 0 not counted), the best
+        one (its number and figure), why learning stopped, every frame's figure (both axes'
+        image-region RMS error over their noise, the larger), each axis's noise (um) and
+        learning cut-off (Hz)."""
+        return {"frames_learned": len(self.runs) - 1, "best_frame": self.best,
+                "best_over_noise": self.runs[self.best].merit["over_noise"], "stop": self.stop,
+                "over_noise_by_frame": [r.merit["over_noise"] for r in self.runs],
+                "noise_um": dict(self.noise_um), "cutoff_hz": dict(self.cutoffs_hz)}
 
 
 def _errors(run: xs.FrameRun, traj: raster.Trajectories) -> dict[str, np.ndarray]:
@@ -211,10 +222,11 @@ def waveform_text(wf: raster.XYWaveform, meta: Mapping[str, object]) -> str:
 
 def learn_then_scan(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Path,
                     meta: Mapping[str, object], say: Callable[[str], None] | None = None,
-                    on_frame: xs.OnFrame | None = None, done: list[xs.FrameRun] | None = None
-                    ) -> Learned:
-    """Learn the frame (:func:`learn`), save its waveform, then play it ``setup.frame.frames``
-    times (``run_frameNNN_learned.csv``, NNN from 1; the same frame every time)."""
+                    on_frame: xs.OnFrame | None = None, done: list[xs.FrameRun] | None = None,
+                    on_learned: Callable[[Learned], None] | None = None) -> Learned:
+    """Learn the frame (:func:`learn`), tell ``on_learned``, save its waveform, then play it
+    ``setup.frame.frames`` times (``run_frameNNN_learned.csv``, NNN from 1; the same frame
+    every time)."""
     if setup.frame.direction == "bounce":
         raise InputError("--learn-frames learns one frame: scan it --direction up or down")
     runs = [] if done is None else done
@@ -223,6 +235,8 @@ def learn_then_scan(stage: runner.PlayingStage, setup: xs.Setup, iterations: int
         say(f"learning: {len(got.runs)} frames, best frame {got.best} "
             f"({got.runs[got.best].merit['over_noise']:.3g} x the noise); stopped: {got.stop}; "
             + ", ".join(f"{n} learned up to {f:.0f} Hz" for n, f in got.cutoffs_hz.items()))
+    if on_learned is not None:
+        on_learned(got)
     wf = dc.replace(got.waveform, filter="learned")
     runner.atomic_write(out / "waveform_learned.csv",
                         waveform_text(wf, {**meta, "learning_frame": got.best}))

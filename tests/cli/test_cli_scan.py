@@ -61,6 +61,32 @@ def test_scan_both_filters_writes_every_file(tmp_path: Path) -> None:
     assert inv["frames"][0]["frame"] == 1 and inv["frames"][0]["run_file"] == names[0]
 
 
+def test_scan_learns_then_says_in_summary_json_what_learning_did(tmp_path: Path) -> None:
+    """``--learn-frames 2 --frames 1``: the learning frames' run files, the learned waveform and
+    its replay; ``summary.json`` (and ``--json``) carry ``learning``: the frames, the best one
+    and its figure, why it stopped, every frame's figure (each equal to that frame's own in
+    ``filters``), each axis's noise and learning cut-off."""
+    out = tmp_path / "scan"
+    res = CliRunner().invoke(main, ["scan", "raster", "--profile", "emulated-xy", "--model",
+                                    str(model_file(tmp_path)), *FRAME, "--filter", "inverse",
+                                    "--learn-frames", "2", "--frames", "1", "--out", str(out),
+                                    "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.stdout.strip().splitlines()[-1])
+    assert json.loads((out / "summary.json").read_text())["learning"] == data["learning"]
+    got = data["learning"]
+    by_frame = got["over_noise_by_frame"]
+    assert len(by_frame) == got["frames_learned"] + 1 and 1 <= got["frames_learned"] <= 2
+    assert got["best_over_noise"] == min(by_frame) == by_frame[got["best_frame"]]
+    assert by_frame == [data["filters"][f"learn{j:02d}"]["over_noise"]
+                        for j in range(len(by_frame))]
+    assert got["stop"] and set(got["cutoff_hz"]) == set(got["noise_um"]) == {"x", "y"}
+    assert all(600.0 <= f <= 1200.0 for f in got["cutoff_hz"].values())
+    assert (out / "waveform_learned.csv").exists() and runfile.read(
+        out / "run_frame001_learned.csv").complete
+    assert "learned up to" in res.stderr
+
+
 def test_a_one_axis_profile_is_refused(tmp_path: Path) -> None:
     res = CliRunner().invoke(main, ["scan", "raster", "--profile", "emulated", *FRAME, "--out",
                                     str(tmp_path / "o")])
