@@ -117,6 +117,8 @@ def learn(stage: runner.PlayingStage, setup: xs.Setup, iterations: int, out: Pat
             wf = raster.plan(frame, axes, dt, setup.coupling, ("inverse",), 0, setup.extrapolate,
                              aims=refs)["inverse"]
         except (guard.LimitError, EnvelopeError) as exc:
+            if not mine:  # frame 0 itself: refused as the scan would be, before anything moves
+                raise
             stop = f"refused: {exc}"
             break
         wf = dc.replace(wf, filter=f"learn{j:02d}")

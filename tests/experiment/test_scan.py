@@ -5,11 +5,13 @@ reduces the error on both axes and replays what it learned."""
 
 from __future__ import annotations
 
+import dataclasses as dc
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from afmctl.errors import LimitError
 from afmctl.experiment import scan as xs
 from afmctl.experiment import scanlearn
 from afmctl.files import runfile, waveformfile
@@ -119,6 +121,21 @@ def test_learning_both_axes_reaches_near_the_noise_and_replays(nominal: Profile,
     w = waveformfile.read(tmp_path / "waveform_learned.csv")
     assert w.voltage_v.shape[1] == 2
     assert w.voltage_v == pytest.approx(got.waveform.voltage_v, abs=1e-6)
+
+
+def test_learning_a_frame_the_guard_refuses_moves_nothing(nominal: Profile,
+                                                         tmp_path: Path) -> None:
+    """Frame 0 itself beyond the amplifiers' slew (0.05 V/ms): learning raises the guard's
+    refusal before anything moves (it had crashed on an empty list of frames), as a scan of
+    that frame would; no run file is written."""
+    fr = rs.Frame(16.0, 8.0, 32, 6, 40.0, centre_um=(8.0, 6.0))
+    slow = dc.replace(nominal.limits, slew_v_per_ms=0.05)
+    s = xs.Setup(fr, {n: rs.AxisPlan(nominal.emulator.model, slow) for n in rs.AXES}, COUPLING,
+                 ("inverse",), DT)
+    stage = plant(nominal)
+    with pytest.raises(LimitError, match="V/ms"):
+        scanlearn.learn(stage, s, 2, tmp_path, {})
+    assert not list(tmp_path.iterdir()) and np.all(stage.voltages() == 0)
 
 
 #: A coupling as strong as foreign-xy-1's (5.6 % each way, -25 dB), and the plant's: its shared
