@@ -307,16 +307,6 @@ def _harmonics_of(tuning: Tuning, desired: track.Desired, law: Law) -> int:
     return _n_max(desired, max(law.cutoff_hz, tuning.cutoff_hz))
 
 
-def with_cutoff(tuning: Tuning, cutoff_hz: float, desired: track.Desired, law: Law) -> Tuning:
-    """``tuning`` with ``Q`` cut off at ``cutoff_hz``, its measured ``G`` kept up to the
-    harmonics that cut-off works with (:func:`_harmonics_of`)."""
-    new = replace(tuning, cutoff_hz=cutoff_hz)
-    if desired.period_s is None:
-        return new
-    keep = tuning.freqs_hz <= (_harmonics_of(new, desired, law) + 0.5) / desired.period_s
-    return replace(new, freqs_hz=tuning.freqs_hz[keep], g=tuning.g[keep])
-
-
 def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, law: Law,
          noise_um: float) -> Tuning:
     """``L`` and ``Q`` from iteration 0 (reference ``r_0`` and true-position estimate ``y_0``).
@@ -332,8 +322,8 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
     law allows (:attr:`Law.band_hz`); ``Q``'s cut-off is ``law.cutoff_hz``, raised towards
     ``law.cutoff_max_hz`` while the stage follows the model (:func:`reach_hz`), but never above
     the last measured harmonic (beyond it nothing is known of ``G``, so ``|Q| <= 1/2``
-    there); the measured ``G`` is kept up to twice that cut-off (:func:`with_cutoff`). The
-    lead ``m`` of the plain law is the delay of
+    there); the measured ``G`` is kept up to the harmonics that cut-off works with
+    (:func:`_harmonics_of`). The lead ``m`` of the plain law is the delay of
     :func:`lead_samples` (used where too few harmonics are measured, e.g. a sine).
     """
     skip = steady_part(desired).start
@@ -351,7 +341,8 @@ def tune(reference: FloatArray, position: FloatArray, desired: track.Desired, la
     fc = law.cutoff_hz
     if freqs.size >= MIN_HARMONICS:
         fc = min(reach_hz(freqs, g, law), float(freqs.max()))
-    return with_cutoff(Tuning(m, fc, freqs, g), fc, desired, law)
+    keep = freqs <= (_n_max(desired, max(law.cutoff_hz, fc)) + 0.5) * f0
+    return Tuning(m, fc, freqs[keep], g[keep])
 
 
 def reach_hz(freqs_hz: FloatArray, g: NDArray[np.complex128], law: Law) -> float:
