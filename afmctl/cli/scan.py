@@ -115,8 +115,7 @@ def raster(size: tuple[float, float], pixels: int, lines: int, line_rate: float,
     say(f"{frame.label()}, centre {frame.centre_um[0]:.4g}, {frame.centre_um[1]:.4g} um; "
         f"model: {model_path} ({about}); coupling {fed}")
     runs, learning = _scan(prof, setup, learn_frames, out, meta)
-    from afmctl.experiment import runner
-    data = runner.json_ready({**xs.summary(runs, setup, meta), **learning})  # as written last
+    data = _summary(runs, setup, meta, learning)  # as written after the last frame
     _report(data, out)
     if as_json:
         click.echo(json.dumps(data, allow_nan=False))
@@ -225,7 +224,7 @@ def _write(runs: list[Any], setup: Any, out: Path, meta: dict[str, Any],
     from afmctl.experiment import runner
     from afmctl.experiment import scan as xs
     from afmctl.files import gwy
-    data = runner.json_ready({**xs.summary(runs, setup, meta), **extra})
+    data = _summary(runs, setup, meta, extra)
     fr = setup.frame
     with writing(out / "summary.json", "--out"):
         runner.write_summary(data, out / "summary.json")
@@ -234,6 +233,15 @@ def _write(runs: list[Any], setup: Any, out: Path, meta: dict[str, Any],
                   (fr.centre_um[0] - fr.width_um / 2, fr.centre_um[1] - fr.height_um / 2),
                   {"frame": fr.label(), "angle_deg": fr.angle_deg, **meta})
         plots.save_figure(plots.scan_figure(runs), out / "scan.png")
+
+
+def _summary(runs: list[Any], setup: Any, meta: dict[str, Any], extra: dict[str, Any]
+             ) -> dict[str, Any]:
+    """``summary.json``'s object (:func:`afmctl.experiment.scan.summary`) with ``extra``'s keys,
+    JSON-ready."""
+    from afmctl.experiment import runner
+    from afmctl.experiment import scan as xs
+    return runner.json_ready({**xs.summary(runs, setup, meta), **extra})
 
 
 def _report(data: dict[str, Any], out: Path) -> None:
