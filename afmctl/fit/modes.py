@@ -15,8 +15,9 @@ held; the rod and the mode are fitted to the readings by variable projection::
 ``L`` the rod (16) at unit DC gain, ``M1`` and ``M2`` the spring and damper parts of the mode of
 :class:`afmctl.model.effects.SecondMode` (its ``gain`` ``g2`` and ``rate_gain`` ``r2``), ``a`` a
 common scale (the mode's DC gain ``1 + g2`` is absorbed so that slow sweeps stay where they were).
-The nonlinear parameters are the rod's and the mode's frequencies and dampings, started at the
-given frequencies (the coupling's modes) and at fractions of the rod's. Pure numerics: no I/O.
+The nonlinear parameters are the rod's and the mode's frequencies and dampings
+(:mod:`afmctl.fit.heldfit`), started at the given frequencies (the coupling's modes) and at
+fractions of the rod's. Pure numerics: no I/O.
 """
 
 from __future__ import annotations
@@ -28,10 +29,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import optimize
 from threadpoolctl import threadpool_limits
 
 from afmctl.files.sweepfile import Sweep
+from afmctl.fit import heldfit as hf
 from afmctl.fit import identify as idf
 from afmctl.fit import openloops
 from afmctl.fit import parametrization as pz
@@ -39,7 +40,6 @@ from afmctl.fit import uncertainty as unc
 from afmctl.fit.preisach_problem import rod_filter
 from afmctl.model import effects as fx
 from afmctl.model import transducer as td
-from afmctl.model.rod import UM_PER_M
 
 FloatArray = NDArray[np.float64]
 #: Mode frequencies tried when none are given, as fractions of the rod's resonance.
@@ -109,83 +109,18 @@ class ModeFit:
                 "per_sweep_over_noise_with": list(self.after)}
 
 
-def static_um(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str]
-              ) -> list[FloatArray]:
-    """Per sweep (recorded in sequence, each from its start): the rod's static displacement
-    ``f / k`` (um) for the force (16) the model's hysteresis (and creep) gives."""
-    out, prev = [], None
-    for s, start in zip(sweeps, starts, strict=True):
-        st = idf.start_state(model, start, float(s.voltage_v[0]), prev)
-        _, p, end = td.simulate(td.compile_model(model, s.dt), s.voltage_v, st)
-        out.append(model.rod.force(p) / model.rod.k * UM_PER_M)
-        prev = end.polarization
-    return out
-
-
-def _mode_parts(u: FloatArray, f_hz: float, zeta: float, dt: float) -> tuple[FloatArray,
-                                                                              FloatArray]:
-    """``M1[u]`` and ``M2[u]``: the mode's displacement per unit gain and per unit rate gain."""
-    parts = []
-    for gain, rate in ((1.0, 0.0), (0.0, 1.0)):
-        chain = fx.compile_chain(fx.Effects(second_mode=fx.SecondMode(f_hz, zeta, gain, rate)), dt)
-        parts.append(fx.position(chain, u) - u)
-    return parts[0], parts[1]
-
-
-class _Problem:
-    """Weighted rows of every sweep (each sweep weighs the same, in units of its noise)."""
-
-    def __init__(self, g: Sequence[FloatArray], sweeps: Sequence[Sweep], noise: FloatArray,
-                 window_s: idf.Window) -> None:
-        self.g, self.dts = list(g), [s.dt for s in sweeps]
-        self.masks = [s.mask(window_s) for s in sweeps]
-        self.y = [s.displacement_um[m] for s, m in zip(sweeps, self.masks, strict=True)]
-        n = np.array([m.sum() for m in self.masks], dtype=float)
-        self.noise = noise
-        self.w = np.sqrt(n.mean() / n) / noise
-
-    def columns(self, z: FloatArray) -> list[FloatArray]:
-        """Per sweep on its judged samples: ``L[g]`` for the rod ``exp(z[:2])`` (Hz, damping
-        ratio), and with a mode ``exp(z[2:])`` also ``M1[L[g]]`` and ``M2[L[g]]``."""
+def _design(g: Sequence[FloatArray], sweeps: Sequence[Sweep]) -> hf.Design:
+    """Per sweep: ``L[g]`` for the rod ``exp(z[:2])`` (Hz, damping ratio), and with a mode
+    ``exp(z[2:])`` also ``M1[L[g]]`` and ``M2[L[g]]``; the readings as recorded."""
+    def design(z: FloatArray) -> list[tuple[FloatArray, FloatArray]]:
         fn, zn = np.exp(z[:2])
         out = []
-        for g, dt, m in zip(self.g, self.dts, self.masks, strict=True):
-            u = rod_filter(g, fn, zn, dt)
-            cols = [u]
-            if z.size > 2:
-                cols += _mode_parts(u, *np.exp(z[2:]), dt)
-            out.append(np.column_stack(cols)[m])
+        for gs, s in zip(g, sweeps, strict=True):
+            u = rod_filter(gs, fn, zn, s.dt)
+            cols = [u, *hf.mode_parts(u, *np.exp(z[2:]), s.dt)] if z.size > 2 else [u]
+            out.append((np.column_stack(cols), s.displacement_um))
         return out
-
-    def solve(self, z: FloatArray) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
-        """The linear parameters (``a``, with a mode ``a g2`` and ``a r2``, then the sensor zeros),
-        the weighted residual and each sweep's unweighted residual."""
-        cols = self.columns(z)
-        n_s, k = len(cols), cols[0].shape[1]
-        rows = []
-        for s, c in enumerate(cols):
-            ind = np.zeros((c.shape[0], n_s))
-            ind[:, s] = 1.0
-            rows.append(self.w[s] * np.hstack((c, ind)))
-        a = np.vstack(rows)
-        b = np.concatenate([w * y for w, y in zip(self.w, self.y, strict=True)])
-        beta = np.linalg.lstsq(a, b, rcond=None)[0]
-        per = [y - c @ beta[:k] - beta[k + s] for s, (y, c) in enumerate(zip(self.y, cols,
-                                                                            strict=True))]
-        return beta, b - a @ beta, per
-
-    def polish(self, z0: Sequence[FloatArray], lo: FloatArray, hi: FloatArray
-               ) -> optimize.OptimizeResult:
-        """The best of least-squares runs from each of ``z0`` within the bounds."""
-        runs = [optimize.least_squares(lambda z: self.solve(z)[1], np.clip(z, lo, hi),
-                                       bounds=(lo, hi), diff_step=1e-5, max_nfev=MAX_NFEV)
-                for z in z0]
-        return min(runs, key=lambda r: float(r.cost))
-
-    def ratios(self, per: Sequence[FloatArray]) -> tuple[float, ...]:
-        """Each sweep's RMS residual over its noise."""
-        return tuple(float(np.sqrt(np.mean(r ** 2)) / n) for r, n in zip(per, self.noise,
-                                                                          strict=True))
+    return design
 
 
 def fit(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str], noise: FloatArray,
@@ -215,7 +150,9 @@ def fit(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str], no
     ModeFit
         The best mode found, kept or not (:attr:`ModeFit.kept`).
     """
-    prob = _Problem(static_um(model, sweeps, starts), sweeps, np.asarray(noise, float), window_s)
+    g = hf.static_um(model, sweeps, starts)
+    prob = hf.Problem(_design(g, sweeps), [s.mask(window_s) for s in sweeps],
+                      np.asarray(noise, float))
     rod = np.log([model.rod.natural_hz, model.rod.damping_ratio])
     nyquist = 0.5 / max(s.dt for s in sweeps)
     given = [f for f in seeds_hz if 2.0 < f < 0.9 * nyquist]
@@ -229,9 +166,9 @@ def fit(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str], no
                       if lo[2] < math.log(f) < hi[2]]
     seeds = [np.clip(np.concatenate((rod, np.log([f, z]))), lo, hi) for f in freqs
              for z in SEED_DAMPINGS]
-    plain = prob.polish([rod], lo[:2], hi[:2])
-    ranked = sorted(seeds, key=lambda z: float(np.sum(prob.solve(z)[1] ** 2)))[:POLISHED]
-    best = prob.polish(ranked, lo, hi)
+    plain = prob.polish([rod], lo[:2], hi[:2], MAX_NFEV)
+    ranked = sorted(seeds, key=prob.cost)[:POLISHED]
+    best = prob.polish(ranked, lo, hi, MAX_NFEV)
     beta, _, per = prob.solve(best.x)
     fn, zn, f2, z2 = (float(v) for v in np.exp(best.x))
     a, g2 = float(beta[0]), float(beta[1] / beta[0])
@@ -242,16 +179,12 @@ def fit(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str], no
 
 
 def with_mode(model: td.Transducer, found: ModeFit, starts: Sequence[str]) -> td.Transducer:
-    """``model`` with the rod and mode of ``found``: the rod's stiffness and damping set for its
-    new resonance (its mass kept: a convention of the fit), the force scaled so that the static
-    displacement is ``a`` times the old, the mode among its effects, the sensor zero that of the
-    sweep :func:`afmctl.fit.parametrization.zero_sweep` names for ``starts``."""
-    r = model.rod
-    k = r.m * (2 * math.pi * found.natural_hz) ** 2
-    f = found.scale * k / r.k
-    rod = replace(r, k=k, c=2 * found.damping_ratio * math.sqrt(k * r.m), a1=f * r.a1,
-                  a2=f * r.a2, offset_um=found.offsets_um[pz.zero_sweep(starts)])
-    return replace(model, rod=rod, effects=replace(model.effects, second_mode=found.mode))
+    """``model`` with the rod and mode of ``found`` (:func:`afmctl.fit.heldfit.with_rod`), the
+    mode among its effects, the sensor zero that of the sweep
+    :func:`afmctl.fit.parametrization.zero_sweep` names for ``starts``."""
+    out = hf.with_rod(model, found.natural_hz, found.damping_ratio, found.scale,
+                      found.offsets_um[pz.zero_sweep(starts)])
+    return replace(out, effects=replace(model.effects, second_mode=found.mode))
 
 
 #: The rod's estimates a mode's fit restates (the rod was refitted with it).
