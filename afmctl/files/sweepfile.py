@@ -112,6 +112,11 @@ class Sweep(Recorded):
         tol = (1 - MEMORY_REACH) * float(np.ptp(v))
         return max(int(np.argmax(v >= v.max() - tol)), int(np.argmax(v <= v.min() + tol)))
 
+    def head(self, n: int) -> Sweep:
+        """The sweep's first ``n`` samples (the same metadata and path)."""
+        return Sweep(self.time_s[:n], self.voltage_v[:n], self.displacement_um[:n], self.meta,
+                     self.path)
+
     def mask(self, window_s: tuple[float, float] | None) -> NDArray[np.bool_]:
         """Samples with ``t0 <= t < t1`` (all if ``window_s`` is None) from :attr:`memory_index`
         on: the samples on which a model run from the sweep's start can be judged."""

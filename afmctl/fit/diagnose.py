@@ -16,7 +16,11 @@ Given measured sweeps, :func:`diagnose`
    turning points, a tone that is no harmonic of the drive, and between sweeps
    (:func:`afmctl.fit.residuals.residual_signature`). The model files are the fits on the first
    halves;
-6. when the verdict is ``unexplained``, fits the Preisach grid identify chooses off the paper's
+6. when the verdict is ``unexplained``, tries the causes again on identify's general coercive
+   density with its hysteresis held (:mod:`afmctl.fit.heldbase`: a stage of the paper's family
+   whose density the lognormal does not reach); a cause, ``none`` or ``indistinguishable`` there
+   is the verdict, and the model files are those fits on the first halves;
+7. when the verdict is still ``unexplained``, fits the Preisach grid identify chooses off the paper's
    family, without and with its log-time creep elements (:mod:`afmctl.fit.gridbase`: judged on
    held-out blocks, as identify judges it): ``creep`` when the elements describe creep, ``none``
    when the grid alone is at the floor, ``unexplained`` otherwise (with a drift hint when the
@@ -45,6 +49,7 @@ from afmctl.files.sweepfile import Sweep
 from afmctl.fit import candidates as cd
 from afmctl.fit import extension as ext
 from afmctl.fit import gridbase as gb
+from afmctl.fit import heldbase as hb
 from afmctl.fit import identify as idf
 from afmctl.fit import noise as ns
 from afmctl.fit import parametrization as pz
@@ -65,7 +70,9 @@ class Settings:
     the number of starts per candidate, the candidates, the verdict's thresholds, the number of
     candidates fitted at once (``jobs``, processes; None: one per core) and the stage's slew
     limit (V/s; None: unknown), which a suggested separating sweep keeps to
-    (:func:`afmctl.fit.twins.proposals`); whether an unexplained verdict tries the Preisach
+    (:func:`afmctl.fit.twins.proposals`); whether an unexplained verdict tries the causes on
+    identify's general density with its hysteresis held (``held``, :mod:`afmctl.fit.heldbase`)
+    and then the Preisach
     grid without and with creep (``grid``, :mod:`afmctl.fit.gridbase`), the grid's fit settings
     and the creep rule."""
 
@@ -76,6 +83,7 @@ class Settings:
     rule: vd.Rule = vd.Rule()
     jobs: int | None = None
     max_slew_v_per_s: float | None = None
+    held: bool = True
     grid: bool = True
     grid_fit: pf.Settings = pf.Settings()
     creep_rule: gb.CreepRule = gb.CreepRule()
@@ -88,8 +96,7 @@ class Settings:
 
 def first_half(s: Sweep) -> Sweep:
     """The fitted part of a sweep: its first half in time."""
-    h = s.time_s.size // 2
-    return Sweep(s.time_s[:h], s.voltage_v[:h], s.displacement_um[:h], s.meta, s.path)
+    return s.head(s.time_s.size // 2)
 
 
 def heldout(space: ext.ExtendedSpace, fitted: ext.Extended,
@@ -334,14 +341,14 @@ def choose(table: dict[str, Judged], floor_um: float, rule: vd.Rule) -> str:
     return vd.decide(scored(table), floor_um, rule)
 
 
-def _separating(table: dict[str, Judged], job: _Job, floor: float,
+def _separating(readings: Callable[[str, Sweep], FloatArray], job: _Job, floor: float,
                 pairs: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The sweep that would separate the best sensor-side cause the sweeps left unseparated
-    from its twin (:func:`afmctl.fit.twins.separating_sweep`), with both names and the bar."""
+    from its twin (:func:`afmctl.fit.twins.separating_sweep`, with what each fitted cause
+    ``readings`` on a sweep), with both names and the bar."""
     pair = min((p for p in pairs if not p["separated"] and not p["refuted"]),
                key=lambda p: p["sensor_heldout_rms_um"])
-    found = tw.separating_sweep(lambda name, s: _readings_on(table, job, name, s),
-                                pair["sensor"], job.sweeps, floor,
+    found = tw.separating_sweep(readings, pair["sensor"], job.sweeps, floor,
                                 job.settings.max_slew_v_per_s)
     return {"sensor": pair["sensor"], "actuator": pair["actuator"], "needed": pair["needed"],
             **found}
@@ -411,7 +418,13 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
         if cause == vd.INDISTINGUISHABLE:
             say("the sensor-side cause and its twin are not separated: predicting fast sweeps "
                 "with both ...")
-            separating = _separating(table, job, floor, pairs)
+            separating = _separating(lambda n, s: _readings_on(table, job, n, s), job, floor,
+                                     pairs)
+        held = None
+        if cause == "unexplained" and settings.held:
+            held, cause, held_pairs, held_separating = _held(job, halves, noise, floor, say)
+            if cause != "unexplained":
+                pairs, separating = held_pairs, held_separating
         grid = None
         if cause == "unexplained" and settings.grid:
             grid = _grid(job, noise, say)
@@ -423,11 +436,31 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
         final = grid.crept if cause == "creep" else grid.plain
         return Diagnosis(cause, grid.plain_rms_um, grid.crept_rms_um if cause == "creep" else
                          grid.plain_rms_um, floor, noise, table, grid.plain, final, signature,
-                         time.perf_counter() - t0, files, tuple(pairs), separating, grid)
-    named = cause if cause in table else "none"
-    return Diagnosis(cause, table["none"].heldout_rms_um, table[named].heldout_rms_um, floor,
-                     noise, table, table["none"].fitted, table[named].fitted, signature,
-                     time.perf_counter() - t0, files, tuple(pairs), separating, grid)
+                         time.perf_counter() - t0, files, tuple(pairs), separating, grid, held)
+    on = held.table if held is not None and cause != "unexplained" else table
+    named = cause if cause in on else "none"
+    return Diagnosis(cause, on["none"].heldout_rms_um, on[named].heldout_rms_um, floor,
+                     noise, table, on["none"].fitted, on[named].fitted, signature,
+                     time.perf_counter() - t0, files, tuple(pairs), separating, grid, held)
+
+
+def _held(job: _Job, halves: Sequence[Sweep], noise: Sequence[float], floor: float,
+          say: Callable[[str], None]
+          ) -> tuple[hb.HeldBase, str, list[dict[str, Any]], dict[str, Any] | None]:
+    """The causes on identify's general coercive density with its hysteresis held
+    (:func:`afmctl.fit.heldbase.judge`): the fits, their verdict, every sensor-side cause with
+    its twin and, if the two are not separated, the sweep that would separate them."""
+    say("nothing of the paper's lognormal family explains the sweeps: trying the causes on "
+        "identify's general coercive density, its hysteresis held ...")
+    s = job.settings
+    held = hb.judge(job.sweeps, halves, noise, s.identify,
+                    candidate_names(len(job.sweeps), s), s.max_nfev, say)
+    cause = choose(held.judged, floor, s.rule)
+    pairs = tw.pairs(scored(held.judged), s.rule)
+    separating = (_separating(held.readings, job, floor, pairs)
+                  if cause == vd.INDISTINGUISHABLE else None)
+    say(f"  on the general density: {cause} ({held.seconds:.0f} s)")
+    return held, cause, pairs, separating
 
 
 def _grid(job: _Job, noise: Sequence[float], say: Callable[[str], None]) -> gb.GridBase:

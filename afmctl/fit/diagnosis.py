@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,7 +20,17 @@ from afmctl.fit.residuals import predicted
 from afmctl.fit.verdict import ratio, required_gain
 from afmctl.model import transducer as td
 
+if TYPE_CHECKING:  # heldbase builds on Judged, below
+    from afmctl.fit.heldbase import HeldBase
+
 FloatArray = NDArray[np.float64]
+
+
+#: The base of the causes of :mod:`afmctl.fit.heldbase` (the report's words).
+HELD_BASE = "identify's general coercive density with its hysteresis held"
+#: What ``none`` on that base means (:attr:`Diagnosis.explanation`).
+HELD_NONE = ("the stage's coercive density is not the paper's lognormal / normal, but identify's "
+             "general coercive density explains the data to within what the causes can add")
 
 
 def fitted_text(parameters: dict[str, float]) -> str:
@@ -55,9 +65,12 @@ class Diagnosis:
     cause is named), the residual signature, the wall time (s), every fitted sensor-side cause
     with its actuator-side twin (:func:`afmctl.fit.twins.pairs`) and, when the verdict is
     ``indistinguishable``, the sweep that would separate them
-    (:func:`afmctl.fit.twins.separating_sweep`, with the pair's names), and the Preisach grid
-    without and with creep (:mod:`afmctl.fit.gridbase`) when it was fitted: then a verdict of
-    ``creep`` or ``none`` is the grid's, and the base is the grid without creep."""
+    (:func:`afmctl.fit.twins.separating_sweep`, with the pair's names), the causes on identify's
+    general density with its hysteresis held (:mod:`afmctl.fit.heldbase`) when they were tried:
+    then a verdict other than ``unexplained`` that is not the grid's is theirs, with their
+    ``none`` as the base, and the Preisach grid without and with creep
+    (:mod:`afmctl.fit.gridbase`) when it was fitted: then a verdict of ``creep`` or ``none`` is
+    the grid's, and the base is the grid without creep."""
 
     cause: str
     base_rms_um: float
@@ -73,6 +86,7 @@ class Diagnosis:
     twins: tuple[dict[str, Any], ...] = ()
     separating: dict[str, Any] | None = None
     grid: gb.GridBase | None = None
+    held: HeldBase | None = None
 
     @property
     def on_grid(self) -> bool:
@@ -80,7 +94,20 @@ class Diagnosis:
         return self.grid is not None and self.cause in ("creep", "none")
 
     @property
+    def on_held(self) -> bool:
+        """Whether the verdict is that of the causes on identify's general density with its
+        hysteresis held (:mod:`afmctl.fit.heldbase`)."""
+        return self.held is not None and not self.on_grid and self.cause != "unexplained"
+
+    @property
+    def verdict_table(self) -> dict[str, Judged]:
+        """The table the verdict was read from (the held base's or the paper's)."""
+        return self.held.table if self.on_held and self.held is not None else self.table
+
+    @property
     def base_name(self) -> str:
+        if self.on_held:
+            return HELD_BASE
         return "the Preisach grid without creep" if self.on_grid else "the paper's model"
 
     @property
@@ -130,6 +157,8 @@ class Diagnosis:
             return cd.INDISTINGUISHABLE
         if self.on_grid:
             return gb.CAUSES[self.cause]
+        if self.on_held and self.cause == "none":
+            return HELD_NONE
         return cd.CAUSES.get(self.cause, cd.UNEXPLAINED)
 
     def closest_dict(self) -> dict[str, Any]:
@@ -171,6 +200,7 @@ class Diagnosis:
                            for k, j in self.table.items()},
             "base_model": self.base_name,
             "grid": None if self.grid is None else self.grid.as_dict(),
+            "held": None if self.held is None else self.held.as_dict(self.noise_um),
             "extended_gains": list(self.extended_gains),
             "residuals": self.signature, "sweeps": list(self.files),
             "seconds": round(self.seconds, 2),
@@ -179,6 +209,9 @@ class Diagnosis:
                       "against the noise floor; " + (
                           "the verdict is the Preisach grid's (grid.method): the model files "
                           "are its fits on the whole sweeps" if self.on_grid else
+                          "the verdict is that of the causes on identify's general density, its "
+                          "hysteresis held (held): the model files are those fits on the first "
+                          "halves" if self.on_held else
                           "the model files are the fits on the first halves")})
 
     def evidence(self) -> str:
@@ -197,7 +230,7 @@ class Diagnosis:
                     f" ({self.closest_dict()['text']})")
         elif self.separating is not None:
             s = self.separating
-            sensor, twin = self.table[s["sensor"]], self.table[s["actuator"]]
+            sensor, twin = self.verdict_table[s["sensor"]], self.verdict_table[s["actuator"]]
             head = (f"indistinguishable: {floor}; {s['sensor']} at "
                     f"{ratio(sensor.heldout_rms_um, self.noise_um):.2f}x and its actuator-side "
                     f"twin {s['actuator']} at {ratio(twin.heldout_rms_um, self.noise_um):.2f}x "
@@ -205,12 +238,13 @@ class Diagnosis:
                     f"to separate them, it misses by "
                     f"{ratio(twin.heldout_rms_um, sensor.heldout_rms_um):.2f}x): these sweeps do "
                     f"not tell an effect in the sensor from one before the rod's dynamics, so the "
-                    f"readings are kept uncorrected (the model is the paper's)")
+                    f"readings are kept uncorrected (the model is {self.base_name}'s)")
         else:
             fitted = fitted_text(self.extended.parameters)
             head = (f"{self.cause}: {floor}, held-out RMS {self.base_rms_um:.4f} -> "
                     f"{self.extended_rms_um:.4f} um (gain {self.gain:.2f}, "
                     f"{self.extended_over_noise:.2f}x noise)" + (f" with {fitted}" if fitted else ""))
+        held = "" if self.held is None else self._held_text()
         grid = "" if self.grid is None else (
             f"; the paper's model and its extensions leave it unexplained (the paper's model at "
             f"{ratio(self.paper_rms_um, self.noise_um):.2f}x noise), so the Preisach grid was "
@@ -218,7 +252,18 @@ class Diagnosis:
             + ("" if self.cause != "creep" or self.extended_over_noise <= vd.Rule().near else
                f"; with creep it is still {self.extended_over_noise:.2f}x the noise: the "
                f"grid's shape or a further effect is left"))
-        return head + grid + "; best of the paper's family: " + "; ".join(lines)
+        return head + held + grid + "; best of the paper's family: " + "; ".join(lines)
+
+    def _held_text(self) -> str:
+        """What the causes on the held general density said (:meth:`evidence`)."""
+        assert self.held is not None
+        t, floor = self.held.table, self.noise_um
+        best = min((j for n, j in t.items() if n != "none"), key=lambda j: j.heldout_rms_um)
+        return (f"; the paper's model and its extensions leave it unexplained (the paper's model "
+                f"at {ratio(self.paper_rms_um, floor):.2f}x noise), so the causes were tried on "
+                f"{HELD_BASE}: that model at "
+                f"{ratio(t['none'].heldout_rms_um, floor):.2f}x, the best cause there "
+                f"({best.fitted.name}) at {ratio(best.heldout_rms_um, floor):.2f}x")
 
 
 def json_safe(obj: Any) -> Any:

@@ -30,6 +30,9 @@ from afmctl.model.rod import UM_PER_M
 FloatArray = NDArray[np.float64]
 #: ``design(z)``: per sweep, its design columns (N x k, every sample) and the readings they
 #: are fitted to (N, um; the recorded readings, or a transform of them the effect asks for).
+#: Gains of a physical second mode (:class:`afmctl.model.effects.SecondMode`): ``gain`` within
+#: these (a mode that carries as much of the stroke as the rod is not a second mode of it).
+GAIN_BOUNDS = (-0.5, 1.0)
 Design = Callable[[FloatArray], list[tuple[FloatArray, FloatArray]]]
 
 

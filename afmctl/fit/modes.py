@@ -60,9 +60,8 @@ NO_WORSE = 1.05
 SEED_SPAN = (0.7, 1.4)
 #: Bounds of the mode's damping ratio.
 DAMPING_BOUNDS = (0.005, 0.3)
-#: Gains of a physical mode (:class:`afmctl.model.effects.SecondMode`): ``gain`` within these
-#: (a mode that carries as much of the stroke as the rod is not a second mode of it).
-GAIN_BOUNDS = (-0.5, 1.0)
+#: Gains of a physical mode (:data:`afmctl.fit.heldfit.GAIN_BOUNDS`).
+GAIN_BOUNDS = hf.GAIN_BOUNDS
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,389 @@
+"""Diagnose's causes on identify's model: its hysteresis held, each effect fitted around it.
+
+The catalogue's candidates (:mod:`afmctl.fit.extension`) extend the paper's model with the
+lognormal / normal densities. On a stage of the paper's family whose coercive density is of
+another shape (a separable Preisach density), that base is 2.6-10.5x the noise before any
+effect, and no one-effect extension of it reaches the floor, while identify's general coercive
+density (``density = "discrete"``) is at 1.00-1.13x on the same stages with the effect off
+(docs/results/diagnose.md, stop 36). So when the catalogue leaves the sweeps ``unexplained``,
+:func:`judge` fits that density on the first halves (:func:`afmctl.fit.identify.fit`) and tries
+the causes around it:
+
+- **output side** (the effect acts after the hysteresis): the hysteresis's static displacement
+  ``g`` held, the rod (16) and the effect refitted by variable projection
+  (:mod:`afmctl.fit.heldfit`): ``second-mode`` (:class:`afmctl.model.effects.SecondMode` after
+  the rod; a mode *beside* the rod, rod + residue x mode, is the same thing: the rod followed by
+  a biquad with the mode's poles), ``sensor-delay`` (the readings late by a time),
+  ``sensor-nonlinearity`` (the gauge of :func:`afmctl.model.effects.gauge`, fitted on the
+  positions its inverse gives) and its twin ``actuator-nonlinearity`` (``L[g^2]`` and ``L[g^3]``:
+  the same polynomial before the rod's dynamics, never named);
+- **input side** (the effect changes the field): the hysteresis re-run on the effect's field
+  and the rod refitted: ``amplifier-lag`` (a second-order amplifier) and
+  ``voltage-gain-drift`` (each sweep's applied-voltage gain, their log mean 0);
+- ``none``: identify's model with its rod refitted alone.
+
+Thermal relaxation changes the kernel (10) itself and is left to the catalogue. Every fit is
+judged on the second halves, as the catalogue's are, and read by the same verdict
+(:func:`afmctl.fit.verdict.decide`). Pure numerics: no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from afmctl.files.sweepfile import Sweep
+from afmctl.fit import candidates as cd
+from afmctl.fit import extension as ext
+from afmctl.fit import heldfit as hf
+from afmctl.fit import identify as idf
+from afmctl.fit import parametrization as pz
+from afmctl.fit.diagnosis import HELD_BASE, Judged
+from afmctl.fit.preisach_problem import rod_filter
+from afmctl.model import effects as fx
+from afmctl.model import transducer as td
+
+FloatArray = NDArray[np.float64]
+#: Polished from this many of the best seeds (each a least-squares run).
+POLISHED = 2
+#: Bounds of the rod's resonance and damping ratio about identify's, as factors (the resonance
+#: may also rise to the readings' Nyquist frequency: an effect the identification's rod took up
+#: made it slower and more damped, e.g. a sensor's averaging).
+ROD_SPAN = ((0.5, 2.0), (0.1, 10.0))
+#: The rod seeds of the causes that alter what the rod took up (``free_rod``): identify's, and
+#: this factor faster (to at most 0.9 of the Nyquist frequency) with this damping ratio.
+FREE_ROD_SEED = (4.0, 0.1)
+#: Bounds of a second mode's damping ratio: a resonance, not a filter's corner (a fit that
+#: ends on the upper bound stands in for something else and is refused: :func:`refusal`).
+MODE_DAMPING = (0.003, 0.15)
+#: Mode frequencies tried, as fractions of the rod's resonance (:mod:`afmctl.fit.modes`'s).
+MODE_FRACTIONS = (0.35, 0.5, 0.7, 1.4, 2.0, 3.0)
+
+
+@dataclass(frozen=True)
+class Cause:
+    """One cause on the held base: the effect's parameters (internal units), their seeds and
+    bounds, the side it acts on and how many parameters it adds (with its projected gains)."""
+
+    name: str
+    labels: tuple[str, ...]
+    seeds: tuple[tuple[float, ...], ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    n_added: int
+    input_side: bool = False
+    free_rod: bool = False
+
+
+def causes(n_sweeps: int, rod_hz: float, nyquist_hz: float) -> dict[str, Cause]:
+    """The causes tried on ``n_sweeps`` sweeps (gain drift needs two) about a rod of ``rod_hz``
+    (Hz) with the readings' Nyquist frequency ``nyquist_hz`` (Hz)."""
+    lf, ln = math.log, math.log(nyquist_hz)
+    modes = tuple((lf(f * rod_hz), lf(z)) for f in MODE_FRACTIONS for z in (0.02, 0.06)
+                  if 2.0 < f * rod_hz < 0.9 * nyquist_hz) or ((ln - 1.0, lf(0.03)),)
+    k = n_sweeps - 1
+    out = [
+        Cause("none", (), ((),), (), (), 0),
+        Cause("second-mode", ("log_frequency_Hz", "log_damping_ratio"), modes,
+              (lf(2.0), lf(MODE_DAMPING[0])), (ln + lf(0.9), lf(MODE_DAMPING[1])), 4,
+              free_rod=True),
+        Cause("sensor-delay", ("delay_fastest_samples",),
+              ((0.5,), (2.0,), (5.0,), (10.0,), (25.0,)), (0.0,), (60.0,), 1, free_rod=True),
+        Cause("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
+              ((0.0, 0.0), (-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)),
+              (-0.3, -0.3), (0.3, 0.3), 2),
+        Cause("actuator-nonlinearity", (), ((),), (), (), 2),
+        Cause("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio"),
+              ((ln + 2.9, lf(0.7)),) + tuple((lf(f * rod_hz), lf(0.7)) for f in (0.3, 1.0, 3.0))
+              + ((ln, lf(0.7)),), (lf(1.0), lf(0.05)), (ln + 3.0, lf(10.0)), 2,
+              input_side=True, free_rod=True),
+    ]
+    if k >= 1:
+        out.append(Cause("voltage-gain-drift", tuple(f"log_gain_{i + 1}" for i in range(k)),
+                         (tuple([0.0] * k),), tuple([-0.3] * k), tuple([0.3] * k), k,
+                         input_side=True))
+    return {c.name: c for c in out}
+
+
+def _log_gains(phi: FloatArray) -> FloatArray:
+    """Every sweep's log gain from all but the last's (their mean 0: the model keeps the sweeps'
+    average gain, as :mod:`afmctl.fit.extension`'s)."""
+    return np.concatenate((phi, [-float(np.sum(phi))]))
+
+
+class Held:
+    """identify's model ``model`` on whole ``sweeps`` (recorded in sequence, each from its start
+    in ``starts``): fitted on the rows of ``fit_masks``, judged on those of ``judged_masks``,
+    every sweep in units of its ``noise`` (um); a gauge error stated about ``frame`` (the
+    calibration readings' centre, half width and third and fourth moments:
+    :func:`afmctl.fit.candidates.reading_frame`)."""
+
+    def __init__(self, model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str],
+                 fit_masks: Sequence[NDArray[np.bool_]],
+                 judged_masks: Sequence[NDArray[np.bool_]], noise: FloatArray,
+                 frame: tuple[float, float, float, float]) -> None:
+        self.model, self.sweeps, self.starts = model, list(sweeps), list(starts)
+        self.fit_masks, self.judged_masks = list(fit_masks), list(judged_masks)
+        self.noise, self.frame = np.asarray(noise, dtype=float), frame
+        self.g = hf.static_um(model, sweeps, starts)
+        # the fits see each sweep up to its last fitted row (an input-side cause re-runs that)
+        self.fit_sweeps = [s.head(int(np.flatnonzero(m)[-1]) + 1) for s, m in zip(
+            sweeps, fit_masks, strict=True)]
+        self.dt_min = min(s.dt for s in sweeps)
+        self.rod = np.log([model.rod.natural_hz, model.rod.damping_ratio])
+        self.nyquist_hz = 0.5 / max(s.dt for s in sweeps)
+        self.causes = causes(len(sweeps), model.rod.natural_hz, self.nyquist_hz)
+
+    # -- the model of each cause ------------------------------------------------------------
+
+    def effects(self, name: str, phi: FloatArray) -> fx.Effects:
+        """The effect of cause ``name`` at ``phi`` (a mode's gains are linear: not here)."""
+        if name == "sensor-delay":
+            return fx.Effects(sensor_delay_s=float(phi[0]) * self.dt_min)
+        if name == "sensor-nonlinearity":
+            m, r, mu3, mu4 = self.frame
+            return fx.Effects(sensor_quadratic_per_um=float(phi[0]) / r,
+                              sensor_cubic_per_um2=float(phi[1]) / r ** 2, sensor_center_um=m,
+                              sensor_half_range_um=r, sensor_third_moment_um3=mu3,
+                              sensor_fourth_moment_um4=mu4)
+        if name == "amplifier-lag":
+            return fx.Effects(amplifier_bandwidth_hz=float(np.exp(phi[0])),
+                              amplifier_damping_ratio=float(np.exp(phi[1])))
+        return fx.Effects()
+
+    def gains(self, name: str, phi: FloatArray) -> tuple[float, ...]:
+        """Each sweep's applied-voltage gain under cause ``name``."""
+        if name == "voltage-gain-drift":
+            return tuple(float(v) for v in np.exp(_log_gains(phi)))
+        return tuple([1.0] * len(self.sweeps))
+
+    def statics(self, name: str, phi: FloatArray, fitted: bool = False) -> list[FloatArray]:
+        """The static displacement (um) of every sweep (``fitted``: of its fitted part only)
+        under cause ``name``: held, or re-run on the effect's field (input side)."""
+        sweeps = self.fit_sweeps if fitted else self.sweeps
+        if not self.causes[name].input_side:
+            return [g[:s.time_s.size] for g, s in zip(self.g, sweeps, strict=True)]
+        model = replace(self.model, effects=self.effects(name, phi))
+        return hf.static_um(model, sweeps, self.starts, self.gains(name, phi))
+
+    def columns(self, name: str, z: FloatArray, g: Sequence[FloatArray],
+                sweeps: Sequence[Sweep]) -> list[FloatArray]:
+        """Per sweep: the design columns (N x k) of cause ``name`` at ``z`` on static
+        displacements ``g`` (um)."""
+        fn, zn = np.exp(z[:2])
+        phi, out = z[2:], []
+        for gs, s in zip(g, sweeps, strict=True):
+            if name == "actuator-nonlinearity":
+                out.append(rod_filter(np.column_stack((gs, gs * gs, gs ** 3)), fn, zn, s.dt))
+                continue
+            u = rod_filter(gs, fn, zn, s.dt)
+            if name == "second-mode":
+                out.append(np.column_stack((u, *hf.mode_parts(u, *np.exp(phi), s.dt))))
+            elif name == "sensor-delay":
+                d = float(phi[0]) * self.dt_min / s.dt
+                out.append(fx.delay(u, d, np.full(int(d) + 2, u[0]))[0][:, None])
+            else:
+                out.append(u[:, None])
+        return out
+
+    def design(self, name: str) -> hf.Design:
+        """What :class:`afmctl.fit.heldfit.Problem` fits for cause ``name``: its columns, and the
+        readings (a gauge's: the positions its inverse gives them)."""
+        def design(z: FloatArray) -> list[tuple[FloatArray, FloatArray]]:
+            e = self.effects(name, z[2:])
+            cols = self.columns(name, z, self.statics(name, z[2:], True), self.fit_sweeps)
+            return [(c, fx.ungauge(e, s.displacement_um)) for c, s in zip(cols, self.fit_sweeps,
+                                                                          strict=True)]
+        return design
+
+    def readings(self, name: str, z: FloatArray, beta: FloatArray,
+                 cols: Sequence[FloatArray]) -> list[FloatArray]:
+        """What the fit reads (um) on the sweeps of ``cols``: the columns weighed, each sweep's
+        zero (``beta``'s last entries, one per column set; a single one: every sweep's), the
+        gauge."""
+        k, e = cols[0].shape[1], self.effects(name, z[2:])
+        zeros = beta[k:]
+        return [fx.gauge(e, c @ beta[:k] + zeros[min(i, zeros.size - 1)])
+                for i, c in enumerate(cols)]
+
+    # -- fit and judge ------------------------------------------------------------------------
+
+    def fit(self, name: str, max_nfev: int) -> tuple[FloatArray, FloatArray, bool, int]:
+        """Cause ``name`` fitted on the fit rows from its seeds (the best :data:`POLISHED`
+        polished): ``z``, the linear parameters, the solver's word and its evaluations."""
+        c = self.causes[name]
+        prob = hf.Problem(self.design(name), [m[:s.time_s.size] for m, s in zip(
+            self.fit_masks, self.fit_sweeps, strict=True)], self.noise)
+        (flo, fhi), (zlo, zhi) = ROD_SPAN
+        lo = np.concatenate((self.rod + np.log([flo, zlo]), c.lower))
+        hi = np.concatenate((self.rod + np.log([fhi, zhi]), c.upper))
+        hi[0] = max(hi[0], math.log(self.nyquist_hz))
+        lo[1], hi[1] = max(lo[1], math.log(0.002)), min(hi[1], 0.0)
+        rods = [self.rod]
+        if c.free_rod:
+            f, z = FREE_ROD_SEED
+            rods.append(np.log([min(f * math.exp(self.rod[0]), 0.9 * self.nyquist_hz), z]))
+        seeds = [np.clip(np.concatenate((r, s)), lo, hi) for r in rods for s in c.seeds]
+        best = prob.polish(sorted(seeds, key=prob.cost)[:POLISHED], lo, hi, max_nfev)
+        return best.x, prob.solve(best.x)[0], bool(best.success and best.status > 0), best.nfev
+
+    def heldout(self, name: str, z: FloatArray, beta: FloatArray
+                ) -> tuple[float, tuple[float, ...]]:
+        """RMS of the fit on the judged rows (um: the root mean of the per-sweep mean squares)
+        and each sweep's."""
+        cols = self.columns(name, z, self.statics(name, z[2:]), self.sweeps)
+        mse = [float(np.mean((s.displacement_um - u)[m] ** 2)) for s, u, m in zip(
+            self.sweeps, self.readings(name, z, beta, cols), self.judged_masks, strict=True)]
+        return math.sqrt(float(np.mean(mse))), tuple(math.sqrt(v) for v in mse)
+
+    def extended(self, name: str, z: FloatArray, beta: FloatArray, success: bool,
+                 nfev: int) -> ext.Extended:
+        """The fit as a model with its effect, its per-sweep gains, starts and sensor zeros:
+        :func:`afmctl.fit.identify.predict_set` of it gives the fit's readings (the twin
+        ``actuator-nonlinearity``, never named, is stated by its gains only: its model is the
+        rod's)."""
+        fn, zn = (float(v) for v in np.exp(z[:2]))
+        phi, k = z[2:], beta.size - len(self.sweeps)
+        a, zeros = float(beta[0]), beta[k:]
+        effects, params = self.effects(name, phi), {"rod_natural_Hz": fn, "rod_damping_ratio": zn}
+        if name == "second-mode":
+            mode = fx.SecondMode(*(float(v) for v in np.exp(phi)), float(beta[1]) / a,
+                                 float(beta[2]) / a)
+            effects, zeros = fx.Effects(second_mode=mode), zeros / (1.0 + mode.gain)
+            params |= {"frequency_Hz": mode.frequency_hz, "damping_ratio": mode.damping_ratio,
+                       "gain": mode.gain, "rate_gain": mode.rate_gain}
+        elif name == "actuator-nonlinearity":
+            params |= {"quadratic_gain": float(beta[1]) / a, "cubic_gain": float(beta[2]) / a}
+        params |= _effect_parameters(name, effects, phi)
+        gains = self.gains(name, phi)
+        if name == "voltage-gain-drift":
+            params |= {f"gain_{i + 1}": g for i, g in enumerate(gains)}
+        model = replace(hf.with_rod(self.model, fn, zn, a,
+                                    float(zeros[pz.zero_sweep(self.starts)])), effects=effects)
+        return ext.Extended(name, model, gains, params, success, nfev, z, tuple(self.starts),
+                            tuple(float(v) for v in zeros), beta)
+
+    def readings_on(self, name: str, fitted: ext.Extended, sweep: Sweep) -> FloatArray:
+        """What fitted cause ``name`` reads (um) on a sweep never recorded, from the state the
+        first sweep started in (depoled if that carried on from an earlier history), with the
+        last sweep's sensor zero and the sweeps' mean gain."""
+        start = fitted.starts[0] if fitted.starts[0] != "previous" else "depoled"
+        z, beta = fitted.x, fitted.beta
+        g = hf.static_um(replace(self.model, effects=self.effects(name, z[2:])), [sweep], [start])
+        cols = self.columns(name, z, g, [sweep])
+        k = cols[0].shape[1]
+        return self.readings(name, z, np.concatenate((beta[:k], beta[-1:])), cols)[0]
+
+
+def _effect_parameters(name: str, e: fx.Effects, phi: FloatArray) -> dict[str, float]:
+    """The effect's fitted parameters in physical units (the report's and JSON's)."""
+    if name == "sensor-delay":
+        return {"delay_s": e.sensor_delay_s}
+    if name == "sensor-nonlinearity":
+        return {"quadratic_per_um": e.sensor_quadratic_per_um,
+                "cubic_per_um2": e.sensor_cubic_per_um2}
+    if name == "amplifier-lag":
+        return {"bandwidth_Hz": float(np.exp(phi[0])), "damping_ratio": float(np.exp(phi[1]))}
+    return {}
+
+
+def refusal(fitted: ext.Extended) -> str | None:
+    """Why a fitted cause cannot be what it says (None: it can): a second mode whose damping
+    ends on its upper bound (:data:`MODE_DAMPING`: a filter's corner, not a resonance) or whose
+    gain is beyond :data:`afmctl.fit.heldfit.GAIN_BOUNDS` (a "mode" carrying as much of the
+    stroke as the rod)."""
+    mode = fitted.model.effects.second_mode
+    if fitted.name != "second-mode" or mode is None:
+        return None
+    if mode.damping_ratio >= 0.98 * MODE_DAMPING[1]:
+        return (f"its damping ratio {mode.damping_ratio:.3g} sits on the bound of a resonance "
+                f"({MODE_DAMPING[1]:g}): a filter's corner stands in for another effect")
+    lo, hi = hf.GAIN_BOUNDS
+    if not lo < mode.gain < hi:
+        return f"its gain {mode.gain:.3g} is beyond a second mode's ({lo:g} to {hi:g})"
+    return None
+
+
+@dataclass(frozen=True)
+class HeldBase:
+    """Every cause judged on identify's model with its hysteresis held: the table (``none``
+    first), identify's fit on the first halves (each sweep's RMS over its noise), the fits'
+    context (for readings on other sweeps), the wall time (s) and the fits refused as what they
+    say (:func:`refusal`: name -> why; they take no part in the verdict)."""
+
+    table: dict[str, Judged]
+    identified_over_noise: tuple[float, ...]
+    held: Held
+    seconds: float
+    refused: dict[str, str]
+
+    @property
+    def judged(self) -> dict[str, Judged]:
+        """The table without the refused fits: what the verdict reads."""
+        return {k: j for k, j in self.table.items() if k not in self.refused}
+
+    def readings(self, name: str, sweep: Sweep) -> FloatArray:
+        """What fitted cause ``name`` reads on ``sweep`` (um; :meth:`Held.readings_on`)."""
+        return self.held.readings_on(name, self.table[name].fitted, sweep)
+
+    def as_dict(self, floor_um: float) -> dict[str, Any]:
+        """JSON-ready: the base, identify's fit and every cause's held-out figures."""
+        base = self.table["none"].heldout_rms_um
+        return {"model": HELD_BASE, "identified_over_noise": list(self.identified_over_noise),
+                "candidates": {k: j.as_dict(base, floor_um) for k, j in self.table.items()},
+                "refused": dict(self.refused), "seconds": round(self.seconds, 2)}
+
+
+def judge(sweeps: Sequence[Sweep], halves: Sequence[Sweep], noise: Sequence[float],
+          settings: idf.Settings, names: Sequence[str], max_nfev: int,
+          say: Callable[[str], None]) -> HeldBase:
+    """identify's general coercive density on the first ``halves`` of ``sweeps``, then ``none``
+    and every cause of ``names`` (those :func:`causes` has) fitted around it on the first halves
+    and judged on the second halves.
+
+    Parameters
+    ----------
+    sweeps, halves : sequence of Sweep
+        The whole sweeps, recorded in sequence, and their first halves.
+    noise : sequence of float
+        Each sweep's sensor noise, um.
+    settings : identify's Settings
+        The identification's (its representation and density are set here).
+    names : sequence of str
+        The causes to try (diagnose's candidates; the twin is added with its sensor cause).
+    max_nfev : int
+        Evaluations of each least-squares run.
+    say : callable
+        One-line progress messages.
+    """
+    t0 = time.perf_counter()
+    say("identifying the general coercive density on the first halves ...")
+    res = idf.fit(halves, replace(settings, representation="hem", density="discrete"))
+    ratios = tuple(e.rms_over_noise for e in res.sweeps)
+    say("  general density: RMS / noise per half " + " / ".join(f"{r:.2f}" for r in ratios))
+    masks = [s.mask(None) for s in sweeps]
+    half = [np.arange(s.time_s.size) < s.time_s.size // 2 for s in sweeps]
+    held = Held(res.model, sweeps, [e.start for e in res.sweeps],
+                [m & h for m, h in zip(masks, half, strict=True)],
+                [m & ~h for m, h in zip(masks, half, strict=True)], np.asarray(noise, float),
+                cd.reading_frame(cd.recorded_calibration(sweeps)))
+    tried = [n for n in held.causes if n == "none" or n in names
+             or (n in cd.TWIN_ONLY and any(cd.TWINS.get(s) == n for s in names))]
+    table = {}
+    for name in tried:
+        t1 = time.perf_counter()
+        z, beta, ok, nfev = held.fit(name, max_nfev)
+        rms, per = held.heldout(name, z, beta)
+        table[name] = Judged(held.extended(name, z, beta, ok, nfev), held.causes[name].n_added,
+                             rms, per, time.perf_counter() - t1)
+        say(f"  held {name:20s} held-out RMS {rms:.4f} um ({table[name].fit_seconds:.1f} s)")
+    refused = {n: why for n, j in table.items() if (why := refusal(j.fitted)) is not None}
+    for n, why in refused.items():
+        say(f"  held {n} refused: {why}")
+    return HeldBase(table, ratios, held, time.perf_counter() - t0, refused)
