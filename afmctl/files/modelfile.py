@@ -318,8 +318,10 @@ def effects_dict(e: Effects) -> dict[str, Any]:
         amp = {"bandwidth_Hz": e.amplifier_bandwidth_hz, "damping_ratio": e.amplifier_damping_ratio,
                "slew_V_per_s": e.amplifier_slew_v_per_s}
         out["amplifier_lag"] = {k: v for k, v in amp.items() if v is not None}
-    if e.sensor_delay_samples or e.sensor_delay_s:
+    if e.sensor_delay_samples or e.sensor_delay_s or e.sensor_window_s:
         out["sensor_delay"] = {"samples": e.sensor_delay_samples, "seconds": e.sensor_delay_s}
+        if e.sensor_window_s:
+            out["sensor_delay"]["window_seconds"] = e.sensor_window_s
     if e.sensor_quadratic_per_um or e.sensor_cubic_per_um2:
         out["sensor_nonlinearity"] = {"quadratic_per_um": e.sensor_quadratic_per_um,
                                       "cubic_per_um2": e.sensor_cubic_per_um2,
@@ -372,6 +374,8 @@ def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
         amplifier_slew_v_per_s=_optional(lag, "slew_V_per_s"),
         sensor_delay_samples=0.0 if dly is None else dly.number("samples", 0.0, nonnegative=True),
         sensor_delay_s=0.0 if dly is None else dly.number("seconds", 0.0, nonnegative=True),
+        sensor_window_s=0.0 if dly is None else dly.number("window_seconds", 0.0,
+                                                           nonnegative=True),
         sensor_quadratic_per_um=0.0 if nl is None else nl.number("quadratic_per_um"),
         sensor_cubic_per_um2=0.0 if nl is None else nl.number("cubic_per_um2", 0.0),
         sensor_center_um=0.0 if nl is None else nl.number("center_um", 0.0),

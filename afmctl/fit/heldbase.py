@@ -13,7 +13,8 @@ the causes around it:
   ``g`` held, the rod (16) and the effect refitted by variable projection
   (:mod:`afmctl.fit.heldfit`): ``second-mode`` (:class:`afmctl.model.effects.SecondMode` after
   the rod; a mode *beside* the rod, rod + residue x mode, is the same thing: the rod followed by
-  a biquad with the mode's poles), ``sensor-delay`` (the readings late by a time),
+  a biquad with the mode's poles), ``sensor-delay`` (the readings late by a time and averaged over a window: an
+  integrating converter),
   ``sensor-nonlinearity`` (the gauge of :func:`afmctl.model.effects.gauge`, fitted on the
   positions its inverse gives) and its twin ``actuator-nonlinearity`` (``L[g^2]`` and ``L[g^3]``:
   the same polynomial before the rod's dynamics, never named);
@@ -93,8 +94,10 @@ def causes(n_sweeps: int, rod_hz: float, nyquist_hz: float) -> dict[str, Cause]:
         Cause("second-mode", ("log_frequency_Hz", "log_damping_ratio"), modes,
               (lf(2.0), lf(MODE_DAMPING[0])), (ln + lf(0.9), lf(MODE_DAMPING[1])), 4,
               free_rod=True),
-        Cause("sensor-delay", ("delay_fastest_samples",),
-              ((0.5,), (2.0,), (5.0,), (10.0,), (25.0,)), (0.0,), (60.0,), 1, free_rod=True),
+        Cause("sensor-delay", ("delay_fastest_samples", "window_fastest_samples"),
+              tuple((d, 0.0) for d in (0.5, 2.0, 5.0, 10.0, 25.0))
+              + tuple((0.0, w) for w in (2.0, 5.0, 10.0, 20.0)),
+              (0.0, 0.0), (60.0, 60.0), 2, free_rod=True),
         Cause("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
               ((0.0, 0.0), (-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)),
               (-0.3, -0.3), (0.3, 0.3), 2),
@@ -145,7 +148,8 @@ class Held:
     def effects(self, name: str, phi: FloatArray) -> fx.Effects:
         """The effect of cause ``name`` at ``phi`` (a mode's gains are linear: not here)."""
         if name == "sensor-delay":
-            return fx.Effects(sensor_delay_s=float(phi[0]) * self.dt_min)
+            return fx.Effects(sensor_delay_s=float(phi[0]) * self.dt_min,
+                              sensor_window_s=float(phi[1]) * self.dt_min)
         if name == "sensor-nonlinearity":
             m, r, mu3, mu4 = self.frame
             return fx.Effects(sensor_quadratic_per_um=float(phi[0]) / r,
@@ -186,8 +190,8 @@ class Held:
             if name == "second-mode":
                 out.append(np.column_stack((u, *hf.mode_parts(u, *np.exp(phi), s.dt))))
             elif name == "sensor-delay":
-                d = float(phi[0]) * self.dt_min / s.dt
-                out.append(fx.delay(u, d, np.full(int(d) + 2, u[0]))[0][:, None])
+                d, w = (float(p) * self.dt_min / s.dt for p in phi)
+                out.append(fx.late(u, d, w, np.full(int(d + w) + 2, u[0]))[0][:, None])
             else:
                 out.append(u[:, None])
         return out
@@ -284,7 +288,7 @@ class Held:
 def _effect_parameters(name: str, e: fx.Effects, phi: FloatArray) -> dict[str, float]:
     """The effect's fitted parameters in physical units (the report's and JSON's)."""
     if name == "sensor-delay":
-        return {"delay_s": e.sensor_delay_s}
+        return {"delay_s": e.sensor_delay_s, "window_s": e.sensor_window_s}
     if name == "sensor-nonlinearity":
         return {"quadratic_per_um": e.sensor_quadratic_per_um,
                 "cubic_per_um2": e.sensor_cubic_per_um2}

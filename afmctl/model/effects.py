@@ -23,7 +23,8 @@ Chain of one run, sample period ``dt`` (all units: V, um, s, Hz):
    linear trend taken out, for a fitted one: :func:`gauge`);
 6. ``sensor_delay``: the recorder holds the reading of ``d = d_samples + d_s / dt`` samples
    earlier (fractional ``d`` by linear interpolation): a latency counted in samples (a digital
-   pipeline) and one in seconds (the gauge's electronics), the same at any sample rate.
+   pipeline) and one in seconds (the gauge's electronics), the same at any sample rate; with
+   an averaging window ``w`` (an integrating converter), the mean over ``[t - d - w, t - d]``.
 
 Steps 2 and 4 move the stage (the *plant*); steps 5 and 6 only misreport where it is (the
 *sensor*). ``track`` therefore aims the stage's true position (rod plus second mode) through the
@@ -79,6 +80,10 @@ class Effects:
         Pure latency of the sensor readback, samples (fractional: linear interpolation).
     sensor_delay_s : float
         Latency of the sensor readback in time, s (adds ``sensor_delay_s / dt`` samples).
+    sensor_window_s : float
+        The sensor averages the position over this window, s (an integrating converter): the
+        reading at ``t`` is the mean over ``[t - d - w, t - d]`` of the position (linear between
+        samples), ``d`` the latency (:func:`late`).
     sensor_quadratic_per_um : float
         Gauge nonlinearity, quadratic term ``c`` (1/um): measured = ``w + c ((w - m)^2 - R^2/3)
         + c3 ((w - m)^3 - 3/5 R^2 (w - m))`` (:func:`gauge`).
@@ -111,6 +116,7 @@ class Effects:
     amplifier_slew_v_per_s: float | None = None
     sensor_delay_samples: float = 0.0
     sensor_delay_s: float = 0.0
+    sensor_window_s: float = 0.0
     sensor_quadratic_per_um: float = 0.0
     sensor_cubic_per_um2: float = 0.0
     sensor_center_um: float = 0.0
@@ -153,9 +159,14 @@ class Chain:
         return self.effects.sensor_delay_samples + self.effects.sensor_delay_s / self.dt
 
     @property
+    def window_samples(self) -> float:
+        """The sensor's averaging window at this sample period, samples."""
+        return self.effects.sensor_window_s / self.dt
+
+    @property
     def history(self) -> int:
         """Samples of sensor history the delay line keeps."""
-        d = self.delay_samples
+        d = self.delay_samples + self.window_samples
         return math.ceil(d) + 1 if d > 0 else 0
 
 
@@ -477,6 +488,26 @@ def delay(x: FloatArray, d: float, history: FloatArray) -> tuple[FloatArray, Flo
     return out, full[full.size - n:]
 
 
+def late(x: FloatArray, d: float, window: float,
+         history: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``x`` averaged over the ``window`` samples before ``d`` samples ago (``x`` linear between
+    samples; the integral exact); ``history`` as for :func:`delay` (at least ``d + window + 1``
+    samples). Without a window, :func:`delay`. Returns the readings and the new history."""
+    if window <= 0:
+        return delay(x, d, history)
+    n = history.size
+    full = np.concatenate((history, x))
+    area = np.concatenate(([0.0], np.cumsum(0.5 * (full[1:] + full[:-1]))))
+
+    def integral(k: FloatArray) -> FloatArray:  # of the linear interpolant, from sample 0 to k
+        lo = np.minimum(np.floor(k).astype(int), full.size - 2)
+        f = k - lo
+        return area[lo] + f * full[lo] + 0.5 * f * f * (full[lo + 1] - full[lo])
+
+    k = np.arange(n, full.size) - d
+    return (integral(k) - integral(k - window)) / window, full[full.size - n:]
+
+
 def advance(y: FloatArray, d: float) -> FloatArray:
     """``y`` seen ``d`` samples early (the last sample held): the inverse of :func:`delay` for
     a trajectory known in advance."""
@@ -500,7 +531,7 @@ def measure(chain: Chain, u: FloatArray, mode_zi: FloatArray,
     Returns the reading, the second-mode state and the delay history after the last sample.
     """
     w, zf = add_mode(chain, u, mode_zi)
-    y, hist = delay(gauge(chain.effects, w), chain.delay_samples, history)
+    y, hist = late(gauge(chain.effects, w), chain.delay_samples, chain.window_samples, history)
     return y, zf, hist
 
 
@@ -513,8 +544,11 @@ def sensor_part(e: Effects) -> Effects:
 
 def sensor_correct(chain: Chain, reading_um: FloatArray) -> FloatArray:
     """The stage's position (um) from recorded readings: steps 6 and 5 inverted (the delay by a
-    time advance, the gauge by its root). The readings themselves are never altered on disk."""
-    return ungauge(chain.effects, advance(reading_um, chain.delay_samples))
+    time advance, the gauge by its root; an averaging window by an advance of half its width,
+    its mean delay: its smoothing is not undone). The readings themselves are never altered on
+    disk."""
+    return ungauge(chain.effects, advance(reading_um, chain.delay_samples
+                                          + 0.5 * chain.window_samples))
 
 
 def position(chain: Chain, u: FloatArray) -> FloatArray:

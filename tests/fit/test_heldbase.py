@@ -54,7 +54,7 @@ def test_the_model_of_a_fit_reads_what_the_fit_reads(
     The effect's parameters are set off its off state so that each path is exercised."""
     held = _held(nominal, emulate)
     c = held.causes[name]
-    phi = {"second-mode": [math.log(900.0), math.log(0.05)], "sensor-delay": [3.5],
+    phi = {"second-mode": [math.log(900.0), math.log(0.05)], "sensor-delay": [3.5, 6.3],
            "sensor-nonlinearity": [0.04, -0.02], "amplifier-lag": [math.log(800.0), 0.0],
            "voltage-gain-drift": [0.01, -0.02]}.get(name, [])
     assert len(phi) == len(c.labels)

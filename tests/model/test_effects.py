@@ -203,6 +203,29 @@ def test_a_delay_in_seconds_is_the_same_time_at_any_rate() -> None:
     np.testing.assert_allclose(y[4:], u[:-4], atol=1e-12)
 
 
+@pytest.mark.parametrize(("d", "w"), [(0.0, 4.0), (2.3, 7.6)])
+def test_an_averaging_window_is_the_mean_over_it(d: float, w: float) -> None:
+    """An integrating converter: the reading is the mean of the (linearly interpolated) position
+    over ``[t - d - w, t - d]``, against the closed form for a sine; in pieces it equals at
+    once, and sensor_correct advances it by its mean delay ``d + w / 2``."""
+    dt, f = 1e-4, 37.0
+    e = fx.Effects(sensor_delay_s=d * dt, sensor_window_s=w * dt)
+    chain = fx.compile_chain(e, dt)
+    assert chain.history >= d + w + 1
+    t = np.arange(3000) * dt
+    u = np.sin(2 * np.pi * f * t)
+    y, _, _ = fx.measure(chain, u, *fx.rest(chain, float(u[0])))
+    a, b = 2 * np.pi * f * (t - d * dt - w * dt), 2 * np.pi * f * (t - d * dt)
+    exact = (np.cos(a) - np.cos(b)) / (2 * np.pi * f * w * dt)
+    np.testing.assert_allclose(y[20:], exact[20:], atol=1e-4)  # the interpolant: w^2 dt^2 / 8
+    hist = fx.rest(chain, float(u[0]))[1]
+    first, h = fx.late(u[:1111], chain.delay_samples, chain.window_samples, hist)
+    rest, _ = fx.late(u[1111:], chain.delay_samples, chain.window_samples, h)
+    np.testing.assert_allclose(np.concatenate((first, rest)), y, atol=1e-12)
+    back = fx.sensor_correct(chain, y)
+    assert np.max(np.abs(back - u)[50:-50]) < 0.01  # the window's smoothing stays
+
+
 def test_delay_in_pieces_equals_delay_at_once() -> None:
     chain = fx.compile_chain(fx.Effects(sensor_delay_samples=2.5), DT)
     x = _signal()
