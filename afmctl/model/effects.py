@@ -488,13 +488,19 @@ def delay(x: FloatArray, d: float, history: FloatArray) -> tuple[FloatArray, Flo
     return out, full[full.size - n:]
 
 
+#: The shortest averaging window :func:`late` integrates over, samples.
+MIN_WINDOW = 0.01
+
+
 def late(x: FloatArray, d: float, window: float,
          history: FloatArray) -> tuple[FloatArray, FloatArray]:
     """``x`` averaged over the ``window`` samples before ``d`` samples ago (``x`` linear between
     samples; the integral exact); ``history`` as for :func:`delay` (at least ``d + window + 1``
-    samples). Without a window, :func:`delay`. Returns the readings and the new history."""
-    if window <= 0:
-        return delay(x, d, history)
+    samples). A window under :data:`MIN_WINDOW` samples is its mean delay, ``d + window / 2``
+    (:func:`delay`: the difference of two running integrals would lose every digit to rounding;
+    the mean delay is off by ``window^2 x'' / 24``). Returns the readings and the new history."""
+    if window < MIN_WINDOW:
+        return delay(x, d + 0.5 * max(window, 0.0), history)
     n = history.size
     full = np.concatenate((history, x))
     area = np.concatenate(([0.0], np.cumsum(0.5 * (full[1:] + full[:-1]))))

@@ -226,6 +226,16 @@ def test_an_averaging_window_is_the_mean_over_it(d: float, w: float) -> None:
     assert np.max(np.abs(back - u)[50:-50]) < 0.01  # the window's smoothing stays
 
 
+def test_a_vanishing_window_is_a_delay() -> None:
+    """Windows down to nothing join the pure delay smoothly (no rounding blow-up of the two
+    running integrals' difference)."""
+    x = _signal()
+    hist = np.full(8, float(x[0]))
+    pure, _ = fx.delay(x, 2.5, hist)
+    for w in (1e-12, 1e-3, 0.02):
+        np.testing.assert_allclose(fx.late(x, 2.5 - w / 2, w, hist)[0], pure, atol=1e-6)
+
+
 def test_delay_in_pieces_equals_delay_at_once() -> None:
     chain = fx.compile_chain(fx.Effects(sensor_delay_samples=2.5), DT)
     x = _signal()
