@@ -13,14 +13,17 @@ the causes around it:
   ``g`` held, the rod (16) and the effect refitted by variable projection
   (:mod:`afmctl.fit.heldfit`): ``second-mode`` (:class:`afmctl.model.effects.SecondMode` after
   the rod; a mode *beside* the rod, rod + residue x mode, is the same thing: the rod followed by
-  a biquad with the mode's poles), ``sensor-delay`` (the readings late by a time and averaged over a window: an
-  integrating converter),
+  a biquad with the mode's poles; up to twice the Nyquist frequency), ``sensor-delay`` (the
+  readings late by a time and averaged over a window: an integrating converter),
   ``sensor-nonlinearity`` (the gauge of :func:`afmctl.model.effects.gauge`, fitted on the
   positions its inverse gives) and its twin ``actuator-nonlinearity`` (``L[g^2]`` and ``L[g^3]``:
   the same polynomial before the rod's dynamics, never named);
 - **input side** (the effect changes the field): the hysteresis re-run on the effect's field
   and the rod refitted: ``amplifier-lag`` (a second-order amplifier) and
-  ``voltage-gain-drift`` (each sweep's applied-voltage gain, their log mean 0);
+  ``voltage-gain-drift`` (each sweep's applied-voltage gain, their log mean 0). identify's
+  density absorbed part of what the effect does to the field, so an effect that takes a fifth
+  off the base's cost has the density identified again on the effect's field, and the cause
+  refitted on it (kept if it fits the first halves better);
 - ``none``: identify's model with its rod refitted alone.
 
 Thermal relaxation changes the kernel (10) itself and is left to the catalogue. Every fit is
@@ -53,6 +56,9 @@ from afmctl.model import transducer as td
 FloatArray = NDArray[np.float64]
 #: Polished from this many of the best seeds (each a least-squares run).
 POLISHED = 2
+#: An input-side cause whose fit costs less than this share of the base's has its density
+#: identified again through the effect (:meth:`Held.through`), and keeps that if it fits better.
+REBASE_GAIN = 0.8
 #: Bounds of the rod's resonance and damping ratio about identify's, as factors (the resonance
 #: may also rise to the readings' Nyquist frequency: an effect the identification's rod took up
 #: made it slower and more damped, e.g. a sensor's averaging).
@@ -222,9 +228,11 @@ class Held:
 
     # -- fit and judge ------------------------------------------------------------------------
 
-    def fit(self, name: str, max_nfev: int) -> tuple[FloatArray, FloatArray, bool, int]:
-        """Cause ``name`` fitted on the fit rows from its seeds (the best :data:`POLISHED`
-        polished): ``z``, the linear parameters, the solver's word and its evaluations."""
+    def fit(self, name: str, max_nfev: int, start: FloatArray | None = None
+            ) -> tuple[FloatArray, FloatArray, bool, int, float]:
+        """Cause ``name`` fitted on the fit rows from its seeds (the best :data:`POLISHED` of
+        each rod seed polished) or from ``start``: ``z``, the linear parameters, the solver's word, its
+        evaluations and its cost (the weighted sum of squares)."""
         c = self.causes[name]
         prob = hf.Problem(self.design(name), [m[:s.time_s.size] for m, s in zip(
             self.fit_masks, self.fit_sweeps, strict=True)], self.noise)
@@ -237,9 +245,27 @@ class Held:
         if c.free_rod:
             f, z = FREE_ROD_SEED
             rods.append(np.log([min(f * math.exp(self.rod[0]), 0.9 * self.nyquist_hz), z]))
-        seeds = [np.clip(np.concatenate((r, s)), lo, hi) for r in rods for s in c.seeds]
-        best = prob.polish(sorted(seeds, key=prob.cost)[:POLISHED], lo, hi, max_nfev)
-        return best.x, prob.solve(best.x)[0], bool(best.success and best.status > 0), best.nfev
+        # the best POLISHED seeds of each rod (a rod moved with the effect starts off worse)
+        runs = ([sorted((np.clip(np.concatenate((r, s)), lo, hi) for s in c.seeds),
+                        key=prob.cost)[:POLISHED] for r in rods] if start is None else [[start]])
+        best = prob.polish([z for run in runs for z in run], lo, hi, max_nfev)
+        return (best.x, prob.solve(best.x)[0], bool(best.success and best.status > 0), best.nfev,
+                2.0 * float(best.cost))
+
+    def through(self, name: str, phi: FloatArray, halves: Sequence[Sweep],
+                settings: idf.Settings) -> Held:
+        """This context with the hysteresis identified again on the field input-side cause
+        ``name`` makes at ``phi`` (the sweeps' first ``halves`` with the effect's voltages: the
+        identification had absorbed what the effect does to the field into its density)."""
+        effects, gains = self.effects(name, phi), self.gains(name, phi)
+        fields = []
+        for s, g in zip(halves, gains, strict=True):
+            v = g * np.asarray(s.voltage_v, dtype=float)
+            fields.append(replace(s, voltage_v=fx.lag(fx.compile_chain(effects, s.dt), v,
+                                                      float(v[0]))[0]))
+        res = idf.fit(fields, replace(settings, representation="hem", density="discrete"))
+        return Held(res.model, self.sweeps, [e.start for e in res.sweeps], self.fit_masks,
+                    self.judged_masks, self.noise, self.frame)
 
     def heldout(self, name: str, z: FloatArray, beta: FloatArray
                 ) -> tuple[float, tuple[float, ...]]:
@@ -321,13 +347,14 @@ def refusal(fitted: ext.Extended) -> str | None:
 @dataclass(frozen=True)
 class HeldBase:
     """Every cause judged on identify's model with its hysteresis held: the table (``none``
-    first), identify's fit on the first halves (each sweep's RMS over its noise), the fits'
-    context (for readings on other sweeps), the wall time (s) and the fits refused as what they
-    say (:func:`refusal`: name -> why; they take no part in the verdict)."""
+    first), identify's fit on the first halves (each sweep's RMS over its noise), each fit's
+    context (for readings on other sweeps: an input-side cause's may hold a hysteresis
+    identified through its effect), the wall time (s) and the fits refused as what they say
+    (:func:`refusal`: name -> why; they take no part in the verdict)."""
 
     table: dict[str, Judged]
     identified_over_noise: tuple[float, ...]
-    held: Held
+    helds: dict[str, Held]
     seconds: float
     refused: dict[str, str]
 
@@ -338,7 +365,7 @@ class HeldBase:
 
     def readings(self, name: str, sweep: Sweep) -> FloatArray:
         """What fitted cause ``name`` reads on ``sweep`` (um; :meth:`Held.readings_on`)."""
-        return self.held.readings_on(name, self.table[name].fitted, sweep)
+        return self.helds[name].readings_on(name, self.table[name].fitted, sweep)
 
     def as_dict(self, floor_um: float) -> dict[str, Any]:
         """JSON-ready: the base, identify's fit and every cause's held-out figures."""
@@ -383,15 +410,24 @@ def judge(sweeps: Sequence[Sweep], halves: Sequence[Sweep], noise: Sequence[floa
                 cd.reading_frame(cd.recorded_calibration(sweeps)))
     tried = [n for n in held.causes if n == "none" or n in names
              or (n in cd.TWIN_ONLY and any(cd.TWINS.get(s) == n for s in names))]
-    table = {}
+    table, helds, base_cost = {}, {}, math.inf
     for name in tried:
         t1 = time.perf_counter()
-        z, beta, ok, nfev = held.fit(name, max_nfev)
-        rms, per = held.heldout(name, z, beta)
-        table[name] = Judged(held.extended(name, z, beta, ok, nfev), held.causes[name].n_added,
+        on = held
+        z, beta, ok, nfev, cost = held.fit(name, max_nfev)
+        base_cost = cost if name == "none" else base_cost
+        if held.causes[name].input_side and cost < REBASE_GAIN * base_cost:
+            say(f"  held {name}: identifying the density again through the effect ...")
+            again = held.through(name, z[2:], halves, settings)
+            fit2 = again.fit(name, max_nfev, z)
+            if fit2[-1] < cost:
+                on, (z, beta, ok, nfev, cost) = again, fit2
+        rms, per = on.heldout(name, z, beta)
+        table[name] = Judged(on.extended(name, z, beta, ok, nfev), on.causes[name].n_added,
                              rms, per, time.perf_counter() - t1)
+        helds[name] = on
         say(f"  held {name:20s} held-out RMS {rms:.4f} um ({table[name].fit_seconds:.1f} s)")
     refused = {n: why for n, j in table.items() if (why := refusal(j.fitted)) is not None}
     for n, why in refused.items():
         say(f"  held {n} refused: {why}")
-    return HeldBase(table, ratios, held, time.perf_counter() - t0, refused)
+    return HeldBase(table, ratios, helds, time.perf_counter() - t0, refused)
