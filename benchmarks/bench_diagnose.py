@@ -294,6 +294,8 @@ def family_row(name: str) -> dict[str, Any]:
             "drift_hint": any(h["feature"] == "drift" for h in d.suggestions()),
             "true_creep_per_decade": s.truth.creep.per_decade if s.truth.creep else 0.0,
             "grid": None if d.grid is None else d.grid.as_dict(),
+            "base_model": d.base_name,
+            "held_seconds": None if d.held is None else round(d.held.seconds, 1),
             "seconds": round(d.seconds, 1), **tracked}
 
 
@@ -331,7 +333,9 @@ def family_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "family_track_cases": sum("track_0.279hz_base_true_rms_um" in r for r in rows),
             "family_track_extended_beats_base": sum(_beats(r) for r in rows),
             "other_form_named": sum(r["named"] == r["effect"] for r in other),
-            "other_form_stages": len(other), "family_rows": rows}
+            "other_form_stages": len(other),
+            "other_form_wrong_cause": sum(r["wrong"] for r in other),
+            "family_track_extended_worse": sum(_worse(r) for r in rows), "family_rows": rows}
 
 
 def _beats(row: dict[str, Any]) -> bool:
@@ -340,6 +344,14 @@ def _beats(row: dict[str, Any]) -> bool:
               row.get(f"track_{f:g}hz_extended_true_rms_um")) for f, _ in family_sets.TRIANGLES]
     return all(b is not None and e is not None for b, e in pairs) and all(
         e < b for b, e in pairs)  # type: ignore[operator]
+
+
+def _worse(row: dict[str, Any]) -> bool:
+    """Whether the extended model tracked some triangle worse than the base (true RMS): a
+    diagnosis that would hurt tracking."""
+    pairs = [(row.get(f"track_{f:g}hz_base_true_rms_um"),
+              row.get(f"track_{f:g}hz_extended_true_rms_um")) for f, _ in family_sets.TRIANGLES]
+    return any(b is not None and e is not None and e > b for b, e in pairs)
 
 
 def family(names: str, other: str, jobs: int) -> dict[str, Any]:

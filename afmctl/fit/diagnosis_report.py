@@ -15,21 +15,35 @@ def _suggestion_lines(d: dg.Diagnosis) -> list[str]:
         f"- {s['reading']}: {s['measure']}." for s in d.suggestions()]
 
 
+_HEADER = ["| candidate | parameters added | held-out RMS (um) | x noise | gain | needed | fitted |",
+           "|---|---:|---:|---:|---:|---:|---|"]
+
+
+def _rows(table: dict[str, dg.Judged], noise_um: float, refused: dict[str, str] | None = None
+          ) -> list[str]:
+    """One row per judged model, best first; gains against the table's own ``none``."""
+    base, out = table["none"].heldout_rms_um, []
+    for name, j in sorted(table.items(), key=lambda kv: kv[1].heldout_rms_um):
+        fitted = dg.fitted_text(j.fitted.parameters)
+        why = f" (refused: {refused[name]})" if refused and name in refused else ""
+        out.append(f"| {name} | {j.n_params} | {j.heldout_rms_um:.4f} | "
+                   f"{ratio(j.heldout_rms_um, noise_um):.2f} | "
+                   f"{ratio(base, j.heldout_rms_um):.2f} | "
+                   f"{required_gain(j.n_params):.2f} | {fitted}{why} |")
+    return out
+
+
 def report(d: dg.Diagnosis, figure: str) -> str:
     """A short Markdown report: the cause, its evidence, the candidate table, the residuals."""
     lines = [f"# afmctl diagnose: {d.cause}", "", d.explanation + ".", "",
              d.evidence() + ".",
              *_suggestion_lines(d),
              "", "Held-out RMS: each candidate fitted on the first half of every sweep and judged "
-             "on the second half.", "",
-             "| candidate | parameters added | held-out RMS (um) | x noise | gain | needed | fitted |",
-             "|---|---:|---:|---:|---:|---:|---|"]
-    for name, j in sorted(d.table.items(), key=lambda kv: kv[1].heldout_rms_um):
-        fitted = dg.fitted_text(j.fitted.parameters)
-        lines.append(f"| {name} | {j.n_params} | {j.heldout_rms_um:.4f} | "
-                     f"{ratio(j.heldout_rms_um, d.noise_um):.2f} | "
-                     f"{ratio(d.paper_rms_um, j.heldout_rms_um):.2f} | "
-                     f"{required_gain(j.n_params):.2f} | {fitted} |")
+             "on the second half.", "", *_HEADER, *_rows(d.table, d.noise_um)]
+    if d.held is not None:
+        lines += ["", f"The same causes on {dg.HELD_BASE} (identify's model on the first halves; "
+                  "judged on the second halves):", "", *_HEADER,
+                  *_rows(d.held.table, d.noise_um, d.held.refused)]
     if d.grid is not None:
         g = d.grid
         lines += ["", "The Preisach grid (identify's representation off the paper's family), judged "

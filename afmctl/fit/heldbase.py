@@ -54,7 +54,8 @@ from afmctl.model import effects as fx
 from afmctl.model import transducer as td
 
 FloatArray = NDArray[np.float64]
-#: Polished from this many of the best seeds (each a least-squares run).
+#: Polished from this many of the best seeds of each rod seed (each a least-squares run; one
+#: for an input-side cause, whose every evaluation runs the hysteresis again).
 POLISHED = 2
 #: An input-side cause whose fit costs less than this share of the base's has its density
 #: identified again through the effect (:meth:`Held.through`), and keeps that if it fits better.
@@ -230,8 +231,8 @@ class Held:
 
     def fit(self, name: str, max_nfev: int, start: FloatArray | None = None
             ) -> tuple[FloatArray, FloatArray, bool, int, float]:
-        """Cause ``name`` fitted on the fit rows from its seeds (the best :data:`POLISHED` of
-        each rod seed polished) or from ``start``: ``z``, the linear parameters, the solver's word, its
+        """Cause ``name`` fitted on the fit rows from its seeds (the best of each rod seed
+        polished: :data:`POLISHED`) or from ``start``: ``z``, the linear parameters, the solver's word, its
         evaluations and its cost (the weighted sum of squares)."""
         c = self.causes[name]
         prob = hf.Problem(self.design(name), [m[:s.time_s.size] for m, s in zip(
@@ -247,7 +248,8 @@ class Held:
             rods.append(np.log([min(f * math.exp(self.rod[0]), 0.9 * self.nyquist_hz), z]))
         # the best POLISHED seeds of each rod (a rod moved with the effect starts off worse)
         runs = ([sorted((np.clip(np.concatenate((r, s)), lo, hi) for s in c.seeds),
-                        key=prob.cost)[:POLISHED] for r in rods] if start is None else [[start]])
+                        key=prob.cost)[:1 if c.input_side else POLISHED] for r in rods]
+                if start is None else [[start]])
         best = prob.polish([z for run in runs for z in run], lo, hi, max_nfev)
         return (best.x, prob.solve(best.x)[0], bool(best.success and best.status > 0), best.nfev,
                 2.0 * float(best.cost))
