@@ -94,7 +94,7 @@ class Progress:
                      f"{now - self.t0:.0f} s")
 
 
-def _log_gains(phi: FloatArray) -> FloatArray:
+def log_gains(phi: FloatArray) -> FloatArray:
     """Per-sweep log gains from the free ones: the last makes their mean 0, so the model keeps
     the sweeps' average gain (a model for ``track``, which cannot know a future run's gain)."""
     return np.concatenate((phi, [-float(np.sum(phi))]))
@@ -150,7 +150,7 @@ class ExtendedSpace:
         for s, p in enumerate(self.preps):
             e, keep = p.field, p.keep
             if name == "voltage-gain-drift":
-                e = e * math.exp(_log_gains(phi)[s])
+                e = e * math.exp(log_gains(phi)[s])
             elif name == "amplifier-lag":
                 chain = fx.compile_chain(self._amplifier(phi, 1.0), p.dt)
                 e = fx.lag(chain, e, float(e[0]))[0]
@@ -384,7 +384,7 @@ class ExtendedSpace:
         elif name == "sensor-nonlinearity":
             model = replace(model, effects=gauge)
         elif name == "voltage-gain-drift":
-            gains = tuple(math.exp(v) for v in _log_gains(phi))
+            gains = tuple(math.exp(v) for v in log_gains(phi))
             model = replace(model, effects=fx.Effects(voltage_gain_sigma=float(np.std(gains,
                                                                                      ddof=1))))
         else:

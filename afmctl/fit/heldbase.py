@@ -125,12 +125,6 @@ def causes(n_sweeps: int, rod_hz: float, nyquist_hz: float) -> dict[str, Cause]:
     return {c.name: c for c in out}
 
 
-def _log_gains(phi: FloatArray) -> FloatArray:
-    """Every sweep's log gain from all but the last's (their mean 0: the model keeps the sweeps'
-    average gain, as :mod:`afmctl.fit.extension`'s)."""
-    return np.concatenate((phi, [-float(np.sum(phi))]))
-
-
 class Held:
     """identify's model ``model`` on whole ``sweeps`` (recorded in sequence, each from its start
     in ``starts``): fitted on the rows of ``fit_masks``, judged on those of ``judged_masks``,
@@ -175,7 +169,7 @@ class Held:
     def gains(self, name: str, phi: FloatArray) -> tuple[float, ...]:
         """Each sweep's applied-voltage gain under cause ``name``."""
         if name == "voltage-gain-drift":
-            return tuple(float(v) for v in np.exp(_log_gains(phi)))
+            return tuple(float(v) for v in np.exp(ext.log_gains(phi)))
         return tuple([1.0] * len(self.sweeps))
 
     def statics(self, name: str, phi: FloatArray, fitted: bool = False) -> list[FloatArray]:
