@@ -128,7 +128,9 @@ class Diagnosis:
         return self.extended.model
 
     @property
-    def extended_gains(self) -> tuple[float, ...]:
+    def extended_gains(self) -> tuple[float | FloatArray, ...]:
+        """Each sweep's applied-voltage gain (an array: one per sample, for a gain that drifts
+        in time)."""
         return self.extended.gains
 
     def predictions(self, sweeps: Sequence[Sweep]) -> tuple[list[FloatArray], list[FloatArray]]:
@@ -147,8 +149,17 @@ class Diagnosis:
 
     @property
     def closest(self) -> Judged:
-        """The model (the paper's or a candidate) with the smallest held-out RMS."""
-        return min(self.table.values(), key=lambda j: j.heldout_rms_um)
+        """The model (the paper's, a candidate, or one on the held base that was not refused)
+        with the smallest held-out RMS."""
+        return self._closest()[0]
+
+    def _closest(self) -> tuple[Judged, float, str]:
+        """:attr:`closest`, the held-out RMS of its table's base (um) and that base's name."""
+        pool = [(j, self.paper_rms_um, "the paper's model") for j in self.table.values()]
+        if self.held is not None:
+            base = self.held.table["none"].heldout_rms_um
+            pool += [(j, base, HELD_BASE) for j in self.held.judged.values()]
+        return min(pool, key=lambda p: p[0].heldout_rms_um)
 
     @property
     def explanation(self) -> str:
@@ -162,13 +173,16 @@ class Diagnosis:
         return cd.CAUSES.get(self.cause, cd.UNEXPLAINED)
 
     def closest_dict(self) -> dict[str, Any]:
-        """The model nearest the floor: held-out RMS (um), over the noise, the fraction of the
-        base model's misfit it explains (:func:`afmctl.fit.verdict.explained`) and a phrase."""
-        c = self.closest
-        frac = vd.explained(self.paper_rms_um, c.heldout_rms_um, self.noise_um)
+        """The model nearest the floor: held-out RMS (um), over the noise, the fraction of its
+        base model's misfit it explains (:func:`afmctl.fit.verdict.explained`), that base and a
+        phrase."""
+        c, base, base_name = self._closest()
+        frac = vd.explained(base, c.heldout_rms_um, self.noise_um)
         return {"model": c.fitted.name, "heldout_rms_um": c.heldout_rms_um,
                 "over_noise": ratio(c.heldout_rms_um, self.noise_um), "explained_fraction": frac,
-                "text": vd.closest_phrase(c.fitted.name, frac)}
+                "base": base_name, "text": vd.closest_phrase(
+                    c.fitted.name if base_name != HELD_BASE else
+                    f"{c.fitted.name} (on {base_name})", frac)}
 
     def suggestions(self) -> list[dict[str, str]]:
         """What would tell more: the residual's hints when unexplained, the separating sweep
@@ -201,7 +215,7 @@ class Diagnosis:
             "base_model": self.base_name,
             "grid": None if self.grid is None else self.grid.as_dict(),
             "held": None if self.held is None else self.held.as_dict(self.noise_um),
-            "extended_gains": list(self.extended_gains),
+            "extended_gains": [float(np.mean(g)) for g in self.extended_gains],
             "residuals": self.signature, "sweeps": list(self.files),
             "seconds": round(self.seconds, 2),
             "method": "fit on the first half of every sweep, judged on the second half (state "

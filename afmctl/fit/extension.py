@@ -59,7 +59,7 @@ class Extended:
 
     name: str
     model: td.Transducer
-    gains: tuple[float, ...]
+    gains: tuple[float | FloatArray, ...]
     parameters: dict[str, float]
     success: bool
     nfev: int

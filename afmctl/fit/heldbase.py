@@ -20,7 +20,9 @@ the causes around it:
   the same polynomial before the rod's dynamics, never named);
 - **input side** (the effect changes the field): the hysteresis re-run on the effect's field
   and the rod refitted: ``amplifier-lag`` (a second-order amplifier) and
-  ``voltage-gain-drift`` (each sweep's applied-voltage gain, their log mean 0). identify's
+  ``voltage-gain-drift`` (each sweep's applied-voltage gain, their log mean 0, times a warm-up
+  ``1 + delta (1 - exp(-t / tau))`` in the record's time: a gain that drifts by sweep or in
+  time). identify's
   density absorbed part of what the effect does to the field, so an effect that takes a fifth
   off the base's cost has the density identified again on the effect's field, and the cause
   refitted on it (kept if it fits the first halves better);
@@ -74,6 +76,8 @@ MODE_ABOVE = 2.0
 #: Bounds of a second mode's damping ratio: a resonance, not a filter's corner (a fit that
 #: ends on the upper bound stands in for something else and is refused: :func:`refusal`).
 MODE_DAMPING = (0.003, 0.15)
+#: Warm-up time constants the gain drift's fit starts from, s.
+WARMUP_TIMES_S = (1.0, 10.0, 100.0)
 #: Mode frequencies tried, as fractions of the rod's resonance (:mod:`afmctl.fit.modes`'s).
 MODE_FRACTIONS = (0.35, 0.5, 0.7, 1.4, 2.0, 3.0)
 
@@ -119,8 +123,12 @@ def causes(n_sweeps: int, rod_hz: float, nyquist_hz: float) -> dict[str, Cause]:
               input_side=True, free_rod=True),
     ]
     if k >= 1:
-        out.append(Cause("voltage-gain-drift", tuple(f"log_gain_{i + 1}" for i in range(k)),
-                         (tuple([0.0] * k),), tuple([-0.3] * k), tuple([0.3] * k), k,
+        lt = tuple(lf(t) for t in WARMUP_TIMES_S)
+        out.append(Cause("voltage-gain-drift", tuple(f"log_gain_{i + 1}" for i in range(k))
+                         + ("warmup_fraction", "log_warmup_time_s"),
+                         ((0.0,) * k + (0.0, lt[1]),) + tuple(
+                             (0.0,) * k + (d, t) for d in (-0.02, 0.02) for t in lt),
+                         (-0.3,) * k + (-0.1, lf(0.1)), (0.3,) * k + (0.1, lf(1000.0)), k + 2,
                          input_side=True))
     return {c.name: c for c in out}
 
@@ -144,6 +152,9 @@ class Held:
         self.fit_sweeps = [s.head(int(np.flatnonzero(m)[-1]) + 1) for s, m in zip(
             sweeps, fit_masks, strict=True)]
         self.dt_min = min(s.dt for s in sweeps)
+        # each sweep's start in the record's time, s (taken back to back)
+        self.t0 = np.concatenate(([0.0], np.cumsum([s.time_s[-1] - s.time_s[0] + s.dt
+                                                    for s in sweeps])))[:-1]
         self.rod = np.log([model.rod.natural_hz, model.rod.damping_ratio])
         self.nyquist_hz = 0.5 / max(s.dt for s in sweeps)
         self.causes = causes(len(sweeps), model.rod.natural_hz, self.nyquist_hz)
@@ -166,11 +177,22 @@ class Held:
                               amplifier_damping_ratio=float(np.exp(phi[1])))
         return fx.Effects()
 
-    def gains(self, name: str, phi: FloatArray) -> tuple[float, ...]:
-        """Each sweep's applied-voltage gain under cause ``name``."""
-        if name == "voltage-gain-drift":
-            return tuple(float(v) for v in np.exp(ext.log_gains(phi)))
-        return tuple([1.0] * len(self.sweeps))
+    def gains(self, name: str, phi: FloatArray, sweeps: Sequence[Sweep] | None = None
+              ) -> tuple[float | FloatArray, ...]:
+        """Each sweep's applied-voltage gain under cause ``name``: one per sweep, times a
+        warm-up ``1 + delta (1 - exp(-t / tau))`` in the record's time ``t`` (the sweeps taken
+        back to back) when ``delta`` is not 0 (then an array: one gain per sample of ``sweeps``,
+        default the whole ones)."""
+        sweeps = self.sweeps if sweeps is None else sweeps
+        if name != "voltage-gain-drift":
+            return tuple([1.0] * len(sweeps))
+        k = len(self.sweeps) - 1
+        g = np.exp(ext.log_gains(phi[:k]))
+        delta, tau = float(phi[k]), float(np.exp(phi[k + 1]))
+        if delta == 0.0:
+            return tuple(float(v) for v in g)
+        return tuple(gs * (1.0 + delta * (1.0 - np.exp(-(t0 + s.time_s - s.time_s[0]) / tau)))
+                     for gs, t0, s in zip(g, self.t0, sweeps, strict=True))
 
     def statics(self, name: str, phi: FloatArray, fitted: bool = False) -> list[FloatArray]:
         """The static displacement (um) of every sweep (``fitted``: of its fitted part only)
@@ -179,7 +201,7 @@ class Held:
         if not self.causes[name].input_side:
             return [g[:s.time_s.size] for g, s in zip(self.g, sweeps, strict=True)]
         model = replace(self.model, effects=self.effects(name, phi))
-        return hf.static_um(model, sweeps, self.starts, self.gains(name, phi))
+        return hf.static_um(model, sweeps, self.starts, self.gains(name, phi, sweeps))
 
     def columns(self, name: str, z: FloatArray, g: Sequence[FloatArray],
                 sweeps: Sequence[Sweep]) -> list[FloatArray]:
@@ -253,7 +275,7 @@ class Held:
         """This context with the hysteresis identified again on the field input-side cause
         ``name`` makes at ``phi`` (the sweeps' first ``halves`` with the effect's voltages: the
         identification had absorbed what the effect does to the field into its density)."""
-        effects, gains = self.effects(name, phi), self.gains(name, phi)
+        effects, gains = self.effects(name, phi), self.gains(name, phi, halves)
         fields = []
         for s, g in zip(halves, gains, strict=True):
             v = g * np.asarray(s.voltage_v, dtype=float)
@@ -293,7 +315,10 @@ class Held:
         params |= _effect_parameters(name, effects, phi)
         gains = self.gains(name, phi)
         if name == "voltage-gain-drift":
-            params |= {f"gain_{i + 1}": g for i, g in enumerate(gains)}
+            k = len(self.sweeps) - 1
+            params |= {f"gain_{i + 1}": float(np.mean(g)) for i, g in enumerate(gains)}
+            params |= {"warmup_fraction": float(phi[k]),
+                       "warmup_time_s": float(np.exp(phi[k + 1]))}
         model = replace(hf.with_rod(self.model, fn, zn, a,
                                     float(zeros[pz.zero_sweep(self.starts)])), effects=effects)
         return ext.Extended(name, model, gains, params, success, nfev, z, tuple(self.starts),

@@ -37,7 +37,7 @@ Design = Callable[[FloatArray], list[tuple[FloatArray, FloatArray]]]
 
 
 def static_um(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str],
-              gains: Sequence[float] | None = None) -> list[FloatArray]:
+              gains: Sequence[float | FloatArray] | None = None) -> list[FloatArray]:
     """Per sweep (recorded in sequence, each from its start): the rod's static displacement
     ``f / k`` (um) for the force (16) the model's hysteresis (and creep) gives, with the model's
     amplifier between the command and the stage and applied-voltage ``gains`` (default 1), as

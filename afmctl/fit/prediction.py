@@ -109,11 +109,11 @@ def predict(model: td.Transducer, voltage_v: FloatArray, dt: float, gain: float 
 
 def predict_set(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str],
                 offsets_um: Sequence[float] | None = None,
-                gains: Sequence[float] | None = None) -> list[FloatArray]:
+                gains: Sequence[float | FloatArray] | None = None) -> list[FloatArray]:
     """Predicted readings (um) of a set of sweeps recorded in sequence, each from its start
     (``previous``: where the sweep before left the hysteresis), with its own sensor zero
     ``offsets_um`` (default: the model's; it is the rod's zero, so the model's sensor effects see
-    it) and applied-voltage gain ``gains`` (default 1)."""
+    it) and applied-voltage gain ``gains`` (default 1; an array: one per sample)."""
     out, prev = [], None
     offs = offsets_um if offsets_um is not None else [model.rod.offset_um] * len(sweeps)
     for s, start, off, g in zip(sweeps, starts, offs, gains or [1.0] * len(sweeps), strict=True):

@@ -56,7 +56,7 @@ def test_the_model_of_a_fit_reads_what_the_fit_reads(
     c = held.causes[name]
     phi = {"second-mode": [math.log(900.0), math.log(0.05)], "sensor-delay": [3.5, 6.3],
            "sensor-nonlinearity": [0.04, -0.02], "amplifier-lag": [math.log(800.0), 0.0],
-           "voltage-gain-drift": [0.01, -0.02]}.get(name, [])
+           "voltage-gain-drift": [0.01, -0.02, 0.03, math.log(5.0)]}.get(name, [])
     assert len(phi) == len(c.labels)
     z = np.concatenate((held.rod + [0.1, -0.2], phi))
     beta = np.concatenate(([0.97], [0.02, 0.003] if name == "second-mode" else [],
