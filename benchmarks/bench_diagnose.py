@@ -294,7 +294,7 @@ def family_row(name: str) -> dict[str, Any]:
             "drift_hint": any(h["feature"] == "drift" for h in d.suggestions()),
             "true_creep_per_decade": s.truth.creep.per_decade if s.truth.creep else 0.0,
             "grid": None if d.grid is None else d.grid.as_dict(),
-            "base_model": d.base_name,
+            "base_model": d.base_name, "extended_parameters": d.extended.parameters,
             "held_seconds": None if d.held is None else round(d.held.seconds, 1),
             "seconds": round(d.seconds, 1), **tracked}
 
