@@ -20,11 +20,11 @@ Given measured sweeps, :func:`diagnose`
    density with its hysteresis held (:mod:`afmctl.fit.heldbase`: a stage of the paper's family
    whose density the lognormal does not reach); a cause, ``none`` or ``indistinguishable`` there
    is the verdict, and the model files are those fits on the first halves;
-7. when the verdict is still ``unexplained``, fits the Preisach grid identify chooses off the paper's
-   family, without and with its log-time creep elements (:mod:`afmctl.fit.gridbase`: judged on
-   held-out blocks, as identify judges it): ``creep`` when the elements describe creep, ``none``
-   when the grid alone is at the floor, ``unexplained`` otherwise (with a drift hint when the
-   elements sit on the slowest time constants). The model files are then the grid's.
+7. when the verdict is still ``unexplained``, fits the Preisach grid identify chooses off the
+   paper's family, without and with its log-time creep elements (:mod:`afmctl.fit.gridbase`:
+   judged on held-out blocks, as identify judges it): ``creep`` when the elements describe creep,
+   ``none`` when the grid alone is at the floor, ``unexplained`` otherwise (with a drift hint
+   when the elements sit on the slowest time constants). The model files are then the grid's.
 
 Pure numerics and data: files and plots are written by the CLI (:mod:`afmctl.cli`).
 """

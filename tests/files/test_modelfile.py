@@ -19,7 +19,8 @@ def test_round_trip(nominal: Transducer, tmp_path: Path) -> None:
         coercive=hy.Discrete((0.5, 1.0, 1.5), (0.2, 0.6, 0.2))))
     effects = dc.replace(nominal, effects=Effects(
         amplifier_bandwidth_hz=400.0, sensor_delay_samples=2.5, sensor_delay_s=1e-4,
-        sensor_window_s=3e-4, sensor_quadratic_per_um=-1e-3, sensor_cubic_per_um2=2e-5, sensor_center_um=-73.5,
+        sensor_window_s=3e-4, sensor_quadratic_per_um=-1e-3, sensor_cubic_per_um2=2e-5,
+        sensor_center_um=-73.5,
         second_mode=SecondMode(600.0, 0.03, 0.4, -0.04), voltage_gain_sigma=0.02))
     amp2 = dc.replace(nominal, effects=Effects(amplifier_bandwidth_hz=120.0,
                                                amplifier_damping_ratio=0.6,
