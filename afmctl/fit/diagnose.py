@@ -421,7 +421,7 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
             separating = _separating(lambda n, s: _readings_on(table, job, n, s), job, floor,
                                      pairs)
         held = None
-        if cause == "unexplained" and settings.held:
+        if cause == "unexplained" and settings.held and set(settings.candidates) - {"none"}:
             held, cause, held_pairs, held_separating = _held(job, halves, noise, floor, say)
             if cause != "unexplained":
                 pairs, separating = held_pairs, held_separating

@@ -271,13 +271,16 @@ class Diagnosis:
     def _held_text(self) -> str:
         """What the causes on the held general density said (:meth:`evidence`)."""
         assert self.held is not None
-        t, floor = self.held.table, self.noise_um
-        best = min((j for n, j in t.items() if n != "none"), key=lambda j: j.heldout_rms_um)
-        return (f"; the paper's model and its extensions leave it unexplained (the paper's model "
+        t, floor = self.held.judged, self.noise_um
+        text = (f"; the paper's model and its extensions leave it unexplained (the paper's model "
                 f"at {ratio(self.paper_rms_um, floor):.2f}x noise), so the causes were tried on "
-                f"{HELD_BASE}: that model at "
-                f"{ratio(t['none'].heldout_rms_um, floor):.2f}x, the best cause there "
-                f"({best.fitted.name}) at {ratio(best.heldout_rms_um, floor):.2f}x")
+                f"{HELD_BASE}: that model at {ratio(t['none'].heldout_rms_um, floor):.2f}x")
+        causes = [j for n, j in t.items() if n != "none"]
+        if causes:
+            j = min(causes, key=lambda j: j.heldout_rms_um)
+            text += (f", the best cause there ({j.fitted.name}) at "
+                     f"{ratio(j.heldout_rms_um, floor):.2f}x")
+        return text
 
 
 def json_safe(obj: Any) -> Any:
