@@ -392,8 +392,10 @@ class ExtendedSpace:
         return model, gains, offsets
 
 
-def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[str, float]:
-    """The fitted effect's parameters with units in their names."""
+def physical(name: str, model: td.Transducer,
+             gains: Sequence[float | FloatArray]) -> dict[str, float]:
+    """The fitted effect's parameters with units in their names (a gain that drifts in time:
+    its sweep's mean)."""
     e, th = model.effects, model.polarization.thermal
     if name == "thermal-relaxation" and th is not None:
         return {"field_scale_MV_per_m": th.field_scale, "attempt_rate_per_s": th.attempt_rate}
@@ -402,7 +404,7 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
                 "damping_ratio": e.amplifier_damping_ratio or math.nan,
                 "slew_V_per_s": e.amplifier_slew_v_per_s or math.inf}
     if name == "sensor-delay":
-        return {"delay_s": e.sensor_delay_s}
+        return {"delay_s": e.sensor_delay_s, "window_s": e.sensor_window_s}
     if name == "sensor-nonlinearity":
         return {"quadratic_per_um": e.sensor_quadratic_per_um,
                 "cubic_per_um2": e.sensor_cubic_per_um2}
@@ -411,7 +413,7 @@ def physical(name: str, model: td.Transducer, gains: Sequence[float]) -> dict[st
         return {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio, "gain": m.gain,
                 "rate_gain": m.rate_gain}
     if name == "voltage-gain-drift":
-        return {f"gain_sweep_{i + 1}": g for i, g in enumerate(gains)}
+        return {f"gain_sweep_{i + 1}": float(np.mean(g)) for i, g in enumerate(gains)}
     return {}
 
 

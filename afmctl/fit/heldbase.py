@@ -248,8 +248,8 @@ class Held:
     def fit(self, name: str, max_nfev: int, start: FloatArray | None = None
             ) -> tuple[FloatArray, FloatArray, bool, int, float]:
         """Cause ``name`` fitted on the fit rows from its seeds (the best of each rod seed
-        polished: :data:`POLISHED`) or from ``start``: ``z``, the linear parameters, the solver's word, its
-        evaluations and its cost (the weighted sum of squares)."""
+        polished: :data:`POLISHED`) or from ``start``: ``z``, the linear parameters, the solver's
+        word, its evaluations and its cost (the weighted sum of squares)."""
         c = self.causes[name]
         prob = hf.Problem(self.design(name), [m[:s.time_s.size] for m, s in zip(
             self.fit_masks, self.fit_sweeps, strict=True)], self.noise)
@@ -301,28 +301,25 @@ class Held:
         ``actuator-nonlinearity``, never named, is stated by its gains only: its model is the
         rod's)."""
         fn, zn = (float(v) for v in np.exp(z[:2]))
-        phi, k = z[2:], beta.size - len(self.sweeps)
-        a, zeros = float(beta[0]), beta[k:]
+        phi, n_cols = z[2:], beta.size - len(self.sweeps)
+        a, zeros = float(beta[0]), beta[n_cols:]
         effects, params = self.effects(name, phi), {"rod_natural_Hz": fn, "rod_damping_ratio": zn}
         if name == "second-mode":
             mode = fx.SecondMode(*(float(v) for v in np.exp(phi)), float(beta[1]) / a,
                                  float(beta[2]) / a)
             effects, zeros = fx.Effects(second_mode=mode), zeros / (1.0 + mode.gain)
-            params |= {"frequency_Hz": mode.frequency_hz, "damping_ratio": mode.damping_ratio,
-                       "gain": mode.gain, "rate_gain": mode.rate_gain}
         elif name == "actuator-nonlinearity":
             params |= {"quadratic_gain": float(beta[1]) / a, "cubic_gain": float(beta[2]) / a}
-        params |= _effect_parameters(name, effects, phi)
-        gains = self.gains(name, phi)
-        if name == "voltage-gain-drift":
+        elif name == "voltage-gain-drift":
             k = len(self.sweeps) - 1
-            params |= {f"gain_{i + 1}": float(np.mean(g)) for i, g in enumerate(gains)}
             params |= {"warmup_fraction": float(phi[k]),
                        "warmup_time_s": float(np.exp(phi[k + 1]))}
+        gains = self.gains(name, phi)
         model = replace(hf.with_rod(self.model, fn, zn, a,
                                     float(zeros[pz.zero_sweep(self.starts)])), effects=effects)
-        return ext.Extended(name, model, gains, params, success, nfev, z, tuple(self.starts),
-                            tuple(float(v) for v in zeros), beta)
+        return ext.Extended(name, model, gains, params | ext.physical(name, model, gains),
+                            success, nfev, z, tuple(self.starts), tuple(float(v) for v in zeros),
+                            beta)
 
     def readings_on(self, name: str, fitted: ext.Extended, sweep: Sweep) -> FloatArray:
         """What fitted cause ``name`` reads (um) on a sweep never recorded, from the state the
@@ -334,18 +331,6 @@ class Held:
         cols = self.columns(name, z, g, [sweep])
         k = cols[0].shape[1]
         return self.readings(name, z, np.concatenate((beta[:k], beta[-1:])), cols)[0]
-
-
-def _effect_parameters(name: str, e: fx.Effects, phi: FloatArray) -> dict[str, float]:
-    """The effect's fitted parameters in physical units (the report's and JSON's)."""
-    if name == "sensor-delay":
-        return {"delay_s": e.sensor_delay_s, "window_s": e.sensor_window_s}
-    if name == "sensor-nonlinearity":
-        return {"quadratic_per_um": e.sensor_quadratic_per_um,
-                "cubic_per_um2": e.sensor_cubic_per_um2}
-    if name == "amplifier-lag":
-        return {"bandwidth_Hz": float(np.exp(phi[0])), "damping_ratio": float(np.exp(phi[1]))}
-    return {}
 
 
 def refusal(fitted: ext.Extended) -> str | None:
