@@ -4,6 +4,7 @@ afmctl did not raise on purpose is reported as a bug with its traceback kept, no
 from __future__ import annotations
 
 import re
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -38,11 +39,12 @@ def test_each_kind_has_its_exit_code_and_one_line(monkeypatch: pytest.MonkeyPatc
 
 def test_a_bug_exits_1_saying_so_with_the_traceback_written(
         monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # TMPDIR is read once, then cached
     exit_code, stderr, _ = _status_raising(monkeypatch, ZeroDivisionError("division by zero"))
     assert exit_code == 1 and stderr.count("\n") == 1
     assert "unexpected ZeroDivisionError: division by zero (a bug" in stderr
     where = Path(re.search(r"the traceback is in (\S+)\)", stderr).group(1))
+    assert where.parent == tmp_path  # written to the temporary directory, and not left elsewhere
     text = where.read_text()
     assert "Traceback (most recent call last)" in text and "def broken" not in stderr
     assert "in broken" in text and "ZeroDivisionError: division by zero" in text
@@ -55,6 +57,6 @@ def test_debug_shows_the_bug_instead(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_a_real_oserror_is_not_mistaken_for_a_stage_failure(monkeypatch: pytest.MonkeyPatch,
                                                             tmp_path: Path) -> None:
-    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # TMPDIR is read once, then cached
     exit_code, stderr, _ = _status_raising(monkeypatch, OSError(28, "No space left on device"))
     assert exit_code == 1 and "stage:" not in stderr and "unexpected OSError" in stderr
