@@ -72,6 +72,10 @@ Optional ``[effects.*]`` tables (one per effect, as ``afmctl diagnose`` writes t
     [effects.amplifier_lag]
     bandwidth_Hz = 800.0
 
+    [effects.amplifier_rails]                     # the amplifier's output is clipped here
+    low_V = 0.0
+    high_V = 150.0
+
 Version 3 adds a Preisach grid in place of the densities (:mod:`afmctl.model.preisach`: a general
 weight matrix on the (coercive, interaction) grid, as ``identify`` may choose it) and log-time
 creep (:mod:`afmctl.model.creep`)::
@@ -318,6 +322,8 @@ def effects_dict(e: Effects) -> dict[str, Any]:
         amp = {"bandwidth_Hz": e.amplifier_bandwidth_hz, "damping_ratio": e.amplifier_damping_ratio,
                "slew_V_per_s": e.amplifier_slew_v_per_s}
         out["amplifier_lag"] = {k: v for k, v in amp.items() if v is not None}
+    if e.amplifier_rails_v is not None:
+        out["amplifier_rails"] = {"low_V": e.amplifier_rails_v[0], "high_V": e.amplifier_rails_v[1]}
     if e.sensor_delay_samples or e.sensor_delay_s or e.sensor_window_s:
         out["sensor_delay"] = {"samples": e.sensor_delay_samples, "seconds": e.sensor_delay_s}
         if e.sensor_window_s:
@@ -342,12 +348,20 @@ def effects_dict(e: Effects) -> dict[str, Any]:
 
 
 EFFECT_TABLES = ("thermal_relaxation", "amplifier_lag", "sensor_delay", "sensor_nonlinearity",
-                 "second_mode", "voltage_gain_drift")
+                 "second_mode", "voltage_gain_drift", "amplifier_rails")
 
 
 def _thermal(t: Table) -> hy.Thermal:
     return hy.Thermal(t.number("field_scale_MV_per_m", positive=True),
                       t.number("attempt_rate_per_s", positive=True))
+
+
+def _rails(t: Table) -> tuple[float, float]:
+    """``[effects.amplifier_rails]``: the amplifier's output range, V (low below high)."""
+    low, high = t.number("low_V"), t.number("high_V")
+    if not low < high:
+        raise t.fail("high_V", f"must be above low_V ({low:g} V)")
+    return low, high
 
 
 def _optional(t: Table | None, key: str) -> float | None:
@@ -364,7 +378,7 @@ def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
     for key in t.data:
         if key not in EFFECT_TABLES:
             raise t.fail(key, f"unknown effect (known: {', '.join(sorted(EFFECT_TABLES))})")
-    th, lag, dly, nl, sm, gd = (t.table(k, required=False) for k in EFFECT_TABLES)
+    th, lag, dly, nl, sm, gd, rails = (t.table(k, required=False) for k in EFFECT_TABLES)
     mode = None if sm is None else SecondMode(sm.number("frequency_Hz", positive=True),
                                               sm.number("damping_ratio", positive=True),
                                               sm.number("gain"), sm.number("rate_gain", 0.0))
@@ -372,6 +386,7 @@ def effects_from_table(t: Table | None) -> tuple[Effects, hy.Thermal | None]:
         amplifier_bandwidth_hz=None if lag is None else lag.number("bandwidth_Hz", positive=True),
         amplifier_damping_ratio=_optional(lag, "damping_ratio"),
         amplifier_slew_v_per_s=_optional(lag, "slew_V_per_s"),
+        amplifier_rails_v=None if rails is None else _rails(rails),
         sensor_delay_samples=0.0 if dly is None else dly.number("samples", 0.0, nonnegative=True),
         sensor_delay_s=0.0 if dly is None else dly.number("seconds", 0.0, nonnegative=True),
         sensor_window_s=0.0 if dly is None else dly.number("window_seconds", 0.0,

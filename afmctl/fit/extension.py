@@ -395,7 +395,7 @@ class ExtendedSpace:
 def physical(name: str, model: td.Transducer,
              gains: Sequence[float | FloatArray]) -> dict[str, float]:
     """The fitted effect's parameters with units in their names (a gain that drifts in time:
-    its sweep's mean)."""
+    its sweep's mean; the amplifier's rails, if the drift's fit has them)."""
     e, th = model.effects, model.polarization.thermal
     if name == "thermal-relaxation" and th is not None:
         return {"field_scale_MV_per_m": th.field_scale, "attempt_rate_per_s": th.attempt_rate}
@@ -413,7 +413,9 @@ def physical(name: str, model: td.Transducer,
         return {"frequency_Hz": m.frequency_hz, "damping_ratio": m.damping_ratio, "gain": m.gain,
                 "rate_gain": m.rate_gain}
     if name == "voltage-gain-drift":
-        return {f"gain_sweep_{i + 1}": float(np.mean(g)) for i, g in enumerate(gains)}
+        rails = {} if e.amplifier_rails_v is None else dict(zip(("rail_low_V", "rail_high_V"),
+                                                                e.amplifier_rails_v, strict=True))
+        return {f"gain_sweep_{i + 1}": float(np.mean(g)) for i, g in enumerate(gains)} | rails
     return {}
 
 

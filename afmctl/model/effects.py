@@ -15,7 +15,9 @@ Chain of one run, sample period ``dt`` (all units: V, um, s, Hz):
    sample (exact ZOH); the stack sees the output's mean over each sample (what the rod's ZOH
    model takes as held). Either with its own slew limit ``S``: the output rate saturates
    smoothly, ``v' = d / sqrt(1 + (d / S)^2)`` for the drive ``d`` the linear amplifier would
-   slew at (an output stage's current limit into the stack's capacitance, reached gradually);
+   slew at (an output stage's current limit into the stack's capacitance, reached gradually).
+   With ``amplifier_rails`` the output never leaves its supply rails: a gain above 1 (a warm-up)
+   flattens the top of a sweep that spans the range;
 3. the transducer (the paper's model) gives the rod displacement ``u``;
 4. ``second_mode``: ``x'' + 2 zeta w x' + w^2 x = w^2 gain u + 2 w rate_gain u'``,
    ``w = 2 pi f_2``; ``w = u + x``;
@@ -76,6 +78,9 @@ class Effects:
         None: a first-order amplifier; else the damping ratio of a second-order one.
     amplifier_slew_v_per_s : float or None
         The amplifier's own slew limit, V/s (None: none).
+    amplifier_rails_v : tuple of float or None
+        The amplifier's output range ``(low, high)``, V: what reaches the stack is clipped there
+        (None: no limit). With or without a lag.
     sensor_delay_samples : float
         Pure latency of the sensor readback, samples (fractional: linear interpolation).
     sensor_delay_s : float
@@ -114,6 +119,7 @@ class Effects:
     amplifier_bandwidth_hz: float | None = None
     amplifier_damping_ratio: float | None = None
     amplifier_slew_v_per_s: float | None = None
+    amplifier_rails_v: tuple[float, float] | None = None
     sensor_delay_samples: float = 0.0
     sensor_delay_s: float = 0.0
     sensor_window_s: float = 0.0
@@ -274,18 +280,28 @@ def lag(chain: Chain, v: FloatArray, v_prev: float) -> tuple[FloatArray, float]:
     With a slew limit ``S`` the output moves at ``v' = d / sqrt(1 + (d / S)^2)`` for a drive
     ``d`` (the rate the linear amplifier would have): a smooth current limit, linear for
     ``|d| << S``, never faster than ``S``. A second-order amplifier starts at rest (no rate) on
-    every call: call it once per run."""
+    every call: call it once per run. The output is clipped to the rails, if any (the state
+    returned is the amplifier's own, before its output stage clips it)."""
     v = np.asarray(v, dtype=float)
     if not chain.has_amplifier or v.size == 0:
-        return v, float(v[-1]) if v.size else v_prev
+        return railed(chain.effects, v), float(v[-1]) if v.size else v_prev
     e = chain.effects
     n_sub = _substeps(e, chain.dt) if e.amplifier_slew_v_per_s is not None else 0
     if n_sub == 0:
-        return _linear(chain.amp_ad, chain.amp_bd, chain.amp_ca, chain.amp_da, v,
-                       float(v_prev), 0.0)
-    zeta = e.amplifier_damping_ratio
-    return _slewed(v, float(v_prev), 2 * math.pi * float(e.amplifier_bandwidth_hz), zeta or 0.0,
-                   zeta is not None, float(e.amplifier_slew_v_per_s), chain.dt, n_sub)
+        out, end = _linear(chain.amp_ad, chain.amp_bd, chain.amp_ca, chain.amp_da, v,
+                           float(v_prev), 0.0)
+    else:
+        zeta = e.amplifier_damping_ratio
+        out, end = _slewed(v, float(v_prev), 2 * math.pi * float(e.amplifier_bandwidth_hz),
+                           zeta or 0.0, zeta is not None, float(e.amplifier_slew_v_per_s),
+                           chain.dt, n_sub)
+    return railed(e, out), end
+
+
+def railed(effects: Effects, v: FloatArray) -> FloatArray:
+    """``v`` (V) clipped to the amplifier's rails (unchanged without them)."""
+    rails = effects.amplifier_rails_v
+    return v if rails is None else np.clip(v, *rails)
 
 
 def _rate_drive(rate: FloatArray, slew: float | None) -> FloatArray:
@@ -310,8 +326,9 @@ def unlag_limited(chain: Chain, v_app: FloatArray, v_prev: float, max_step: floa
     one). ``v_app[k]`` is the mean over sample ``k``'s interval, so the command held over it is
     the inverse at its middle, i.e. at ``k``. A first order without slew limit is inverted
     exactly, sample by sample (the amplifier state following the clamped command, so it
-    catches up after a corner)."""
-    v_app = np.asarray(v_app, dtype=float)
+    catches up after a corner). A target beyond the rails is out of the amplifier's reach: it
+    asks for the rail."""
+    v_app = railed(chain.effects, np.asarray(v_app, dtype=float))
     if not chain.has_amplifier:
         return v_app
     e = chain.effects

@@ -24,11 +24,22 @@ def test_round_trip(nominal: Transducer, tmp_path: Path) -> None:
         second_mode=SecondMode(600.0, 0.03, 0.4, -0.04), voltage_gain_sigma=0.02))
     amp2 = dc.replace(nominal, effects=Effects(amplifier_bandwidth_hz=120.0,
                                                amplifier_damping_ratio=0.6,
-                                               amplifier_slew_v_per_s=2e4))
+                                               amplifier_slew_v_per_s=2e4,
+                                               amplifier_rails_v=(-20.0, 150.0)))
     for m in (nominal, thermal, effects, amp2):
         modelfile.write(m, tmp_path / "m.toml", header="test")
         assert modelfile.read(tmp_path / "m.toml") == m
     assert not list(tmp_path.glob("*.partial"))
+
+
+def test_rails_must_be_in_order(nominal: Transducer, tmp_path: Path) -> None:
+    modelfile.write(dc.replace(nominal, effects=Effects(amplifier_rails_v=(0.0, 150.0))),
+                    tmp_path / "m.toml", header="test")
+    text = (tmp_path / "m.toml").read_text()
+    assert "[effects.amplifier_rails]" in text
+    (tmp_path / "m.toml").write_text(text.replace("high_V = 150.0", "high_V = -1.0"))
+    with pytest.raises(modelfile.FileFormatError, match="high_V.*above low_V"):
+        modelfile.read(tmp_path / "m.toml")
 
 
 @pytest.mark.parametrize(("old", "new", "key"), [

@@ -56,7 +56,7 @@ def test_the_model_of_a_fit_reads_what_the_fit_reads(
     c = held.causes[name]
     phi = {"second-mode": [math.log(900.0), math.log(0.05)], "sensor-delay": [3.5, 6.3],
            "sensor-nonlinearity": [0.04, -0.02], "amplifier-lag": [math.log(800.0), 0.0],
-           "voltage-gain-drift": [0.01, -0.02, 0.03, math.log(5.0)]}.get(name, [])
+           "voltage-gain-drift": [0.01, -0.02, 0.03, math.log(5.0), 0.0, 0.01]}.get(name, [])
     assert len(phi) == len(c.labels)
     z = np.concatenate((held.rod + [0.1, -0.2], phi))
     beta = np.concatenate(([0.97], [0.02, 0.003] if name == "second-mode" else [],
@@ -68,6 +68,10 @@ def test_the_model_of_a_fit_reads_what_the_fit_reads(
                             fitted.gains)
     for a, b in zip(ours, model, strict=True):
         assert np.max(np.abs(a - b)) < 1e-5, name
+    if name == "voltage-gain-drift":  # the rails clip: 1.5 V above the commands' 150 V
+        assert fitted.model.effects.amplifier_rails_v == pytest.approx((0.0, 151.5))
+        assert max(float(np.max(g * s.voltage_v)) for g, s in zip(
+            fitted.gains, held.sweeps, strict=True)) > 153.0
 
 
 def test_a_mode_on_its_damping_bound_or_carrying_the_stroke_is_refused(

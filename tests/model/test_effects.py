@@ -282,3 +282,23 @@ def test_unlag_keeps_to_the_voltage_range(zeta: float | None) -> None:
     assert kept.min() >= 0.0 and kept.max() <= 150.0
     out, _ = fx.lag(chain, kept, float(v[0]))
     assert np.max(np.abs(out - v)[:-5]) < 0.5 * np.max(np.abs(fx.lag(chain, v, float(v[0]))[0] - v))
+
+
+@pytest.mark.parametrize("bw", [None, 400.0])
+def test_rails_clip_what_reaches_the_stack(bw: float | None) -> None:
+    """A gain of 1.03 on a 0-150 V triangle through rails at 0 and 150 V: the output is the
+    unrailed one wherever that stays inside, and the rail wherever it would not; the inverse
+    aims at the rail where the target is beyond it."""
+    rails = fx.Effects(amplifier_bandwidth_hz=bw, amplifier_rails_v=(0.0, 150.0))
+    free = fx.compile_chain(fx.Effects(amplifier_bandwidth_hz=bw), DT)
+    chain = fx.compile_chain(rails, DT)
+    t = np.arange(3000) * DT
+    v = 1.03 * 150 * np.abs(2 * ((t * 27.9 + 0.5) % 1.0) - 1)
+    want, _ = fx.lag(free, v, 0.0)
+    got, _ = fx.lag(chain, v, 0.0)
+    assert want.max() > 150.0 and np.any(got == 150.0) and got.max() == 150.0
+    inside = want <= 150.0
+    np.testing.assert_array_equal(got[inside], want[inside])
+    np.testing.assert_array_equal(got[~inside], 150.0)
+    back, _ = fx.lag(chain, fx.unlag_limited(chain, v, 0.0, np.inf), 0.0)
+    np.testing.assert_allclose(back, np.clip(v, 0.0, 150.0), atol=1e-9)
