@@ -4,7 +4,8 @@ The law is ``track --learn``'s (:mod:`afmctl.planning.ilc`), on both axes at onc
 each axis's inverse of its target (the desired trajectory with the coupling fed forward,
 :func:`afmctl.planning.raster.targets`); every next frame corrects each axis's **reference**,
 ``r_{j+1} = r_j + Q[L e_j]``, from that axis's measured error inside the image (the overscan and
-its turnarounds learn nothing, so a fast scan does not keep sharpening its corners), and plans
+its turnarounds learn nothing of their own, so a fast scan does not keep sharpening its corners:
+the error there is bridged from the image's edges, :func:`afmctl.planning.ilc.bridged`), and plans
 it again through that axis's inverse. The y error includes the y motion x causes that the
 feed-forward left: the y reference learns it away with the rest (and likewise x). ``L`` and
 ``Q`` are tuned per axis on frame 0 (:func:`afmctl.planning.ilc.tune`, the line rate's
@@ -172,7 +173,8 @@ def _own(traj: raster.Trajectories, errors: dict[str, np.ndarray], setup: xs.Set
     motion causes through the identified coupling (NaN where a reading is missing)."""
     read = {n: traj.axis(n) - errors[n] for n in raster.AXES}
     gap = ~np.isfinite(read["x"]) | ~np.isfinite(read["y"])
-    bridged = raster.Trajectories(traj.dt_s, _bridged(read["x"]), _bridged(read["y"]))
+    bridged = raster.Trajectories(traj.dt_s, *(ilc.bridged(read[n], np.isfinite(read[n]))
+                                                for n in raster.AXES))
     own = raster.targets(bridged, setup.coupling)
     return {n: np.where(gap, np.nan, own[n]) for n in raster.AXES}
 
@@ -196,15 +198,6 @@ def _retuned(learned: list[tuple[dict[str, np.ndarray], dict[str, np.ndarray]]],
                             desired[n], dc.replace(law, gain=law.gain * scale), noise[n],
                             region)
     return out
-
-
-def _bridged(x: np.ndarray) -> np.ndarray:
-    """``x`` with its missing samples (NaN) interpolated linearly from the others."""
-    ok = np.isfinite(x)
-    if ok.all() or not ok.any():
-        return x
-    k = np.arange(x.size)
-    return np.interp(k, k[ok], x[ok])
 
 
 def _next(start: tuple[dict[str, np.ndarray], dict[str, np.ndarray]], axis: str,

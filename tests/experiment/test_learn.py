@@ -286,6 +286,30 @@ def test_imaging_mask_is_the_central_80_percent_of_every_ramp() -> None:
     assert ilc.imaging_mask(desired, first_period=True)[:1000].sum() > 700
 
 
+
+def test_bridged_is_the_straight_line_across_a_gap() -> None:
+    x = np.array([np.nan, 2.0, 5.0, 7.0, 11.0, np.nan])
+    keep = np.array([False, True, False, False, True, False])
+    np.testing.assert_allclose(ilc.bridged(x, keep), [2.0, 2.0, 5.0, 8.0, 11.0, 11.0])
+    np.testing.assert_array_equal(ilc.bridged(x, np.zeros(6, bool)), np.zeros(6))
+
+
+def test_a_slow_axis_step_outside_the_image_carries_no_comb() -> None:
+    """A raster's slow axis 1 um too low everywhere, its imaging region the fast axis's (30
+    lines a second): the step is the same 1 um through every turnaround of the fast line, not a
+    comb of 1 um notches at the line rate (which an axis without wiping-out, foreign-xy-2's
+    Bouc-Wen y, ratcheted along the frame)."""
+    fast = track.triangle(20.0, 30.0, 0.0, 8, DT)
+    region = ilc.imaging_mask(fast, first_period=True)
+    slow = track.Desired(DT, np.linspace(0.0, 10.0, fast.u_um.size), fast.period_s, 10.0, "y")
+    r0 = slow.u_um.copy()
+    tuning = ilc.Tuning(0, 300.0, np.zeros(0), np.zeros(0, complex))  # the law in time
+    step = ilc.next_reference(r0, np.ones_like(r0), slow, ilc.Law(), tuning, region) - r0
+    inner = slice(500, -500)  # the Q filter's ends
+    assert region[inner].mean() < 0.85  # the gaps are there
+    np.testing.assert_allclose(step[inner], 1.0, atol=1e-3)
+
+
 # ----------------------------------------------------------------------------------------------
 # learning on stages
 # ----------------------------------------------------------------------------------------------
