@@ -410,7 +410,7 @@ def retune(tuning: Tuning, refs: tuple[FloatArray, FloatArray],
                          n_max)[n]
 
     def learned(e: FloatArray) -> NDArray[np.complex128]:
-        return at(bridged(e, np.isfinite(e) if region is None else np.isfinite(e) & region))
+        return at(learned_error(e, region))
 
     d_r, d_y = at(refs[1]) - at(refs[0]), at(positions[1]) - at(positions[0])
     e0, e1 = learned(errors[0]), learned(errors[1])
@@ -452,7 +452,7 @@ def next_reference(reference: FloatArray, error: FloatArray, desired: track.Desi
     cosine from 0: the reference keeps joining the ramp-in smoothly). Otherwise in time:
     ``Q[rho z^m e]``.
     """
-    e = bridged(error, np.isfinite(error) if region is None else np.isfinite(error) & region)
+    e = learned_error(error, region)
     dt = desired.dt_s
     if not tuning.harmonic or desired.period_s is None:
         return reference + q_filter(law.gain * shift(e, tuning.lead), dt, tuning.cutoff_hz)
@@ -468,6 +468,12 @@ def next_reference(reference: FloatArray, error: FloatArray, desired: track.Desi
     aperiodic = e - synthesize(ce, t, f0)  # drift, creep, the first period's transient
     slow = q_filter(law.gain * aperiodic, dt, APERIODIC_FRACTION * tuning.cutoff_hz)
     return reference + fade * synthesize(dr, t, f0) + slow
+
+
+def learned_error(error: FloatArray, region: NDArray[np.bool_] | None) -> FloatArray:
+    """The error (um) learning works on: ``error`` at its finite samples in ``region`` (all of
+    them without one), :func:`bridged` across the rest."""
+    return bridged(error, np.isfinite(error) if region is None else np.isfinite(error) & region)
 
 
 def bridged(x: FloatArray, keep: NDArray[np.bool_]) -> FloatArray:
