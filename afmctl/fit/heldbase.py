@@ -60,6 +60,9 @@ from afmctl.model import effects as fx
 from afmctl.model import transducer as td
 
 FloatArray = NDArray[np.float64]
+#: A fit of a cause (:meth:`Held.fit`): ``z``, the linear parameters, the solver's word, its
+#: evaluations and its cost.
+Fit = tuple[FloatArray, FloatArray, bool, int, float]
 #: Polished from this many of the best seeds of each rod seed (each a least-squares run; one
 #: for an input-side cause, whose every evaluation runs the hysteresis again).
 POLISHED = 2
@@ -264,8 +267,7 @@ class Held:
 
     # -- fit and judge ------------------------------------------------------------------------
 
-    def fit(self, name: str, max_nfev: int, start: FloatArray | None = None
-            ) -> tuple[FloatArray, FloatArray, bool, int, float]:
+    def fit(self, name: str, max_nfev: int, start: FloatArray | None = None) -> Fit:
         """Cause ``name`` fitted on the fit rows from its seeds (the best of each rod seed
         polished: :data:`POLISHED`) or from ``start``: ``z``, the linear parameters, the solver's
         word, its evaluations and its cost (the weighted sum of squares)."""
@@ -398,9 +400,6 @@ class HeldBase:
         return {"model": HELD_BASE, "identified_over_noise": list(self.identified_over_noise),
                 "candidates": {k: j.as_dict(base, floor_um) for k, j in self.table.items()},
                 "refused": dict(self.refused), "seconds": round(self.seconds, 2)}
-
-
-Fit = tuple[FloatArray, FloatArray, bool, int, float]
 
 
 def rebased(held: Held, name: str, fit: Fit, halves: Sequence[Sweep], settings: idf.Settings,
