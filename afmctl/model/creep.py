@@ -118,7 +118,7 @@ def _update(p: float, a: np.ndarray, r: np.ndarray, z: np.ndarray) -> None:
         z[j] = a[j] * z[j] + (1.0 - a[j]) * y
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _run(p_h: np.ndarray, a: np.ndarray, c: np.ndarray, r: np.ndarray,
          z: np.ndarray) -> np.ndarray:
     out = np.empty(p_h.size)

@@ -224,7 +224,7 @@ def compile_chain(effects: Effects, dt: float) -> Chain:
 MAX_SUBSTEPS = 48
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _linear(ad: FloatArray, bd: FloatArray, ca: FloatArray, da: float, v: FloatArray,
             x0: float, x1: float) -> tuple[FloatArray, float]:  # pragma: no cover - compiled
     y = np.empty(v.size)
@@ -245,7 +245,7 @@ def _slope(v: float, r: float, u: float, w: float, zeta: float, second: bool,
     return dv, dr
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _slewed(v: FloatArray, v0: float, w: float, zeta: float, second: bool, slew: float,
             dt: float, n_sub: int) -> tuple[FloatArray, float]:  # pragma: no cover - compiled
     y = np.empty(v.size)

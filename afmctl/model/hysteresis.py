@@ -472,7 +472,7 @@ def _quiet_band(kind: int, st: np.ndarray, ec: np.ndarray, ei: np.ndarray) -> tu
     return lo + 1e-9 * (1.0 + abs(lo)), hi - 1e-9 * (1.0 + abs(hi))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _run(kind: int, e: np.ndarray, dt: np.ndarray, st: np.ndarray, ec: np.ndarray, wc: np.ndarray,
          ei: np.ndarray, cw: np.ndarray, scal: np.ndarray) -> np.ndarray:
     p = np.empty(e.size)

@@ -103,7 +103,7 @@ def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: 
     return eb, pb, abs(fb), slope
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: np.ndarray,
                 st: np.ndarray, dt: float, ec: np.ndarray, wc: np.ndarray, ei: np.ndarray,
                 cw: np.ndarray, scal: np.ndarray, phi: np.ndarray, gam: np.ndarray,

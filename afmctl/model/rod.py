@@ -113,7 +113,7 @@ def discretize(rod: Rod, dt: float) -> Discrete:
     return Discrete(e[:2, :2].copy(), e[:2, 2].copy(), float(dt))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _simulate(phi: np.ndarray, gamma: np.ndarray, f: np.ndarray, x: np.ndarray) -> np.ndarray:
     u = np.empty(f.size)
     x0, x1 = x[0], x[1]

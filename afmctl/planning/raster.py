@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses as dc
 import math
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -385,15 +386,15 @@ def plan(frame: Frame, axes: Mapping[str, AxisPlan], dt_s: float,
     """
     traj = trajectories(frame, dt_s, index)
     aims = targets(traj, coupling) if aims is None else aims
-    per_axis: dict[str, dict[str, track.Waveform]] = {}
-    for name in AXES:
+    wanted = tuple(dict.fromkeys(("inverse", *filters)))
+
+    def planned(name: str) -> dict[str, track.Waveform]:
         ax = axes[name]
         desired = track.Desired(dt_s, aims[name], frame.line_s, float(np.ptp(traj.axis(name))),
                                 f"{frame.label()}, axis {name}")
-        wanted = tuple(dict.fromkeys(("inverse", *filters)))
         try:
-            per_axis[name] = track.plan(ax.model, desired, ax.limits, ax.start_v, wanted,
-                                        envelope=ax.envelope, extrapolate=extrapolate)
+            return track.plan(ax.model, desired, ax.limits, ax.start_v, wanted,
+                              envelope=ax.envelope, extrapolate=extrapolate)
         except ReachError as exc:
             raise FrameReachError(f"axis {name}: {exc}; scan a smaller frame") from None
         except guard.LimitError as exc:
@@ -401,6 +402,11 @@ def plan(frame: Frame, axes: Mapping[str, AxisPlan], dt_s: float,
                     "frame's extremes: scan a smaller frame, or --filter inverse"
                     if str(exc).startswith("linear") else "")
             raise guard.LimitError(f"axis {name}: {exc}{hint}") from None
+
+    # the axes are planned independently, one per thread: the model's kernels release the GIL
+    with ThreadPoolExecutor(len(AXES)) as pool:
+        futures = {n: pool.submit(planned, n) for n in AXES}
+    per_axis = {n: futures[n].result() for n in AXES}  # x's refusal first, as one at a time
     out = {}
     for f in filters:
         ws = {n: per_axis[n][f] for n in AXES}
