@@ -12,6 +12,7 @@ from click.testing import CliRunner
 
 from afmctl.cli import main
 from tests.harness.paths import PROFILES
+from tests.harness.sigint import interrupt
 
 XY_TEXT = (PROFILES / "emulated-xy.toml").read_text()
 
@@ -83,7 +84,6 @@ def test_a_malformed_foreign_xy_profile_is_one_line_naming_the_key(
 def test_emulate_serves_the_xy_stage_on_serial_protocol_4_and_map_3() -> None:
     """``afmctl emulate --profile emulated-xy``: one device of two channels behind both wires."""
     import os
-    import signal
     import subprocess
     import sys
 
@@ -108,6 +108,5 @@ def test_emulate_serves_the_xy_stage_on_serial_protocol_4_and_map_3() -> None:
             assert (stage.version, stage.channels) == (4, 2)
             assert stage.voltages().tolist() == [0.0, 2.0]  # one device behind both wires
     finally:
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=20)
+        _, err = interrupt(proc)
     assert proc.returncode == 0, err

@@ -18,6 +18,7 @@ from afmctl.files import sweepfile as sweeps
 from afmctl.files.profile import Profile
 from afmctl.planning import sweepdesign as sd
 from tests.harness.paths import PROFILES, REPO
+from tests.harness.sigint import interrupt_when
 
 ROOT = REPO
 EMULATED = (PROFILES / "emulated.toml").read_text()
@@ -160,7 +161,6 @@ def test_ctrl_c_in_sweep_keeps_the_sweep_in_progress_and_resume_records_it(
     incomplete sweep is a valid sweep file marked interrupted; --resume records what is missing
     and removes the incomplete one, so that identify takes the folder (issue 27 item 7)."""
     import os
-    import signal
     import subprocess
     import sys
 
@@ -171,12 +171,8 @@ def test_ctrl_c_in_sweep_keeps_the_sweep_in_progress_and_resume_records_it(
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=env)
     partial = out / "triangle_0.279hz.incomplete.csv"
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and (
-            not partial.exists() or partial.read_text().count("\n") < 2000):
-        time.sleep(0.1)
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=30)
+    err = interrupt_when(
+        proc, lambda: partial.exists() and partial.read_text().count("\n") >= 2000)
     assert proc.returncode == 130, err
     last = err.strip().splitlines()[-1]
     assert last.startswith("afmctl: error: interrupted; the stage was sent to its safe state")

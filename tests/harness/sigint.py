@@ -24,3 +24,17 @@ def interrupt_when(proc: subprocess.Popen[str], ready: Callable[[], bool],
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
+
+
+def interrupt(proc: subprocess.Popen[str], timeout_s: float = 20.0) -> tuple[str, str]:
+    """Send SIGINT to ``proc`` and return its stdout and stderr once it has ended. A process that
+    outlives the interrupt by ``timeout_s`` is killed, never left running (a server would hold
+    its port and pty after the run), and the test fails."""
+    try:
+        proc.send_signal(signal.SIGINT)
+        return proc.communicate(timeout=timeout_s)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+

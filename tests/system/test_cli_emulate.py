@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 
@@ -11,6 +10,7 @@ from afmctl.drivers.modbus_link import ModbusStage
 from afmctl.drivers.serial_link import SerialStage
 from afmctl.files.profile import ModbusTcpTransport, Profile
 from tests.harness.paths import REPO
+from tests.harness.sigint import interrupt
 
 ROOT = REPO
 
@@ -30,8 +30,7 @@ def test_emulate_serves_until_interrupted(profile: Profile) -> None:
             assert stage.voltage() == 2.0  # one device behind both wires
         assert where["modbus-rtu"].startswith("/dev/")
     finally:
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=20)
+        _, err = interrupt(proc)
     assert proc.returncode == 0, err
     assert "stopped" in err
 
