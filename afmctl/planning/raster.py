@@ -382,7 +382,9 @@ def plan(frame: Frame, axes: Mapping[str, AxisPlan], dt_s: float,
     limits and envelope. The frame must fit the reach (:func:`check_reach`, call it first with
     :func:`reach` for a clear refusal); a plan that still falls short at the voltage limits (the
     dynamics at the corners) is refused the same way. ``aims`` (um per axis, the tracking part)
-    replaces the targets: a learned reference (:mod:`afmctl.experiment.scanlearn`).
+    replaces the targets: a learned reference (:mod:`afmctl.experiment.scanlearn`). The two axes
+    are planned at once, one thread each (the model's compiled kernels release the GIL); a
+    refusal names x's first, as one after the other would.
     """
     traj = trajectories(frame, dt_s, index)
     aims = targets(traj, coupling) if aims is None else aims
@@ -403,10 +405,9 @@ def plan(frame: Frame, axes: Mapping[str, AxisPlan], dt_s: float,
                     if str(exc).startswith("linear") else "")
             raise guard.LimitError(f"axis {name}: {exc}{hint}") from None
 
-    # the axes are planned independently, one per thread: the model's kernels release the GIL
     with ThreadPoolExecutor(len(AXES)) as pool:
         futures = {n: pool.submit(planned, n) for n in AXES}
-    per_axis = {n: futures[n].result() for n in AXES}  # x's refusal first, as one at a time
+    per_axis = {n: futures[n].result() for n in AXES}
     out = {}
     for f in filters:
         ws = {n: per_axis[n][f] for n in AXES}
