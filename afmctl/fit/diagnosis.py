@@ -125,7 +125,9 @@ class Diagnosis:
 
     @property
     def extended_model(self) -> td.Transducer:
-        return self.extended.model
+        """The extended model for ``track`` (``extended.toml``): the stage as the record left
+        it (:attr:`afmctl.fit.extension.Extended.present`)."""
+        return self.extended.present
 
     @property
     def extended_gains(self) -> tuple[float | FloatArray, ...]:

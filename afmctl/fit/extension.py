@@ -68,6 +68,22 @@ class Extended:
     offsets_um: tuple[float, ...]
     beta: FloatArray
 
+    @property
+    def present(self) -> td.Transducer:
+        """The model as the record left the stage, for ``track``: a gain that drifted in time
+        (an array per sample: a warm-up) folded in at its last value ``g``, the field's
+        thickness and the amplifier's rails divided by it (what ``g v`` through the rails does
+        to a command ``v``); the model itself otherwise. A gain drawn per run (a float per
+        sweep, log mean 0) is the next run's too: nothing is folded."""
+        last = self.gains[-1] if self.gains else 1.0
+        if np.ndim(last) == 0:
+            return self.model
+        g = float(np.asarray(last)[-1])
+        rails = self.model.effects.amplifier_rails_v
+        effects = (self.model.effects if rails is None else replace(
+            self.model.effects, amplifier_rails_v=(rails[0] / g, rails[1] / g)))
+        return replace(self.model, thickness_um=self.model.thickness_um / g, effects=effects)
+
 
 @dataclass
 class Progress:

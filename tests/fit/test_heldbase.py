@@ -90,6 +90,29 @@ def test_a_mode_on_its_damping_bound_or_carrying_the_stroke_is_refused(
     assert hb.refusal(fit("sensor-delay", hb.MODE_DAMPING[1], -0.7)) is None
 
 
+def test_extended_toml_holds_the_warm_up_the_record_ended_at(nominal: Transducer) -> None:
+    """A gain that drifted in time (a warm-up, one gain per sample) is folded into the model
+    track gets at its last value: a command through it reads what the fitted model reads with
+    that gain applied before the rails (``predict``'s gain, an independent path), the top of
+    the triangle clipped. A gain drawn per run (one per sweep) is left out."""
+    from afmctl.fit.prediction import predict
+
+    rails = dc.replace(nominal, effects=fx.Effects(amplifier_rails_v=(0.0, 150.0)))
+
+    def fitted(gains: tuple[float | np.ndarray, ...]) -> ext.Extended:
+        return ext.Extended("voltage-gain-drift", rails, gains, {}, True, 1, np.zeros(4),
+                            ("depoled",) * 2, (0.0, 0.0), np.zeros(4))
+
+    warm = fitted((1.0, np.linspace(1.0, 1.03, 50)))
+    v = np.concatenate([np.linspace(0.0, 150.0, 3000), np.linspace(150.0, 0.0, 3000)])
+    got = predict(warm.present, v, 1e-4)
+    want = predict(rails, v, 1e-4, gain=1.03)
+    assert np.max(np.abs(got - want)) < 1e-9 * np.ptp(want)
+    assert np.max(np.abs(got - predict(rails, v, 1e-4))) > 0.01  # the warm-up moves the stage
+    assert warm.present.effects.amplifier_rails_v == pytest.approx((0.0, 150.0 / 1.03))
+    assert fitted((1.02, 0.98)).present is rails
+
+
 @pytest.mark.slow
 def test_a_modal_sum_mode_on_a_separable_preisach_stage_is_named(tmp_path: Path) -> None:
     """other-second-mode-1 of the benches: a separable Preisach density of another shape than
