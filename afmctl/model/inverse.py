@@ -109,13 +109,14 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
                 cw: np.ndarray, scal: np.ndarray, phi: np.ndarray, gam: np.ndarray,
                 row: np.ndarray, gain: float, a1: float, a2: float, offset: float,
                 floor: float, e_min: float, e_max: float, tol: float, ca: np.ndarray,
-                cc: np.ndarray, cr_: np.ndarray,
-                z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                cc: np.ndarray, cr_: np.ndarray, z: np.ndarray, keep: int,
+                kept: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fields for targets ``target[k]`` = desired u at sample ``k + d`` (um), rod state ``x`` (m).
 
     ``ca``, ``cc``, ``cr_``, ``z``: creep factors ``a_j``, weights ``c_j``, thresholds and state
     (updated in place; empty without creep, :mod:`afmctl.model.creep`). ``p_init`` is the
-    hysteretic output ``P_h``.
+    hysteretic output ``P_h``. ``kept`` gets the state ``(st, x, z)`` after the first ``keep``
+    samples (none if ``keep`` is not in ``1 ... N``).
     """
     n = target.size
     e_out = np.empty(n)
@@ -164,6 +165,12 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
             _creep_update(p, ca, cr_, z)
         e_out[k] = e
         e_prev, p_prev = e, p
+        if k == keep - 1:
+            ns = st.size
+            kept[:ns] = st
+            kept[ns] = x[0]
+            kept[ns + 1] = x[1]
+            kept[ns + 2:] = z
     return e_out, u_out, err
 
 
@@ -183,12 +190,15 @@ class Inversion:
         the target was out of reach).
     state : transducer.StageState or hysteresis.PolarizationState
         Model memory after the last sample.
+    kept : transducer.StageState or None
+        Algorithm 3's model memory after the samples it was asked to keep (``keep``).
     """
 
     field_mv_m: FloatArray
     predicted: FloatArray
     error: FloatArray
     state: object
+    kept: object = None
 
     def voltage(self, thickness_um: float) -> FloatArray:
         return self.field_mv_m * thickness_um
@@ -211,14 +221,15 @@ def algorithm2(params: hy.Polarization, p_target: FloatArray, state: hy.Polariza
                           dt, k.ec, k.wc, k.ei, k.cw, k.scal, np.eye(2), np.zeros(2),
                           np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.5 / params.eta,
                           -e_max if e_min is None else e_min, e_max, tol, _NONE, _NONE, _NONE,
-                          _NONE)
+                          _NONE, -1, _NONE)
     p_out, _ = hy.run(k, e, state, dt)
     return Inversion(e, p_out, w, hy.PolarizationState(k.kind, st))
 
 
 def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
                e_init: float = 0.0, horizon: int = 1, tol_um: float = 1e-7,
-               e_max: float = 1e3, e_min: float | None = None) -> Inversion:
+               e_max: float = 1e3, e_min: float | None = None, keep: int | None = None
+               ) -> Inversion:
     """Algorithm 3: fields whose forward displacement (16)+(13) follows ``u_target_um``.
 
     With creep (:attr:`afmctl.model.transducer.Transducer.creep`) the creep part of each sample
@@ -246,6 +257,10 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
     e_min : float, optional
         Lowest field the march may try, MV/m (default ``-e_max``; e.g. the lower voltage limit /
         thickness: a unipolar stage is never asked for a negative field).
+    keep : int, optional
+        Also return the model state after the first ``keep`` fields (``Inversion.kept``): where a
+        caller that keeps only those goes on from (the state :func:`transducer.simulate` of
+        their voltages reaches, up to round-off).
 
     Returns
     -------
@@ -270,12 +285,18 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
     cth = _NONE if creep is None else np.asarray(creep.thresholds, dtype=float)
     dfdp = abs(rod.a1 + 2 * rod.a2 * (p0[0] + cr.offset(creep, z))) or abs(rod.a1)
     floor = 0.5 * gain * dfdp * 1e6 / cm.model.polarization.eta
+    kept = np.full(st.size + 2 + z.size, np.nan)
     e, pred, w = _algorithm3(cm.kernel.kind, target, e_init, p0[0], x, st, cm.dt, cm.kernel.ec,
                              cm.kernel.wc, cm.kernel.ei, cm.kernel.cw, cm.kernel.scal,
                              cm.disc.phi, cm.disc.gamma, row, gain, rod.a1, rod.a2, rod.offset_um,
                              floor, -e_max if e_min is None else e_min, e_max, tol_um, ca, cc,
-                             cth, z)
-    return Inversion(e, pred, w, tr.StageState(hy.PolarizationState(ps.kind, st), x, z))
+                             cth, z, -1 if keep is None else keep, kept)
+    at = None
+    if keep is not None and 1 <= keep <= u.size:
+        n = st.size
+        at = tr.StageState(hy.PolarizationState(ps.kind, kept[:n].copy()), kept[n:n + 2].copy(),
+                           kept[n + 2:].copy())
+    return Inversion(e, pred, w, tr.StageState(hy.PolarizationState(ps.kind, st), x, z), at)
 
 
 # ----------------------------------------------------------------------------------------------

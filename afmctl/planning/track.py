@@ -227,7 +227,7 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
         last: guard.LimitError | None = None
         for d in (h for h in HORIZONS if h >= (max(d0, fixed[i]) if fixed else d0)):
             res = inv.algorithm3(cm, target[s:e + d - 1], st, e_init=v_prev / thick, horizon=d,
-                                 e_min=e_lim[0], e_max=e_lim[1])
+                                 e_min=e_lim[0], e_max=e_lim[1], keep=e - s)
             v = res.voltage(thick)[:e - s]
             try:  # a longer horizon rounds a corner the limit cuts off
                 _reach(res, e - s, s)
@@ -240,7 +240,7 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
             _no_horizon(last)
         parts.append(v)
         horizons.append(d)
-        st = tr.simulate(cm, v, st)[2]
+        st = res.kept  # the model's state after the stretch's own fields
         v_prev = float(v[-1])
     return np.concatenate(parts), tuple(horizons)
 

@@ -135,3 +135,27 @@ def test_linear_filter_recovers_a_line() -> None:
     lin = inv.fit_linear(v, 0.3 * v + 2.0)
     assert lin.gain_um_per_v == pytest.approx(0.3)
     np.testing.assert_allclose(lin.voltage(0.3 * v + 2.0), v, atol=1e-10)
+
+
+@pytest.mark.parametrize("creeps", [False, True])
+def test_algorithm3_keeps_the_state_simulate_reaches(nominal: tr.Transducer, creeps: bool) -> None:
+    """``keep``: the model state after the first fields is the one the forward model reaches on
+    their voltages (what the planner goes on from), up to round-off: hysteresis memory, rod and
+    creep."""
+    from afmctl.model import creep as cr
+
+    model = (dc.replace(nominal, creep=cr.Creep((0.01, 1.0, 100.0), (0.01, 0.01, 0.01)))
+             if creeps else nominal)
+    cm = tr.compile_model(model, DT)
+    ud = triangle(27.9, 27.04, 1.5)
+    keep = 400  # past the first corner (of 537 samples)
+    st0 = tr.initial(model)
+    res = inv.algorithm3(cm, ud, st0, horizon=2, e_max=1.5, keep=keep)
+    _, _, want = tr.simulate(cm, res.voltage(model.thickness_um)[:keep], st0)
+    got = res.kept
+    np.testing.assert_allclose(got.polarization.values, want.polarization.values, atol=1e-12)
+    np.testing.assert_allclose(got.rod, want.rod, rtol=1e-9, atol=1e-18)
+    np.testing.assert_allclose(got.creep, want.creep, atol=1e-12)
+    assert got.creep.size == (6 if creeps else 0)
+    assert not np.allclose(got.rod, res.state.rod)  # not the state after the last sample
+    assert inv.algorithm3(cm, ud, st0, horizon=2, e_max=1.5).kept is None
