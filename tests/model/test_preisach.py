@@ -97,6 +97,8 @@ def test_equals_an_independent_relay_sum() -> None:
 
 
 def test_algorithm3_through_the_grid_follows_its_target() -> None:
+    """It follows its target, and the play outputs it keeps after the first fields are those the
+    forward model reaches on them."""
     g = grid()
     model = tr.Transducer(g, rd.Rod(m=0.05, c=60.0, k=2.0e5, a1=3.0e4, a2=1.0e4), 100.0)
     cm = tr.compile_model(model, 1e-4)
@@ -104,10 +106,13 @@ def test_algorithm3_through_the_grid_follows_its_target() -> None:
     u0 = float(tr.simulate(cm, np.zeros(1), st)[0][0])
     t = np.arange(2000) * 1e-4
     target = u0 + 0.8 * np.sin(np.pi * t / t[-1]) ** 2 * np.sin(2 * np.pi * 10 * t) ** 2
-    res = inv.algorithm3(cm, target, st, horizon=2, e_min=0.0, e_max=1.5)
+    res = inv.algorithm3(cm, target, st, horizon=2, e_min=0.0, e_max=1.5, keep=1300)
     assert np.max(res.error) < 1e-6
     u = tr.simulate(cm, res.field_mv_m * 100.0, st)[0]
     np.testing.assert_allclose(u[2:], target[1:-1], atol=1e-5)  # horizon 2: u_{k+2} = u*_{k+1}
+    want = tr.simulate(cm, res.field_mv_m[:1300] * 100.0, st)[2]
+    np.testing.assert_allclose(res.kept.polarization.values, want.polarization.values, atol=1e-12)
+    np.testing.assert_allclose(res.kept.rod, want.rod, rtol=1e-9, atol=1e-18)
 
 
 def test_rejects_malformed_grids() -> None:
@@ -118,17 +123,3 @@ def test_rejects_malformed_grids() -> None:
     with pytest.raises(ValueError, match="spread"):
         pr.PreisachGrid((0.1,), (0.0,), 0.0, ((1.0,),), 0.0)
 
-
-def test_algorithm3_through_the_grid_keeps_the_state_simulate_reaches() -> None:
-    """The grid's play outputs after the first fields, as the forward model reaches them."""
-    g = grid()
-    model = tr.Transducer(g, rd.Rod(m=0.05, c=60.0, k=2.0e5, a1=3.0e4, a2=1.0e4), 100.0)
-    cm = tr.compile_model(model, 1e-4)
-    st = tr.initial(model)
-    u0 = float(tr.simulate(cm, np.zeros(1), st)[0][0])
-    t = np.arange(2000) * 1e-4
-    target = u0 + 0.8 * np.sin(np.pi * t / t[-1]) ** 2 * np.sin(2 * np.pi * 10 * t) ** 2
-    res = inv.algorithm3(cm, target, st, horizon=2, e_min=0.0, e_max=1.5, keep=1300)
-    want = tr.simulate(cm, res.field_mv_m[:1300] * 100.0, st)[2]
-    np.testing.assert_allclose(res.kept.polarization.values, want.polarization.values, atol=1e-12)
-    np.testing.assert_allclose(res.kept.rod, want.rod, rtol=1e-9, atol=1e-18)
