@@ -109,14 +109,15 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
                 cw: np.ndarray, scal: np.ndarray, phi: np.ndarray, gam: np.ndarray,
                 row: np.ndarray, gain: float, a1: float, a2: float, offset: float,
                 floor: float, e_min: float, e_max: float, tol: float, ca: np.ndarray,
-                cc: np.ndarray, cr_: np.ndarray, z: np.ndarray, keep: int,
-                kept: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                cc: np.ndarray, cr_: np.ndarray, z: np.ndarray, keep: int, st_kept: np.ndarray,
+                x_kept: np.ndarray, z_kept: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fields for targets ``target[k]`` = desired u at sample ``k + d`` (um), rod state ``x`` (m).
 
     ``ca``, ``cc``, ``cr_``, ``z``: creep factors ``a_j``, weights ``c_j``, thresholds and state
     (updated in place; empty without creep, :mod:`afmctl.model.creep`). ``p_init`` is the
-    hysteretic output ``P_h``. ``kept`` gets the state ``(st, x, z)`` after the first ``keep``
-    samples (none if ``keep`` is not in ``1 ... N``).
+    hysteretic output ``P_h``. ``st_kept``, ``x_kept``, ``z_kept`` get the state after the first
+    ``keep`` samples (left as they are if ``keep`` is not in ``1 ... N``).
     """
     n = target.size
     e_out = np.empty(n)
@@ -166,11 +167,9 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
         e_out[k] = e
         e_prev, p_prev = e, p
         if k == keep - 1:
-            ns = st.size
-            kept[:ns] = st
-            kept[ns] = x[0]
-            kept[ns + 1] = x[1]
-            kept[ns + 2:] = z
+            st_kept[:] = st
+            x_kept[:] = x
+            z_kept[:] = z
     return e_out, u_out, err
 
 
@@ -221,7 +220,7 @@ def algorithm2(params: hy.Polarization, p_target: FloatArray, state: hy.Polariza
                           dt, k.ec, k.wc, k.ei, k.cw, k.scal, np.eye(2), np.zeros(2),
                           np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.5 / params.eta,
                           -e_max if e_min is None else e_min, e_max, tol, _NONE, _NONE, _NONE,
-                          _NONE, -1, _NONE)
+                          _NONE, -1, _NONE, _NONE, _NONE)
     p_out, _ = hy.run(k, e, state, dt)
     return Inversion(e, p_out, w, hy.PolarizationState(k.kind, st))
 
@@ -285,17 +284,15 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
     cth = _NONE if creep is None else np.asarray(creep.thresholds, dtype=float)
     dfdp = abs(rod.a1 + 2 * rod.a2 * (p0[0] + cr.offset(creep, z))) or abs(rod.a1)
     floor = 0.5 * gain * dfdp * 1e6 / cm.model.polarization.eta
-    kept = np.full(st.size + 2 + z.size, np.nan)
+    kept = (np.empty_like(st), np.empty_like(x), np.empty_like(z))
     e, pred, w = _algorithm3(cm.kernel.kind, target, e_init, p0[0], x, st, cm.dt, cm.kernel.ec,
                              cm.kernel.wc, cm.kernel.ei, cm.kernel.cw, cm.kernel.scal,
                              cm.disc.phi, cm.disc.gamma, row, gain, rod.a1, rod.a2, rod.offset_um,
                              floor, -e_max if e_min is None else e_min, e_max, tol_um, ca, cc,
-                             cth, z, -1 if keep is None else keep, kept)
+                             cth, z, -1 if keep is None else keep, *kept)
     at = None
     if keep is not None and 1 <= keep <= u.size:
-        n = st.size
-        at = tr.StageState(hy.PolarizationState(ps.kind, kept[:n].copy()), kept[n:n + 2].copy(),
-                           kept[n + 2:].copy())
+        at = tr.StageState(hy.PolarizationState(ps.kind, kept[0]), kept[1], kept[2])
     return Inversion(e, pred, w, tr.StageState(hy.PolarizationState(ps.kind, st), x, z), at)
 
 
