@@ -17,13 +17,11 @@ def interrupt_when(proc: subprocess.Popen[str], ready: Callable[[], bool],
     try:
         while time.monotonic() < deadline and proc.poll() is None and not ready():
             time.sleep(0.05)
-        assert proc.poll() is None, proc.communicate()
-        proc.send_signal(signal.SIGINT)
-        return proc.communicate(timeout=30)[1]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+    except BaseException:
+        _stopped(proc)
+        raise
+    assert proc.poll() is None, proc.communicate()
+    return interrupt(proc, 30.0)[1]
 
 
 def interrupt(proc: subprocess.Popen[str], timeout_s: float = 20.0) -> tuple[str, str]:
@@ -34,7 +32,10 @@ def interrupt(proc: subprocess.Popen[str], timeout_s: float = 20.0) -> tuple[str
         proc.send_signal(signal.SIGINT)
         return proc.communicate(timeout=timeout_s)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        _stopped(proc)
 
+
+def _stopped(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate()
