@@ -103,6 +103,12 @@ or a Bouc-Wen polarization (:mod:`afmctl.model.boucwen`, whose minor loops need 
     kappa = -1.7                               # the branch toward zero
     exponent = 1.8                             # n
     poling_MV_per_m = [0.0, 1.5]               # where "negative" / "positive" saturate
+
+and a cubic term of the force that (16) does not have, ``+ a3 P^3`` (optional, 0 when absent; the
+Preisach grid's fit writes it, see :attr:`afmctl.model.rod.Rod.a3`)::
+
+    [rod]
+    a3_N_per_C3_m6 = 463.4
 ``identify`` writes version 3 only for a model that needs it (versions 1 and 2 are still read, and
 a model of the paper's form is still written as version 2).
 """
@@ -267,10 +273,10 @@ def _density_dict(d: hy.Lognormal | hy.Normal | hy.Discrete) -> dict[str, Any]:
 
 
 def version_for(model: Transducer) -> int:
-    """The lowest format version that holds ``model`` (3 for a Preisach grid, Bouc-Wen or
-    creep)."""
+    """The lowest format version that holds ``model`` (3 for a Preisach grid, Bouc-Wen, creep or
+    the force's cubic)."""
     return 3 if (isinstance(model.polarization, (PreisachGrid, BoucWen))
-                 or model.creep is not None) else 2
+                 or model.creep is not None or model.rod.a3 != 0.0) else 2
 
 
 def _polarization_dict(pol: hy.Polarization | PreisachGrid | BoucWen) -> dict[str, Any]:
@@ -307,6 +313,8 @@ def to_dict(model: Transducer) -> dict[str, Any]:
         "rod": {"m_kg": r.m, "c_Ns_per_m": r.c, "k_N_per_m": r.k, "a1_N_per_C_m2": r.a1,
                 "a2_N_per_C2_m4": r.a2, "offset_um": r.offset_um},
     }
+    if r.a3:
+        out["rod"]["a3_N_per_C3_m6"] = r.a3
     if model.creep is not None:
         out["creep"] = {"tau_s": list(model.creep.tau_s), "weights": list(model.creep.weights)}
         if any(model.creep.thresholds):
@@ -510,7 +518,8 @@ def _transducer(t: Table, pol: hy.Polarization | PreisachGrid | BoucWen,
     assert r is not None
     rod = Rod(m=r.number("m_kg", positive=True), c=r.number("c_Ns_per_m", nonnegative=True),
               k=r.number("k_N_per_m", positive=True), a1=r.number("a1_N_per_C_m2"),
-              a2=r.number("a2_N_per_C2_m4", 0.0), offset_um=r.number("offset_um", 0.0))
+              a2=r.number("a2_N_per_C2_m4", 0.0), a3=r.number("a3_N_per_C3_m6", 0.0),
+              offset_um=r.number("offset_um", 0.0))
     tt = t.table("transducer")
     assert tt is not None
     return Transducer(pol, rod, tt.number("thickness_um", positive=True), effects,  # type: ignore[arg-type]

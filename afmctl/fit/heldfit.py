@@ -74,7 +74,8 @@ def with_rod(model: td.Transducer, natural_hz: float, damping_ratio: float, scal
     k = r.m * (2 * math.pi * natural_hz) ** 2
     f = scale * k / r.k
     return replace(model, rod=replace(r, k=k, c=2 * damping_ratio * math.sqrt(k * r.m),
-                                      a1=f * r.a1, a2=f * r.a2, offset_um=offset_um))
+                                      a1=f * r.a1, a2=f * r.a2, a3=f * r.a3,
+                                      offset_um=offset_um))
 
 
 class Problem:

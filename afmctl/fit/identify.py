@@ -274,12 +274,13 @@ def n_coercive_for(model: td.Transducer, fields: Sequence[FloatArray],
     displacement over the field histories ``fields`` (MV/m; the identified sweeps span the
     envelope) from each of the ``starts``, from :func:`afmctl.model.hysteresis.n_coercive_for` with the
     rod's static gain
-    ``1e6 |a1 + 2 a2 P| / k`` (um per C/m^2) at the largest polarization reached."""
+    ``1e6 (|a1| + 2 |a2| P + 3 |a3| P^2) / k`` (um per C/m^2, a bound of the force's slope) at the
+    largest polarization reached."""
     pol, rod = model.polarization, model.rod
     e_max = max(float(np.max(np.abs(e))) for e in fields)
     p_max = float(np.max(np.abs(hy.run(pol, np.array([e_max, -e_max, e_max]),
                                        hy.initial_state(pol))[0])))
-    gain = 1e6 * (abs(rod.a1) + 2 * abs(rod.a2) * p_max) / rod.k
+    gain = 1e6 * (abs(rod.a1) + (2 * abs(rod.a2) + 3 * abs(rod.a3) * p_max) * p_max) / rod.k
     hows = tuple(sorted({"depoled" if s == "previous" else s for s in starts}))
     return hy.n_coercive_for(pol, list(fields), tol_um / max(gain, 1e-300),
                              starts=hows)  # type: ignore[arg-type]

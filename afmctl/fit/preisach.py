@@ -3,22 +3,24 @@
 The classic identification of a Preisach density is a convex problem: the output is linear in the
 density's weights, which are non-negative, and a smoothness penalty on the grid makes the problem
 well posed (non-negative least squares with Tikhonov regularization). Here the output is not the
-polarization but the displacement of the rod (16), ``u = L[a1 P + a2 P^2] / k``, with ``L`` the rod's
-unit-DC-gain dynamics; in the frame of :mod:`afmctl.fit.parametrization`::
+polarization but the displacement of the rod (16), ``u = L[a1 P + a2 P^2 + a3 P^3] / k`` (the
+paper's force with a cubic term, see :func:`~afmctl.fit.preisach_problem.output_map`), with ``L``
+the rod's unit-DC-gain dynamics; in the frame of :mod:`afmctl.fit.parametrization`::
 
-    u = L[g(Q~)] + offset_s,    g(Q) = Q + s Q^2,    Q~ = Q + sum_j c_j Z_j[Q],
+    u = L[g(Q~)] + offset_s,    g(Q) = Q + s Q^2 + t Q^3,    Q~ = Q + sum_j c_j Z_j[Q],
     Q = r E + sum_ij w_ij erf((y_i + E_I,j) / (sqrt(2) spread))      (um),
 
 with ``y_i`` the play output of coercive row ``i`` (fixed by the field history and the start
 state, not by any parameter), ``Z_j`` the creep elements of :mod:`afmctl.model.creep`, and the
 gain fixed by convention in ``g``. The weights ``w, r, c >= 0`` enter linearly but for the
-quadratic ``s Q^2`` (the ``a2 P^2`` of (16)) and the product of creep and hysteresis. The fit is
-Gauss-Newton on that structure: at each step the model is linearized in ``(w, r, c, s)`` about the
-last point (exact in ``s``; the columns are ``L[(1 + 2 s Q~) C[basis]]``), with the rod's natural
-frequency and damping as two more columns (their finite-difference derivatives, Levenberg-damped),
-and the linear problem (bounded: ``w, r, c >= 0``; free: ``s``, the rod, one offset per sweep) is
-solved exactly: the free variables eliminated from the normal equations, then
-:func:`scipy.optimize.nnls` on the rest. A step that does not lower the true cost is halved.
+map's ``s Q^2 + t Q^3`` (the ``a2 P^2`` of (16) and its cubic) and the product of creep and
+hysteresis. The fit is Gauss-Newton on that structure: at each step the model is linearized in
+``(w, r, c, s, t)`` about the last point (exact in ``s`` and ``t``; the columns are
+``L[g'(Q~) C[basis]]``), with the rod's natural frequency and damping as two more columns (their
+finite-difference derivatives, Levenberg-damped), and the linear problem (bounded: ``w, r, c >=
+0``; free: ``s, t``, the rod, one offset per sweep) is solved exactly: the free variables
+eliminated from the normal equations, then :func:`scipy.optimize.nnls` on the rest. A step that
+does not lower the true cost is halved.
 
 The penalty weight (and whether creep is kept) is chosen by held-out error: the residual rows are
 cut into blocks, dealt in turn to four folds; each candidate is fitted on three folds (linearized
@@ -48,6 +50,7 @@ from afmctl.fit.preisach_problem import (
     CREEP_TAUS_S,
     CREEP_THRESHOLDS,
     FOLDS,
+    MAP,
     SMOOTHING,
     TRANSIENT_SPAN,
     Data,
@@ -142,8 +145,8 @@ def _unpack(x: FloatArray, th: Theta, creep: bool, rod: bool) -> Theta:
     k, nc = th.w.size, th.c.size if creep else 0
     i = k + 1 + nc
     out = Theta(x[:k].copy(), float(x[k]), x[k + 1:i].copy() if creep else th.c * 0.0,
-                float(x[i]), th.log_fn, th.log_zeta, th.offsets.copy())
-    i += 1
+                float(x[i]), float(x[i + 1]), th.log_fn, th.log_zeta, th.offsets.copy())
+    i += MAP
     if rod:
         out.log_fn, out.log_zeta = float(x[i]), float(x[i + 1])
         i += 2
@@ -158,7 +161,7 @@ def _system(designs: list[FloatArray], rhs: list[FloatArray], th: Theta, creep: 
     """Normal equations of the linearized problem (rod columns moved to absolute values, or
     dropped with the rod frozen) over the selected rows of each sweep."""
     k, nc = th.w.size, th.c.size if creep else 0
-    rod_at = k + 1 + nc + 1
+    rod_at = k + 1 + nc + MAP
     g = h = None
     for i, (a, b) in enumerate(zip(designs, rhs, strict=True)):
         if rows is not None:
@@ -191,7 +194,7 @@ class Run:
 def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, creep: bool,
                  max_iter: int) -> Run:
     """Fit ``prob`` from ``th`` by Levenberg-Marquardt steps of the bounded linear problem: the
-    linearization is good only near ``th`` (the quadratic ``s Q^2`` and the creep multiply the
+    linearization is good only near ``th`` (the map's ``s Q^2 + t Q^3`` and the creep multiply the
     weights), so each step is damped by ``mu diag(G)`` (and the rod by at least a prior: a step
     of 0.3 in its logs must buy the noise's sum of squares), ``mu`` raised until the step lowers
     the true cost and lowered after it does."""
@@ -214,8 +217,8 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
         x0 = _pack(th, creep, rod)
         diag = np.diag(g).copy()
         if rod:
-            diag[n_bounded + 1:n_bounded + 3] = np.maximum(diag[n_bounded + 1:n_bounded + 3],
-                                                           prob.noise_sse / 0.3 ** 2 / max(mu, 1e-12))
+            at = slice(n_bounded + MAP, n_bounded + MAP + 2)
+            diag[at] = np.maximum(diag[at], prob.noise_sse / 0.3 ** 2 / max(mu, 1e-12))
         fresh = not (th.w.any() or th.r > 0)
         accepted = False
         for _ in range(12):
@@ -281,7 +284,7 @@ def refit_rod(prob: Problem, th: Theta) -> Theta:
 
 def _pack(th: Theta, creep: bool, rod: bool) -> FloatArray:
     """The inverse of :func:`_unpack`."""
-    parts = [th.w, [th.r], th.c if creep else [], [th.s]]
+    parts = [th.w, [th.r], th.c if creep else [], [th.s, th.t]]
     parts += [[th.log_fn, th.log_zeta]] if rod else []
     return np.concatenate(parts + [th.offsets, th.d]).astype(float)
 
@@ -303,10 +306,10 @@ def heldout(prob: Problem, th: Theta, pen: FloatArray, lam_rel: Sequence[float],
     folds' difference)."""
     designs, rhs = prob.linearize(th, creep)
     k, nc, n_s = th.w.size, th.c.size if creep else 0, len(prob.phi)
-    fixed = np.concatenate((th.c if creep else [], [th.s]))
-    at_d = k + 1 + nc + 3 + n_s
-    keep = np.r_[np.arange(k + 1), np.arange(k + 1 + nc + 3, at_d)]
-    rhs = [b - a[:, k + 1:k + 2 + nc] @ fixed - a[:, at_d:] @ th.d[:a.shape[1] - at_d]
+    fixed = np.concatenate((th.c if creep else [], [th.s, th.t]))
+    at_d = k + 1 + nc + MAP + 2 + n_s
+    keep = np.r_[np.arange(k + 1), np.arange(k + 1 + nc + MAP + 2, at_d)]
+    rhs = [b - a[:, k + 1:k + 1 + nc + MAP] @ fixed - a[:, at_d:] @ th.d[:a.shape[1] - at_d]
            for a, b in zip(designs, rhs, strict=True)]
     designs = [a[:, keep] for a in designs]
     folds = prob.data.folds
@@ -403,7 +406,8 @@ def build(th: Theta, prob: Problem, scales_mass: float, thickness_um: float,
           p_scale: float, creep: bool) -> td.Transducer:
     """The physical model of ``th``: ``P = kappa Q`` with ``kappa`` making the largest ``|Q|`` over
     the sweeps ``p_scale`` (C/m^2, a convention like P_R), ``k = m (2 pi f_n)^2``, and the force
-    ``a1 P + a2 P^2`` giving ``g(Q)`` in um: ``a1 = 1e-6 k / kappa``, ``a2 = 1e-6 k s / kappa^2``."""
+    ``a1 P + a2 P^2 + a3 P^3`` giving ``g(Q)`` in um: ``a1 = 1e-6 k / kappa``, ``a2 = 1e-6 k s /
+    kappa^2``, ``a3 = 1e-6 k t / kappa^3``."""
     q_max = max(float(np.max(np.abs(q))) for q in prob.hysteretic(th)) or 1.0
     kappa = p_scale / q_max
     g = prob.grid
@@ -414,6 +418,7 @@ def build(th: Theta, prob: Problem, scales_mass: float, thickness_um: float,
     k = scales_mass * (2 * math.pi * fn) ** 2
     rod = rd.Rod(m=scales_mass, c=2 * zeta * math.sqrt(k * scales_mass), k=k,
                  a1=1e-6 * k / kappa, a2=1e-6 * k * th.s / kappa ** 2,
+                 a3=1e-6 * k * th.t / kappa ** 3,
                  offset_um=float(th.offsets[pz.zero_sweep(prob.starts)]))
     cp = cr.Creep(tuple(float(t) for t in prob.el_tau), tuple(float(c) for c in th.c),
                   tuple(float(r) * kappa for r in prob.el_thr)) if creep and th.c.any() else None
@@ -526,7 +531,7 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
 
     def start_theta() -> Theta:
         return Theta(np.zeros(grid.active.size), 0.0, np.zeros(len(settings.creep_taus_s)), 0.0,
-                     math.log(rod0[0]), math.log(rod0[1]),
+                     0.0, math.log(rod0[0]), math.log(rod0[1]),
                      np.array([float(np.mean(y)) for y in data.y]))
 
     best: tuple[float, Problem, Theta] | None = None
@@ -597,11 +602,11 @@ def scalar_uncertainty(prob: Problem, th: Theta, creep: bool) -> dict[str, Any]:
     names = (["reversible_um_per_MV_per_m"]
              + ([f"creep_c@{t:g}s_r{r:.3g}um" for t, r in zip(prob.el_tau, prob.el_thr,
                                                                  strict=True)] if creep else [])
-             + ["s_per_um", "log_fn", "log_zeta"]
+             + ["s_per_um", "t_per_um2", "log_fn", "log_zeta"]
              + [f"offset_{i + 1}_um" for i in range(len(prob.phi))]
              + ([f"offset_{i + 1}_creep_transient@{t:g}s_um" for i, n in enumerate(prob.n_trans)
                  for t in prob.taus[:n]] if creep else []))
-    p = np.concatenate(([th.r], th.c if creep else [], [th.s, th.log_fn, th.log_zeta],
+    p = np.concatenate(([th.r], th.c if creep else [], [th.s, th.t, th.log_fn, th.log_zeta],
                         th.offsets, th.d if creep else []))
     s2 = float(res @ res) / max(1, res.size - k - p.size)
     cov = s2 * np.linalg.pinv(a.T @ a)

@@ -2,7 +2,7 @@
 
 The model in the frame of :mod:`afmctl.fit.parametrization`, the gain fixed by convention::
 
-    u = L[g(Q~)] + offset_s,    g(Q) = Q + s Q^2,    Q~ = Q + sum_j c_j Z_j[Q],
+    u = L[g(Q~)] + offset_s,    g(Q) = Q + s Q^2 + t Q^3,    Q~ = Q + sum_j c_j Z_j[Q],
     Q = r E + sum_ij w_ij erf((y_i + E_I,j) / (sqrt(2) spread))      (um),
 
 ``L`` the rod (16) at unit DC gain, ``y_i`` the play output of coercive row ``i`` (fixed by the field
@@ -46,6 +46,8 @@ FOLDS = 4
 #: (the model alone, which track uses, was then 70x the noise where the fit said 1.2x): each sweep
 #: is taken to start with its creep at rest.
 TRANSIENT_SPAN = 0.0
+#: Coefficients of the output map ``g`` beyond its unit slope: ``s`` and ``t``.
+MAP = 2
 
 
 @dataclass(frozen=True)
@@ -229,24 +231,34 @@ def rod_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
     return out.reshape(x.shape)
 
 
+def output_map(q: FloatArray, s: float, t: float) -> FloatArray:
+    """``g(Q) = Q + s Q^2 + t Q^3`` (um): the force of (16) with a cubic term, in the fit's frame.
+    A Preisach operator followed by a static map that is not affine has minor loops that are not
+    congruent (a modified Prandtl-Ishlinskii operator's polynomial output map is the classic
+    case); the quadratic alone is the paper's ``a2 P^2``."""
+    return q + (s + t * q) * q * q
+
+
 @dataclass
 class Theta:
     """A point of the fit: weights (um), reversible slope (um per MV/m), creep weights, the
-    quadratic ``s`` (1/um), rod ``log f_n``, ``log zeta``, one offset per sweep (um) and, with
-    creep, each sweep's creep transients ``d`` (um; see :class:`Problem`)."""
+    output map's quadratic ``s`` (1/um) and cubic ``t`` (1/um^2), rod ``log f_n``, ``log zeta``,
+    one offset per sweep (um) and, with creep, each sweep's creep transients ``d`` (um; see
+    :class:`Problem`)."""
 
     w: FloatArray
     r: float
     c: FloatArray
     s: float
+    t: float
     log_fn: float
     log_zeta: float
     offsets: FloatArray
     d: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def copy(self) -> Theta:
-        return Theta(self.w.copy(), self.r, self.c.copy(), self.s, self.log_fn, self.log_zeta,
-                     self.offsets.copy(), self.d.copy())
+        return Theta(self.w.copy(), self.r, self.c.copy(), self.s, self.t, self.log_fn,
+                     self.log_zeta, self.offsets.copy(), self.d.copy())
 
 
 class Problem:
@@ -330,7 +342,7 @@ class Problem:
         for q, dt, tr in zip(self.hysteretic(th), self.data.dts, self.transients(th),
                              strict=True):
             qt = q + self.lags(q, dt) @ th.c + tr if th.c.any() else q
-            out.append(qt + th.s * qt * qt)
+            out.append(output_map(qt, th.s, th.t))
         return out
 
     def predict(self, th: Theta, full: bool = False) -> list[FloatArray]:
@@ -354,7 +366,7 @@ class Problem:
         return res + lam * float(np.sum((pen @ th.w) ** 2))
 
     def linearize(self, th: Theta, creep: bool) -> tuple[list[FloatArray], list[FloatArray]]:
-        """Per sweep: the design ``[w | r | c | s | log f_n | log zeta | offsets | d]`` on the
+        """Per sweep: the design ``[w | r | c | s t | log f_n | log zeta | offsets | d]`` on the
         judged samples and the known term ``y - b0`` (see the module docstring)."""
         fn, zeta = math.exp(th.log_fn), math.exp(th.log_zeta)
         n_s, step = len(self.phi), 1e-4
@@ -368,28 +380,30 @@ class Problem:
             z = self.lags(q, dt) if creep else np.zeros((q.size, 0))
             tr = tr if creep else np.zeros(q.size)
             qt = q + z @ th.c + tr if creep else q
-            m0 = 1.0 + 2.0 * th.s * qt
+            m0 = 1.0 + (2.0 * th.s + 3.0 * th.t * qt) * qt
             cp, ce, held = p, e, 0.0
             if creep and th.c.any():
                 cp = self.crept(p, q, th.c, dt, p.copy())
                 ce = self.crept(e, q, th.c, dt, e.copy())
                 held = self.crept(q, q, th.c, dt)
-            g = qt + th.s * qt * qt
+            g = output_map(qt, th.s, th.t)
             lg = rod_filter(g, fn, zeta, dt)
             rows = np.flatnonzero(m)
             k, n_z = p.shape[1], z.shape[1]
-            a = np.zeros((rows.size, k + 1 + n_z + 3 + n_s + n_d))
+            a = np.zeros((rows.size, k + 1 + n_z + MAP + 2 + n_s + n_d))
             rod_rows(cp, m0, fn, zeta, dt, rows, a, 0)
             rod_rows(ce, m0, fn, zeta, dt, rows, a, k)
             if creep:
                 rod_rows(z, m0, fn, zeta, dt, rows, a, k + 1)
             j = k + 1 + n_z
             a[:, j] = rod_filter(qt * qt, fn, zeta, dt)[m]
-            a[:, j + 1] = ((rod_filter(g, fn * math.exp(step), zeta, dt) - lg) / step)[m]
-            a[:, j + 2] = ((rod_filter(g, fn, zeta * math.exp(step), dt) - lg) / step)[m]
-            a[:, j + 3 + i] = 1.0
+            a[:, j + 1] = rod_filter(qt * qt * qt, fn, zeta, dt)[m]
+            j += MAP
+            a[:, j] = ((rod_filter(g, fn * math.exp(step), zeta, dt) - lg) / step)[m]
+            a[:, j + 1] = ((rod_filter(g, fn, zeta * math.exp(step), dt) - lg) / step)[m]
+            a[:, j + 2 + i] = 1.0
             if creep and self.n_trans[i]:
-                rod_rows(self.trans[i], m0, fn, zeta, dt, rows, a, j + 3 + n_s + d_at[i])
+                rod_rows(self.trans[i], m0, fn, zeta, dt, rows, a, j + 2 + n_s + d_at[i])
             designs.append(a)
             rhs.append(y - rod_filter(qt - m0 * (qt + held), fn, zeta, dt)[m])
         return designs, rhs

@@ -252,6 +252,7 @@ def _rod_estimates(fit: pf.PreisachFit | bf.BoucWenFit) -> list[unc.Estimate]:
             unc.Estimate("c", rod.c, float("nan"), "N s/m"),
             unc.Estimate("a1", rod.a1, float("nan"), "N/(C/m^2)"),
             unc.Estimate("a2", rod.a2, float("nan"), "N/(C/m^2)^2"),
+            unc.Estimate("a3", rod.a3, float("nan"), "N/(C/m^2)^3"),
             unc.Estimate("offset", rod.offset_um, float("nan"), "um"),
             unc.Estimate("reversible_slope", fit.model.polarization.reversible, float("nan"),
                          "(C/m^2)/(MV/m)")]

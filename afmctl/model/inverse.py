@@ -5,10 +5,11 @@ model's memory at ``k - 1``:
 
 * Algorithm 2: ``P(E_k) = P*_k``. The E-P relation of (13) is monotone (Section 3).
 * Algorithm 3: ``u_{k+d}(E_k) = u*_{k+d}``, the rod (16) advanced ``d`` samples with the force
-  ``a1 P(E_k) + a2 P(E_k)^2`` held (the second line of (18) for ``d = 1``). The paper's inequalities
-  (19) are what make this well posed: the (1,2) entry ``alpha_1`` of ``e^{A t}`` is positive, so the
-  prediction is increasing in the held force, hence (for ``a1 + 2 a2 P > 0``) in ``E_k``, even where
-  the E-u loop itself is not monotone. The sign of ``u* - u~`` (``u~`` with ``E`` held at ``E_{k-1}``)
+  ``a1 P(E_k) + a2 P(E_k)^2`` (``+ a3 P(E_k)^3``, :attr:`afmctl.model.rod.Rod.a3`) held (the second
+  line of (18) for ``d = 1``). The paper's inequalities (19) are what make this well posed: the
+  (1,2) entry ``alpha_1`` of ``e^{A t}`` is positive, so the prediction is increasing in the held
+  force, hence (for ``a1 + 2 a2 P + 3 a3 P^2 > 0``) in ``E_k``, even where the E-u loop itself is
+  not monotone. The sign of ``u* - u~`` (``u~`` with ``E`` held at ``E_{k-1}``)
   gives the direction of the field step, exactly as in Algorithm 3.
 
 The solve marches ``E`` from ``E_{k-1}`` in that direction with an adaptive step (the first step from
@@ -41,22 +42,48 @@ _NONE = np.zeros(0)  # no creep elements
 
 
 @nb.njit(cache=True)
+def _poly(g1: float, g2: float, g3: float, p: float) -> float:
+    """``g1 p + g2 p^2 + g3 p^3``: the force of (16) (with its cubic) or its prediction."""
+    return (g1 + (g2 + g3 * p) * p) * p
+
+
+@nb.njit(cache=True)
+def _root(g1: float, g2: float, g3: float, rhs: float) -> float:
+    """The root of ``_poly(g1, g2, g3, p) = rhs`` on the branch through ``p = 0`` where the slope
+    is positive (NaN if there is none): the quadratic's closed form, then Newton on the cubic."""
+    disc = g1 * g1 + 4.0 * g2 * rhs
+    if disc < 0.0:
+        return math.nan
+    p = rhs / g1 if g2 == 0.0 else (-g1 + math.sqrt(disc)) / (2.0 * g2)
+    if g3 == 0.0:
+        return p
+    for _ in range(30):
+        slope = g1 + (2.0 * g2 + 3.0 * g3 * p) * p
+        if slope <= 0.0:
+            return math.nan
+        step = (_poly(g1, g2, g3, p) - rhs) / slope
+        p -= step
+        if abs(step) <= 1e-14 * (1.0 + abs(p)):
+            return p
+    return math.nan
+
+
+@nb.njit(cache=True)
 def _predict(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray,
              wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray, c0: float,
-             g1: float, g2: float, creep: float) -> tuple[float, float]:
+             g1: float, g2: float, g3: float, creep: float) -> tuple[float, float]:
     """Prediction for field ``e`` and the hysteretic output ``P_h(e)`` (the force sees
     ``P_h + creep``, the creep part of this sample)."""
     p = _step(kind, e, dt, st, out, ec, wc, ei, cw, scal)
-    pt = p + creep
-    return c0 + g1 * pt + g2 * pt * pt, p
+    return c0 + _poly(g1, g2, g3, p + creep), p
 
 
 @nb.njit(cache=True)
 def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: float,
            e_min: float, e_max: float, dt: float, st: np.ndarray, sc: np.ndarray, ec: np.ndarray,
            wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray, c0: float, g1: float, g2: float,
-           creep: float, tol: float) -> tuple[float, float, float, float]:
-    """Field ``E`` with prediction ``c0 + g1 P(E) + g2 P(E)^2`` within ``tol`` of ``target``,
+           g3: float, creep: float, tol: float) -> tuple[float, float, float, float]:
+    """Field ``E`` with prediction ``c0 + g1 P + g2 P^2 + g3 P^3`` within ``tol`` of ``target``,
     ``P = P_h(E) + creep``.
 
     Trials start from memory ``st`` (left unchanged); the accepted trial's new memory is left in
@@ -71,7 +98,7 @@ def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: 
     eb = min(max(ea + direction * max(abs(fa) / slope, 1e-12), e_min), e_max)
     if abs(fa) <= tol:
         eb = e0
-    yb, pb = _predict(kind, eb, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2, creep)
+    yb, pb = _predict(kind, eb, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2, g3, creep)
     fb = yb - target
     bracketed = False
     side = 0
@@ -88,7 +115,7 @@ def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: 
             ec_ = eb - fb * (eb - ea) / (fb - fa)
             if not (min(ea, eb) < ec_ < max(ea, eb)):
                 ec_ = 0.5 * (ea + eb)
-        yc, pc = _predict(kind, ec_, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2, creep)
+        yc, pc = _predict(kind, ec_, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2, g3, creep)
         fc = yc - target
         if bracketed:
             if fc * fb < 0.0:
@@ -107,7 +134,7 @@ def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: 
 def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: np.ndarray,
                 st: np.ndarray, dt: float, ec: np.ndarray, wc: np.ndarray, ei: np.ndarray,
                 cw: np.ndarray, scal: np.ndarray, phi: np.ndarray, gam: np.ndarray,
-                row: np.ndarray, gain: float, a1: float, a2: float, offset: float,
+                row: np.ndarray, gain: float, a1: float, a2: float, a3: float, offset: float,
                 floor: float, e_min: float, e_max: float, tol: float, ca: np.ndarray,
                 cc: np.ndarray, cr_: np.ndarray, z: np.ndarray, keep: int, st_kept: np.ndarray,
                 x_kept: np.ndarray, z_kept: np.ndarray
@@ -125,7 +152,7 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
     err = np.empty(n)
     sc = np.empty_like(st)
     e_prev, p_prev, slope = e_init, p_init, floor
-    g1, g2 = gain * a1 * 1e6, gain * a2 * 1e6
+    g1, g2, g3 = gain * a1 * 1e6, gain * a2 * 1e6, gain * a3 * 1e6
     lin, off = scal[5] / scal[0], scal[6] / scal[0]
     lo, hi = _quiet_band(kind, st, ec, ei) if banded(kind) else (0.0, -1.0)
     p_switch = p_init - (e_init * lin + off)
@@ -136,29 +163,24 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
         for j in range(cc.size):
             creep += cc[j] * z[j]
         # inside the quiet band P(E) = lin E + off + p_switch: solve the force law exactly
-        disc = g1 * g1 - 4.0 * g2 * (c0 - target[k])
-        e = math.nan
-        if disc >= 0.0:
-            p = (target[k] - c0) / g1 if g2 == 0.0 else (-g1 + math.sqrt(disc)) / (2.0 * g2)
-            p -= creep
-            e = (p - off - p_switch) / lin
+        p = _root(g1, g2, g3, target[k] - c0) - creep
+        e = (p - off - p_switch) / lin
         if lo < e < hi and e_min <= e <= e_max:
             err[k] = 0.0
         else:
             if kind == 2:  # u~ with the field held at E_{k-1}: thermally active dipoles go
-                y0 = _predict(kind, e_prev, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2,
+                y0 = _predict(kind, e_prev, dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2, g3,
                               creep)[0]
             else:  # on switching (creep) while it is held; a relay's P stays put
-                pt = p_prev + creep
-                y0 = c0 + g1 * pt + g2 * pt * pt
+                y0 = c0 + _poly(g1, g2, g3, p_prev + creep)
             e, p, err[k], slope = _solve(kind, target[k], e_prev, y0, slope, floor, e_min, e_max,
-                                         dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2, creep, tol)
+                                         dt, st, sc, ec, wc, ei, cw, scal, c0, g1, g2, g3, creep,
+                                         tol)
             st[:] = sc  # commit the accepted trial's memory
             if banded(kind):
                 lo, hi = _quiet_band(kind, st, ec, ei)
                 p_switch = p - (e * lin + off)
-        pt = p + creep
-        f = a1 * pt + a2 * pt * pt
+        f = _poly(a1, a2, a3, p + creep)
         x0 = phi[0, 0] * x[0] + phi[0, 1] * x[1] + gam[0] * f
         x[1] = phi[1, 0] * x[0] + phi[1, 1] * x[1] + gam[1] * f
         x[0] = x0
@@ -218,7 +240,7 @@ def algorithm2(params: hy.Polarization, p_target: FloatArray, state: hy.Polariza
     x = np.zeros(2)
     e, _, w = _algorithm3(k.kind, np.ascontiguousarray(p_target, dtype=float), e_init, p0[0], x, st,
                           dt, k.ec, k.wc, k.ei, k.cw, k.scal, np.eye(2), np.zeros(2),
-                          np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.5 / params.eta,
+                          np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.0, 0.5 / params.eta,
                           -e_max if e_min is None else e_min, e_max, tol, _NONE, _NONE, _NONE,
                           _NONE, -1, _NONE, _NONE, _NONE)
     p_out, _ = hy.run(k, e, state, dt)
@@ -282,12 +304,12 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
     ca = _NONE if creep is None else creep.factors(cm.dt)
     cc = _NONE if creep is None else np.asarray(creep.weights, dtype=float)
     cth = _NONE if creep is None else np.asarray(creep.thresholds, dtype=float)
-    dfdp = abs(rod.a1 + 2 * rod.a2 * (p0[0] + cr.offset(creep, z))) or abs(rod.a1)
+    dfdp = abs(rod.force_slope(float(p0[0]) + cr.offset(creep, z))) or abs(rod.a1)
     floor = 0.5 * gain * dfdp * 1e6 / cm.model.polarization.eta
     kept = (np.empty_like(st), np.empty_like(x), np.empty_like(z))
     e, pred, w = _algorithm3(cm.kernel.kind, target, e_init, p0[0], x, st, cm.dt, cm.kernel.ec,
                              cm.kernel.wc, cm.kernel.ei, cm.kernel.cw, cm.kernel.scal,
-                             cm.disc.phi, cm.disc.gamma, row, gain, rod.a1, rod.a2, rod.offset_um,
+                             cm.disc.phi, cm.disc.gamma, row, gain, rod.a1, rod.a2, rod.a3, rod.offset_um,
                              floor, -e_max if e_min is None else e_min, e_max, tol_um, ca, cc,
                              cth, z, -1 if keep is None else keep, *kept)
     at = None

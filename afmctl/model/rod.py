@@ -1,6 +1,7 @@
 """Lumped model of the stacked PZT rod, eqs. (16)-(18) of Hatch, Smith et al.
 
-``m u'' + c u' + k u = a1 P(E) + a2 P(E)^2``  (16), written as ``x' = A x + B f`` (17) with
+``m u'' + c u' + k u = a1 P(E) + a2 P(E)^2``  (16) (and, beyond the paper, ``+ a3 P(E)^3``: see
+:attr:`Rod.a3`), written as ``x' = A x + B f`` (17) with
 ``x = [u, u']``. The displacement ``u`` is returned in um; internally SI (m, kg, N, s).
 
 The forcing is held constant over each sample (the DAQ's zero-order hold), so the exact
@@ -38,6 +39,12 @@ class Rod:
         Linear piezoelectric coupling ``A a_1``, N/(C/m^2).
     a2 : float
         Quadratic electrostrictive coupling ``A a_2``, N/(C/m^2)^2.
+    a3 : float
+        Cubic coupling, N/(C/m^2)^3: not in (16), which is 0 here. A Preisach-type operator
+        followed by a static map that is not affine (a modified Prandtl-Ishlinskii stage's
+        polynomial output map) has minor loops of a width that varies along the loop in a way
+        the quadratic alone cannot follow; the Preisach grid's fit (:mod:`afmctl.fit.preisach`)
+        identifies it.
     offset_um : float
         Sensor zero: displacement reported when u = 0, um.
     """
@@ -47,6 +54,7 @@ class Rod:
     k: float
     a1: float
     a2: float = 0.0
+    a3: float = 0.0
     offset_um: float = 0.0
 
     @property
@@ -59,8 +67,12 @@ class Rod:
         return float(self.c / (2 * np.sqrt(self.k * self.m)))
 
     def force(self, p: FloatArray) -> FloatArray:
-        """Right-hand side of (16), N, for polarization ``p`` in C/m^2."""
-        return self.a1 * p + self.a2 * p * p
+        """Right-hand side of (16) (with the cubic ``a3``), N, for polarization ``p`` in C/m^2."""
+        return self.a1 * p + (self.a2 + self.a3 * p) * p * p
+
+    def force_slope(self, p: float) -> float:
+        """``d force / d P`` at ``p`` (C/m^2), N/(C/m^2)."""
+        return self.a1 + (2.0 * self.a2 + 3.0 * self.a3 * p) * p
 
 
 @dataclass(frozen=True)

@@ -128,7 +128,10 @@ def test_preisach_grid_and_creep_round_trip_as_version_3(nominal: Transducer,
     modelfile.write(m, path)
     assert "format_version = 3" in path.read_text() and modelfile.read(path) == m
     modelfile.write(nominal, path)  # the paper's model is still written as version 2
-    assert "format_version = 2" in path.read_text()
+    assert "format_version = 2" in path.read_text() and "a3_N" not in path.read_text()
+    cubic = dc.replace(m, rod=dc.replace(m.rod, a3=463.4))  # the force's cubic, written and read
+    modelfile.write(cubic, path)
+    assert "a3_N_per_C3_m6 = 463.4" in path.read_text() and modelfile.read(path) == cubic
 
 
 @pytest.mark.parametrize(("old", "new", "match"), [
