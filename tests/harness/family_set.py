@@ -1,6 +1,6 @@
 """The identification set of ``afmctl sweep --design reversals`` recorded on an independently
 written out-of-family stage (:mod:`afmctl.drivers.device.foreign.family_stage`), in sequence, with
-its gauge noise: the three standard triangles and the reversal curves."""
+its gauge noise: the three standard triangles and the reversal curves (with the interior loops)."""
 
 from __future__ import annotations
 

@@ -175,8 +175,8 @@ def test_every_sweep_ends_exactly_where_it_started(v_range: tuple[float, float])
 @pytest.mark.parametrize("v_range", [(0.0, 150.0), (-30.0, 150.0), (-150.0, 150.0)])
 def test_reversals_design_adds_first_order_reversal_curves(v_range: tuple[float, float]) -> None:
     """The standard set and one sweep from each end of the range to 7 voltages evenly inside it
-    and back, at the 5.58 Hz triangle's slew (or half the amplifier's, if slower), starting and
-    ending at the safe output."""
+    and back, then the interior loops, at the 5.58 Hz triangle's slew (or half the amplifier's,
+    if slower), starting and ending at the safe output."""
     rate, max_rate = 10_000.0, 1.5e3
     out = sd.design_set("reversals", rate, max_rate, v_range)
     assert [n for n, _, _, _ in out][:4] == [n for n, _, _ in sd.standard_set(
@@ -187,8 +187,33 @@ def test_reversals_design_adds_first_order_reversal_curves(v_range: tuple[float,
     assert name == "reversals" and meta["design"] == "reversals"
     assert v[0] == v0 and v[-1] == v0 and v.min() == lo and v.max() == hi
     assert np.max(np.abs(np.diff(v))) * rate <= sd.SLEW_USE * max_rate * (1 + 1e-9)
-    d = np.sign(np.diff(v))
-    turns = v[1:-1][d[1:] != d[:-1]]
+    curves = sd.reversal_curves(v_range, rate, sd.SLEW_USE * max_rate)
+    np.testing.assert_array_equal(v[:curves.size], curves)
+    np.testing.assert_array_equal(v[curves.size - 1:],
+                                  sd.interior_loops(v_range, rate, sd.SLEW_USE * max_rate))
+    d = np.sign(np.diff(curves))
+    turns = curves[1:-1][d[1:] != d[:-1]]
     inner = lo + (hi - lo) * np.arange(1, 8) / 8
     for u in inner:  # each level reversed at twice: coming up from v_lo and down from v_hi
         assert np.sum(np.isclose(turns, u)) == 2
+
+
+@pytest.mark.parametrize("v_range", [(0.0, 150.0), (-30.0, 150.0), (-150.0, 150.0)])
+def test_interior_loops_turn_above_and_below_each_centre_ever_closer(
+        v_range: tuple[float, float]) -> None:
+    """From and back to the safe output at the given slew; every node a turn, 7 about each
+    centre (0.5, 0.3, 0.7 of the range), on alternate sides, each nearer the centre than the
+    last; all but the first of each centre strictly inside the range."""
+    lo, hi = v_range
+    v0 = min(max(0.0, lo), hi)
+    v = sd.interior_loops(v_range, 1000.0, 3000.0)
+    assert v[0] == v0 and v[-1] == v0
+    assert np.max(np.abs(np.diff(v))) <= 3.0 * (1 + 1e-9)
+    d = np.sign(np.diff(v))
+    turns = v[1:-1][d[1:] != d[:-1]]
+    assert turns.size == 3 * sd.INTERIOR_REVERSALS
+    for g, (centre, _) in enumerate(sd.INTERIOR_CENTRES):
+        off = (turns[7 * g:7 * (g + 1)] - lo) / (hi - lo) - centre
+        assert np.all(np.diff(np.sign(off)) != 0)  # alternate sides
+        assert np.all(np.diff(np.abs(off)) < 0)  # ever closer
+        assert np.all((turns[7 * g + 1:7 * (g + 1)] > lo) & (turns[7 * g + 1:7 * (g + 1)] < hi))
