@@ -173,6 +173,13 @@ def _ramp(v0: float, v1: float, rate_v_per_s: float, sample_rate_hz: float) -> F
     return out
 
 
+def _through(nodes: list[float], rate_v_per_s: float, sample_rate_hz: float) -> FloatArray:
+    """Ramps at one slew from ``nodes[0]`` through each node in turn (``nodes[0]`` included)."""
+    parts = [np.full(1, nodes[0])] + [_ramp(a, b, rate_v_per_s, sample_rate_hz)
+                                      for a, b in zip(nodes[:-1], nodes[1:], strict=True) if a != b]
+    return np.concatenate(parts)
+
+
 def multisine(bias_v: float, amplitude_v: float, max_rate_v_per_s: float, duration_s: float,
               sample_rate_hz: float, tones: int = 4) -> FloatArray:
     """Sines at ``tones`` frequencies spaced by 3x up to ``MULTISINE_TOP`` of the sample rate, each an
@@ -294,9 +301,7 @@ def reversal_curves(v_range: tuple[float, float], sample_rate_hz: float, rate_v_
     for b in inner[::-1]:
         nodes += [float(b), hi]
     nodes.append(v0)
-    parts = [np.full(1, v0)] + [_ramp(a, b, rate_v_per_s, sample_rate_hz)
-                                for a, b in zip(nodes[:-1], nodes[1:], strict=True) if a != b]
-    return np.concatenate(parts)
+    return _through(nodes, rate_v_per_s, sample_rate_hz)
 
 
 def interior_loops(v_range: tuple[float, float], sample_rate_hz: float, rate_v_per_s: float
@@ -332,9 +337,7 @@ def interior_loops(v_range: tuple[float, float], sample_rate_hz: float, rate_v_p
             above = len(nodes) % 2 == 1  # every node a turn, also from one centre to the next
             nodes.append(min(max(lo + (hi - lo) * (centre + (a if above else -a)), lo), hi))
     nodes.append(v0)
-    parts = [np.full(1, v0)] + [_ramp(a, b, rate_v_per_s, sample_rate_hz)
-                                for a, b in zip(nodes[:-1], nodes[1:], strict=True) if a != b]
-    return np.concatenate(parts)
+    return _through(nodes, rate_v_per_s, sample_rate_hz)
 
 
 def segments_text(segments: tuple[Segment, ...], sample_rate_hz: float) -> str:
