@@ -110,6 +110,10 @@ def test_learning_both_axes_reaches_near_the_noise_and_replays(nominal: Profile,
     got = scanlearn.learn_then_scan(plant(nominal), s, 2, tmp_path, {}, None, None, runs)
     first, best = got.runs[0].merit["over_noise"], got.runs[got.best].merit["over_noise"]
     assert best < first / 4
+    # frame 0 after its conditioning pass, which is kept but not judged
+    assert runfile.read(tmp_path / "run_condition.csv").complete
+    assert got.runs[0].run_file.name == "run_learn00.csv" and "condition" not in {
+        r.filter for r in runs}
     assert got.noise_um["x"] == pytest.approx(0.02, rel=0.3)
     replay = runs[-1]
     assert replay.filter == "learned"
