@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -127,6 +128,38 @@ def test_a_bipolar_stage_with_a_lightly_damped_rod_is_fitted_and_judged_at_its_n
     assert np.sqrt(rod.k / rod.m) / (2 * np.pi) == pytest.approx(2000.0, rel=0.05)
 
 
+def recorded(stage: Any, designs: dict[str, np.ndarray], rate: float,
+             rng: np.random.Generator) -> dict[str, sw.Sweep]:
+    """The family plant's ``stage`` played ``designs`` (V) in turn from its power-on at ``rate``
+    (Hz), each reading with its gauge noise."""
+    from afmctl.drivers.device.foreign import family_stage as fs
+
+    state = fs.initial_state(stage)
+    sweeps = {}
+    for name, v in designs.items():
+        _, reading, state = fs.run(stage, v, rate, state)
+        sweeps[name] = sw.from_arrays(v, reading + rng.normal(0.0, stage.noise_um, v.size), rate,
+                                      {"layer_thickness_um": "100"}, path=name)
+    return sweeps
+
+
+def minor_loop_errors(sweeps: dict[str, sw.Sweep], sets: dict[str, list[str]], noise_um: float
+                      ) -> tuple[dict[str, float], dict[str, float]]:
+    """For each set of sweeps the grid is fitted to (from ``positive``, in sequence): the RMS of
+    its prediction of the ``minor`` sweep (played after them) and its worst sweep's, both over
+    the noise."""
+    errors, worst = {}, {}
+    for label, names in sets.items():
+        used = [sweeps[n] for n in names]
+        fit = pf.fit(data_of(used), [("positive",) + ("previous",) * (len(used) - 1)],
+                     (3000.0, 0.3), 100.0, 0.05)
+        pred = idf.predict_set(fit.model, [*used, sweeps["minor"]],
+                               [*fit.starts, "previous"], [*fit.offsets, 0.0])[-1]
+        errors[label] = float(np.std(sweeps["minor"].displacement_um - pred)) / noise_um
+        worst[label] = float(np.max(fit.insample_over_noise))
+    return errors, worst
+
+
 def test_reversal_curves_let_the_grid_predict_a_minor_loop_it_never_saw() -> None:
     """On the family plant's unipolar Preisach stage (non-separable, off-centre density), a grid
     fitted to full-range triangles alone knows the major loop only: a 50 <-> 117 V loop (a
@@ -147,22 +180,12 @@ def test_reversal_curves_let_the_grid_predict_a_minor_loop_it_never_saw() -> Non
                "minor": np.concatenate((np.linspace(0.0, 50.0, 835)[1:],
                                         50.0 + sd.loop(1.0, 0.0, 67.0, 2, rate)[1:],
                                         np.linspace(50.0, 0.0, 835)[1:]))}
-    state = fs.initial_state(stage)
-    sweeps = {}
-    for name, v in designs.items():
-        _, reading, state = fs.run(stage, v, rate, state)
-        sweeps[name] = sw.from_arrays(v, reading + rng.normal(0.0, stage.noise_um, v.size), rate,
-                                      {"layer_thickness_um": "100"}, path=name)
-    errors = {}
-    for label, names in (("triangles", ["tri_1Hz", "tri_5.58Hz"]),
-                         ("with reversals", ["tri_1Hz", "tri_5.58Hz", "reversals"])):
-        used = [sweeps[n] for n in names]
-        fit = pf.fit(data_of(used), [("positive",) + ("previous",) * (len(used) - 1)],
-                     (3000.0, 0.3), 100.0, 0.05)
-        assert np.max(fit.insample_over_noise) < 1.3, label
-        pred = idf.predict_set(fit.model, [*used, sweeps["minor"]],
-                               [*fit.starts, "previous"], [*fit.offsets, 0.0])[-1]
-        errors[label] = float(np.std(sweeps["minor"].displacement_um - pred)) / stage.noise_um
+    sweeps = recorded(stage, designs, rate, rng)
+    errors, worst = minor_loop_errors(sweeps, {"triangles": ["tri_1Hz", "tri_5.58Hz"],
+                                               "with reversals": ["tri_1Hz", "tri_5.58Hz",
+                                                                  "reversals"]},
+                                      stage.noise_um)
+    assert max(worst.values()) < 1.3, worst
     assert rep.interior_reversals([sweeps[n] for n in ("tri_1Hz", "tri_5.58Hz")]) == 0
     assert rep.interior_reversals([sweeps["reversals"]]) == 21
     assert errors["with reversals"] < 3.0, errors
@@ -192,23 +215,11 @@ def test_interior_loops_and_the_cubic_let_the_grid_predict_a_prandtl_ishlinskii_
                "minor": np.concatenate((np.linspace(0.0, 35.0, 600)[1:],
                                         35.0 + sd.loop(1.0, 0.0, 65.0, 2, rate)[1:],
                                         np.linspace(35.0, 0.0, 600)[1:]))}
-    state = fs.initial_state(stage)
-    sweeps = {}
-    for name, v in designs.items():
-        _, reading, state = fs.run(stage, v, rate, state)
-        sweeps[name] = sw.from_arrays(v, reading + rng.normal(0.0, stage.noise_um, v.size), rate,
-                                      {"layer_thickness_um": "100"}, path=name)
-    errors = {}
-    for label, names in (("curves", ["tri_1Hz", "tri_5.58Hz", "curves"]),
-                         ("interior", ["tri_1Hz", "tri_5.58Hz", "curves", "interior"])):
-        used = [sweeps[n] for n in names]
-        fit = pf.fit(data_of(used), [("positive",) + ("previous",) * (len(used) - 1)],
-                     (3000.0, 0.3), 100.0, 0.05)
-        pred = idf.predict_set(fit.model, [*used, sweeps["minor"]],
-                               [*fit.starts, "previous"], [*fit.offsets, 0.0])[-1]
-        errors[label] = float(np.std(sweeps["minor"].displacement_um - pred)) / stage.noise_um
-        worst = float(np.max(fit.insample_over_noise))
-    assert errors["interior"] < 1.5 * worst, (errors, worst)
+    sweeps = recorded(stage, designs, rate, rng)
+    errors, worst = minor_loop_errors(sweeps, {"curves": ["tri_1Hz", "tri_5.58Hz", "curves"],
+                                               "interior": ["tri_1Hz", "tri_5.58Hz", "curves",
+                                                            "interior"]}, stage.noise_um)
+    assert errors["interior"] < 1.5 * worst["interior"], (errors, worst)
     assert errors["curves"] > 1.5 * errors["interior"], errors
 
 
