@@ -306,10 +306,11 @@ def reversal_curves(v_range: tuple[float, float], sample_rate_hz: float, rate_v_
 
 def interior_loops(v_range: tuple[float, float], sample_rate_hz: float, rate_v_per_s: float
                    ) -> FloatArray:
-    """Reversals with both ends inside the range, at one constant slew, from and back to the safe
-    output ``v0``: about each of :data:`INTERIOR_CENTRES` (shares of the range) an oscillation of
-    :data:`INTERIOR_REVERSALS` reversals, above and below the centre in turn, whose half-amplitude
-    shrinks linearly to :data:`INTERIOR_LAST` of the range (higher-order reversal curves).
+    """Reversals inside the range, at one constant slew, from and back to the safe output
+    ``v0`` (the first of each centre may touch an end of the range): about each of
+    :data:`INTERIOR_CENTRES` (shares of the range) an oscillation of :data:`INTERIOR_REVERSALS`
+    reversals, above and below the centre in turn, whose half-amplitude shrinks linearly to
+    :data:`INTERIOR_LAST` of the range (higher-order reversal curves).
 
     First-order reversal curves fix a Preisach operator's density, but not a static map after
     it: any family of such curves is some Preisach operator's, so a stage whose force is not
@@ -318,7 +319,8 @@ def interior_loops(v_range: tuple[float, float], sample_rate_hz: float, rate_v_p
     The two differ on loops whose two ends both lie inside the range (the map makes them
     non-congruent): a raster's fast line, a tracking triangle. On the family plant's unipolar
     Prandtl-Ishlinskii stage a 0.279 Hz triangle over 45 % of the span was tracked at 7x the
-    noise from the first-order curves alone, 1.6x with these loops (docs/results/track.md).
+    noise from the first-order curves alone, 1.6x with these loops and the force's cubic
+    (:attr:`afmctl.model.rod.Rod.a3`; either alone 4.5x and 8x: docs/results/track.md).
 
     Returns the voltage, V, at ``sample_rate_hz``, each step at most ``rate_v_per_s /
     sample_rate_hz``.
