@@ -111,6 +111,14 @@ def _warn_few_reversals(result: Any) -> None:
                    f"voltage(s) inside their range: minor loops inside it are the smoothing's "
                    f"guess; record `afmctl sweep --design reversals` (reversal curves) and "
                    f"identify with them", err=True)
+    grid = result.representations.get("preisach", {})
+    if result.representation == "preisach" and grid.get("force_cubic_fitted") is False:
+        click.echo(f"note: the force's cubic a3 P^3 is held at 0: the sweeps run "
+                   f"{grid['interior_loops']} loop(s) with both ends inside their range, and "
+                   f"first-order reversal curves alone fit as well with any cubic; a stage whose "
+                   f"displacement is not quadratic in its hysteresis (a modified Prandtl-"
+                   f"Ishlinskii stage) needs `afmctl sweep --design reversals` (interior loops)",
+                   err=True)
 
 
 def _warn_above_floor(result: Any) -> None:

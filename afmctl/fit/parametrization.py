@@ -82,6 +82,30 @@ def turning_points(x: FloatArray) -> NDArray[np.intp]:
     return np.unique(np.concatenate(([0, x.size - 1], flips)))
 
 
+def significant_extremes(x: FloatArray, share: float = 0.01) -> list[float]:
+    """The values ``x`` starts at, reverses at and ends at, counting only reversals by more than
+    ``share`` of its range (noise on a recorded voltage makes none).
+
+    Examples
+    --------
+    >>> significant_extremes(np.array([0.0, 5.0, 4.99, 5.0, 10.0, 3.0, 7.0]))
+    [0.0, 10.0, 3.0, 7.0]
+    """
+    tol = share * float(np.ptp(x))
+    ext = x[turning_points(x)]
+    out, last, rising = [float(ext[0])], float(ext[0]), None
+    for v in (float(e) for e in ext[1:]):
+        if rising is not False and v < last - tol:
+            out += [last] if rising else []
+            last, rising = v, False
+        elif rising is not True and v > last + tol:
+            out += [last] if rising is False else []
+            last, rising = v, True
+        elif (rising and v > last) or (rising is False and v < last):
+            last = v
+    return out + [last]
+
+
 def decimation(field: FloatArray, step: float) -> NDArray[np.intp]:
     """Samples on which to evaluate the hysteresis: every turning point, both ends of every hold
     (a constant field), and one whenever the accumulated field variation has grown by ``step``

@@ -225,6 +225,7 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
             damp = 0.0 if fresh else mu
             trial = _unpack(bounded_solve(g + damp * np.diag(diag), h + damp * diag * x0,
                                           n_bounded), th, creep, rod)
+            trial.t = trial.t if prob.cubic else 0.0  # its column is 0 (CUBIC_LOOPS)
             trial.log_fn = _clamp(trial.log_fn, th.log_fn, prob.fn_bounds)
             trial.log_zeta = _clamp(trial.log_zeta, th.log_zeta, ZETA_BOUNDS)
             c_new = prob.cost(trial, pen, lam)
@@ -608,6 +609,9 @@ def scalar_uncertainty(prob: Problem, th: Theta, creep: bool) -> dict[str, Any]:
                  for t in prob.taus[:n]] if creep else []))
     p = np.concatenate(([th.r], th.c if creep else [], [th.s, th.t, th.log_fn, th.log_zeta],
                         th.offsets, th.d if creep else []))
+    if not prob.cubic:  # held at 0, not estimated (CUBIC_LOOPS)
+        at = names.index("t_per_um2")
+        names, p, a = names[:at] + names[at + 1:], np.delete(p, at), np.delete(a, at, axis=1)
     s2 = float(res @ res) / max(1, res.size - k - p.size)
     cov = s2 * np.linalg.pinv(a.T @ a)
     out = unc.summary(names, p, cov)

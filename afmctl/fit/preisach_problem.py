@@ -48,6 +48,17 @@ FOLDS = 4
 TRANSIENT_SPAN = 0.0
 #: Coefficients of the output map ``g`` beyond its unit slope: ``s`` and ``t``.
 MAP = 2
+#: The map's cubic ``t`` is fitted only from a set with at least this many interior loops
+#: (:func:`interior_loops`): first-order reversal curves fit as well with any map, the density
+#: warped to make up for it, so without loops inside the range ``t`` is not pinned (on a Preisach
+#: stage it took tracking from 0.016 to 0.118 um while the fit stayed at 1.07x its noise). Below
+#: it ``t`` stays 0, the paper's force (16).
+CUBIC_LOOPS = 4
+#: A loop is interior when both its ends lie farther than this share of the set's field range
+#: from either end of it ...
+INTERIOR_EDGE = 0.1
+#: ... and it spans more than this share of the range.
+INTERIOR_SPAN = 0.04
 
 
 @dataclass(frozen=True)
@@ -239,6 +250,31 @@ def output_map(q: FloatArray, s: float, t: float) -> FloatArray:
     return q + (s + t * q) * q * q
 
 
+def interior_loops(fields: Sequence[FloatArray]) -> int:
+    """How many branches of the sweeps run between two reversals that both lie inside the set's
+    range (:data:`INTERIOR_EDGE`, :data:`INTERIOR_SPAN`): the minor loops whose two ends differ
+    from any first-order reversal curve's, which alone tell the map behind a Preisach operator
+    from a warped density.
+
+    Examples
+    --------
+    >>> forc = np.interp(np.arange(50), [0, 10, 20, 30, 40, 49], [0, 10, 3, 10, 6, 10])
+    >>> inner = np.interp(np.arange(50), [0, 10, 20, 30, 40, 49], [0, 10, 3, 7, 4, 10])
+    >>> interior_loops([forc]), interior_loops([forc, inner])
+    (0, 2)
+    """
+    lo = min(float(np.min(f)) for f in fields)
+    hi = max(float(np.max(f)) for f in fields)
+    span = max(hi - lo, 1e-300)
+    count = 0
+    for f in fields:
+        ext = (np.array(pz.significant_extremes(np.asarray(f, float))) - lo) / span
+        inside = (ext > INTERIOR_EDGE) & (ext < 1.0 - INTERIOR_EDGE)
+        count += int(np.sum(inside[1:-1][:-1] & inside[2:-1]
+                            & (np.abs(np.diff(ext[1:-1])) > INTERIOR_SPAN)))
+    return count
+
+
 @dataclass
 class Theta:
     """A point of the fit: weights (um), reversible slope (um per MV/m), creep weights, the
@@ -274,6 +310,8 @@ class Problem:
 
     def __init__(self, data: Data, grid: Grid, starts: Sequence[str], taus: Sequence[float]):
         self.data, self.grid, self.starts = data, grid, tuple(starts)
+        #: whether the map's cubic is fitted (:data:`CUBIC_LOOPS`); else its column is 0
+        self.cubic = interior_loops(data.fields) >= CUBIC_LOOPS
         self.taus = np.asarray(taus, float)
         self.set_thresholds((0.0,))
         self.trans = []
@@ -397,7 +435,8 @@ class Problem:
                 rod_rows(z, m0, fn, zeta, dt, rows, a, k + 1)
             j = k + 1 + n_z
             a[:, j] = rod_filter(qt * qt, fn, zeta, dt)[m]
-            a[:, j + 1] = rod_filter(qt * qt * qt, fn, zeta, dt)[m]
+            if self.cubic:
+                a[:, j + 1] = rod_filter(qt * qt * qt, fn, zeta, dt)[m]
             j += MAP
             a[:, j] = ((rod_filter(g, fn * math.exp(step), zeta, dt) - lg) / step)[m]
             a[:, j + 1] = ((rod_filter(g, fn, zeta * math.exp(step), dt) - lg) / step)[m]

@@ -39,6 +39,7 @@ from afmctl.files.sweepfile import Sweep
 from afmctl.fit import boucwen as bf
 from afmctl.fit import closure
 from afmctl.fit import preisach as pf
+from afmctl.fit import preisach_problem as pp
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.parametrization import rod_of, turning_points
 from afmctl.model import boucwen as bm
@@ -147,8 +148,11 @@ class Grid:
                     "blocks from the full fit (about ten parameters: optimism ~ p/N)",
                     "per_sweep_over_noise": [s.rms_over_noise for s in hem.sweeps]}}
         if grid is not None:
+            loops = pp.interior_loops([s.voltage_v for s in self.sweeps])
             figures["preisach"] = {**_grid_figures(grid, self.noise),
-                                   "interior_reversals": interior_reversals(self.sweeps)}
+                                   "interior_reversals": interior_reversals(self.sweeps),
+                                   "interior_loops": loops,
+                                   "force_cubic_fitted": loops >= pp.CUBIC_LOOPS}
         figures["bouc_wen"] = (bf.figures(bw, self.noise) if bw is not None else
                                {"skipped": "the minor loops close (or none returns): a "
                                 "Preisach-type stage" if loops is not False else "not fitted"})
@@ -252,7 +256,8 @@ def _rod_estimates(fit: pf.PreisachFit | bf.BoucWenFit) -> list[unc.Estimate]:
             unc.Estimate("c", rod.c, float("nan"), "N s/m"),
             unc.Estimate("a1", rod.a1, float("nan"), "N/(C/m^2)"),
             unc.Estimate("a2", rod.a2, float("nan"), "N/(C/m^2)^2"),
-            unc.Estimate("a3", rod.a3, float("nan"), "N/(C/m^2)^3"),
+            unc.Estimate("a3", rod.a3, 0.0 if rod.a3 == 0.0 else float("nan"), "N/(C/m^2)^3",
+                         fixed=rod.a3 == 0.0),  # held at 0: Bouc-Wen, or no interior loops
             unc.Estimate("offset", rod.offset_um, float("nan"), "um"),
             unc.Estimate("reversible_slope", fit.model.polarization.reversible, float("nan"),
                          "(C/m^2)/(MV/m)")]

@@ -129,17 +129,7 @@ def excitation(s: XYSweep, axis: str) -> bool:
 def significant_turns(v: FloatArray, share: float = 0.01) -> int:
     """Reversals of ``v`` by more than ``share`` of its range (noise on a recorded voltage does
     not count)."""
-    tol = share * float(np.ptp(v))
-    ext = v[pz.turning_points(v)]
-    turns, last, rising = 0, float(ext[0]), None
-    for x in ext[1:]:
-        if rising is not False and x < last - tol:
-            turns, last, rising = turns + (rising is True), float(x), False
-        elif rising is not True and x > last + tol:
-            turns, last, rising = turns + (rising is False), float(x), True
-        elif (rising and x > last) or (rising is False and x < last):
-            last = float(x)
-    return turns
+    return len(pz.significant_extremes(v, share)) - 2
 
 
 def reference_um(sweeps: Sequence[XYSweep], target: str) -> float:

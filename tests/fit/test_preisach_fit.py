@@ -91,9 +91,14 @@ def test_identify_chooses_the_grid_and_reaches_the_noise_floor(
     # interior, and identify says which sweep design would give it the rest
     assert figures["preisach"]["interior_reversals"] == 2
     assert "--design reversals" in stderr
+    # and no loop has both ends inside the range: the force's cubic is held at 0, and said so
+    assert figures["preisach"]["interior_loops"] == 0
+    assert figures["preisach"]["force_cubic_fitted"] is False
+    assert "a3 P^3 is held at 0" in stderr
     assert all(s["rms_over_noise"] <= 1.5 for s in doc["sweeps"])
     model = modelfile.read(path)
     assert isinstance(model.polarization, pr.PreisachGrid) and model.creep is not None
+    assert model.rod.a3 == 0.0
     assert model.creep.per_decade() == pytest.approx(0.015, rel=0.35)  # as the plant creeps
 
 
@@ -193,16 +198,17 @@ def test_reversal_curves_let_the_grid_predict_a_minor_loop_it_never_saw() -> Non
 
 
 @pytest.mark.slow
-def test_interior_loops_and_the_cubic_let_the_grid_predict_a_prandtl_ishlinskii_minor_loop(
-        ) -> None:
+def test_the_cubic_is_fitted_only_where_interior_loops_pin_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     """On the family plant's unipolar Prandtl-Ishlinskii stage (twelve plays, a cubic output
-    map), a 35 <-> 100 V loop that no sweep made: first-order reversal curves leave the output
-    map to the smoothing (any family of them is some Preisach operator's), the interior loops of
-    ``afmctl sweep --design reversals`` pin it (their loops are not congruent under a map that is
-    not affine), and the grid's cubic term follows it: the loop is then predicted about as well
-    as the sweeps are fitted (5.3 -> 2.7x the noise; the fit itself is 1.7-2.5x on its sweeps,
-    the plays' kinks finer than the grid's coefficients)."""
+    map), a 35 <-> 100 V loop that no sweep made. First-order reversal curves leave the output
+    map to the smoothing (any family of them is some Preisach operator's): fitted free there, the
+    grid's cubic term warps the loop (5.3x the noise), so without loops whose both ends lie inside
+    the range it is held at 0 (2.9x). With the interior loops of ``afmctl sweep --design
+    reversals`` it is fitted (2.7x) and the loop is predicted about as well as the sweeps are
+    fitted (1.7-2.5x, the plays' kinks finer than the grid's coefficients)."""
     from afmctl.drivers.device.foreign import family_stage as fs
+    from afmctl.fit import preisach_problem as pp
 
     rng = np.random.default_rng(5)
     stage = fs.random_family_stage(rng, "prandtl-ishlinskii", (0.0, 150.0), resonance_hz=3000.0,
@@ -215,12 +221,17 @@ def test_interior_loops_and_the_cubic_let_the_grid_predict_a_prandtl_ishlinskii_
                "minor": np.concatenate((np.linspace(0.0, 35.0, 600)[1:],
                                         35.0 + sd.loop(1.0, 0.0, 65.0, 2, rate)[1:],
                                         np.linspace(35.0, 0.0, 600)[1:]))}
+    curves = ["tri_1Hz", "tri_5.58Hz", "curves"]
+    assert pp.interior_loops([designs[k] for k in curves]) == 0
+    assert pp.interior_loops([designs["interior"]]) >= pp.CUBIC_LOOPS
     sweeps = recorded(stage, designs, rate, rng)
-    errors, worst = minor_loop_errors(sweeps, {"curves": ["tri_1Hz", "tri_5.58Hz", "curves"],
-                                               "interior": ["tri_1Hz", "tri_5.58Hz", "curves",
-                                                            "interior"]}, stage.noise_um)
+    errors, worst = minor_loop_errors(sweeps, {"curves": curves,
+                                               "interior": [*curves, "interior"]}, stage.noise_um)
+    monkeypatch.setattr(pp, "CUBIC_LOOPS", 0)  # the cubic fitted free on the curves
+    free, _ = minor_loop_errors(sweeps, {"curves": curves}, stage.noise_um)
+    assert free["curves"] > 1.5 * errors["curves"], (free, errors)
     assert errors["interior"] < 1.5 * worst["interior"], (errors, worst)
-    assert errors["curves"] > 1.5 * errors["interior"], errors
+    assert errors["curves"] < 1.5 * worst["curves"], (errors, worst)
 
 
 def test_rod_rows_is_the_rod_filter_of_the_scaled_columns_at_the_rows() -> None:
