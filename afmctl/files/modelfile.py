@@ -92,6 +92,8 @@ creep (:mod:`afmctl.model.creep`)::
     tau_s = [0.01, 0.0316, ...]
     weights = [0.004, 0.003, ...]
     thresholds_C_per_m2 = [0.0, 0.0, ...]       # play half-widths (optional, default 0)
+    acts_on = "force"                            # optional: the elements driven by the force
+                                                 # (16) and added to it; thresholds_N then
 
 or a Bouc-Wen polarization (:mod:`afmctl.model.boucwen`, whose minor loops need not close)::
 
@@ -125,7 +127,7 @@ from afmctl.errors import FileFormatError
 from afmctl.files.tomlfile import Table, dumps, load
 from afmctl.model import hysteresis as hy
 from afmctl.model.boucwen import BoucWen
-from afmctl.model.creep import Creep
+from afmctl.model.creep import ACTS_ON, Creep
 from afmctl.model.effects import Effects, SecondMode
 from afmctl.model.preisach import PreisachGrid
 from afmctl.model.rod import Rod
@@ -317,8 +319,12 @@ def to_dict(model: Transducer) -> dict[str, Any]:
         out["rod"]["a3_N_per_C3_m6"] = r.a3
     if model.creep is not None:
         out["creep"] = {"tau_s": list(model.creep.tau_s), "weights": list(model.creep.weights)}
+        on_force = model.creep.acts_on == "force"
+        if on_force:
+            out["creep"]["acts_on"] = "force"
         if any(model.creep.thresholds):
-            out["creep"]["thresholds_C_per_m2"] = list(model.creep.thresholds)
+            out["creep"]["thresholds_N" if on_force else "thresholds_C_per_m2"] = list(
+                model.creep.thresholds)
     fx = effects_dict(model.effects)
     return {**out, "effects": fx} if fx else out
 
@@ -470,9 +476,11 @@ def _bouc_wen(p: Table) -> BoucWen:
 def _creep(t: Table | None) -> Creep | None:
     if t is None:
         return None
+    on = t.string("acts_on", "polarization", choices=ACTS_ON)
+    key = "thresholds_N" if on == "force" else "thresholds_C_per_m2"
     try:
         return Creep(t.numbers("tau_s"), t.numbers("weights"),
-                     t.numbers("thresholds_C_per_m2") if t.has("thresholds_C_per_m2") else ())
+                     t.numbers(key) if t.has(key) else (), acts_on=on)
     except ValueError as exc:
         if isinstance(exc, FileFormatError):
             raise

@@ -31,6 +31,7 @@ HEM's (:mod:`afmctl.fit.representation`).
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -421,8 +422,10 @@ def build(th: Theta, prob: Problem, scales_mass: float, thickness_um: float,
                  a1=1e-6 * k / kappa, a2=1e-6 * k * th.s / kappa ** 2,
                  a3=1e-6 * k * th.t / kappa ** 3,
                  offset_um=float(th.offsets[pz.zero_sweep(prob.starts)]))
+    unit = 1e-6 * k if prob.creep_on_force else kappa  # um of g(Q) -> N, um of Q -> C/m^2
+    on = "force" if prob.creep_on_force else "polarization"
     cp = cr.Creep(tuple(float(t) for t in prob.el_tau), tuple(float(c) for c in th.c),
-                  tuple(float(r) * kappa for r in prob.el_thr)) if creep and th.c.any() else None
+                  tuple(float(r) * unit for r in prob.el_thr), on) if creep and th.c.any() else None
     first = prob.starts[0] if prob.starts[0] != "previous" else "depoled"
     return td.Transducer(grid, rod, thickness_um, initial=first, creep=cp)  # type: ignore[arg-type]
 
@@ -496,6 +499,10 @@ class Runs:
     smoothing: float
     plain: Run
     crept: Run
+    #: the creep on the force (:attr:`afmctl.fit.preisach_problem.Problem.creep_on_force`): its
+    #: problem (elements' thresholds set on ``g(Q)``'s range) and its fit
+    force_problem: Problem
+    crept_force: Run
 
 
 def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
@@ -549,17 +556,28 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     plain = gauss_newton(prob, refit_rod(prob, th), pen, lam0, False, settings.max_iter // 4)
     plain = gauss_newton(prob, refit_rod(prob, plain.theta), pen, lam0, False,
                          settings.max_iter // 4)
-    q_range = max(float(np.ptp(q)) for q in prob.hysteretic(plain.theta))
-    prob.set_thresholds([f * q_range for f in settings.creep_thresholds])
-    elements = plain.theta.copy()
-    elements.c = np.zeros(prob.el_tau.size)
-    crept = gauss_newton(prob, elements, pen, lam0, True, settings.max_iter)
-    crept = gauss_newton(prob, refit_rod(prob, crept.theta), pen, lam0, True, settings.max_iter)
-    for creep, run in ((False, plain), (True, crept)):
-        say(f"  {'with' if creep else 'without'} creep: RMS / noise per sweep "
-            + " / ".join(f"{r:.2f}" for r in prob.ratios(run.theta))
+    forced = copy.copy(prob)
+    forced.creep_on_force = True
+    crept, crept_force = (_crept(p, plain.theta, pen, lam0, settings) for p in (prob, forced))
+    for label, p, run in (("without creep", prob, plain), ("with creep", prob, crept),
+                          ("with creep on the force", forced, crept_force)):
+        say(f"  {label}: RMS / noise per sweep "
+            + " / ".join(f"{r:.2f}" for r in p.ratios(run.theta))
             + f" ({run.iterations} steps{'' if run.converged else ', stopped on its budget'})")
-    return Runs(prob, pen, lam0, plain, crept)
+    return Runs(prob, pen, lam0, plain, crept, forced, crept_force)
+
+
+def _crept(prob: Problem, plain: Theta, pen: FloatArray, lam: float, settings: Settings) -> Run:
+    """The creep elements fitted from the fit without them, ``prob``'s thresholds set on the
+    range of what drives them (``Q``, or ``g(Q)`` with the creep on the force), the rod searched
+    again with the creep found."""
+    drives = prob.forces(plain) if prob.creep_on_force else prob.hysteretic(plain)
+    span = max(float(np.ptp(x)) for x in drives)
+    prob.set_thresholds([f * span for f in settings.creep_thresholds])
+    elements = plain.copy()
+    elements.c = np.zeros(prob.el_tau.size)
+    run = gauss_newton(prob, elements, pen, lam, True, settings.max_iter)
+    return gauss_newton(prob, refit_rod(prob, run.theta), pen, lam, True, settings.max_iter)
 
 
 def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
@@ -567,23 +585,26 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
          say: Callable[[str], None]) -> PreisachFit:
     t0 = time.perf_counter()
     fitted = runs(data, starts_candidates, rod0, settings, say)
-    prob, pen = fitted.problem, fitted.penalty
-    runs_by = {False: fitted.plain, True: fitted.crept}
+    pen = fitted.penalty
+    runs_by = {"no creep": (fitted.problem, False, fitted.plain),
+               "creep": (fitted.problem, True, fitted.crept),
+               "creep on the force": (fitted.force_problem, True, fitted.crept_force)}
     scores: dict[str, float] = {}
-    choice: tuple[float, bool, float, FloatArray] | None = None
-    for creep, run in runs_by.items():
-        per = heldout(prob, run.theta, pen, settings.smoothing, creep)
+    choice: tuple[float, str, float, FloatArray] | None = None
+    for label, (p, creep, run) in runs_by.items():
+        per = heldout(p, run.theta, pen, settings.smoothing, creep)
         for lam in per:
             score = float(np.sum(per[lam] ** 2 / data.noise ** 2))
-            scores[f"{'creep' if creep else 'no creep'}, smoothing {lam:g}"] = score
+            scores[f"{label}, smoothing {lam:g}"] = score
             if choice is None or score < choice[0]:
-                choice = (score, creep, float(lam), per[lam])
+                choice = (score, label, float(lam), per[lam])
     assert choice is not None
-    _, creep, lam, per = choice
-    final = gauss_newton(prob, runs_by[creep].theta, pen, lam, creep, settings.max_iter)
+    _, label, lam, per = choice
+    prob, creep, run = runs_by[label]
+    final = gauss_newton(prob, run.theta, pen, lam, creep, settings.max_iter)
     say("  held-out RMS / noise per sweep "
         + " / ".join(f"{r:.2f}" for r in per / data.noise)
-        + f" ({'with' if creep else 'without'} creep, smoothing {lam:g}; "
+        + f" ({'with ' + label if creep else 'without creep'}, smoothing {lam:g}; "
         f"{final.iterations} Gauss-Newton steps)")
     model = build(final.theta, prob, mass_kg, thickness_um, settings.p_scale, creep)
     return PreisachFit(model, prob.starts, final.theta.offsets, per, lam, creep, scores,

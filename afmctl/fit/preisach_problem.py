@@ -312,6 +312,9 @@ class Problem:
         self.data, self.grid, self.starts = data, grid, tuple(starts)
         #: whether the map's cubic is fitted (:data:`CUBIC_LOOPS`); else its column is 0
         self.cubic = interior_loops(data.fields) >= CUBIC_LOOPS
+        #: the creep elements driven by ``g(Q)`` and added to it, not to ``Q``
+        #: (:attr:`afmctl.model.creep.Creep.acts_on`)
+        self.creep_on_force = False
         self.taus = np.asarray(taus, float)
         self.set_thresholds((0.0,))
         self.trans = []
@@ -375,12 +378,18 @@ class Problem:
         return [a @ d for a, d in zip(self.trans, parts, strict=True)]
 
     def forces(self, th: Theta) -> list[FloatArray]:
-        """Each sweep's ``g(Q~)`` at full rate (um): what drives the rod, independent of it."""
+        """Each sweep's force at full rate (um): ``g(Q~)``, or ``g(Q) + sum_j c_j Z_j[g(Q)]``
+        with the creep on the force; what drives the rod, independent of it."""
         out = []
         for q, dt, tr in zip(self.hysteretic(th), self.data.dts, self.transients(th),
                              strict=True):
-            qt = q + self.lags(q, dt) @ th.c + tr if th.c.any() else q
-            out.append(output_map(qt, th.s, th.t))
+            if not th.c.any():
+                out.append(output_map(q, th.s, th.t))
+            elif self.creep_on_force:
+                g = output_map(q, th.s, th.t)
+                out.append(g + self.lags(g, dt) @ th.c + tr)
+            else:
+                out.append(output_map(q + self.lags(q, dt) @ th.c + tr, th.s, th.t))
         return out
 
     def predict(self, th: Theta, full: bool = False) -> list[FloatArray]:
@@ -405,46 +414,85 @@ class Problem:
 
     def linearize(self, th: Theta, creep: bool) -> tuple[list[FloatArray], list[FloatArray]]:
         """Per sweep: the design ``[w | r | c | s t | log f_n | log zeta | offsets | d]`` on the
-        judged samples and the known term ``y - b0`` (see the module docstring)."""
+        judged samples and the known term ``y - b0``, ``b0`` the model at ``th`` less the design's
+        share of its parameters but the rod's and the offsets' (see the module docstring)."""
         fn, zeta = math.exp(th.log_fn), math.exp(th.log_zeta)
         n_s, step = len(self.phi), 1e-4
         n_d = sum(self.n_trans) if creep else 0
         d_at = np.concatenate(([0], np.cumsum(self.n_trans)))
+        parts = self._on_force if self.creep_on_force else self._on_polarization
         designs, rhs = [], []
         for i, (p, e, dt, m, y, tr) in enumerate(zip(self.phi, self.data.fields, self.data.dts,
                                                      self.data.masks, self.data.y,
                                                      self.transients(th), strict=True)):
-            q = p @ th.w + th.r * e
-            z = self.lags(q, dt) if creep else np.zeros((q.size, 0))
-            tr = tr if creep else np.zeros(q.size)
-            qt = q + z @ th.c + tr if creep else q
-            m0 = 1.0 + (2.0 * th.s + 3.0 * th.t * qt) * qt
-            cp, ce, held = p, e, 0.0
-            if creep and th.c.any():
-                cp = self.crept(p, q, th.c, dt, p.copy())
-                ce = self.crept(e, q, th.c, dt, e.copy())
-                held = self.crept(q, q, th.c, dt)
-            g = output_map(qt, th.s, th.t)
-            lg = rod_filter(g, fn, zeta, dt)
+            c = parts(th, creep, p, e, dt, tr if creep else np.zeros(e.size))
+            lg = rod_filter(c.force, fn, zeta, dt)
             rows = np.flatnonzero(m)
-            k, n_z = p.shape[1], z.shape[1]
+            k, n_z = p.shape[1], c.lags.shape[1]
             a = np.zeros((rows.size, k + 1 + n_z + MAP + 2 + n_s + n_d))
-            rod_rows(cp, m0, fn, zeta, dt, rows, a, 0)
-            rod_rows(ce, m0, fn, zeta, dt, rows, a, k)
+            rod_rows(c.weights, c.scale, fn, zeta, dt, rows, a, 0)
+            rod_rows(c.reversible, c.scale, fn, zeta, dt, rows, a, k)
             if creep:
-                rod_rows(z, m0, fn, zeta, dt, rows, a, k + 1)
+                rod_rows(c.lags, c.scale, fn, zeta, dt, rows, a, k + 1)
             j = k + 1 + n_z
-            a[:, j] = rod_filter(qt * qt, fn, zeta, dt)[m]
+            a[:, j] = rod_filter(c.square, fn, zeta, dt)[m]
             if self.cubic:
-                a[:, j + 1] = rod_filter(qt * qt * qt, fn, zeta, dt)[m]
+                a[:, j + 1] = rod_filter(c.cube, fn, zeta, dt)[m]
+            known = a[:, :j + MAP] @ np.concatenate((th.w, [th.r], th.c if creep else [],
+                                                     [th.s, th.t]))
             j += MAP
-            a[:, j] = ((rod_filter(g, fn * math.exp(step), zeta, dt) - lg) / step)[m]
-            a[:, j + 1] = ((rod_filter(g, fn, zeta * math.exp(step), dt) - lg) / step)[m]
+            a[:, j] = ((rod_filter(c.force, fn * math.exp(step), zeta, dt) - lg) / step)[m]
+            a[:, j + 1] = ((rod_filter(c.force, fn, zeta * math.exp(step), dt) - lg) / step)[m]
             a[:, j + 2 + i] = 1.0
             if creep and self.n_trans[i]:
-                rod_rows(self.trans[i], m0, fn, zeta, dt, rows, a, j + 2 + n_s + d_at[i])
+                at = j + 2 + n_s + d_at[i]
+                rod_rows(self.trans[i], c.scale, fn, zeta, dt, rows, a, at)
+                known += a[:, at:at + self.n_trans[i]] @ th.d[d_at[i]:d_at[i + 1]]
             designs.append(a)
-            rhs.append(y - rod_filter(qt - m0 * (qt + held), fn, zeta, dt)[m])
+            rhs.append(y - (lg[m] - known))
         return designs, rhs
 
+    def _on_polarization(self, th: Theta, creep: bool, p: FloatArray, e: FloatArray,
+                         dt: float, tr: FloatArray) -> Parts:
+        """``g(Q~)``, ``Q~ = Q + sum_j c_j Z_j[Q] + tr`` (``Q`` without ``creep``), and its
+        derivatives before ``L``."""
+        q = p @ th.w + th.r * e
+        z = self.lags(q, dt) if creep else np.zeros((q.size, 0))
+        qt = q + z @ th.c + tr if creep else q
+        cp, ce = ((self.crept(p, q, th.c, dt, p.copy()), self.crept(e, q, th.c, dt, e.copy()))
+                  if creep and th.c.any() else (p, e))
+        return Parts(output_map(qt, th.s, th.t), 1.0 + (2.0 * th.s + 3.0 * th.t * qt) * qt,
+                     cp, ce, z, qt * qt, qt * qt * qt)
 
+    def _on_force(self, th: Theta, creep: bool, p: FloatArray, e: FloatArray, dt: float,
+                  tr: FloatArray) -> Parts:
+        """``g(Q) + sum_j c_j Z_j[g(Q)] + tr`` (``g(Q)`` without ``creep``) and its derivatives
+        before ``L``: the map's slope inside the creep (the elements' plays held where they last
+        moved on ``g(Q)``)."""
+        q = p @ th.w + th.r * e
+        g = output_map(q, th.s, th.t)
+        m0 = 1.0 + (2.0 * th.s + 3.0 * th.t * q) * q
+        z = self.lags(g, dt) if creep else np.zeros((q.size, 0))
+        crept = creep and bool(th.c.any())
+
+        def through(x: FloatArray) -> FloatArray:
+            x = np.ascontiguousarray(x)
+            return self.crept(x, g, th.c, dt, x.copy()) if crept else x
+
+        return Parts(g + z @ th.c + tr if creep else g, np.ones(q.size), through(m0[:, None] * p),
+                     through(m0 * e), z, through(q * q), through(q * q * q))
+
+
+@dataclass(frozen=True)
+class Parts:
+    """One sweep's force at a point of the fit (um, full rate) and the columns of its
+    linearization before the rod: ``L[scale x]`` for the weights, the reversible slope and the
+    creep elements, ``L[x]`` for the map's square and cube."""
+
+    force: FloatArray
+    scale: FloatArray
+    weights: FloatArray
+    reversible: FloatArray
+    lags: FloatArray
+    square: FloatArray
+    cube: FloatArray

@@ -234,7 +234,9 @@ def _grid_figures(fit: pf.PreisachFit, noise: FloatArray) -> dict[str, Any]:
             "grid": [grid.n_coercive, grid.n_interaction], "coefficients": fit.n_coefficients,
             "smoothing": fit.smoothing, "creep": fit.creep,
             "creep_per_decade": None if fit.model.creep is None else
-            fit.model.creep.per_decade(), "seconds": round(fit.seconds, 3),
+            fit.model.creep.per_decade(),
+            "creep_acts_on": None if fit.model.creep is None else fit.model.creep.acts_on,
+            "seconds": round(fit.seconds, 3),
             "candidates_heldout_sse_over_noise": fit.candidates}
 
 

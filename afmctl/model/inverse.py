@@ -136,13 +136,14 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
                 cw: np.ndarray, scal: np.ndarray, phi: np.ndarray, gam: np.ndarray,
                 row: np.ndarray, gain: float, a1: float, a2: float, a3: float, offset: float,
                 floor: float, e_min: float, e_max: float, tol: float, ca: np.ndarray,
-                cc: np.ndarray, cr_: np.ndarray, z: np.ndarray, keep: int, st_kept: np.ndarray,
-                x_kept: np.ndarray, z_kept: np.ndarray
+                cc: np.ndarray, cr_: np.ndarray, z: np.ndarray, on_force: bool, keep: int,
+                st_kept: np.ndarray, x_kept: np.ndarray, z_kept: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fields for targets ``target[k]`` = desired u at sample ``k + d`` (um), rod state ``x`` (m).
 
     ``ca``, ``cc``, ``cr_``, ``z``: creep factors ``a_j``, weights ``c_j``, thresholds and state
-    (updated in place; empty without creep, :mod:`afmctl.model.creep`). ``p_init`` is the
+    (updated in place; empty without creep, :mod:`afmctl.model.creep`), driven by ``P_h`` or, if
+    ``on_force``, by the force ``F(P_h)`` and added to it (N). ``p_init`` is the
     hysteretic output ``P_h``. ``st_kept``, ``x_kept``, ``z_kept`` get the state after the first
     ``keep`` samples (left as they are if ``keep`` is not in ``1 ... N``).
     """
@@ -162,6 +163,10 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
         creep = 0.0
         for j in range(cc.size):
             creep += cc[j] * z[j]
+        f_creep = 0.0
+        if on_force:  # a known force this sample: it moves the rod like its past does
+            f_creep, creep = creep, 0.0
+            c0 += gain * f_creep * 1e6
         # inside the quiet band P(E) = lin E + off + p_switch: solve the force law exactly
         p = _root(g1, g2, g3, target[k] - c0) - creep
         e = (p - off - p_switch) / lin
@@ -181,11 +186,11 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
                 lo, hi = _quiet_band(kind, st, ec, ei)
                 p_switch = p - (e * lin + off)
         f = _poly(a1, a2, a3, p + creep)
-        x0 = phi[0, 0] * x[0] + phi[0, 1] * x[1] + gam[0] * f
-        x[1] = phi[1, 0] * x[0] + phi[1, 1] * x[1] + gam[1] * f
+        x0 = phi[0, 0] * x[0] + phi[0, 1] * x[1] + gam[0] * (f + f_creep)
+        x[1] = phi[1, 0] * x[0] + phi[1, 1] * x[1] + gam[1] * (f + f_creep)
         x[0] = x0
         if cc.size:
-            _creep_update(p, ca, cr_, z)
+            _creep_update(f if on_force else p, ca, cr_, z)
         e_out[k] = e
         e_prev, p_prev = e, p
         if k == keep - 1:
@@ -242,7 +247,7 @@ def algorithm2(params: hy.Polarization, p_target: FloatArray, state: hy.Polariza
                           dt, k.ec, k.wc, k.ei, k.cw, k.scal, np.eye(2), np.zeros(2),
                           np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.0, 0.5 / params.eta,
                           -e_max if e_min is None else e_min, e_max, tol, _NONE, _NONE, _NONE,
-                          _NONE, -1, _NONE, _NONE, _NONE)
+                          _NONE, False, -1, _NONE, _NONE, _NONE)
     p_out, _ = hy.run(k, e, state, dt)
     return Inversion(e, p_out, w, hy.PolarizationState(k.kind, st))
 
@@ -299,19 +304,21 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
     x = np.array(state.rod, dtype=float)
     st = ps.copy_values()
     creep = cm.model.creep
-    z = (np.array(state.creep, dtype=float) if state.creep.size
-         else cr.rest_state(creep, float(p0[0])))
+    on_force = creep is not None and creep.acts_on == "force"
+    drive = float(rod.force(p0)[0]) if on_force else float(p0[0])
+    z = np.array(state.creep, dtype=float) if state.creep.size else cr.rest_state(creep, drive)
     ca = _NONE if creep is None else creep.factors(cm.dt)
     cc = _NONE if creep is None else np.asarray(creep.weights, dtype=float)
     cth = _NONE if creep is None else np.asarray(creep.thresholds, dtype=float)
-    dfdp = abs(rod.force_slope(float(p0[0]) + cr.offset(creep, z))) or abs(rod.a1)
+    dfdp = abs(rod.force_slope(float(p0[0]) + (0.0 if on_force else cr.offset(creep, z)))
+               ) or abs(rod.a1)
     floor = 0.5 * gain * dfdp * 1e6 / cm.model.polarization.eta
     kept = (np.empty_like(st), np.empty_like(x), np.empty_like(z))
     e, pred, w = _algorithm3(cm.kernel.kind, target, e_init, p0[0], x, st, cm.dt, cm.kernel.ec,
                              cm.kernel.wc, cm.kernel.ei, cm.kernel.cw, cm.kernel.scal,
                              cm.disc.phi, cm.disc.gamma, row, gain, rod.a1, rod.a2, rod.a3, rod.offset_um,
                              floor, -e_max if e_min is None else e_min, e_max, tol_um, ca, cc,
-                             cth, z, -1 if keep is None else keep, *kept)
+                             cth, z, on_force, -1 if keep is None else keep, *kept)
     at = None
     if keep is not None and 1 <= keep <= u.size:
         at = tr.StageState(hy.PolarizationState(ps.kind, kept[0]), kept[1], kept[2])

@@ -78,8 +78,12 @@ def initial(model: Transducer, how: hy.Initial | None = None,
 def at_rest(model: Transducer, ps: hy.PolarizationState, p_h: float) -> StageState:
     """The stage settled at hysteretic output ``p_h`` (C/m^2) with memory ``ps``: creep elements
     settled, rod in static equilibrium."""
-    z = cr.rest_state(model.creep, p_h)
-    p = p_h + cr.offset(model.creep, z)
+    creep, f_h = model.creep, float(model.rod.force(np.array([p_h]))[0])
+    if creep is not None and creep.acts_on == "force":
+        z = cr.rest_state(creep, f_h)
+        return StageState(ps, rd.rest_state(model.rod, f_h + cr.offset(creep, z)), z)
+    z = cr.rest_state(creep, p_h)
+    p = p_h + cr.offset(creep, z)
     return StageState(ps, rd.rest_state(model.rod, float(model.rod.force(np.array([p]))[0])), z)
 
 
@@ -122,13 +126,30 @@ def simulate(cm: Compiled, voltage_v: FloatArray,
     state : StageState
         State after the last sample.
     """
-    p, ps = hy.run(cm.kernel, cm.model.field(voltage_v), state.polarization, cm.dt)
-    z = state.creep
-    if cm.model.creep is not None:
-        z = z if z.size else cr.rest_state(cm.model.creep, float(p[0]) if p.size else 0.0)
-        p, z = cr.run(cm.model.creep, p, cm.dt, z)
-    u, x = rd.simulate(cm.model.rod, cm.disc, cm.model.rod.force(p), state.rod)
+    f, p, ps, z = driving_force(cm, voltage_v, state)
+    u, x = rd.simulate(cm.model.rod, cm.disc, f, state.rod)
     return u, p, StageState(ps, x, z)
+
+
+def driving_force(cm: Compiled, voltage_v: FloatArray, state: StageState
+                  ) -> tuple[FloatArray, FloatArray, hy.PolarizationState, FloatArray]:
+    """The force (16) on the rod during each sample (N), with creep where the model has it
+    (:attr:`afmctl.model.creep.Creep.acts_on`), the polarization (C/m^2; with creep if that acts
+    on it), and the hysteresis and creep states after the last sample."""
+    p, ps = hy.run(cm.kernel, cm.model.field(voltage_v), state.polarization, cm.dt)
+    creep, z = cm.model.creep, state.creep
+    if creep is None:
+        return cm.model.rod.force(p), p, ps, z
+    if creep.acts_on == "force":
+        f = cm.model.rod.force(p)
+        f, z = cr.run(creep, f, cm.dt, z if z.size else cr.rest_state(creep, _first(f)))
+        return f, p, ps, z
+    p, z = cr.run(creep, p, cm.dt, z if z.size else cr.rest_state(creep, _first(p)))
+    return cm.model.rod.force(p), p, ps, z
+
+
+def _first(x: FloatArray) -> float:
+    return float(x[0]) if x.size else 0.0
 
 
 def displacement(model: Transducer, voltage_v: ArrayLike, dt_s: float,

@@ -132,6 +132,15 @@ def test_preisach_grid_and_creep_round_trip_as_version_3(nominal: Transducer,
     cubic = dc.replace(m, rod=dc.replace(m.rod, a3=463.4))  # the force's cubic, written and read
     modelfile.write(cubic, path)
     assert "a3_N_per_C3_m6 = 463.4" in path.read_text() and modelfile.read(path) == cubic
+    on_force = dc.replace(m, creep=dc.replace(m.creep, thresholds=(0.0, 0.0, 3.5),
+                                              acts_on="force"))  # creep of the force, N
+    modelfile.write(on_force, path)
+    text = path.read_text()
+    assert 'acts_on = "force"' in text and "thresholds_N = [0.0, 0.0, 3.5]" in text
+    assert modelfile.read(path) == on_force
+    path.write_text(text.replace('acts_on = "force"', 'acts_on = "field"'))
+    with pytest.raises(modelfile.FileFormatError, match="acts_on"):
+        modelfile.read(path)
 
 
 @pytest.mark.parametrize(("old", "new", "match"), [

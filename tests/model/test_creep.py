@@ -69,6 +69,35 @@ def test_a_held_step_creeps_and_the_inverse_holds_it() -> None:
     assert res.field_mv_m[-1] < res.field_mv_m[200] - 0.01  # the creep is compensated
 
 
+def test_creep_on_the_force_is_creep_on_the_polarization_where_the_force_is_linear() -> None:
+    """Analytic limit: with the force linear in ``P`` (``a2 = 0``) driving the creep elements by
+    ``P_h`` or by ``F(P_h)`` and adding them there is the same stage; with the paper's ``a2 P^2``
+    the two part. Algorithm 3 inverts the creep on the force exactly too."""
+    dt = 1e-3
+    v = 100.0 * np.abs(np.sin(np.linspace(0.0, 6 * np.pi, 3000))) + 20.0 * np.sin(
+        np.linspace(0.0, 40 * np.pi, 3000))
+    weights = (0.02,) * len(TAUS)
+    out = {}
+    for a2 in (0.0, 1.0e4):
+        for on in cr.ACTS_ON:
+            m = model(cr.Creep(TAUS, weights, acts_on=on))
+            m = tr.Transducer(m.polarization, rd.Rod(m=0.05, c=60.0, k=2.0e5, a1=3.0e4, a2=a2),
+                              100.0, creep=m.creep)
+            out[a2, on] = tr.simulate(tr.compile_model(m, dt), v, tr.initial(m))[0]
+    np.testing.assert_allclose(out[0.0, "force"], out[0.0, "polarization"], atol=1e-9)
+    assert np.max(np.abs(out[1.0e4, "force"] - out[1.0e4, "polarization"])) > 0.01  # um
+    m = model(cr.Creep(TAUS, weights, acts_on="force"))
+    cm = tr.compile_model(m, dt)
+    st = tr.initial(m)
+    u = tr.simulate(cm, v, st)[0]
+    res = inv.algorithm3(cm, np.append(u[1:], u[-1]), st, horizon=1, e_min=-1.5, e_max=1.5,
+                         tol_um=1e-9)
+    back = tr.simulate(cm, res.field_mv_m * 100.0, st)[0]
+    assert np.max(np.abs(back[1:] - u[1:])) < 1e-6  # um
+    with pytest.raises(ValueError, match="acts on"):
+        cr.Creep((1.0,), (0.1,), acts_on="displacement")
+
+
 def test_rejects_malformed_creep() -> None:
     with pytest.raises(ValueError, match="equally long"):
         cr.Creep((1.0, 2.0), (0.1,))

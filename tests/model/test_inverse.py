@@ -153,14 +153,16 @@ def test_linear_filter_recovers_a_line() -> None:
     np.testing.assert_allclose(lin.voltage(0.3 * v + 2.0), v, atol=1e-10)
 
 
-@pytest.mark.parametrize("creeps", [False, True])
-def test_algorithm3_keeps_the_state_simulate_reaches(nominal: tr.Transducer, creeps: bool) -> None:
+@pytest.mark.parametrize("creeps", [None, "polarization", "force"])
+def test_algorithm3_keeps_the_state_simulate_reaches(nominal: tr.Transducer,
+                                                     creeps: str | None) -> None:
     """``keep``: the model state after the first fields is the one the forward model reaches on
     their voltages (what the planner goes on from), up to round-off: hysteresis memory, rod and
-    creep."""
+    creep (on the polarization or on the force)."""
     from afmctl.model import creep as cr
 
-    model = (dc.replace(nominal, creep=cr.Creep((0.01, 1.0, 100.0), (0.01, 0.01, 0.01)))
+    model = (dc.replace(nominal, creep=cr.Creep((0.01, 1.0, 100.0), (0.01, 0.01, 0.01),
+                                                acts_on=creeps))
              if creeps else nominal)
     cm = tr.compile_model(model, DT)
     ud = triangle(27.9, 27.04, 1.5)

@@ -1,0 +1,77 @@
+"""The Preisach grid's problem (afmctl.fit.preisach_problem): its linearization against the exact
+model, with the creep on the polarization and on the force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from afmctl.fit import preisach_problem as pp
+
+
+def problem(on_force: bool) -> pp.Problem:
+    """Two sweeps (a triangle, then minor loops inside the range) on a coarse grid, the creep
+    elements behind a play of 0 and of 0.3 um."""
+    rng = np.random.default_rng(3)
+    e1 = np.interp(np.arange(800), [0, 200, 400, 600, 799], [0.0, 1.5, 0.0, 1.5, 0.0])
+    e2 = np.interp(np.arange(600), [0, 100, 200, 300, 400, 500, 599],
+                   [0.0, 1.2, 0.4, 1.0, 0.6, 0.9, 0.7])
+    fields = [e1, e2]
+    data = pp.Data(fields, [np.ones(e.size, bool) for e in fields],
+                   [rng.normal(size=e.size) for e in fields], [1e-3, 1e-3], np.array([0.02, 0.02]))
+    settings = pp.Settings(n_coercive=8, n_interaction=12, coef_coercive=4, coef_interaction=6)
+    ec, ei, spread = pp.make_grid(fields, settings)
+    mi, mj = pp.hat_matrix(ec.size, 4), pp.hat_matrix(ei.size, 6)
+    grid = pp.Grid(ec, ei, spread, mi, mj, np.arange(24))
+    prob = pp.Problem(data, grid, ("positive", "previous"), (0.01, 0.1, 1.0))
+    prob.set_thresholds((0.0, 0.3))
+    prob.creep_on_force = on_force
+    return prob
+
+
+@pytest.mark.parametrize("on_force", [False, True])
+def test_the_design_is_the_models_derivative_and_b0_its_rest(on_force: bool) -> None:
+    """``y - rhs = b0`` and ``A x + b0`` is the model to first order: a step ``h`` in every
+    parameter but the rod's moves the exact prediction by ``A h`` up to O(h^2) (halving ``h``
+    quarters the miss); at the point itself ``A x0 + b0`` is the prediction."""
+    prob = problem(on_force)
+    prob.cubic = True
+    rng = np.random.default_rng(5)
+    th = pp.Theta(rng.uniform(0.5, 2.0, 24), 0.7, rng.uniform(0.0, 0.02, 6), 0.004, 2e-5,
+                  np.log(60.0), np.log(0.3), np.array([0.5, -0.2]))
+    designs, rhs = prob.linearize(th, True)
+    k, nc = th.w.size, th.c.size
+
+    def at(t: pp.Theta) -> np.ndarray:
+        return np.concatenate((t.w, [t.r], t.c, [t.s, t.t], [0.0, 0.0], t.offsets))
+
+    a = np.vstack(designs)
+    b0 = np.concatenate([y - r for y, r in zip(prob.data.y, rhs, strict=True)])
+    exact = np.concatenate(prob.predict(th))
+    np.testing.assert_allclose(a @ at(th) + b0, exact, atol=1e-9)
+    step = np.concatenate((rng.normal(0, 0.05, k), [0.02], rng.uniform(0, 0.002, nc),
+                           [2e-4, 1e-6], [0.0, 0.0], [0.01, 0.01]))
+    misses = []
+    for h in (1.0, 0.5):
+        moved = th.copy()
+        x = at(th) + h * step
+        moved.w, moved.r, moved.c = x[:k], float(x[k]), x[k + 1:k + 1 + nc]
+        moved.s, moved.t = float(x[k + 1 + nc]), float(x[k + 2 + nc])
+        moved.offsets = x[-2:]
+        misses.append(float(np.max(np.abs(np.concatenate(prob.predict(moved)) - exact
+                                          - h * (a @ step)))))
+    assert misses[1] < 0.3 * misses[0], misses  # second order: a quarter, with slack
+    assert misses[0] < 0.05 * float(np.max(np.abs(a @ step)))
+
+
+def test_creep_on_the_force_and_on_the_polarization_differ_where_the_map_bends() -> None:
+    """The same point, creep on ``Q`` or on ``g(Q)``: equal with a straight map (``s = t = 0``),
+    apart with a bent one."""
+    rng = np.random.default_rng(6)
+    th = pp.Theta(rng.uniform(0.5, 2.0, 24), 0.7, rng.uniform(0.0, 0.02, 6), 0.0, 0.0,
+                  np.log(60.0), np.log(0.3), np.array([0.5, -0.2]))
+    pol, force = problem(False), problem(True)
+    np.testing.assert_allclose(np.concatenate(pol.forces(th)), np.concatenate(force.forces(th)),
+                               atol=1e-12)
+    th.s = 0.01
+    assert np.max(np.abs(np.concatenate(pol.forces(th)) - np.concatenate(force.forces(th)))) > 1e-3
