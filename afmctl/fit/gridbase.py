@@ -250,7 +250,7 @@ def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
     """
     t0 = time.perf_counter()
     fitted = pf.runs(pf.sweep_data(sweeps, thickness_um, noise_um),
-                     pf.start_candidates(starts), rod0, settings, say)
+                     pf.start_candidates(starts), rod0, settings, say, on_force=False)
     prob = fitted.problem
     plain = pf.gauss_newton(prob, fitted.plain.theta, fitted.penalty, fitted.smoothing, False,
                             settings.max_iter)

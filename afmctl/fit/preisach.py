@@ -501,13 +501,14 @@ class Runs:
     crept: Run
     #: the creep on the force (:attr:`afmctl.fit.preisach_problem.Problem.creep_on_force`): its
     #: problem (elements' thresholds set on ``g(Q)``'s range) and its fit
-    force_problem: Problem
-    crept_force: Run
+    force_problem: Problem | None
+    crept_force: Run | None
 
 
 def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
-         settings: Settings, say: Callable[[str], None]) -> Runs:
-    """The grid fitted without and with creep at the middle smoothing.
+         settings: Settings, say: Callable[[str], None], on_force: bool = True) -> Runs:
+    """The grid fitted without and with creep at the middle smoothing (and, if ``on_force``,
+    with creep on the force).
 
     Parameters
     ----------
@@ -556,11 +557,15 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     plain = gauss_newton(prob, refit_rod(prob, th), pen, lam0, False, settings.max_iter // 4)
     plain = gauss_newton(prob, refit_rod(prob, plain.theta), pen, lam0, False,
                          settings.max_iter // 4)
-    forced = copy.copy(prob)
-    forced.creep_on_force = True
-    crept, crept_force = (_crept(p, plain.theta, pen, lam0, settings) for p in (prob, forced))
-    for label, p, run in (("without creep", prob, plain), ("with creep", prob, crept),
-                          ("with creep on the force", forced, crept_force)):
+    crept = _crept(prob, plain.theta, pen, lam0, settings)
+    shown = [("without creep", prob, plain), ("with creep", prob, crept)]
+    forced = crept_force = None
+    if on_force:
+        forced = copy.copy(prob)
+        forced.creep_on_force = True
+        crept_force = _crept(forced, plain.theta, pen, lam0, settings)
+        shown.append(("with creep on the force", forced, crept_force))
+    for label, p, run in shown:
         say(f"  {label}: RMS / noise per sweep "
             + " / ".join(f"{r:.2f}" for r in p.ratios(run.theta))
             + f" ({run.iterations} steps{'' if run.converged else ', stopped on its budget'})")
@@ -587,8 +592,9 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     fitted = runs(data, starts_candidates, rod0, settings, say)
     pen = fitted.penalty
     runs_by = {"no creep": (fitted.problem, False, fitted.plain),
-               "creep": (fitted.problem, True, fitted.crept),
-               "creep on the force": (fitted.force_problem, True, fitted.crept_force)}
+               "creep": (fitted.problem, True, fitted.crept)}
+    if fitted.force_problem is not None and fitted.crept_force is not None:
+        runs_by["creep on the force"] = (fitted.force_problem, True, fitted.crept_force)
     scores: dict[str, float] = {}
     choice: tuple[float, str, float, FloatArray] | None = None
     for label, (p, creep, run) in runs_by.items():
