@@ -22,7 +22,11 @@ finite-difference derivatives, Levenberg-damped), and the linear problem (bounde
 eliminated from the normal equations, then :func:`scipy.optimize.nnls` on the rest. A step that
 does not lower the true cost is halved.
 
-The penalty weight (and whether creep is kept) is chosen by held-out error: the residual rows are
+The creep may act on the force instead (:attr:`afmctl.model.creep.Creep.acts_on`):
+``u = L[g(Q) + sum_j c_j Z_j[g(Q)]] + offset_s``, the columns ``L[C[g'(Q) basis]]``; both are fitted
+(:func:`runs`).
+
+The penalty weight (and whether creep is kept, and on what) is chosen by held-out error: the residual rows are
 cut into blocks, dealt in turn to four folds; each candidate is fitted on three folds (linearized
 at the full fit, rod frozen) and judged on the fourth with the exact model, each fold in turn.
 Identify compares that held-out error, against each sweep's sensor noise, with the parametric
