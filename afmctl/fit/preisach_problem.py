@@ -8,9 +8,9 @@ The model in the frame of :mod:`afmctl.fit.parametrization`, the gain fixed by c
 or with the creep on the force (:attr:`Problem.creep_on_force`) ``u = L[g(Q) + sum_j c_j
 Z_j[g(Q)]] + offset_s``; ``L`` the rod (16) at unit DC gain, ``y_i`` the play output of coercive
 row ``i`` (fixed by the field history and the start state, not by any parameter), ``Z_j`` the
-creep elements of :mod:`afmctl.model.creep`. The weights ``w`` are interpolated from fewer non-negative coefficients.
-:class:`Problem` holds the basis of one start assignment, evaluates the model exactly and
-linearizes it for the solver of :mod:`afmctl.fit.preisach`.
+creep elements of :mod:`afmctl.model.creep`. The weights ``w`` are interpolated from fewer
+non-negative coefficients. :class:`Problem` holds the basis of one start assignment, evaluates
+the model exactly and linearizes it for the solver of :mod:`afmctl.fit.preisach`.
 """
 
 
