@@ -65,7 +65,8 @@ class Creep:
         (the stack or its flexure creeping under load, after the force's nonlinearity): the two
         differ where the force is not linear in ``P`` and the elements are fast (on a stage with
         a cubic output map and creep after it, a 27.9 Hz triangle was fitted at 7.4x the noise
-        with creep on the polarization, 1.6x with creep on the force).
+        with creep on the polarization, 1.6x with creep on the force from an earlier fit's rod,
+        6.8x through ``afmctl identify``: the fit's basin, not the model, limits there).
     """
 
     tau_s: tuple[float, ...]
