@@ -371,7 +371,8 @@ def _refined(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.Sta
             break
         found = better(miss)
         if found is None:  # the last step: a second one gains little (0.0409 -> 0.0394 um)
-            found = better(followable(miss, cm.model.rod.natural_hz, cm.dt))
+            part = followable(miss, cm.model.rod.natural_hz, cm.dt)
+            found = None if part is miss else better(part)  # the whole miss failed already
             return best if found is None else found[0]
         best, miss, target = found
     return best
