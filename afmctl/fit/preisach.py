@@ -389,6 +389,11 @@ class PreisachFit:
     predicted : list of ndarray
         The fit's readings on every sample of each sweep (um): the model's, with the sweep's
         sensor zero and its creep transient (the history before the sweep).
+    interior_loops : int
+        The sweeps' loops with both ends inside their range
+        (:func:`afmctl.fit.preisach_problem.interior_loops`).
+    cubic : bool
+        Whether the force's cubic was fitted (else held at 0: too few interior loops).
     """
 
     model: td.Transducer
@@ -406,6 +411,8 @@ class PreisachFit:
     uncertainty: dict[str, Any]
     p_scale: float
     predicted: list[FloatArray]
+    interior_loops: int
+    cubic: bool
 
 
 def build(th: Theta, prob: Problem, scales_mass: float, thickness_um: float,
@@ -621,7 +628,8 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                        final.iterations, final.converged, time.perf_counter() - t0,
                        prob.ratios(final.theta), prob.grid.active.size,
                        scalar_uncertainty(prob, final.theta, creep), settings.p_scale,
-                       prob.predict(final.theta, full=True))
+                       prob.predict(final.theta, full=True), prob.interior_loops,
+                       prob.cubic)
 
 
 def scalar_uncertainty(prob: Problem, th: Theta, creep: bool) -> dict[str, Any]:

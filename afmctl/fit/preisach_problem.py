@@ -311,8 +311,10 @@ class Problem:
 
     def __init__(self, data: Data, grid: Grid, starts: Sequence[str], taus: Sequence[float]):
         self.data, self.grid, self.starts = data, grid, tuple(starts)
-        #: whether the map's cubic is fitted (:data:`CUBIC_LOOPS`); else its column is 0
-        self.cubic = interior_loops(data.fields) >= CUBIC_LOOPS
+        #: the sweeps' interior loops, and whether the map's cubic is fitted from them
+        #: (:data:`CUBIC_LOOPS`; else its column is 0)
+        self.interior_loops = interior_loops(data.fields)
+        self.cubic = self.interior_loops >= CUBIC_LOOPS
         #: the creep elements driven by ``g(Q)`` and added to it, not to ``Q``
         #: (:attr:`afmctl.model.creep.Creep.acts_on`)
         self.creep_on_force = False

@@ -39,7 +39,6 @@ from afmctl.files.sweepfile import Sweep
 from afmctl.fit import boucwen as bf
 from afmctl.fit import closure
 from afmctl.fit import preisach as pf
-from afmctl.fit import preisach_problem as pp
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.parametrization import rod_of, turning_points
 from afmctl.model import boucwen as bm
@@ -148,11 +147,10 @@ class Grid:
                     "blocks from the full fit (about ten parameters: optimism ~ p/N)",
                     "per_sweep_over_noise": [s.rms_over_noise for s in hem.sweeps]}}
         if grid is not None:
-            loops = pp.interior_loops([s.voltage_v for s in self.sweeps])
             figures["preisach"] = {**_grid_figures(grid, self.noise),
                                    "interior_reversals": interior_reversals(self.sweeps),
-                                   "interior_loops": loops,
-                                   "force_cubic_fitted": loops >= pp.CUBIC_LOOPS}
+                                   "interior_loops": grid.interior_loops,
+                                   "force_cubic_fitted": grid.cubic}
         figures["bouc_wen"] = (bf.figures(bw, self.noise) if bw is not None else
                                {"skipped": "the minor loops close (or none returns): a "
                                 "Preisach-type stage" if loops is not False else "not fitted"})
