@@ -14,7 +14,9 @@ and the linear filter; each is played on the stage and judged by its TRUE positi
 re-simulated, no gauge, no noise), first period out. ``family_open_loop_ratio_min`` is the
 smallest linear / inverse RMS ratio over both experiments and the Preisach and
 Prandtl-Ishlinskii stages, ``bouc_wen_open_loop_ratio_min`` the same over the Bouc-Wen ones
-(0 where the planner refused).
+(0 where the planner refused). Each row also gives each run's mean true error and its RMS
+with an offset and a slope taken out (``..._true_mean_um``, ``..._true_detrended_rms_um``):
+on the creep stages nearly all of the error is the offset a slow creep leaves.
 
 Run: ``python benchmarks/bench_track.py --json`` (last line: one JSON object).
 """
@@ -100,13 +102,16 @@ def family_row(case: family_sets.Case, cache: Path | None, periods: float) -> di
         for freq, frac in family_sets.TRIANGLES:
             key = f"{freq:g}hz"
             try:
-                true = family_sets.tracked(s, fit["model"], freq, frac, (lo, hi), periods)
+                errors = family_sets.tracked_errors(s, fit["model"], freq, frac, (lo, hi),
+                                                    periods)
             except guard.LimitError as exc:
                 row[f"{key}_refused"] = str(exc)
                 ratios.append(0.0)
                 continue
-            for name, value in true.items():
-                row[f"{key}_{name}_true_rms_um"] = value
+            for name, e in errors.items():
+                row[f"{key}_{name}_true_rms_um"] = family_sets.rms(e)
+                row[f"{key}_{name}_true_mean_um"] = float(np.mean(e))
+                row[f"{key}_{name}_true_detrended_rms_um"] = family_sets.detrended_rms(e)
             ratios.append(row[f"{key}_linear_true_rms_um"] / row[f"{key}_inverse_true_rms_um"])
             row[f"{key}_ratio"] = ratios[-1]
     row["ratio_min"] = min(ratios)

@@ -293,6 +293,14 @@ def tracked(s: Session, model: Any, freq: float, frac: float, span: tuple[float,
     planned through ``model`` and played open loop with each of ``filters`` in turn: each one's
     TRUE RMS after the first period (um; the stage re-simulated, no gauge, no noise).
     ``afmctl.guard.LimitError`` if the plan is refused."""
+    return {name: rms(e) for name, e in tracked_errors(s, model, freq, frac, span, periods,
+                                                       filters).items()}
+
+
+def tracked_errors(s: Session, model: Any, freq: float, frac: float, span: tuple[float, float],
+                   periods: float, filters: tuple[str, ...] = ("inverse", "linear")
+                   ) -> dict[str, np.ndarray]:
+    """:func:`tracked`'s true errors themselves (um, after the first period), per filter."""
     from afmctl.planning import track
 
     lo, hi = span
@@ -304,5 +312,13 @@ def tracked(s: Session, model: Any, freq: float, frac: float, span: tuple[float,
     out = {}
     for name, wf in plans.items():
         s.probe.play(wf.voltage_v)
-        out[name] = rms((s.probe.positions[-1][wf.tracking] - desired.u_um)[skip:])
+        out[name] = (s.probe.positions[-1][wf.tracking] - desired.u_um)[skip:]
     return out
+
+
+def detrended_rms(e: np.ndarray) -> float:
+    """RMS of ``e`` less its straight-line fit over the samples (um): what is left of a tracking
+    error once an offset and a steady slope, all that a slow creep or drift makes over one run,
+    are taken out."""
+    t = np.arange(e.size, dtype=float)
+    return rms(e - np.polyval(np.polyfit(t, e, 1), t))
