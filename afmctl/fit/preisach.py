@@ -120,6 +120,21 @@ def penalty(ni: int, nj: int, active: NDArray[np.intp]) -> FloatArray:
     return np.array(rows).reshape(-1, active.size)
 
 
+def grid_penalty(grid: Grid) -> FloatArray:
+    """:func:`penalty` on the coefficient grid and, with plays, second differences of the plays
+    along the coercive field, shape (rows, active)."""
+    na, nb = grid.mi.shape[1], grid.mj.shape[1]
+    smooth = grid.active < na * nb
+    pen = penalty(na, nb, grid.active[smooth])
+    if not grid.plays:
+        return pen
+    lines = penalty(grid.coercive.size, 1, grid.active[~smooth] - na * nb)
+    out = np.zeros((pen.shape[0] + lines.shape[0], grid.active.size))
+    out[:pen.shape[0], smooth] = pen
+    out[pen.shape[0]:, ~smooth] = lines
+    return out
+
+
 def bounded_solve(g: FloatArray, h: FloatArray, n_bounded: int) -> FloatArray:
     """``argmin x^T G x / 2 - h^T x`` with ``x[:n_bounded] >= 0`` and the rest free: the free
     block eliminated (Schur complement), then non-negative least squares on a Cholesky factor.
@@ -442,9 +457,10 @@ def build(th: Theta, prob: Problem, scales_mass: float, thickness_um: float,
 
 
 def _active(data: Data, ec: FloatArray, ei: FloatArray, spread: float, mi: FloatArray,
-            mj: FloatArray, starts_list: Sequence[Sequence[str]]) -> NDArray[np.intp]:
+            mj: FloatArray, starts_list: Sequence[Sequence[str]], plays: bool = False
+            ) -> NDArray[np.intp]:
     """Coefficients that move some cell whose erf varies on the judged samples of some sweep
-    (under some of the start assignments)."""
+    (under some of the start assignments); with ``plays``, then each row's play that does."""
     var = np.zeros((ec.size, ei.size), dtype=bool)
     for starts in starts_list:
         y_end = None
@@ -459,7 +475,8 @@ def _active(data: Data, ec: FloatArray, ei: FloatArray, spread: float, mi: Float
                     (-ei[None, :] < hi[:, None] + 5 * math.sqrt(2) * spread) &
                     (hi - lo > 1e-12)[:, None])
     coarse = (mi.T @ var.astype(float) @ mj) > 0
-    return np.flatnonzero(coarse.ravel())
+    moved = np.concatenate((coarse.ravel(), var.any(axis=1) if plays else np.zeros(0, bool)))
+    return np.flatnonzero(moved)
 
 
 def sweep_data(sweeps: Sequence[Sweep], thickness_um: float, noise_um: Sequence[float],
@@ -545,8 +562,9 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     cands = [tuple(s) for s in dict.fromkeys(tuple(s) for s in starts_candidates)]
     mi = hat_matrix(ec.size, settings.coef_coercive)
     mj = hat_matrix(ei.size, settings.coef_interaction)
-    grid = Grid(ec, ei, spread, mi, mj, _active(data, ec, ei, spread, mi, mj, cands))
-    pen = penalty(settings.coef_coercive, settings.coef_interaction, grid.active)
+    grid = Grid(ec, ei, spread, mi, mj,
+                _active(data, ec, ei, spread, mi, mj, cands, settings.plays), settings.plays)
+    pen = grid_penalty(grid)
     lam0 = settings.smoothing[len(settings.smoothing) // 2]
 
     def start_theta() -> Theta:

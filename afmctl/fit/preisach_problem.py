@@ -75,12 +75,18 @@ class Settings:
     coefficients: a Prandtl-Ishlinskii stage (plays with kinks, a cubic output map) went from
     1.37 / 1.38 / 2.00x to 1.07 / 1.11 / 1.22x the noise in-sample; it doubles the grid's time
     (a bipolar Preisach stage, already at 1.0x: 30 s -> 64 s).
+
+    ``plays``: each model row's play (a line of the density at one coercive field, uniform in the
+    interaction field: a Prandtl-Ishlinskii play) is a coefficient of its own beside the smooth
+    ones, so a density with lines (a stage of plays, whose loops kink where each play starts to
+    move) is not smeared over the coefficients' spacing.
     """
 
     n_coercive: int = 32
     n_interaction: int = 48
     coef_coercive: int = 16
     coef_interaction: int = 24
+    plays: bool = True
     creep_taus_s: tuple[float, ...] = CREEP_TAUS_S
     creep_thresholds: tuple[float, ...] = CREEP_THRESHOLDS
     smoothing: tuple[float, ...] = SMOOTHING
@@ -103,8 +109,9 @@ def hat_matrix(n_fine: int, n_coarse: int) -> FloatArray:
 @dataclass(frozen=True)
 class Grid:
     """Nodes of the model's grid (MV/m), the interpolation from the coefficients (``mi``, ``mj``)
-    and which coefficients the sweeps can move (``active``, flat row-major indices into the
-    ``coef_coercive x coef_interaction`` array)."""
+    and which coefficients the sweeps can move (``active``, flat indices into the
+    ``coef_coercive x coef_interaction`` array, row-major, then, with ``plays``, one per model
+    row: that row's play, a line of the density uniform in the interaction field)."""
 
     coercive: FloatArray
     interaction: FloatArray
@@ -112,12 +119,20 @@ class Grid:
     mi: FloatArray
     mj: FloatArray
     active: NDArray[np.intp]
+    plays: bool = False
+
+    @property
+    def n_coefficients(self) -> int:
+        """Size of the coefficient space ``active`` indexes."""
+        return self.mi.shape[1] * self.mj.shape[1] + (self.coercive.size if self.plays else 0)
 
     def weights(self, coef: FloatArray) -> FloatArray:
         """The cell weights (N_i, N_j) of the active coefficients ``coef``."""
-        full = np.zeros(self.mi.shape[1] * self.mj.shape[1])
+        full = np.zeros(self.n_coefficients)
         full[self.active] = coef
-        return self.mi @ full.reshape(self.mi.shape[1], -1) @ self.mj.T
+        n = self.mi.shape[1] * self.mj.shape[1]
+        w = self.mi @ full[:n].reshape(self.mi.shape[1], -1) @ self.mj.T
+        return w + full[n:, None] if self.plays else w
 
 
 def make_grid(fields: Sequence[FloatArray], settings: Settings) -> tuple[FloatArray, FloatArray,
@@ -163,8 +178,12 @@ def basis(field: FloatArray, grid: Grid, y0: FloatArray) -> tuple[FloatArray, Fl
     polarization the interpolated cells ``erf((y_i + E_I,j) / (sqrt(2) spread))`` give with that
     coefficient 1 and the others 0; and the play outputs after the sweep (its end state)."""
     y = pr.play(field, grid.coercive, y0)
-    cols = _coef_columns(y, grid.interaction, 1.0 / (math.sqrt(2.0) * grid.spread), grid.mi,
-                         grid.mj)
+    inv = 1.0 / (math.sqrt(2.0) * grid.spread)
+    cols = _coef_columns(y, grid.interaction, inv, grid.mi, grid.mj)
+    if grid.plays:
+        rows = _coef_columns(y, grid.interaction, inv, np.eye(grid.coercive.size),
+                             np.ones((grid.interaction.size, 1)))
+        cols = np.hstack((cols, rows))
     return cols, y[-1]
 
 

@@ -75,3 +75,36 @@ def test_creep_on_the_force_and_on_the_polarization_differ_where_the_map_bends()
                                atol=1e-12)
     th.s = 0.01
     assert np.max(np.abs(np.concatenate(pol.forces(th)) - np.concatenate(force.forces(th)))) > 1e-3
+
+
+def test_a_plays_coefficient_is_its_rows_line_in_the_models_kernel() -> None:
+    """The grid with plays: the fit's columns times any coefficients (smooth ones and one play
+    per row, some left out) are the polarization the model's own kernel
+    (:func:`afmctl.model.hysteresis.run` on the :class:`PreisachGrid` of ``Grid.weights``) gives,
+    through minor loops; and the penalty smooths the plays along the coercive field only."""
+    from afmctl.fit import preisach as pf
+    from afmctl.model import hysteresis as hy
+    from afmctl.model import preisach as pr
+
+    rng = np.random.default_rng(1)
+    e = np.interp(np.arange(900), [0, 200, 400, 600, 700, 800, 899],
+                  [0.0, 1.5, 0.0, 1.2, 0.5, 1.0, 0.7])
+    settings = pp.Settings(n_coercive=8, n_interaction=12, coef_coercive=4, coef_interaction=6)
+    ec, ei, spread = pp.make_grid([e], settings)
+    active = np.flatnonzero(rng.random(24 + 8) < 0.8)
+    grid = pp.Grid(ec, ei, spread, pp.hat_matrix(ec.size, 4), pp.hat_matrix(ei.size, 6), active,
+                   plays=True)
+    coef = rng.uniform(0.0, 0.02, active.size)
+    cols, _ = pp.basis(e, grid, pr.start_outputs(ec, "depoled"))
+    model = pr.PreisachGrid(tuple(ec), tuple(ei), spread, tuple(map(tuple, grid.weights(coef))),
+                            0.0)
+    p, _ = hy.run(model, e, hy.initial_state(model))
+    np.testing.assert_allclose(cols[:, active] @ coef, p, atol=1e-12)
+    lines = active >= 24
+    pen = pf.grid_penalty(grid)
+    assert not np.any(pen[:, lines] * pen[:, ~lines].any(axis=1, keepdims=True))  # apart
+    x = np.where(lines, 1.0, 0.0)  # plays equal, smooth part zero: no penalty
+    np.testing.assert_allclose(pen @ x, 0.0, atol=1e-12)
+    bump = np.zeros(active.size)
+    bump[np.flatnonzero(lines)[2]] = 1.0  # one play alone: its neighbours' differences see it
+    assert np.count_nonzero(pen @ bump) >= 2
