@@ -581,7 +581,8 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     assert best is not None
     _, prob, th = best
     say(f"Preisach grid {ec.size} x {ei.size} from {settings.coef_coercive} x "
-        f"{settings.coef_interaction} coefficients ({grid.active.size} the sweeps move), "
+        f"{settings.coef_interaction} coefficients{f' and {ec.size} plays' if grid.plays else ''}"
+        f" ({grid.active.size} the sweeps move), "
         f"starts {', '.join(prob.starts)}")
     plain = gauss_newton(prob, refit_rod(prob, th), pen, lam0, False, settings.max_iter // 4)
     plain = gauss_newton(prob, refit_rod(prob, plain.theta), pen, lam0, False,
