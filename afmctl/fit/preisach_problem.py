@@ -150,19 +150,23 @@ def make_grid(fields: Sequence[FloatArray], settings: Settings) -> tuple[FloatAr
 
 @nb.njit(cache=True)
 def _coef_columns(y: np.ndarray, ei: np.ndarray, inv: float, mi: np.ndarray,
-                  mj: np.ndarray) -> np.ndarray:
-    """``sum_ij mi[i, a] mj[j, b] erf((y_i + E_I,j) inv)`` per sample, shape (N, A B)."""
+                  mj: np.ndarray, plays: bool) -> np.ndarray:
+    """``sum_ij mi[i, a] mj[j, b] erf((y_i + E_I,j) inv)`` per sample, shape (N, A B); with
+    ``plays``, then each row's ``sum_j erf((y_i + E_I,j) inv)`` (N, A B + N_i), from the same
+    erfs."""
     n, ni = y.shape
     nj, na, nb_ = ei.size, mi.shape[1], mj.shape[1]
-    out = np.zeros((n, na * nb_))
+    out = np.zeros((n, na * nb_ + (ni if plays else 0)))
     row = np.empty(nb_)
     for t in range(n):
         for i in range(ni):
             for b in range(nb_):
                 row[b] = 0.0
+            line = 0.0
             for j in range(nj):
                 z = (y[t, i] + ei[j]) * inv
                 v = 1.0 if z > 5.0 else (-1.0 if z < -5.0 else math.erf(z))
+                line += v
                 for b in range(nb_):
                     if mj[j, b] != 0.0:
                         row[b] += mj[j, b] * v
@@ -170,20 +174,19 @@ def _coef_columns(y: np.ndarray, ei: np.ndarray, inv: float, mi: np.ndarray,
                 if mi[i, a] != 0.0:
                     for b in range(nb_):
                         out[t, a * nb_ + b] += mi[i, a] * row[b]
+            if plays:
+                out[t, na * nb_ + i] = line
     return out
 
 
 def basis(field: FloatArray, grid: Grid, y0: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Columns of every coefficient (row-major over the coefficient grid), shape (N, A B): the
-    polarization the interpolated cells ``erf((y_i + E_I,j) / (sqrt(2) spread))`` give with that
-    coefficient 1 and the others 0; and the play outputs after the sweep (its end state)."""
+    """Columns of every coefficient (row-major over the coefficient grid, then each row's play
+    with ``grid.plays``), shape (N, A B [+ N_i]): the polarization the interpolated cells
+    ``erf((y_i + E_I,j) / (sqrt(2) spread))`` give with that coefficient 1 and the others 0; and
+    the play outputs after the sweep (its end state)."""
     y = pr.play(field, grid.coercive, y0)
-    inv = 1.0 / (math.sqrt(2.0) * grid.spread)
-    cols = _coef_columns(y, grid.interaction, inv, grid.mi, grid.mj)
-    if grid.plays:
-        rows = _coef_columns(y, grid.interaction, inv, np.eye(grid.coercive.size),
-                             np.ones((grid.interaction.size, 1)))
-        cols = np.hstack((cols, rows))
+    cols = _coef_columns(y, grid.interaction, 1.0 / (math.sqrt(2.0) * grid.spread), grid.mi,
+                         grid.mj, grid.plays)
     return cols, y[-1]
 
 
