@@ -616,9 +616,11 @@ def _crept(prob: Problem, plain: Theta, pen: FloatArray, lam: float, settings: S
     drives = prob.forces(plain) if prob.creep_on_force else prob.hysteretic(plain)
     span = max(float(np.ptp(x)) for x in drives)
     prob.set_thresholds([f * span for f in settings.creep_thresholds])
-    elements = plain.copy() if warm is None else warm.copy()
     if warm is None:
+        elements = plain.copy()
         elements.c = np.zeros(prob.el_tau.size)
+    else:
+        elements = warm.copy()
     run = gauss_newton(prob, elements, pen, lam, True, settings.max_iter)
     return gauss_newton(prob, refit_rod(prob, run.theta), pen, lam, True, settings.max_iter)
 
