@@ -352,7 +352,7 @@ def _step(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: n
             acc += wc[i] * math.erf(y * inv)
         return (e * wtot + mean) / eta + p_r * acc
     if kind == 3:
-        return (e * wtot + mean) / eta + p_r * _matrix_step(e, st, out, ec, ei, cw, sigma)
+        return (e * wtot + mean) / eta + p_r * _matrix_step(e, st, out, ec, cw)
     if kind == 4:
         return (e * wtot + mean) / eta + _bouc_wen_step(e, st, out, ec)
     if kind == 1:
@@ -386,18 +386,16 @@ def _step(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: n
 
 
 @nb.njit(cache=True)
-def _matrix_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray, ei: np.ndarray,
-                 cw: np.ndarray, sigma: float) -> float:
+def _matrix_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray, tab: np.ndarray) -> float:
     """Kernel of a weight matrix on the grid (:mod:`afmctl.model.preisach`): per coercive row the
-    play output ``y_i``, then ``sum_j w_ij erf((y_i + E_I,j) / (sqrt(2) sigma))``. ``cw`` packs per
-    row the ``N_j`` weights then their ``N_j + 1`` cumulative sums; cells more than
-    ``5 sqrt(2)`` spreads from switching count as +-1 (erfc(5) = 1.5e-12)."""
-    ni, nj = ec.size, ei.size
-    stride = 2 * nj + 1
-    inv = 1.0 / (math.sqrt(2.0) * sigma)
-    cut = 5.0 * math.sqrt(2.0) * sigma
+    play output ``y_i``, then the row's ``g_i(y_i) = sum_j w_ij erf((y_i + E_I,j) / (sqrt(2)
+    sigma))``, read from its table by cubic Hermite interpolation (O(1) per row, whatever the
+    number of interaction nodes). ``tab`` packs ``[y_0, 1/h, n]`` (the table's first output,
+    MV/m, the reciprocal of its step and its length), then per row the ``n`` pairs ``(g, h g')``;
+    outside the table the row is constant (every cell switched down or up: ``-+sum_j w_ij``)."""
+    y0, inv_h, n = tab[0], tab[1], int(tab[2])
     acc = 0.0
-    for i in range(ni):
+    for i in range(ec.size):
         y = st[i]
         lo = e - ec[i]
         hi = e + ec[i]
@@ -406,12 +404,20 @@ def _matrix_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray, ei: 
         elif y > hi:
             y = hi
         out[i] = y
-        base = i * stride
-        jlo = np.searchsorted(ei, -y - cut)
-        jhi = np.searchsorted(ei, -y + cut)
-        acc += cw[base + 2 * nj] - cw[base + nj + jhi] - cw[base + nj + jlo]
-        for j in range(jlo, jhi):
-            acc += cw[base + j] * math.erf((y + ei[j]) * inv)
+        base = 3 + 2 * n * i
+        s = (y - y0) * inv_h
+        if not s > 0.0:  # below the table (or -inf: poled negative)
+            acc += tab[base]
+        elif s >= n - 1:
+            acc += tab[base + 2 * n - 2]
+        else:
+            k = int(s)
+            t = s - k
+            j = base + 2 * k
+            t2 = t * t
+            t3 = t2 * t
+            acc += ((2.0 * t3 - 3.0 * t2 + 1.0) * tab[j] + (t3 - 2.0 * t2 + t) * tab[j + 1]
+                    + (3.0 * t2 - 2.0 * t3) * tab[j + 2] + (t3 - t2) * tab[j + 3])
     return acc
 
 
