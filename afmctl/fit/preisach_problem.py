@@ -149,33 +149,47 @@ def make_grid(fields: Sequence[FloatArray], settings: Settings) -> tuple[FloatAr
 
 
 @nb.njit(cache=True)
+def _nonzeros(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of ``m`` its nonzero columns (``idx[r, :cnt[r]]``, in order)."""
+    idx = np.zeros(m.shape, np.int64)
+    cnt = np.zeros(m.shape[0], np.int64)
+    for r in range(m.shape[0]):
+        for c in range(m.shape[1]):
+            if m[r, c] != 0.0:
+                idx[r, cnt[r]] = c
+                cnt[r] += 1
+    return idx, cnt
+
+
+@nb.njit(cache=True)
 def _coef_columns(y: np.ndarray, ei: np.ndarray, inv: float, mi: np.ndarray,
                   mj: np.ndarray, plays: bool) -> np.ndarray:
     """``sum_ij mi[i, a] mj[j, b] erf((y_i + E_I,j) inv)`` per sample, shape (N, A B); with
     ``plays``, then each row's ``sum_j erf((y_i + E_I,j) inv)`` (N, A B + N_i), from the same
-    erfs."""
+    erfs. Only the interpolations' nonzero entries are visited (two per node of a hat)."""
     n, ni = y.shape
-    nj, na, nb_ = ei.size, mi.shape[1], mj.shape[1]
-    out = np.zeros((n, na * nb_ + (ni if plays else 0)))
+    nj, nb_ = ei.size, mj.shape[1]
+    ia, na_ = _nonzeros(mi)
+    jb, nbj = _nonzeros(mj)
+    out = np.zeros((n, mi.shape[1] * nb_ + (ni if plays else 0)))
     row = np.empty(nb_)
     for t in range(n):
         for i in range(ni):
-            for b in range(nb_):
-                row[b] = 0.0
+            row[:] = 0.0
             line = 0.0
             for j in range(nj):
                 z = (y[t, i] + ei[j]) * inv
                 v = 1.0 if z > 5.0 else (-1.0 if z < -5.0 else math.erf(z))
                 line += v
+                for k in range(nbj[j]):
+                    b = jb[j, k]
+                    row[b] += mj[j, b] * v
+            for k in range(na_[i]):
+                a = ia[i, k]
                 for b in range(nb_):
-                    if mj[j, b] != 0.0:
-                        row[b] += mj[j, b] * v
-            for a in range(na):
-                if mi[i, a] != 0.0:
-                    for b in range(nb_):
-                        out[t, a * nb_ + b] += mi[i, a] * row[b]
+                    out[t, a * nb_ + b] += mi[i, a] * row[b]
             if plays:
-                out[t, na * nb_ + i] = line
+                out[t, mi.shape[1] * nb_ + i] = line
     return out
 
 
