@@ -3,7 +3,7 @@
 Speed, as ratios measured in the same run: the forward model (:func:`afmctl.model.transducer.simulate`)
 and Algorithm 3 (:func:`afmctl.model.inverse.algorithm3`, horizon 2) on a 27.9 Hz, 0-150 V triangle
 at 10 kHz, for the emulated stage's HEM (its own node count) and for a Preisach grid of the size
-identify fits (32 x 48 cells, with creep); ``grid_over_hem_forward`` and ``grid_over_hem_inverse``
+identify fits (64 x 48 cells, with creep); ``grid_over_hem_forward`` and ``grid_over_hem_inverse``
 are the grid's time over the HEM's. ``creep_columns_speedup``: the creep of a fit's basis
 columns computed in place against the basis copied first (:func:`creep_columns`).
 
@@ -42,7 +42,7 @@ README_NOISE_UM = {"preisach": 0.0144, "preisach-creep": 0.0289}
 
 def grid_model(hem: tr.Transducer) -> tr.Transducer:
     """A grid of identify's size with a smooth off-centre density, the HEM's rod, and creep."""
-    ec = np.linspace(0.0, 0.75, 32)
+    ec = np.linspace(0.0, 0.75, 64)
     ei = np.sort(-np.linspace(-0.14, 1.64, 48))
     w = np.exp(-((ei[None, :] + 0.75 - 0.3 * ec[:, None]) / 0.4) ** 2 - (ec[:, None] / 0.4) ** 2)
     grid = pr.PreisachGrid(tuple(ec), tuple(ei), float(ei[1] - ei[0]),
