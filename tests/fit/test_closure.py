@@ -23,10 +23,12 @@ from tests.harness.paths import PROFILES
 RATE_HZ = 1000.0
 
 
-def minor_loops(seed: int, family: str, **fixed: float) -> sw.Sweep:
-    """Ramps 0 -> 150 -> 50 -> 110 -> 50 -> 110 -> 0 V at 150 V/s and 1 kHz (two minor loops
-    between 50 and 110 V, each returning to its reversal) on a drawn stage, with its noise."""
-    corners = (0.0, 150.0, 50.0, 110.0, 50.0, 110.0, 0.0)
+def minor_loops(seed: int, family: str,
+                corners: tuple[float, ...] = (0.0, 150.0, 50.0, 110.0, 50.0, 110.0, 0.0),
+                **fixed: float) -> sw.Sweep:
+    """Ramps through ``corners`` (by default 0 -> 150 -> 50 -> 110 -> 50 -> 110 -> 0 V: two
+    minor loops between 50 and 110 V, each returning to its reversal) at 150 V/s and 1 kHz on a
+    drawn stage, with its noise."""
     v = np.concatenate([[0.0]] + [np.linspace(a, b, int(abs(b - a) / 150.0 * RATE_HZ) + 1)[1:]
                                   for a, b in zip(corners[:-1], corners[1:])])
     stage = fst.random_family_stage(np.random.default_rng(seed), family, **fixed)
@@ -57,6 +59,22 @@ def test_preisach_type_minor_loops_close(seed: int, family: str) -> None:
     out = closure.check([minor_loops(seed, family)], [noise])
     assert out["checked"] >= 3 and out["close"] is True, out
     assert out["worst"]["gap_over_noise"] < closure.NOISES
+
+
+def test_an_excursion_past_the_reversal_before_is_not_a_loop() -> None:
+    """150 -> 55 -> 84 -> 0 -> 84 V (the reversal-curve design's shape): the descent to 0 V
+    wipes out the minimum at 55 V, so the return meets 84 V on another branch and a Preisach
+    stage's two readings there differ by far more than the noise. That pair is no minor loop:
+    the check leaves it out, and the loops it keeps (84 -> 12 -> 72 -> 24 -> 72) close."""
+    corners = (0.0, 150.0, 55.0, 84.0, 0.0, 84.0, 12.0, 72.0, 24.0, 72.0, 0.0)
+    s = minor_loops(2, "preisach", corners)
+    noise = fst.random_family_stage(np.random.default_rng(2), "preisach").noise_um
+    at84 = np.flatnonzero(np.isclose(s.voltage_v, 84.0))
+    assert abs(s.displacement_um[at84[1]] - s.displacement_um[at84[0]]) > 30 * noise
+    gaps, _ = closure.loop_gaps(s, noise)
+    assert 84.0 not in {g.voltage_v for g in gaps}
+    out = closure.check([s], [noise])
+    assert out["checked"] >= 2 and out["close"] is True, out
 
 
 def test_a_ringing_turnaround_is_not_checked(tmp_path: Path,
