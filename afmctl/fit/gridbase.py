@@ -251,11 +251,12 @@ def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
     t0 = time.perf_counter()
     fitted = pf.runs(pf.sweep_data(sweeps, thickness_um, noise_um),
                      pf.start_candidates(starts), rod0, settings, say, on_force=False)
-    prob = fitted.problem
+    prob, crept = fitted.problem, fitted.crept
+    assert crept is not None  # runs' creep_above is 0: creep is always fitted here
     plain = pf.gauss_newton(prob, fitted.plain.theta, fitted.penalty, fitted.smoothing, False,
                             settings.max_iter)
     judged = {}
-    for creep, run in ((False, plain), (True, fitted.crept)):
+    for creep, run in ((False, plain), (True, crept)):
         per = min(pf.heldout(prob, run.theta, fitted.penalty, settings.smoothing,
                              creep).values(), key=lambda a: float(np.sum(a ** 2)))
         model = pf.build(run.theta, prob, mass_kg, thickness_um, settings.p_scale, creep)
@@ -264,14 +265,14 @@ def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
                                       run.iterations, np.zeros(0), prob.starts,
                                       tuple(float(o) for o in run.theta.offsets), np.zeros(0)),
                          per)
-    c = fitted.crept.theta.c
+    c = crept.theta.c
     short, long, span = shares(prob.el_tau, c, rule)
     # (the thresholds do not enter a step's creep much larger than them: weights alone)
     per_decade = cr.Creep(tuple(map(float, prob.el_tau)), tuple(map(float, c))).per_decade()
     (p_fit, p_per), (c_fit, c_per) = judged[False], judged[True]
     return GridBase(p_fit, c_fit, _root_mean(p_per), _root_mean(c_per),
                     tuple(map(float, p_per)), tuple(map(float, c_per)),
-                    tuple(prob.predict(fitted.crept.theta, full=True)), per_decade, short, long,
+                    tuple(prob.predict(crept.theta, full=True)), per_decade, short, long,
                     span, vd.floor(noise_um), rule, bar, time.perf_counter() - t0)
 
 
