@@ -67,6 +67,7 @@ from afmctl.fit.preisach_problem import (
     rod_filter,
 )
 from afmctl.fit.preisach_solver import (
+    Run,
     bounded_solve,
     gauss_newton,
     grid_penalty,
