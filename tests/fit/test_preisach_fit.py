@@ -202,11 +202,14 @@ def test_the_cubic_is_fitted_only_where_interior_loops_pin_it(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """On the family plant's unipolar Prandtl-Ishlinskii stage (twelve plays, a cubic output
     map), a 35 <-> 100 V loop that no sweep made. First-order reversal curves leave the output
-    map to the smoothing (any family of them is some Preisach operator's): fitted free there, the
-    grid's cubic term warps the loop (2.6x the noise; 5.3x before the grid had its plays), so
-    without loops whose both ends lie inside the range it is held at 0 (1.8x; 2.9x before). With
-    the interior loops of ``afmctl sweep --design reversals`` it is fitted (1.6x; 2.7x before) and
-    the loop is predicted about as well as the sweeps are fitted."""
+    map to the smoothing (any family of them is some Preisach operator's), so without loops whose
+    both ends lie inside the range the cubic is held at 0, and with the interior loops of
+    ``afmctl sweep --design reversals`` it is fitted; either way the loop is predicted about as
+    well as the sweeps are fitted. Fitted free on the curves, the cubic warped the loop with 32
+    rows (2.6x the noise against 1.8x held; 5.3x / 2.9x before the plays); with 64 rows it no
+    longer does (1.21x free, 1.33x held, 1.11x with the interior loops): the gate stays for the
+    Preisach stage whose tracking a free cubic spoiled (``CUBIC_LOOPS``), and here it may cost
+    little."""
     from afmctl.drivers.device.foreign import family_stage as fs
     from afmctl.fit import preisach_problem as pp
 
@@ -229,7 +232,7 @@ def test_the_cubic_is_fitted_only_where_interior_loops_pin_it(
                                                "interior": [*curves, "interior"]}, stage.noise_um)
     monkeypatch.setattr(pp, "CUBIC_LOOPS", 0)  # the cubic fitted free on the curves
     free, _ = minor_loop_errors(sweeps, {"curves": curves}, stage.noise_um)
-    assert free["curves"] > 1.3 * errors["curves"], (free, errors)
+    assert errors["curves"] < 1.3 * free["curves"], (free, errors)
     assert errors["interior"] < 1.5 * worst["interior"], (errors, worst)
     assert errors["curves"] < 1.5 * worst["curves"], (errors, worst)
 
