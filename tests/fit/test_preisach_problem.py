@@ -82,7 +82,8 @@ def test_a_plays_coefficient_is_its_rows_line_in_the_models_kernel() -> None:
     per row, some left out) are the polarization the model's own kernel
     (:func:`afmctl.model.hysteresis.run` on the :class:`PreisachGrid` of ``Grid.weights``) gives,
     through minor loops, to the kernel's table interpolation (4.4e-8 of the switched
-    polarization, :func:`afmctl.model.preisach.row_tables`); and the penalty smooths the plays along the coercive field only."""
+    polarization, :func:`afmctl.model.preisach.row_tables`); and the penalty smooths the plays
+    along the coercive field only."""
     from afmctl.fit import preisach as pf
     from afmctl.model import hysteresis as hy
     from afmctl.model import preisach as pr
