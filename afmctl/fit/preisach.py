@@ -199,8 +199,8 @@ def _active(data: Data, ec: FloatArray, ei: FloatArray, spread: float, mi: Float
             y_end = y[-1]
             ym = y[m]
             lo, hi = ym.min(axis=0), ym.max(axis=0)  # per row
-            var |= ((-ei[None, :] > lo[:, None] - 5 * math.sqrt(2) * spread) &
-                    (-ei[None, :] < hi[:, None] + 5 * math.sqrt(2) * spread) &
+            var |= ((-ei[None, :] > lo[:, None] - pr.CUT * spread) &
+                    (-ei[None, :] < hi[:, None] + pr.CUT * spread) &
                     (hi - lo > 1e-12)[:, None])
     coarse = (mi.T @ var.astype(float) @ mj) > 0
     moved = np.concatenate((coarse.ravel(), var.any(axis=1) if plays else np.zeros(0, bool)))
