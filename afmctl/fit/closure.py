@@ -90,7 +90,8 @@ def loop_gaps(sweep: Sweep, noise_um: float) -> tuple[list[Gap], int]:
     stage's two readings at 84 V differ by 4.3 um)."""
     v, y = sweep.voltage_v, sweep.displacement_um
     turns = turning_points(v)
-    width = WINDOW * float(np.ptp(v))
+    span = float(np.ptp(v))
+    width = WINDOW * span
     out, unsteady = [], 0
     for i in range(1, turns.size - 1):
         a, b = int(turns[i - 1]), int(turns[i])
@@ -98,7 +99,7 @@ def loop_gaps(sweep: Sweep, noise_um: float) -> tuple[list[Gap], int]:
         va, sign = float(v[b]), float(np.sign(v[b] - v[a]))
         nxt = int(turns[i + 1])
         back = np.flatnonzero(sign * (v[nxt:end + 1] - va) >= 0)  # the return reaches v_a
-        wiped = sign * (v[nxt] - v[a]) < -PASSED * float(np.ptp(v))  # past the reversal before
+        wiped = sign * (v[nxt] - v[a]) < -PASSED * span  # past the reversal before
         if sign == 0 or back.size == 0 or wiped:
             continue
         into = np.arange(a, b + 1)
