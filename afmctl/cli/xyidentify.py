@@ -28,6 +28,9 @@ def _report(result: Any) -> str:
         lines.append(f"  static  {k.static:+.5g} +- {doc['static_stderr']:.2g} "
                      f"({k.static_db:.1f} dB; low-passed regression {c.static:+.5g} "
                      f"+- {c.static_stderr:.2g})")
+        if k.quadratic:
+            lines.append(f"  arc     {k.quadratic:+.3g} +- {c.quadratic_stderr:.2g} um/um^2 about "
+                         f"{k.centre_um:.4g} um")
         lines.append(f"  mode    {k.mode_hz:.4g} Hz (+- {100 * doc['mode_hz_stderr_rel']:.0f} %),"
                      f" damping {k.damping:.3g} (+- {100 * doc['damping_stderr_rel']:.0f} %), "
                      f"gain_hp {k.gain_hp:+.3g}, gain_bp {k.gain_bp:+.3g}")

@@ -26,6 +26,8 @@ one-axis model file (:mod:`afmctl.files.modelfile`, versions 2 and 3: model, ``e
     gain_hp_um_per_um = 0.021
     gain_bp_um_per_um = 0.004
     reference_um = 48.3                  # x displacement at which y's model was identified
+    quadratic_um_per_um2 = -1.6e-5       # optional (0): a flexure's arc, about centre_um
+    centre_um = 53.1                     # optional (0): x where static_um_per_um is the slope
     stderr = [1e-5, 0.02, 0.1, 0.001, 0.0005]   # optional, informational: 1-sigma of static,
                                                 # ln mode, ln damping, gain_hp, gain_bp
 
@@ -52,7 +54,8 @@ def coupling_dict(c: Coupling, stderr: Sequence[float] | None = None) -> dict[st
     """The ``[coupling.<direction>]`` table of ``c`` (with the fit's 1-sigma if given)."""
     out: dict[str, Any] = {"static_um_per_um": c.static, "mode_Hz": c.mode_hz,
                            "damping_ratio": c.damping, "gain_hp_um_per_um": c.gain_hp,
-                           "gain_bp_um_per_um": c.gain_bp, "reference_um": c.reference_um}
+                           "gain_bp_um_per_um": c.gain_bp, "reference_um": c.reference_um,
+                           "quadratic_um_per_um2": c.quadratic, "centre_um": c.centre_um}
     if stderr is not None:
         out["stderr"] = [float(x) for x in stderr]
     return out
@@ -65,7 +68,8 @@ def _coupling(t: Table) -> Coupling:
         return Coupling(t.number("static_um_per_um"), t.number("mode_Hz", 0.0, nonnegative=True),
                         t.number("damping_ratio", 0.05, positive=True),
                         t.number("gain_hp_um_per_um", 0.0), t.number("gain_bp_um_per_um", 0.0),
-                        t.number("reference_um", 0.0))
+                        t.number("reference_um", 0.0), t.number("quadratic_um_per_um2", 0.0),
+                        t.number("centre_um", 0.0))
     except ValueError as exc:
         if isinstance(exc, mf.FileFormatError):
             raise

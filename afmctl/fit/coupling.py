@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,6 +49,8 @@ MIN_COHERENCE = 0.5
 #: triangle's far harmonics and the band above a multisine's carry the source's noise and the
 #: products of any nonlinearity (a flexure's arc turns a triangle's comb into a denser one).
 SOURCE_RANGE_DB = 60.0
+#: The arc's quadratic is kept when it lies this many of its 1-sigma from zero.
+ARC_SIGMAS = 3.0
 #: Estimates the fitted form leaves this many robust sigmas away are outliers (:func:`fit_form`).
 OUTLIER = 5.0
 #: The first screening for outliers fits a mode at least this damped (:func:`fit_form`).
@@ -105,6 +107,7 @@ class CouplingFit:
     rms_over_sigma: float
     files: tuple[str, ...] = ()
     dropped: int = 0
+    quadratic_stderr: float = 0.0
 
     @property
     def stderr(self) -> tuple[float, ...]:
@@ -142,6 +145,8 @@ class CouplingFit:
             "gain_hp": c.gain_hp, "gain_hp_stderr": float(sd[3]),
             "gain_bp": c.gain_bp, "gain_bp_stderr": float(sd[4]),
             "reference_um": c.reference_um, "band_hz": [lo, hi],
+            "quadratic_um_per_um2": c.quadratic, "quadratic_stderr": self.quadratic_stderr,
+            "centre_um": c.centre_um,
             "rms_over_sigma": self.rms_over_sigma, "files": list(self.files),
             "estimates": int(self.spectrum.freq_hz.size), "dropped": self.dropped,
             "frf": [{"freq_hz": float(f), "gain": float(abs(v)),
@@ -162,48 +167,95 @@ def report_frequencies() -> FloatArray:
 # ----------------------------------------------------------------------------------------------
 
 
-def static_gain(records: Sequence[Record], cutoff_hz: float = STATIC_CUTOFF_HZ
-                ) -> tuple[float, float]:
-    """Static gain (um/um) and its 1-sigma from the displacements low-passed at ``cutoff_hz``.
+@dataclass(frozen=True)
+class Static:
+    """The low-passed regression: the slope at ``centre_um`` (um) (um/um) and the arc's quadratic
+    (um/um^2, 0 when not significant), each with its 1-sigma."""
+
+    gain: float
+    stderr: float
+    quadratic: float = 0.0
+    quadratic_stderr: float = 0.0
+    centre_um: float = 0.0
+
+
+def static_gain(records: Sequence[Record], cutoff_hz: float = STATIC_CUTOFF_HZ) -> Static:
+    """Static gain and arc from the displacements low-passed at ``cutoff_hz``.
 
     Only files whose source moves mostly below the cutoff (:data:`SLOW_SHARE`) enter, each
     without the filter's edge transients (``1 / cutoff_hz`` s at either end); per file an offset
-    and a quadratic drift in time (the held axis creeps) are fitted beside the one shared gain. The 1-sigma counts one independent sample per ``1 / (2 cutoff_hz)`` s (the
-    low-pass correlates the residual over that time).
+    and a quadratic drift in time (the held axis creeps) are fitted beside the shared gain and the
+    shared arc ``quadratic (x - centre)^2``, ``centre`` the middle of the files' source range (so
+    the gain is the slope at the middle of the major loop, what a static coupling means for a
+    flexure's arc). The arc is kept when it is at least
+    :data:`ARC_SIGMAS` of its 1-sigma from zero; else the gain is refitted without it. The 1-sigma
+    counts one independent sample per ``1 / (2 cutoff_hz)`` s (the low-pass correlates the
+    residual over that time).
     """
-    cols, ys, blocks = [], [], []
-    n_eff = 0.0
-    for i, r in enumerate(records):
-        edge = int(math.ceil(1.0 / (cutoff_hz * r.dt_s)))
-        if 2 * cutoff_hz * r.dt_s >= 1 or r.source_um.size < 4 * edge:
-            continue
-        sos = signal.butter(4, cutoff_hz, fs=1.0 / r.dt_s, output="sos")
-        s = signal.sosfiltfilt(sos, r.source_um - r.source_um.mean())[edge:-edge]
-        t = signal.sosfiltfilt(sos, r.target_um - r.target_um.mean())[edge:-edge]
-        if np.var(s) < SLOW_SHARE * np.var(r.source_um):
-            continue  # a fast sweep: its low-passed source is its edges, not its motion
-        tau = np.linspace(-1.0, 1.0, s.size)
-        cols.append(s)
-        ys.append(t)
-        blocks.append((i, np.column_stack([np.ones_like(tau), tau, tau ** 2])))
-        n_eff += 2 * cutoff_hz * s.size * r.dt_s
-    if not cols:
+    parts = [p for p in (_slow_part(r, cutoff_hz) for r in records) if p is not None]
+    if not parts:
         raise FitInputError(f"no file whose source moves slowly enough (below {cutoff_hz:g} Hz) "
                             f"and long enough for the static coupling")
+    raw = np.concatenate([p.raw for p in parts])
+    centre = 0.5 * float(raw.min() + raw.max())
+    arc = [signal.sosfiltfilt(p.sos, (p.raw - centre) ** 2)[p.edge:-p.edge] for p in parts]
+    n_eff = sum(2 * cutoff_hz * p.source.size * p.dt_s for p in parts)
+    cols, ys = [p.source for p in parts], [p.target for p in parts]
+    beta, sd = _regress(cols, ys, arc, n_eff)
+    if abs(beta[1]) >= ARC_SIGMAS * sd[1]:
+        return Static(float(beta[0]), float(sd[0]), float(beta[1]), float(sd[1]), centre)
+    beta, sd = _regress(cols, ys, None, n_eff)
+    return Static(float(beta[0]), float(sd[0]), centre_um=centre)
+
+
+class _Slow(NamedTuple):
+    """A file's low-passed source and target (um, edges cut), its interval (s), raw source (um),
+    low-pass filter and edge length (samples)."""
+
+    source: FloatArray
+    target: FloatArray
+    dt_s: float
+    raw: FloatArray
+    sos: FloatArray
+    edge: int
+
+
+def _slow_part(r: Record, cutoff_hz: float) -> _Slow | None:
+    """A file as the static gain sees it; None for a file too fast or too short for it."""
+    edge = int(math.ceil(1.0 / (cutoff_hz * r.dt_s)))
+    if 2 * cutoff_hz * r.dt_s >= 1 or r.source_um.size < 4 * edge:
+        return None
+    sos = signal.butter(4, cutoff_hz, fs=1.0 / r.dt_s, output="sos")
+    s = signal.sosfiltfilt(sos, r.source_um - r.source_um.mean())[edge:-edge]
+    if np.var(s) < SLOW_SHARE * np.var(r.source_um):
+        return None  # a fast sweep: its low-passed source is its edges, not its motion
+    t = signal.sosfiltfilt(sos, r.target_um - r.target_um.mean())[edge:-edge]
+    return _Slow(s, t, r.dt_s, np.asarray(r.source_um, dtype=float), sos, edge)
+
+
+def _regress(cols: list[FloatArray], ys: list[FloatArray], arc: list[FloatArray] | None,
+             n_eff: float) -> tuple[FloatArray, FloatArray]:
+    """Shared gain (and arc) with an offset and a quadratic drift in time per file: the
+    coefficients and their 1-sigma (``n_eff`` independent samples)."""
+    shared = 1 if arc is None else 2
     n = sum(c.size for c in cols)
-    a = np.zeros((n, 1 + 3 * len(cols)))
+    a = np.zeros((n, shared + 3 * len(cols)))
     a[:, 0] = np.concatenate(cols)
+    if arc is not None:
+        a[:, 1] = np.concatenate(arc)
     row = 0
-    for k, (_, b) in enumerate(blocks):
-        a[row:row + b.shape[0], 1 + 3 * k:4 + 3 * k] = b
-        row += b.shape[0]
+    for k, c in enumerate(cols):
+        tau = np.linspace(-1.0, 1.0, c.size)
+        a[row:row + c.size, shared + 3 * k:shared + 3 + 3 * k] = np.column_stack(
+            [np.ones_like(tau), tau, tau ** 2])
+        row += c.size
     y = np.concatenate(ys)
     beta, *_ = np.linalg.lstsq(a, y, rcond=None)
     resid = y - a @ beta
     dof = max(n_eff - a.shape[1], 1.0)
     s2 = float(np.sum(resid ** 2)) * (n_eff / n) / dof
     cov = s2 * np.linalg.pinv(a.T @ a) * (n / n_eff)
-    return float(beta[0]), float(math.sqrt(max(cov[0, 0], 0.0)))
+    return beta[:shared], np.sqrt(np.maximum(np.diag(cov)[:shared], 0.0))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -396,12 +448,14 @@ def identify(records: Sequence[Record], reference_um: float = 0.0) -> CouplingFi
     try:
         static = static_gain(records)
     except FitInputError:  # no slow file: the response's low end alone fixes the static gain
-        static = (float("nan"), float("inf"))
+        static = Static(float("nan"), float("inf"))
     sp = spectrum(records)
     if sp.freq_hz.size < 3:
         raise FitInputError("the source's motion explains the target's at too few frequencies "
                             "(coherence below %g)" % MIN_COHERENCE)
-    c, cov, rms, keep = fit_form(sp, (static[0], max(static[1], 1e-12)), reference_um)
-    return CouplingFit(c, static[0], static[1], cov, _subset(sp, keep),
+    c, cov, rms, keep = fit_form(sp, (static.gain, max(static.stderr, 1e-12)), reference_um)
+    c = replace(c, quadratic=static.quadratic, centre_um=static.centre_um)
+    return CouplingFit(c, static.gain, static.stderr, cov, _subset(sp, keep),
                        (float(sp.freq_hz[keep][0]), float(sp.freq_hz[keep][-1])), rms,
-                       tuple(r.name for r in records), int((~keep).sum()))
+                       tuple(r.name for r in records), int((~keep).sum()),
+                       static.quadratic_stderr)

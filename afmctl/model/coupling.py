@@ -13,6 +13,13 @@ with ``w = 2 pi mode_hz``. ``gain_hp`` is the mode's high-frequency part (the ta
 source's acceleration through the shared mass), ``gain_bp`` its velocity part (its value at the
 resonance). ``mode_hz = 0`` means a static coupling only.
 
+A guide flexure's parasitic motion is an arc: a parallelogram flexure of length ``L`` shortens by
+``3 s^2 / (5 L)`` at a deflection ``s`` (Smith, *Foundations of ultraprecision mechanism design*),
+so the target also moves by a term quadratic in the source, which a static gain cannot carry. It
+is added beside ``H`` as ``quadratic ((x - centre)^2 - (reference - centre)^2)``: zero at the
+reference, and ``static`` stays the slope at ``centre`` (the middle of the sweeps it was regressed
+on: the stage's mid-range).
+
 The operator acts on the source's displacement *relative to where it was while the target's own
 model was identified* (``reference_um``): identify sweeps each axis with the other held, so the
 target's model already carries the static part at that position.
@@ -49,6 +56,11 @@ class Coupling:
         The mode's gain at its resonance (velocity path), um/um.
     reference_um : float
         Source displacement at which the target's own model was identified, um.
+    quadratic : float
+        The arc: target motion per squared source displacement from ``centre_um``, um/um^2
+        (signed).
+    centre_um : float
+        Source displacement at which ``static`` is the slope, um (matters with a ``quadratic``).
     """
 
     static: float
@@ -57,9 +69,12 @@ class Coupling:
     gain_hp: float = 0.0
     gain_bp: float = 0.0
     reference_um: float = 0.0
+    quadratic: float = 0.0
+    centre_um: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("static", "mode_hz", "damping", "gain_hp", "gain_bp", "reference_um"):
+        for name in ("static", "mode_hz", "damping", "gain_hp", "gain_bp", "reference_um",
+                     "quadratic", "centre_um"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"coupling {name} must be finite")
         if self.mode_hz < 0 or (self.mode_hz > 0 and self.damping <= 0):
@@ -99,7 +114,8 @@ def caused(c: Coupling, source_um: ArrayLike, dt_s: float) -> FloatArray:
 
     The source is taken piecewise linear between samples (first-order hold): the exact response
     of ``H(s)`` to the interpolated source, sampled at the same instants. Before the first sample
-    the source is taken to have rested at its first value.
+    the source is taken to have rested at its first value. The arc's term is added sample by
+    sample (a flexure's geometry: static).
 
     Parameters
     ----------
@@ -115,11 +131,12 @@ def caused(c: Coupling, source_um: ArrayLike, dt_s: float) -> FloatArray:
         Target displacement caused, um (relative to its own model's prediction).
     """
     x = np.asarray(source_um, dtype=float) - c.reference_um
+    arc = c.quadratic * x * (x + 2 * (c.reference_um - c.centre_um))
     if c.mode_hz == 0 or x.size == 0:
-        return c.static * x
+        return c.static * x + arc
     num, den = c.transfer()
     bd, ad, _ = signal.cont2discrete((num, den), dt_s, method="foh")
     bd = np.ravel(bd)
     zi = signal.lfilter_zi(bd, ad) * x[0]
     y, _ = signal.lfilter(bd, ad, x, zi=zi)
-    return np.asarray(y, dtype=float)
+    return np.asarray(y, dtype=float) + arc

@@ -78,6 +78,7 @@ def test_two_dof_is_recovered_with_its_mode() -> None:
 def test_two_modes_outside_the_form_are_followed_below_the_first() -> None:
     system = _two_modes(0.006)
     fit = fc.identify(_records(system, np.random.default_rng(2)))
+    assert fit.coupling.quadratic == 0.0  # no arc: none significant, none kept
     db, deg = _errors(fit, system, 60.0)  # 0.2 of the first mode
     assert db < 0.5 and deg < 3.0
     assert fit.coupling.static == pytest.approx(0.006, rel=0.03)
@@ -89,6 +90,10 @@ def test_an_arc_off_centre_keeps_the_mid_range_static_gain() -> None:
     system = _two_dof(0.01, 400.0, 0.05, -0.02)
     fit = fc.identify(_records(system, np.random.default_rng(3), arc=4e-5, chirp_centre=30.0))
     assert fit.coupling.static == pytest.approx(0.01, rel=0.02)
+    # the arc itself, about the middle of the triangles' range
+    assert fit.coupling.quadratic == pytest.approx(4e-5, rel=0.03)
+    assert abs(fit.coupling.quadratic - 4e-5) < 4 * fit.quadratic_stderr + 1e-7
+    assert abs(fit.coupling.centre_um) < 0.5
     db, deg = _errors(fit, system, 80.0)
     assert db < 0.3 and deg < 2.0
 

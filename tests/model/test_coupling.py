@@ -18,6 +18,21 @@ def test_static_only_is_a_gain_about_the_reference() -> None:
     assert c.static_db == pytest.approx(20 * math.log10(0.012))
 
 
+def test_an_arc_is_zero_at_the_reference_with_the_static_slope_at_its_centre() -> None:
+    """y = static (x - r) + q ((x - c)^2 - (r - c)^2), written out by hand; a mode does not
+    change the settled value (it vanishes at DC)."""
+    x = np.linspace(0.0, 100.0, 401)
+    for mode_hz in (0.0, 300.0):
+        c = Coupling(static=0.05, mode_hz=mode_hz, reference_um=40.0, quadratic=-2e-5,
+                     centre_um=55.0)
+        held = np.repeat(x, 200)  # each level held 20 ms: the mode (tau < 10 ms) dies away
+        y = caused(c, held, 1e-4)[199::200]
+        assert np.allclose(y, 0.05 * (x - 40.0) - 2e-5 * ((x - 55.0) ** 2 - 15.0 ** 2), atol=1e-9)
+        assert y[160] == pytest.approx(0.0, abs=1e-12)  # x = 40: the reference
+        slope = np.gradient(y, x)
+        assert slope[220] == pytest.approx(0.05, rel=1e-9)  # x = 55: the centre
+
+
 def test_frf_at_dc_resonance_and_high_frequency() -> None:
     c = Coupling(static=0.01, mode_hz=400.0, damping=0.04, gain_hp=0.02, gain_bp=0.03)
     h = frf(c, [0.0, 400.0, 4e6])
