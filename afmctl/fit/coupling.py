@@ -169,8 +169,9 @@ def report_frequencies() -> FloatArray:
 
 @dataclass(frozen=True)
 class Static:
-    """The low-passed regression: the slope at ``centre_um`` (um) (um/um) and the arc's quadratic
-    (um/um^2, 0 when not significant), each with its 1-sigma."""
+    """The low-passed regression: the gain (um/um, the slope at source displacement
+    ``centre_um``, um) and the arc's quadratic (um/um^2, 0 when not significant), each with its
+    1-sigma."""
 
     gain: float
     stderr: float
@@ -187,10 +188,9 @@ def static_gain(records: Sequence[Record], cutoff_hz: float = STATIC_CUTOFF_HZ) 
     and a quadratic drift in time (the held axis creeps) are fitted beside the shared gain and the
     shared arc ``quadratic (x - centre)^2``, ``centre`` the middle of the files' source range (so
     the gain is the slope at the middle of the major loop, what a static coupling means for a
-    flexure's arc). The arc is kept when it is at least
-    :data:`ARC_SIGMAS` of its 1-sigma from zero; else the gain is refitted without it. The 1-sigma
-    counts one independent sample per ``1 / (2 cutoff_hz)`` s (the low-pass correlates the
-    residual over that time).
+    flexure's arc). The arc is kept when it is at least :data:`ARC_SIGMAS` of its 1-sigma from
+    zero; else the gain is refitted without it. The 1-sigma counts one independent sample per
+    ``1 / (2 cutoff_hz)`` s (the low-pass correlates the residual over that time).
     """
     parts = [p for p in (_slow_part(r, cutoff_hz) for r in records) if p is not None]
     if not parts:
