@@ -19,7 +19,7 @@ def _model(scale: float):
 
 
 XY = XYModel({"x": _model(1.0), "y": _model(1.1)},
-             {"yx": Coupling(0.012, 420.0, 0.03, 0.02, 0.05, 1.5),
+             {"yx": Coupling(0.012, 420.0, 0.03, 0.02, 0.05, 1.5, -1.6e-5, 53.0),
               "xy": Coupling(-0.008, 0.0, 0.05, 0.0, 0.0, -2.0)})
 
 
@@ -38,6 +38,19 @@ def test_round_trip_and_axis_extraction(tmp_path: Path) -> None:
     assert xm.read_axis(tmp_path / "m.toml", "y")[1] is None
     with pytest.raises(FileFormatError, match="name the axis"):
         mf.read(tmp_path / "m.toml")  # the one-axis reader names what the file is
+
+
+def test_a_file_without_the_arc_reads_as_no_arc(tmp_path: Path) -> None:
+    """Files written before the arc's keys existed read with none."""
+    xm.write(XY, tmp_path / "m.toml")
+    text = (tmp_path / "m.toml").read_text()
+    assert "quadratic_um_per_um2 = -1.6e-05" in text
+    lines = [ln for ln in text.splitlines()
+             if not ln.startswith(("quadratic_um_per_um2", "centre_um"))]
+    (tmp_path / "old.toml").write_text("\n".join(lines) + "\n")
+    back = xm.read(tmp_path / "old.toml").coupling["yx"]
+    assert (back.quadratic, back.centre_um) == (0.0, 0.0)
+    assert back.static == 0.012 and back.reference_um == 1.5
 
 
 def test_one_axis_file_still_reads_as_any_axis_but_not_as_two(tmp_path: Path) -> None:
