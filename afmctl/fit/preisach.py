@@ -314,25 +314,25 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                      0.0, math.log(rod0[0]), math.log(rod0[1]),
                      np.array([float(np.mean(y)) for y in data.y]))
 
-    ranked = []
+    top: list[tuple[float, Problem, Theta]] = []  # the best two (each holds its basis columns)
     for starts in cands:  # the start states: one linear step each, the cheapest to compare
         prob = Problem(data, grid, starts, settings.creep_taus_s)
         run = gauss_newton(prob, start_theta(), pen, lam0, False, 1)
-        ranked.append((run.cost, prob, run.theta))
-    ranked.sort(key=lambda r: r[0])
-    prob = ranked[0][1]
+        top = sorted([*top, (run.cost, prob, run.theta)], key=lambda r: r[0])[:2]
+    best, runner_up = top[0], (top[1] if len(top) > 1 else None)
+    prob = best[1]
     say(f"Preisach grid {ec.size} x {ei.size} from {settings.coef_coercive} x "
         f"{settings.coef_interaction} coefficients{f' and {ec.size} plays' if grid.plays else ''}"
         f" ({grid.active.size} the sweeps move), "
         f"starts {', '.join(prob.starts)}")
-    plain = _plain(prob, ranked[0][2], pen, lam0, settings)
+    plain = _plain(prob, best[2], pen, lam0, settings)
     crept = forced = crept_force = None
     if float(np.max(prob.ratios(plain.theta))) <= creep_above:
         say(f"  no creep fitted: without it every sweep is within {creep_above:g}x its noise")
     else:
         crept = _crept(prob, plain.theta, pen, lam0, settings)
-        if _retry(prob, plain, crept) and len(ranked) > 1:
-            prob, plain, crept = _retried(prob, plain, crept, ranked[1], pen, lam0, settings, say)
+        if runner_up is not None and _retry(prob, plain, crept):
+            prob, plain, crept = _retried(prob, plain, crept, runner_up, pen, lam0, settings, say)
     shown = [("without creep", prob, plain)] + ([("with creep", prob, crept)] if crept else [])
     if on_force and crept is not None:
         forced = copy.copy(prob)
