@@ -296,15 +296,18 @@ class Player:
         A Ctrl-C (SIGINT) that arrives while on_block runs is held until it returns, so a block
         is handed over whole (a run file never ends in half a block) and the interrupt is then
         handled like one anywhere else in the run (the rest handed over by :meth:`abandon`); an
-        exception of on_block's own ends the hand-over (``in_callback`` stays set)."""
-        self.delivered = end
-        if self.on_block is not None and end > first:
-            sl = slice(first, end)
+        exception of on_block's own ends the hand-over (``in_callback`` stays set). The samples
+        count as delivered, and ``in_callback`` is set, only once Ctrl-C is held: an interrupt
+        just before leaves them to :meth:`abandon`, never lost between the two."""
+        if self.on_block is None or end <= first:
+            self.delivered = max(self.delivered, end)
+            return
+        sl = slice(first, end)
+        with _sigint_held():
+            self.delivered = end
             self.in_callback = True
-            with _sigint_held():
-                self.on_block(first, self.volt[sl].copy(), self.u[sl].copy(),
-                              self.valid[sl].copy())
-                self.in_callback = False
+            self.on_block(first, self.volt[sl].copy(), self.u[sl].copy(), self.valid[sl].copy())
+            self.in_callback = False
 
     def abandon(self, cause: BaseException) -> None:
         """After a failed run (the stage already safe): hand every sample not yet delivered to

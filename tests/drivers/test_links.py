@@ -182,6 +182,39 @@ def test_ctrl_c_inside_on_block_is_held_until_the_block_is_handed_over(profile: 
     assert not st.running and st.output_v == 0.0
 
 
+def test_ctrl_c_just_before_a_hand_over_loses_no_block(profile: Profile,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A SIGINT that lands just before the hold of the second hand-over (before on_block is
+    entered): that block is not counted delivered, and the abandon hands it over with the rest,
+    every sample exactly once and in order."""
+    from contextlib import contextmanager
+
+    from afmctl.drivers import player
+
+    held = player._sigint_held
+    calls = [0]
+
+    @contextmanager
+    def interrupted_on_second():  # type: ignore[no-untyped-def]
+        calls[0] += 1
+        if calls[0] == 2:
+            raise KeyboardInterrupt
+        with held():
+            yield
+
+    monkeypatch.setattr(player, "_sigint_held", interrupted_on_second)
+    v = np.concatenate([np.linspace(0.0, 20.0, 50), np.full(12_000, 20.0)])
+    seen: list[tuple[int, int]] = []
+    with stage_on("serial-pty", profile) as (stage, _):
+        with pytest.raises(KeyboardInterrupt):
+            stage.play(v, lambda first, volt, *_: seen.append((first, volt.size)))
+        st = stage.status()
+    assert calls[0] >= 3 and len(seen) >= 2
+    assert [f for f, _ in seen] == list(np.cumsum([0] + [m for _, m in seen[:-1]]))
+    assert sum(m for _, m in seen) == v.size
+    assert not st.running and st.output_v == 0.0
+
+
 def test_a_refill_refused_after_the_run_stopped_says_the_run_stopped(profile: Profile) -> None:
     """The device underruns between the host's status poll and its refill (a device clock that
     jumps 0.3 s per call): the error names the stopped run, not only the refused block."""
