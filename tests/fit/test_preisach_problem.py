@@ -110,3 +110,15 @@ def test_a_plays_coefficient_is_its_rows_line_in_the_models_kernel() -> None:
     bump = np.zeros(active.size)
     bump[np.flatnonzero(lines)[2]] = 1.0  # one play alone: its neighbours' differences see it
     assert np.count_nonzero(pen @ bump) >= 2
+
+
+@pytest.mark.parametrize("periods", range(2, 11))
+def test_every_phase_held_out_in_one_period_is_trained_on_in_another(periods: int) -> None:
+    """On a sweep of whole periods, the samples a fold holds out at one phase of the loop are in
+    another fold one period or more away: no fold is judged on an arc the others never saw.
+    Each fold holds a quarter of the samples."""
+    n = 2520 * periods  # samples divisible by the blocks and the periods
+    data = pp.Data([np.zeros(n)], [np.ones(n, bool)], [np.zeros(n)], [1e-3], np.array([0.01]))
+    fold = data.folds[0].reshape(periods, -1)  # one row per period
+    assert not (fold == fold[0]).all(axis=0).any()
+    assert np.bincount(data.folds[0], minlength=pp.FOLDS).tolist() == [n // pp.FOLDS] * pp.FOLDS
