@@ -100,8 +100,9 @@ def first_half(s: Sweep) -> Sweep:
 
 
 def heldout(space: ext.ExtendedSpace, fitted: ext.Extended,
-            sweeps: Sequence[Sweep]) -> tuple[float, tuple[float, ...]]:
-    """Error of a fitted candidate on the second half of every sweep, the part no fit saw.
+            sweeps: Sequence[Sweep]) -> tuple[float, tuple[float, ...], float]:
+    """Error of a fitted candidate on the second half of every sweep, the part no fit saw, and
+    on the first halves it was fitted on.
 
     Parameters
     ----------
@@ -119,15 +120,18 @@ def heldout(space: ext.ExtendedSpace, fitted: ext.Extended,
         Root mean of the per-sweep mean squares, um (every sweep weighs the same).
     per_sweep_um : tuple of float
         RMS of each sweep's second half, um.
+    fit_rms_um : float
+        The same root mean on the first halves, um.
     """
-    mse = []
+    mse, fit_mse = [], []
     for s, u in zip(sweeps, space.readings(fitted.x, fitted.beta), strict=True):
-        h = s.time_s.size // 2
-        err = s.displacement_um - u
+        first = np.arange(s.time_s.size) < s.time_s.size // 2
+        sq = (s.displacement_um - u) ** 2
         judged = s.mask(None)
-        judged[:h] = False
-        mse.append(float(np.mean(err[judged] ** 2)))
-    return math.sqrt(float(np.mean(mse))), tuple(math.sqrt(m) for m in mse)
+        mse.append(float(np.mean(sq[judged & ~first])))
+        fit_mse.append(float(np.mean(sq[judged & first])))
+    return (math.sqrt(float(np.mean(mse))), tuple(math.sqrt(m) for m in mse),
+            math.sqrt(float(np.mean(fit_mse))))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -264,8 +268,8 @@ def _judge(name: str, job: _Job) -> Judged:
     t1 = time.perf_counter()
     progress = None if _progress_say is None else ext.Progress(_progress_say, name)
     fitted, n_params, space = _fit(name, job, progress)
-    rms, per = heldout(space.on(job.whole), fitted, job.sweeps)
-    return Judged(fitted, n_params, rms, per, time.perf_counter() - t1)
+    rms, per, fit_rms = heldout(space.on(job.whole), fitted, job.sweeps)
+    return Judged(fitted, n_params, rms, per, time.perf_counter() - t1, fit_rms)
 
 
 
@@ -326,13 +330,14 @@ def _twin_from(sensor: str, table: dict[str, Judged], job: _Job) -> Judged:
     space = _space(cd.TWINS[sensor], job).with_starts(fitted.starts)
     twin, space = ext.fit(space, fitted.x[:6], job.thickness, job.settings.max_nfev, 1,
                           job.settings.identify)
-    rms, per = heldout(space.on(job.whole), twin, job.sweeps)
-    return Judged(twin, space.candidate.n_added, rms, per, time.perf_counter() - t1)
+    rms, per, fit_rms = heldout(space.on(job.whole), twin, job.sweeps)
+    return Judged(twin, space.candidate.n_added, rms, per, time.perf_counter() - t1, fit_rms)
 
 
 def scored(table: dict[str, Judged]) -> list[vd.Scored]:
     """The table's held-out RMS and parameters added, for the verdict."""
-    return [vd.Scored(j.fitted.name, j.heldout_rms_um, j.n_params) for j in table.values()]
+    return [vd.Scored(j.fitted.name, j.heldout_rms_um, j.n_params, j.fit_rms_um)
+            for j in table.values()]
 
 
 def choose(table: dict[str, Judged], floor_um: float, rule: vd.Rule) -> str:

@@ -40,19 +40,22 @@ def fitted_text(parameters: dict[str, float]) -> str:
 @dataclass(frozen=True)
 class Judged:
     """One candidate: its fit on the first halves, its RMS error (um) on the second halves
-    (overall and per sweep) and the fit's wall time (s)."""
+    (overall and per sweep), the fit's wall time (s) and its RMS error on the first halves (um,
+    the same root mean of per-sweep mean squares; NaN: not computed)."""
 
     fitted: ext.Extended
     n_params: int
     heldout_rms_um: float
     heldout_per_sweep_um: tuple[float, ...]
     fit_seconds: float
+    fit_rms_um: float = math.nan
 
     def as_dict(self, base_rms: float, noise_um: float) -> dict[str, Any]:
         return {"heldout_rms_um": self.heldout_rms_um, "gain": ratio(base_rms, self.heldout_rms_um),
                 "over_noise": ratio(self.heldout_rms_um, noise_um),
                 "required_gain": required_gain(self.n_params), "parameters_added": self.n_params,
                 "heldout_rms_per_sweep_um": list(self.heldout_per_sweep_um),
+                "fit_rms_um": None if math.isnan(self.fit_rms_um) else self.fit_rms_um,
                 "fitted": self.fitted.parameters, "fit_success": self.fitted.success,
                 "fit_evaluations": self.fitted.nfev, "fit_seconds": round(self.fit_seconds, 2)}
 

@@ -307,13 +307,16 @@ class Held:
                     self.judged_masks, self.noise, self.frame)
 
     def heldout(self, name: str, z: FloatArray, beta: FloatArray
-                ) -> tuple[float, tuple[float, ...]]:
-        """RMS of the fit on the judged rows (um: the root mean of the per-sweep mean squares)
-        and each sweep's."""
+                ) -> tuple[float, tuple[float, ...], float]:
+        """RMS of the fit on the judged rows (um: the root mean of the per-sweep mean squares),
+        each sweep's, and the same root mean on the rows it was fitted on (um)."""
         cols = self.columns(name, z, self.statics(name, z[2:]), self.sweeps)
-        mse = [float(np.mean((s.displacement_um - u)[m] ** 2)) for s, u, m in zip(
-            self.sweeps, self.readings(name, z, beta, cols), self.judged_masks, strict=True)]
-        return math.sqrt(float(np.mean(mse))), tuple(math.sqrt(v) for v in mse)
+        sq = [(s.displacement_um - u) ** 2 for s, u in
+              zip(self.sweeps, self.readings(name, z, beta, cols), strict=True)]
+        mse = [float(np.mean(e[m])) for e, m in zip(sq, self.judged_masks, strict=True)]
+        fit_mse = [float(np.mean(e[m])) for e, m in zip(sq, self.fit_masks, strict=True)]
+        return (math.sqrt(float(np.mean(mse))), tuple(math.sqrt(v) for v in mse),
+                math.sqrt(float(np.mean(fit_mse))))
 
     def extended(self, name: str, z: FloatArray, beta: FloatArray, success: bool,
                  nfev: int) -> ext.Extended:
@@ -469,9 +472,9 @@ def judge(sweeps: Sequence[Sweep], halves: Sequence[Sweep], noise: Sequence[floa
         if held.causes[name].input_side and cost < REBASE_GAIN * base_cost:
             on, (z, beta, ok, nfev, cost) = rebased(held, name, (z, beta, ok, nfev, cost),
                                                     halves, settings, max_nfev, say)
-        rms, per = on.heldout(name, z, beta)
+        rms, per, fit_rms = on.heldout(name, z, beta)
         table[name] = Judged(on.extended(name, z, beta, ok, nfev), on.causes[name].n_added,
-                             rms, per, time.perf_counter() - t1)
+                             rms, per, time.perf_counter() - t1, fit_rms)
         helds[name] = on
         say(f"  held {name:20s} held-out RMS {rms:.4f} um ({table[name].fit_seconds:.1f} s)")
     refused = {n: why for n, j in table.items() if (why := refusal(j.fitted)) is not None}

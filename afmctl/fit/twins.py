@@ -21,6 +21,7 @@ step becomes a ramp. Pure numerics: no I/O.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -49,8 +50,9 @@ NARROWEST = 0.1
 
 def pairs(scored: Sequence[vd.Scored], rule: vd.Rule = vd.Rule()) -> list[dict[str, Any]]:
     """Every fitted sensor-side cause with its twin: held-out RMS of both (um), the twin's over
-    the sensor cause's, the bar and whether the sweeps separate them (the twin misses more)
-    or refute the sensor cause (the twin explains them clearly better)."""
+    the sensor cause's (held out, and on the halves both were fitted on: None if not known), the
+    bar and whether the sweeps separate them (the twin misses more on both) or refute the sensor
+    cause (the twin explains them clearly better)."""
     by_name = {s.name: s for s in scored}
     out = []
     for sensor, twin in TWINS.items():
@@ -60,6 +62,9 @@ def pairs(scored: Sequence[vd.Scored], rule: vd.Rule = vd.Rule()) -> list[dict[s
         out.append({"sensor": sensor, "actuator": twin, "sensor_heldout_rms_um": s.heldout_rms_um,
                     "actuator_heldout_rms_um": t.heldout_rms_um,
                     "actuator_over_sensor": vd.ratio(t.heldout_rms_um, s.heldout_rms_um),
+                    "actuator_over_sensor_fitted": (
+                        None if math.isnan(t.fit_rms_um) or math.isnan(s.fit_rms_um)
+                        else vd.ratio(t.fit_rms_um, s.fit_rms_um)),
                     "needed": rule.separated, "separated": vd.separated(s, t, rule),
                     "refuted": vd.refuted(s, by_name, rule)})
     return out

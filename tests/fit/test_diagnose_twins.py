@@ -48,8 +48,10 @@ def test_pi_stage_with_a_cubic_output_map_gets_no_sensor_correction() -> None:
     """The bench's pi-b stage (no gauge error): before, diagnose named sensor-nonlinearity
     (3.3x -> 1.89x the noise) and tracking with that model put the TRUE position 2.7x further
     off (0.559 um) than identify's model (0.210 um). Now the gauge and the same nonlinearity
-    before the rod (1.91x) are not separated: ``indistinguishable``, the paper's model written,
-    tracking as good as identify's, and a faster sweep suggested within the profile's slew."""
+    before the rod are not separated: ``indistinguishable``, the paper's model written,
+    tracking as good as identify's, and a faster sweep suggested within the profile's slew.
+    (The two fit their halves equally well, 1.83x the noise; held out the twin measured
+    1.91x when this test was written and 2.16x on a later machine, which alone separated them.)"""
     case = family_sets.cases_named("pi-b")[0]
     with family_sets.session(case) as s:
         lo, hi, rate = s.profile.limits.v_min, s.profile.limits.v_max, s.profile.sample_rate_hz
@@ -72,7 +74,7 @@ def test_pi_stage_with_a_cubic_output_map_gets_no_sensor_correction() -> None:
     doc = d.as_dict()
     (pair,) = doc["twins"]
     assert pair["sensor"] == "sensor-nonlinearity" and not pair["separated"]
-    assert pair["actuator_over_sensor"] < 1.1
+    assert pair["actuator_over_sensor_fitted"] < 1.1
     sweep = doc["separating_sweep"]
     assert sweep["sensor"] == "sensor-nonlinearity" and sweep["kind"] in ("triangle", "step")
     assert all(r["slew_V_per_s"] <= twins.SLEW_SHARE * slew * (1 + 1e-9) for r in sweep["tried"])
