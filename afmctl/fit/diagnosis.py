@@ -253,9 +253,9 @@ class Diagnosis:
             head = (f"indistinguishable: {floor}; {s['sensor']} at "
                     f"{ratio(sensor.heldout_rms_um, self.noise_um):.2f}x and its actuator-side "
                     f"twin {s['actuator']} at {ratio(twin.heldout_rms_um, self.noise_um):.2f}x "
-                    f"(the twin must miss by {s['needed']:.2f}x the sensor cause's RMS "
-                    f"to separate them, it misses by "
-                    f"{ratio(twin.heldout_rms_um, sensor.heldout_rms_um):.2f}x): these sweeps do "
+                    f"(the twin must miss by {s['needed']:.2f}x the sensor cause's RMS, held "
+                    f"out and on the fitted halves, to separate them; it misses by "
+                    f"{_misses(twin, sensor)}): these sweeps do "
                     f"not tell an effect in the sensor from one before the rod's dynamics, so the "
                     f"readings are kept uncorrected (the model is {self.base_name}'s)")
         else:
@@ -297,3 +297,11 @@ def json_safe(obj: Any) -> Any:
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
+
+
+def _misses(twin: Judged, sensor: Judged) -> str:
+    """How far the twin misses against the sensor cause, held out and (if known) fitted."""
+    held = f"{ratio(twin.heldout_rms_um, sensor.heldout_rms_um):.2f}x held out"
+    if math.isnan(twin.fit_rms_um) or math.isnan(sensor.fit_rms_um):
+        return held
+    return f"{held} and {ratio(twin.fit_rms_um, sensor.fit_rms_um):.2f}x fitted"
