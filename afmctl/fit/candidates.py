@@ -196,8 +196,9 @@ def catalogue(n_sweeps: int, e_max: float, nyquist_hz: float, rod_hz: float,
                   ((0.0,), (0.5,), (2.0,), (5.0,), (10.0,), (25.0,)), (0.0,), (60.0,),
                   free_rod=True),
         Candidate("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
-                  ((0.0, 0.0), (-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)),
-                  (-0.3, -0.3), (0.3, 0.3)),
+                  ((0.0, 0.0),) + tuple((a, b) for a in (-0.2, -0.05, 0.0, 0.05, 0.2)
+                                        for b in (-0.2, -0.05, 0.0, 0.05, 0.2) if a or b),
+                  (-1.0, -1.0), (1.0, 1.0)),
         Candidate("second-mode", ("log_frequency_Hz", "log_damping_ratio", "gain", "rate_gain"),
                   ((lf(2.0 * rod_hz), lf(0.03), 1e-4, 0.0),)  # no mode: the base model
                   + tuple((lf(f * rod_hz), lf(0.03), g, 0.0) for f in (1.5, 2.2, 3.0, 4.0, 6.0)
