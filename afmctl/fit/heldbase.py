@@ -128,8 +128,8 @@ def causes(n_sweeps: int, rod_hz: float, nyquist_hz: float) -> dict[str, Cause]:
               + tuple((0.0, w) for w in (2.0, 5.0, 10.0, 20.0)),
               (0.0, 0.0), (60.0, 60.0), 2, free_rod=True),
         Cause("sensor-nonlinearity", ("quadratic_times_range", "cubic_times_range2"),
-              ((0.0, 0.0), (-0.05, 0.0), (0.05, 0.0), (0.0, -0.05), (0.0, 0.05)),
-              (-0.3, -0.3), (0.3, 0.3), 2),
+              cd.GAUGE_STARTS, (-cd.GAUGE_BOUND, -cd.GAUGE_BOUND),
+              (cd.GAUGE_BOUND, cd.GAUGE_BOUND), 2),
         Cause("actuator-nonlinearity", (), ((),), (), (), 2),
         Cause("amplifier-lag", ("log_bandwidth_Hz", "log_damping_ratio"),
               ((ln + 2.9, lf(0.7)),) + tuple((lf(f * rod_hz), lf(0.7)) for f in (0.3, 1.0, 3.0))
