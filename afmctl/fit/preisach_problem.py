@@ -42,8 +42,7 @@ SMOOTHING = (1e-6, 1e-5, 1e-4, 1e-3)
 #: Residual blocks per sweep for the held-out folds, and the folds. The blocks are dealt in
 #: turn, the order rotated by one after every round of ``FOLDS`` (:func:`fold_of`): dealt plainly,
 #: a sweep of 2, 3 or 6 periods had block ``k`` and the same phase one period on in the same
-#: fold, so each fold was judged on arcs of the loop that no training fold held (foreign-xy-1's
-#: x: held-out 4.3x its noise against 2.3x in-sample).
+#: fold, so each fold was judged on arcs of the loop that no training fold held.
 BLOCKS = 24
 FOLDS = 4
 #: A sweep's creep transient is fitted for the elements up to this many times its length: 0, off.

@@ -25,9 +25,9 @@ Rules (:class:`Rule`, defaults from issue 12):
    known). Far from the floor, two models that fit their halves equally well can part on the
    held-out ones by how the base model's own misfit carries over (a Prandtl-Ishlinskii stage
    with its cubic map before the rod: both 1.83x the noise on the fitted halves, 1.89x and 2.16x
-   held out); a nonlinearity the sweeps really place misses on both. A twin that much better than the sensor cause refutes it (it is
-   not considered); between the two, the verdict is ``indistinguishable`` (the model keeps the
-   readings uncorrected). A twin fitted only as such (``actuator-nonlinearity``) is never named.
+   held out); a nonlinearity the sweeps really place misses on both. A twin that much better
+   than the sensor cause refutes it (it is not considered); between the two, the verdict is
+   ``indistinguishable`` (the model keeps the readings uncorrected). A twin fitted only as such (``actuator-nonlinearity``) is never named.
 
 Pure functions of numbers and dicts; no I/O.
 """
