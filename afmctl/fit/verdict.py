@@ -27,7 +27,8 @@ Rules (:class:`Rule`, defaults from issue 12):
    with its cubic map before the rod: both 1.83x the noise on the fitted halves, 1.89x and 2.16x
    held out); a nonlinearity the sweeps really place misses on both. A twin that much better
    than the sensor cause refutes it (it is not considered); between the two, the verdict is
-   ``indistinguishable`` (the model keeps the readings uncorrected). A twin fitted only as such (``actuator-nonlinearity``) is never named.
+   ``indistinguishable`` (the model keeps the readings uncorrected). A twin fitted only as such
+   (``actuator-nonlinearity``) is never named.
 
 Pure functions of numbers and dicts; no I/O.
 """
