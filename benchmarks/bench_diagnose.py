@@ -23,7 +23,9 @@ on which that cause was named.
 
 Run: ``python benchmarks/bench_diagnose.py --json [--jobs 2]`` (last line one JSON object: ``cases``,
 ``correct``, ``false_alarms``, ``none_on_effect``, ``unexplained_right``, ``median_seconds``,
-``track_extended_beats_base``, ``track_cases``, the confusion matrix, ``standard_set_seconds``
+``track_extended_beats_base``, ``track_cases``, ``track_extended_worse_foreseen`` (of the
+cases tracked worse with the extended model, those whose own prediction had said so: rows carry
+``track_base_predicted_rms_um`` and ``track_extended_predicted_rms_um``), the confusion matrix, ``standard_set_seconds``
 (with ``standard_set_load``, the load average before and after, and ``standard_set_cause``) and
 per-case rows); ``--standard-set only`` times the standard set alone.
 """
@@ -202,7 +204,9 @@ def track_rms(stage: plant.Stage, state: plant.PlantState, fits: dict[str, ext.E
     linear calibration ``calibration_um``, :func:`calibration`) against a 27.9 Hz
     triangle over 15-55 % of the range the last sweep covered (the first sweep of a stage poled
     the other way covers more, once), planned with each model from its state after the sweeps,
-    within the stage's drive range (inf: no waveform within it)."""
+    within the stage's drive range (inf: no waveform within it); and, as ``<name>_predicted``,
+    the RMS error the model itself predicts for its waveform (what it tells the user before
+    the run: a model that knows the stage cannot follow says so)."""
     prof = default_profile()
     limits = replace(prof.limits, v_min=0.0, v_max=150.0)
     dt = 1 / prof.sample_rate_hz
@@ -211,15 +215,19 @@ def track_rms(stage: plant.Stage, state: plant.PlantState, fits: dict[str, ext.E
     start_v = float(sweeps[-1].voltage_v[-1])
     out, (a, b) = {}, calibration_um
     for name, fitted in fits.items():
+        st = model_state(fitted, sweeps)
         try:
             wf = track.plan(fitted.model, desired, limits, start_v, ("inverse",),
-                            state=model_state(fitted, sweeps))["inverse"]
+                            state=st)["inverse"]
         except guard.LimitError:  # no waveform within the limits: this model cannot track it
             out[name] = float("inf")
             continue
         true_um, _, _ = plant.run(stage, wf.voltage_v, prof.sample_rate_hz, state, None)
         err = (a + b * true_um - wf.desired_um)[wf.tracking]
         out[name] = float(np.sqrt(np.mean(err ** 2)))
+        own, _, _ = td.simulate(td.compile_model(fitted.model, dt), wf.voltage_v, st)
+        miss = (np.asarray(own) - wf.desired_um)[wf.tracking]
+        out[f"{name}_predicted"] = float(np.sqrt(np.mean(miss ** 2)))
     return out
 
 
@@ -240,6 +248,8 @@ def run_case(case: tuple[str, float | None, int], design: str = "standard") -> d
         rms = track_rms(stage, state, {"base": d.base, "extended": d.extended}, sweeps,
                         truth["calibration_um"])
         row["track_base_rms_um"], row["track_extended_rms_um"] = rms["base"], rms["extended"]
+        row["track_base_predicted_rms_um"] = rms.get("base_predicted")
+        row["track_extended_predicted_rms_um"] = rms.get("extended_predicted")
     return row
 
 
@@ -267,7 +277,16 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "median_seconds": statistics.median(r["seconds"] for r in rows),
             "track_extended_beats_base": sum(r["track_extended_rms_um"] < r["track_base_rms_um"]
                                              for r in tracked),
+            "track_extended_worse_foreseen": sum(foreseen(r) for r in tracked),
             "track_cases": len(tracked), "confusion": confusion}
+
+
+def foreseen(row: dict[str, Any]) -> bool:
+    """A case tracked worse with the extended model whose own prediction had said as much: at
+    least half its true RMS error (the trajectory is out of the stage's reach, and the model that
+    knows the effect knows it)."""
+    ext_um, pred = row["track_extended_rms_um"], row.get("track_extended_predicted_rms_um")
+    return bool(ext_um >= row["track_base_rms_um"] and pred is not None and pred >= 0.5 * ext_um)
 
 
 def log(msg: str) -> None:
