@@ -25,9 +25,9 @@ Run: ``python benchmarks/bench_diagnose.py --json [--jobs 2]`` (last line one JS
 ``correct``, ``false_alarms``, ``none_on_effect``, ``unexplained_right``, ``median_seconds``,
 ``track_extended_beats_base``, ``track_cases``, ``track_extended_worse_foreseen`` (of the
 cases tracked worse with the extended model, those whose own prediction had said so: rows carry
-``track_base_predicted_rms_um`` and ``track_extended_predicted_rms_um``), the confusion matrix, ``standard_set_seconds``
-(with ``standard_set_load``, the load average before and after, and ``standard_set_cause``) and
-per-case rows); ``--standard-set only`` times the standard set alone.
+``track_base_predicted_rms_um`` and ``track_extended_predicted_rms_um``), the confusion matrix,
+``standard_set_seconds`` (with ``standard_set_load``, the load average before and after, and
+``standard_set_cause``) and per-case rows); ``--standard-set only`` times the standard set alone.
 """
 
 from __future__ import annotations

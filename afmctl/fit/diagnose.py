@@ -123,15 +123,12 @@ def heldout(space: ext.ExtendedSpace, fitted: ext.Extended,
     fit_rms_um : float
         The same root mean on the first halves, um.
     """
-    mse, fit_mse = [], []
-    for s, u in zip(sweeps, space.readings(fitted.x, fitted.beta), strict=True):
-        first = np.arange(s.time_s.size) < s.time_s.size // 2
-        sq = (s.displacement_um - u) ** 2
-        judged = s.mask(None)
-        mse.append(float(np.mean(sq[judged & ~first])))
-        fit_mse.append(float(np.mean(sq[judged & first])))
-    return (math.sqrt(float(np.mean(mse))), tuple(math.sqrt(m) for m in mse),
-            math.sqrt(float(np.mean(fit_mse))))
+    sq = [(s.displacement_um - u) ** 2
+          for s, u in zip(sweeps, space.readings(fitted.x, fitted.beta), strict=True)]
+    first = [np.arange(s.time_s.size) < s.time_s.size // 2 for s in sweeps]
+    judged = [s.mask(None) for s in sweeps]
+    rms, per = vd.judged_rms(sq, [m & ~f for m, f in zip(judged, first, strict=True)])
+    return rms, per, vd.judged_rms(sq, [m & f for m, f in zip(judged, first, strict=True)])[0]
 
 
 # ----------------------------------------------------------------------------------------------

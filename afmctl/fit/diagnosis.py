@@ -250,12 +250,13 @@ class Diagnosis:
         elif self.separating is not None:
             s = self.separating
             sensor, twin = self.verdict_table[s["sensor"]], self.verdict_table[s["actuator"]]
+            pair = next(p for p in self.twins if p["sensor"] == s["sensor"])
             head = (f"indistinguishable: {floor}; {s['sensor']} at "
                     f"{ratio(sensor.heldout_rms_um, self.noise_um):.2f}x and its actuator-side "
                     f"twin {s['actuator']} at {ratio(twin.heldout_rms_um, self.noise_um):.2f}x "
                     f"(the twin must miss by {s['needed']:.2f}x the sensor cause's RMS, held "
                     f"out and on the fitted halves, to separate them; it misses by "
-                    f"{_misses(twin, sensor)}): these sweeps do "
+                    f"{_misses(pair)}): these sweeps do "
                     f"not tell an effect in the sensor from one before the rod's dynamics, so the "
                     f"readings are kept uncorrected (the model is {self.base_name}'s)")
         else:
@@ -299,9 +300,9 @@ def json_safe(obj: Any) -> Any:
     return obj
 
 
-def _misses(twin: Judged, sensor: Judged) -> str:
-    """How far the twin misses against the sensor cause, held out and (if known) fitted."""
-    held = f"{ratio(twin.heldout_rms_um, sensor.heldout_rms_um):.2f}x held out"
-    if math.isnan(twin.fit_rms_um) or math.isnan(sensor.fit_rms_um):
-        return held
-    return f"{held} and {ratio(twin.fit_rms_um, sensor.fit_rms_um):.2f}x fitted"
+def _misses(pair: dict[str, Any]) -> str:
+    """How far the twin of a :func:`afmctl.fit.twins.pairs` row misses against the sensor
+    cause, held out and (if known) on the fitted halves."""
+    held = f"{pair['actuator_over_sensor']:.2f}x held out"
+    fitted = pair["actuator_over_sensor_fitted"]
+    return held if fitted is None else f"{held} and {fitted:.2f}x fitted"

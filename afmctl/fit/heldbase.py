@@ -54,6 +54,7 @@ from afmctl.fit import extension as ext
 from afmctl.fit import heldfit as hf
 from afmctl.fit import identify as idf
 from afmctl.fit import parametrization as pz
+from afmctl.fit import verdict as vd
 from afmctl.fit.diagnosis import HELD_BASE, Judged
 from afmctl.fit.preisach_problem import rod_filter
 from afmctl.model import effects as fx
@@ -313,10 +314,8 @@ class Held:
         cols = self.columns(name, z, self.statics(name, z[2:]), self.sweeps)
         sq = [(s.displacement_um - u) ** 2 for s, u in
               zip(self.sweeps, self.readings(name, z, beta, cols), strict=True)]
-        mse = [float(np.mean(e[m])) for e, m in zip(sq, self.judged_masks, strict=True)]
-        fit_mse = [float(np.mean(e[m])) for e, m in zip(sq, self.fit_masks, strict=True)]
-        return (math.sqrt(float(np.mean(mse))), tuple(math.sqrt(v) for v in mse),
-                math.sqrt(float(np.mean(fit_mse))))
+        rms, per = vd.judged_rms(sq, self.judged_masks)
+        return rms, per, vd.judged_rms(sq, self.fit_masks)[0]
 
     def extended(self, name: str, z: FloatArray, beta: FloatArray, success: bool,
                  nfev: int) -> ext.Extended:

@@ -21,7 +21,6 @@ step becomes a ramp. Pure numerics: no I/O.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -62,9 +61,7 @@ def pairs(scored: Sequence[vd.Scored], rule: vd.Rule = vd.Rule()) -> list[dict[s
         out.append({"sensor": sensor, "actuator": twin, "sensor_heldout_rms_um": s.heldout_rms_um,
                     "actuator_heldout_rms_um": t.heldout_rms_um,
                     "actuator_over_sensor": vd.ratio(t.heldout_rms_um, s.heldout_rms_um),
-                    "actuator_over_sensor_fitted": (
-                        None if math.isnan(t.fit_rms_um) or math.isnan(s.fit_rms_um)
-                        else vd.ratio(t.fit_rms_um, s.fit_rms_um)),
+                    "actuator_over_sensor_fitted": vd.fitted_ratio(s, t),
                     "needed": rule.separated, "separated": vd.separated(s, t, rule),
                     "refuted": vd.refuted(s, by_name, rule)})
     return out

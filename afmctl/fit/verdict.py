@@ -40,6 +40,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from afmctl.fit.candidates import TWIN_ONLY, TWINS
 
 #: The verdict when a sensor-side cause and its actuator-side twin are not separated (rule 5).
@@ -107,15 +110,31 @@ def clears(base: Scored, s: Scored, floor_um: float, rule: Rule = Rule()) -> boo
             and explained(base.heldout_rms_um, s.heldout_rms_um, floor_um) >= rule.min_explained)
 
 
+def judged_rms(squares: Sequence[NDArray[np.float64]], masks: Sequence[NDArray[np.bool_]]
+               ) -> tuple[float, tuple[float, ...]]:
+    """The RMS every model is judged by (um): the root mean of the per-sweep mean squares of
+    ``squares`` (squared errors, um^2, one array per sweep) on the rows of ``masks``, and each
+    sweep's RMS."""
+    mse = [float(np.mean(e[m])) for e, m in zip(squares, masks, strict=True)]
+    return math.sqrt(float(np.mean(mse))), tuple(math.sqrt(v) for v in mse)
+
+
+def fitted_ratio(sensor: Scored, twin: Scored) -> float | None:
+    """The twin's RMS on the data both were fitted on over the sensor cause's; None when either
+    is not known."""
+    if math.isnan(twin.fit_rms_um) or math.isnan(sensor.fit_rms_um):
+        return None
+    return ratio(twin.fit_rms_um, sensor.fit_rms_um)
+
+
 def separated(sensor: Scored, twin: Scored | None, rule: Rule = Rule()) -> bool:
     """Whether the sweeps separate a sensor-side cause from its actuator-side twin (rule 5): the
     twin (None: not fitted) misses by ``rule.separated`` times the sensor cause's held-out RMS,
     and by as much on the data both were fitted on when both RMS are known."""
     if twin is None or ratio(twin.heldout_rms_um, sensor.heldout_rms_um) < rule.separated:
         return False
-    if math.isnan(twin.fit_rms_um) or math.isnan(sensor.fit_rms_um):
-        return True
-    return ratio(twin.fit_rms_um, sensor.fit_rms_um) >= rule.separated
+    fitted = fitted_ratio(sensor, twin)
+    return fitted is None or fitted >= rule.separated
 
 
 def refuted(s: Scored, by_name: dict[str, Scored], rule: Rule = Rule()) -> bool:
