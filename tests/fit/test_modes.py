@@ -71,6 +71,33 @@ def test_a_mode_below_the_rod_is_found_from_a_nearby_start() -> None:
     assert found.model.rod.m == plain.model.rod.m  # the fit's convention: the mass is kept
 
 
+def test_identified_again_without_the_ringing_the_hysteresis_reaches_the_floor() -> None:
+    """The hysteresis held while the mode is fitted was identified with the mode's ringing 28x
+    the noise on the fast triangle; it bent to it, and the model with the mode stays above its
+    noise on every sweep. Identified again on the readings with the mode taken out, with the mode
+    fitted again after, every sweep comes to its noise, and the mode stays where it was."""
+    sweeps = _sweeps()
+    found = modes.refined(idf.fit(sweeps, HEM), sweeps, (1.06 * MODE_HZ,))
+    before = max(s.rms_over_noise for s in found.sweeps)
+    assert before > 1.1
+    again = modes.reidentified(found, sweeps, (1.06 * MODE_HZ,), HEM)
+    figures = again.representations["second_mode"]["reidentified"]
+    assert figures["kept"] and figures["worst_over_noise_before"] == pytest.approx(before)
+    assert max(s.rms_over_noise for s in again.sweeps) < 1.06, figures
+    assert abs(again.model.effects.second_mode.frequency_hz / MODE_HZ - 1) < 0.03
+    assert [s.rms_over_noise for s in again.sweeps] == pytest.approx(
+        figures["per_sweep_over_noise"])
+
+
+def test_without_a_kept_mode_nothing_is_identified_again() -> None:
+    """A fit whose mode was not kept comes back as it was (no second identification)."""
+    sweeps = _sweeps()[:1]  # the slow triangle alone: at its noise, nothing for a mode to explain
+    plain = idf.fit(sweeps, HEM)
+    found = modes.refined(plain, sweeps, (MODE_HZ,))
+    assert not found.representations["second_mode"]["kept"]
+    assert modes.reidentified(found, sweeps, (MODE_HZ,), HEM) is found
+
+
 def test_a_sensor_latency_is_not_taken_for_a_mode() -> None:
     """The same stage without a mode but with a 0.15 ms sensor latency (the plant's own
     ``SensorLatency``), at 5 kHz: identify leaves the fast triangle far above its noise, but no
