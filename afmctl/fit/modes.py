@@ -271,17 +271,15 @@ def reidentified(result: idf.FitResult, sweeps: Sequence[Sweep], seeds_hz: Seque
     figures of the second identification are under ``representations["second_mode"]
     ["reidentified"]`` either way.
     """
-    first = result.representations.get("second_mode", {})
-    if not first.get("kept"):
+    mode = result.model.effects.second_mode  # set by :func:`refined` when it keeps one
+    if mode is None:
         return result
-    mode = result.model.effects.second_mode
-    assert mode is not None
     (say or (lambda _m: None))(f"identifying again with the {mode.frequency_hz:.4g} Hz mode "
                                "taken out of the readings ...")
     t0 = time.perf_counter()
     again = refined(idf.fit(without_mode(sweeps, mode), settings), sweeps,
                     (mode.frequency_hz, *seeds_hz), settings.window_s, at_floor_too=True)
-    kept = bool(again.representations.get("second_mode", {}).get("kept"))
+    kept = again.model.effects.second_mode is not None
     worst = [max(s.rms_over_noise for s in r.sweeps) for r in (result, again)]
     better = kept and worst[1] < worst[0]
     figures = {"kept": better, "mode_kept": kept, "seconds": time.perf_counter() - t0,
