@@ -21,7 +21,7 @@ fractions of the rod's.
 
 The hysteresis so held was identified without the mode, while the mode's ringing (32x the noise
 on foreign-xy-1's 23 Hz triangle) was the largest misfit: the density bent to it, and every
-sweep stayed at 2-2.5x the noise once the mode was found. :func:`reidentified` therefore
+sweep stayed at 1.7-2.5x the noise once the mode was found. :func:`reidentified` therefore
 identifies the axis again on the readings with the found mode taken out (its exact inverse,
 :func:`afmctl.model.effects.remove_mode`), then fits the mode again on the readings as recorded
 with that hysteresis held, and keeps whichever misses its worst sweep less. Pure numerics: no I/O.

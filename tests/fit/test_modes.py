@@ -73,8 +73,8 @@ def test_a_mode_below_the_rod_is_found_from_a_nearby_start() -> None:
 
 def test_identified_again_without_the_ringing_the_hysteresis_reaches_the_floor() -> None:
     """The hysteresis held while the mode is fitted was identified with the mode's ringing 28x
-    the noise on the fast triangle; it bent to it, and the model with the mode stays above its
-    noise on every sweep. Identified again on the readings with the mode taken out, with the mode
+    the noise on the fast triangle; it bent to it, and the model with the mode stays above 1.1x
+    its noise. Identified again on the readings with the mode taken out, with the mode
     fitted again after, every sweep comes to its noise, and the mode stays where it was."""
     sweeps = _sweeps()
     found = modes.refined(idf.fit(sweeps, HEM), sweeps, (1.06 * MODE_HZ,))
