@@ -531,9 +531,24 @@ def _transducer(t: Table, pol: hy.Polarization | PreisachGrid | BoucWen,
     tt = t.table("transducer")
     assert tt is not None
     return Transducer(pol, rod, tt.number("thickness_um", positive=True), effects,  # type: ignore[arg-type]
-                      tt.string("initial_state", "depoled",  # type: ignore[arg-type]
-                                choices=("depoled", "positive", "negative")),
-                      _creep(t.table("creep", required=False)))
+                      _initial_state(tt, pol), _creep(t.table("creep", required=False)))
+
+
+def _initial_state(tt: Table, pol: object) -> str:
+    """``[transducer] initial_state``: a named state, or for a Bouc-Wen polarization also one
+    named by its value (:func:`afmctl.model.hysteresis.bouc_wen_state`)."""
+    named = ("depoled", "positive", "negative")
+    val = tt.string("initial_state", "depoled")
+    if val in named:
+        return val
+    if isinstance(pol, BoucWen):
+        try:
+            if hy.bouc_wen_share(val) is not None:
+                return val
+        except ValueError as exc:
+            raise tt.fail("initial_state", str(exc)) from None
+        named += (f"{hy.BW_STATE}<share of the saturation, -1 ... 1>",)
+    raise tt.fail("initial_state", f"must be one of {', '.join(named)}, got {val!r}")
 
 
 def file_version(t: Table) -> int:

@@ -10,14 +10,35 @@ normalized to its saturation (``eta' = a (1 - q |eta|^n)``, ``q = 1`` away from 
 toward it: a Bouc-Wen model with ``A = a h_s``), the reversible slope ``r`` the margin ``m >= 0``
 above the steepest slope of a subtracted loop (:func:`reversible`: the E-P relation stays
 monotone), and the gain fixed by convention in ``g``. Nine parameters (``log a, kappa, n, m, c,
-s, log f_n, log zeta, w``) are fitted by least squares (:func:`scipy.optimize.least_squares`,
-trust region, bounds), each sweep's residual weighted by its sensor noise, its offset projected
-out (the mean of its residual). Each start assignment is started from the best of a few shapes
-(``a, kappa, n``) with ``r, c`` solved linearly and fitted without creep; the two best get a
-coarse rod search with the hysteresis held (:meth:`Problem.rod_search`) and then creep.
+s, log f_n, log zeta, w``) and each sweep's start state (``state_<i>``: ``eta`` at its first
+field, in [-1, 1]) are fitted by least squares (:func:`scipy.optimize.least_squares`, trust
+region, bounds), each sweep's residual weighted by its sensor noise, its offset projected out
+(the mean of its residual).
 
-Nine parameters against thousands of samples: the in-sample error is the held-out one to within
-``p / N`` (as for the HEM, :mod:`afmctl.fit.representation`), and is what identify compares.
+**Start states.** A Bouc-Wen stage forgets nothing, and its whole memory is ``eta``: a sweep
+recorded after work the set does not hold (the moves between files, an excitation identify leaves
+out, the other axis's files of a two-axis stage) starts wherever that work left ``eta``, which
+no named state (depoled, poled, the previous sweep's end) need be. The fit therefore takes each
+sweep's start state as a parameter (one number each; a named assignment only says where it
+starts). On the foreign x/y stage foreign-xy-2, whose Bouc-Wen y axis saturates slowly
+(``beta + gamma`` 1.6), the named assignments left its triangles at 5.3-6.8x the sensor noise
+and the fitted states bring them to 1.00-1.02x, with ``kappa`` and ``n`` as the plant's to three
+digits.
+
+**Starts.** For every start assignment given and every ``kappa`` of :data:`START_SHAPES` the
+best shape (``a, n``) with ``r, c`` solved linearly is screened (:func:`start`). The screening is
+crude (its quasi-static error is 1e4 times the fitted one) and the cost has a second basin (on
+foreign-xy-2's y axis and on the stage of tests/fit/test_boucwen_states.py, ``kappa`` -1.23 and
+``n`` 1.96 at 6-18x the noise, where the plants have -1.02 and 1.7): so the screened starts are
+fitted in their order, without creep, until one reaches :data:`GOOD` times the noise overall (at
+most :data:`MAX_STARTS`). Each first gets a coarse rod search with the hysteresis held
+(:meth:`Problem.rod_search`: the rod identify starts from may be far off, e.g. a paper's model
+fit that stayed at 25x the noise left foreign-xy-2's y axis a 1e8 Hz rod, from whose bound the
+fit stopped at 5.7x). The best gets the rod search again and then creep.
+
+Nine parameters and a state per sweep against thousands of samples: the in-sample error is the
+held-out one to within ``p / N`` (as for the HEM, :mod:`afmctl.fit.representation`), and is what
+identify compares.
 """
 
 from __future__ import annotations
@@ -33,7 +54,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize
 
-from afmctl.fit import parametrization as pz
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.preisach_problem import Data, rod_filter
 from afmctl.model import boucwen as bwm
@@ -44,25 +64,36 @@ from afmctl.model import transducer as td
 
 FloatArray = NDArray[np.float64]
 #: Shapes tried for the start: ``a`` times the field range, ``kappa``, ``n``.
-START_SHAPES = tuple(itertools.product((1.0, 3.0, 8.0), (-2.0, -0.5, 0.5), (1.0, 2.0)))
-#: Least-squares evaluations allowed per solve (a Bouc-Wen stage's fit converged in 10-50; a
-#: Preisach stage's, which Bouc-Wen cannot fit, ran 300 at ~1 s each at 10 kHz).
-MAX_NFEV = 100
+START_SHAPES = tuple(itertools.product((1.0, 3.0, 8.0), (-2.0, -1.0, -0.5, 0.5), (1.0, 2.0)))
+#: Least-squares evaluations allowed per solve and free parameter (a Jacobian costs one per
+#: parameter): without start states a Bouc-Wen stage's fit converged in 10-50, with them
+#: foreign-xy-2's y axis (12 parameters) in 88-99; a Preisach stage's, which Bouc-Wen cannot
+#: fit, ran 300 at ~1 s each at 10 kHz.
+NFEV_PER_PARAMETER = 12
 #: Relative step of the finite-difference Jacobian (the RK4 substep count is a step function
 #: of ``a``: steps below it see its jumps).
 DIFF_STEP = 1e-5
 #: Bounds of the rod's damping ratio.
 ZETA_BOUNDS = (1e-3, 2.0)
-#: The fitted parameters, in order (``creep``: weight per creep element).
+#: The fitted shape's parameters, in order (``creep``: weight per creep element); each sweep's
+#: start state follows them (:func:`names`).
 NAMES = ("log_a", "kappa", "n", "margin", "c", "s", "log_fn", "log_zeta", "creep")
+#: A start state begins at most this far toward saturation: at ``|eta| = 1`` a sweep that moves
+#: on toward it leaves ``eta`` there, and the state has no derivative to leave the bound by (on
+#: foreign-xy-2's y axis every sweep started at -1 stopped at 19x the cost of -0.98's fit).
+STATE_START_MAX = 0.95
+#: Where the creep weight and the first start state are in a parameter vector.
+CREEP_AT, STATES_AT = NAMES.index("creep"), len(NAMES)
 #: Creep elements (:mod:`afmctl.model.creep`): two per decade, 10 ms to 1000 s, equal weights: a
 #: straight line against log time, one parameter.
 CREEP_TAUS_S = cr.DEFAULT_TAUS_S
 #: The rod's coarse search: natural frequencies from this (Hz) to 0.45 of the sample rate, this
 #: many log-spaced, times these damping ratios.
 ROD_GRID = (100.0, 24, (0.02, 0.05, 0.1, 0.2, 0.4, 0.8))
-#: Creep is added to this many of the best start assignments (fitted without it).
-CREEP_TRIED = 2
+#: Screened starts are fitted until the overall RMS is within this many times the noise ...
+GOOD = 1.2
+#: ... or this many have been.
+MAX_STARTS = 4
 #: Start, upper bound and least weight kept (below it: no creep) per element.
 CREEP_START, CREEP_MAX, CREEP_MIN = 1e-3, 0.05, 1e-5
 
@@ -75,9 +106,11 @@ class BoucWenFit:
     Attributes
     ----------
     model : transducer.Transducer
-        The Bouc-Wen polarization, the rod, the model's sensor zero.
+        The Bouc-Wen polarization, the rod, the model's sensor zero, the first sweep's start
+        state as its initial one.
     starts : tuple of str
-        Each sweep's start state.
+        Each sweep's fitted start state, named by its value
+        (:func:`afmctl.model.hysteresis.bouc_wen_state`).
     offsets : ndarray
         Each sweep's sensor zero, um.
     heldout_rms_um : ndarray
@@ -88,7 +121,7 @@ class BoucWenFit:
         The fit's readings on every sample of each sweep (um), with the sweep's sensor zero.
     parameters : dict
         The fitted shape in the normalized frame (``a`` in 1/(MV/m), ``kappa``, ``n``, ``s`` in
-        1/um, the rod).
+        1/um, the rod) and each sweep's start state (``state_<i>``, share of the saturation).
     uncertainty : dict
         :func:`afmctl.fit.uncertainty.summary` of those parameters (offsets projected out).
     """
@@ -105,38 +138,57 @@ class BoucWenFit:
     uncertainty: dict[str, Any]
 
 
-class Problem:
-    """The sweeps, their start states, and the model's readings for a parameter vector."""
+def names(n_sweeps: int) -> tuple[str, ...]:
+    """The parameters of a fit to ``n_sweeps`` sweeps: :data:`NAMES`, then each start state."""
+    return NAMES + tuple(f"state_{i + 1}" for i in range(n_sweeps))
 
-    def __init__(self, data: Data, starts: Sequence[str]) -> None:
-        self.data, self.starts = data, tuple(starts)
+
+class Problem:
+    """The sweeps and the model's readings for a parameter vector (its shape, then each sweep's
+    start state)."""
+
+    def __init__(self, data: Data) -> None:
+        self.data = data
         lo = min(float(np.min(e)) for e in data.fields)
         hi = max(float(np.max(e)) for e in data.fields)
         self.span, self.poling = max(hi - lo, 1e-9), (lo, hi)
         self.weights = [np.full(int(m.sum()), 1.0 / n) for m, n in zip(data.masks, data.noise,
                                                                         strict=True)]
 
-    def shape(self, log_a: float, kappa: float, n: float) -> list[FloatArray]:
-        """``eta`` per sweep (every sample), the sweeps in sequence from their starts."""
+    def _operator(self, log_a: float, kappa: float, n: float) -> tuple[bwm.BoucWen, hy.Kernel]:
         bw = bwm.BoucWen(0.0, math.exp(log_a), 1.0, kappa, n, self.poling)
-        k = bw.build_kernel()
+        return bw, bw.build_kernel()
+
+    def shape(self, log_a: float, kappa: float, n: float, states: FloatArray) -> list[FloatArray]:
+        """``eta`` per sweep (every sample), each from its start state ``states`` (``eta`` at
+        its first field)."""
+        bw, k = self._operator(log_a, kappa, n)
+        return [hy.run(k, e, hy.initial_state(bw, hy.bouc_wen_state(float(h))))[0]
+                for e, h in zip(self.data.fields, states, strict=True)]
+
+    def named_states(self, log_a: float, kappa: float, n: float, starts: Sequence[str]
+                     ) -> FloatArray:
+        """``eta`` at each sweep's first field when the sweeps start as ``starts`` name
+        (:data:`afmctl.fit.parametrization.STARTS`; ``previous``: where the sweep before left
+        it, the first depoled), within :data:`STATE_START_MAX`."""
+        bw, k = self._operator(log_a, kappa, n)
         out, prev = [], None
-        for e, start in zip(self.data.fields, self.starts, strict=True):
+        for e, start in zip(self.data.fields, starts, strict=True):
             st = prev if start == "previous" and prev is not None else hy.initial_state(
                 bw, "depoled" if start == "previous" else start)
             q, prev = hy.run(k, e, st)
-            out.append(q)
-        return out
+            out.append(float(q[0]))
+        return np.clip(out, -STATE_START_MAX, STATE_START_MAX)
 
     def forces(self, x: FloatArray) -> list[FloatArray]:
         """``g(Q~)`` per sweep (every sample): ``Q`` with its creep (at rest at each sweep's
         start, as identify judges a sweep), through the force law; the rod's input."""
-        log_a, kappa, n, m, c, s, _, _, w = x
+        log_a, kappa, n, m, c, s, _, _, w = x[:STATES_AT]
         r = reversible(m, c, math.exp(log_a), kappa)
         creep = creep_of(w)
         out = []
-        for e, eta, dt in zip(self.data.fields, self.shape(log_a, kappa, n), self.data.dts,
-                              strict=True):
+        for e, eta, dt in zip(self.data.fields, self.shape(log_a, kappa, n, x[STATES_AT:]),
+                              self.data.dts, strict=True):
             q, _ = cr.run(creep, r * e + c * eta, dt, cr.rest_state(creep, r * e[0] + c * eta[0]))
             out.append(q + s * q * q)
         return out
@@ -188,12 +240,13 @@ class Problem:
         return self.weighted(self.readings(x))
 
 
-def _linear_start(prob: Problem, log_a: float, kappa: float, n: float) -> tuple[float, float,
-                                                                                  float]:
+def _linear_start(prob: Problem, log_a: float, kappa: float, n: float, states: FloatArray
+                  ) -> tuple[float, float, float]:
     """``r, c`` of the quasi-static fit ``y = r E + c eta + offset_s`` and its weighted SSE."""
     rows, rhs = [], []
     k = len(prob.data.fields)
-    for i, (e, eta, m, y, noise) in enumerate(zip(prob.data.fields, prob.shape(log_a, kappa, n),
+    for i, (e, eta, m, y, noise) in enumerate(zip(prob.data.fields,
+                                                  prob.shape(log_a, kappa, n, states),
                                                   prob.data.masks, prob.data.y, prob.data.noise,
                                                   strict=True)):
         cols = np.zeros((int(m.sum()), 2 + k))
@@ -205,20 +258,23 @@ def _linear_start(prob: Problem, log_a: float, kappa: float, n: float) -> tuple[
     return float(sol[0]), float(sol[1]), float(np.sum((a @ sol - b) ** 2))
 
 
-def start(prob: Problem, rod0: tuple[float, float]) -> FloatArray:
-    """The best of :data:`START_SHAPES` by its quasi-static linear fit (:func:`_linear_start`),
-    the reversible part as its margin, no quadratic, the rod at ``rod0``, no creep."""
-    best: tuple[float, FloatArray] | None = None
+def start(prob: Problem, rod0: tuple[float, float], starts: Sequence[str]
+          ) -> list[tuple[float, FloatArray]]:
+    """For each ``kappa`` of :data:`START_SHAPES`, the best shape by its quasi-static linear fit
+    (:func:`_linear_start`) with the sweeps started as ``starts`` name
+    (:meth:`Problem.named_states`), the reversible part as its margin, no quadratic, the rod at
+    ``rod0``, no creep; with its weighted SSE (none for a ``kappa`` whose shapes have no loop)."""
+    best: dict[float, tuple[float, FloatArray]] = {}
     for a_span, kappa, n in START_SHAPES:
         log_a = math.log(a_span / prob.span)
-        r, c, sse = _linear_start(prob, log_a, kappa, n)
-        if c != 0 and (best is None or sse < best[0]):
+        states = prob.named_states(log_a, kappa, n, starts)
+        r, c, sse = _linear_start(prob, log_a, kappa, n, states)
+        if c != 0 and (kappa not in best or sse < best[kappa][0]):
             margin = max(r - reversible(0.0, c, math.exp(log_a), kappa), 0.0)
-            best = (sse, np.array([log_a, kappa, n, margin, c, 0.0,
-                                   math.log(rod0[0]), math.log(rod0[1]), 0.0]))
-    if best is None:
-        raise ValueError("no Bouc-Wen shape has a loop (c = 0)")
-    return best[1]
+            best[kappa] = (sse, np.concatenate(([log_a, kappa, n, margin, c, 0.0,
+                                                 math.log(rod0[0]), math.log(rod0[1]), 0.0],
+                                                states)))
+    return list(best.values())
 
 
 def _bounds(prob: Problem, x0: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -230,7 +286,8 @@ def _bounds(prob: Problem, x0: FloatArray) -> tuple[FloatArray, FloatArray]:
     hi = np.array([math.log(200.0 / prob.span), bwm.KAPPA_BOUNDS[1], 4.0, np.inf,
                    np.inf if sign > 0 else -1e-9 * abs(x0[4]), np.inf, math.log(20 * nyquist),
                    math.log(ZETA_BOUNDS[1]), CREEP_MAX])
-    return lo, hi
+    n_s = len(prob.data.fields)
+    return np.concatenate((lo, -np.ones(n_s))), np.concatenate((hi, np.ones(n_s)))
 
 
 def build(x: FloatArray, prob: Problem, offsets: FloatArray, mass_kg: float, thickness_um: float,
@@ -239,19 +296,24 @@ def build(x: FloatArray, prob: Problem, offsets: FloatArray, mass_kg: float, thi
     sweeps ``p_scale`` (C/m^2), so ``r = k_s r_Q``, ``h_s = k_s |c|``, ``A = a k_s c``; the rod
     ``k = m (2 pi f_n)^2``, ``a1 = 1e-6 k / k_s``, ``a2 = 1e-6 k s / k_s^2`` (as
     :func:`afmctl.fit.preisach.build`)."""
-    log_a, kappa, n, m, c, s, log_fn, log_zeta, w = (float(v) for v in x)
+    log_a, kappa, n, m, c, s, log_fn, log_zeta, w = (float(v) for v in x[:STATES_AT])
     r = reversible(m, c, math.exp(log_a), kappa)
     q_max = max(float(np.max(np.abs(r * e + c * eta))) for e, eta in
-                zip(prob.data.fields, prob.shape(log_a, kappa, n), strict=True)) or 1.0
+                zip(prob.data.fields, prob.shape(log_a, kappa, n, x[STATES_AT:]),
+                    strict=True)) or 1.0
     ks = p_scale / q_max
     pol = bwm.BoucWen(r * ks, math.exp(log_a) * c * ks, abs(c) * ks, kappa, n, prob.poling)
     fn, zeta = math.exp(log_fn), math.exp(log_zeta)
     k = mass_kg * (2 * math.pi * fn) ** 2
     rod = rd.Rod(m=mass_kg, c=2 * zeta * math.sqrt(k * mass_kg), k=k, a1=1e-6 * k / ks,
-                 a2=1e-6 * k * s / ks ** 2, offset_um=float(offsets[pz.zero_sweep(prob.starts)]))
-    first = prob.starts[0] if prob.starts[0] != "previous" else "depoled"
-    return td.Transducer(pol, rod, thickness_um, initial=first,  # type: ignore[arg-type]
-                         creep=creep_of(w))
+                 a2=1e-6 * k * s / ks ** 2, offset_um=float(offsets[0]))
+    return td.Transducer(pol, rod, thickness_um, initial=states(x)[0], creep=creep_of(w))
+
+
+def states(x: FloatArray) -> tuple[str, ...]:
+    """Each sweep's fitted start state of ``x``, named by its value
+    (:func:`afmctl.model.hysteresis.bouc_wen_state`; ``eta``'s share is ``h``'s)."""
+    return tuple(hy.bouc_wen_state(float(np.clip(h, -1.0, 1.0))) for h in x[STATES_AT:])
 
 
 def reversible(margin: float, c: float, a: float, kappa: float) -> float:
@@ -280,11 +342,9 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     data : Data
         The sweeps as :mod:`afmctl.fit.preisach` sees them.
     starts_candidates : sequence of sequences of str
-        Start assignments to try (each sweep's start state,
-        :data:`afmctl.fit.parametrization.STARTS`), each fitted without creep, creep added to
-        the :data:`CREEP_TRIED` best, the lowest cost kept (a Bouc-Wen stage remembers its whole
-        history: the assignment matters more than for a Preisach-type one, and a short screening
-        picked wrongly).
+        Start assignments (each sweep's start state,
+        :data:`afmctl.fit.parametrization.STARTS`) the fitted start states begin at (see the
+        module's **Starts**).
     rod0 : (float, float)
         Starting natural frequency (Hz) and damping ratio (e.g. the HEM fit's).
     thickness_um, mass_kg, p_scale : float
@@ -295,14 +355,20 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     t0 = time.perf_counter()
     rod = (min(max(rod0[0], 1.0), 0.4 / min(data.dts)),
            min(max(rod0[1], ZETA_BOUNDS[0]), ZETA_BOUNDS[1]))
-    fits = []
-    for starts in dict.fromkeys(tuple(c) for c in starts_candidates):
-        cand = Problem(data, starts)
-        fits.append((cand, _solve(cand, start(cand, rod), creep=False)))
-    fits.sort(key=lambda f: f[1].cost)
-    crept = [(cand, _solve(cand, _rod_searched(cand, trial), creep=True))
-             for cand, trial in fits[:CREEP_TRIED]]
-    prob, sol = min(crept, key=lambda f: f[1].cost)
+    prob = Problem(data)
+    distinct = {tuple(np.round(x0, 3)): (sse, x0) for c in starts_candidates
+                for sse, x0 in start(prob, rod, c)}  # assignments alike in effect: once
+    if not distinct:
+        raise ValueError("no Bouc-Wen shape has a loop (c = 0)")
+    good = 0.5 * GOOD ** 2 * sum(y.size for y in data.y)  # the cost at GOOD x the noise
+    best = None
+    for _, x0 in sorted(distinct.values(), key=lambda f: f[0])[:MAX_STARTS]:
+        sol = _solve(prob, prob.rod_search(x0), creep=False)
+        best = sol if best is None or sol.cost < best.cost else best
+        if best.cost <= good:
+            break
+    assert best is not None
+    sol = _solve(prob, _rod_searched(prob, best), creep=True)
     u = prob.readings(sol.x)
     off = prob.offsets(u)
     predicted = [p + o for p, o in zip(u, off, strict=True)]
@@ -311,9 +377,9 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     seconds = time.perf_counter() - t0
     say(f"  Bouc-Wen: {sol.nfev} evaluations, {seconds:.1f} s; RMS / noise per sweep "
         + " / ".join(f"{v:.2f}" for v in rms / data.noise))
-    return BoucWenFit(build(sol.x, prob, off, mass_kg, thickness_um, p_scale), prob.starts, off,
-                      rms, int(sol.nfev), bool(sol.status > 0), seconds, predicted,
-                      {k: float(v) for k, v in zip(NAMES, sol.x, strict=True)},
+    return BoucWenFit(build(sol.x, prob, off, mass_kg, thickness_um, p_scale), states(sol.x),
+                      off, rms, int(sol.nfev), bool(sol.status > 0), seconds, predicted,
+                      {k: float(v) for k, v in zip(names(len(u)), sol.x, strict=True)},
                       _uncertainty(sol))
 
 
@@ -332,17 +398,22 @@ def _solve(prob: Problem, x0: FloatArray, creep: bool) -> optimize.OptimizeResul
     assignment is fitted so, and creep added to the best: free from the start, it led one
     assignment of a creep-free stage to a far minimum with the weight at its bound)."""
     x0 = np.array(x0, float)
-    x0[-1] = CREEP_START if creep else 0.0  # off its bound: the trust region starts moving
+    x0[CREEP_AT] = CREEP_START if creep else 0.0  # off its bound: the trust region starts moving
     lo, hi = _bounds(prob, x0)
-    keep = slice(None) if creep else slice(0, x0.size - 1)
+    x0 = np.clip(x0, lo, hi)
+    free = np.ones(x0.size, dtype=bool)
+    free[CREEP_AT] = creep
 
-    def residual(x: FloatArray) -> FloatArray:
-        return prob.residual(np.append(x, 0.0) if not creep else x)
+    def full(z: FloatArray) -> FloatArray:
+        x = x0.copy()
+        x[free] = z
+        return x
 
-    sol = optimize.least_squares(residual, np.clip(x0, lo, hi)[keep], bounds=(lo[keep], hi[keep]),
-                                 x_scale="jac", max_nfev=MAX_NFEV, diff_step=DIFF_STEP)
-    if not creep:
-        sol.x = np.append(sol.x, 0.0)
+    sol = optimize.least_squares(lambda z: prob.residual(full(z)), x0[free],
+                                 bounds=(lo[free], hi[free]), x_scale="jac",
+                                 max_nfev=NFEV_PER_PARAMETER * int(free.sum()),
+                                 diff_step=DIFF_STEP)
+    sol.x = full(sol.x)
     return sol
 
 
@@ -351,7 +422,8 @@ def _uncertainty(sol: optimize.OptimizeResult) -> dict[str, Any]:
     j = np.asarray(sol.jac, float)
     dof = max(j.shape[0] - j.shape[1], 1)
     cov = np.linalg.pinv(j.T @ j) * (2.0 * float(sol.cost) / dof)
-    return unc.summary(NAMES, np.asarray(sol.x, float), cov)
+    x = np.asarray(sol.x, float)
+    return unc.summary(names(x.size - STATES_AT), x, cov)
 
 
 def figures(fit_: BoucWenFit, noise: FloatArray) -> dict[str, Any]:
@@ -362,9 +434,11 @@ def figures(fit_: BoucWenFit, noise: FloatArray) -> dict[str, Any]:
             "heldout_over_noise": [float(v) for v in fit_.heldout_rms_um / noise],
             "heldout_note": "in-sample error of nine parameters (optimism ~ p/N)",
             "kappa": pol.kappa, "exponent": pol.exponent, "evaluations": fit_.iterations,
+            "start_states": list(fit_.starts),
             "creep_per_decade": None if fit_.model.creep is None else
             fit_.model.creep.per_decade(),
             "seconds": round(fit_.seconds, 3)}
 
 
-__all__ = ["BoucWenFit", "Problem", "fit", "build", "start", "figures", "START_SHAPES"]
+__all__ = ["BoucWenFit", "Problem", "fit", "build", "start", "states", "names", "figures",
+           "START_SHAPES"]

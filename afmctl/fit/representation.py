@@ -5,10 +5,15 @@ The homogenized energy model with lognormal/normal densities (six nonlinear para
 first: on a stage of its family it reaches the sensor noise and nothing more is done. When it stays
 above the noise floor, the Preisach grid with creep (:mod:`afmctl.fit.preisach`: a non-separable
 density on a grid, fitted as a regularized non-negative least-squares problem) is fitted too,
-and, if some measured minor loop stays open (:mod:`afmctl.fit.closure`), so is a Bouc-Wen model
-(:mod:`afmctl.fit.boucwen`: nine parameters, rate independent but without return-point memory,
-so its minor loops need not close, which no Preisach-type model can fit); they are compared by
-their **held-out** error against each sweep's sensor noise:
+and so is a Bouc-Wen model (:mod:`afmctl.fit.boucwen`: nine parameters and a start state per
+sweep, rate independent but without return-point memory, so its minor loops need not close,
+which no Preisach-type model can fit) if some measured minor loop stays open
+(:mod:`afmctl.fit.closure`), or if the sweeps hold no minor loop to tell and neither the HEM nor
+the grid reaches :data:`afmctl.fit.identify.FLOOR` times the noise (whole-range triangles cannot
+tell a Bouc-Wen stage from a Preisach-type one, but a Bouc-Wen stage's memory outlives the range's
+ends, which no wiping-out model follows: on foreign-xy-2's y axis, a two-axis set of triangles,
+the grid stayed at 29.9x and Bouc-Wen with its fitted start states reaches 1.0x). They are
+compared by their **held-out** error against each sweep's sensor noise:
 
 * the grid's is measured: it is fitted on three of four folds of residual blocks and judged on
   the fourth, each in turn;
@@ -89,9 +94,10 @@ class Grid:
         return self.fit
 
     def bouc_wen(self, starts: Sequence[str], x_hem: FloatArray) -> bf.BoucWenFit | None:
-        """Fit Bouc-Wen once (None if no shape has a loop), from the HEM's starts or each sweep
-        from where the one before left the stage (a Bouc-Wen stage forgets nothing), its rod
-        started at the grid's (searched on its own) if the grid was fitted, else the HEM's."""
+        """Fit Bouc-Wen once (None if no shape has a loop), its start states begun at the HEM's
+        starts or each sweep where the one before left the stage (a Bouc-Wen stage forgets
+        nothing), its rod started at the grid's (searched on its own) if the grid was fitted,
+        else the HEM's."""
         if self.bw is None:
             self.say("fitting a Bouc-Wen model (its minor loops need not close) ...")
             rod0 = ((self.fit.model.rod.natural_hz, self.fit.model.rod.damping_ratio)
@@ -125,14 +131,17 @@ class Grid:
         :data:`MARGIN`), with every representation's figures under ``representations``."""
         from dataclasses import replace
 
+        from afmctl.fit import identify as idf
+
         want = self.settings.representation
         grid = self.run(space.starts, sol.x) if want in ("auto", "preisach") else None
         loops = closure.check(self.sweeps, self.noise)["close"]
-        bw = (self.bouc_wen(space.starts, sol.x) if want == "bouc-wen"
-              or (want == "auto" and loops is False) else None)
         worst = {"hem": max(s.rms_over_noise for s in hem.sweeps)}
         if grid is not None:
             worst["preisach"] = float(np.max(grid.heldout_rms_um / self.noise))
+        untold = loops is None and min(worst.values()) > idf.FLOOR
+        bw = (self.bouc_wen(space.starts, sol.x) if want == "bouc-wen"
+              or (want == "auto" and (loops is False or untold)) else None)
         if bw is not None:
             worst["bouc-wen"] = float(np.max(bw.heldout_rms_um / self.noise))
         chosen = want if want in worst else min(
@@ -152,8 +161,7 @@ class Grid:
                                    "interior_loops": grid.interior_loops,
                                    "force_cubic_fitted": grid.cubic}
         figures["bouc_wen"] = (bf.figures(bw, self.noise) if bw is not None else
-                               {"skipped": "the minor loops close (or none returns): a "
-                                "Preisach-type stage" if loops is not False else "not fitted"})
+                               {"skipped": _why_no_bouc_wen(want, loops)})
         self.say(f"representation: {chosen} ({why})")
         if chosen == "preisach" and grid is not None:
             return self._result(hem, prob, grid, figures, estimates(grid.model, grid))
@@ -177,6 +185,13 @@ class Grid:
             prob.nfev + fit.iterations, time.perf_counter() - self.t0, hem.thickness_known, hem.x,
             fit.uncertainty, hem.envelope, hem.restarts, bool(np.isfinite(fit.offsets).all()),
             figures["chosen"], figures)
+
+
+def _why_no_bouc_wen(want: str, loops: bool | None) -> str:
+    if want != "auto" or loops is False:
+        return "not fitted"
+    return ("the minor loops close: a Preisach-type stage" if loops else
+            "no minor loop to tell, and a Preisach-type fit at the noise floor")
 
 
 def first_start(prob: idf.Problem, space: pz.LognormalSpace, sol: optimize.OptimizeResult,

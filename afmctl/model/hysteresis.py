@@ -272,9 +272,42 @@ class PolarizationState:
 
 
 Initial = Literal["depoled", "positive", "negative"]
+#: Prefix of a Bouc-Wen state named by its value (:func:`bouc_wen_state`).
+BW_STATE = "h="
 
 
-def initial_state(params: Polarization, how: Initial | NDArray = "depoled") -> PolarizationState:
+def bouc_wen_state(share: float) -> str:
+    """The name of the Bouc-Wen state ``h = share h_s`` at the first field the model sees
+    (``h_s`` in the sense of ``A``: ``share`` 1 is ``positive``'s saturation, -1
+    ``negative``'s): identify's fitted start of a sweep recorded after work it did not see (a
+    Bouc-Wen stage's whole memory is ``h``, :mod:`afmctl.model.boucwen`)."""
+    if not -1.0 <= share <= 1.0:
+        raise ValueError(f"a Bouc-Wen state's share of its saturation must be in [-1, 1], "
+                         f"got {share}")
+    return f"{BW_STATE}{share:+.6f}"
+
+
+def bouc_wen_share(how: object) -> float | None:
+    """``share`` of a state named by :func:`bouc_wen_state` (None: not such a name).
+
+    Raises
+    ------
+    ValueError
+        A name with the prefix whose value is no number in [-1, 1].
+    """
+    if not isinstance(how, str) or not how.startswith(BW_STATE):
+        return None
+    try:
+        share = float(how[len(BW_STATE):])
+    except ValueError:
+        raise ValueError(f"unknown initial state {how!r}: {BW_STATE}<share of the saturation, "
+                         "-1 ... 1> expected") from None
+    bouc_wen_state(share)  # checks the range
+    return share
+
+
+def initial_state(params: Polarization, how: Initial | str | NDArray = "depoled"
+                  ) -> PolarizationState:
     """Initial state: depoled (Delta_init of Algorithm 1), poled +/- or a given Delta matrix.
 
     Parameters
@@ -283,9 +316,14 @@ def initial_state(params: Polarization, how: Initial | NDArray = "depoled") -> P
     how : {"depoled", "positive", "negative"} or ndarray of shape (N_i, N_j) with entries +-1
         A Delta matrix must be reachable, i.e. each row is -1 up to some column and +1 from there
         (for the ``normal`` kernel it is read on the E_I quantile nodes of ``n_interaction``).
+        A Bouc-Wen model also takes a state named by its value (:func:`bouc_wen_state`).
     """
     k = build_kernel(params)
     if k.kind == KIND_BOUC_WEN:
+        share = bouc_wen_share(how)
+        if share is not None:  # h at the first field (NaN: the first field run takes it as is)
+            return PolarizationState(k.kind, np.array([share * math.copysign(k.ec[1], k.ec[0]),
+                                                       math.nan]))
         if not isinstance(how, str) or how not in ("depoled", "positive", "negative"):
             raise ValueError(f"unknown initial state {how!r} for a Bouc-Wen model")
         if how == "depoled":  # h = 0 at zero field, as the play outputs of the other kernels

@@ -37,18 +37,19 @@ class Transducer:
     creep : creep.Creep or None
         Log-time creep of the polarization (:mod:`afmctl.model.creep`) between the hysteresis and
         the rod; none by default.
-    initial : {"depoled", "positive", "negative"}
+    initial : {"depoled", "positive", "negative"} or str
         The hysteresis state the stage was in before the voltages the model was identified on
         (identify finds it from the data; a stage poled once keeps that state outside the
         voltage range it is driven over, e.g. below 0 V on a unipolar stage): the default
-        state of :func:`initial`.
+        state of :func:`initial`. A Bouc-Wen model's may be a state named by its value
+        (:func:`afmctl.model.hysteresis.bouc_wen_state`), fitted.
     """
 
     polarization: hy.Polarization
     rod: rd.Rod
     thickness_um: float
     effects: Effects = field(default_factory=Effects)
-    initial: hy.Initial = "depoled"
+    initial: hy.Initial | str = "depoled"
     creep: cr.Creep | None = None
 
     def field(self, voltage_v: FloatArray) -> FloatArray:
@@ -65,7 +66,7 @@ class StageState:
     creep: FloatArray = field(default_factory=lambda: np.zeros(0))
 
 
-def initial(model: Transducer, how: hy.Initial | None = None,
+def initial(model: Transducer, how: hy.Initial | str | None = None,
             voltage_v: float = 0.0) -> StageState:
     """State at rest: the initial polarization ``how`` (default the model's own
     :attr:`Transducer.initial`), then ``voltage_v`` applied quasi-statically (and held long
