@@ -300,9 +300,10 @@ def bouc_wen_share(how: object) -> float | None:
     try:
         share = float(how[len(BW_STATE):])
     except ValueError:
+        share = math.nan
+    if not -1.0 <= share <= 1.0:
         raise ValueError(f"unknown initial state {how!r}: {BW_STATE}<share of the saturation, "
-                         "-1 ... 1> expected") from None
-    bouc_wen_state(share)  # checks the range
+                         "-1 ... 1> expected")
     return share
 
 

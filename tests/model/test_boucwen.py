@@ -4,6 +4,7 @@ its open minor loops, Algorithm 3 through it, and the model file."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,10 +30,15 @@ def _classic(bw_sign: float = 1.0) -> BoucWen:
     return BoucWen(r, bw_sign * A, hs, (GAMMA - BETA) / (BETA + GAMMA), N)
 
 
-def _oracle(fields: list[float], sign: float = 1.0) -> list[float]:
-    """h at each corner of a piecewise-linear field path from (h=0, E=0), by solve_ivp on the
+def _hem() -> hy.Polarization:
+    """The paper's model (lognormal/normal densities)."""
+    return hy.Polarization(1.0, 0.3, hy.Lognormal(1.35, 0.5), hy.Normal(0.4))
+
+
+def _oracle(fields: list[float], sign: float = 1.0, h0: float = 0.0) -> list[float]:
+    """h at each corner of a piecewise-linear field path from (h=h0, E=0), by solve_ivp on the
     classic equation in time (E moving at unit rate), tolerance 1e-11."""
-    h, e0, out = 0.0, 0.0, []
+    h, e0, out = h0, 0.0, []
     a, b, g = sign * A, BETA, sign * GAMMA  # A < 0: the loop of -h (subtracted)
 
     def rhs(_t: float, y: np.ndarray, de: float) -> list[float]:
@@ -57,6 +63,37 @@ def test_kernel_matches_the_classic_equation(sign: float) -> None:
     p, _ = hy.run(bw, path, hy.initial_state(bw, "depoled"))
     h = (p - bw.reversible * path)[398::399]
     assert np.allclose(h, _oracle(corners, sign), rtol=0, atol=1e-8 * bw.saturation)
+
+
+@pytest.mark.parametrize(("sign", "share"), [(1.0, -0.4), (-1.0, 0.7)])
+def test_a_state_named_by_its_value_starts_the_classic_equation(sign: float, share: float
+                                                                ) -> None:
+    """A state named by its value (identify's fitted start of a Bouc-Wen sweep): ``h = share
+    h_s`` in the sense of ``A`` at the first field, then the path's corners as the classic form
+    integrated from that ``h``."""
+    corners = [1.5, 0.4, 1.1, -1.5, 0.2]
+    path = np.concatenate([[0.0]] + [np.linspace(a, b, 400)[1:] for a, b in
+                                     zip([0.0] + corners[:-1], corners, strict=True)])
+    bw = _classic(sign)
+    p, _ = hy.run(bw, path, hy.initial_state(bw, hy.bouc_wen_state(share)))
+    h = p - bw.reversible * path
+    h0 = share * math.copysign(bw.saturation, bw.rate)
+    assert h[0] == pytest.approx(h0, abs=1e-12)
+    assert np.allclose(h[399::399], _oracle(corners, sign, h0), rtol=0,
+                       atol=1e-8 * bw.saturation)
+
+
+def test_states_named_by_their_values_are_checked() -> None:
+    """Saturation is the bound; another model's initial state cannot be one; the name says its
+    value to six digits."""
+    assert hy.bouc_wen_state(-0.25) == "h=-0.250000"
+    assert hy.bouc_wen_share("h=-0.250000") == -0.25
+    assert hy.bouc_wen_share("negative") is None
+    for bad in ("h=1.5", "h=abc"):
+        with pytest.raises(ValueError, match="h="):
+            hy.initial_state(_classic(), bad)
+    with pytest.raises(ValueError, match="unknown initial state"):
+        hy.initial_state(_hem(), hy.bouc_wen_state(0.5))
 
 
 def test_minor_loops_do_not_close() -> None:
@@ -135,6 +172,29 @@ def test_model_file_round_trip(tmp_path: Path) -> None:
     (tmp_path / "bad.toml").write_text(text)
     with pytest.raises(mf.FileFormatError, match="kappa"):
         mf.read(tmp_path / "bad.toml")
+
+
+def test_model_file_keeps_a_fitted_initial_state(tmp_path: Path) -> None:
+    """A Bouc-Wen model's initial state named by its value is written and read back (and the
+    model runs from it); a value beyond saturation, or such a state on the paper's model, is a
+    file error naming the key."""
+    model = replace(_stage(-1.0), initial=hy.bouc_wen_state(-0.3125))
+    mf.write(model, tmp_path / "m.toml")
+    back = mf.read(tmp_path / "m.toml")
+    assert back.initial == "h=-0.312500"
+    assert td.initial(back).polarization.values[0] == pytest.approx(
+        -0.3125 * math.copysign(back.polarization.saturation, back.polarization.rate))
+    text = (tmp_path / "m.toml").read_text()
+    (tmp_path / "over.toml").write_text(text.replace("h=-0.312500", "h=-1.5"))
+    with pytest.raises(mf.FileFormatError, match="initial_state"):
+        mf.read(tmp_path / "over.toml")
+    hem = td.Transducer(_hem(), model.rod, model.thickness_um)
+    mf.write(hem, tmp_path / "hem.toml")
+    text = (tmp_path / "hem.toml").read_text()
+    (tmp_path / "hem_bad.toml").write_text(text.replace('initial_state = "depoled"',
+                                                        'initial_state = "h=+0.500000"'))
+    with pytest.raises(mf.FileFormatError, match="initial_state"):
+        mf.read(tmp_path / "hem_bad.toml")
 
 
 def test_diagnose_says_it_needs_the_papers_model(tmp_path: Path) -> None:
