@@ -108,7 +108,7 @@ or a Bouc-Wen polarization (:mod:`afmctl.model.boucwen`, whose minor loops need 
 
     [transducer]
     initial_state = "h=-0.557000"              # also: h at the first field, share of h_s
-                                               # (identify's fitted start of the first sweep)
+                                               # (identify's fitted start of the last sweep)
 
 and a cubic term of the force that (16) does not have, ``+ a3 P^3`` (optional, 0 when absent; the
 Preisach grid's fit writes it, see :attr:`afmctl.model.rod.Rod.a3`)::

@@ -106,8 +106,8 @@ class BoucWenFit:
     Attributes
     ----------
     model : transducer.Transducer
-        The Bouc-Wen polarization, the rod, the model's sensor zero, the first sweep's start
-        state as its initial one.
+        The Bouc-Wen polarization, the rod, the last sweep's sensor zero and start state (its
+        initial one).
     starts : tuple of str
         Each sweep's fitted start state, named by its value
         (:func:`afmctl.model.hysteresis.bouc_wen_state`).
@@ -295,7 +295,10 @@ def build(x: FloatArray, prob: Problem, offsets: FloatArray, mass_kg: float, thi
     """The physical model of ``x``: ``P = k_s Q`` with ``k_s`` making the largest ``|Q|`` over the
     sweeps ``p_scale`` (C/m^2), so ``r = k_s r_Q``, ``h_s = k_s |c|``, ``A = a k_s c``; the rod
     ``k = m (2 pi f_n)^2``, ``a1 = 1e-6 k / k_s``, ``a2 = 1e-6 k s / k_s^2`` (as
-    :func:`afmctl.fit.preisach.build`)."""
+    :func:`afmctl.fit.preisach.build`); its initial state and sensor zero the last sweep's (a
+    consistent pair: the model run from that state predicts that sweep; the most recent, as
+    :func:`afmctl.fit.parametrization.zero_sweep` takes it, is the nearest to where a creeping
+    stage is when the model is used)."""
     log_a, kappa, n, m, c, s, log_fn, log_zeta, w = (float(v) for v in x[:STATES_AT])
     r = reversible(m, c, math.exp(log_a), kappa)
     q_max = max(float(np.max(np.abs(r * e + c * eta))) for e, eta in
@@ -306,8 +309,8 @@ def build(x: FloatArray, prob: Problem, offsets: FloatArray, mass_kg: float, thi
     fn, zeta = math.exp(log_fn), math.exp(log_zeta)
     k = mass_kg * (2 * math.pi * fn) ** 2
     rod = rd.Rod(m=mass_kg, c=2 * zeta * math.sqrt(k * mass_kg), k=k, a1=1e-6 * k / ks,
-                 a2=1e-6 * k * s / ks ** 2, offset_um=float(offsets[0]))
-    return td.Transducer(pol, rod, thickness_um, initial=states(x)[0], creep=creep_of(w))
+                 a2=1e-6 * k * s / ks ** 2, offset_um=float(offsets[-1]))
+    return td.Transducer(pol, rod, thickness_um, initial=states(x)[-1], creep=creep_of(w))
 
 
 def states(x: FloatArray) -> tuple[str, ...]:
