@@ -435,7 +435,8 @@ def figures(fit_: BoucWenFit, noise: FloatArray) -> dict[str, Any]:
     assert isinstance(pol, bwm.BoucWen)
     return {"worst_heldout_over_noise": float(np.max(fit_.heldout_rms_um / noise)),
             "heldout_over_noise": [float(v) for v in fit_.heldout_rms_um / noise],
-            "heldout_note": "in-sample error of nine parameters (optimism ~ p/N)",
+            "heldout_note": "in-sample error of nine parameters and a start state per "
+            "sweep (optimism ~ p/N)",
             "kappa": pol.kappa, "exponent": pol.exponent, "evaluations": fit_.iterations,
             "start_states": list(fit_.starts),
             "creep_per_decade": None if fit_.model.creep is None else
