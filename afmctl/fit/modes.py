@@ -22,8 +22,7 @@ fractions of the rod's.
 The hysteresis so held was identified without the mode, while the mode's ringing (32x the noise
 on foreign-xy-1's 23 Hz triangle) was the largest misfit: the density bent to it, and every
 sweep stayed at 1.7-2.5x the noise once the mode was found. :func:`reidentified` therefore
-identifies the axis again, where a mode was found ringing (:func:`ringing`), on the readings
-with that mode taken out (its exact inverse,
+identifies the axis again on the readings with the found mode taken out (its exact inverse,
 :func:`afmctl.model.effects.remove_mode`), then fits the mode again on the readings as recorded
 with that hysteresis held, and keeps whichever misses its worst sweep less. Pure numerics: no I/O.
 """
@@ -260,41 +259,19 @@ def without_mode(sweeps: Sequence[Sweep], mode: fx.SecondMode) -> list[Sweep]:
         fx.compile_chain(effects, s.dt), s.displacement_um)) for s in sweeps]
 
 
-def ringing(result: idf.FitResult) -> fx.SecondMode | None:
-    """The second mode :func:`refined` found for ``result``: the one it kept, or one it did not
-    keep that is physical, converged and brings some sweep below :data:`KEEP_BELOW` of its RMS
-    without it (None: neither). A mode is kept only where it brings the *worst* sweep down; but
-    where the hysteresis bent to the ringing of the fast sweep the worst is another sweep (on
-    foreign-xy-6's y axis, a Bouc-Wen operator and a 180 Hz shared mode: the 23 Hz triangle 14.7
-    -> 11.5x with the mode, the file where both axes move 13.7x either way), and only an
-    identification without the ringing tells."""
-    if result.model.effects.second_mode is not None:  # set by :func:`refined` when it keeps one
-        return result.model.effects.second_mode
-    doc = result.representations.get("second_mode", {})
-    if not (doc.get("physical") and doc.get("converged")):
-        return None
-    before, after = (np.asarray(doc[k], float) for k in ("per_sweep_over_noise_without",
-                                                         "per_sweep_over_noise_with"))
-    if not np.any(after < KEEP_BELOW * before):
-        return None
-    return fx.SecondMode(doc["frequency_Hz"], doc["damping_ratio"], doc["gain"],
-                         doc["rate_gain"])
-
-
 def reidentified(result: idf.FitResult, sweeps: Sequence[Sweep], seeds_hz: Sequence[float],
                  settings: idf.Settings, say: Callable[[str], None] | None = None
                  ) -> idf.FitResult:
     """``result`` (:func:`refined`'s, on ``sweeps``) identified again without its mode's ringing.
 
-    Where ``result`` found a mode that rings (:func:`ringing`):
-    :func:`afmctl.fit.identify.fit` on the readings with that mode taken out
-    (:func:`without_mode`), then :func:`refined` on the readings as recorded, seeded at the mode
-    found. That second result is returned if it keeps a mode and misses its worst sweep less
-    than ``result`` (RMS over noise, on the recorded readings); else ``result``. The figures of
-    the second identification are under ``representations["second_mode"]["reidentified"]``
-    either way.
+    Where ``result`` kept a mode: :func:`afmctl.fit.identify.fit` on the readings with that mode
+    taken out (:func:`without_mode`), then :func:`refined` on the readings as recorded, seeded at
+    the mode found. That second result is returned if it keeps a mode too and misses its worst
+    sweep less than ``result`` (RMS over noise, on the recorded readings); else ``result``. The
+    figures of the second identification are under ``representations["second_mode"]
+    ["reidentified"]`` either way.
     """
-    mode = ringing(result)
+    mode = result.model.effects.second_mode  # set by :func:`refined` when it keeps one
     if mode is None:
         return result
     (say or (lambda _m: None))(f"identifying again with the {mode.frequency_hz:.4g} Hz mode "

@@ -17,10 +17,9 @@ is held at a constant voltage, and files where both move. The steps:
    coupling found: a structural mode the axes share moves each of them a little and rings after
    every turning point of a fast sweep, below or above the axis's own resonance. It is kept
    where it brings the axis's worst sweep well down (:data:`afmctl.fit.modes.KEEP_BELOW`).
-4. Where a mode is kept, or found ringing on some sweep (:func:`afmctl.fit.modes.ringing`), the
-   axis identified again on its readings with the mode taken out (the hysteresis of step 2 had
-   bent to the ringing), the mode fitted again with that hysteresis held, and the better of the
-   two kept (:func:`afmctl.fit.modes.reidentified`).
+4. Where a mode is kept, the axis identified again on its readings with the mode taken out (the
+   hysteresis of step 2 had bent to the ringing), the mode fitted again with that hysteresis
+   held, and the better of the two kept (:func:`afmctl.fit.modes.reidentified`).
 
 The coupling acts on the source's displacement relative to ``reference_um``: the source's mean
 measured displacement over the files the target's model was fitted on (there the target's model
@@ -201,7 +200,7 @@ def _fit_axis(task: tuple[str, list[Sweep], idf.Settings, tuple[float, ...]],
               say: Callable[[str], None] | None = None) -> idf.FitResult:
     """One axis's model (:func:`afmctl.fit.identify.fit`), then its second mode
     (:func:`afmctl.fit.modes.refined`) started at the coupling's shared modes ``modes_hz``, and
-    where one rings the axis identified again without its ringing
+    where one is kept the axis identified again without its ringing
     (:func:`afmctl.fit.modes.reidentified`)."""
     axis, data, settings, modes_hz = task
     tell = None if say is None else (lambda m: say(f"[{axis}] {m}"))

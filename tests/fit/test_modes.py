@@ -9,8 +9,6 @@ of the mode (:class:`afmctl.model.effects.SecondMode`), nor its discretization.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 from scipy import signal
@@ -21,7 +19,6 @@ from afmctl.drivers.device.foreign.stages import random_stage, with_effects
 from afmctl.files import sweepfile as sw
 from afmctl.fit import identify as idf
 from afmctl.fit import modes
-from afmctl.model.effects import SecondMode
 from afmctl.planning import sweepdesign as sd
 
 ROD_HZ, MODE_HZ, MODE_ZETA, SHARE = 420.0, 160.0, 0.05, 0.05
@@ -98,26 +95,7 @@ def test_without_a_kept_mode_nothing_is_identified_again() -> None:
     plain = idf.fit(sweeps, HEM)
     found = modes.refined(plain, sweeps, (MODE_HZ,))
     assert not found.representations["second_mode"]["kept"]
-    assert modes.ringing(found) is None
     assert modes.reidentified(found, sweeps, (MODE_HZ,), HEM) is found
-
-
-def test_a_mode_not_kept_rings_when_it_brings_some_sweep_down() -> None:
-    """A mode :func:`modes.refined` did not keep is still taken for a ringing one when it is
-    physical, converged and brings some sweep (not only the worst) below 0.8 of its RMS."""
-    sweeps = _sweeps()[:1]
-    found = modes.refined(idf.fit(sweeps, HEM), sweeps, (MODE_HZ,))
-    doc = {"kept": False, "physical": True, "converged": True, "frequency_Hz": 300.0,
-           "damping_ratio": 0.02, "gain": 0.05, "rate_gain": 0.001,
-           "per_sweep_over_noise_without": [14.7, 13.7], "per_sweep_over_noise_with": [11.5, 13.7]}
-
-    def told(**change: object) -> object:
-        return modes.ringing(replace(found, representations={"second_mode": {**doc, **change}}))
-
-    assert told() == SecondMode(300.0, 0.02, 0.05, 0.001)
-    assert told(per_sweep_over_noise_with=[12.0, 13.7]) is None  # 0.82 of 14.7: not ringing
-    assert told(physical=False) is None
-    assert told(converged=False) is None
 
 
 def test_a_sensor_latency_is_not_taken_for_a_mode() -> None:
