@@ -371,7 +371,8 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
         if best.cost <= good:
             break
     assert best is not None
-    sol = _solve(prob, _rod_searched(prob, best), creep=True)
+    crept = _solve(prob, _rod_searched(prob, best), creep=True)
+    sol = crept if crept.cost < best.cost else best  # from its start the creep may end worse
     u = prob.readings(sol.x)
     off = prob.offsets(u)
     predicted = [p + o for p, o in zip(u, off, strict=True)]
@@ -416,17 +417,18 @@ def _solve(prob: Problem, x0: FloatArray, creep: bool) -> optimize.OptimizeResul
                                  bounds=(lo[free], hi[free]), x_scale="jac",
                                  max_nfev=NFEV_PER_PARAMETER * int(free.sum()),
                                  diff_step=DIFF_STEP)
-    sol.x = full(sol.x)
+    sol.x, sol.free = full(sol.x), free
     return sol
 
 
 def _uncertainty(sol: optimize.OptimizeResult) -> dict[str, Any]:
-    """``s^2 (J^T J)^+`` at the solution (the residuals are already over each sweep's noise)."""
+    """``s^2 (J^T J)^+`` at the solution (the residuals are already over each sweep's noise), of
+    the parameters it fitted (without creep: not the creep weight)."""
     j = np.asarray(sol.jac, float)
     dof = max(j.shape[0] - j.shape[1], 1)
     cov = np.linalg.pinv(j.T @ j) * (2.0 * float(sol.cost) / dof)
-    x = np.asarray(sol.x, float)
-    return unc.summary(names(x.size - STATES_AT), x, cov)
+    x, free = np.asarray(sol.x, float), sol.free
+    return unc.summary(tuple(np.array(names(x.size - STATES_AT))[free]), x[free], cov)
 
 
 def figures(fit_: BoucWenFit, noise: FloatArray) -> dict[str, Any]:
