@@ -21,7 +21,7 @@ out, the other axis's files of a two-axis stage) starts wherever that work left 
 no named state (depoled, poled, the previous sweep's end) need be. The fit therefore takes each
 sweep's start state as a parameter (one number each; a named assignment only says where it
 starts). On the foreign x/y stage foreign-xy-2, whose Bouc-Wen y axis saturates slowly
-(``beta + gamma`` 1.6), the named assignments left its triangles at 5.3-6.8x the sensor noise
+(``beta + gamma`` 1.6), the named assignments left its triangles at 5.3-6.7x the sensor noise
 and the fitted states bring them to 1.00-1.02x, with ``kappa`` and ``n`` as the plant's to three
 digits.
 
@@ -80,7 +80,8 @@ ZETA_BOUNDS = (1e-3, 2.0)
 NAMES = ("log_a", "kappa", "n", "margin", "c", "s", "log_fn", "log_zeta", "creep")
 #: A start state begins at most this far toward saturation: at ``|eta| = 1`` a sweep that moves
 #: on toward it leaves ``eta`` there, and the state has no derivative to leave the bound by (on
-#: foreign-xy-2's y axis every sweep started at -1 stopped at 19x the cost of -0.98's fit).
+#: foreign-xy-2's y axis every sweep started at -1 stopped at 45x the cost of the fit started at
+#: -1, -0.98, -0.98, -0.98).
 STATE_START_MAX = 0.95
 #: Where the creep weight and the first start state are in a parameter vector.
 CREEP_AT, STATES_AT = NAMES.index("creep"), len(NAMES)
@@ -428,7 +429,8 @@ def _uncertainty(sol: optimize.OptimizeResult) -> dict[str, Any]:
     dof = max(j.shape[0] - j.shape[1], 1)
     cov = np.linalg.pinv(j.T @ j) * (2.0 * float(sol.cost) / dof)
     x, free = np.asarray(sol.x, float), sol.free
-    return unc.summary(tuple(np.array(names(x.size - STATES_AT))[free]), x[free], cov)
+    fitted = tuple(n for n, f in zip(names(x.size - STATES_AT), free, strict=True) if f)
+    return unc.summary(fitted, x[free], cov)
 
 
 def figures(fit_: BoucWenFit, noise: FloatArray) -> dict[str, Any]:
