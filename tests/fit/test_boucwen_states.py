@@ -94,3 +94,23 @@ def test_the_chained_states_miss_what_the_hidden_work_left(fitted: tuple) -> Non
         chained[bf.STATES_AT:] = prob.named_states(*x[:3], chain)
         assert np.max(_ratios(prob, chained)) > 3.0, chain
     assert np.max(_ratios(prob, x)) < 1.2
+
+
+@pytest.mark.slow
+def test_a_state_far_off_is_searched_back(fitted: tuple) -> None:
+    """A sweep started at the other saturation (a chained state that missed the unrecorded
+    work) is brought back by the state search with the shape held: its state to within one
+    step of :data:`afmctl.fit.boucwen.STATE_GRID` of the fitted one, its error down by over
+    3x; the other sweeps' states kept."""
+    fit, data = fitted
+    prob = bf.Problem(data)
+    x = np.array([fit.parameters[k] for k in bf.names(len(data.y))])
+    i = bf.STATES_AT + 1
+    wrong = x.copy()
+    wrong[i] = -math.copysign(bf.STATE_START_MAX, x[i])
+    found = prob.state_search(wrong)
+    step = bf.STATE_GRID[1] - bf.STATE_GRID[0]
+    assert abs(found[i] - x[i]) <= step, (found[i], x[i])
+    assert _ratios(prob, found)[1] < _ratios(prob, wrong)[1] / 3.0
+    others = [k for k in range(bf.STATES_AT, x.size) if k != i]
+    np.testing.assert_allclose(found[others], x[others], atol=step)
