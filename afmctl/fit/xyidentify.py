@@ -101,24 +101,17 @@ def coupling_records(sweeps: Sequence[XYSweep], target: str) -> list[fc.Record]:
 
 def axis_sweeps(sweeps: Sequence[XYSweep], axis: str, couplings: dict[str, cp.Coupling]
                 ) -> list[Sweep]:
-    """Axis ``axis`` of the files where it moves (not as a dynamic excitation), its displacement
-    less what the other axis's *own* motion causes in it.
-
-    The other axis's own motion is its measured displacement less what this axis caused in it
-    (to first order in the coupling): where the other axis is held that is a constant, and this
-    axis's reading is its own; the coupling there goes round the loop (this axis moves the other,
-    which moves this one back by ``c_xy c_yx``, about 1e-4) and is part of this axis's motion.
+    """Axis ``axis`` of the files where it moves (not as a dynamic excitation): its own motion
+    (:func:`afmctl.model.coupling.own_motion`), its readings less what the other axis's own
+    motion causes in them. Where the other axis is held this axis's reading is its own, and the
+    coupling there goes round the loop (this axis moves the other, which moves this one back by
+    ``c_xy c_yx``, about 1e-4) as part of this axis's motion.
     """
     i, j = AXES.index(axis), 1 - AXES.index(axis)
     here, back = couplings[direction(axis, AXES[j])], couplings[direction(AXES[j], axis)]
-    out = []
-    for s in sweeps:
-        if axis in s.moving and not excitation(s, axis):
-            one = s.axis(axis)
-            own = s.displacement_um[:, j] - cp.caused(back, s.displacement_um[:, i], s.dt)
-            caused = cp.caused(here, own, s.dt)
-            out.append(replace(one, displacement_um=one.displacement_um - caused))
-    return out
+    return [replace(s.axis(axis), displacement_um=cp.own_motion(
+        here, back, s.displacement_um[:, i], s.displacement_um[:, j], s.dt))
+        for s in sweeps if axis in s.moving and not excitation(s, axis)]
 
 
 def excitation(s: XYSweep, axis: str) -> bool:

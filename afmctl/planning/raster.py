@@ -344,23 +344,20 @@ def targets(traj: Trajectories, coupling: Mapping[str, cp.Coupling] | None
     """The targets each axis's inverse aims at (um): the desired trajectory less the motion the
     other axis's *own* motion causes through the coupling (``"yx"``: y caused by x).
 
-    Each axis's model was identified (:func:`afmctl.fit.xyidentify.axis_sweeps`) on its readings
-    less what the other axis's own motion (its readings less what this axis caused in them)
-    causes; the same here, with the desired trajectories for the readings: the other axis's
-    own motion is its target less what this axis's target causes in it. Aiming at the other's
-    *desired* motion instead leaves the loop ``c_xy c_yx`` out: on foreign-xy-1 (5.6 % each
-    way) a 0.32 % gain error of the fast axis, 0.22 um across a 60 um frame.
+    Each axis's model was identified (:func:`afmctl.fit.xyidentify.axis_sweeps`) on its own
+    motion (:func:`afmctl.model.coupling.own_motion`: its readings less what the other axis's
+    own motion causes); the same here, with the desired trajectories for the readings. Aiming
+    at the other's *desired* motion instead leaves the loop ``c_xy c_yx`` out: on foreign-xy-1
+    (5.6 % each way) a 0.32 % gain error of the fast axis, 0.22 um across a 60 um frame.
     """
     x, y = traj.x_um, traj.y_um
     if not coupling:
         return {"x": x, "y": y}
     dt = traj.dt_s
 
-    def by(d: str, source: FloatArray) -> FloatArray:
-        return cp.caused(coupling[d], source, dt) if d in coupling else np.zeros(source.size)
-
-    own = {"x": x - by("xy", y), "y": y - by("yx", x)}
-    return {"x": x - by("xy", own["y"]), "y": y - by("yx", own["x"])}
+    none = cp.Coupling(0.0)
+    here, back = coupling.get("xy", none), coupling.get("yx", none)
+    return {"x": cp.own_motion(here, back, x, y, dt), "y": cp.own_motion(back, here, y, x, dt)}
 
 
 def _pad(w: track.Waveform, before: int, total: int, start_v: float) -> FloatArray:

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from afmctl.model.coupling import Coupling, caused, frf
+from afmctl.model.coupling import Coupling, caused, frf, own_motion
 
 
 def test_static_only_is_a_gain_about_the_reference() -> None:
@@ -73,3 +73,17 @@ def test_bad_parameters_are_refused() -> None:
         Coupling(static=float("nan"))
     with pytest.raises(ValueError):
         Coupling(static=0.0, mode_hz=100.0, damping=0.0)
+
+
+def test_own_motions_solve_the_loop_of_two_static_couplings() -> None:
+    """Readings of own motions X, Y coupled both ways about the references (x = X + c_xy (Y -
+    30), y = Y + c_yx (X - 45)): :func:`own_motion` recovers X; its one-round error is ``c_xy^2
+    c_yx (Y - 30)`` (worked out by hand) and each further round multiplies it by ``c_xy c_yx``."""
+    rng = np.random.default_rng(3)
+    own_x, own_y = rng.uniform(0, 80, 500), rng.uniform(0, 100, 500)
+    xy, yx = Coupling(0.06, reference_um=30.0), Coupling(-0.05, reference_um=45.0)
+    x, y = own_x + 0.06 * (own_y - 30.0), own_y - 0.05 * (own_x - 45.0)
+    for rounds in (1, 2, 3):
+        error = own_motion(xy, yx, x, y, 1e-4, rounds) - own_x
+        expected = 0.06 ** 2 * -0.05 * (0.06 * -0.05) ** (rounds - 1) * (own_y - 30.0)
+        assert np.allclose(error, expected, rtol=1e-6, atol=1e-12)
