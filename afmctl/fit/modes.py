@@ -58,7 +58,9 @@ POLISHED = 3
 #: Evaluations of each least-squares run.
 MAX_NFEV = 60
 #: The mode is kept only if it brings the worst sweep's RMS (over its noise) below this share of
-#: the fit without it: a ringing mode shows on the fast sweeps, far above the noise.
+#: the fit without it (a ringing mode shows on the fast sweeps, far above the noise), or to
+#: identify's floor from above it (foreign-xy-4's x: its 23 Hz triangle 1.56 -> 1.05x, the worst
+#: sweep then the 3.3 Hz one the mode does not touch, 1.27x).
 KEEP_BELOW = 0.8
 #: ... and leaves no sweep worse than this times identify's own fit (a "mode" that trades the
 #: slow sweeps for the fast one stands in for something else: an amplifier lag, a latency).
@@ -97,8 +99,10 @@ class ModeFit:
     @property
     def kept(self) -> bool:
         """A :attr:`physical` mode that lowers the worst sweep's RMS below :data:`KEEP_BELOW` of
-        the fit without it and leaves no sweep worse than :data:`NO_WORSE` times identify's."""
-        return (self.physical and max(self.after) < KEEP_BELOW * max(self.before)
+        the fit without it, or to identify's floor (:data:`afmctl.fit.identify.FLOOR`) from
+        above it, and leaves no sweep worse than :data:`NO_WORSE` times identify's."""
+        worst, before = max(self.after), max(self.before)
+        return (self.physical and (worst < KEEP_BELOW * before or worst <= idf.FLOOR < before)
                 and all(a <= NO_WORSE * i for a, i in zip(self.after, self.identified,
                                                           strict=True)))
 

@@ -16,7 +16,8 @@ is held at a constant voltage, and files where both move. The steps:
 3. Each axis's second mechanical mode (:mod:`afmctl.fit.modes`), started at the shared modes the
    coupling found: a structural mode the axes share moves each of them a little and rings after
    every turning point of a fast sweep, below or above the axis's own resonance. It is kept
-   where it brings the axis's worst sweep well down (:data:`afmctl.fit.modes.KEEP_BELOW`).
+   where it brings the axis's worst sweep well down, or to identify's floor
+   (:attr:`afmctl.fit.modes.ModeFit.kept`).
 4. Where a mode is kept, the axis identified again on its readings with the mode taken out (the
    hysteresis of step 2 had bent to the ringing), the mode fitted again with that hysteresis
    held, and the better of the two kept (:func:`afmctl.fit.modes.reidentified`).

@@ -119,3 +119,21 @@ def test_a_sensor_latency_is_not_taken_for_a_mode() -> None:
     figures = found.representations["second_mode"]
     assert not figures["kept"] and "skipped" not in figures, figures
     assert found.model == plain.model and found.sweeps == plain.sweeps
+
+
+@pytest.mark.parametrize(("before", "after", "kept"), [
+    ((1.07, 1.27, 1.56), (1.07, 1.27, 1.05), True),   # to the floor from above it
+    ((1.07, 1.27, 1.60), (1.07, 1.27, 1.52), False),  # down, but neither 0.8x nor to the floor
+    ((1.07, 1.27, 1.40), (1.07, 1.27, 1.30), False),  # already at the floor: 0.8x is the rule
+    ((1.10, 1.20, 9.00), (1.10, 1.20, 7.00), True),   # 0.8x of a sweep far above the floor
+    ((1.07, 1.27, 1.56), (1.07, 1.40, 1.05), False),  # a slow sweep made over 5 % worse
+])
+def test_a_mode_is_kept_where_it_takes_the_worst_sweep_down_enough(
+        before: tuple[float, ...], after: tuple[float, ...], kept: bool) -> None:
+    """:attr:`afmctl.fit.modes.ModeFit.kept` from each sweep's RMS over its noise (identify's
+    fit is taken as the fit without the mode)."""
+    from afmctl.model.effects import SecondMode
+
+    found = modes.ModeFit(SecondMode(250.0, 0.05, 0.01, 0.0), 420.0, 0.05, 1.0, (0.0,) * 3,
+                          before, after, before, True)
+    assert found.physical and found.kept is kept
