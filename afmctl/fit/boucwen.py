@@ -425,7 +425,7 @@ def _searched(prob: Problem, sol: optimize.OptimizeResult, good: float
               ) -> optimize.OptimizeResult:
     """``sol``, or where its cost is above ``good`` and :meth:`Problem.state_search` moves a
     state at its shape, the solve from there if that ends lower. The start shape is crude and
-    its state search may miss (foreign-xy-6's y axis: from the rod identify's grid gave, every
+    its state search may miss (foreign-xy-6's y axis: from the rod of identify's grid fit, every
     start ended with the both-axes file's state near 0 and the sweeps at 10-14x the noise); at
     the solved shape it does not."""
     if sol.cost <= good:
