@@ -72,7 +72,7 @@ def _report(result: Any, data: Any = None, reach: str = "", loops: str = "") -> 
              f"{result.seconds:.2f} s)"]
     if not result.thickness_known:
         lines.append("layer thickness unknown: fitted in volts (thickness_um = 1 by convention)")
-    if result.representations:
+    if "chosen" in result.representations:  # a two-axis fit may hold only its mode's figures
         lines.append(f"representation: {result.representations['chosen']} "
                      f"({result.representations['why']})")
     floor = "at" if result.at_noise_floor else "NOT at"

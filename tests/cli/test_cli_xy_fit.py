@@ -82,6 +82,18 @@ def test_identify_two_axes_json_contract_and_coupling(foreign_set, tmp_path: Pat
     assert back.coupling["yx"].static == pytest.approx(c["yx_static"])
 
 
+def test_identify_two_axes_reports_in_words(foreign_set, tmp_path: Path) -> None:
+    """Without ``--json`` each axis's one-axis report, where an axis's figures hold only its
+    second mode's (the paper's model alone: no representation chosen)."""
+    _, paths = foreign_set
+    (tmp_path / "quick.toml").write_text(QUICK)
+    res = CliRunner().invoke(main, ["identify", *map(str, paths), "-o", str(tmp_path / "m.toml"),
+                                    "--profile", str(tmp_path / "quick.toml")])
+    assert res.exit_code == 0, res.output
+    assert "--- axis x" in res.stdout and "--- axis y" in res.stdout
+    assert "noise floor" in res.stdout and (tmp_path / "m.toml").is_file()
+
+
 def test_malformed_and_mixed_sets_exit_2_with_one_line(foreign_set, tmp_path: Path) -> None:
     _, paths = foreign_set
     bad = tmp_path / "bad.csv"
