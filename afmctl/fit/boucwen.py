@@ -170,9 +170,8 @@ class Problem:
     def shape(self, log_a: float, kappa: float, n: float, states: FloatArray) -> list[FloatArray]:
         """``eta`` per sweep (every sample), each from its start state ``states`` (``eta`` at
         its first field)."""
-        bw, k = self._operator(log_a, kappa, n)
-        return [hy.run(k, e, hy.initial_state(bw, hy.bouc_wen_state(float(h))))[0]
-                for e, h in zip(self.data.fields, states, strict=True)]
+        op = self._operator(log_a, kappa, n)
+        return [_eta(op, e, h) for e, h in zip(self.data.fields, states, strict=True)]
 
     def named_states(self, log_a: float, kappa: float, n: float, starts: Sequence[str]
                      ) -> FloatArray:
@@ -211,14 +210,13 @@ class Problem:
         identify leaves out, the chained state began it at the other saturation, and the fit
         stopped with that state near 0 and every sweep at 10-14x the noise (the plant's state
         lies two thirds of the way to negative saturation)."""
-        bw, k = self._operator(float(x[0]), float(x[1]), float(x[2]))
+        op = self._operator(float(x[0]), float(x[1]), float(x[2]))
         fn, zeta = math.exp(x[6]), math.exp(x[7])
         out = np.array(x, float)
         for i, e in enumerate(self.data.fields):
             costs = []
             for h in (x[STATES_AT + i], *STATE_GRID):
-                eta = hy.run(k, e, hy.initial_state(bw, hy.bouc_wen_state(float(h))))[0]
-                u = rod_filter(self.force(x, i, eta), fn, zeta, self.data.dts[i])[
+                u = rod_filter(self.force(x, i, _eta(op, e, h)), fn, zeta, self.data.dts[i])[
                     self.data.masks[i]]
                 r = self.data.y[i] - u
                 costs.append((float(np.sum((r - r.mean()) ** 2)), float(h)))
@@ -270,6 +268,13 @@ class Problem:
 
     def residual(self, x: FloatArray) -> FloatArray:
         return self.weighted(self.readings(x))
+
+
+def _eta(op: tuple[bwm.BoucWen, hy.Kernel], field: FloatArray, h: float) -> FloatArray:
+    """``eta`` on ``field`` (every sample) for the operator and kernel ``op``, from the start
+    state ``h`` (``eta`` at its first field)."""
+    bw, k = op
+    return hy.run(k, field, hy.initial_state(bw, hy.bouc_wen_state(float(h))))[0]
 
 
 def _linear_start(prob: Problem, log_a: float, kappa: float, n: float, states: FloatArray
