@@ -80,6 +80,13 @@ class Recorded:
     def name(self) -> str:
         return Path(self.path).name if self.path else self.meta.get("name", "sweep")
 
+    @property
+    def started_s(self) -> float:
+        """When the first sample went out, s, on the stage's clock (the ``started_s`` that
+        ``afmctl sweep`` records); NaN if the file does not say."""
+        value = self.meta.get("started_s")
+        return math.nan if value is None else float(value)
+
 
 @dataclass(frozen=True)
 class Sweep(Recorded):
@@ -315,6 +322,24 @@ def parse(text: str, where: str = "<sweep>") -> Sweep:
         if key in meta and (problem := _check_number(meta[key])):
             raise SweepFormatError(f"{where}: metadata {key}: {problem} ({meta[key]!r})")
     return Sweep(t, data[:, 1].copy(), data[:, 2].copy(), meta, where)
+
+
+#: The longest hold between two sweeps across which a model follows the stage from one to the
+#: next, s (:func:`holds_s`): a longer one is another session, whose work is not known.
+HOLD_MAX_S = 600.0
+
+
+def holds_s(sweeps: Sequence[Recorded]) -> list[float]:
+    """How long the stage held between each sweep's end and the next one's first sample, s,
+    from their :attr:`Recorded.started_s` (the first sweep's: NaN); NaN where either lacks it,
+    the sample periods differ, the next started before the last ended, or the hold is over
+    :data:`HOLD_MAX_S`. What a creeping stage did between two sweeps of a set, when the set says."""
+    out = [math.nan]
+    for a, b in zip(sweeps[:-1], sweeps[1:]):
+        gap = b.started_s - a.started_s - a.voltage_v.shape[0] * a.dt
+        same = math.isclose(a.dt, b.dt, rel_tol=1e-9)
+        out.append(gap if same and 0.0 <= gap <= HOLD_MAX_S else math.nan)
+    return out
 
 
 def read_text(path: str | Path) -> str:

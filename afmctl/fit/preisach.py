@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
-from afmctl.files.sweepfile import Sweep
+from afmctl.files.sweepfile import Sweep, holds_s
 from afmctl.fit import parametrization as pz
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.preisach_problem import (
@@ -220,7 +220,8 @@ def sweep_data(sweeps: Sequence[Sweep], thickness_um: float, noise_um: Sequence[
     sensor noise (um)."""
     return Data([s.voltage_v / thickness_um for s in sweeps], [s.mask(window_s) for s in sweeps],
                 [s.displacement_um[s.mask(window_s)] for s in sweeps], [s.dt for s in sweeps],
-                np.asarray(noise_um, float))
+                np.asarray(noise_um, float), gaps_s=holds_s(sweeps))
+
 
 
 def start_candidates(starts: Sequence[str]) -> list[tuple[str, ...]]:

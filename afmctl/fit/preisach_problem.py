@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -29,6 +30,9 @@ from afmctl.model import creep as cr
 from afmctl.model import preisach as pr
 
 FloatArray = NDArray[np.float64]
+#: Where a sweep leaves its creep: each play's output (per threshold) and each element's state
+#: (thresholds x time constants), um.
+Start = tuple[FloatArray, FloatArray]
 #: Two creep elements per decade, 10 ms ... 1000 s (one per decade left a ripple at the
 #: reversals of the other-family creep set: 1.33 / 1.29 / 1.60x its noise, against 1.31 / 1.07 /
 #: 1.17x with two).
@@ -50,6 +54,8 @@ FOLDS = 4
 #: (the model alone, which track uses, was then 70x the noise where the fit said 1.2x): each sweep
 #: is taken to start with its creep at rest.
 TRANSIENT_SPAN = 0.0
+#: The sweeps' creep chained in the order they were recorded (:meth:`Problem.creep_states`).
+CHAINED = True
 #: Coefficients of the output map ``g`` beyond its unit slope: ``s`` and ``t``.
 MAP = 2
 #: The map's cubic ``t`` is fitted only from a set with at least this many interior loops
@@ -225,6 +231,9 @@ class Data:
     dts: list[float]
     noise: FloatArray
     folds: list[NDArray[np.intp]] = field(default_factory=list)
+    #: device time each sweep's first sample was held from after the one before it had ended,
+    #: s (NaN: not known, that sweep's creep starts at rest; empty: none known)
+    gaps_s: list[float] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         if not self.folds:
@@ -371,6 +380,8 @@ class Problem:
         #: the creep elements driven by ``g(Q)`` and added to it, not to ``Q``
         #: (:attr:`afmctl.model.creep.Creep.acts_on`)
         self.creep_on_force = False
+        #: each sweep's creep starts where the sweep before left it (:meth:`creep_states`)
+        self.chained = CHAINED
         self.taus = np.asarray(taus, float)
         self.set_thresholds((0.0,))
         self.trans = []
@@ -401,29 +412,86 @@ class Problem:
         self.el_tau = np.tile(self.taus, len(self.thresholds))
         self.el_thr = np.repeat(self.thresholds, self.taus.size)
 
-    def lags(self, q: FloatArray, dt: float) -> FloatArray:
+    def lags(self, q: FloatArray, dt: float, start: Start | None = None
+             ) -> tuple[FloatArray, Start]:
         """Each creep element's state before every sample for the hysteretic output ``q`` (um),
-        shape (N, elements), from rest at the first sample."""
-        out = []
-        for r in self.thresholds:
-            y = cr.play_hold(q, r)[0]
-            out.append(cr.lagged(y, self.taus, dt, np.full(self.taus.size, y[0])))
-        return np.hstack(out)
+        shape (N, elements), from ``start`` (each play's output and each element's state, as the
+        sweep before left them) or from rest at the first sample; and where the sweep leaves
+        them (after its last sample)."""
+        out, plays, states = [], [], []
+        a = np.exp(-dt / self.taus)
+        for i, r in enumerate(self.thresholds):
+            if start is None:
+                y, z0 = cr.play_hold(q, r)[0], np.full(self.taus.size, q[0])
+            else:
+                y, z0 = cr.play_hold(np.concatenate(([start[0][i]], q)), r)[0][1:], start[1][i]
+            z = cr.lagged(y, self.taus, dt, z0)
+            out.append(z)
+            plays.append(float(y[-1]))
+            states.append(a * z[-1] + (1.0 - a) * y[-1])
+        return np.hstack(out), (np.array(plays), np.array(states))
+
+    def creep_starts(self, drives: Sequence[FloatArray]) -> tuple[list[FloatArray],
+                                                                     list[Start | None]]:
+        """Each sweep's creep element states (N, elements) for what drives them (``Q`` or
+        ``g(Q)``, um, per sweep, in the order recorded), and where each started: with
+        :attr:`chained`, a sweep that followed the one before after a known hold
+        (:attr:`Data.gaps_s`) starts where that one left them, relaxed over the hold (a stage's
+        slow elements remember every sweep before; started at rest, each sweep's slow elements
+        would ramp from its first sample's level, which the stage's never did); else (None)
+        from rest at its first sample."""
+        out, starts, end = [], [], None
+        gaps = self.data.gaps_s or [math.nan] * len(drives)
+        for x, dt, gap in zip(drives, self.data.dts, gaps, strict=True):
+            start = None if end is None or not self.chained or not gap >= 0.0 else (
+                end[0], end[0][:, None] + (end[1] - end[0][:, None]) * np.exp(-gap / self.taus))
+            z, end = self.lags(x, dt, start)
+            out.append(z)
+            starts.append(start)
+        return out, starts
+
+    def creep_states(self, drives: Sequence[FloatArray]) -> list[FloatArray]:
+        """:meth:`creep_starts`' states alone."""
+        return self.creep_starts(drives)[0]
+
+    def creep_drives(self, th: Theta) -> list[FloatArray]:
+        """What drives the creep elements on each sweep: ``Q``, or ``g(Q)`` on the force."""
+        qs = self.hysteretic(th)
+        return ([output_map(q, th.s, th.t) for q in qs] if self.creep_on_force else qs)
 
     def crept(self, x: FloatArray, q: FloatArray, c: FloatArray, dt: float,
-              out: FloatArray | None = None) -> FloatArray:
+              out: FloatArray | None = None, link: Link | None = None,
+              key: str = "") -> FloatArray:
         """``sum_j c_j Z_j`` linearized in the hysteresis: each element's play held where it
         last moved on ``q``, applied to the columns of ``x`` (N, K) (or to ``x`` (N,)); added to
         ``out`` (``x``'s shape, not ``x`` itself: rows of ``x`` are read after ``out``'s are
-        written) if given, else to zeros."""
+        written) if given, else to zeros.
+
+        ``link``: the sweep's place in the chain (:class:`Link`); where the sweep started from
+        the one before (``link.start``), its columns' elements start where that sweep's columns
+        of the same parameters (``link.carry[key]``) left theirs, relaxed over the hold, so the
+        design holds every sweep's share in a later one's creep. What this sweep leaves is put
+        in ``link.carry[key]``."""
         out = np.zeros(x.shape) if out is None else out
         cols, into = x.reshape(x.shape[0], -1), out.reshape(x.shape[0], -1)
         n_tau = self.taus.size
+        left = []
         for i, r in enumerate(self.thresholds):
             ci = c[i * n_tau:(i + 1) * n_tau]
             on = ci > 0  # (non-negative least squares leaves many at 0)
-            if on.any():
-                cr.add_lag_columns(into, self.taus[on], ci[on], cols, cr.play_hold(q, r)[1], dt)
+            if not on.any():
+                left.append(None)
+                continue
+            if link is None or link.start is None:
+                idx, start = cr.play_hold(q, r)[1], None
+            else:
+                idx = cr.play_hold(np.concatenate(([link.start[0][i]], q)), r)[1][1:] - 1
+                z, held = link.carry[key][i]
+                decay = np.exp(-link.gap_s / self.taus[on])
+                start = (held[:, None] + (z - held[:, None]) * decay, held)
+            left.append(cr.add_lag_columns(into, self.taus[on], ci[on], cols, idx, dt, start))
+        if link is not None:
+            link.carry[key] = left
         return out
 
     def transients(self, th: Theta) -> list[FloatArray]:
@@ -436,16 +504,14 @@ class Problem:
     def forces(self, th: Theta) -> list[FloatArray]:
         """Each sweep's force at full rate (um): ``g(Q~)``, or ``g(Q) + sum_j c_j Z_j[g(Q)]``
         with the creep on the force; what drives the rod, independent of it."""
+        if not th.c.any():
+            return [output_map(q, th.s, th.t) for q in self.hysteretic(th)]
+        drives = self.creep_drives(th)
         out = []
-        for q, dt, tr in zip(self.hysteretic(th), self.data.dts, self.transients(th),
-                             strict=True):
-            if not th.c.any():
-                out.append(output_map(q, th.s, th.t))
-            elif self.creep_on_force:
-                g = output_map(q, th.s, th.t)
-                out.append(g + self.lags(g, dt) @ th.c + tr)
-            else:
-                out.append(output_map(q + self.lags(q, dt) @ th.c + tr, th.s, th.t))
+        for x, z, tr in zip(drives, self.creep_states(drives), self.transients(th),
+                            strict=True):
+            out.append(x + z @ th.c + tr if self.creep_on_force
+                       else output_map(x + z @ th.c + tr, th.s, th.t))
         return out
 
     def predict(self, th: Theta, full: bool = False) -> list[FloatArray]:
@@ -477,11 +543,17 @@ class Problem:
         n_d = sum(self.n_trans) if creep else 0
         d_at = np.concatenate(([0], np.cumsum(self.n_trans)))
         parts = self._on_force if self.creep_on_force else self._on_polarization
+        n = len(self.phi)
+        zs, starts = (self.creep_starts(self.creep_drives(th)) if creep
+                      else ([np.zeros((e.size, 0)) for e in self.data.fields], [None] * n))
+        gaps = self.data.gaps_s or [math.nan] * n
+        carry: dict[str, list[Any]] = {}
         designs, rhs = [], []
-        for i, (p, e, dt, m, y, tr) in enumerate(zip(self.phi, self.data.fields, self.data.dts,
-                                                     self.data.masks, self.data.y,
-                                                     self.transients(th), strict=True)):
-            c = parts(th, creep, p, e, dt, tr if creep else np.zeros(e.size))
+        for i, (p, e, dt, m, y, tr, z) in enumerate(zip(self.phi, self.data.fields, self.data.dts,
+                                                        self.data.masks, self.data.y,
+                                                        self.transients(th), zs, strict=True)):
+            c = parts(th, creep, p, e, dt, tr if creep else np.zeros(e.size), z,
+                      Link(starts[i], gaps[i], carry))
             lg = rod_filter(c.force, fn, zeta, dt)
             rows = np.flatnonzero(m)
             k, n_z = p.shape[1], c.lags.shape[1]
@@ -509,34 +581,45 @@ class Problem:
         return designs, rhs
 
     def _on_polarization(self, th: Theta, creep: bool, p: FloatArray, e: FloatArray,
-                         dt: float, tr: FloatArray) -> Parts:
-        """``g(Q~)``, ``Q~ = Q + sum_j c_j Z_j[Q] + tr`` (``Q`` without ``creep``), and its
-        derivatives before ``L``."""
+                         dt: float, tr: FloatArray, z: FloatArray, link: Link) -> Parts:
+        """``g(Q~)``, ``Q~ = Q + sum_j c_j Z_j[Q] + tr`` (``Q`` without ``creep``; ``z`` the
+        elements' states, :meth:`creep_states`), and its derivatives before ``L``."""
         q = p @ th.w + th.r * e
-        z = self.lags(q, dt) if creep else np.zeros((q.size, 0))
         qt = q + z @ th.c + tr if creep else q
-        cp, ce = ((self.crept(p, q, th.c, dt, p.copy()), self.crept(e, q, th.c, dt, e.copy()))
+        cp, ce = ((self.crept(p, q, th.c, dt, p.copy(), link, "p"),
+                   self.crept(e, q, th.c, dt, e.copy(), link, "e"))
                   if creep and th.c.any() else (p, e))
         return Parts(output_map(qt, th.s, th.t), 1.0 + (2.0 * th.s + 3.0 * th.t * qt) * qt,
                      cp, ce, z, qt * qt, qt * qt * qt)
 
     def _on_force(self, th: Theta, creep: bool, p: FloatArray, e: FloatArray, dt: float,
-                  tr: FloatArray) -> Parts:
+                  tr: FloatArray, z: FloatArray, link: Link) -> Parts:
         """``g(Q) + sum_j c_j Z_j[g(Q)] + tr`` (``g(Q)`` without ``creep``) and its derivatives
         before ``L``: the map's slope inside the creep (the elements' plays held where they last
         moved on ``g(Q)``)."""
         q = p @ th.w + th.r * e
         g = output_map(q, th.s, th.t)
         m0 = 1.0 + (2.0 * th.s + 3.0 * th.t * q) * q
-        z = self.lags(g, dt) if creep else np.zeros((q.size, 0))
         crept = creep and bool(th.c.any())
 
-        def through(x: FloatArray) -> FloatArray:
+        def through(x: FloatArray, key: str) -> FloatArray:
             x = np.ascontiguousarray(x)
-            return self.crept(x, g, th.c, dt, x.copy()) if crept else x
+            return self.crept(x, g, th.c, dt, x.copy(), link, key) if crept else x
 
-        return Parts(g + z @ th.c + tr if creep else g, np.ones(q.size), through(m0[:, None] * p),
-                     through(m0 * e), z, through(q * q), through(q * q * q))
+        return Parts(g + z @ th.c + tr if creep else g, np.ones(q.size),
+                     through(m0[:, None] * p, "p"), through(m0 * e, "e"), z,
+                     through(q * q, "square"), through(q * q * q, "cube"))
+
+
+@dataclass(frozen=True)
+class Link:
+    """One sweep's place in the chain of creep from sweep to sweep (:meth:`Problem.crept`):
+    where its elements started (None: at rest), the hold before it (s) and, per set of columns,
+    what the sweep before left (filled in sweep by sweep)."""
+
+    start: Start | None
+    gap_s: float
+    carry: dict[str, list[Any]]
 
 
 @dataclass(frozen=True)

@@ -214,33 +214,47 @@ def lagged(x: FloatArray, tau_s: FloatArray, dt: float, z0: FloatArray) -> Float
 
 @nb.njit(cache=True)
 def _add_columns(out: np.ndarray, x: np.ndarray, idx: np.ndarray, a: np.ndarray,
-                 c: np.ndarray) -> None:
+                 c: np.ndarray, z0: np.ndarray, x0: np.ndarray, fresh: bool
+                 ) -> tuple[np.ndarray, np.ndarray]:
     n, k = out.shape
     z = np.empty((k, a.size))  # each column's elements side by side: the inner loop is contiguous
     for i in range(k):
         for j in range(a.size):
-            z[i, j] = x[idx[0], i]
+            z[i, j] = x[idx[0], i] if fresh else z0[i, j]
     for t in range(n):
         row = idx[t]
         for i in range(k):
             acc = 0.0
-            xv = x[row, i]
+            xv = x[row, i] if row >= 0 else x0[i]
             for j in range(a.size):
                 acc += c[j] * z[i, j]
                 z[i, j] = a[j] * z[i, j] + (1.0 - a[j]) * xv
             out[t, i] += acc
+    last = idx[n - 1]
+    held = x[last].copy() if last >= 0 else x0.copy()
+    return z, held
 
 
 def add_lag_columns(out: FloatArray, tau_s: FloatArray, weights: FloatArray, x: FloatArray,
-                    idx: NDArray[np.int64], dt: float) -> None:
+                    idx: NDArray[np.int64], dt: float,
+                    start: tuple[FloatArray, FloatArray] | None = None
+                    ) -> tuple[FloatArray, FloatArray]:
     """``out += sum_j c_j z_j`` of linear elements (``tau_s``, ``weights``) on every column of
     ``x[idx]`` (N, K) at once, each from rest at its first sample (z before each sample, as in
     :func:`run`): the creep of every basis column of a fit, each held where ``idx`` says (a
     play's last move, :func:`play_hold`). ``x[idx]`` is never copied (for a fit's basis it is
-    hundreds of MB, and the copy took as long as the filtering)."""
+    hundreds of MB, and the copy took as long as the filtering).
+
+    ``start`` = (states (K, elements), held (K,)): the columns' elements start from these
+    instead, and an ``idx`` of -1 is the play still holding ``held`` (what it held before the
+    first sample). Returns the elements' states after the last sample and what the play then
+    holds, per column: the ``start`` of a record that follows this one."""
     a = np.exp(-float(dt) / np.asarray(tau_s, float))
-    _add_columns(out, np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(idx),
-                 a, np.asarray(weights, dtype=float))
+    k = out.shape[1]
+    z0, x0 = (np.zeros((k, a.size)), np.zeros(k)) if start is None else start
+    return _add_columns(out, np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(idx),
+                        a, np.asarray(weights, dtype=float), np.ascontiguousarray(z0, dtype=float),
+                        np.ascontiguousarray(x0, dtype=float), start is None)
 
 
 @nb.njit(cache=True)

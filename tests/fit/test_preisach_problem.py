@@ -3,22 +3,27 @@ model, with the creep on the polarization and on the force."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from afmctl.fit import preisach_problem as pp
+from afmctl.model import creep as cr
 
 
-def problem(on_force: bool) -> pp.Problem:
+def problem(on_force: bool, gap_s: float = math.nan) -> pp.Problem:
     """Two sweeps (a triangle, then minor loops inside the range) on a coarse grid, the creep
-    elements behind a play of 0 and of 0.3 um."""
+    elements behind a play of 0 and of 0.3 um; the second sweep's creep from the first's after a
+    hold of ``gap_s`` (default NaN: from rest)."""
     rng = np.random.default_rng(3)
     e1 = np.interp(np.arange(800), [0, 200, 400, 600, 799], [0.0, 1.5, 0.0, 1.5, 0.0])
     e2 = np.interp(np.arange(600), [0, 100, 200, 300, 400, 500, 599],
                    [0.0, 1.2, 0.4, 1.0, 0.6, 0.9, 0.7])
     fields = [e1, e2]
     data = pp.Data(fields, [np.ones(e.size, bool) for e in fields],
-                   [rng.normal(size=e.size) for e in fields], [1e-3, 1e-3], np.array([0.02, 0.02]))
+                   [rng.normal(size=e.size) for e in fields], [1e-3, 1e-3], np.array([0.02, 0.02]),
+                   gaps_s=[math.nan, gap_s])
     settings = pp.Settings(n_coercive=8, n_interaction=12, coef_coercive=4, coef_interaction=6)
     ec, ei, spread = pp.make_grid(fields, settings)
     mi, mj = pp.hat_matrix(ec.size, 4), pp.hat_matrix(ei.size, 6)
@@ -29,12 +34,16 @@ def problem(on_force: bool) -> pp.Problem:
     return prob
 
 
+@pytest.mark.parametrize("gap_s", [math.nan, 0.0, 0.05])
 @pytest.mark.parametrize("on_force", [False, True])
-def test_the_design_is_the_models_derivative_and_b0_its_rest(on_force: bool) -> None:
+def test_the_design_is_the_models_derivative_and_b0_its_rest(on_force: bool, gap_s: float
+                                                            ) -> None:
     """``y - rhs = b0`` and ``A x + b0`` is the model to first order: a step ``h`` in every
     parameter but the rod's moves the exact prediction by ``A h`` up to O(h^2) (halving ``h``
-    quarters the miss); at the point itself ``A x0 + b0`` is the prediction."""
-    prob = problem(on_force)
+    quarters the miss); at the point itself ``A x0 + b0`` is the prediction. Also where the
+    second sweep's creep goes on from the first's (``gap_s`` >= 0): the design then carries the
+    first sweep's columns into the second's creep."""
+    prob = problem(on_force, gap_s)
     prob.cubic = True
     rng = np.random.default_rng(5)
     th = pp.Theta(rng.uniform(0.5, 2.0, 24), 0.7, rng.uniform(0.0, 0.02, 6), 0.004, 2e-5,
@@ -122,3 +131,29 @@ def test_every_phase_held_out_in_one_period_is_trained_on_in_another(periods: in
     fold = data.folds[0].reshape(periods, -1)  # one row per period
     assert not (fold == fold[0]).all(axis=0).any()
     assert np.bincount(data.folds[0], minlength=pp.FOLDS).tolist() == [n // pp.FOLDS] * pp.FOLDS
+
+
+def test_a_sweeps_creep_goes_on_from_the_one_before_across_the_hold() -> None:
+    """Chained, the second sweep's creep elements are those of one record: the first sweep, the
+    hold at its last drive for ``gap_s``, the second sweep, run through each play and element
+    from rest (:func:`afmctl.model.creep.play_hold`, :func:`afmctl.model.creep.lagged`); with
+    the hold unknown (NaN) the second starts at rest, and with the chain off too."""
+    gap_s, dt = 0.05, 1e-3
+    prob = problem(False, gap_s)
+    rng = np.random.default_rng(8)
+    drives = [np.cumsum(rng.normal(0, 0.05, e.size)) for e in prob.data.fields]
+    hold = np.full(int(round(gap_s / dt)), drives[0][-1])
+    whole = np.concatenate((drives[0], hold, drives[1]))
+    oracle = np.hstack([cr.lagged(cr.play_hold(whole, r)[0], prob.taus, dt,
+                                  np.full(prob.taus.size, whole[0]))
+                        for r in prob.thresholds])
+    states = prob.creep_states(drives)
+    np.testing.assert_allclose(states[0], oracle[:drives[0].size], atol=1e-12)
+    np.testing.assert_allclose(states[1], oracle[-drives[1].size:], atol=1e-12)
+    for unchained in (problem(False), problem(False, gap_s)):
+        unchained.chained = unchained.data.gaps_s[1] != gap_s
+        rest = np.hstack([cr.lagged(cr.play_hold(drives[1], r)[0], prob.taus, dt,
+                                    np.full(prob.taus.size, drives[1][0]))
+                          for r in prob.thresholds])
+        np.testing.assert_allclose(unchained.creep_states(drives)[1], rest, atol=1e-12)
+    assert np.max(np.abs(states[1] - rest)) > 1e-3  # the chain matters here
