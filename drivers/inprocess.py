@@ -4,6 +4,7 @@ without hardware)."""
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -53,12 +54,22 @@ class InProcessStage(StageBase):
         super().__init__(profile)
         self.emulator = Emulator(profile) if emulator is None else emulator
         self.clock = clock
+        self._now = math.nan  # until the first call
         self._lock = threading.Lock() if lock is None else lock
         self._channels = self.emulator.channels
 
     def _call(self, fn: Callable[..., object], *args: object, **kwargs: object) -> object:
         with self._lock, _refusals():
-            return fn(*args, self.clock(), **kwargs)
+            self._now = self.clock()
+            return fn(*args, self._now, **kwargs)
+
+    def now_s(self) -> float:
+        """The device's clock as of the last call into it, s (read without advancing it: a
+        clock that steps per reading is not moved by asking)."""
+        return self._now
+
+    def _started_at(self, sent_s: float) -> float:
+        return self._now  # the device time the start was given
 
     def identify(self) -> str:
         return f"{IDENTITY_CHANNELS if self.channels > 1 else IDENTITY} (in-process)"

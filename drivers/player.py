@@ -41,11 +41,16 @@ class Recording:
         Sensor displacement at each sample instant, um (NaN where missing).
     valid : ndarray of bool, shape (N,) or (N, C)
         False for samples the device had not recorded.
+    started_s : float or None
+        When the first sample went out, s, on the stage's clock (:meth:`StageBase.now_s`;
+        None where not known): what tells a model how long the stage held between two runs
+        (creep keeps moving through a hold).
     """
 
     voltage_v: NDArray[np.float64]
     displacement_um: NDArray[np.float64]
     valid: NDArray[np.bool_]
+    started_s: float | None = None
 
     @property
     def complete(self) -> bool:
@@ -130,7 +135,7 @@ class Player:
                 time.sleep(self.poll_s)
         if st.play_position < n:
             raise self._stopped(st)
-        return Recording(self.volt, self.u, self.valid)
+        return Recording(self.volt, self.u, self.valid, stage.run_started_s)
 
     def _stopped(self, st: Any, refusal: StageError | None = None) -> StageError:
         """Why the device stopped the run early (``st``: its status after it stopped): its

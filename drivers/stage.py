@@ -76,6 +76,8 @@ class StageBase(abc.ABC):
         #: protocol 3 / register map 2).
         self._channels = 1
         self._last_run_samples = 0
+        #: when the last run's first sample went out, on :meth:`now_s`'s clock, s
+        self.run_started_s: float | None = None
         #: Requests repeated after a transport failure, since the stage was opened.
         self.retries = 0
         self._deadline: float | None = None
@@ -108,8 +110,20 @@ class StageBase(abc.ABC):
         """Start the generator on the uploaded table for an ``n``-sample run: streamed through the
         table as a ring, or one pass of it. A start is not idempotent: after a transport failure
         the run counter says whether it took effect before it is tried again."""
+        sent = self.now_s()
         self._start_checked(lambda: self._start_stream(n) if streamed else self._start(1))
         self._last_run_samples = n
+        self.run_started_s = self._started_at(sent)
+
+    def now_s(self) -> float:
+        """The stage's clock, s: the host's monotonic clock (a device on a link plays in real
+        time; an in-process device has a clock of its own)."""
+        return time.monotonic()
+
+    def _started_at(self, sent_s: float) -> float:
+        """When the run just started went out, given when its start was sent (``sent_s``,
+        :meth:`now_s`): the device starts on its next sample tick, within a sample period."""
+        return sent_s
 
     # -- reliability -----------------------------------------------------------------------------
     def _resync(self) -> None:

@@ -354,6 +354,9 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
         lost = int((~np.asarray(rec.valid)).sum())
         if lost:
             raise SamplesLostError(f"sweep {name}: {lost} samples were not received; record it again")
+        started = getattr(rec, "started_s", None)
+        if kind is sweeps and started is not None:  # the creep's hold between sweeps
+            meta = {**meta, "started_s": f"{started:.6f}"}
         sweep = kind.from_arrays(voltage_v, rec.displacement_um, sample_rate_hz, meta, name)
         if path is not None:
             kind.write(sweep, path)
