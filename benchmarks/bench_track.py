@@ -97,7 +97,8 @@ def family_row(case: family_sets.Case, cache: Path | None, periods: float) -> di
         fit = family_sets.identified(case, sweeps, s.noise_um, cache)
         lo, hi = family_sets.span_of(sweeps)
         row: dict[str, Any] = {"stage": case.name, "family": case.family, "noise_um": s.noise_um,
-                               "identify_worst_over_noise": max(fit["rms_over_noise"])}
+                               "identify_worst_over_noise": max(fit["rms_over_noise"]),
+                               "twin": family_sets.follow(s, fit["model"], sweeps)}
         ratios = []
         for freq, frac in family_sets.TRIANGLES:
             key = f"{freq:g}hz"

@@ -35,7 +35,8 @@ from typing import Any
 import numpy as np
 
 from afmctl.drivers.inprocess import InProcessStage
-from afmctl.experiment import calibration
+from afmctl.experiment import calibration, twin
+from afmctl.experiment.twin import Twin
 from afmctl.files import modelfile
 from afmctl.files.profile import FamilySpec, Profile, shipped_profile
 from afmctl.fit import identify
@@ -191,6 +192,9 @@ class Probe:
     def voltage(self) -> float:
         return self.stage.voltage()
 
+    def now_s(self) -> float:
+        return self.stage.now_s()
+
     def play(self, waveform_v: np.ndarray, on_block: Any = None, **kw: Any) -> Any:
         rec = self.stage.play(waveform_v, on_block, **kw)
         dev = self.stage.emulator
@@ -202,12 +206,15 @@ class Probe:
 
 @dataclass
 class Session:
-    """An open out-of-family stage: the probe to play through, its clock, its truth."""
+    """An open out-of-family stage: the probe to play through, its clock, its truth, and (once
+    set, :func:`follow`) the model's twin of it with the last start's latency (s)."""
 
     case: Case
     profile: Profile
     probe: Probe
     clock: SteppedClock
+    twin: Twin | None = None
+    lead_s: float = 0.1
 
     @property
     def truth(self) -> Any:
@@ -272,6 +279,14 @@ def identified(case: Case, sweeps: list[Any], noise_um: float, cache: Path | Non
     return {**info, "model": res.model, "cached": False}
 
 
+def follow(s: Session, model: Any, sweeps: list[Any]) -> bool:
+    """Plan ``s``'s runs from ``model``'s twin of the stage after ``sweeps``
+    (:func:`afmctl.experiment.twin.from_sweeps`; False, and from rest, where the sweeps do not
+    say their holds)."""
+    s.twin = twin.from_sweeps(model, sweeps)
+    return s.twin is not None
+
+
 def span_of(sweeps: list[Any]) -> tuple[float, float]:
     """(low, high) of the fast sweep's steady half, um (the readings' frame)."""
     fast = max(sweeps, key=lambda s: s.frequency_hz or 0.0)
@@ -306,12 +321,18 @@ def tracked_errors(s: Session, model: Any, freq: float, frac: float, span: tuple
     lo, hi = span
     desired = track.triangle(freq, frac * (hi - lo), 0.5 * (lo + hi), periods,
                              1 / s.profile.sample_rate_hz)
-    plans = track.plan(model, desired, s.profile.limits, s.probe.voltage(), filters)
     assert desired.period_s is not None
     skip = int(round(desired.period_s / desired.dt_s))
     out = {}
-    for name, wf in plans.items():
-        s.probe.play(wf.voltage_v)
+    for name in filters:  # each planned from the twin as the run before left it
+        asked = s.probe.now_s() + s.lead_s
+        state = None if s.twin is None else s.twin.at(asked)
+        wf = track.plan(model, desired, s.profile.limits, s.probe.voltage(),
+                        tuple(dict.fromkeys(("inverse", name))), state=state)[name]
+        rec = s.probe.play(wf.voltage_v)
+        if s.twin is not None and rec.started_s is not None:
+            s.twin = s.twin.after(wf.voltage_v, rec.started_s)
+            s.lead_s = rec.started_s - asked + s.lead_s
         out[name] = (s.probe.positions[-1][wf.tracking] - desired.u_um)[skip:]
     return out
 

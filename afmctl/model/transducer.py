@@ -149,6 +149,38 @@ def driving_force(cm: Compiled, voltage_v: FloatArray, state: StageState
     return cm.model.rod.force(p), p, ps, z
 
 
+#: :func:`held`: a hold of up to this many samples is simulated sample by sample; a longer one
+#: in steps of up to this long, s, then so many samples.
+HOLD_EXACT_SAMPLES = 20000
+HOLD_STEP_MAX_S = 1.0
+HOLD_FINE_SAMPLES = 2000
+
+
+def held(cm: Compiled, voltage_v: float, seconds: float, state: StageState) -> StageState:
+    """The state after ``voltage_v`` (V) is held for ``seconds`` more from ``state``: what a
+    stage does between two runs (its creep goes on, its rod settles).
+
+    Up to :data:`HOLD_EXACT_SAMPLES` samples it is :func:`simulate` of the held voltage. A
+    longer hold is a zero-order hold of any length, so the hysteresis and the creep elements
+    (:mod:`afmctl.model.creep`) are stepped exactly in steps that double from the sample period
+    up to :data:`HOLD_STEP_MAX_S` (a 1000 s hold is about a thousand steps, not ten million
+    samples); the last :data:`HOLD_FINE_SAMPLES` samples are the model's own, so the rod ends
+    settled at the force the creep has reached (within a long step it sees the force it started
+    with). Against the sample-by-sample simulation, on a creeping Prandtl-Ishlinskii stage's
+    identified model: the same displacement to 2e-11 um after 30 s held (64 samples at the end
+    left the rod ringing: 0.66 um off after 4 s on a 318 Hz, 30 %-damped rod).
+    """
+    n = int(round(seconds / cm.dt))
+    fine = n if n <= HOLD_EXACT_SAMPLES else HOLD_FINE_SAMPLES
+    rest, h, st = (n - fine) * cm.dt, cm.dt, state
+    while rest > 0.5 * cm.dt:
+        h = min(2.0 * h, HOLD_STEP_MAX_S, rest)
+        step = Compiled(cm.model, cm.kernel, rd.discretize(cm.model.rod, h))
+        st = simulate(step, np.array([voltage_v]), st)[2]
+        rest -= h
+    return simulate(cm, np.full(fine, float(voltage_v)), st)[2]
+
+
 def _first(x: FloatArray) -> float:
     return float(x[0]) if x.size else 0.0
 

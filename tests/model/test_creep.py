@@ -141,3 +141,21 @@ def test_lag_columns_of_held_columns_are_the_elements_filters_combined() -> None
                                   for i in range(4)])
     np.testing.assert_allclose(out, want, atol=1e-12)
     assert len(set(idx.tolist())) < idx.size  # the play holds: some samples repeat
+
+
+@pytest.mark.parametrize("seconds", [0.004, 0.3, 4.0, 70.0])
+def test_a_hold_is_the_held_voltage_simulated(seconds: float) -> None:
+    """:func:`afmctl.model.transducer.held` (doubling steps for a long hold) against
+    :func:`simulate` of the held voltage sample by sample, right after a fast move: the creep
+    states to round-off, the displacement that follows within a nanometre."""
+    m, dt = model(cr.Creep(TAUS, (0.0075,) * len(TAUS))), 1e-4
+    cm = tr.compile_model(m, dt)
+    move = np.concatenate((np.linspace(0.0, 120.0, 3000), np.linspace(120.0, 20.0, 800)))
+    st = tr.simulate(cm, move, tr.initial(m))[2]
+    fast = tr.held(cm, 20.0, seconds, st)
+    slow = tr.simulate(cm, np.full(int(round(seconds / dt)), 20.0), st)[2]
+    np.testing.assert_allclose(fast.creep, slow.creep, rtol=0, atol=1e-10)
+    after = [tr.simulate(cm, np.full(5, 20.0), s)[0] for s in (fast, slow)]
+    np.testing.assert_allclose(after[0], after[1], rtol=0, atol=1e-3)
+    moved = tr.simulate(cm, np.full(5, 20.0), st)[0]
+    assert np.max(np.abs(after[1] - moved)) > 0.01  # the hold crept: not a trivial pass

@@ -1,0 +1,91 @@
+"""The model's twin of a stage (afmctl.experiment.twin) and the sweeps' holds it follows
+(afmctl.files.sweepfile.holds_s): against one simulation of everything the stage did, holds
+included, sample by sample; and the stage's clock as the recordings report it."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from afmctl.drivers.inprocess import InProcessStage
+from afmctl.experiment import runner, twin
+from afmctl.files import sweepfile
+from afmctl.files.profile import default_profile
+from afmctl.model import creep as cr
+from afmctl.model import hysteresis as hy
+from afmctl.model import rod as rd
+from afmctl.model import transducer as tr
+
+RATE = 2000.0
+
+
+def creeping() -> tr.Transducer:
+    pol = hy.Polarization(eta=2.5, p_r=0.3, coercive=hy.Lognormal(0.6, 0.4),
+                          interaction=hy.Normal(0.25), n_coercive=64)
+    return tr.Transducer(pol, rd.Rod(m=0.05, c=60.0, k=2.0e5, a1=3.0e4, a2=1.0e4), 100.0,
+                         creep=cr.Creep(cr.DEFAULT_TAUS_S, (0.0075,) * len(cr.DEFAULT_TAUS_S)))
+
+
+def triangle(n: int, top: float) -> np.ndarray:
+    return np.interp(np.arange(n), [0, n // 2, n - 1], [0.0, top, 0.0])
+
+
+def test_the_twin_is_one_simulation_of_the_sweeps_the_holds_and_the_runs() -> None:
+    """Two sweeps 0.3 s apart, then a run 1.7 s later: the twin's state at the run's start, and
+    after it, are those of one simulation of the whole record with the holds as held samples."""
+    m = creeping()
+    a, b, run = triangle(1000, 120.0), triangle(600, 80.0), 30.0 + triangle(400, 40.0)
+    t_a, hold_ab, hold_br = 5.0, 0.3, 1.7
+    sweeps = [sweepfile.from_arrays(v, np.zeros(v.size), RATE, {"started_s": f"{t:.6f}"})
+              for v, t in ((a, t_a), (b, t_a + a.size / RATE + hold_ab))]
+    assert sweepfile.holds_s(sweeps)[1] == pytest.approx(hold_ab, abs=1e-9)
+    tw = twin.from_sweeps(m, sweeps)
+    assert tw is not None
+    start = tw.ended_s + hold_br
+    whole = np.concatenate((a, np.full(int(round(hold_ab * RATE)), a[-1]), b,
+                            np.full(int(round(hold_br * RATE)), b[-1]), run))
+    cm = tr.compile_model(m, 1 / RATE)
+    u, _, end = tr.simulate(cm, whole, tr.initial(m, voltage_v=0.0))
+    at_run = tr.simulate(cm, run[:1], tw.at(start))[0][0]
+    assert at_run == pytest.approx(u[-run.size], abs=1e-9)
+    after = tw.after(run, start)
+    np.testing.assert_allclose(after.state.creep, end.creep, rtol=0, atol=1e-10)
+    assert after.ended_s == pytest.approx(start + run.size / RATE)
+    assert after.held_v == run[-1]
+    rest = tr.simulate(cm, run[:1], tr.initial(m, voltage_v=run[0]))[0][0]
+    assert abs(rest - at_run) > 0.05  # at rest the model would start the run elsewhere
+
+
+@pytest.mark.parametrize("second", [None, "-1.0", "1e9"])
+def test_without_the_holds_there_is_no_twin(second: str | None) -> None:
+    """A sweep without ``started_s``, one that starts before the last ended, or one an
+    afternoon later: no hold is known, no twin (and the fit starts that sweep's creep at
+    rest)."""
+    v = triangle(400, 100.0)
+    meta = [{"started_s": "0.0"}, {} if second is None else {"started_s": second}]
+    sweeps = [sweepfile.from_arrays(v, np.zeros(v.size), RATE, mt) for mt in meta]
+    assert math.isnan(sweepfile.holds_s(sweeps)[1])
+    assert twin.from_sweeps(creeping(), sweeps) is None
+
+
+def test_a_recorded_sweep_says_when_it_started_on_the_stages_clock(tmp_path: Path) -> None:
+    """``started_s`` of two sweeps recorded on an in-process stage with a clock that steps
+    per call: the device times their runs began, written to the files and read back; the
+    hold between them is what the clock ran between the runs."""
+    prof = default_profile()
+    ticks = iter(np.arange(0.0, 1e4, 0.01))
+    with InProcessStage(prof, clock=lambda: float(next(ticks))) as stage:
+        v = triangle(int(0.2 * prof.sample_rate_hz), 50.0)
+        got = []
+        for k in range(2):
+            path = tmp_path / f"s{k}.csv"
+            runner.record_sweep(stage, f"s{k}", 5.0, v, prof.sample_rate_hz, path=path,
+                                settle_s=0.0)
+            got.append(sweepfile.read(path))
+            assert got[-1].started_s == pytest.approx(stage.run_started_s)
+    hold = sweepfile.holds_s(got)[1]
+    assert 0.0 < hold < 1.0
+    assert got[1].started_s > got[0].started_s + v.size / prof.sample_rate_hz
