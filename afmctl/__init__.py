@@ -71,6 +71,8 @@ _EXPORTS: dict[str, str] = {
     "sine": "afmctl.planning.track:sine",
     "trajectory": "afmctl.planning.track:from_samples",
     "triangle": "afmctl.planning.track:triangle",
+    "Twin": "afmctl.experiment.twin:Twin",
+    "twin_from_sweeps": "afmctl.experiment.twin:from_sweeps",
     # learning
     "LearningLaw": "afmctl.planning.ilc:Law",
     "learn": "afmctl.experiment.learn:run",

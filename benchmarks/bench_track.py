@@ -10,13 +10,16 @@ Out-of-family stages (issue 23, ``benchmarks/family_sets.py``, ``--family-only``
 alone): on every unipolar stage, the model identify gives on its three standard triangles
 (``--family-cache DIR``: the fits bench_identify kept) plans a 0.279 Hz triangle over 45 % and a
 27.9 Hz one over 30 % of the span the fast sweep covered, about its middle, with the inverse
-and the linear filter; each is played on the stage and judged by its TRUE position (the plant
-re-simulated, no gauge, no noise), first period out. ``family_open_loop_ratio_min`` is the
+and the linear filter, each planned just before it plays from the model's twin of the stage
+(:mod:`afmctl.experiment.twin`: the sweeps, the runs before and the holds between, from each
+recording's ``started_s``; row key ``twin``); each is played on the stage and judged by its TRUE
+position (the plant re-simulated, no gauge, no noise), first period out. ``family_open_loop_ratio_min`` is the
 smallest linear / inverse RMS ratio over both experiments and the Preisach and
 Prandtl-Ishlinskii stages, ``bouc_wen_open_loop_ratio_min`` the same over the Bouc-Wen ones
 (0 where the planner refused). Each row also gives each run's mean true error and its RMS
 with an offset and a slope taken out (``..._true_mean_um``, ``..._true_detrended_rms_um``):
-on the creep stages nearly all of the error is the offset a slow creep leaves.
+on the creep stages, planned from rest (before the twin), nearly all of the error was the
+offset a slow creep leaves.
 
 Run: ``python benchmarks/bench_track.py --json`` (last line: one JSON object).
 """

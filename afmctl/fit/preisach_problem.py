@@ -54,7 +54,7 @@ FOLDS = 4
 #: (the model alone, which track uses, was then 70x the noise where the fit said 1.2x): each sweep
 #: is taken to start with its creep at rest.
 TRANSIENT_SPAN = 0.0
-#: The sweeps' creep chained in the order they were recorded (:meth:`Problem.creep_states`).
+#: The sweeps' creep chained in the order they were recorded (:meth:`Problem.creep_starts`).
 CHAINED = True
 #: Coefficients of the output map ``g`` beyond its unit slope: ``s`` and ``t``.
 MAP = 2
@@ -231,8 +231,9 @@ class Data:
     dts: list[float]
     noise: FloatArray
     folds: list[NDArray[np.intp]] = field(default_factory=list)
-    #: device time each sweep's first sample was held from after the one before it had ended,
-    #: s (NaN: not known, that sweep's creep starts at rest; empty: none known)
+    #: how long the stage held between the sweep before's end and each sweep's first sample, s
+    #: (:func:`afmctl.files.sweepfile.holds_s`; NaN: not known, that sweep's creep starts at
+    #: rest; empty: none known)
     gaps_s: list[float] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -380,7 +381,7 @@ class Problem:
         #: the creep elements driven by ``g(Q)`` and added to it, not to ``Q``
         #: (:attr:`afmctl.model.creep.Creep.acts_on`)
         self.creep_on_force = False
-        #: each sweep's creep starts where the sweep before left it (:meth:`creep_states`)
+        #: each sweep's creep starts where the sweep before left it (:meth:`creep_starts`)
         self.chained = CHAINED
         self.taus = np.asarray(taus, float)
         self.set_thresholds((0.0,))
