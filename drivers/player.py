@@ -45,12 +45,16 @@ class Recording:
         When the first sample went out, s, on the stage's clock (:meth:`StageBase.now_s`;
         None where not known): what tells a model how long the stage held between two runs
         (creep keeps moving through a hold).
+    run_count : int or None
+        The run's number on the device's run counter (``Status.run_count`` once it started):
+        a later reading of the counter says whether anything ran since.
     """
 
     voltage_v: NDArray[np.float64]
     displacement_um: NDArray[np.float64]
     valid: NDArray[np.bool_]
     started_s: float | None = None
+    run_count: int | None = None
 
     @property
     def complete(self) -> bool:
@@ -135,7 +139,8 @@ class Player:
                 time.sleep(self.poll_s)
         if st.play_position < n:
             raise self._stopped(st)
-        return Recording(self.volt, self.u, self.valid, stage.run_started_s)
+        return Recording(self.volt, self.u, self.valid, stage.run_started_s,
+                         stage.run_count)
 
     def _stopped(self, st: Any, refusal: StageError | None = None) -> StageError:
         """Why the device stopped the run early (``st``: its status after it stopped): its

@@ -78,6 +78,8 @@ class StageBase(abc.ABC):
         self._last_run_samples = 0
         #: when the last run's first sample went out, on :meth:`now_s`'s clock, s
         self.run_started_s: float | None = None
+        #: the last run's number on the device's run counter (``Status.run_count`` once started)
+        self.run_count: int | None = None
         #: Requests repeated after a transport failure, since the stage was opened.
         self.retries = 0
         self._deadline: float | None = None
@@ -158,6 +160,7 @@ class StageBase(abc.ABC):
         """Start a run (not idempotent): on a transport failure, read the run counter to learn
         whether the start took effect before trying again."""
         before = self.status().run_count
+        self.run_count = before + 1  # this run's number on the device's counter
         for i in range(self.attempts):
             try:
                 return start()

@@ -166,6 +166,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
     sweep's fit RMS is reported against its sensor noise (estimated from the data), and a fit
     that stopped early or sweeps left above 2x are named on stderr.
     """
+    from afmctl.experiment import twin
     from afmctl.files import modelfile
     from afmctl.files import sweepfile as sweeps
     from afmctl.files import xysweepfile
@@ -178,7 +179,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
         from afmctl.cli.xyidentify import identify_xy
         identify_xy(xy, sweep_files, settings, output, as_json, plots_dir, force)
         return
-    data = [sweeps.read_complete(f) for f in sweep_files]
+    data = sweeps.in_recorded_order([sweeps.read_complete(f) for f in sweep_files])
     check_output_file(output, "-o", force)
     if plots_dir is not None:
         from afmctl import plots
@@ -193,7 +194,11 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
         with writing(output, "-o"):
             modelfile.write(result.model, output, header=header, envelope=result.envelope,
                             uncertainty=result.uncertainty, fit=result.record())
+            kept = twin.keep_beside(result.model, data, output)
         say(f"wrote {output}")
+        if kept is not None:
+            say(f"wrote {kept} (the model's twin of the stage as the sweeps left it: track plans "
+                f"a creeping stage's next run from it)")
     if plots_dir is not None:
         fitted = idf.predict_set(result.model, data, [s.start for s in result.sweeps],
                                  [s.offset_um for s in result.sweeps])
@@ -214,6 +219,7 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
     reach = _reach(result, profile) if result.finite and profile is not None else None
     if as_json:
         doc = result.to_dict()
+        doc["twin"] = str(kept) if result.finite and kept is not None else None
         if reach is not None:
             doc["reach_um"] = list(reach[:2])
         doc["minor_loops"] = loops

@@ -366,13 +366,14 @@ def _meta(prof: Any, cal: Any, desired: Any) -> dict[str, Any]:
 
 
 def _plan(prof: Any, cal: Any, desired: Any, start_v: float, wanted: tuple[str, ...],
-          how: tuple[bool, bool]) -> dict[str, Any]:
+          how: tuple[bool, bool], state: Any = None) -> dict[str, Any]:
     """The waveforms, kept to the model's validity envelope (``how`` = (condition,
-    extrapolate))."""
+    extrapolate)), from the model's ``state`` (default: at rest at ``start_v``)."""
     from afmctl.files import modelfile
     from afmctl.planning import track as trk
-    return trk.plan(cal.model, desired, prof.limits, start_v, wanted, condition=how[0],
-                    envelope=modelfile.read_envelope(cal.path), extrapolate=how[1])
+    return trk.plan(cal.model, desired, prof.limits, start_v, wanted, state=state,
+                    condition=how[0], envelope=modelfile.read_envelope(cal.path),
+                    extrapolate=how[1])
 
 
 def _dry_run(prof: Any, desired: Any, wanted: tuple[str, ...], out: Path,
@@ -394,14 +395,38 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
     """Plan and play every wanted filter; each outcome goes to ``outcomes`` as it ends (the one
     in progress too, scored on what it got, if the run is interrupted)."""
     from afmctl.experiment import runner as experiment
+    from afmctl.experiment import twin
     start_v = stage.voltage()
-    say(f"planning {desired.label} from {start_v:.3f} V ...")
-    plans = _plan(prof, cal, desired, start_v, wanted, how)
+    tw, why = twin.load(cal.model, cal.path, start_v, _run_count(stage))
+    say(f"planning {desired.label} from {start_v:.3f} V" + (
+        f", the stage as the model's twin follows it ({why})" if tw is not None else
+        f" ({why}: the model starts at rest)" if why != "no twin file" else "") + " ...")
+    truth, _ = experiment.between_truth(prof)
+    if tw is None:
+        plans = _plan(prof, cal, desired, start_v, wanted, how)
+        say(cal.describe())
+        make_dir(out, "--out")
+        experiment.run_all(stage, {k: plans[k] for k in wanted}, desired, out, meta, truth,
+                           progress_printer(False), sensor=cal.model.effects, done=outcomes)
+        return
     say(cal.describe())
     make_dir(out, "--out")
-    truth, _ = experiment.between_truth(prof)
-    experiment.run_all(stage, {k: plans[k] for k in wanted}, desired, out, meta, truth,
-                       progress_printer(False), sensor=cal.model.effects, done=outcomes)
+
+    def plan_for(name: str, state: Any) -> Any:
+        return _plan(prof, cal, desired, stage.voltage(), tuple(dict.fromkeys(("inverse", name))),
+                     how, state)[name]
+
+    after = experiment.run_following(stage, tw, plan_for, wanted, desired, out, meta, truth,
+                                     progress_printer(False), sensor=cal.model.effects,
+                                     done=outcomes)
+    if after is not None:
+        twin.save(after, cal.path)
+
+
+def _run_count(stage: Any) -> int | None:
+    """The device's run counter now (None if the stage does not report one)."""
+    status = getattr(stage, "status", None)
+    return None if status is None else int(status().run_count)
 
 
 def _report(prof: Any, cal: Any, outcomes: dict[str, Any], desired: Any, out: Path,

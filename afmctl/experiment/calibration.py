@@ -158,6 +158,7 @@ def calibrate(profile: Profile, stage: Any, progress: Progress | None = None) ->
     """Record the standard sweeps on ``stage`` within the profile's range, identify, and keep
     both in a new folder of the cache: the fit's best model, converged or not (its verdict is
     identify's to report). FitError if the fit gives no finite model."""
+    from afmctl.experiment import twin
     from afmctl.fit import identify
 
     when = time.strftime("%Y-%m-%dT%H:%M:%S%z")
@@ -176,6 +177,7 @@ def calibrate(profile: Profile, stage: Any, progress: Progress | None = None) ->
                            f"{', '.join(Path(n).name for n in names)}",
                     envelope=result.envelope, uncertainty=result.uncertainty,
                     fit=result.record("calibration"))
+    twin.keep_beside(result.model, recorded, path)
     (folder / "calibration.json").write_text(json.dumps(
         {"identified": when, "sweeps": list(names), "profile": profile.name,
          "v_range_V": [profile.limits.v_min, profile.limits.v_max]}, indent=2) + "\n",

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl.errors import SamplesLostError
+from afmctl.experiment.twin import Twin
 from afmctl.files import runfile
 from afmctl.model import effects as fx
 from afmctl.model import transducer as tr
@@ -161,6 +162,35 @@ def run_all(stage: PlayingStage, plans: Mapping[str, track.Waveform], desired: t
             between = track.between_samples(between_model, wf, desired, tr.initial(between_model))
         outcomes[name] = scored(wf, desired, (u, v, complete), path, sensor, between)
     return outcomes
+
+
+#: How long after planning a run is taken to start, s, until a start has been seen (then: the
+#: last start's delay).
+LEAD_S = 0.1
+
+
+def run_following(stage: PlayingStage, tw: Twin, plan_for: Callable[[str, tr.StageState],
+                                                                    track.Waveform],
+                  names: tuple[str, ...], desired: track.Desired, out: Path,
+                  meta: Mapping[str, object], between_model: tr.Transducer | None,
+                  progress: Progress | None = None, sensor: fx.Effects | None = None,
+                  done: dict[str, Outcome] | None = None) -> Twin | None:
+    """:func:`run_all` with each filter planned just before it plays (``plan_for(name,
+    state)``) from the twin's state when it is due to start (the stage's clock now, plus the last
+    start's delay), and the twin carried through it: a creeping stage's run starts where the one
+    before left it, not at rest. Returns the twin after the last run (None if the stage does not
+    say when its runs start)."""
+    lead = LEAD_S
+    for name in names:
+        asked = stage.now_s() + lead  # type: ignore[attr-defined]
+        wf = plan_for(name, tw.at(asked))
+        run_all(stage, {name: wf}, desired, out, meta, between_model, progress, sensor, done)
+        started = getattr(stage, "run_started_s", None)
+        if started is None:
+            return None
+        lead = max(0.0, started - asked + lead)
+        tw = tw.after(wf.voltage_v, started, getattr(stage, "run_count", None))
+    return tw
 
 
 def scored(wf: track.Waveform, desired: track.Desired, measured: tuple[Any, ...], path: Path,
@@ -317,7 +347,10 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
     two-axis :class:`afmctl.files.xysweepfile.XYSweep` (shape (N, 2), a column per channel).
 
     The sweep's ``voltage_V`` is the commanded voltage (what a filter controls); a sweep that lost
-    samples is refused rather than patched. With ``path``, the samples are also streamed as they
+    samples is refused rather than patched. A one-axis sweep's metadata also says when its first
+    sample went out on the stage's clock (``started_s``: the holds between the sweeps of a set,
+    which a creeping stage creeps through) and its number on the device's run counter
+    (``run_count``), where the stage reports them. With ``path``, the samples are also streamed as they
     arrive (flushed per block) into :func:`incomplete_path`, created with the first samples (a
     start that received none leaves no file, and an earlier interrupted attempt's file stays until
     then); when the sweep completes it is written to ``path`` and the incomplete file removed
@@ -354,9 +387,11 @@ def record_sweep(stage: PlayingStage, name: str, frequency_hz: float, voltage_v:
         lost = int((~np.asarray(rec.valid)).sum())
         if lost:
             raise SamplesLostError(f"sweep {name}: {lost} samples were not received; record it again")
-        started = getattr(rec, "started_s", None)
+        started, count = getattr(rec, "started_s", None), getattr(rec, "run_count", None)
         if kind is sweeps and started is not None:  # the creep's hold between sweeps
             meta = {**meta, "started_s": f"{started:.6f}"}
+            if count is not None:  # whether the stage ran anything since (the twin)
+                meta = {**meta, "run_count": str(count)}
         sweep = kind.from_arrays(voltage_v, rec.displacement_um, sample_rate_hz, meta, name)
         if path is not None:
             kind.write(sweep, path)

@@ -11,7 +11,10 @@ played (:meth:`Twin.after`, from the recording's ``started_s``); :meth:`Twin.at`
 at a later time, the output held since (:func:`afmctl.model.transducer.held`). Planning from it
 (:func:`afmctl.planning.track.plan`'s ``state``) inverts the creep the stage is in.
 
-Pure numerics: a frozen record of a model, a state, a time and a held output; no device I/O.
+A twin is saved beside its model file (:mod:`afmctl.files.twinfile`) by identify and by track
+after its runs, and loaded by track only while it still follows the stage (:func:`load`). The
+twin itself is pure numerics: a frozen record of a model, a state, a time and a held output; no
+device I/O.
 """
 
 from __future__ import annotations
@@ -20,11 +23,14 @@ import dataclasses as dc
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from afmctl.files import twinfile
 from afmctl.files.sweepfile import Sweep, holds_s
+from afmctl.model import hysteresis as hy
 from afmctl.model import transducer as tr
 
 
@@ -43,6 +49,8 @@ class Twin:
         When that sample ended, s, on the stage's clock.
     held_v : float
         The output the stage has held since, V.
+    run_count : int or None
+        The device's run counter after that run, if the stage reported it.
     """
 
     model: tr.Transducer
@@ -50,6 +58,7 @@ class Twin:
     state: tr.StageState
     ended_s: float
     held_v: float
+    run_count: int | None = None
 
     def at(self, when_s: float) -> tr.StageState:
         """The state at ``when_s`` (s, the stage's clock), ``held_v`` held since ``ended_s``
@@ -57,13 +66,15 @@ class Twin:
         hold = max(0.0, when_s - self.ended_s)
         return tr.held(tr.compile_model(self.model, self.dt_s), self.held_v, hold, self.state)
 
-    def after(self, voltage_v: ArrayLike, started_s: float) -> Twin:
+    def after(self, voltage_v: ArrayLike, started_s: float, run_count: int | None = None
+              ) -> Twin:
         """The twin once ``voltage_v`` (V, one value per sample) has played from ``started_s``
-        (s, the stage's clock: :attr:`afmctl.drivers.player.Recording.started_s`)."""
+        (s, the stage's clock: :attr:`afmctl.drivers.player.Recording.started_s`) as run
+        ``run_count`` of the device's counter."""
         v = np.asarray(voltage_v, dtype=float)
         state = tr.simulate(tr.compile_model(self.model, self.dt_s), v, self.at(started_s))[2]
         return dc.replace(self, state=state, ended_s=started_s + v.size * self.dt_s,
-                          held_v=float(v[-1]))
+                          held_v=float(v[-1]), run_count=run_count)
 
 
 def from_sweeps(model: tr.Transducer, sweeps: Sequence[Sweep]) -> Twin | None:
@@ -78,5 +89,49 @@ def from_sweeps(model: tr.Transducer, sweeps: Sequence[Sweep]) -> Twin | None:
     twin = Twin(model, first.dt, tr.initial(model, voltage_v=float(first.voltage_v[0])),
                 first.started_s, float(first.voltage_v[0]))
     for s in sweeps:
-        twin = twin.after(s.voltage_v, s.started_s)
+        count = s.meta.get("run_count")
+        twin = twin.after(s.voltage_v, s.started_s, None if count is None else int(count))
     return twin
+
+
+def keep_beside(model: tr.Transducer, sweeps: Sequence[Sweep], model_path: str | Path
+                ) -> Path | None:
+    """:func:`from_sweeps`, saved beside the model file it was identified as (:func:`save`);
+    None (nothing written) where the sweeps do not say their holds."""
+    tw = from_sweeps(model, sweeps)
+    return None if tw is None else save(tw, model_path)
+
+
+def save(tw: Twin, model_path: str | Path) -> Path:
+    """Write ``tw`` beside the model file it follows (:func:`afmctl.files.twinfile.path_for`)."""
+    st = tw.state
+    rec = twinfile.Record(twinfile.digest(model_path), twinfile.boot_id(), tw.run_count,
+                          tw.ended_s, tw.held_v, tw.dt_s, st.polarization.kind,
+                          st.polarization.values, np.asarray(st.rod, float),
+                          np.asarray(st.creep, float))
+    path = twinfile.path_for(model_path)
+    twinfile.write(rec, path)
+    return path
+
+
+def load(model: tr.Transducer, model_path: str | Path, output_v: float,
+         run_count: int | None) -> tuple[Twin | None, str]:
+    """The twin saved beside ``model_path``, if it still follows the stage, and why not if not:
+    it must be of this model file, this boot of the host, the stage must still hold the output it
+    left (``output_v``, V, within 1 mV) and its run counter (``run_count``, the device's now)
+    must say nothing ran since; otherwise (None, the reason) and the model starts at rest."""
+    path = twinfile.path_for(model_path)
+    if not path.is_file():
+        return None, "no twin file"
+    rec = twinfile.read(path)
+    checks = ((rec.model_sha256 == twinfile.digest(model_path), "it is of another model file"),
+              (rec.boot_id == twinfile.boot_id(), "the host was restarted since"),
+              (abs(rec.held_v - output_v) <= 1e-3,
+               f"the stage holds {output_v:.3f} V, not the {rec.held_v:.3f} V it left"),
+              (rec.run_count is not None and rec.run_count == run_count,
+               f"the stage ran something since (run {run_count}, the twin saw {rec.run_count})"))
+    for ok, why in checks:
+        if not ok:
+            return None, f"{path.name} not used: {why}"
+    state = tr.StageState(hy.PolarizationState(rec.kind, rec.values), rec.rod, rec.creep)
+    return Twin(model, rec.dt_s, state, rec.ended_s, rec.held_v, rec.run_count), f"from {path}"

@@ -342,6 +342,15 @@ def holds_s(sweeps: Sequence[Recorded]) -> list[float]:
     return out
 
 
+def in_recorded_order(sweeps: Sequence[Recorded]) -> list[Recorded]:
+    """``sweeps`` in the order they were recorded, when every one says when it started
+    (``started_s``; a shell glob sorts ``triangle_27.9hz`` before ``triangle_5.58hz``); as given
+    otherwise."""
+    if any(not math.isfinite(s.started_s) for s in sweeps):
+        return list(sweeps)
+    return sorted(sweeps, key=lambda s: s.started_s)
+
+
 def read_text(path: str | Path) -> str:
     """The UTF-8 text of a data file; :class:`SweepFormatError` if absent, binary or not UTF-8."""
     p = Path(path)

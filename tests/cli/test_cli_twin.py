@@ -1,0 +1,67 @@
+"""The model's twin of the stage at the command line: identify leaves it beside the model, track
+plans from it while it follows the stage and keeps it, and says why when it no longer does."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from click.testing import CliRunner
+
+from afmctl.cli import main
+from afmctl.experiment import twin
+from afmctl.files import modelfile, sweepfile, twinfile
+from afmctl.model.transducer import Transducer
+
+RATE = 10_000.0
+
+
+def timed_sweeps(counts: tuple[int, int]) -> list[sweepfile.Sweep]:
+    """Two triangles as a stage recorded them a minute ago, 0.5 s apart, as runs ``counts``."""
+    v = np.interp(np.arange(4000), [0, 2000, 3999], [0.0, 120.0, 0.0])
+    t0 = time.monotonic() - 60.0
+    return [sweepfile.from_arrays(v, np.zeros(v.size), RATE,
+                                  {"started_s": f"{t0 + k * (0.5 + v.size / RATE):.6f}",
+                                   "run_count": str(c)})
+            for k, c in enumerate(counts)]
+
+
+def test_track_plans_from_the_twin_while_it_follows_the_stage(nominal: Transducer,
+                                                              tmp_path: Path) -> None:
+    """A twin whose run counter is the stage's (here 0: a new in-process emulated stage) is
+    planned from and kept with the counter after the run; the next track, on a new stage
+    whose counter is 0 again, does not use it and says why; a twin of another model file is
+    not used either."""
+    model = tmp_path / "model.toml"
+    modelfile.write(nominal, model)
+    kept = twin.keep_beside(nominal, timed_sweeps((-1, 0)), model)
+    assert kept == tmp_path / "model.twin.json"
+    before = twinfile.read(kept)
+    assert before.run_count == 0
+    argv = ["track", "triangle", "--freq", "27.9", "--amplitude", "27.04", "--model", str(model),
+            "--filter", "inverse", "--json"]
+    res = CliRunner().invoke(main, [*argv, "--out", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    assert "the stage as the model's twin follows it" in res.stderr
+    after = twinfile.read(kept)
+    assert after.run_count == 1 and after.ended_s > before.ended_s
+    assert json.loads(res.stdout.strip().splitlines()[-1])["filters"]["inverse"]["rms_um"] < 0.5
+    res = CliRunner().invoke(main, [*argv, "--out", str(tmp_path / "b")])
+    assert res.exit_code == 0, res.output
+    assert "model.twin.json not used: the stage ran something since (run 0, the twin saw 1)" \
+        in res.stderr
+    modelfile.write(nominal, model, header="another identification")
+    res = CliRunner().invoke(main, [*argv, "--out", str(tmp_path / "c")])
+    assert "not used: it is of another model file" in res.stderr
+
+
+def test_no_twin_without_the_holds(nominal: Transducer, tmp_path: Path) -> None:
+    """Sweeps without their times leave no twin file (track then starts the model at rest)."""
+    model = tmp_path / "model.toml"
+    modelfile.write(nominal, model)
+    bare = [sweepfile.from_arrays(s.voltage_v, s.displacement_um, RATE, {})
+            for s in timed_sweeps((0, 1))]
+    assert twin.keep_beside(nominal, bare, model) is None
+    assert not (tmp_path / "model.twin.json").exists()
