@@ -83,7 +83,8 @@ def from_sweeps(model: tr.Transducer, sweeps: Sequence[Sweep]) -> Twin | None:
     every two of them (:func:`afmctl.files.sweepfile.holds_s`, the rule the fit's creep chain
     follows too)."""
     holds = holds_s(sweeps)
-    if not sweeps or any(not math.isfinite(h) for h in holds[1:]):
+    if (not sweeps or any(not math.isfinite(h) for h in holds[1:])
+            or not math.isfinite(sweeps[0].started_s)):  # one sweep: its own time says
         return None
     first = sweeps[0]
     twin = Twin(model, first.dt, tr.initial(model, voltage_v=float(first.voltage_v[0])),

@@ -64,4 +64,5 @@ def test_no_twin_without_the_holds(nominal: Transducer, tmp_path: Path) -> None:
     bare = [sweepfile.from_arrays(s.voltage_v, s.displacement_um, RATE, {})
             for s in timed_sweeps((0, 1))]
     assert twin.keep_beside(nominal, bare, model) is None
+    assert twin.keep_beside(nominal, bare[:1], model) is None  # one sweep, no time either
     assert not (tmp_path / "model.twin.json").exists()
