@@ -3,6 +3,7 @@ plans from it while it follows the stage and keeps it, and says why when it no l
 
 from __future__ import annotations
 
+import dataclasses as dc
 import json
 import time
 from pathlib import Path
@@ -13,6 +14,7 @@ from click.testing import CliRunner
 from afmctl.cli import main
 from afmctl.experiment import twin
 from afmctl.files import modelfile, sweepfile, twinfile
+from afmctl.model import creep as cr
 from afmctl.model.transducer import Transducer
 
 RATE = 10_000.0
@@ -30,10 +32,12 @@ def timed_sweeps(counts: tuple[int, int]) -> list[sweepfile.Sweep]:
 
 def test_track_plans_from_the_twin_while_it_follows_the_stage(nominal: Transducer,
                                                               tmp_path: Path) -> None:
-    """A twin whose run counter is the stage's (here 0: a new in-process emulated stage) is
-    planned from and kept with the counter after the run; the next track, on a new stage
+    """A creeping model's twin whose run counter is the stage's (here 0: a new in-process
+    emulated stage) is planned from and kept with the counter after the run; the next track, on a new stage
     whose counter is 0 again, does not use it and says why; a twin of another model file is
     not used either."""
+    nominal = dc.replace(nominal, creep=cr.Creep(cr.DEFAULT_TAUS_S,
+                                                 (0.002,) * len(cr.DEFAULT_TAUS_S)))
     model = tmp_path / "model.toml"
     modelfile.write(nominal, model)
     kept = twin.keep_beside(nominal, timed_sweeps((-1, 0)), model)
