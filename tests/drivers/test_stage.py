@@ -248,8 +248,9 @@ class Blocks:
 @pytest.mark.parametrize("kind", STREAM_KINDS)
 def test_play_streams_three_tables_and_matches_the_model(kind: str, profile: Profile) -> None:
     small = small_buffers(profile)
-    if kind == "modbus-rtu":  # pymodbus RTU on a pty reads back ~8,600 samples/s: not 10 kHz
-        small = replace(small, sample_rate_hz=5000.0)
+    if kind == "modbus-rtu":  # pymodbus RTU on a pty reads back ~8,600 samples/s on an idle
+        # machine, and under half that beside a busy test worker (CI lost readbacks at 5 kHz)
+        small = replace(small, sample_rate_hz=2000.0)
     v = long_waveform(3 * 4096)
     assert small.emulator is not None
     u_exp, v_exp = plant.expected_readback(small.emulator, small.sample_rate_hz, v)
