@@ -177,6 +177,8 @@ class Held:
                          max(float(np.max(s.voltage_v)) for s in sweeps))  # V
         self.nyquist_hz = 0.5 / max(s.dt for s in sweeps)
         self.causes = causes(len(sweeps), model.rod.natural_hz, self.nyquist_hz)
+        # the last input-side statics, by (cause, phi, fitted): a Jacobian's rod columns reuse it
+        self._last: tuple[tuple[str, bytes, bool], list[FloatArray]] | None = None
 
     # -- the model of each cause ------------------------------------------------------------
 
@@ -219,12 +221,18 @@ class Held:
 
     def statics(self, name: str, phi: FloatArray, fitted: bool = False) -> list[FloatArray]:
         """The static displacement (um) of every sweep (``fitted``: of its fitted part only)
-        under cause ``name``: held, or re-run on the effect's field (input side)."""
+        under cause ``name``: held, or re-run on the effect's field (input side; the last such run
+        is kept, so that a finite-difference step in the rod's parameters alone does not re-run
+        the hysteresis)."""
         sweeps = self.fit_sweeps if fitted else self.sweeps
         if not self.causes[name].input_side:
             return [g[:s.time_s.size] for g, s in zip(self.g, sweeps, strict=True)]
-        model = replace(self.model, effects=self.effects(name, phi))
-        return hf.static_um(model, sweeps, self.starts, self.gains(name, phi, sweeps))
+        key = (name, np.asarray(phi, dtype=float).tobytes(), fitted)
+        if self._last is None or self._last[0] != key:
+            model = replace(self.model, effects=self.effects(name, phi))
+            self._last = key, hf.static_um(model, sweeps, self.starts,
+                                           self.gains(name, phi, sweeps))
+        return self._last[1]
 
     def columns(self, name: str, z: FloatArray, g: Sequence[FloatArray],
                 sweeps: Sequence[Sweep]) -> list[FloatArray]:
