@@ -31,13 +31,18 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--guide", action="store_true", default=False,
                      help="run the tests marked `guide`: the calibration guide end to end on a "
                           "fresh clone (several minutes; kept out of CI's 20-minute budget)")
+    parser.addoption("--heavy", action="store_true", default=False,
+                     help="run the tests marked `heavy`: full-size numerical cases of the "
+                          "benchmarks, a minute or more each (kept out of CI's 20-minute budget)")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     opt_in = {"device": (config.getoption("--device") is not None,
                          "needs real hardware: pytest --device PROFILE"),
               "guide": (config.getoption("--guide"),
-                        "the guide end to end takes minutes: pytest --guide")}
+                        "the guide end to end takes minutes: pytest --guide"),
+              "heavy": (config.getoption("--heavy"),
+                        "a benchmark's full-size case, a minute or more: pytest --heavy")}
     for item in items:
         for marker, (wanted, reason) in opt_in.items():
             if not wanted and item.get_closest_marker(marker) is not None:

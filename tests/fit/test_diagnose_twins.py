@@ -7,7 +7,8 @@ dynamics; there is no gauge error), recorded through the driver in-process, and 
 independent foreign plant (:mod:`afmctl.drivers.device.foreign.stage`) whose gauge has a
 quadratic and cubic error (:mod:`afmctl.drivers.device.foreign.effects`), after a slow rod
 (300 Hz) that a 27.9 Hz triangle shakes. Small sweep sets: every test costs one identification
-at most.
+at most; the in-family bench's two strong gauges are ``heavy`` (``pytest --heavy``: 100 s
+together, the bench's full-size sets).
 """
 
 from __future__ import annotations
@@ -141,6 +142,7 @@ def test_without_the_fast_triangle_the_verdict_says_which_sweep_would_separate()
         assert "not separated by these sweeps" in _record(d, ("a.csv",), extended).verdict
 
 
+@pytest.mark.heavy
 @pytest.mark.parametrize(("strength", "index"), [(0.5, 104), (0.9, 114)])
 def test_a_strong_gauge_is_named_with_its_cubic(strength: float, index: int) -> None:
     """The in-family bench's strong gauges (the independent plant). Index 104, a gauge polynomial

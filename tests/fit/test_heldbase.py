@@ -1,7 +1,8 @@
 """Diagnose's causes on identify's model with its hysteresis held (afmctl.fit.heldbase).
 
 The fast tests check the bookkeeping against afmctl's own simulation (what a model file
-reproduces, what is refused); the slow one is a foreign stage's: a separable Preisach stage of
+reproduces, what is refused); the heavy one (``pytest --heavy``: 2 min, bench_diagnose's
+other-second-mode-1, kept out of CI's budget) is a foreign stage's: a separable Preisach stage of
 the independently written family plant (``afmctl.drivers.device.foreign.family_stage``) whose
 second mode sits in a modal sum (rod + residue x mode, not afmctl's cascade), named on the held
 base and found at the stage's own frequency.
@@ -113,7 +114,7 @@ def test_extended_toml_holds_the_warm_up_the_record_ended_at(nominal: Transducer
     assert fitted((1.02, 0.98)).present is rails
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_a_modal_sum_mode_on_a_separable_preisach_stage_is_named(tmp_path: Path) -> None:
     """other-second-mode-1 of the benches: a separable Preisach density of another shape than
     the lognormal, a 559 Hz rod and a 1428 Hz mode added in a modal sum. The paper's family

@@ -165,6 +165,7 @@ def minor_loop_errors(sweeps: dict[str, sw.Sweep], sets: dict[str, list[str]], n
     return errors, worst
 
 
+@pytest.mark.heavy
 def test_reversal_curves_let_the_grid_predict_a_minor_loop_it_never_saw() -> None:
     """On the family plant's unipolar Preisach stage (non-separable, off-centre density), a grid
     fitted to full-range triangles alone knows the major loop only: a 50 <-> 117 V loop (a
@@ -197,7 +198,7 @@ def test_reversal_curves_let_the_grid_predict_a_minor_loop_it_never_saw() -> Non
     assert errors["triangles"] > 3 * errors["with reversals"], errors
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_the_cubic_is_fitted_only_where_interior_loops_pin_it(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """On the family plant's unipolar Prandtl-Ishlinskii stage (twelve plays, a cubic output
