@@ -52,14 +52,22 @@ def _sweeps() -> list[sw.Sweep]:
 HEM = idf.Settings(representation="hem")  # the stage is of the paper's family
 
 
-def test_a_mode_below_the_rod_is_found_from_a_nearby_start() -> None:
-    """Identify alone leaves the 27.9 Hz triangle far above its noise (the mode rings after its
-    corners); the mode's fit, started 6 % off (as the coupling's estimate would be), finds it
-    within 3 % and brings every sweep near the noise, and the model restated predicts it."""
+@pytest.fixture(scope="module")
+def refined() -> tuple[list[sw.Sweep], idf.FitResult, idf.FitResult]:
+    """The sweeps, identify's fit of them and that fit with the mode's, started 6 % off (as the
+    coupling's estimate would be): once for the two tests that read them."""
     sweeps = _sweeps()
     plain = idf.fit(sweeps, HEM)
+    return sweeps, plain, modes.refined(plain, sweeps, (1.06 * MODE_HZ,))
+
+
+def test_a_mode_below_the_rod_is_found_from_a_nearby_start(
+        refined: tuple[list[sw.Sweep], idf.FitResult, idf.FitResult]) -> None:
+    """Identify alone leaves the 27.9 Hz triangle far above its noise (the mode rings after its
+    corners); the mode's fit, started 6 % off, finds it within 3 % and brings every sweep near
+    the noise, and the model restated predicts it."""
+    _, plain, found = refined
     assert max(s.rms_over_noise for s in plain.sweeps) > 3.0
-    found = modes.refined(plain, sweeps, (1.06 * MODE_HZ,))
     figures = found.representations["second_mode"]
     assert figures["kept"]
     assert abs(found.model.effects.second_mode.frequency_hz / MODE_HZ - 1) < 0.03
@@ -71,13 +79,13 @@ def test_a_mode_below_the_rod_is_found_from_a_nearby_start() -> None:
     assert found.model.rod.m == plain.model.rod.m  # the fit's convention: the mass is kept
 
 
-def test_identified_again_without_the_ringing_the_hysteresis_reaches_the_floor() -> None:
+def test_identified_again_without_the_ringing_the_hysteresis_reaches_the_floor(
+        refined: tuple[list[sw.Sweep], idf.FitResult, idf.FitResult]) -> None:
     """The hysteresis held while the mode is fitted was identified with the mode's ringing 28x
     the noise on the fast triangle; it bent to it, and the model with the mode stays above 1.1x
     its noise. Identified again on the readings with the mode taken out, with the mode
     fitted again after, every sweep comes to its noise, and the mode stays where it was."""
-    sweeps = _sweeps()
-    found = modes.refined(idf.fit(sweeps, HEM), sweeps, (1.06 * MODE_HZ,))
+    sweeps, _, found = refined
     before = max(s.rms_over_noise for s in found.sweeps)
     assert before > 1.1
     again = modes.reidentified(found, sweeps, (1.06 * MODE_HZ,), HEM)
