@@ -32,8 +32,9 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                      help="run the tests marked `guide`: the calibration guide end to end on a "
                           "fresh clone (several minutes; kept out of CI's 20-minute budget)")
     parser.addoption("--heavy", action="store_true", default=False,
-                     help="run the tests marked `heavy`: full-size numerical cases of the "
-                          "benchmarks, a minute or more each (kept out of CI's 20-minute budget)")
+                     help="run the tests marked `heavy`: full-size cases a benchmark or other "
+                          "tests also cover, a minute or more each (kept out of CI's 20-minute "
+                          "budget)")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -42,7 +43,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
               "guide": (config.getoption("--guide"),
                         "the guide end to end takes minutes: pytest --guide"),
               "heavy": (config.getoption("--heavy"),
-                        "a benchmark's full-size case, a minute or more: pytest --heavy")}
+                        "a full-size case a benchmark or other tests also cover, a minute or more: "
+                        "pytest --heavy")}
     for item in items:
         for marker, (wanted, reason) in opt_in.items():
             if not wanted and item.get_closest_marker(marker) is not None:

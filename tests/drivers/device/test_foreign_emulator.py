@@ -167,7 +167,7 @@ class _Truth:
         return rec
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_sweep_identify_and_learn_over_a_pty_on_the_foreign_stage(tmp_path: Path) -> None:
     """`afmctl sweep` over the serial protocol, then `afmctl identify`: every sweep within 1.5x
     its sensor noise and the rod's resonance where the foreign stage has it (a stage afmctl's
@@ -175,7 +175,9 @@ def test_sweep_identify_and_learn_over_a_pty_on_the_foreign_stage(tmp_path: Path
     13) over the same wire from that model: a 27.9 Hz triangle's true error (first period out)
     within 2x the noise, and no worse than iteration 0's (this clean stage starts within the
     noise, 0.011 um, and learning took it to 0.007 um; bench_learn's stages with effects are
-    where learning has more to do)."""
+    where learning has more to do). Heavy (90 s, ``pytest --heavy``): each part runs in CI
+    apart (a calibration over a socket on the independent stage, learning over the serial
+    protocol, this stage's readings over the pty)."""
     import json
 
     from afmctl.experiment import learn
