@@ -93,9 +93,11 @@ def run_experiment(stage: Any, model: Any, prof: Profile, freq: float, amp: floa
     return res
 
 
-def family_row(case: family_sets.Case, cache: Path | None, periods: float) -> dict[str, Any]:
+def family_row(case: family_sets.Case, cache: Path | None, periods: float, frame: bool = True
+               ) -> dict[str, Any]:
     """Both filters on one out-of-family stage, judged by its true position."""
     with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
+        s.frame = frame
         sweeps = family_sets.record(s, Path(tmp) / "sweeps")
         fit = family_sets.identified(case, sweeps, s.noise_um, cache)
         lo, hi = family_sets.span_of(sweeps)
@@ -118,17 +120,19 @@ def family_row(case: family_sets.Case, cache: Path | None, periods: float) -> di
                 row[f"{key}_{name}_true_detrended_rms_um"] = family_sets.detrended_rms(e)
             ratios.append(row[f"{key}_linear_true_rms_um"] / row[f"{key}_inverse_true_rms_um"])
             row[f"{key}_ratio"] = ratios[-1]
+        row["frames"] = s.frames
     row["ratio_min"] = min(ratios)
     log(f"  {case.name:18s}: linear / inverse (true) " + ", ".join(
         f"{row.get(f'{f:g}hz_ratio', 0.0):.1f} at {f:g} Hz" for f, _ in family_sets.TRIANGLES))
     return row
 
 
-def family(names: str, cache: Path | None, periods: float, design: str = "reversals"
-           ) -> dict[str, Any]:
-    """The ``family_*`` and ``bouc_wen_*`` keys over the unipolar out-of-family stages."""
+def family(names: str, cache: Path | None, periods: float, design: str = "reversals",
+           frame: bool = True) -> dict[str, Any]:
+    """The ``family_*`` and ``bouc_wen_*`` keys over the unipolar out-of-family stages
+    (``frame``: each run planned in the frame the twin reads; else in the model's)."""
     cases = [c for c in family_sets.cases_named(names, design=design) if not c.bipolar]
-    rows = [family_row(c, cache, periods) for c in cases]
+    rows = [family_row(c, cache, periods, frame) for c in cases]
     pp = [r["ratio_min"] for r in rows if r["family"] != "bouc-wen"]
     bw = [r["ratio_min"] for r in rows if r["family"] == "bouc-wen"]
     return {"family_open_loop_ratio_min": min(pp) if pp else None,
@@ -141,10 +145,13 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print the JSON object last")
     ap.add_argument("--periods", type=float, default=3.0,
                     help="periods per experiment (default: track's)")
+    ap.add_argument("--model-frame", action="store_true",
+                    help="out-of-family runs in the model's own frame, not the one the twin reads "
+                         "from the readings (the comparison)")
     family_sets.add_arguments(ap)
     args = ap.parse_args()
     fam = {} if args.family == "none" else family(args.family, args.family_cache, args.periods,
-                                                  args.family_design)
+                                                  args.family_design, not args.model_frame)
     if args.family_only:
         print(json.dumps(fam))
         return

@@ -39,6 +39,7 @@ from afmctl.experiment import calibration, twin
 from afmctl.experiment.twin import Twin
 from afmctl.files import modelfile
 from afmctl.files.profile import FamilySpec, Profile, shipped_profile
+from afmctl.model import frame as fr
 from afmctl.fit import identify
 
 #: Device time each call into the in-process device advances its clock by, s.
@@ -207,7 +208,9 @@ class Probe:
 @dataclass
 class Session:
     """An open out-of-family stage: the probe to play through, its clock, its truth, and (once
-    set, :func:`follow`) the model's twin of it with the last start's latency (s)."""
+    set, :func:`follow`) the model's twin of it with the last start's latency (s); ``frame``:
+    runs planned in the frame the twin reads from the readings (:meth:`Twin.frame`), each
+    run's in ``frames``."""
 
     case: Case
     profile: Profile
@@ -215,6 +218,8 @@ class Session:
     clock: SteppedClock
     twin: Twin | None = None
     lead_s: float = 0.1
+    frame: bool = True
+    frames: list[dict[str, Any]] = dc.field(default_factory=list)
 
     @property
     def truth(self) -> Any:
@@ -327,11 +332,13 @@ def tracked_errors(s: Session, model: Any, freq: float, frac: float, span: tuple
     for name in filters:  # each planned from the twin as the run before left it
         asked = s.probe.now_s() + s.lead_s
         state = None if s.twin is None else s.twin.at(asked)
+        frame = fr.Frame() if s.twin is None or not s.frame else s.twin.frame(asked)
         wf = track.plan(model, desired, s.profile.limits, s.probe.voltage(),
-                        tuple(dict.fromkeys(("inverse", name))), state=state)[name]
+                        tuple(dict.fromkeys(("inverse", name))), state=state, frame=frame)[name]
         rec = s.probe.play(wf.voltage_v)
+        s.frames.append(frame.as_dict())
         if s.twin is not None and rec.started_s is not None:
-            s.twin = s.twin.after(wf.voltage_v, rec.started_s)
+            s.twin = s.twin.after(wf.voltage_v, rec.started_s, readings_um=rec.displacement_um)
             s.lead_s = rec.started_s - asked + s.lead_s
         out[name] = (s.probe.positions[-1][wf.tracking] - desired.u_um)[skip:]
     return out

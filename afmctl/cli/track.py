@@ -366,14 +366,16 @@ def _meta(prof: Any, cal: Any, desired: Any) -> dict[str, Any]:
 
 
 def _plan(prof: Any, cal: Any, desired: Any, start_v: float, wanted: tuple[str, ...],
-          how: tuple[bool, bool], state: Any = None) -> dict[str, Any]:
+          how: tuple[bool, bool], state: Any = None, frame: Any = None) -> dict[str, Any]:
     """The waveforms, kept to the model's validity envelope (``how`` = (condition,
-    extrapolate)), from the model's ``state`` (default: at rest at ``start_v``)."""
+    extrapolate)), from the model's ``state`` (default: at rest at ``start_v``), in the readings'
+    ``frame`` (default: the model's zero)."""
     from afmctl.files import modelfile
+    from afmctl.model import frame as fr
     from afmctl.planning import track as trk
     return trk.plan(cal.model, desired, prof.limits, start_v, wanted, state=state,
                     condition=how[0], envelope=modelfile.read_envelope(cal.path),
-                    extrapolate=how[1])
+                    extrapolate=how[1], frame=fr.Frame() if frame is None else frame)
 
 
 def _dry_run(prof: Any, desired: Any, wanted: tuple[str, ...], out: Path,
@@ -397,9 +399,9 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
     from afmctl.experiment import runner as experiment
     from afmctl.experiment import twin
     start_v = stage.voltage()
-    # without creep the conditioning leaves nothing of the stage's past for a twin to carry
-    tw, why = (twin.load(cal.model, cal.path, start_v, _run_count(stage))
-               if cal.model.creep is not None else (None, "no twin file"))
+    tw, why = twin.load(cal.model, cal.path, start_v, _run_count(stage))
+    if cal.model.creep is None and (tw is None or not tw.carries(stage.now_s())):
+        tw, why = None, "no twin file"  # the conditioning leaves nothing else for it to carry
     say(f"planning {desired.label} from {start_v:.3f} V" + (
         f", the stage as the model's twin follows it ({why})" if tw is not None else
         f" ({why}: the model starts at rest)" if why != "no twin file" else "") + " ...")
@@ -414,9 +416,12 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
     say(cal.describe())
     make_dir(out, "--out")
 
-    def plan_for(name: str, state: Any) -> Any:
+    def plan_for(name: str, state: Any, frame: Any) -> Any:
+        if frame.basis != "none":
+            say(f"{name}: readings expected {frame.offset_um:+.4f} um from the model's zero at "
+                f"its start ({frame.basis}); planned in that frame")
         return _plan(prof, cal, desired, stage.voltage(), tuple(dict.fromkeys(("inverse", name))),
-                     how, state)[name]
+                     how, state, frame)[name]
 
     after = experiment.run_following(stage, tw, plan_for, wanted, desired, out, meta, truth,
                                      progress_printer(False), sensor=cal.model.effects,

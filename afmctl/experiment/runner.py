@@ -23,6 +23,7 @@ from afmctl.errors import SamplesLostError
 from afmctl.experiment.twin import Twin
 from afmctl.files import runfile
 from afmctl.model import effects as fx
+from afmctl.model import frame as fr
 from afmctl.model import transducer as tr
 from afmctl.planning import raster, track
 
@@ -169,27 +170,30 @@ def run_all(stage: PlayingStage, plans: Mapping[str, track.Waveform], desired: t
 LEAD_S = 0.1
 
 
-def run_following(stage: PlayingStage, tw: Twin, plan_for: Callable[[str, tr.StageState],
-                                                                    track.Waveform],
+def run_following(stage: PlayingStage, tw: Twin,
+                  plan_for: Callable[[str, tr.StageState, fr.Frame], track.Waveform],
                   names: tuple[str, ...], desired: track.Desired, out: Path,
                   meta: Mapping[str, object], between_model: tr.Transducer | None,
                   progress: Progress | None = None, sensor: fx.Effects | None = None,
                   done: dict[str, Outcome] | None = None) -> Twin | None:
-    """:func:`run_all` with each filter planned just before it plays (``plan_for(name,
-    state)``) from the twin's state when it is due to start (the stage's clock now, plus the last
-    start's delay), and the twin carried through it: a creeping stage's run starts where the one
-    before left it, not at rest. Returns the twin after the last run (None if the stage does not
-    say when its runs start)."""
+    """:func:`run_all` with each filter planned just before it plays (``plan_for(name, state,
+    frame)``) from the twin's state when it is due to start (the stage's clock now, plus the last
+    start's delay) and the frame its readings will be in (:meth:`Twin.frame`), and the twin
+    carried through it, readings and all: a creeping stage's run starts where the one before
+    left it, not at rest, and a drifting one is followed. Returns the twin after the last run
+    (None if the stage does not say when its runs start)."""
     lead = LEAD_S
     for name in names:
         asked = stage.now_s() + lead  # type: ignore[attr-defined]
-        wf = plan_for(name, tw.at(asked))
-        run_all(stage, {name: wf}, desired, out, meta, between_model, progress, sensor, done)
+        wf = plan_for(name, tw.at(asked), tw.frame(asked))
+        outcome = run_all(stage, {name: wf}, desired, out, meta, between_model, progress,
+                          sensor, done)[name]
         started = getattr(stage, "run_started_s", None)
         if started is None:
             return None
         lead = max(0.0, started - asked + lead)
-        tw = tw.after(wf.voltage_v, started, getattr(stage, "run_count", None))
+        tw = tw.after(wf.voltage_v, started, getattr(stage, "run_count", None),
+                      outcome.displacement_um)
     return tw
 
 

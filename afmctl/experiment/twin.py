@@ -9,7 +9,10 @@ order they were recorded, with the holds between them (each sweep's ``started_s`
 clock at its first sample, :meth:`afmctl.drivers.stage.StageBase.now_s`), then every waveform
 played (:meth:`Twin.after`, from the recording's ``started_s``); :meth:`Twin.at` is its state
 at a later time, the output held since (:func:`afmctl.model.transducer.held`). Planning from it
-(:func:`afmctl.planning.track.plan`'s ``state``) inverts the creep the stage is in.
+(:func:`afmctl.planning.track.plan`'s ``state``) inverts the creep the stage is in. Where the
+readings are given (the sweeps', each run's), the twin also compares them with itself
+(:mod:`afmctl.model.frame`): :meth:`Twin.frame` is where a run's readings will sit from the model,
+a drifting frame followed (``plan``'s ``frame``).
 
 A twin is saved beside its model file (:mod:`afmctl.files.twinfile`) by identify and by track
 after its runs, and loaded by track only while it still follows the stage (:func:`load`). The
@@ -30,6 +33,8 @@ from numpy.typing import ArrayLike
 
 from afmctl.files import twinfile
 from afmctl.files.sweepfile import Sweep, holds_s
+from afmctl.model import effects as fx
+from afmctl.model import frame as fr
 from afmctl.model import hysteresis as hy
 from afmctl.model import transducer as tr
 
@@ -51,6 +56,8 @@ class Twin:
         The output the stage has held since, V.
     run_count : int or None
         The device's run counter after that run, if the stage reported it.
+    observations : tuple of frame.Observation
+        The readings of the recordings followed against the model (oldest first), where given.
     """
 
     model: tr.Transducer
@@ -59,6 +66,7 @@ class Twin:
     ended_s: float
     held_v: float
     run_count: int | None = None
+    observations: tuple[fr.Observation, ...] = ()
 
     def at(self, when_s: float) -> tr.StageState:
         """The state at ``when_s`` (s, the stage's clock), ``held_v`` held since ``ended_s``
@@ -66,15 +74,41 @@ class Twin:
         hold = max(0.0, when_s - self.ended_s)
         return tr.held(tr.compile_model(self.model, self.dt_s), self.held_v, hold, self.state)
 
-    def after(self, voltage_v: ArrayLike, started_s: float, run_count: int | None = None
-              ) -> Twin:
+    def after(self, voltage_v: ArrayLike, started_s: float, run_count: int | None = None,
+              readings_um: ArrayLike | None = None) -> Twin:
         """The twin once ``voltage_v`` (V, one value per sample) has played from ``started_s``
         (s, the stage's clock: :attr:`afmctl.drivers.player.Recording.started_s`) as run
-        ``run_count`` of the device's counter."""
+        ``run_count`` of the device's counter; ``readings_um`` (um, NaN where missing), the
+        sensor's over it, are compared with the model (:func:`afmctl.model.frame.observe`)."""
         v = np.asarray(voltage_v, dtype=float)
-        state = tr.simulate(tr.compile_model(self.model, self.dt_s), v, self.at(started_s))[2]
+        u, _, state = tr.simulate(tr.compile_model(self.model, self.dt_s), v, self.at(started_s))
+        seen = self.observations
+        if readings_um is not None:
+            ob = self._observe(u, np.asarray(readings_um, dtype=float), started_s)
+            seen = seen if ob is None else (*seen, ob)
         return dc.replace(self, state=state, ended_s=started_s + v.size * self.dt_s,
-                          held_v=float(v[-1]), run_count=run_count)
+                          held_v=float(v[-1]), run_count=run_count, observations=seen)
+
+    def frame(self, when_s: float) -> fr.Frame:
+        """Where readings taken from ``when_s`` on (s, the stage's clock) will sit from the
+        model (:func:`afmctl.model.frame.estimate`)."""
+        return fr.estimate(self.observations, when_s)
+
+    def carries(self, when_s: float) -> bool:
+        """Whether planning from the twin at ``when_s`` differs from planning at rest after
+        the conditioning: the model creeps (its slow elements remember), or the readings'
+        frame drifts (:meth:`frame`)."""
+        return self.model.creep is not None or self.frame(when_s).um_per_s != 0.0
+
+    def _observe(self, rod_um: np.ndarray, readings_um: np.ndarray, started_s: float
+                 ) -> fr.Observation | None:
+        """Readings against the model's own (its rod and second mode; the readings corrected
+        for its sensor effects)."""
+        n = min(rod_um.size, readings_um.size)
+        chain = fx.compile_chain(self.model.effects, self.dt_s)
+        where = fx.sensor_correct(chain, readings_um[:n])
+        return fr.observe(started_s + self.dt_s * np.arange(n), where,
+                          fx.position(chain, rod_um[:n]))
 
 
 def from_sweeps(model: tr.Transducer, sweeps: Sequence[Sweep]) -> Twin | None:
@@ -91,7 +125,8 @@ def from_sweeps(model: tr.Transducer, sweeps: Sequence[Sweep]) -> Twin | None:
                 first.started_s, float(first.voltage_v[0]))
     for s in sweeps:
         count = s.meta.get("run_count")
-        twin = twin.after(s.voltage_v, s.started_s, None if count is None else int(count))
+        twin = twin.after(s.voltage_v, s.started_s, None if count is None else int(count),
+                          s.displacement_um)
     return twin
 
 
@@ -109,7 +144,9 @@ def save(tw: Twin, model_path: str | Path) -> Path:
     rec = twinfile.Record(twinfile.digest(model_path), twinfile.boot_id(), tw.run_count,
                           tw.ended_s, tw.held_v, tw.dt_s, st.polarization.kind,
                           st.polarization.values, np.asarray(st.rod, float),
-                          np.asarray(st.creep, float))
+                          np.asarray(st.creep, float),
+                          np.array([(o.at_s, o.offset_um) for o in tw.observations],
+                                   float).reshape(-1, 2))
     path = twinfile.path_for(model_path)
     twinfile.write(rec, path)
     return path
@@ -135,4 +172,6 @@ def load(model: tr.Transducer, model_path: str | Path, output_v: float,
         if not ok:
             return None, f"{path.name} not used: {why}"
     state = tr.StageState(hy.PolarizationState(rec.kind, rec.values), rec.rod, rec.creep)
-    return Twin(model, rec.dt_s, state, rec.ended_s, rec.held_v, rec.run_count), f"from {path}"
+    seen = tuple(fr.Observation(float(t), float(o)) for t, o in rec.observations)
+    return (Twin(model, rec.dt_s, state, rec.ended_s, rec.held_v, rec.run_count, seen),
+            f"from {path}")

@@ -10,7 +10,11 @@ host's boot (the clock is the host's monotonic one). JSON::
 
     {"format": "afmctl-twin", "format_version": 1, "model_sha256": "...", "boot_id": "...",
      "run_count": 12, "ended_s": 5234.1, "held_V": 0.0, "dt_s": 1e-4,
-     "state": {"kind": 1, "values": [...], "rod": [u, du], "creep": [...]}}
+     "state": {"kind": 1, "values": [...], "rod": [u, du], "creep": [...]},
+     "observations": [[at_s, offset_um], ...]}
+
+``observations`` (the readings of the recordings followed against the model,
+:class:`afmctl.model.frame.Observation`) may be absent: none.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +53,8 @@ class Record:
     kind : int
     values, rod, creep : ndarray
         The state (:class:`afmctl.model.transducer.StageState`'s arrays).
+    observations : ndarray, shape (K, 2)
+        Each observation's time (s, the stage's clock) and offset (um).
     """
 
     model_sha256: str
@@ -61,6 +67,7 @@ class Record:
     values: FloatArray
     rod: FloatArray
     creep: FloatArray
+    observations: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def path_for(model_path: str | Path) -> Path:
@@ -89,7 +96,8 @@ def write(rec: Record, path: str | Path) -> None:
             "boot_id": rec.boot_id, "run_count": rec.run_count, "ended_s": rec.ended_s,
             "held_V": rec.held_v, "dt_s": rec.dt_s,
             "state": {"kind": rec.kind, "values": rec.values.tolist(), "rod": rec.rod.tolist(),
-                      "creep": rec.creep.tolist()}}
+                      "creep": rec.creep.tolist()},
+            "observations": rec.observations.tolist()}
     tmp = Path(f"{path}.tmp")
     tmp.write_text(json.dumps(data) + "\n", encoding="utf-8")
     os.replace(tmp, path)
@@ -107,6 +115,7 @@ def read(path: str | Path) -> Record:
                       None if count is None else int(count), float(d["ended_s"]),
                       float(d["held_V"]), float(d["dt_s"]), int(st["kind"]),
                       np.asarray(st["values"], float), np.asarray(st["rod"], float),
-                      np.asarray(st["creep"], float))
+                      np.asarray(st["creep"], float),
+                      np.asarray(d.get("observations", []), float).reshape(-1, 2))
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise FileFormatError(f"{path}: not a twin file ({exc})") from exc

@@ -42,6 +42,7 @@ from afmctl import guard
 from afmctl.errors import EnvelopeError, ReachError
 from afmctl.files.modelfile import Envelope
 from afmctl.model import effects as fx
+from afmctl.model import frame as fr
 from afmctl.model import inverse as inv
 from afmctl.model import rod as rd
 from afmctl.model import transducer as tr
@@ -286,10 +287,13 @@ def _no_horizon(last: guard.LimitError | None) -> NoReturn:
 
 def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v: float,
                  state: tr.StageState, prefix_v: FloatArray,
-                 horizons: tuple[int, ...] | None = None) -> Waveform:
+                 horizons: tuple[int, ...] | None = None,
+                 frame: fr.Frame = fr.Frame()) -> Waveform:
     """Algorithm 3 waveform, each stretch with the smallest horizon that passes the guard.
 
     ``prefix_v`` (the conditioning) is played first; ``state`` is the model state after it.
+    ``frame`` is where the readings will sit from the model (from the waveform's first sample):
+    the model is aimed at the trajectory less it.
     ``horizons`` (those of an earlier plan of the same trajectory) are the stretches' shortest
     horizons: learning starts each iteration's search from the last one's, so the horizons (and
     the plant it learns through) only change where a corrected stretch would break the guard.
@@ -307,8 +311,8 @@ def plan_inverse(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_
     u0 = float(fx.position(chain, np.array([rod0]))[0])  # rod plus second mode
     gain = _linear_from_model(cm, state, limits).gain_um_per_v
     n_in = ramp_samples(desired.u_um[0] - u0, rate * abs(gain), dt)
-    target = np.concatenate([raised_cosine(u0, desired.u_um[0], n_in), desired.u_um[1:],
-                             desired.u_um[-1:]])
+    aim = desired.u_um - frame.along(prefix_v.size + n_in, desired.u_um.size, dt)
+    target = np.concatenate([raised_cosine(u0, aim[0], n_in), aim[1:], aim[-1:]])
     target = fx.remove_mode(chain, target)  # what the rod must do for the stage to be there
     e_lim = (limits.v_min / cm.model.thickness_um, limits.v_max / cm.model.thickness_um)
 
@@ -453,11 +457,13 @@ def _linear_from_model(cm: tr.Compiled, state: tr.StageState, limits: guard.Limi
 
 def plan_linear(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v: float,
                 state: tr.StageState, v_range: tuple[float, float],
-                prefix_v: FloatArray) -> Waveform:
-    """The paper's linear filter over the voltage range ``v_range`` the inverse filter needs."""
+                prefix_v: FloatArray, frame: fr.Frame = fr.Frame()) -> Waveform:
+    """The paper's linear filter over the voltage range ``v_range`` the inverse filter needs,
+    aimed at the trajectory less ``frame`` (as :func:`plan_inverse`)."""
     lin = _linear_from_model(cm, state, limits, *v_range)
-    v_tr = lin.voltage(desired.u_um)
     dt, rate = desired.dt_s, 0.25 * limits.max_rate_v_per_ms * 1e3
+    n_in = ramp_samples(float(lin.voltage(desired.u_um[:1])[0]) - start_v, rate, dt)
+    v_tr = lin.voltage(desired.u_um - frame.along(prefix_v.size + n_in, desired.u_um.size, dt))
     ramp_in = raised_cosine(start_v, v_tr[0], ramp_samples(v_tr[0] - start_v, rate, dt))
     ramp_out = raised_cosine(v_tr[-1], start_v, ramp_samples(v_tr[-1] - start_v, rate, dt))
     wf = _assemble("linear", desired, np.concatenate([prefix_v, ramp_in]), v_tr, ramp_out)
@@ -489,7 +495,8 @@ def check_envelope(wf: Waveform, env: Envelope | None, extrapolate: bool) -> Non
 def plan(model: tr.Transducer, desired: Desired, limits: guard.Limits, start_v: float = 0.0,
          filters: tuple[str, ...] = ("inverse", "linear"),
          state: tr.StageState | None = None, condition: bool = True,
-         envelope: Envelope | None = None, extrapolate: bool = False) -> dict[str, Waveform]:
+         envelope: Envelope | None = None, extrapolate: bool = False,
+         frame: fr.Frame = fr.Frame()) -> dict[str, Waveform]:
     """Guard-checked waveforms for each filter (the inverse one first: it sets the voltage range).
 
     ``state`` is the model state at the stage's present output ``start_v`` (default: depoled, then
@@ -497,20 +504,22 @@ def plan(model: tr.Transducer, desired: Desired, limits: guard.Limits, start_v: 
     to it for every hysteron the voltage limits can switch. ``condition=False`` leaves it out (no
     full-stroke excursion, e.g. with a tip near the sample): the model then assumes ``state``.
     ``envelope`` (the model's, if known) bounds the conditioning and, unless ``extrapolate``,
-    the waveforms (:func:`check_envelope`).
+    the waveforms (:func:`check_envelope`). ``frame`` is where the readings will sit from the
+    model from the waveforms' first sample (:meth:`afmctl.experiment.twin.Twin.frame`; default:
+    the model's zero): both filters aim the model at the trajectory less it.
     """
     cm = tr.compile_model(model, desired.dt_s)
     st0 = state if state is not None else tr.initial(model, voltage_v=start_v)
     pre = (conditioning(conditioning_limits(limits, envelope), start_v, desired.dt_s)
            if condition else np.zeros(0))
     _, _, st = tr.simulate(cm, pre, st0)
-    wf = plan_inverse(cm, desired, limits, start_v, st, pre)
+    wf = plan_inverse(cm, desired, limits, start_v, st, pre, frame=frame)
     check_envelope(wf, envelope, extrapolate)
     out = {"inverse": wf} if "inverse" in filters else {}
     if "linear" in filters:
         track_v = wf.voltage_v[wf.tracking]
         out["linear"] = plan_linear(cm, desired, limits, start_v, st,
-                                    (float(track_v.min()), float(track_v.max())), pre)
+                                    (float(track_v.min()), float(track_v.max())), pre, frame)
     return out
 
 

@@ -15,16 +15,19 @@ from afmctl.cli import main
 from afmctl.experiment import twin
 from afmctl.files import modelfile, sweepfile, twinfile
 from afmctl.model import creep as cr
+from afmctl.model import transducer as tr
 from afmctl.model.transducer import Transducer
 
 RATE = 10_000.0
 
 
-def timed_sweeps(counts: tuple[int, int]) -> list[sweepfile.Sweep]:
-    """Two triangles as a stage recorded them a minute ago, 0.5 s apart, as runs ``counts``."""
+def timed_sweeps(model: Transducer, counts: tuple[int, int]) -> list[sweepfile.Sweep]:
+    """Two triangles as a stage recorded them a minute ago, 0.5 s apart, as runs ``counts``,
+    read as ``model`` moves from rest (the readings the twin compares itself with)."""
     v = np.interp(np.arange(4000), [0, 2000, 3999], [0.0, 120.0, 0.0])
+    u = tr.simulate(tr.compile_model(model, 1 / RATE), v, tr.initial(model))[0]
     t0 = time.monotonic() - 60.0
-    return [sweepfile.from_arrays(v, np.zeros(v.size), RATE,
+    return [sweepfile.from_arrays(v, u, RATE,
                                   {"started_s": f"{t0 + k * (0.5 + v.size / RATE):.6f}",
                                    "run_count": str(c)})
             for k, c in enumerate(counts)]
@@ -40,7 +43,7 @@ def test_track_plans_from_the_twin_while_it_follows_the_stage(nominal: Transduce
                                                  (0.002,) * len(cr.DEFAULT_TAUS_S)))
     model = tmp_path / "model.toml"
     modelfile.write(nominal, model)
-    kept = twin.keep_beside(nominal, timed_sweeps((-1, 0)), model)
+    kept = twin.keep_beside(nominal, timed_sweeps(nominal, (-1, 0)), model)
     assert kept == tmp_path / "model.twin.json"
     before = twinfile.read(kept)
     assert before.run_count == 0
@@ -66,7 +69,7 @@ def test_no_twin_without_the_holds(nominal: Transducer, tmp_path: Path) -> None:
     model = tmp_path / "model.toml"
     modelfile.write(nominal, model)
     bare = [sweepfile.from_arrays(s.voltage_v, s.displacement_um, RATE, {})
-            for s in timed_sweeps((0, 1))]
+            for s in timed_sweeps(nominal, (0, 1))]
     assert twin.keep_beside(nominal, bare, model) is None
     assert twin.keep_beside(nominal, bare[:1], model) is None  # one sweep, no time either
     assert not (tmp_path / "model.twin.json").exists()

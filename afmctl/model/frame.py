@@ -1,0 +1,113 @@
+"""The readings' frame: where a stage's readings sit from its model, and how that moves.
+
+Identify fits a sensor zero per sweep and the model file keeps one. A stage whose frame drifts
+(the frame and mount expanding as they warm: 5-30 nm/s is common for the first hour after
+power-on) reads further from that zero the longer it runs, and an open-loop run planned through
+the model is off by all of it: on the family plant's drifting Preisach stage, +0.095 um on a
+27.9 Hz triangle 40 s after the sweeps, ten times what the run's shape missed. Nothing a model
+file holds can know it; the readings can. Each recording the model's twin follows
+(:mod:`afmctl.experiment.twin`) is an :class:`Observation`: the mean of readings less the model
+over its second half (the first may still carry a start the model got wrong), at its middle.
+:func:`estimate` reads the :class:`Frame` a run will be in from the latest ones: their straight
+line where it is steady (at least :data:`MIN_POINTS` of them, its slope :data:`SIGNIFICANT`
+standard errors from zero over their scatter), else the last one's offset; the line is never
+followed further past the last observation than the observations span (a drift does not go on
+for ever: beyond, it is held where the line left it). Pure numerics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+#: Observations a drift rate is read from: at least this many ...
+MIN_POINTS = 4
+#: ... the latest this many ...
+MAX_POINTS = 12
+#: ... and its slope this many standard errors (their scatter about the line) from zero.
+SIGNIFICANT = 3.0
+
+
+@dataclass(frozen=True)
+class Observation:
+    """Readings compared with the model over a recording.
+
+    Parameters
+    ----------
+    at_s : float
+        The middle of the readings compared, s (the stage's clock).
+    offset_um : float
+        Mean of readings less the model over them, um.
+    """
+
+    at_s: float
+    offset_um: float
+
+
+@dataclass(frozen=True)
+class Frame:
+    """Where the readings of a run will sit from the model: ``offset_um`` (um) at its first
+    sample, moving by ``um_per_s`` (um/s); ``basis`` says how it was found."""
+
+    offset_um: float = 0.0
+    um_per_s: float = 0.0
+    basis: str = "none"
+
+    def along(self, first: int, n: int, dt_s: float) -> FloatArray:
+        """The frame at samples ``first ... first + n - 1`` of the run (um), ``dt_s`` s apart."""
+        return self.offset_um + self.um_per_s * dt_s * (first + np.arange(n, dtype=float))
+
+    def as_dict(self) -> dict[str, float | str]:
+        return {"offset_um": self.offset_um, "drift_um_per_s": self.um_per_s,
+                "basis": self.basis}
+
+
+def observe(at_s: FloatArray, readings_um: FloatArray, model_um: FloatArray
+            ) -> Observation | None:
+    """The :class:`Observation` of one recording: readings (um) less the model's (um) at the
+    sample times ``at_s`` (s), over the recording's second half, missing samples left out; None
+    if none is left."""
+    half = slice(at_s.size // 2, None)
+    diff, t = (readings_um - model_um)[half], at_s[half]
+    ok = np.isfinite(diff)
+    if not np.any(ok):
+        return None
+    return Observation(float(np.mean(t[ok])), float(np.mean(diff[ok])))
+
+
+def estimate(observations: Sequence[Observation], when_s: float) -> Frame:
+    """The frame at ``when_s`` (s, the stage's clock) from ``observations`` (oldest first):
+    see the module's text. No observations: the model's own zero."""
+    if not observations:
+        return Frame()
+    last = observations[-MAX_POINTS:]
+    t = np.array([o.at_s for o in last])
+    y = np.array([o.offset_um for o in last])
+    rate = _steady_rate(t, y)
+    if rate is None:
+        return Frame(float(y[-1]), 0.0, f"offset of the last of {len(last)} recordings")
+    span = float(t[-1] - t[0])
+    t_mean, y_mean = float(np.mean(t)), float(np.mean(y))
+    at = min(when_s, float(t[-1]) + span)
+    moving = rate if when_s < float(t[-1]) + span else 0.0
+    return Frame(y_mean + rate * (at - t_mean), moving,
+                 f"drift {1e3 * rate:+.2f} nm/s over {len(last)} recordings ({span:.0f} s)")
+
+
+def _steady_rate(t: FloatArray, y: FloatArray) -> float | None:
+    """The slope of ``y`` on ``t`` (um/s) if it is steady (see the module), else None."""
+    if t.size < MIN_POINTS:
+        return None
+    tc = t - np.mean(t)
+    sxx = float(np.sum(tc**2))
+    if sxx <= 0.0:
+        return None
+    rate = float(np.sum(tc * (y - np.mean(y))) / sxx)
+    scatter = y - np.mean(y) - rate * tc
+    se = float(np.sqrt(np.sum(scatter**2) / (t.size - 2) / sxx))
+    return rate if abs(rate) >= SIGNIFICANT * se else None

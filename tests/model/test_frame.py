@@ -1,0 +1,61 @@
+"""The readings' frame (afmctl.model.frame): a steady drift read from the recordings' offsets,
+held past what they span, and nothing read into a scatter."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from afmctl.model import frame as fr
+
+
+def line(times: list[float], offset: float, rate: float, wobble: float = 0.0
+         ) -> list[fr.Observation]:
+    rng = np.random.default_rng(3)
+    return [fr.Observation(t, offset + rate * t + wobble * rng.standard_normal()) for t in times]
+
+
+def test_a_steady_drift_is_followed_to_the_run() -> None:
+    """Six recordings on a line 0.02 + 0.012 t (um) with 1 nm of scatter: at 40 s the frame
+    is the line's value, moving at its slope."""
+    obs = line([2.0, 9.0, 11.0, 20.0, 24.0, 31.0], 0.02, 0.012, 0.001)
+    f = fr.estimate(obs, 40.0)
+    assert f.um_per_s == pytest.approx(0.012, rel=0.02)
+    assert f.offset_um == pytest.approx(0.02 + 0.012 * 40.0, abs=0.005)
+    assert f.basis.startswith("drift +1") and f.basis.endswith("over 6 recordings (29 s)")
+    np.testing.assert_allclose(f.along(10, 3, 0.5), f.offset_um + f.um_per_s * np.array([5.0, 5.5, 6.0]))
+
+
+def test_a_drift_is_held_beyond_the_span_it_was_seen_over() -> None:
+    """Seen over 29 s, the line is followed to 29 s after the last recording and held there."""
+    obs = line([2.0, 9.0, 11.0, 20.0, 24.0, 31.0], 0.0, 0.01)
+    far = fr.estimate(obs, 500.0)
+    assert far.um_per_s == 0.0
+    assert far.offset_um == pytest.approx(0.01 * 60.0, rel=1e-9)
+
+
+@pytest.mark.parametrize("obs", [
+    line([1.0, 2.0, 3.0], 0.0, 0.05),  # too few for a rate
+    line([1.0, 2.0, 3.0, 4.0, 5.0], 0.1, 0.0, 0.02),  # a scatter, no slope
+])
+def test_no_rate_without_a_steady_line(obs: list[fr.Observation]) -> None:
+    """Fewer than four recordings, or a scatter with no steady slope: the last one's offset,
+    not moving."""
+    f = fr.estimate(obs, 100.0)
+    assert f.um_per_s == 0.0
+    assert f.offset_um == obs[-1].offset_um
+    assert f.basis == f"offset of the last of {len(obs)} recordings"
+
+
+def test_nothing_seen_is_the_models_own_zero() -> None:
+    assert fr.estimate([], 5.0) == fr.Frame()
+
+
+def test_an_observation_is_the_second_half_of_a_recording() -> None:
+    """The first half (a start the model may have got wrong) is left out, and missing samples."""
+    t = np.arange(10.0)
+    readings = np.where(t < 5, 3.0, 1.0)
+    readings[7] = np.nan
+    ob = fr.observe(t, readings, np.zeros(10))
+    assert ob == fr.Observation(float(np.mean([5.0, 6.0, 8.0, 9.0])), 1.0)
+    assert fr.observe(t, np.full(10, np.nan), np.zeros(10)) is None
