@@ -210,7 +210,7 @@ class Session:
     """An open out-of-family stage: the probe to play through, its clock, its truth, and (once
     set, :func:`follow`) the model's twin of it with the last start's latency (s); ``frame``:
     runs planned in the frame the twin reads from the readings (:meth:`Twin.frame`), each
-    run's in ``frames``."""
+    run's in ``frames`` (off unless set: the bench sets it)."""
 
     case: Case
     profile: Profile
@@ -218,7 +218,7 @@ class Session:
     clock: SteppedClock
     twin: Twin | None = None
     lead_s: float = 0.1
-    frame: bool = True
+    frame: bool = False
     frames: list[dict[str, Any]] = dc.field(default_factory=list)
 
     @property
