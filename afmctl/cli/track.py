@@ -399,9 +399,9 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
     from afmctl.experiment import runner as experiment
     from afmctl.experiment import twin
     start_v = stage.voltage()
-    tw, why = twin.load(cal.model, cal.path, start_v, _run_count(stage))
-    if cal.model.creep is None and (tw is None or not tw.carries(stage.now_s())):
-        tw, why = None, "no twin file"  # the conditioning leaves nothing else for it to carry
+    # without creep the conditioning leaves nothing of the stage's past for a twin to carry
+    tw, why = (twin.load(cal.model, cal.path, start_v, _run_count(stage))
+               if cal.model.creep is not None else (None, "no twin file"))
     say(f"planning {desired.label} from {start_v:.3f} V" + (
         f", the stage as the model's twin follows it ({why})" if tw is not None else
         f" ({why}: the model starts at rest)" if why != "no twin file" else "") + " ...")
