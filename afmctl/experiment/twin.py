@@ -94,12 +94,6 @@ class Twin:
         model (:func:`afmctl.model.frame.estimate`)."""
         return fr.estimate(self.observations, when_s)
 
-    def carries(self, when_s: float) -> bool:
-        """Whether planning from the twin at ``when_s`` differs from planning at rest after
-        the conditioning: the model creeps (its slow elements remember), or the readings'
-        frame drifts (:meth:`frame`)."""
-        return self.model.creep is not None or self.frame(when_s).um_per_s != 0.0
-
     def _observe(self, rod_um: np.ndarray, readings_um: np.ndarray, started_s: float
                  ) -> fr.Observation | None:
         """Readings against the model's own (its rod and second mode; the readings corrected
