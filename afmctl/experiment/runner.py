@@ -185,7 +185,8 @@ def run_following(stage: PlayingStage, tw: Twin,
     lead = LEAD_S
     for name in names:
         asked = stage.now_s() + lead  # type: ignore[attr-defined]
-        wf = plan_for(name, tw.at(asked), tw.frame(asked))
+        seen = tw.frame(asked)  # followed where it drifts steadily (a last offset is not)
+        wf = plan_for(name, tw.at(asked), seen if seen.um_per_s != 0.0 else fr.Frame())
         outcome = run_all(stage, {name: wf}, desired, out, meta, between_model, progress,
                           sensor, done)[name]
         started = getattr(stage, "run_started_s", None)
