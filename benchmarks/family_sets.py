@@ -209,8 +209,9 @@ class Probe:
 class Session:
     """An open out-of-family stage: the probe to play through, its clock, its truth, and (once
     set, :func:`follow`) the model's twin of it with the last start's latency (s); ``frame``:
-    runs planned in the frame the twin reads from the readings (:meth:`Twin.frame`), each
-    run's in ``frames`` (off unless set: the bench sets it)."""
+    runs planned in the frame the twin reads from the readings (:meth:`Twin.planning_frame`,
+    as ``afmctl track`` plans them), each run's in ``frames`` (off unless set: the bench sets
+    it)."""
 
     case: Case
     profile: Profile
@@ -332,7 +333,7 @@ def tracked_errors(s: Session, model: Any, freq: float, frac: float, span: tuple
     for name in filters:  # each planned from the twin as the run before left it
         asked = s.probe.now_s() + s.lead_s
         state = None if s.twin is None else s.twin.at(asked)
-        frame = fr.Frame() if s.twin is None or not s.frame else s.twin.frame(asked)
+        frame = fr.Frame() if s.twin is None or not s.frame else s.twin.planning_frame(asked)
         wf = track.plan(model, desired, s.profile.limits, s.probe.voltage(),
                         tuple(dict.fromkeys(("inverse", name))), state=state, frame=frame)[name]
         rec = s.probe.play(wf.voltage_v)

@@ -178,15 +178,14 @@ def run_following(stage: PlayingStage, tw: Twin,
                   done: dict[str, Outcome] | None = None) -> Twin | None:
     """:func:`run_all` with each filter planned just before it plays (``plan_for(name, state,
     frame)``) from the twin's state when it is due to start (the stage's clock now, plus the last
-    start's delay) and the frame its readings will be in (:meth:`Twin.frame`), and the twin
-    carried through it, readings and all: a creeping stage's run starts where the one before
-    left it, not at rest, and a drifting one is followed. Returns the twin after the last run
-    (None if the stage does not say when its runs start)."""
+    start's delay) and the frame its readings will be in (:meth:`Twin.planning_frame`), and the
+    twin carried through it, readings and all: a creeping stage's run starts where the one
+    before left it, not at rest, and a drifting one is followed. Returns the twin after the last
+    run (None if the stage does not say when its runs start)."""
     lead = LEAD_S
     for name in names:
         asked = stage.now_s() + lead  # type: ignore[attr-defined]
-        seen = tw.frame(asked)  # followed where it drifts steadily (a last offset is not)
-        wf = plan_for(name, tw.at(asked), seen if seen.um_per_s != 0.0 else fr.Frame())
+        wf = plan_for(name, tw.at(asked), tw.planning_frame(asked))
         outcome = run_all(stage, {name: wf}, desired, out, meta, between_model, progress,
                           sensor, done)[name]
         started = getattr(stage, "run_started_s", None)

@@ -94,6 +94,13 @@ class Twin:
         model (:func:`afmctl.model.frame.estimate`)."""
         return fr.estimate(self.observations, when_s)
 
+    def planning_frame(self, when_s: float) -> fr.Frame:
+        """The frame a run starting at ``when_s`` is planned in: :meth:`frame` where it drifts
+        steadily, else the model's own zero (a last recording's offset alone is not followed:
+        on a stage that does not drift it is what the model missed on another trajectory)."""
+        seen = self.frame(when_s)
+        return seen if seen.um_per_s != 0.0 else fr.Frame()
+
     def _observe(self, rod_um: np.ndarray, readings_um: np.ndarray, started_s: float
                  ) -> fr.Observation | None:
         """Readings against the model's own (its rod and second mode; the readings corrected

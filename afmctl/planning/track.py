@@ -464,7 +464,7 @@ def plan_linear(cm: tr.Compiled, desired: Desired, limits: guard.Limits, start_v
     dt, rate = desired.dt_s, 0.25 * limits.max_rate_v_per_ms * 1e3
     n_in = ramp_samples(float(lin.voltage(desired.u_um[:1])[0]) - start_v, rate, dt)
     v_tr = lin.voltage(desired.u_um - frame.along(prefix_v.size + n_in, desired.u_um.size, dt))
-    ramp_in = raised_cosine(start_v, v_tr[0], ramp_samples(v_tr[0] - start_v, rate, dt))
+    ramp_in = raised_cosine(start_v, v_tr[0], n_in)  # as long as the frame was placed for
     ramp_out = raised_cosine(v_tr[-1], start_v, ramp_samples(v_tr[-1] - start_v, rate, dt))
     wf = _assemble("linear", desired, np.concatenate([prefix_v, ramp_in]), v_tr, ramp_out)
     guard.check(wf.voltage_v, dt, limits, start_v, "linear waveform")

@@ -106,7 +106,8 @@ def test_a_drifting_frame_is_read_from_the_readings_and_planned_in() -> None:
 
     def read(v: np.ndarray, t0: float, state: tr.StageState) -> tuple[np.ndarray, tr.StageState]:
         u, _, end = tr.simulate(cm, v, state)
-        return u + rate_um_s * (t0 + dt * np.arange(v.size)) + 0.005 * rng.standard_normal(v.size), end
+        drift = rate_um_s * (t0 + dt * np.arange(v.size))
+        return u + drift + 0.005 * rng.standard_normal(v.size), end
 
     sweeps, state, t = [], tr.initial(m, voltage_v=0.0), 1.0
     for top in (120.0, 90.0, 120.0, 60.0):

@@ -23,7 +23,8 @@ def test_a_steady_drift_is_followed_to_the_run() -> None:
     assert f.um_per_s == pytest.approx(0.012, rel=0.02)
     assert f.offset_um == pytest.approx(0.02 + 0.012 * 40.0, abs=0.005)
     assert f.basis.startswith("drift +1") and f.basis.endswith("over 6 recordings (29 s)")
-    np.testing.assert_allclose(f.along(10, 3, 0.5), f.offset_um + f.um_per_s * np.array([5.0, 5.5, 6.0]))
+    np.testing.assert_allclose(f.along(10, 3, 0.5),
+                               f.offset_um + f.um_per_s * np.array([5.0, 5.5, 6.0]))
 
 
 def test_a_drift_is_held_beyond_the_span_it_was_seen_over() -> None:
