@@ -374,7 +374,7 @@ def creep_of(weight: float) -> cr.Creep | None:
 
 def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
         thickness_um: float, mass_kg: float, p_scale: float,
-        say: Callable[[str], None] | None = None) -> BoucWenFit:
+        say: Callable[[str], None] | None = None, give_up: float | None = None) -> BoucWenFit:
     """Fit the Bouc-Wen model to ``data``.
 
     Parameters
@@ -390,6 +390,13 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     thickness_um, mass_kg, p_scale : float
         Layer thickness (um), the fixed effective mass (kg) and polarization scale (C/m^2): scale
         conventions, as the other representations'.
+    give_up : float, optional
+        After a start (its state search included), stop if some sweep is still more than this
+        many times its noise: another representation already fits so much better that the other
+        starts and the creep cannot make Bouc-Wen win (identify passes :data:`afmctl.fit.
+        representation.DECISIVE` times the grid's worst held-out error; on pi-u-creep, the grid
+        at 1.53x, Bouc-Wen's first start left 43x and the rest of its fit took 88 of 100 s to
+        end there too). The fit returned is that start's, without creep.
     """
     say = say or (lambda _m: None)
     t0 = time.perf_counter()
@@ -401,29 +408,43 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     if not distinct:
         raise ValueError("no Bouc-Wen shape has a loop (c = 0)")
     good = 0.5 * GOOD ** 2 * sum(y.size for y in data.y)  # the cost at GOOD x the noise
-    best = None
+    best, hopeless = None, False
     for _, x0 in sorted(distinct.values(), key=lambda f: f[0])[:MAX_STARTS]:
         sol = _searched(prob, _solve(prob, prob.state_search(prob.rod_search(x0)),
                                      creep=False), good)
         again = best is not None and abs(sol.cost - best.cost) <= SAME * best.cost
         best = sol if best is None or sol.cost < best.cost else best
-        if best.cost <= good or again:
+        hopeless = give_up is not None and float(np.max(_rms(prob, best.x)[0] / data.noise)
+                                                 ) > give_up
+        if best.cost <= good or again or hopeless:
             break
     assert best is not None
-    crept = _solve(prob, _rod_searched(prob, best), creep=True)
-    sol = crept if crept.cost < best.cost else best  # from its start the creep may end worse
-    u = prob.readings(sol.x)
+    if hopeless:
+        sol = best
+    else:
+        crept = _solve(prob, _rod_searched(prob, best), creep=True)
+        sol = crept if crept.cost < best.cost else best  # from its start the creep may end worse
+    rms, off, predicted = _rms(prob, sol.x)
+    seconds = time.perf_counter() - t0
+    say(f"  Bouc-Wen: {sol.nfev} evaluations, {seconds:.1f} s; RMS / noise per sweep "
+        + " / ".join(f"{v:.2f}" for v in rms / data.noise)
+        + (f" (stopped: above {give_up:.3g}x, where another representation is far below)"
+           if hopeless else ""))
+    return BoucWenFit(build(sol.x, prob, off, mass_kg, thickness_um, p_scale), states(sol.x),
+                      off, rms, int(sol.nfev), bool(sol.status > 0), seconds, predicted,
+                      {k: float(v) for k, v in zip(names(len(off)), sol.x, strict=True)},
+                      _uncertainty(sol))
+
+
+def _rms(prob: Problem, x: FloatArray) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
+    """Per sweep at ``x``: the RMS on the judged samples (um), the sensor zeros (um) and the
+    readings on every sample, zeros included."""
+    u = prob.readings(x)
     off = prob.offsets(u)
     predicted = [p + o for p, o in zip(u, off, strict=True)]
     rms = np.array([float(np.sqrt(np.mean((y - p[m]) ** 2))) for y, p, m in
-                    zip(data.y, predicted, data.masks, strict=True)])
-    seconds = time.perf_counter() - t0
-    say(f"  Bouc-Wen: {sol.nfev} evaluations, {seconds:.1f} s; RMS / noise per sweep "
-        + " / ".join(f"{v:.2f}" for v in rms / data.noise))
-    return BoucWenFit(build(sol.x, prob, off, mass_kg, thickness_um, p_scale), states(sol.x),
-                      off, rms, int(sol.nfev), bool(sol.status > 0), seconds, predicted,
-                      {k: float(v) for k, v in zip(names(len(u)), sol.x, strict=True)},
-                      _uncertainty(sol))
+                    zip(prob.data.y, predicted, prob.data.masks, strict=True)])
+    return rms, off, predicted
 
 
 def _searched(prob: Problem, sol: optimize.OptimizeResult, good: float

@@ -97,7 +97,8 @@ class Grid:
         """Fit Bouc-Wen once (None if no shape has a loop), its start states begun at the HEM's
         starts or each sweep where the one before left the stage (a Bouc-Wen stage forgets
         nothing), its rod started at the grid's (searched on its own) if the grid was fitted,
-        else the HEM's."""
+        else the HEM's. With the grid fitted, Bouc-Wen stops after a start that leaves some sweep
+        over :data:`DECISIVE` times the grid's worst held-out error (it cannot win from there)."""
         if self.bw is None:
             self.say("fitting a Bouc-Wen model (its minor loops need not close) ...")
             rod0 = ((self.fit.model.rod.natural_hz, self.fit.model.rod.damping_ratio)
@@ -105,9 +106,12 @@ class Grid:
                     rod_of(x_hem))
             chained = [(first,) + ("previous",) * (len(starts) - 1)
                        for first in ("depoled", "negative", "positive")]
+            give_up = (None if self.fit is None else
+                       DECISIVE * float(np.max(self.fit.heldout_rms_um / self.noise)))
             try:
                 self.bw = bf.fit(self.data(), [tuple(starts), *chained], rod0, self.thickness,
-                                 self.settings.mass_kg, self.settings.p_r, say=self.say)
+                                 self.settings.mass_kg, self.settings.p_r, say=self.say,
+                                 give_up=give_up)
             except ValueError as exc:
                 self.say(f"  no Bouc-Wen fit: {exc}")
         return self.bw

@@ -42,15 +42,33 @@ def stage_and_set() -> tuple[fst.FamilyStage, fst.FamilyState, list[sw.Sweep]]:
     return stage, state, recorded
 
 
-@pytest.fixture(scope="module")
-def fitted(stage_and_set: tuple) -> bf.BoucWenFit:
+def _data(stage_and_set: tuple) -> tuple[pp.Data, list[tuple[str, ...]]]:
     _, _, sweeps = stage_and_set
     data = pp.Data([s.voltage_v / THICKNESS_UM for s in sweeps], [s.mask(None) for s in sweeps],
                    [s.displacement_um[s.mask(None)] for s in sweeps], [s.dt for s in sweeps],
                    np.full(len(sweeps), stage_and_set[0].noise_um))
     chained = [(first,) + ("previous",) * (len(sweeps) - 1)
                for first in ("depoled", "negative", "positive")]
+    return data, chained
+
+
+@pytest.fixture(scope="module")
+def fitted(stage_and_set: tuple) -> bf.BoucWenFit:
+    data, chained = _data(stage_and_set)
     return bf.fit(data, chained, (1000.0, 0.1), THICKNESS_UM, 0.05, 0.3)
+
+
+def test_a_fit_told_to_give_up_stops_after_its_first_start(stage_and_set: tuple,
+                                                          fitted: bf.BoucWenFit) -> None:
+    """``give_up`` below what any start reaches: the fit ends on its first start, without its
+    creep solve, and says so."""
+    data, chained = _data(stage_and_set)
+    said: list[str] = []
+    stopped = bf.fit(data, chained, (1000.0, 0.1), THICKNESS_UM, 0.05, 0.3, say=said.append,
+                     give_up=0.5)
+    assert "stopped: above 0.5x" in said[-1]
+    assert stopped.model.creep is None and stopped.parameters["creep"] == 0.0
+    assert np.all(stopped.heldout_rms_um >= 0.99 * fitted.heldout_rms_um)
 
 
 def test_fit_reaches_near_the_noise_on_every_sweep(stage_and_set: tuple,
