@@ -188,19 +188,38 @@ class Problem:
         return np.clip(out, -STATE_START_MAX, STATE_START_MAX)
 
     def forces(self, x: FloatArray) -> list[FloatArray]:
-        """``g(Q~)`` per sweep (every sample): ``Q`` with its creep (at rest at each sweep's
-        start, as identify judges a sweep), through the force law; the rod's input."""
-        return [self.force(x, i, eta) for i, eta in
-                enumerate(self.shape(x[0], x[1], x[2], x[STATES_AT:]))]
+        """``g(Q~)`` per sweep (every sample): ``Q`` with its creep, through the force law; the
+        rod's input. The creep is chained as the grid's is
+        (:meth:`afmctl.fit.preisach_problem.Problem.creep_starts`): a sweep that followed the
+        one before after a known hold (:attr:`Data.gaps_s`) starts where that one left its
+        elements, relaxed over the hold; else at rest at its first sample."""
+        return self._chain(x, self.shape(x[0], x[1], x[2], x[STATES_AT:]))[0]
 
-    def force(self, x: FloatArray, i: int, eta: FloatArray) -> FloatArray:
-        """``g(Q~)`` of sweep ``i`` (every sample) for its ``eta``."""
+    def _chain(self, x: FloatArray, etas: Sequence[FloatArray]
+               ) -> tuple[list[FloatArray], list[FloatArray | None]]:
+        """Each sweep's force for its ``eta`` and the creep state it started from (None: at
+        rest)."""
+        gaps = self.data.gaps_s or [math.nan] * len(etas)
+        out, starts, end = [], [], None
+        for i, (eta, gap) in enumerate(zip(etas, gaps, strict=True)):
+            start = None if end is None or not gap >= 0.0 else relaxed(end, gap)
+            f, end = self.force(x, i, eta, start)
+            out.append(f)
+            starts.append(start)
+        return out, starts
+
+    def force(self, x: FloatArray, i: int, eta: FloatArray, start: FloatArray | None = None
+              ) -> tuple[FloatArray, FloatArray]:
+        """``g(Q~)`` of sweep ``i`` (every sample) for its ``eta``, its creep elements from
+        ``start`` (default: at rest at its first sample), and their state after it."""
         log_a, kappa, _, m, c, s, _, _, w = x[:STATES_AT]
         r = reversible(m, c, math.exp(log_a), kappa)
         creep, e = creep_of(w), self.data.fields[i]
-        q, _ = cr.run(creep, r * e + c * eta, self.data.dts[i],
-                      cr.rest_state(creep, r * e[0] + c * eta[0]))
-        return q + s * q * q
+        p_h = r * e + c * eta
+        z0 = cr.rest_state(creep, float(p_h[0])) if start is None or creep is None else start
+        q, end = cr.run(creep, p_h, self.data.dts[i], z0)
+        return q + s * q * q, (end if creep is not None else np.full(2 * len(CREEP_TAUS_S),
+                                                                      float(p_h[-1])))
 
     def state_search(self, x: FloatArray) -> FloatArray:
         """``x`` with each sweep's start state the best of its own and :data:`STATE_GRID`, the
@@ -213,11 +232,12 @@ class Problem:
         op = self._operator(float(x[0]), float(x[1]), float(x[2]))
         fn, zeta = math.exp(x[6]), math.exp(x[7])
         out = np.array(x, float)
+        starts = self._chain(x, self.shape(x[0], x[1], x[2], x[STATES_AT:]))[1]
         for i, e in enumerate(self.data.fields):
             costs = []
             for h in (x[STATES_AT + i], *STATE_GRID):
-                u = rod_filter(self.force(x, i, _eta(op, e, h)), fn, zeta, self.data.dts[i])[
-                    self.data.masks[i]]
+                u = rod_filter(self.force(x, i, _eta(op, e, h), starts[i])[0], fn, zeta,
+                               self.data.dts[i])[self.data.masks[i]]
                 r = self.data.y[i] - u
                 costs.append((float(np.sum((r - r.mean()) ** 2)), float(h)))
             out[STATES_AT + i] = min(costs)[1]
@@ -362,6 +382,15 @@ def reversible(margin: float, c: float, a: float, kappa: float) -> float:
     1 - kappa)`` for a loop subtracted (its steepest, just after a reversal at saturation). The
     fit's ``margin >= 0`` keeps the E-P relation monotone, as Algorithm 3 needs."""
     return margin + max(-c, 0.0) * a * max(1.0, 1.0 - kappa)
+
+
+def relaxed(state: FloatArray, hold_s: float) -> FloatArray:
+    """Creep elements' state ``(z_j, y_j)`` (:func:`afmctl.model.creep.run`) after a hold of
+    ``hold_s`` at the last input: each ``z_j`` relaxes toward its held ``y_j`` with its
+    :data:`CREEP_TAUS_S`."""
+    n = len(CREEP_TAUS_S)
+    z, y = state[:n], state[n:]
+    return np.concatenate((y + (z - y) * np.exp(-hold_s / np.asarray(CREEP_TAUS_S)), y))
 
 
 def creep_of(weight: float) -> cr.Creep | None:

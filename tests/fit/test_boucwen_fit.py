@@ -24,6 +24,7 @@ from afmctl.files import sweepfile as sw
 from afmctl.fit import boucwen as bf
 from afmctl.fit import identify as idf
 from afmctl.fit import preisach_problem as pp
+from afmctl.model import creep as cr
 from afmctl.model import inverse as inv
 from afmctl.model.boucwen import BoucWen
 from afmctl.model import transducer as td
@@ -157,3 +158,34 @@ def test_estimates_list_the_models_creep(fitted: bf.BoucWenFit) -> None:
     by_name = {e.name: e.value for e in rep.bw_estimates(crept)}
     assert by_name["creep_per_decade"] == pytest.approx(crept.model.creep.per_decade())
     assert by_name["creep@1000s"] == 0.005
+
+
+def test_creep_goes_on_across_a_known_hold_as_one_record_would() -> None:
+    """Two sweeps 0.5 s apart (``gaps_s``): the second's force equals that of one record of the
+    first, the hold at its last field and the second, run through the creep elements from rest
+    (:func:`afmctl.model.creep.run`, the hold sample by sample); with the hold unknown it starts
+    at rest, and differs."""
+    dt, hold_n = 1e-3, 500
+    t = np.arange(2000) * dt
+    fields = [0.5 + 0.5 * np.sin(2 * np.pi * t), 0.2 + 0.3 * np.cos(3 * np.pi * t)]
+    ones = [np.ones(f.size, dtype=bool) for f in fields]
+    x = np.array([np.log(5.0), 0.5, 1.0, 0.1, 0.3, 0.05, np.log(1000.0), np.log(0.5), 0.01,
+                  0.0, 0.2])
+
+    def problem(gaps: list[float]) -> bf.Problem:
+        return bf.Problem(pp.Data(fields, ones, [np.zeros(f.size) for f in fields], [dt, dt],
+                                  np.ones(2), gaps_s=gaps))
+
+    chained = problem([np.nan, hold_n * dt])
+    etas = chained.shape(x[0], x[1], x[2], x[bf.STATES_AT:])
+    r = bf.reversible(x[3], x[4], 5.0, 0.5)
+    p1, p2 = (r * e + x[4] * eta for e, eta in zip(fields, etas, strict=True))
+    creep = bf.creep_of(x[bf.CREEP_AT])
+    whole, _ = cr.run(creep, np.concatenate((p1, np.full(hold_n, p1[-1]), p2)), dt,
+                      cr.rest_state(creep, float(p1[0])))
+    q = whole[-p2.size:]
+    forces = chained.forces(x)
+    assert np.allclose(forces[1], q + x[5] * q * q, rtol=0, atol=1e-12)
+    unknown = problem([np.nan, np.nan]).forces(x)
+    assert np.array_equal(unknown[0], forces[0])
+    assert np.max(np.abs(unknown[1] - forces[1])) > 1e-4
