@@ -399,9 +399,9 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
     from afmctl.experiment import runner as experiment
     from afmctl.experiment import twin
     start_v = stage.voltage()
-    # without creep the conditioning leaves nothing of the stage's past for a twin to carry
-    tw, why = (twin.load(cal.model, cal.path, start_v, _run_count(stage))
-               if cal.model.creep is not None else (None, "no twin file"))
+    # every model: a creeping stage's past, a Bouc-Wen stage's memory (no conditioning wipes
+    # it), a drifting frame (read from the readings the twin followed)
+    tw, why = twin.load(cal.model, cal.path, start_v, _run_count(stage))
     say(f"planning {desired.label} from {start_v:.3f} V" + (
         f", the stage as the model's twin follows it ({why})" if tw is not None else
         f" ({why}: the model starts at rest)" if why != "no twin file" else "") + " ...")

@@ -64,6 +64,26 @@ def test_track_plans_from_the_twin_while_it_follows_the_stage(nominal: Transduce
     assert "not used: it is of another model file" in res.stderr
 
 
+def test_a_model_without_creep_is_planned_from_its_twin_too(nominal: Transducer,
+                                                            tmp_path: Path) -> None:
+    """No creep: the twin still carries the hysteresis's memory (a Bouc-Wen stage's, which no
+    conditioning wipes) and the readings' frame, and track plans from it as for a creeping
+    model; the sweeps' readings are the model's own, so no drift is read and the run is planned
+    in the model's zero."""
+    model = tmp_path / "model.toml"
+    modelfile.write(nominal, model)
+    kept = twin.keep_beside(nominal, timed_sweeps(nominal, (-1, 0)), model)
+    assert kept is not None and twinfile.read(kept).observations.shape == (2, 3)
+    res = CliRunner().invoke(main, ["track", "triangle", "--freq", "27.9", "--amplitude",
+                                    "27.04", "--model", str(model), "--filter", "inverse",
+                                    "--json", "--out", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    assert "the stage as the model's twin follows it" in res.stderr
+    assert "planned in that frame" not in res.stderr
+    assert twinfile.read(kept).run_count == 1
+    assert json.loads(res.stdout.strip().splitlines()[-1])["filters"]["inverse"]["rms_um"] < 0.5
+
+
 def test_no_twin_without_the_holds(nominal: Transducer, tmp_path: Path) -> None:
     """Sweeps without their times leave no twin file (track then starts the model at rest)."""
     model = tmp_path / "model.toml"
