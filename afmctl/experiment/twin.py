@@ -146,8 +146,8 @@ def save(tw: Twin, model_path: str | Path) -> Path:
                           tw.ended_s, tw.held_v, tw.dt_s, st.polarization.kind,
                           st.polarization.values, np.asarray(st.rod, float),
                           np.asarray(st.creep, float),
-                          np.array([(o.at_s, o.offset_um, o.noise_um) for o in tw.observations],
-                                   float).reshape(-1, 3))
+                          np.array([(o.at_s, o.offset_um) for o in tw.observations],
+                                   float).reshape(-1, 2))
     path = twinfile.path_for(model_path)
     twinfile.write(rec, path)
     return path
@@ -173,6 +173,6 @@ def load(model: tr.Transducer, model_path: str | Path, output_v: float,
         if not ok:
             return None, f"{path.name} not used: {why}"
     state = tr.StageState(hy.PolarizationState(rec.kind, rec.values), rec.rod, rec.creep)
-    seen = tuple(fr.Observation(*(float(v) for v in row)) for row in rec.observations)
+    seen = tuple(fr.Observation(float(t), float(o)) for t, o in rec.observations)
     return (Twin(model, rec.dt_s, state, rec.ended_s, rec.held_v, rec.run_count, seen),
             f"from {path}")

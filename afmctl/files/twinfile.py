@@ -11,11 +11,10 @@ host's boot (the clock is the host's monotonic one). JSON::
     {"format": "afmctl-twin", "format_version": 1, "model_sha256": "...", "boot_id": "...",
      "run_count": 12, "ended_s": 5234.1, "held_V": 0.0, "dt_s": 1e-4,
      "state": {"kind": 1, "values": [...], "rod": [u, du], "creep": [...]},
-     "observations": [[at_s, offset_um, noise_um], ...]}
+     "observations": [[at_s, offset_um], ...]}
 
 ``observations`` (the readings of the recordings followed against the model,
-:class:`afmctl.model.frame.Observation`) may be absent: none; a file written before their noise
-was kept has pairs ``[at_s, offset_um]`` (noise not known).
+:class:`afmctl.model.frame.Observation`) may be absent: none.
 """
 
 from __future__ import annotations
@@ -54,9 +53,8 @@ class Record:
     kind : int
     values, rod, creep : ndarray
         The state (:class:`afmctl.model.transducer.StageState`'s arrays).
-    observations : ndarray, shape (K, 3) or (K, 2)
-        Each observation's time (s, the stage's clock), offset (um) and one reading's noise (um;
-        absent from older files).
+    observations : ndarray, shape (K, 2)
+        Each observation's time (s, the stage's clock) and offset (um).
     """
 
     model_sha256: str
@@ -69,7 +67,7 @@ class Record:
     values: FloatArray
     rod: FloatArray
     creep: FloatArray
-    observations: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    observations: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def path_for(model_path: str | Path) -> Path:
@@ -105,16 +103,6 @@ def write(rec: Record, path: str | Path) -> None:
     os.replace(tmp, path)
 
 
-def _observations(rows: Any) -> FloatArray:
-    """The ``observations`` rows: (K, 3), or (K, 2) from a file that kept no noise."""
-    a = np.asarray(rows, float)
-    if a.size == 0:
-        return np.zeros((0, 3))
-    if a.ndim != 2 or a.shape[1] not in (2, 3):
-        raise ValueError("observations are rows [at_s, offset_um, noise_um]")
-    return a
-
-
 def read(path: str | Path) -> Record:
     """The twin file at ``path``; :class:`~afmctl.errors.FileFormatError` if it is not one."""
     try:
@@ -128,6 +116,6 @@ def read(path: str | Path) -> Record:
                       float(d["held_V"]), float(d["dt_s"]), int(st["kind"]),
                       np.asarray(st["values"], float), np.asarray(st["rod"], float),
                       np.asarray(st["creep"], float),
-                      _observations(d.get("observations", [])))
+                      np.asarray(d.get("observations", []), float).reshape(-1, 2))
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise FileFormatError(f"{path}: not a twin file ({exc})") from exc

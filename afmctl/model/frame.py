@@ -10,12 +10,9 @@ file holds can know it; the readings can. Each recording the model's twin follow
 over its second half (the first may still carry a start the model got wrong), at its middle.
 :func:`estimate` reads the :class:`Frame` a run will be in from the latest ones: their straight
 line where it is steady (at least :data:`MIN_POINTS` of them, its slope :data:`SIGNIFICANT`
-standard errors from zero over their scatter) and large enough to matter (over their span it
-moved the readings by at least :data:`FLOOR` times one reading's noise: a slope smaller than that
-changes a plan by less than the noise, and is where the model's misfit on the different
-recordings, a few nanometres, is likeliest to pose as a drift), else the last one's offset; the
-line is never followed further past the last observation than the observations span (a drift
-does not go on for ever: beyond, it is held where the line left it). Pure numerics.
+standard errors from zero over their scatter), else the last one's offset; the line is never
+followed further past the last observation than the observations span (a drift does not go on
+for ever: beyond, it is held where the line left it). Pure numerics.
 """
 
 from __future__ import annotations
@@ -34,9 +31,6 @@ MIN_POINTS = 4
 MAX_POINTS = 12
 #: ... and its slope this many standard errors (their scatter about the line) from zero.
 SIGNIFICANT = 3.0
-#: ... and over their span it moved the readings by at least this many times one reading's noise
-#: (the median of the observations' :attr:`Observation.noise_um`).
-FLOOR = 1.0
 
 
 @dataclass(frozen=True)
@@ -49,14 +43,10 @@ class Observation:
         The middle of the readings compared, s (the stage's clock).
     offset_um : float
         Mean of readings less the model over them, um.
-    noise_um : float
-        One reading's noise about the model over them, um (0: not known; a twin file written
-        before it was kept).
     """
 
     at_s: float
     offset_um: float
-    noise_um: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -81,16 +71,13 @@ def observe(at_s: FloatArray, readings_um: FloatArray, model_um: FloatArray
             ) -> Observation | None:
     """The :class:`Observation` of one recording: readings (um) less the model's (um) at the
     sample times ``at_s`` (s), over the recording's second half, missing samples left out; None
-    if none is left. Its noise is that of the sample-to-sample differences (their median
-    absolute value over 0.6745 sqrt 2: the model's misfit, smooth, drops out)."""
+    if none is left."""
     half = slice(at_s.size // 2, None)
     diff, t = (readings_um - model_um)[half], at_s[half]
     ok = np.isfinite(diff)
     if not np.any(ok):
         return None
-    steps = np.diff(diff[ok])
-    noise = float(np.median(np.abs(steps)) / (0.6745 * np.sqrt(2.0))) if steps.size else 0.0
-    return Observation(float(np.mean(t[ok])), float(np.mean(diff[ok])), noise)
+    return Observation(float(np.mean(t[ok])), float(np.mean(diff[ok])))
 
 
 def estimate(observations: Sequence[Observation], when_s: float) -> Frame:
@@ -102,13 +89,9 @@ def estimate(observations: Sequence[Observation], when_s: float) -> Frame:
     t = np.array([o.at_s for o in last])
     y = np.array([o.offset_um for o in last])
     rate = _steady_rate(t, y)
-    span = float(t[-1] - t[0])
-    noise = float(np.median([o.noise_um for o in last]))
-    if rate is not None and abs(rate) * span < FLOOR * noise:
-        return Frame(float(y[-1]), 0.0, f"offset of the last of {len(last)} recordings (a drift "
-                     f"of {1e3 * rate:+.2f} nm/s moved them less than their noise)")
     if rate is None:
         return Frame(float(y[-1]), 0.0, f"offset of the last of {len(last)} recordings")
+    span = float(t[-1] - t[0])
     t_mean, y_mean = float(np.mean(t)), float(np.mean(y))
     at = min(when_s, float(t[-1]) + span)
     moving = rate if when_s < float(t[-1]) + span else 0.0

@@ -73,7 +73,7 @@ def test_a_model_without_creep_is_planned_from_its_twin_too(nominal: Transducer,
     model = tmp_path / "model.toml"
     modelfile.write(nominal, model)
     kept = twin.keep_beside(nominal, timed_sweeps(nominal, (-1, 0)), model)
-    assert kept is not None and twinfile.read(kept).observations.shape == (2, 3)
+    assert kept is not None and twinfile.read(kept).observations.shape == (2, 2)
     res = CliRunner().invoke(main, ["track", "triangle", "--freq", "27.9", "--amplitude",
                                     "27.04", "--model", str(model), "--filter", "inverse",
                                     "--json", "--out", str(tmp_path / "a")])
