@@ -422,10 +422,10 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     give_up : float, optional
         After a start (its state search included), stop if some sweep is still more than this
         many times its noise: another representation already fits so much better that the other
-        starts and the creep cannot make Bouc-Wen win (identify passes :data:`afmctl.fit.
-        representation.DECISIVE` times the grid's worst held-out error; on pi-u-creep, the grid
-        at 1.53x, Bouc-Wen's first start left 43x and the rest of its fit took 88 of 100 s to
-        end there too). The fit returned is that start's, without creep.
+        starts and the creep are not expected to make Bouc-Wen win (identify passes
+        :data:`afmctl.fit.representation.DECISIVE` times the grid's worst held-out error; on
+        pi-u-creep, the grid at 1.53x, Bouc-Wen's first start left 62x, and the whole fit had
+        taken 100 s to end at 43x). The fit returned is that start's, without creep.
     """
     say = say or (lambda _m: None)
     t0 = time.perf_counter()
