@@ -98,7 +98,7 @@ class Grid:
         starts or each sweep where the one before left the stage (a Bouc-Wen stage forgets
         nothing), its rod started at the grid's (searched on its own) if the grid was fitted,
         else the HEM's. With the grid fitted, Bouc-Wen stops after a start that leaves some sweep
-        over :data:`DECISIVE` times the grid's worst held-out error (it cannot win from there)."""
+        over :data:`DECISIVE` times the grid's worst held-out error (not expected to win from there)."""
         if self.bw is None:
             self.say("fitting a Bouc-Wen model (its minor loops need not close) ...")
             rod0 = ((self.fit.model.rod.natural_hz, self.fit.model.rod.damping_ratio)
