@@ -200,9 +200,10 @@ class Problem:
         """Each sweep's force for its ``eta`` and the creep state it started from (None: at
         rest)."""
         gaps = self.data.gaps_s or [math.nan] * len(etas)
+        creep = creep_of(x[CREEP_AT])
         out, starts, end = [], [], None
         for i, (eta, gap) in enumerate(zip(etas, gaps, strict=True)):
-            start = None if end is None or not gap >= 0.0 else relaxed(end, gap)
+            start = None if end is None or not gap >= 0.0 else cr.held(creep, end, gap)
             f, end = self.force(x, i, eta, start)
             out.append(f)
             starts.append(start)
@@ -216,10 +217,9 @@ class Problem:
         r = reversible(m, c, math.exp(log_a), kappa)
         creep, e = creep_of(w), self.data.fields[i]
         p_h = r * e + c * eta
-        z0 = cr.rest_state(creep, float(p_h[0])) if start is None or creep is None else start
+        z0 = cr.rest_state(creep, float(p_h[0])) if start is None else start
         q, end = cr.run(creep, p_h, self.data.dts[i], z0)
-        return q + s * q * q, (end if creep is not None else np.full(2 * len(CREEP_TAUS_S),
-                                                                      float(p_h[-1])))
+        return q + s * q * q, end
 
     def state_search(self, x: FloatArray) -> FloatArray:
         """``x`` with each sweep's start state the best of its own and :data:`STATE_GRID`, the
@@ -384,15 +384,6 @@ def reversible(margin: float, c: float, a: float, kappa: float) -> float:
     return margin + max(-c, 0.0) * a * max(1.0, 1.0 - kappa)
 
 
-def relaxed(state: FloatArray, hold_s: float) -> FloatArray:
-    """Creep elements' state ``(z_j, y_j)`` (:func:`afmctl.model.creep.run`) after a hold of
-    ``hold_s`` at the last input: each ``z_j`` relaxes toward its held ``y_j`` with its
-    :data:`CREEP_TAUS_S`."""
-    n = len(CREEP_TAUS_S)
-    z, y = state[:n], state[n:]
-    return np.concatenate((y + (z - y) * np.exp(-hold_s / np.asarray(CREEP_TAUS_S)), y))
-
-
 def creep_of(weight: float) -> cr.Creep | None:
     """Log-time creep of ``weight`` per element on :data:`CREEP_TAUS_S` (about twice that per
     decade), or None below :data:`CREEP_MIN`."""
@@ -443,17 +434,18 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
                                      creep=False), good)
         again = best is not None and abs(sol.cost - best.cost) <= SAME * best.cost
         best = sol if best is None or sol.cost < best.cost else best
-        hopeless = give_up is not None and float(np.max(_rms(prob, best.x)[0] / data.noise)
-                                                 ) > give_up
+        if give_up is not None:
+            scored = _rms(prob, best.x)
+            hopeless = float(np.max(scored[0] / data.noise)) > give_up
         if best.cost <= good or again or hopeless:
             break
     assert best is not None
     if hopeless:
-        sol = best
+        sol, (rms, off, predicted) = best, scored
     else:
         crept = _solve(prob, _rod_searched(prob, best), creep=True)
         sol = crept if crept.cost < best.cost else best  # from its start the creep may end worse
-    rms, off, predicted = _rms(prob, sol.x)
+        rms, off, predicted = _rms(prob, sol.x)
     seconds = time.perf_counter() - t0
     say(f"  Bouc-Wen: {sol.nfev} evaluations, {seconds:.1f} s; RMS / noise per sweep "
         + " / ".join(f"{v:.2f}" for v in rms / data.noise)

@@ -113,6 +113,25 @@ def rest_state(creep: Creep | None, p_h: float) -> FloatArray:
     return np.zeros(0) if creep is None else np.full(2 * creep.size, float(p_h))
 
 
+def held(creep: Creep | None, z: FloatArray, hold_s: float) -> FloatArray:
+    """Creep state ``z`` (:func:`run`'s) after its last input is held ``hold_s`` seconds more:
+    each element relaxes toward its play's output, ``z_j -> y_j + (z_j - y_j) exp(-hold / tau_j)``,
+    the plays (their input unchanged) hold theirs.
+
+    Examples
+    --------
+    >>> c = Creep((1.0,), (0.1,))
+    >>> [round(float(v), 4) for v in held(c, np.array([0.0, 1.0]), 1.0)]
+    [0.6321, 1.0]
+    """
+    if creep is None:
+        return np.asarray(z, float).copy()
+    n, zz = creep.size, np.asarray(z, float)
+    y = zz[n:]
+    return np.concatenate((y + (zz[:n] - y) * np.exp(-float(hold_s) / np.asarray(creep.tau_s)),
+                           y))
+
+
 def offset(creep: Creep | None, z: FloatArray) -> float:
     """Creep part ``sum c_j z_j`` of the polarization in state ``z``."""
     if creep is None or z.size == 0:
