@@ -188,24 +188,30 @@ def _coef_columns(y: np.ndarray, ei: np.ndarray, inv: float, mi: np.ndarray,
     ia, na_ = _nonzeros(mi)
     jb, nbj = _nonzeros(mj)
     out = np.zeros((n, mi.shape[1] * nb_ + (ni if plays else 0)))
-    row = np.empty(nb_)
+    rows = np.zeros((ni, nb_))  # each row's erfs, summed per coefficient, at its output ...
+    lines = np.zeros(ni)
+    at = np.full(ni, np.nan)  # ... ``at``: a held play's are not computed again
     for t in range(n):
         for i in range(ni):
-            row[:] = 0.0
-            line = 0.0
-            for j in range(nj):
-                z = (y[t, i] + ei[j]) * inv
-                v = 1.0 if z > 5.0 else (-1.0 if z < -5.0 else math.erf(z))
-                line += v
-                for k in range(nbj[j]):
-                    b = jb[j, k]
-                    row[b] += mj[j, b] * v
+            row = rows[i]
+            if y[t, i] != at[i]:
+                at[i] = y[t, i]
+                row[:] = 0.0
+                line = 0.0
+                for j in range(nj):
+                    z = (y[t, i] + ei[j]) * inv
+                    v = 1.0 if z > 5.0 else (-1.0 if z < -5.0 else math.erf(z))
+                    line += v
+                    for k in range(nbj[j]):
+                        b = jb[j, k]
+                        row[b] += mj[j, b] * v
+                lines[i] = line
             for k in range(na_[i]):
                 a = ia[i, k]
                 for b in range(nb_):
                     out[t, a * nb_ + b] += mi[i, a] * row[b]
             if plays:
-                out[t, mi.shape[1] * nb_ + i] = line
+                out[t, mi.shape[1] * nb_ + i] = lines[i]
     return out
 
 

@@ -224,10 +224,19 @@ def lagged(x: FloatArray, tau_s: FloatArray, dt: float, z0: FloatArray) -> Float
     """Each element's state ``z_j`` before every sample for the input ``x`` (N,) (one element per
     time constant, unit weight), shape (N, n_elements), from ``z_{j,0} = z0[j]``: the columns whose
     combination ``sum c_j z_j`` the fit weighs."""
-    x = np.asarray(x, float)
-    out = np.empty((x.size, len(tau_s)))
-    for j, tau in enumerate(tau_s):
-        out[:, j] = lag(x, tau, dt, float(z0[j]))
+    a = np.array([math.exp(-float(dt) / float(tau)) for tau in tau_s])  # as :func:`lag`'s
+    return _lagged(np.ascontiguousarray(x, dtype=float), a,
+                   np.array([float(v) for v in z0[:a.size]]))
+
+
+@nb.njit(cache=True)
+def _lagged(x: np.ndarray, a: np.ndarray, z0: np.ndarray) -> np.ndarray:
+    out = np.empty((x.size, a.size))
+    z = z0.copy()
+    for t in range(x.size):
+        for j in range(a.size):
+            out[t, j] = z[j]
+            z[j] = (1.0 - a[j]) * x[t] + a[j] * z[j]  # :func:`lag`'s lfilter step, term for term
     return out
 
 
@@ -236,22 +245,25 @@ def _add_columns(out: np.ndarray, x: np.ndarray, idx: np.ndarray, a: np.ndarray,
                  c: np.ndarray, z0: np.ndarray, x0: np.ndarray, fresh: bool
                  ) -> tuple[np.ndarray, np.ndarray]:
     n, k = out.shape
-    z = np.empty((k, a.size))  # each column's elements side by side: the inner loop is contiguous
-    for i in range(k):
-        for j in range(a.size):
-            z[i, j] = x[idx[0], i] if fresh else z0[i, j]
+    z = np.empty((a.size, k))  # element-major: the inner loops run along the columns, contiguous
+    for j in range(a.size):
+        for i in range(k):
+            z[j, i] = x[idx[0], i] if fresh else z0[i, j]
+    acc = np.empty(k)
     for t in range(n):
         row = idx[t]
+        xv = x[row] if row >= 0 else x0
+        acc[:] = 0.0
+        for j in range(a.size):  # each column's sum in the elements' order, as one by one
+            cj, aj, bj = c[j], a[j], 1.0 - a[j]
+            for i in range(k):
+                acc[i] += cj * z[j, i]
+                z[j, i] = aj * z[j, i] + bj * xv[i]
         for i in range(k):
-            acc = 0.0
-            xv = x[row, i] if row >= 0 else x0[i]
-            for j in range(a.size):
-                acc += c[j] * z[i, j]
-                z[i, j] = a[j] * z[i, j] + (1.0 - a[j]) * xv
-            out[t, i] += acc
+            out[t, i] += acc[i]
     last = idx[n - 1]
     held = x[last].copy() if last >= 0 else x0.copy()
-    return z, held
+    return np.ascontiguousarray(z.T), held
 
 
 def add_lag_columns(out: FloatArray, tau_s: FloatArray, weights: FloatArray, x: FloatArray,

@@ -125,6 +125,19 @@ def test_an_element_behind_a_play_keeps_creeping_through_a_small_reversal() -> N
     assert part["play"][1490] < part["play"][990] - 0.05  # a large reversal turns it too
 
 
+def test_lagged_is_each_elements_lfilter_to_the_last_bit() -> None:
+    """:func:`lagged` (one compiled pass over every time constant) equals :func:`lag` (scipy's
+    lfilter) element by element exactly, from given states and from rest."""
+    rng = np.random.default_rng(7)
+    x = np.cumsum(rng.standard_normal(5000))
+    tau, z0 = np.asarray(TAUS), rng.standard_normal(len(TAUS))
+    got = cr.lagged(x, tau, 1e-4, z0)
+    want = np.column_stack([cr.lag(x, t, 1e-4, float(z)) for t, z in zip(tau, z0, strict=True)])
+    assert np.array_equal(got, want)
+    rest = cr.lagged(x, tau, 1e-3, np.full(tau.size, x[0]))
+    assert np.array_equal(rest, np.column_stack([cr.lag(x, t, 1e-3) for t in tau]))
+
+
 def test_lag_columns_of_held_columns_are_the_elements_filters_combined() -> None:
     """:func:`add_lag_columns` on every column of ``x[idx]`` (held where a play last moved)
     equals each element's own filter (:func:`lagged`, scipy's lfilter) weighted and summed,
