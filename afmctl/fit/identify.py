@@ -60,6 +60,9 @@ FLOOR = 1.5
 WARN = 2.0
 #: A different start state must lower the sum of squares by this many noise variances.
 START_MARGIN = 25.0
+#: The grid is asked between the HEM's first solve and its refit from re-chosen starts only if
+#: those starts left more than this share of the first solve's worst error (sweep RMS / noise).
+STARTS_LEFT = 0.5
 #: Two sweeps' sensor zeros disagree when they differ by more than this many times the larger of
 #: their fit RMS (or noise): more than a misfit's mean could shift a fitted offset.
 OFFSET_AGREE = 5.0
@@ -400,7 +403,10 @@ def solve_round(space: pz.LognormalSpace, x0: FloatArray, prob: Problem,
     solution, ratio)``, asked at the re-chosen starts with the first solution's parameters, says
     no refit will matter (the grid far ahead: on preisach-u the refit took 40 of the HEM's 72 s
     and stayed at 43x the noise). Then that solution is returned with its residual at those
-    starts."""
+    starts. ``enough`` is asked only where the re-chosen starts left more than
+    :data:`STARTS_LEFT` of the first solution's worst error: where the starts explained most of
+    it (a stage of the paper's family fitted from the wrong state), the refit may reach the
+    noise floor, and is run first."""
     sol = _solve(space, x0, prob)
     chosen = choose_starts(space, sol.x, prob.y, START_MARGIN * float(np.mean(prob.noise ** 2)))
     if chosen.starts == space.starts:
@@ -409,7 +415,9 @@ def solve_round(space: pz.LognormalSpace, x0: FloatArray, prob: Problem,
         at = optimize.OptimizeResult(sol)
         at.fun = _residual_fn(chosen, prob.y)(sol.x)
         at.cost = 0.5 * float(at.fun @ at.fun)
-        if enough(chosen, at, prob.per_sweep(at.fun)):
+        ratio = prob.per_sweep(at.fun)
+        left = float(np.max(ratio)) > STARTS_LEFT * float(np.max(prob.per_sweep(sol.fun)))
+        if left and enough(chosen, at, ratio):
             prob.say(f"  starts {', '.join(chosen.starts)}: the paper's model not refitted")
             return chosen, at
     prob.say(f"  starts {', '.join(chosen.starts)}: refitting")

@@ -225,6 +225,8 @@ def lagged(x: FloatArray, tau_s: FloatArray, dt: float, z0: FloatArray) -> Float
     time constant, unit weight), shape (N, n_elements), from ``z_{j,0} = z0[j]``: the columns whose
     combination ``sum c_j z_j`` the fit weighs."""
     a = np.array([math.exp(-float(dt) / float(tau)) for tau in tau_s])  # as :func:`lag`'s
+    if len(z0) < a.size:  # the compiled loop checks no bounds
+        raise ValueError(f"lagged: {len(z0)} start states for {a.size} time constants")
     return _lagged(np.ascontiguousarray(x, dtype=float), a,
                    np.array([float(v) for v in z0[:a.size]]))
 

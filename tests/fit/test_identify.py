@@ -278,3 +278,28 @@ def test_foreign_stage_reaches_its_noise_floor(index: int, design: str, start: s
     assert res.success
     for s in res.sweeps:
         assert s.rms_um <= 1.5 * stage.sensor.noise_um, (s.file, s.rms_um, stage.sensor.noise_um)
+
+
+def test_a_stage_of_the_family_fitted_from_the_wrong_start_is_solved_again_before_the_grid() -> None:
+    """The grid is asked between the HEM's two solves only where the re-chosen starts leave most
+    of the first solve's error (an out-of-family stage): on a poled stage of the paper's family
+    fitted depoled, the starts explain the misfit, so the HEM is solved again from them, whatever
+    the grid would say, and reaches the noise floor."""
+    from afmctl.fit import noise as ns
+    from afmctl.fit import parametrization as pz
+    sweeps = _semi_bipolar("positive", seed=3)
+    settings = idf.Settings(max_nfev=60)
+    preps = [pz.prepare(s, 100.0, settings.field_step, None) for s in sweeps]
+    noise = np.array([ns.sensor_noise_um(s.displacement_um) for s in sweeps])
+    prob = idf.Problem(sweeps, preps, np.concatenate([p.y for p in preps]), noise, settings,
+                       lambda _m: None)
+    asked: list[float] = []
+
+    def grid_far_ahead(space: object, sol: object, ratio: np.ndarray) -> bool:
+        asked.append(float(np.max(ratio)))
+        return True
+
+    depoled = pz.LognormalSpace(preps, pz.Scales(), 256)
+    space, sol = idf.solve_round(depoled, np.log(FAR_THETA * 1.1), prob, grid_far_ahead)
+    assert "depoled" not in space.starts and not asked
+    assert np.max(prob.per_sweep(sol.fun)) <= idf.FLOOR
