@@ -32,7 +32,6 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
-from scipy import signal
 
 FloatArray = NDArray[np.float64]
 
@@ -210,21 +209,13 @@ def step_response(creep: Creep, t_s: FloatArray) -> FloatArray:
     return np.sum(np.asarray(creep.weights) * -np.expm1(-t / np.asarray(creep.tau_s)), axis=-1)
 
 
-def lag(x: FloatArray, tau_s: float, dt: float, z0: FloatArray | float | None = None) -> FloatArray:
-    """One creep element's state before every sample, along axis 0 of ``x`` (unit weight):
-    ``z_{k+1} = a z_k + (1 - a) x_k``, ``a = exp(-dt / tau)``, from ``z_0 = z0`` (default ``x[0]``:
-    at rest)."""
-    x = np.asarray(x, float)
-    a = math.exp(-float(dt) / float(tau_s))
-    zi = (x[:1] if z0 is None else np.broadcast_to(np.asarray(z0, float), x[:1].shape)).copy()
-    return signal.lfilter([0.0, 1.0 - a], [1.0, -a], x, axis=0, zi=zi)[0]
-
-
 def lagged(x: FloatArray, tau_s: FloatArray, dt: float, z0: FloatArray) -> FloatArray:
     """Each element's state ``z_j`` before every sample for the input ``x`` (N,) (one element per
     time constant, unit weight), shape (N, n_elements), from ``z_{j,0} = z0[j]``: the columns whose
-    combination ``sum c_j z_j`` the fit weighs."""
-    a = np.array([math.exp(-float(dt) / float(tau)) for tau in tau_s])  # as :func:`lag`'s
+    combination ``sum c_j z_j`` the fit weighs. ``z_{j,k+1} = a_j z_{j,k} + (1 - a_j) x_k``,
+    ``a_j = exp(-dt / tau_j)``: the first-order filter ``scipy.signal.lfilter`` computes, to the
+    last bit (``tests/model/test_creep.py``)."""
+    a = np.array([math.exp(-float(dt) / float(tau)) for tau in tau_s])
     if len(z0) < a.size:  # the compiled loop checks no bounds
         raise ValueError(f"lagged: {len(z0)} start states for {a.size} time constants")
     return _lagged(np.ascontiguousarray(x, dtype=float), a,
@@ -238,7 +229,7 @@ def _lagged(x: np.ndarray, a: np.ndarray, z0: np.ndarray) -> np.ndarray:
     for t in range(x.size):
         for j in range(a.size):
             out[t, j] = z[j]
-            z[j] = (1.0 - a[j]) * x[t] + a[j] * z[j]  # :func:`lag`'s lfilter step, term for term
+            z[j] = (1.0 - a[j]) * x[t] + a[j] * z[j]  # lfilter's step, term for term
     return out
 
 
