@@ -48,6 +48,7 @@ from threadpoolctl import threadpool_limits
 
 from afmctl.files.sweepfile import Sweep, holds_s
 from afmctl.fit import parametrization as pz
+from afmctl.fit import preisach_coarse as pc
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.preisach_problem import (
     BLOCKS,
@@ -271,7 +272,7 @@ class Runs:
 
 def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
          settings: Settings, say: Callable[[str], None], on_force: bool = True,
-         creep_above: float = 0.0) -> Runs:
+         creep_above: float = 0.0, coarse: bool = False) -> Runs:
     """The grid fitted without and with creep at the middle smoothing (and, if ``on_force``,
     with creep on the force).
 
@@ -290,6 +291,11 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     creep_above : float
         Fit creep only if the fit without it is above this many times some sweep's noise
         (identify: :data:`CREEP_ABOVE`; 0, always: diagnose judges both).
+    coarse : bool
+        Run the fits on the problem with its slow sweeps in block means
+        (:mod:`afmctl.fit.preisach_coarse`); the runs returned hold the full problems (their
+        creep elements set as the fits left them), on which each fit is judged and shown, and
+        from which the caller takes its last steps (identify's).
 
     Returns
     -------
@@ -315,36 +321,64 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                      0.0, math.log(rod0[0]), math.log(rod0[1]),
                      np.array([float(np.mean(y)) for y in data.y]))
 
-    top: list[tuple[float, Problem, Theta]] = []  # the best two (each holds its basis columns)
+    sizes = (pc.blocks(data.fields, data.dts, min(settings.creep_taus_s)) if coarse
+             else [1] * len(data.fields))
+    top: list[tuple[float, Fitted, Theta]] = []  # the best two (each holds its basis columns)
     for starts in cands:  # the start states: one linear step each, the cheapest to compare
-        prob = Problem(data, grid, starts, settings.creep_taus_s)
-        run = gauss_newton(prob, start_theta(), pen, lam0, False, 1)
-        top = sorted([*top, (run.cost, prob, run.theta)], key=lambda r: r[0])[:2]
+        full = Problem(data, grid, starts, settings.creep_taus_s)
+        fitted = Fitted(full, pc.coarse(full, sizes) if max(sizes) > 1 else full)
+        run = gauss_newton(fitted.fit, start_theta(), pen, lam0, False, 1)
+        top = sorted([*top, (run.cost, fitted, run.theta)], key=lambda r: r[0])[:2]
     best, runner_up = top[0], (top[1] if len(top) > 1 else None)
     prob = best[1]
     say(f"Preisach grid {ec.size} x {ei.size} from {settings.coef_coercive} x "
         f"{settings.coef_interaction} coefficients{f' and {ec.size} plays' if grid.plays else ''}"
         f" ({grid.active.size} the sweeps move), "
-        f"starts {', '.join(prob.starts)}")
-    plain = _plain(prob, best[2], pen, lam0, settings)
+        f"starts {', '.join(prob.full.starts)}"
+        + ("" if max(sizes) == 1 else
+           f"; first fitted with sweeps in means of {', '.join(map(str, sizes))} samples"))
+    plain = _plain(prob.fit, best[2], pen, lam0, settings)
     crept = forced = crept_force = None
-    if float(np.max(prob.ratios(plain.theta))) <= creep_above:
+    if float(np.max(prob.full.ratios(plain.theta))) <= creep_above:
         say(f"  no creep fitted: without it every sweep is within {creep_above:g}x its noise")
     else:
-        crept = _crept(prob, plain.theta, pen, lam0, settings)
-        if runner_up is not None and _retry(prob, plain, crept):
+        crept = _crept(prob.fit, plain.theta, pen, lam0, settings)
+        if runner_up is not None and _retry(prob.synced(), plain, crept):
             prob, plain, crept = _retried(prob, plain, crept, runner_up, pen, lam0, settings, say)
-    shown = [("without creep", prob, plain)] + ([("with creep", prob, crept)] if crept else [])
+    shown = [("without creep", prob.full, plain)]
+    shown += [("with creep", prob.synced(), crept)] if crept else []
     if on_force and crept is not None:
-        forced = copy.copy(prob)
-        forced.creep_on_force = True
-        crept_force = _crept(forced, plain.theta, pen, lam0, settings, crept.theta)
-        shown.append(("with creep on the force", forced, crept_force))
+        forced = prob.forced()
+        crept_force = _crept(forced.fit, plain.theta, pen, lam0, settings, crept.theta)
+        shown.append(("with creep on the force", forced.synced(), crept_force))
     for label, p, run in shown:
         say(f"  {label}: RMS / noise per sweep "
             + " / ".join(f"{r:.2f}" for r in p.ratios(run.theta))
             + f" ({run.iterations} steps{'' if run.converged else ', stopped on its budget'})")
-    return Runs(prob, pen, lam0, plain, crept, forced, crept_force)
+    return Runs(prob.synced(), pen, lam0, plain, crept,
+                None if forced is None else forced.synced(), crept_force)
+
+
+@dataclass(frozen=True)
+class Fitted:
+    """A start assignment's problem: ``full``, and ``fit``, the one its runs are fitted on (the
+    full one, or that with its slow sweeps in block means: :mod:`afmctl.fit.preisach_coarse`)."""
+
+    full: Problem
+    fit: Problem
+
+    def synced(self) -> Problem:
+        """The full problem with the creep elements the fits set (thresholds, placement)."""
+        if self.fit is not self.full:
+            self.full.set_thresholds(self.fit.thresholds)
+            self.full.creep_on_force = self.fit.creep_on_force
+        return self.full
+
+    def forced(self) -> Fitted:
+        """Copies of both with the creep on the force."""
+        full, fit = copy.copy(self.full), copy.copy(self.fit)
+        full.creep_on_force = fit.creep_on_force = True
+        return Fitted(full, fit if self.fit is not self.full else full)
 
 
 def _plain(prob: Problem, th: Theta, pen: FloatArray, lam: float, settings: Settings) -> Run:
@@ -360,18 +394,20 @@ def _retry(prob: Problem, plain: Run, crept: Run) -> bool:
     return bool(np.max(after) > RETRY_ABOVE and np.sum(after ** 2) < 0.5 * np.sum(before ** 2))
 
 
-def _retried(prob: Problem, plain: Run, crept: Run, runner_up: tuple[float, Problem, Theta],
+def _retried(prob: Fitted, plain: Run, crept: Run, runner_up: tuple[float, Fitted, Theta],
              pen: FloatArray, lam: float, settings: Settings, say: Callable[[str], None]
-             ) -> tuple[Problem, Run, Run]:
+             ) -> tuple[Fitted, Run, Run]:
     """The fits without and with creep again from the runner-up start assignment; the pair whose
-    creep fit misses the sweeps less (sum of squares over the noise) is returned."""
+    creep fit misses the sweeps less (sum of squares over the noise, on the full problems) is
+    returned."""
     other = runner_up[1]
-    alt_plain = _plain(other, runner_up[2], pen, lam, settings)
-    alt = _crept(other, alt_plain.theta, pen, lam, settings)
-    miss = [float(np.sum(p.ratios(r.theta) ** 2)) for p, r in ((prob, crept), (other, alt))]
-    say(f"  creep fit from starts {', '.join(prob.starts)} left {miss[0]:.3g}, from "
-        f"{', '.join(other.starts)} {miss[1]:.3g} (sum of (RMS / noise)^2): "
-        f"kept {', '.join((other if miss[1] < miss[0] else prob).starts)}")
+    alt_plain = _plain(other.fit, runner_up[2], pen, lam, settings)
+    alt = _crept(other.fit, alt_plain.theta, pen, lam, settings)
+    miss = [float(np.sum(p.synced().ratios(r.theta) ** 2)) for p, r in ((prob, crept),
+                                                                        (other, alt))]
+    say(f"  creep fit from starts {', '.join(prob.full.starts)} left {miss[0]:.3g}, from "
+        f"{', '.join(other.full.starts)} {miss[1]:.3g} (sum of (RMS / noise)^2): "
+        f"kept {', '.join((other if miss[1] < miss[0] else prob).full.starts)}")
     return (other, alt_plain, alt) if miss[1] < miss[0] else (prob, plain, crept)
 
 
@@ -402,7 +438,8 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
          thickness_um: float, mass_kg: float, settings: Settings,
          say: Callable[[str], None]) -> PreisachFit:
     t0 = time.perf_counter()
-    fitted = runs(data, starts_candidates, rod0, settings, say, creep_above=CREEP_ABOVE)
+    fitted = runs(data, starts_candidates, rod0, settings, say, creep_above=CREEP_ABOVE,
+                  coarse=True)
     pen = fitted.penalty
     runs_by = {"no creep": (fitted.problem, False, fitted.plain)}
     if fitted.crept is not None:
@@ -422,6 +459,7 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     _, label, lam, per = choice
     prob, creep, run = runs_by[label]
     final = gauss_newton(prob, run.theta, pen, lam, creep, settings.max_iter)
+    per = heldout(prob, final.theta, pen, [lam], creep)[lam]  # of the fit written
     say("  held-out RMS / noise per sweep "
         + " / ".join(f"{r:.2f}" for r in per / data.noise)
         + f" ({'with ' + label if creep else 'without creep'}, smoothing {lam:g}; "

@@ -312,6 +312,15 @@ def rod_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
     return out.reshape(x.shape)
 
 
+def quasi_static(x: FloatArray, fn: float, zeta: float, dt: float, h: float) -> FloatArray:
+    """The block means of ``L[x]`` (along axis 0) for ``x`` given as block means ``h`` (s)
+    apart, on a sweep slow to the rod (:mod:`afmctl.fit.preisach_coarse`): the force is held
+    over each sample ``dt`` (s), half a sample late on average, and the rod lags it by
+    ``2 zeta / omega``, so ``x - (dt / 2 + 2 zeta / omega) dx/dt`` (central differences)."""
+    lag = 0.5 * dt + 2.0 * zeta / (2.0 * math.pi * fn)
+    return x - lag * np.gradient(x, h, axis=0) if x.shape[0] > 1 else x.copy()
+
+
 def output_map(q: FloatArray, s: float, t: float) -> FloatArray:
     """``g(Q) = Q + s Q^2 + t Q^3`` (um): the force of (16) with a cubic term, in the fit's frame.
     A Preisach operator followed by a static map that is not affine has minor loops that are not
@@ -400,6 +409,9 @@ class Problem:
         self.fn_bounds = (0.5, 10.0 / min(data.dts))  # up to 20x the Nyquist frequency
         self.noise_sse = float(sum(y.size * n * n for y, n in zip(data.y, data.noise,
                                                                    strict=True)))
+        #: samples per row of each sweep: 1, or a sweep seen in block means
+        #: (:mod:`afmctl.fit.preisach_coarse`; its rows then weigh that many samples each)
+        self.blocks = [1] * len(data.fields)
         self.phi: list[FloatArray] = []
         y_end: FloatArray | None = None
         for e, start in zip(data.fields, self.starts, strict=True):
@@ -521,13 +533,28 @@ class Problem:
                        else output_map(x + z @ th.c + tr, th.s, th.t))
         return out
 
+    def rod(self, i: int, x: FloatArray, fn: float, zeta: float) -> FloatArray:
+        """``L[x]`` on sweep ``i`` (every row): :func:`rod_filter`, or on a sweep seen in block
+        means its quasi-static limit (:func:`quasi_static`)."""
+        m, dt = self.blocks[i], self.data.dts[i]
+        return rod_filter(x, fn, zeta, dt) if m == 1 else quasi_static(x, fn, zeta, dt / m, dt)
+
+    def _rows(self, i: int, x: FloatArray, scale: FloatArray, fn: float, zeta: float,
+              rows: NDArray[np.intp], out: FloatArray, col0: int) -> None:
+        """:func:`rod_rows` on sweep ``i`` (its quasi-static limit on a sweep in block means)."""
+        if self.blocks[i] == 1:
+            rod_rows(x, scale, fn, zeta, self.data.dts[i], rows, out, col0)
+            return
+        x2 = x.reshape(x.shape[0], -1)
+        out[:, col0:col0 + x2.shape[1]] = self.rod(i, scale[:, None] * x2, fn, zeta)[rows]
+
     def predict(self, th: Theta, full: bool = False) -> list[FloatArray]:
         """Readings on each sweep's judged samples (``full``: on all its samples), um."""
         fn, zeta = math.exp(th.log_fn), math.exp(th.log_zeta)
         out = []
-        for g, dt, m, off in zip(self.forces(th), self.data.dts, self.data.masks, th.offsets,
-                                 strict=True):
-            u = rod_filter(g, fn, zeta, dt) + off
+        for i, (g, m, off) in enumerate(zip(self.forces(th), self.data.masks, th.offsets,
+                                            strict=True)):
+            u = self.rod(i, g, fn, zeta) + off
             out.append(u if full else u[m])
         return out
 
@@ -537,8 +564,8 @@ class Problem:
                          zip(self.data.y, self.predict(th), self.data.noise, strict=True)])
 
     def cost(self, th: Theta, pen: FloatArray, lam: float) -> float:
-        res = sum(float(np.sum((y - u) ** 2)) for y, u in zip(self.data.y, self.predict(th),
-                                                               strict=True))
+        res = sum(m * float(np.sum((y - u) ** 2)) for m, y, u in
+                  zip(self.blocks, self.data.y, self.predict(th), strict=True))
         return res + lam * float(np.sum((pen @ th.w) ** 2))
 
     def linearize(self, th: Theta, creep: bool) -> tuple[list[FloatArray], list[FloatArray]]:
@@ -561,30 +588,31 @@ class Problem:
                                                         self.transients(th), zs, strict=True)):
             c = parts(th, creep, p, e, dt, tr if creep else np.zeros(e.size), z,
                       Link(starts[i], gaps[i], carry))
-            lg = rod_filter(c.force, fn, zeta, dt)
+            lg = self.rod(i, c.force, fn, zeta)
             rows = np.flatnonzero(m)
             k, n_z = p.shape[1], c.lags.shape[1]
             a = np.zeros((rows.size, k + 1 + n_z + MAP + 2 + n_s + n_d))
-            rod_rows(c.weights, c.scale, fn, zeta, dt, rows, a, 0)
-            rod_rows(c.reversible, c.scale, fn, zeta, dt, rows, a, k)
+            self._rows(i, c.weights, c.scale, fn, zeta, rows, a, 0)
+            self._rows(i, c.reversible, c.scale, fn, zeta, rows, a, k)
             if creep:
-                rod_rows(c.lags, c.scale, fn, zeta, dt, rows, a, k + 1)
+                self._rows(i, c.lags, c.scale, fn, zeta, rows, a, k + 1)
             j = k + 1 + n_z
-            a[:, j] = rod_filter(c.square, fn, zeta, dt)[m]
+            a[:, j] = self.rod(i, c.square, fn, zeta)[m]
             if self.cubic:
-                a[:, j + 1] = rod_filter(c.cube, fn, zeta, dt)[m]
+                a[:, j + 1] = self.rod(i, c.cube, fn, zeta)[m]
             known = a[:, :j + MAP] @ np.concatenate((th.w, [th.r], th.c if creep else [],
                                                      [th.s, th.t]))
             j += MAP
-            a[:, j] = ((rod_filter(c.force, fn * math.exp(step), zeta, dt) - lg) / step)[m]
-            a[:, j + 1] = ((rod_filter(c.force, fn, zeta * math.exp(step), dt) - lg) / step)[m]
+            a[:, j] = ((self.rod(i, c.force, fn * math.exp(step), zeta) - lg) / step)[m]
+            a[:, j + 1] = ((self.rod(i, c.force, fn, zeta * math.exp(step)) - lg) / step)[m]
             a[:, j + 2 + i] = 1.0
             if creep and self.n_trans[i]:
                 at = j + 2 + n_s + d_at[i]
-                rod_rows(self.trans[i], c.scale, fn, zeta, dt, rows, a, at)
+                self._rows(i, self.trans[i], c.scale, fn, zeta, rows, a, at)
                 known += a[:, at:at + self.n_trans[i]] @ th.d[d_at[i]:d_at[i + 1]]
-            designs.append(a)
-            rhs.append(y - (lg[m] - known))
+            w = math.sqrt(self.blocks[i])  # a row in block means weighs its samples
+            designs.append(a * w if w != 1.0 else a)
+            rhs.append(w * (y - (lg[m] - known)))
         return designs, rhs
 
     def _on_polarization(self, th: Theta, creep: bool, p: FloatArray, e: FloatArray,

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize
 
-from afmctl.fit.preisach_problem import FOLDS, MAP, Grid, Problem, Theta, rod_filter
+from afmctl.fit.preisach_problem import FOLDS, MAP, Grid, Problem, Theta
 
 FloatArray = NDArray[np.float64]
 #: A Gauss-Newton fit has converged once a step lowers the cost by less than this share of the
@@ -219,9 +219,9 @@ def refit_rod(prob: Problem, th: Theta) -> Theta:
     def residual(x: FloatArray) -> FloatArray:
         fn, zeta = math.exp(float(x[0])), math.exp(float(x[1]))
         out = []
-        for g, dt, m, y in zip(forces, prob.data.dts, prob.data.masks, prob.data.y, strict=True):
-            r = y - rod_filter(g, fn, zeta, dt)[m]
-            out.append(r - np.mean(r))
+        for i, (g, m, y) in enumerate(zip(forces, prob.data.masks, prob.data.y, strict=True)):
+            r = y - prob.rod(i, g, fn, zeta)[m]
+            out.append(math.sqrt(prob.blocks[i]) * (r - np.mean(r)))
         return np.concatenate(out)
 
     lo = np.log([prob.fn_bounds[0], ZETA_BOUNDS[0]])
@@ -239,9 +239,9 @@ def refit_rod(prob: Problem, th: Theta) -> Theta:
     out = th.copy()
     out.log_fn, out.log_zeta = float(best[0]), float(best[1])
     fn, zeta = math.exp(out.log_fn), math.exp(out.log_zeta)
-    out.offsets = np.array([float(np.mean(y - rod_filter(g, fn, zeta, dt)[m]))
-                            for g, dt, m, y in zip(forces, prob.data.dts, prob.data.masks,
-                                                   prob.data.y, strict=True)])
+    out.offsets = np.array([float(np.mean(y - prob.rod(i, g, fn, zeta)[m]))
+                            for i, (g, m, y) in enumerate(zip(forces, prob.data.masks,
+                                                              prob.data.y, strict=True))])
     return out
 
 

@@ -1,0 +1,81 @@
+"""The Preisach grid's problem with its slow sweeps in block means (afmctl.fit.preisach_coarse)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from afmctl.fit import preisach as pf
+from afmctl.fit import preisach_coarse as pc
+from afmctl.fit import preisach_problem as pp
+from afmctl.model import creep as cr
+from afmctl.planning import sweepdesign as sd
+from tests.fit.test_preisach_fit import data_of
+from tests.harness.preisach_plant import PreisachStage, standard_sweeps
+
+
+def _means(x: np.ndarray, m: int) -> np.ndarray:
+    n = (x.size // m) * m
+    return x[:n].reshape(-1, m).mean(axis=1)
+
+
+def test_the_quasi_static_rod_is_the_rods_block_means_on_a_slow_sweep() -> None:
+    """A 0.279 Hz triangle at 10 kHz through a 400 Hz rod damped 0.4, averaged over blocks of 89
+    samples: the quasi-static limit (half a sample late, through the rod's lag 2 zeta / omega)
+    gives those means to within 2 % of the lag it models, away from the triangle's corners; the
+    plain block means miss by the whole lag. At a corner the central difference spans the turn
+    and misses by about half the lag (0.006 um here, under any stage's sensor noise): what the
+    full problem's last steps see."""
+    dt, m, fn, zeta = 1e-4, 89, 400.0, 0.4
+    x = 40.0 + 30.0 * sd.loop(0.279, -1.0, 1.0, 2, 1.0 / dt)  # um
+    want = _means(pp.rod_filter(x, fn, zeta, dt), m)
+    got = pp.quasi_static(_means(x, m), fn, zeta, dt, m * dt)
+    slope = 2.0 * 60.0 * 0.279  # um/s
+    lag = slope * (0.5 * dt + 2.0 * zeta / (2.0 * math.pi * fn))  # um
+    t = (np.arange(want.size) + 0.5) * m * dt
+    d = (t * 0.279 - 0.25) % 0.5  # turns at a quarter and three quarters of a period
+    corner = (np.minimum(d, 0.5 - d) < 0.03) | (t < 0.1) | (t > t[-1] - 0.1)  # 0.1 s about
+    assert np.max(np.abs(got - want)[~corner]) < 0.02 * lag
+    assert np.max(np.abs(got - want)) < 0.6 * lag
+    assert np.median(np.abs(_means(x, m) - want)[~corner]) > 0.9 * lag
+
+
+def test_only_a_slow_sweep_is_seen_in_blocks() -> None:
+    """The independent plant's standard design (0.279 Hz nested loops at 1 kHz, 5.58 Hz at
+    5 kHz, 27.9 Hz at 10 kHz): only the slow sweep (at most 1.2 % of the fast one's field
+    rate), in blocks of 7 samples (its field moves at most 0.069 % of the range per sample; a
+    creep element of 5 ms would allow 5)."""
+    data = data_of(standard_sweeps(PreisachStage(seed=3)))
+    assert pc.blocks(data.fields, data.dts, 0.01) == [7, 1, 1]
+    assert pc.blocks(data.fields, data.dts, 0.005) == [5, 1, 1]
+    assert pc.blocks(data.fields[:1], data.dts[:1], 0.01) == [1]  # alone, it is the fastest
+
+
+def test_a_fit_in_block_means_ends_where_the_full_fit_does() -> None:
+    """On the independent Preisach plant with creep of 1.5 % per decade: the grid and its creep
+    fitted on the problem with the slow sweep in block means, then a few steps on the full
+    problem, reach the full fit's misfit per sweep within 2 %, with the same creep per decade
+    of time (0.1-100 s after a step) within 10 %; and the block problem's cost at a point is the full one's less the
+    noise averaged out in the blocks, within 10 % of the noise's sum of squares."""
+    data = data_of(standard_sweeps(PreisachStage(seed=3, creep_per_element=0.0075)))
+    settings = pf.Settings()
+    full = pf.runs(data, [("positive",) * 3], (2000.0, 0.3), settings, lambda _m: None,
+                   on_force=False, creep_above=0.0)
+    quick = pf.runs(data, [("positive",) * 3], (2000.0, 0.3), settings, lambda _m: None,
+                    on_force=False, creep_above=0.0, coarse=True)
+    assert quick.crept is not None and full.crept is not None
+    last = pf.gauss_newton(quick.problem, quick.crept.theta, quick.penalty, quick.smoothing, True,
+                           settings.max_iter)
+    ref = full.problem.ratios(full.crept.theta)
+    got = quick.problem.ratios(last.theta)
+    np.testing.assert_allclose(got, ref, rtol=0.02)
+    decade = [cr.Creep(tuple(map(float, full.problem.el_tau)), tuple(map(float, r.theta.c))
+                       ).per_decade() for r in (full.crept, last)]
+    assert abs(decade[1] - decade[0]) < 0.1 * decade[0], decade
+    blocked = pc.coarse(full.problem, pc.blocks(data.fields, data.dts, 0.01))
+    th, pen, lam = full.crept.theta, full.penalty, 0.0
+    averaged_out = sum((1 - 1 / m) * y.size * n * n for m, y, n in
+                       zip(blocked.blocks, full.problem.data.y, data.noise, strict=True))
+    assert abs(blocked.cost(th, pen, lam) - (full.problem.cost(th, pen, lam) - averaged_out)
+               ) < 0.1 * full.problem.noise_sse
