@@ -58,7 +58,8 @@ from numpy.typing import NDArray
 from scipy import optimize
 
 from afmctl.fit import uncertainty as unc
-from afmctl.fit.preisach_problem import Data, rod_filter
+from afmctl.fit.preisach_problem import Data
+from afmctl.fit.rod_response import rod_filter
 from afmctl.model import boucwen as bwm
 from afmctl.model import creep as cr
 from afmctl.model import hysteresis as hy

@@ -44,7 +44,7 @@ from afmctl.fit import identify as idf
 from afmctl.fit import openloops
 from afmctl.fit import parametrization as pz
 from afmctl.fit import uncertainty as unc
-from afmctl.fit.preisach_problem import rod_filter
+from afmctl.fit.rod_response import rod_filter
 from afmctl.model import effects as fx
 from afmctl.model import transducer as td
 

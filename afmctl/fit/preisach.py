@@ -65,7 +65,6 @@ from afmctl.fit.preisach_problem import (
     basis,
     hat_matrix,
     make_grid,
-    rod_filter,
 )
 from afmctl.fit.preisach_solver import (
     Run,
@@ -76,6 +75,7 @@ from afmctl.fit.preisach_solver import (
     penalty,
     refit_rod,
 )
+from afmctl.fit.rod_response import rod_filter
 from afmctl.model import creep as cr
 from afmctl.model import preisach as pr
 from afmctl.model import rod as rd

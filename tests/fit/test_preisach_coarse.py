@@ -8,7 +8,7 @@ import numpy as np
 
 from afmctl.fit import preisach as pf
 from afmctl.fit import preisach_coarse as pc
-from afmctl.fit import preisach_problem as pp
+from afmctl.fit import rod_response as rr
 from afmctl.model import creep as cr
 from afmctl.planning import sweepdesign as sd
 from tests.fit.test_preisach_fit import data_of
@@ -29,8 +29,8 @@ def test_the_quasi_static_rod_is_the_rods_block_means_on_a_slow_sweep() -> None:
     full problem's last steps see."""
     dt, m, fn, zeta = 1e-4, 89, 400.0, 0.4
     x = 40.0 + 30.0 * sd.loop(0.279, -1.0, 1.0, 2, 1.0 / dt)  # um
-    want = _means(pp.rod_filter(x, fn, zeta, dt), m)
-    got = pp.quasi_static(_means(x, m), fn, zeta, dt, m * dt)
+    want = _means(rr.rod_filter(x, fn, zeta, dt), m)
+    got = rr.quasi_static(_means(x, m), fn, zeta, dt, m * dt)
     slope = 2.0 * 60.0 * 0.279  # um/s
     lag = slope * (0.5 * dt + 2.0 * zeta / (2.0 * math.pi * fn))  # um
     t = (np.arange(want.size) + 0.5) * m * dt

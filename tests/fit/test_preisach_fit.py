@@ -242,20 +242,20 @@ def test_rod_rows_is_the_rod_filter_of_the_scaled_columns_at_the_rows() -> None:
     """The design's in-place kernel against the plain filter: ``L[scale x][rows]`` for rows that
     include the first sample and skip others, written from a column offset; no row, no write;
     rows out of order or out of range refused (the compiled loop checks no bounds)."""
-    from afmctl.fit import preisach_problem as pp
+    from afmctl.fit import rod_response as rr
 
     rng = np.random.default_rng(7)
     x, scale = rng.standard_normal((400, 3)), 1.0 + 0.1 * rng.standard_normal(400)
     rows = np.flatnonzero(rng.random(400) < 0.3)
     rows[0] = 0
     out = np.full((rows.size, 5), np.nan)
-    pp.rod_rows(x, scale, 900.0, 0.05, 1e-4, rows, out, 2)
-    want = pp.rod_filter(scale[:, None] * x, 900.0, 0.05, 1e-4)[rows]
+    rr.rod_rows(x, scale, 900.0, 0.05, 1e-4, rows, out, 2)
+    want = rr.rod_filter(scale[:, None] * x, 900.0, 0.05, 1e-4)[rows]
     np.testing.assert_allclose(out[:, 2:], want, rtol=1e-12, atol=1e-12)
     assert np.isnan(out[:, :2]).all()
-    pp.rod_rows(x, scale, 900.0, 0.05, 1e-4, rows[:0], np.zeros((0, 3)), 0)
+    rr.rod_rows(x, scale, 900.0, 0.05, 1e-4, rows[:0], np.zeros((0, 3)), 0)
     for bad in (rows[::-1], np.array([0, 400]), np.array([3, 3])):
         with pytest.raises(ValueError):
-            pp.rod_rows(x, scale, 900.0, 0.05, 1e-4, bad, np.zeros((bad.size, 3)), 0)
+            rr.rod_rows(x, scale, 900.0, 0.05, 1e-4, bad, np.zeros((bad.size, 3)), 0)
     with pytest.raises(ValueError):
-        pp.rod_rows(x, scale, 900.0, 0.05, 1e-4, rows, out, 3)  # no room from column 3
+        rr.rod_rows(x, scale, 900.0, 0.05, 1e-4, rows, out, 3)  # no room from column 3
