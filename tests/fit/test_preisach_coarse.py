@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from afmctl.fit import preisach as pf
 from afmctl.fit import preisach_coarse as pc
@@ -42,23 +43,28 @@ def test_the_quasi_static_rod_is_the_rods_block_means_on_a_slow_sweep() -> None:
 
 
 def test_only_a_slow_sweep_is_seen_in_blocks() -> None:
-    """The independent plant's standard design (0.279 Hz nested loops at 1 kHz, 5.58 Hz at
-    5 kHz, 27.9 Hz at 10 kHz): only the slow sweep (at most 1.2 % of the fast one's field
-    rate), in blocks of 7 samples (its field moves at most 0.069 % of the range per sample; a
-    creep element of 5 ms would allow 5)."""
-    data = data_of(standard_sweeps(PreisachStage(seed=3)))
-    assert pc.blocks(data.fields, data.dts, 0.01) == [7, 1, 1]
-    assert pc.blocks(data.fields, data.dts, 0.005) == [5, 1, 1]
-    assert pc.blocks(data.fields[:1], data.dts[:1], 0.01) == [1]  # alone, it is the fastest
+    """The standard triangles (0.279, 5.58 and 27.9 Hz over 0-150 V, at 10 kHz): only the slow
+    one (1 % of the fast one's field rate), in blocks of 35 samples (its field moves 0.0056 % of
+    the range per sample, 0.2 % in 35.8); a creep element of 2 ms would allow 20."""
+    fields = [sd.loop(f, 0.0, 150.0, n, 1e4) / 100.0 for f, n in ((0.279, 2), (5.58, 5),
+                                                                 (27.9, 10))]
+    dts = [1e-4] * 3
+    assert pc.blocks(fields, dts, 0.01) == [35, 1, 1]
+    assert pc.blocks(fields, dts, 0.002) == [20, 1, 1]
+    assert pc.blocks(fields[:1], dts[:1], 0.01) == [1]  # alone, it is the fastest
 
 
-def test_a_fit_in_block_means_ends_where_the_full_fit_does() -> None:
-    """On the independent Preisach plant with creep of 1.5 % per decade: the grid and its creep
-    fitted on the problem with the slow sweep in block means, then a few steps on the full
-    problem, reach the full fit's misfit per sweep within 2 %, with the same creep per decade
+def test_a_fit_in_block_means_ends_where_the_full_fit_does(monkeypatch: pytest.MonkeyPatch
+                                                           ) -> None:
+    """On the independent Preisach plant with creep of 1.5 % per decade, its slow sweep at 1 kHz
+    in blocks of 7 samples (0.5 % of the range, coarser than the default's 0.2 %, which would
+    make blocks of 2 of this short sweep: too few to block): the grid and its creep fitted on
+    the problem with the slow sweep in block means, then a few steps on the full problem, reach the full fit's misfit per sweep within 2 %, with the same creep per decade
     of time (0.1-100 s after a step) within 10 %; and the block problem's cost at a point is the full one's less the
     noise averaged out in the blocks, within 10 % of the noise's sum of squares."""
+    monkeypatch.setattr(pc, "BLOCK_SHARE", 0.005)
     data = data_of(standard_sweeps(PreisachStage(seed=3, creep_per_element=0.0075)))
+    assert pc.blocks(data.fields, data.dts, 0.01) == [7, 1, 1]
     settings = pf.Settings()
     full = pf.runs(data, [("positive",) * 3], (2000.0, 0.3), settings, lambda _m: None,
                    on_force=False, creep_above=0.0)
