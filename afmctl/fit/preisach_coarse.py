@@ -7,7 +7,7 @@ density, the creep's fastest element or the rod can tell. :func:`coarse` gives t
 with such a sweep seen as the means of blocks of samples (:func:`blocks`): the basis columns, the
 field and the readings averaged over each block (the hysteresis's memory is the full rate's:
 its columns are), the creep stepped block by block, the rod in its quasi-static limit
-(:func:`afmctl.fit.preisach_problem.quasi_static`), each row weighed by its block's samples. It
+(:func:`afmctl.fit.rod_response.quasi_static`), each row weighed by its block's samples. It
 has the same parameters as the full problem, so a fit on it is a start for the full one: the
 grid's first fits run on it, and the full problem judges them and takes the last steps
 (:func:`afmctl.fit.preisach.runs`). Pure numerics: no I/O.
@@ -31,7 +31,8 @@ SLOW_RATE = 0.05
 #: ... in blocks over which its field moves by at most this share of the set's field range
 #: (35 samples of the standard 0.279 Hz triangle at 10 kHz; at 0.5 %, 89 samples, the bipolar
 #: creep stages' fits ended off their full fits' minima: preisach-b-creep 1.00 -> 1.19x the noise
-#: on its slow sweep, pi-b-creep 1.08 -> 1.23x; at 0.2 % they end where the full fits do) ...
+#: on its slow sweep, pi-b-creep 1.08 -> 1.23x, under load; at 0.2 % scratch runs of both ended
+#: where the full fits had) ...
 BLOCK_SHARE = 0.002
 #: ... no longer than the creep's fastest time constant, and of at least this many samples.
 BLOCK_MIN = 4

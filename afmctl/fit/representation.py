@@ -8,7 +8,7 @@ density on a grid, fitted as a regularized non-negative least-squares problem) i
 and so is a Bouc-Wen model (:mod:`afmctl.fit.boucwen`: nine parameters and a start state per
 sweep, rate independent but without return-point memory, so its minor loops need not close,
 which no Preisach-type model can fit) if some measured minor loop stays open
-(:mod:`afmctl.fit.closure`) and the grid is not already at the noise (:data:`SETTLED`), or if
+(:mod:`afmctl.fit.closure`) and the grid is not already within identify's noise floor, or if
 the sweeps hold no minor loop to tell and neither the HEM nor the grid reaches
 :data:`afmctl.fit.identify.FLOOR` times the noise (whole-range triangles cannot tell a Bouc-Wen
 stage from a Preisach-type one, but a Bouc-Wen stage's memory outlives the range's ends, which
@@ -69,14 +69,14 @@ EDGE = 0.05
 REVERSALS_NEEDED = 4
 #: The grid is kept only if its worst held-out error is below this share of the HEM's.
 MARGIN = 0.9
-#: The grid's worst held-out error at or below this many times the noise (identify's noise floor,
-#: :data:`afmctl.fit.identify.FLOOR`) is taken as at the noise, and Bouc-Wen is not fitted (with
-#: ``representation = "auto"``): the model written is at the floor either way. A policy, not a
-#: bound (Bouc-Wen could still come closer to the noise): creep opens the minor loops of
+#: Where the grid's worst held-out error is within identify's noise floor
+#: (:data:`afmctl.fit.identify.FLOOR`, 1.5x the noise), Bouc-Wen is not fitted (with
+#: ``representation = "auto"``): the grid is already at the floor, and Bouc-Wen could only bring
+#: the fit closer to the noise. A policy, not a bound: creep opens the minor loops of
 #: Preisach-type stages, and there Bouc-Wen's first start alone took 48 s to stop at 28x
 #: (preisach-u-creep, the grid at 1.03x) and 75-166 s to stop at 42x (pi-b-creep, the grid at
-#: 1.40x), while on the Bouc-Wen stages the grid stays far above the floor (bw-u: 39x).
-SETTLED = 1.5
+#: 1.40x), while on the Bouc-Wen stages the grid stays far above the floor (bw-u: 39x). (The HEM
+#: may still be kept over a settled grid if it beats it by :data:`MARGIN`.)
 
 
 class Grid:
@@ -154,7 +154,7 @@ class Grid:
         if grid is not None:
             worst["preisach"] = float(np.max(grid.heldout_rms_um / self.noise))
         untold = loops is None and min(worst.values()) > idf.FLOOR
-        settled = worst.get("preisach", np.inf) <= SETTLED
+        settled = worst.get("preisach", np.inf) <= idf.FLOOR
         bw = (self.bouc_wen(space.starts, sol.x) if want == "bouc-wen"
               or (want == "auto" and (loops is False or untold) and not settled) else None)
         if bw is not None:
@@ -204,10 +204,12 @@ class Grid:
 
 def _why_no_bouc_wen(want: str, loops: bool | None, worst: dict[str, float],
                      settled: bool) -> str:
+    from afmctl.fit import identify as idf
+
     if want == "auto" and settled and loops is False:
         return (f"the minor loops do not close, but the grid's held-out error "
-                f"({worst['preisach']:.2f}x the noise) is within {SETTLED:g}x of the noise, "
-                "identify's noise floor: the model is at the floor without it")
+                f"({worst['preisach']:.2f}x the noise) is within identify's noise floor "
+                f"({idf.FLOOR:g}x): Bouc-Wen could only bring the fit closer to the noise")
     if want != "auto" or loops is False:
         return "not fitted"
     return ("the minor loops close: a Preisach-type stage" if loops else
@@ -331,5 +333,5 @@ def bw_estimates(fit: bf.BoucWenFit) -> tuple[unc.Estimate, ...]:
         + _creep_estimates(fit.model) + [unc.Estimate("m", fit.model.rod.m, 0.0, "kg", fixed=True)])
 
 
-__all__ = ["Grid", "EARLY", "DECISIVE", "MARGIN", "SETTLED", "estimates", "bw_estimates",
+__all__ = ["Grid", "EARLY", "DECISIVE", "MARGIN", "estimates", "bw_estimates",
            "first_start"]
