@@ -342,21 +342,21 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     if float(np.max(prob.full.ratios(plain.theta))) <= creep_above:
         say(f"  no creep fitted: without it every sweep is within {creep_above:g}x its noise")
     else:
-        crept = _crept(prob.fit, plain.theta, pen, lam0, settings)
-        if runner_up is not None and _retry(prob.synced(), plain, crept):
+        crept = _crept(prob, plain.theta, pen, lam0, settings)
+        if runner_up is not None and _retry(prob.full, plain, crept):
             prob, plain, crept = _retried(prob, plain, crept, runner_up, pen, lam0, settings, say)
-    shown = [("without creep", prob.full, plain)]
-    shown += [("with creep", prob.synced(), crept)] if crept else []
+    shown = [("without creep", prob.full, plain)] + ([("with creep", prob.full, crept)]
+                                                      if crept else [])
     if on_force and crept is not None:
         forced = prob.forced()
-        crept_force = _crept(forced.fit, plain.theta, pen, lam0, settings, crept.theta)
-        shown.append(("with creep on the force", forced.synced(), crept_force))
+        crept_force = _crept(forced, plain.theta, pen, lam0, settings, crept.theta)
+        shown.append(("with creep on the force", forced.full, crept_force))
     for label, p, run in shown:
         say(f"  {label}: RMS / noise per sweep "
             + " / ".join(f"{r:.2f}" for r in p.ratios(run.theta))
             + f" ({run.iterations} steps{'' if run.converged else ', stopped on its budget'})")
-    return Runs(prob.synced(), pen, lam0, plain, crept,
-                None if forced is None else forced.synced(), crept_force)
+    return Runs(prob.full, pen, lam0, plain, crept, None if forced is None else forced.full,
+                crept_force)
 
 
 @dataclass(frozen=True)
@@ -367,12 +367,11 @@ class Fitted:
     full: Problem
     fit: Problem
 
-    def synced(self) -> Problem:
-        """The full problem with the creep elements the fits set (thresholds, placement)."""
-        if self.fit is not self.full:
-            self.full.set_thresholds(self.fit.thresholds)
-            self.full.creep_on_force = self.fit.creep_on_force
-        return self.full
+    def set_thresholds(self, thresholds_um: Sequence[float]) -> None:
+        """Both problems' creep elements (:meth:`Problem.set_thresholds`): the full one judges
+        and continues the fits with the elements they were fitted with."""
+        for p in (self.full, self.fit):  # the same one when not in blocks: set alike twice
+            p.set_thresholds(thresholds_um)
 
     def forced(self) -> Fitted:
         """Copies of both with the creep on the force."""
@@ -402,29 +401,29 @@ def _retried(prob: Fitted, plain: Run, crept: Run, runner_up: tuple[float, Fitte
     returned."""
     other = runner_up[1]
     alt_plain = _plain(other.fit, runner_up[2], pen, lam, settings)
-    alt = _crept(other.fit, alt_plain.theta, pen, lam, settings)
-    miss = [float(np.sum(p.synced().ratios(r.theta) ** 2)) for p, r in ((prob, crept),
-                                                                        (other, alt))]
+    alt = _crept(other, alt_plain.theta, pen, lam, settings)
+    miss = [float(np.sum(p.full.ratios(r.theta) ** 2)) for p, r in ((prob, crept), (other, alt))]
     say(f"  creep fit from starts {', '.join(prob.full.starts)} left {miss[0]:.3g}, from "
         f"{', '.join(other.full.starts)} {miss[1]:.3g} (sum of (RMS / noise)^2): "
         f"kept {', '.join((other if miss[1] < miss[0] else prob).full.starts)}")
     return (other, alt_plain, alt) if miss[1] < miss[0] else (prob, plain, crept)
 
 
-def _crept(prob: Problem, plain: Theta, pen: FloatArray, lam: float, settings: Settings,
+def _crept(fitted: Fitted, plain: Theta, pen: FloatArray, lam: float, settings: Settings,
            warm: Theta | None = None) -> Run:
-    """The creep elements fitted from the fit without them, ``prob``'s thresholds set on the
-    range of what drives them (``Q``, or ``g(Q)`` with the creep on the force), the rod searched
-    again with the creep found.
+    """The creep elements fitted on ``fitted.fit`` from the fit without them, both problems'
+    thresholds set on the range of what drives them there (``Q``, or ``g(Q)`` with the creep on
+    the force), the rod searched again with the creep found.
 
     ``warm``: start from this fit with creep instead (the other placement's: its weights are
     shares of the same thresholds' fractions, so they start the force's creep near its answer:
     on pi-u-creep the last run took 16 steps where it had stopped on its budget of 40, to about
     the same error), else from ``plain`` with no creep.
     """
+    prob = fitted.fit
     drives = prob.forces(plain) if prob.creep_on_force else prob.hysteretic(plain)
     span = max(float(np.ptp(x)) for x in drives)
-    prob.set_thresholds([f * span for f in settings.creep_thresholds])
+    fitted.set_thresholds([f * span for f in settings.creep_thresholds])
     if warm is None:
         elements = plain.copy()
         elements.c = np.zeros(prob.el_tau.size)
