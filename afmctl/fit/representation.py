@@ -121,7 +121,7 @@ class Grid:
             try:
                 self.bw = bf.fit(self.data(), [tuple(starts), *chained], rod0, self.thickness,
                                  self.settings.mass_kg, self.settings.p_r, say=self.say,
-                                 give_up=give_up)
+                                 give_up=give_up, field_step=self.settings.field_step)
             except ValueError as exc:
                 self.say(f"  no Bouc-Wen fit: {exc}")
         return self.bw
