@@ -321,12 +321,11 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                      0.0, math.log(rod0[0]), math.log(rod0[1]),
                      np.array([float(np.mean(y)) for y in data.y]))
 
-    sizes = (pc.blocks(data.fields, data.dts, min(settings.creep_taus_s)) if coarse
-             else [1] * len(data.fields))
+    sizes = pc.blocks(data.fields, data.dts, min(settings.creep_taus_s)) if coarse else None
     top: list[tuple[float, Fitted, Theta]] = []  # the best two (each holds its basis columns)
     for starts in cands:  # the start states: one linear step each, the cheapest to compare
         full = Problem(data, grid, starts, settings.creep_taus_s)
-        fitted = Fitted(full, pc.coarse(full, sizes) if max(sizes) > 1 else full)
+        fitted = Fitted(full, pc.coarse(full, sizes) if sizes is not None else full)
         run = gauss_newton(fitted.fit, start_theta(), pen, lam0, False, 1)
         top = sorted([*top, (run.cost, fitted, run.theta)], key=lambda r: r[0])[:2]
     best, runner_up = top[0], (top[1] if len(top) > 1 else None)
@@ -335,8 +334,10 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
         f"{settings.coef_interaction} coefficients{f' and {ec.size} plays' if grid.plays else ''}"
         f" ({grid.active.size} the sweeps move), "
         f"starts {', '.join(prob.full.starts)}"
-        + ("" if max(sizes) == 1 else
-           f"; first fitted with sweeps in means of {', '.join(map(str, sizes))} samples"))
+        + ("" if prob.fit is prob.full else
+           "; first fitted with each sweep's rows standing for "
+           + ", ".join(f"{w}{' (means)' if b > 1 else ''}" for w, b in
+                       zip(prob.fit.weights, prob.fit.blocks, strict=True)) + " samples"))
     plain = _plain(prob.fit, best[2], pen, lam0, settings)
     crept = forced = crept_force = None
     if float(np.max(prob.full.ratios(plain.theta))) <= creep_above:

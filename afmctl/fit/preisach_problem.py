@@ -346,8 +346,12 @@ class Problem:
         self.noise_sse = float(sum(y.size * n * n for y, n in zip(data.y, data.noise,
                                                                    strict=True)))
         #: samples per row of each sweep: 1, or a sweep seen in block means
-        #: (:mod:`afmctl.fit.preisach_coarse`; its rows then weigh that many samples each)
+        #: (:mod:`afmctl.fit.preisach_coarse`)
         self.blocks = [1] * len(data.fields)
+        #: the samples each of a sweep's judged rows stands for (its weight in the cost): a
+        #: block's, or the stride of a sweep judged on every k-th sample
+        #: (:mod:`afmctl.fit.preisach_coarse`); 1 on the full problem
+        self.weights = [1] * len(data.fields)
         self.phi: list[FloatArray] = []
         y_end: FloatArray | None = None
         for e, start in zip(data.fields, self.starts, strict=True):
@@ -501,7 +505,7 @@ class Problem:
 
     def cost(self, th: Theta, pen: FloatArray, lam: float) -> float:
         res = sum(m * float(np.sum((y - u) ** 2)) for m, y, u in
-                  zip(self.blocks, self.data.y, self.predict(th), strict=True))
+                  zip(self.weights, self.data.y, self.predict(th), strict=True))
         return res + lam * float(np.sum((pen @ th.w) ** 2))
 
     def linearize(self, th: Theta, creep: bool) -> tuple[list[FloatArray], list[FloatArray]]:
@@ -546,7 +550,7 @@ class Problem:
                 at = j + 2 + n_s + d_at[i]
                 self._rows(i, self.trans[i], c.scale, fn, zeta, rows, a, at)
                 known += a[:, at:at + self.n_trans[i]] @ th.d[d_at[i]:d_at[i + 1]]
-            w = math.sqrt(self.blocks[i])  # a row in block means weighs its samples
+            w = math.sqrt(self.weights[i])  # a row weighs the samples it stands for
             designs.append(a * w if w != 1.0 else a)
             rhs.append(w * (y - (lg[m] - known)))
         return designs, rhs

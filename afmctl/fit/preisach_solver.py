@@ -221,7 +221,7 @@ def refit_rod(prob: Problem, th: Theta) -> Theta:
         out = []
         for i, (g, m, y) in enumerate(zip(forces, prob.data.masks, prob.data.y, strict=True)):
             r = y - prob.rod(i, g, fn, zeta)[m]
-            out.append(math.sqrt(prob.blocks[i]) * (r - np.mean(r)))
+            out.append(math.sqrt(prob.weights[i]) * (r - np.mean(r)))
         return np.concatenate(out)
 
     lo = np.log([prob.fn_bounds[0], ZETA_BOUNDS[0]])

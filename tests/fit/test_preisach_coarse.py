@@ -80,7 +80,8 @@ def test_a_fit_in_block_means_ends_where_the_full_fit_does(
     said: list[str] = []
     quick = pf.runs(data, [("positive",) * 3], (2000.0, 0.3), settings, said.append,
                     on_force=False, creep_above=0.0, coarse=True)
-    assert any("first fitted with sweeps in means of 7, 1, 1 samples" in m for m in said), said
+    assert any("first fitted with each sweep's rows standing for 7 (means), 1, 1 samples" in m
+               for m in said), said
     assert quick.crept is not None and full.crept is not None
     assert quick.problem.blocks == [1, 1, 1]  # the runs come back on the full problem
     last = pf.gauss_newton(quick.problem, quick.crept.theta, quick.penalty, quick.smoothing, True,
@@ -123,3 +124,29 @@ def test_the_block_problem_holds_the_block_means_of_the_judged_readings_weighed(
     averaged_out = (1 - 1 / m) * y.size * float(data.noise[0]) ** 2
     assert abs(blocked.cost(th, pen, 0.0) - (full.problem.cost(th, pen, 0.0) - averaged_out)
                ) < 0.05 * full.problem.noise_sse
+
+
+def test_a_sweep_at_its_own_rate_is_judged_on_every_kth_sample_weighed(
+        monkeypatch: pytest.MonkeyPatch, creeping: tuple[pf.Data, pf.Runs]) -> None:
+    """``coarse`` with the sweeps at their own rate and at most 300 rows each: a sweep with more
+    is judged on every k-th of its judged samples (k the least stride leaving at most 300), its
+    readings those samples', its rows weighed by k; it is still simulated on every sample (the
+    readings the model predicts on those rows are the full problem's, to the last bit); a sweep
+    with fewer keeps all its rows."""
+    monkeypatch.setattr(pc, "THIN_ROWS", 300)
+    data, full = creeping
+    assert full.crept is not None
+    thin = pc.coarse(full.problem, [1] * len(data.fields))
+    th, pen = full.crept.theta, full.penalty
+    whole, part = full.problem.predict(th, full=True), thin.predict(th)
+    for i, (mask, y) in enumerate(zip(data.masks, data.y, strict=True)):
+        idx = np.flatnonzero(mask)
+        k = max(-(-idx.size // 300), 1)
+        assert thin.weights[i] == k and thin.blocks[i] == 1
+        np.testing.assert_array_equal(np.flatnonzero(thin.data.masks[i]), idx[::k])
+        np.testing.assert_array_equal(thin.data.y[i], y[::k])
+        np.testing.assert_array_equal(part[i], whole[i][idx[::k]])
+    assert max(thin.weights) > 1
+    weighed = sum(k * float(np.sum((y - u) ** 2)) for k, y, u in
+                  zip(thin.weights, thin.data.y, part, strict=True))
+    assert thin.cost(th, pen, 0.0) == pytest.approx(weighed, rel=1e-12)
