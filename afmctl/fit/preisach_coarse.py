@@ -94,14 +94,16 @@ def coarse(prob: Problem, per_sweep: Sequence[int]) -> Problem:
     return out
 
 
-def thinned(mask: NDArray[np.bool_], y: FloatArray) -> tuple[NDArray[np.bool_], FloatArray, int]:
+def thinned(mask: NDArray[np.bool_], y: FloatArray, rows: int | None = None
+            ) -> tuple[NDArray[np.bool_], FloatArray, int]:
     """A sweep seen at its own rate judged on every ``k``-th of its judged samples, ``k`` the
-    least stride that leaves at most :data:`THIN_ROWS` (1 if it has no more): the mask, the
+    least stride that leaves at most ``rows`` (default :data:`THIN_ROWS`; ``k`` = 1 if it has
+    no more): the mask, the
     readings on it and ``k``, the samples each row stands for. The model is still simulated on
     every sample (the rod, the creep); only the rows summed are fewer, so the cost and its
     Gauss-Newton step are the full problem's with ``k`` times the noise's variance."""
     idx = np.flatnonzero(mask)
-    k = -(-idx.size // THIN_ROWS)
+    k = -(-idx.size // (rows or THIN_ROWS))
     if k <= 1:
         return mask, y, 1
     out = np.zeros_like(mask)

@@ -91,6 +91,30 @@ def test_eta_on_the_field_grid_is_the_full_rates(stage_and_set: tuple,
     assert grid.grids[slow].keep.size < 0.1 * data.fields[slow].size
 
 
+def test_a_long_sweep_is_fitted_on_every_kth_sample_weighed(stage_and_set: tuple,
+                                                             fitted: bf.BoucWenFit) -> None:
+    """With at most 300 rows a sweep: each sweep judged on every k-th judged sample (k the
+    least stride leaving at most 300), each row weighed by sqrt(k) over the noise, and the
+    weighted residual on those rows is the full problem's there times sqrt(k), but for the
+    sensor zero projected out on fewer rows (a constant per sweep)."""
+    data, _ = _data(stage_and_set)
+    x = np.array([fitted.parameters[n] for n in bf.names(len(data.fields))])
+    full, thin = bf.Problem(data), bf.Problem(data, 0.0, 300)
+    u = full.readings(x)
+    r_full, r_thin = full.weighted(u), thin.weighted(u)
+    at = np.concatenate(([0], np.cumsum([m.sum() for m in data.masks])))
+    at_thin = np.concatenate(([0], np.cumsum([m.sum() for m in thin.data.masks])))
+    for i, m in enumerate(data.masks):
+        idx = np.flatnonzero(m)
+        k = max(-(-idx.size // 300), 1)
+        assert k > 1
+        np.testing.assert_array_equal(np.flatnonzero(thin.data.masks[i]), idx[::k])
+        np.testing.assert_allclose(thin.weights[i], np.sqrt(k) / data.noise[i], rtol=1e-15)
+        sub = r_full[at[i]:at[i + 1]][::k] * np.sqrt(k)
+        diff = r_thin[at_thin[i]:at_thin[i + 1]] - sub
+        np.testing.assert_allclose(diff, diff[0], rtol=0, atol=1e-9)
+
+
 def test_a_fit_told_to_give_up_stops_after_its_first_start(stage_and_set: tuple,
                                                           fitted: bf.BoucWenFit) -> None:
     """``give_up`` below what any start reaches: the fit ends on its first start, without its
