@@ -105,9 +105,10 @@ GOOD = 1.2
 MAX_STARTS = 4
 #: ... or two have ended at costs within this share of each other (the same minimum).
 SAME = 1e-6
-#: A sweep with more judged samples is fitted on every k-th (its rows weighed by k), down to
-#: about this many: ``afmctl sweep``'s 40 s of minor loops at 10 kHz (400,000) by 8; the
-#: standard set's sweeps keep every sample. Its readings and figures are then judged on every
+#: A sweep with more judged samples is fitted on every k-th (its rows weighed by sqrt(k) over
+#: the noise), down to about this many: ``afmctl sweep``'s 40 s of minor loops at 10 kHz
+#: (400,000) by 8, the standard 0.279 Hz triangle at 10 kHz on a unipolar stage (53,854 judged)
+#: by 2, on a bipolar one (44,893) not. The fit's readings and figures are then judged on every
 #: sample.
 MAX_ROWS = 50_000
 #: Start, upper bound and least weight kept (below it: no creep) per element.
@@ -181,6 +182,8 @@ class Problem:
         self.span, self.poling = max(hi - lo, 1e-9), (lo, hi)
         self.weights = [np.full(int(m.sum()), math.sqrt(k) / n) for m, n, k in
                         zip(data.masks, data.noise, strides, strict=True)]
+        #: the judged samples the rows stand for (the residual's degrees of freedom)
+        self.samples = sum(k * int(m.sum()) for m, k in zip(data.masks, strides, strict=True))
 
     def _operator(self, log_a: float, kappa: float, n: float) -> tuple[bwm.BoucWen, hy.Kernel]:
         bw = bwm.BoucWen(0.0, math.exp(log_a), 1.0, kappa, n, self.poling)
@@ -322,10 +325,17 @@ class FieldGrid:
 
 def field_grid(field: FloatArray, step: float) -> FieldGrid:
     """:func:`afmctl.fit.parametrization.decimation` of ``field`` by ``step`` (its units: every
-    turning point and hold, and a sample whenever the field has moved by ``step``) and each
+    turning point and hold, and a sample whenever the field has moved by ``step``), with the
+    sample before a kept one whose own move is over ``step``, and each
     sample's place between the two kept samples around it, as a share of the field's move
     between them (0 across a hold)."""
     keep = decimation(field, step)
+    if step > 0 and keep.size > 2:
+        # a kept sample whose own move is over a step (on a fast sweep, the first crossing
+        # after a reversal that moved less than a step): the sample before it is kept too, so
+        # that every interval with samples inside spans at most about a step of the field
+        a, b = keep[:-1], keep[1:]
+        keep = np.union1d(keep, b[(b - a >= 2) & (np.abs(field[b] - field[b - 1]) > step)] - 1)
     if keep.size == field.size:
         return FieldGrid(keep, np.arange(field.size), np.zeros(field.size))
     left = np.clip(np.searchsorted(keep, np.arange(field.size), side="right") - 1,
@@ -343,8 +353,9 @@ def _eta(op: tuple[bwm.BoucWen, hy.Kernel], field: FloatArray, h: float,
     interpolated in between in the field (:func:`field_grid`). The operator is rate
     independent, integrated in the field by substeps (:data:`afmctl.model.hysteresis.BW_SUBSTEP`),
     so ``eta`` at a kept sample is the full rate's to the integration's accuracy; between two
-    kept samples the field is monotone, ``eta`` a smooth function of it, and linear interpolation
-    in the field errs by O(step^2). (In time it would not: the sample after a reversal, left out
+    kept samples with samples between them the field is monotone and moves by about a step,
+    ``eta`` is a smooth function of it, and linear interpolation in the field errs by
+    O(step^2). (In time it would not: the sample after a reversal, left out
     where the field had turned by less than a step, took half the next sample's move instead of
     its own 4 %, and missed by 0.085 um on a 27.9 Hz triangle.)"""
     bw, k = op
@@ -359,14 +370,14 @@ def _linear_start(prob: Problem, log_a: float, kappa: float, n: float, states: F
     """``r, c`` of the quasi-static fit ``y = r E + c eta + offset_s`` and its weighted SSE."""
     rows, rhs = [], []
     k = len(prob.data.fields)
-    for i, (e, eta, m, y, noise) in enumerate(zip(prob.data.fields,
-                                                  prob.shape(log_a, kappa, n, states),
-                                                  prob.data.masks, prob.data.y, prob.data.noise,
-                                                  strict=True)):
+    for i, (e, eta, m, y, w) in enumerate(zip(prob.data.fields,
+                                              prob.shape(log_a, kappa, n, states),
+                                              prob.data.masks, prob.data.y, prob.weights,
+                                              strict=True)):
         cols = np.zeros((int(m.sum()), 2 + k))
         cols[:, 0], cols[:, 1], cols[:, 2 + i] = e[m], eta[m], 1.0
-        rows.append(cols / noise)
-        rhs.append(y / noise)
+        rows.append(cols * w[:, None])  # the fit's weights: sqrt(k) / noise
+        rhs.append(y * w)
     a, b = np.vstack(rows), np.concatenate(rhs)
     sol, *_ = np.linalg.lstsq(a, b, rcond=None)
     return float(sol[0]), float(sol[1]), float(np.sum((a @ sol - b) ** 2))
@@ -517,7 +528,7 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     return BoucWenFit(build(sol.x, prob, off, mass_kg, thickness_um, p_scale), states(sol.x),
                       off, rms, int(sol.nfev), bool(sol.status > 0), seconds, predicted,
                       {k: float(v) for k, v in zip(names(len(off)), sol.x, strict=True)},
-                      _uncertainty(sol))
+                      _uncertainty(sol, prob.samples))
 
 
 def _rms(prob: Problem, x: FloatArray) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
@@ -581,11 +592,13 @@ def _solve(prob: Problem, x0: FloatArray, creep: bool) -> optimize.OptimizeResul
     return sol
 
 
-def _uncertainty(sol: optimize.OptimizeResult) -> dict[str, Any]:
+def _uncertainty(sol: optimize.OptimizeResult, samples: int) -> dict[str, Any]:
     """``s^2 (J^T J)^+`` at the solution (the residuals are already over each sweep's noise), of
-    the parameters it fitted (without creep: not the creep weight)."""
+    the parameters it fitted (without creep: not the creep weight). ``samples``: the judged
+    samples the residual's rows stand for (a row of a thinned sweep weighs ``k``, so the cost
+    and ``J^T J`` are about the full rate's, and so are the degrees of freedom)."""
     j = np.asarray(sol.jac, float)
-    dof = max(j.shape[0] - j.shape[1], 1)
+    dof = max(samples - j.shape[1], 1)
     cov = np.linalg.pinv(j.T @ j) * (2.0 * float(sol.cost) / dof)
     x, free = np.asarray(sol.x, float), sol.free
     fitted = tuple(n for n, f in zip(names(x.size - STATES_AT), free, strict=True) if f)

@@ -292,8 +292,8 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
         Fit creep only if the fit without it is above this many times some sweep's noise
         (identify: :data:`CREEP_ABOVE`; 0, always: diagnose judges both).
     coarse : bool
-        Run the fits on the problem with its slow sweeps in block means
-        (:mod:`afmctl.fit.preisach_coarse`); the runs returned hold the full problems (their
+        Run the fits on the problem with its slow sweeps in block means and its other sweeps
+        judged on every k-th sample (:mod:`afmctl.fit.preisach_coarse`); the runs returned hold the full problems (their
         creep elements set as the fits left them), on which each fit is judged and shown, and
         from which the caller takes its last steps (identify's).
 
@@ -334,7 +334,7 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
         f"{settings.coef_interaction} coefficients{f' and {ec.size} plays' if grid.plays else ''}"
         f" ({grid.active.size} the sweeps move), "
         f"starts {', '.join(prob.full.starts)}"
-        + ("" if prob.fit is prob.full else
+        + ("" if max(prob.fit.weights) == 1 else
            "; first fitted with each sweep's rows standing for "
            + ", ".join(f"{w}{' (means)' if b > 1 else ''}" for w, b in
                        zip(prob.fit.weights, prob.fit.blocks, strict=True)) + " samples"))
@@ -363,7 +363,8 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
 @dataclass(frozen=True)
 class Fitted:
     """A start assignment's problem: ``full``, and ``fit``, the one its runs are fitted on (the
-    full one, or that with its slow sweeps in block means: :mod:`afmctl.fit.preisach_coarse`)."""
+    full one, or its copy with the slow sweeps in block means and the others' rows thinned:
+    :mod:`afmctl.fit.preisach_coarse`)."""
 
     full: Problem
     fit: Problem
@@ -371,7 +372,7 @@ class Fitted:
     def set_thresholds(self, thresholds_um: Sequence[float]) -> None:
         """Both problems' creep elements (:meth:`Problem.set_thresholds`): the full one judges
         and continues the fits with the elements they were fitted with."""
-        for p in (self.full, self.fit):  # the same one when not in blocks: set alike twice
+        for p in (self.full, self.fit):  # the same one when not coarse: set alike twice
             p.set_thresholds(thresholds_um)
 
     def forced(self) -> Fitted:

@@ -1,4 +1,5 @@
-"""The Preisach grid's problem with its slow sweeps in block means: the first fits' cheap copy.
+"""The Preisach grid's problem with its slow sweeps in block means and the others' rows thinned:
+the first fits' cheap copy.
 
 A Gauss-Newton step of the grid costs in proportion to the rows it fits, and most of a standard
 set's rows are its slowest sweep's (the 0.279 Hz triangle: 54k of the 82k judged samples at
@@ -7,7 +8,9 @@ density, the creep's fastest element or the rod can tell. :func:`coarse` gives t
 with such a sweep seen as the means of blocks of samples (:func:`blocks`): the basis columns, the
 field and the readings averaged over each block (the hysteresis's memory is the full rate's:
 its columns are), the creep stepped block by block, the rod in its quasi-static limit
-(:func:`afmctl.fit.rod_response.quasi_static`), each row weighed by its block's samples. It
+(:func:`afmctl.fit.rod_response.quasi_static`), each row weighed by its block's samples. A
+sweep seen at its own rate is judged on every k-th sample down to about :data:`THIN_ROWS` rows,
+each weighed by k (:func:`thinned`: still simulated on every sample). It
 has the same parameters as the full problem, so a fit on it is a start for the full one: the
 grid's first fits run on it, and the full problem judges them and takes the last steps
 (:func:`afmctl.fit.preisach.runs`). Pure numerics: no I/O.
@@ -37,9 +40,9 @@ BLOCK_SHARE = 0.002
 #: ... no longer than the creep's fastest time constant, and of at least this many samples.
 BLOCK_MIN = 4
 #: A sweep at its own rate is judged on every k-th sample down to about this many rows (the
-#: standard 27.9 Hz triangle's 3,300 at 10 kHz are kept; the reversal curves' 15,500 and the
-#: 5.58 Hz triangle's 7,600 are thinned, the rows the slow sweep's blocks left being most of a
-#: step's cost).
+#: standard 27.9 Hz triangle's 3,300 at 10 kHz are kept; on a bipolar stage the reversal
+#: curves' 15,500 by 4 and the 5.58 Hz triangle's 7,600 by 2, on a unipolar one 16,800 by 5 and
+#: 8,100 by 3: the rows the slow sweep's blocks left are most of a step's cost).
 THIN_ROWS = 4000
 
 
@@ -66,8 +69,10 @@ def _means(x: FloatArray, m: int) -> FloatArray:
 
 
 def coarse(prob: Problem, per_sweep: Sequence[int]) -> Problem:
-    """``prob`` with sweep ``i`` seen in means of blocks of ``per_sweep[i]`` samples: a block is
-    judged if all its samples are. Shares the full problem's grid, start states, creep elements,
+    """``prob`` with sweep ``i`` seen in means of blocks of ``per_sweep[i]`` samples (a block is
+    judged if all its samples are), or, where that is 1, judged on every k-th sample
+    (:func:`thinned`); :attr:`~afmctl.fit.preisach_problem.Problem.weights` the samples a row
+    stands for. Shares the full problem's grid, start states, creep elements,
     rod bounds and the noise's sum of squares (its convergence test)."""
     d = prob.data
     fields, masks, ys, dts, phi, trans, weights = [], [], [], [], [], [], []

@@ -62,17 +62,25 @@ def fitted(stage_and_set: tuple) -> bf.BoucWenFit:
 
 def test_the_field_grid_interpolates_in_the_field() -> None:
     """Between two kept samples the field is monotone, and a sample's share is its own move in
-    the field: a function linear in the field is rebuilt exactly, also on the sample just after
-    a reversal that moved by less than a step, and across a hold (where time would not)."""
+    the field: a function linear in the field is rebuilt exactly, on a noisy slow ramp, across
+    an exact hold (share 0), and after a reversal whose first sample moved by less than a step
+    on a fast ramp (that sample left out, the one before the next big move kept), where time
+    would not."""
     rng = np.random.default_rng(3)
-    field = np.concatenate((np.linspace(0.0, 1.0, 50), [0.9995, 0.99], np.full(7, 0.99),
-                            np.linspace(0.98, -0.4, 40), np.linspace(-0.39, 0.3, 30)))
-    field = field + 1e-4 * rng.standard_normal(field.size)
+    slow = np.linspace(0.0, 1.0, 50) + 1e-4 * rng.standard_normal(50)
+    fast = np.linspace(0.97, -0.43, 8)  # 0.2 per sample, over the step
+    field = np.concatenate((slow, [1.0005], np.full(7, 1.0), [0.9999], fast))
     grid = bf.field_grid(field, 0.1)
-    assert grid.keep.size < field.size // 3
+    assert grid.keep.size < field.size // 2
+    first = 58  # the reversal's first sample: 1.0 -> 0.9999, less than a step
+    assert first not in grid.keep and first + 1 in grid.keep
+    hold = np.arange(51, 58)
+    assert np.all(grid.share[hold] == 0.0) or np.all(np.isin(hold, grid.keep))
     q = 3.0 * field[grid.keep] - 1.0
     rebuilt = q[grid.left] + grid.share * (q[grid.left + 1] - q[grid.left])
     assert np.max(np.abs(rebuilt - (3.0 * field - 1.0))) < 1e-12
+    in_time = np.interp(np.arange(field.size), grid.keep, q)
+    assert np.max(np.abs(in_time - (3.0 * field - 1.0))) > 1e-3
 
 
 def test_eta_on_the_field_grid_is_the_full_rates(stage_and_set: tuple,
@@ -113,6 +121,24 @@ def test_a_long_sweep_is_fitted_on_every_kth_sample_weighed(stage_and_set: tuple
         sub = r_full[at[i]:at[i + 1]][::k] * np.sqrt(k)
         diff = r_thin[at_thin[i]:at_thin[i + 1]] - sub
         np.testing.assert_allclose(diff, diff[0], rtol=0, atol=1e-9)
+
+
+def test_a_fit_on_thinned_rows_reports_the_full_rate(monkeypatch: pytest.MonkeyPatch,
+                                                     stage_and_set: tuple) -> None:
+    """With at most 300 rows a sweep in the fit (every sweep thinned), the figures and readings
+    the fit returns are still the model's on every judged sample: the readings are
+    ``predict_set`` of the written model, and the RMS per sweep is over every judged sample."""
+    monkeypatch.setattr(bf, "MAX_ROWS", 300)
+    data, chained = _data(stage_and_set)
+    _, _, sweeps = stage_and_set
+    quick = bf.fit(data, chained, (1000.0, 0.1), THICKNESS_UM, 0.05, 0.3, give_up=0.5,
+                   field_step=FIELD_STEP)
+    again = idf.predict_set(quick.model, sweeps, quick.starts, quick.offsets)
+    for a, b, m, y, rms in zip(again, quick.predicted, data.masks, data.y, quick.heldout_rms_um,
+                               strict=True):
+        assert m.sum() > 300
+        assert np.max(np.abs(a - b)) < 1e-6 * np.ptp(b)
+        assert rms == pytest.approx(float(np.sqrt(np.mean((y - b[m]) ** 2))), rel=1e-12)
 
 
 def test_a_fit_told_to_give_up_stops_after_its_first_start(stage_and_set: tuple,

@@ -131,8 +131,8 @@ def test_a_sweep_at_its_own_rate_is_judged_on_every_kth_sample_weighed(
     """``coarse`` with the sweeps at their own rate and at most 300 rows each: a sweep with more
     is judged on every k-th of its judged samples (k the least stride leaving at most 300), its
     readings those samples', its rows weighed by k; it is still simulated on every sample (the
-    readings the model predicts on those rows are the full problem's, to the last bit); a sweep
-    with fewer keeps all its rows."""
+    readings the model predicts on those rows are the full problem's, to the last bit), and its
+    linearization's rows are the full problem's there times sqrt(k)."""
     monkeypatch.setattr(pc, "THIN_ROWS", 300)
     data, full = creeping
     assert full.crept is not None
@@ -150,3 +150,9 @@ def test_a_sweep_at_its_own_rate_is_judged_on_every_kth_sample_weighed(
     weighed = sum(k * float(np.sum((y - u) ** 2)) for k, y, u in
                   zip(thin.weights, thin.data.y, part, strict=True))
     assert thin.cost(th, pen, 0.0) == pytest.approx(weighed, rel=1e-12)
+    # the linearization (Gauss-Newton's step) weighs the rows alike: sqrt(k) times the full
+    # problem's rows there
+    (a_thin, b_thin), (a_full, b_full) = thin.linearize(th, True), full.problem.linearize(th, True)
+    for k, at, bt, af, bf_ in zip(thin.weights, a_thin, b_thin, a_full, b_full, strict=True):
+        np.testing.assert_allclose(at, np.sqrt(k) * af[::k], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(bt, np.sqrt(k) * bf_[::k], rtol=1e-12, atol=1e-12)
