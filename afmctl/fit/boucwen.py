@@ -58,7 +58,7 @@ from numpy.typing import NDArray
 from scipy import optimize
 
 from afmctl.fit import uncertainty as unc
-from afmctl.fit.parametrization import decimation
+from afmctl.fit.parametrization import FieldGrid, field_grid
 from afmctl.fit.preisach_coarse import thinned
 from afmctl.fit.preisach_problem import Data
 from afmctl.fit.rod_response import rod_filter
@@ -313,46 +313,13 @@ class Problem:
         return self.weighted(self.readings(x))
 
 
-@dataclass(frozen=True)
-class FieldGrid:
-    """The samples of a field on which ``eta`` is computed, and how every sample is interpolated
-    from them in the field (:func:`field_grid`)."""
-
-    keep: NDArray[np.intp]
-    left: NDArray[np.intp]
-    share: FloatArray
-
-
-def field_grid(field: FloatArray, step: float) -> FieldGrid:
-    """:func:`afmctl.fit.parametrization.decimation` of ``field`` by ``step`` (its units: every
-    turning point and hold, and a sample whenever the field has moved by ``step``), with the
-    sample before a kept one whose own move is over ``step``, and each
-    sample's place between the two kept samples around it, as a share of the field's move
-    between them (0 across a hold)."""
-    keep = decimation(field, step)
-    if step > 0 and keep.size > 2:
-        # a kept sample whose own move is over a step (on a fast sweep, the first crossing
-        # after a reversal that moved less than a step): the sample before it is kept too, so
-        # that every interval with samples inside spans at most about a step of the field
-        a, b = keep[:-1], keep[1:]
-        keep = np.union1d(keep, b[(b - a >= 2) & (np.abs(field[b] - field[b - 1]) > step)] - 1)
-    if keep.size == field.size:
-        return FieldGrid(keep, np.arange(field.size), np.zeros(field.size))
-    left = np.clip(np.searchsorted(keep, np.arange(field.size), side="right") - 1,
-                   0, keep.size - 2)
-    a, b = keep[left], keep[left + 1]
-    move = field[b] - field[a]
-    share = np.divide(field - field[a], move, out=np.zeros(field.size), where=move != 0)
-    return FieldGrid(keep, left, np.clip(share, 0.0, 1.0))
-
-
 def _eta(op: tuple[bwm.BoucWen, hy.Kernel], field: FloatArray, h: float,
          grid: FieldGrid) -> FloatArray:
     """``eta`` on ``field`` (every sample) for the operator and kernel ``op``, from the start
     state ``h`` (``eta`` at its first field): computed on the samples ``grid.keep`` and
-    interpolated in between in the field (:func:`field_grid`). The operator is rate
-    independent, integrated in the field by substeps (:data:`afmctl.model.hysteresis.BW_SUBSTEP`),
-    so ``eta`` at a kept sample is the full rate's to the integration's accuracy; between two
+    interpolated in between in the field (:func:`afmctl.fit.parametrization.field_grid`). The
+    operator is rate independent, integrated in the field by substeps
+    (:data:`afmctl.model.hysteresis.BW_SUBSTEP`), so ``eta`` at a kept sample is the full rate's to the integration's accuracy; between two
     kept samples with samples between them the field is monotone and moves by about a step,
     ``eta`` is a smooth function of it, and linear interpolation in the field errs by
     O(step^2). (In time it would not: the sample after a reversal, left out

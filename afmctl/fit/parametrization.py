@@ -126,6 +126,39 @@ def decimation(field: FloatArray, step: float) -> NDArray[np.intp]:
     return np.unique(np.concatenate((new, holds, turning_points(field))))
 
 
+@dataclass(frozen=True)
+class FieldGrid:
+    """The samples of a field on which ``eta`` is computed, and how every sample is interpolated
+    from them in the field (:func:`field_grid`)."""
+
+    keep: NDArray[np.intp]
+    left: NDArray[np.intp]
+    share: FloatArray
+
+
+def field_grid(field: FloatArray, step: float) -> FieldGrid:
+    """:func:`decimation` of ``field`` by ``step`` (its units: every
+    turning point and hold, and a sample whenever the field has moved by ``step``), with the
+    sample before a kept one whose own move is over ``step``, and each
+    sample's place between the two kept samples around it, as a share of the field's move
+    between them (0 across a hold)."""
+    keep = decimation(field, step)
+    if step > 0 and keep.size > 2:
+        # a kept sample whose own move is over a step (on a fast sweep, the first crossing
+        # after a reversal that moved less than a step): the sample before it is kept too, so
+        # that every interval with samples inside spans at most about a step of the field
+        a, b = keep[:-1], keep[1:]
+        keep = np.union1d(keep, b[(b - a >= 2) & (np.abs(field[b] - field[b - 1]) > step)] - 1)
+    if keep.size == field.size:
+        return FieldGrid(keep, np.arange(field.size), np.zeros(field.size))
+    left = np.clip(np.searchsorted(keep, np.arange(field.size), side="right") - 1,
+                   0, keep.size - 2)
+    a, b = keep[left], keep[left + 1]
+    move = field[b] - field[a]
+    share = np.divide(field - field[a], move, out=np.zeros(field.size), where=move != 0)
+    return FieldGrid(keep, left, np.clip(share, 0.0, 1.0))
+
+
 def prepare(sweep: Sweep, thickness_um: float, field_step: float,
             window_s: tuple[float, float] | None) -> Prepared:
     """:class:`Prepared` for ``sweep``; ``field_step`` is relative to the peak field."""

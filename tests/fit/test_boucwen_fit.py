@@ -23,6 +23,7 @@ from afmctl.drivers.device.foreign import family_stage as fst
 from afmctl.files import sweepfile as sw
 from afmctl.fit import boucwen as bf
 from afmctl.fit import identify as idf
+from afmctl.fit import parametrization as pz
 from afmctl.fit import preisach_problem as pp
 from afmctl.model import creep as cr
 from afmctl.model import inverse as inv
@@ -70,7 +71,7 @@ def test_the_field_grid_interpolates_in_the_field() -> None:
     slow = np.linspace(0.0, 1.0, 50) + 1e-4 * rng.standard_normal(50)
     fast = np.linspace(0.97, -0.43, 8)  # 0.2 per sample, over the step
     field = np.concatenate((slow, [1.0005], np.full(7, 1.0), [0.9999], fast))
-    grid = bf.field_grid(field, 0.1)
+    grid = pz.field_grid(field, 0.1)
     assert grid.keep.size < field.size // 2
     first = 58  # the reversal's first sample: 1.0 -> 0.9999, less than a step
     assert first not in grid.keep and first + 1 in grid.keep
