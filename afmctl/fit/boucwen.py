@@ -58,8 +58,7 @@ from numpy.typing import NDArray
 from scipy import optimize
 
 from afmctl.fit import uncertainty as unc
-from afmctl.fit.parametrization import FieldGrid, field_grid
-from afmctl.fit.preisach_coarse import thinned
+from afmctl.fit.parametrization import FieldGrid, every_kth, field_grid
 from afmctl.fit.preisach_problem import Data
 from afmctl.fit.rod_response import rod_filter
 from afmctl.model import boucwen as bwm
@@ -166,12 +165,12 @@ class Problem:
 
     def __init__(self, data: Data, field_step: float = 0.0, rows: int | None = None) -> None:
         """``field_step``: ``eta`` computed where the field moved by this share of its peak
-        (:func:`_eta`); ``rows``: a sweep with more judged samples is judged on every k-th, its
-        rows weighed by k (:func:`afmctl.fit.preisach_coarse.thinned`); the model is still
-        simulated on every sample."""
+        (:func:`_eta`); ``rows``: a sweep with more judged samples is judged on every k-th
+        (:func:`afmctl.fit.parametrization.every_kth`), its rows weighed by sqrt(k) over the
+        noise; the model is still simulated on every sample."""
         strides = [1] * len(data.fields)
         if rows is not None:
-            parts = [thinned(m, y, rows) for m, y in zip(data.masks, data.y, strict=True)]
+            parts = [every_kth(m, y, rows) for m, y in zip(data.masks, data.y, strict=True)]
             data = replace(data, masks=[p[0] for p in parts], y=[p[1] for p in parts], folds=[])
             strides = [p[2] for p in parts]
         self.data = data
@@ -319,17 +318,15 @@ def _eta(op: tuple[bwm.BoucWen, hy.Kernel], field: FloatArray, h: float,
     state ``h`` (``eta`` at its first field): computed on the samples ``grid.keep`` and
     interpolated in between in the field (:func:`afmctl.fit.parametrization.field_grid`). The
     operator is rate independent, integrated in the field by substeps
-    (:data:`afmctl.model.hysteresis.BW_SUBSTEP`), so ``eta`` at a kept sample is the full rate's to the integration's accuracy; between two
-    kept samples with samples between them the field is monotone and moves by about a step,
-    ``eta`` is a smooth function of it, and linear interpolation in the field errs by
-    O(step^2). (In time it would not: the sample after a reversal, left out
-    where the field had turned by less than a step, took half the next sample's move instead of
-    its own 4 %, and missed by 0.085 um on a 27.9 Hz triangle.)"""
+    (:data:`afmctl.model.hysteresis.BW_SUBSTEP`), so ``eta`` at a kept sample is the full
+    rate's to the integration's accuracy; between two kept samples with samples between them
+    the field is monotone and moves by about a step, ``eta`` is a smooth function of it, and
+    linear interpolation in the field errs by O(step^2). (In time it would not: the sample
+    after a reversal, left out where the field had turned by less than a step, took half the
+    next sample's move instead of its own 4 %, and missed by 0.085 um on a 27.9 Hz triangle.)"""
     bw, k = op
     q = hy.run(k, field[grid.keep], hy.initial_state(bw, hy.bouc_wen_state(float(h))))[0]
-    if grid.keep.size == field.size:
-        return q
-    return q[grid.left] + grid.share * (q[grid.left + 1] - q[grid.left])
+    return grid.on_every_sample(q)
 
 
 def _linear_start(prob: Problem, log_a: float, kappa: float, n: float, states: FloatArray

@@ -135,13 +135,19 @@ class FieldGrid:
     left: NDArray[np.intp]
     share: FloatArray
 
+    def on_every_sample(self, q: FloatArray) -> FloatArray:
+        """``q``, known on the samples :attr:`keep`, on every sample (interpolated in the
+        field)."""
+        if self.keep.size == self.left.size:
+            return q
+        return q[self.left] + self.share * (q[self.left + 1] - q[self.left])
+
 
 def field_grid(field: FloatArray, step: float) -> FieldGrid:
-    """:func:`decimation` of ``field`` by ``step`` (its units: every
-    turning point and hold, and a sample whenever the field has moved by ``step``), with the
-    sample before a kept one whose own move is over ``step``, and each
-    sample's place between the two kept samples around it, as a share of the field's move
-    between them (0 across a hold)."""
+    """:func:`decimation` of ``field`` by ``step`` (its units: every turning point and hold, and
+    a sample whenever the field has moved by ``step``), with the sample before a kept one whose
+    own move is over ``step``, and each sample's place between the two kept samples around it,
+    as a share of the field's move between them (0 across a hold)."""
     keep = decimation(field, step)
     if step > 0 and keep.size > 2:
         # a kept sample whose own move is over a step (on a fast sweep, the first crossing
@@ -181,13 +187,22 @@ def thinned(prep: Prepared, rows: int) -> Prepared:
     noise stays white. (``afmctl diagnose`` weighs each sweep the same whatever its row count
     and judges on every sample.)
     """
-    idx = np.flatnonzero(prep.mask)
+    mask, y, k = every_kth(prep.mask, prep.y, rows)
+    return prep if k == 1 else replace(prep, mask=mask, y=y)
+
+
+def every_kth(mask: NDArray[np.bool_], y: FloatArray, rows: int
+              ) -> tuple[NDArray[np.bool_], FloatArray, int]:
+    """The judged samples ``mask`` (readings ``y`` on them) thinned to every ``k``-th, ``k`` the
+    smallest stride that leaves at most ``rows``: the mask, the readings on it and ``k`` (the
+    samples each row stands for; ``mask`` and ``y`` themselves when ``k`` is 1)."""
+    idx = np.flatnonzero(mask)
     k = -(-idx.size // rows)
     if k <= 1:
-        return prep
-    mask = np.zeros_like(prep.mask)
-    mask[idx[::k]] = True
-    return replace(prep, mask=mask, y=prep.y[::k])
+        return mask, y, 1
+    out = np.zeros_like(mask)
+    out[idx[::k]] = True
+    return out, y[::k], k
 
 
 def at_full_rate(n: int, keep: NDArray[np.intp], q_keep: FloatArray) -> FloatArray:

@@ -293,9 +293,9 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
         (identify: :data:`CREEP_ABOVE`; 0, always: diagnose judges both).
     coarse : bool
         Run the fits on the problem with its slow sweeps in block means and its other sweeps
-        judged on every k-th sample (:mod:`afmctl.fit.preisach_coarse`); the runs returned hold the full problems (their
-        creep elements set as the fits left them), on which each fit is judged and shown, and
-        from which the caller takes its last steps (identify's).
+        judged on every k-th sample (:mod:`afmctl.fit.preisach_coarse`); the runs returned hold
+        the full problems (their creep elements set as the fits left them), on which each fit
+        is judged and shown, and from which the caller takes its last steps (identify's).
 
     Returns
     -------

@@ -10,7 +10,9 @@ field and the readings averaged over each block (the hysteresis's memory is the 
 its columns are), the creep stepped block by block, the rod in its quasi-static limit
 (:func:`afmctl.fit.rod_response.quasi_static`), each row weighed by its block's samples. A
 sweep seen at its own rate is judged on every k-th sample down to about :data:`THIN_ROWS` rows,
-each weighed by k (:func:`thinned`: still simulated on every sample). It
+each weighed by k (:func:`afmctl.fit.parametrization.every_kth`): still simulated on every
+sample (the rod, the creep), only the rows summed are fewer, so the cost and its Gauss-Newton
+step are the full problem's with ``k`` times the noise's variance. It
 has the same parameters as the full problem, so a fit on it is a start for the full one: the
 grid's first fits run on it, and the full problem judges them and takes the last steps
 (:func:`afmctl.fit.preisach.runs`). Pure numerics: no I/O.
@@ -25,6 +27,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl.fit.parametrization import every_kth
 from afmctl.fit.preisach_problem import Data, Problem
 
 FloatArray = NDArray[np.float64]
@@ -70,16 +73,16 @@ def _means(x: FloatArray, m: int) -> FloatArray:
 
 def coarse(prob: Problem, per_sweep: Sequence[int]) -> Problem:
     """``prob`` with sweep ``i`` seen in means of blocks of ``per_sweep[i]`` samples (a block is
-    judged if all its samples are), or, where that is 1, judged on every k-th sample
-    (:func:`thinned`); :attr:`~afmctl.fit.preisach_problem.Problem.weights` the samples a row
-    stands for. Shares the full problem's grid, start states, creep elements,
-    rod bounds and the noise's sum of squares (its convergence test)."""
+    judged if all its samples are), or, where that is 1, judged on every k-th sample down to
+    about :data:`THIN_ROWS` rows; :attr:`~afmctl.fit.preisach_problem.Problem.weights` the
+    samples a row stands for. Shares the full problem's grid, start states, creep elements, rod
+    bounds and the noise's sum of squares (its convergence test)."""
     d = prob.data
     fields, masks, ys, dts, phi, trans, weights = [], [], [], [], [], [], []
     for i, m in enumerate(per_sweep):
         e, mask, y, dt = d.fields[i], d.masks[i], d.y[i], d.dts[i]
         if m == 1:
-            mask, y, k = thinned(mask, y)
+            mask, y, k = every_kth(mask, y, THIN_ROWS)
             fields.append(e), masks.append(mask), ys.append(y), dts.append(dt)
             phi.append(prob.phi[i]), trans.append(prob.trans[i]), weights.append(k)
             continue
@@ -99,21 +102,4 @@ def coarse(prob: Problem, per_sweep: Sequence[int]) -> Problem:
     return out
 
 
-def thinned(mask: NDArray[np.bool_], y: FloatArray, rows: int | None = None
-            ) -> tuple[NDArray[np.bool_], FloatArray, int]:
-    """A sweep seen at its own rate judged on every ``k``-th of its judged samples, ``k`` the
-    least stride that leaves at most ``rows`` (default :data:`THIN_ROWS`; ``k`` = 1 if it has
-    no more): the mask, the
-    readings on it and ``k``, the samples each row stands for. The model is still simulated on
-    every sample (the rod, the creep); only the rows summed are fewer, so the cost and its
-    Gauss-Newton step are the full problem's with ``k`` times the noise's variance."""
-    idx = np.flatnonzero(mask)
-    k = -(-idx.size // (rows or THIN_ROWS))
-    if k <= 1:
-        return mask, y, 1
-    out = np.zeros_like(mask)
-    out[idx[::k]] = True
-    return out, y[::k], k
-
-
-__all__ = ["BLOCK_MIN", "BLOCK_SHARE", "SLOW_RATE", "THIN_ROWS", "blocks", "coarse", "thinned"]
+__all__ = ["BLOCK_MIN", "BLOCK_SHARE", "SLOW_RATE", "THIN_ROWS", "blocks", "coarse"]
