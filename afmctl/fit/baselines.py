@@ -40,7 +40,7 @@ def fit_linear(voltage_v: FloatArray, displacement_um: FloatArray,
     return Linear(float(g), float(off))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _plays(v: np.ndarray, r: np.ndarray) -> np.ndarray:
     out = np.empty((v.size, r.size))
     y = np.zeros(r.size)

@@ -151,23 +151,26 @@ class DiscreteSpace:
     def _columns_h(self, std: float) -> list[FloatArray]:
         """Per node, its hat's share of ``erf(y_j / (sqrt(2) sigma_I))`` over the quadrature
         nodes ``j`` at the full rate (cached per sigma_I)."""
-        if std not in self._h:
+        got = self._h.get(std)  # one lookup: the solver's evaluations may run on threads
+        if got is None:
             if len(self._h) > 4:
                 self._h.clear()
             fields = [p.field[p.keep] for p in self.preps]
             per_node = [run_from(hy.Polarization(1.0, 1.0, hy.Discrete((float(n),), (1.0,)),
                                                  hy.Normal(std)), fields, self.starts)
                         for n in self.fine]
-            self._h[std] = [np.column_stack([at_full_rate(p.field.size, p.keep, q[i] - fields[i])
-                                             for q in per_node]) @ self.hat
-                            for i, p in enumerate(self.preps)]
-        return self._h[std]
+            got = self._h[std] = [
+                np.column_stack([at_full_rate(p.field.size, p.keep, q[i] - fields[i])
+                                 for q in per_node]) @ self.hat
+                for i, p in enumerate(self.preps)]
+        return got
 
     def _basis(self, std: float, fn: float, zeta: float) -> list[_Basis]:
         """Per sweep: field, ``H`` and their filtered ``L[E]``, ``L[H]`` on the mask. ``Q`` and
         ``L[Q]`` are linear in the weights ``c``, so only ``L[Q^2]`` is filtered per evaluation."""
         key = (std, fn, zeta)
-        if key not in self._b:
+        out = self._b.get(key)  # one lookup, as in _columns_h
+        if out is None:
             if len(self._b) > 4:
                 self._b.clear()
             out = []
@@ -177,7 +180,7 @@ class DiscreteSpace:
                 lh = np.column_stack([unit_filter(col, fn, zeta, p.dt)[p.mask] for col in h.T])
                 out.append(_Basis(e, h, le, lh))
             self._b[key] = out
-        return self._b[key]
+        return out
 
     def design(self, x: FloatArray) -> FloatArray:
         k = self.nodes.size

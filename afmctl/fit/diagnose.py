@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import os
-import signal
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -47,6 +46,7 @@ from threadpoolctl import threadpool_limits
 from afmctl.errors import DiagnoseInputError
 from afmctl.files.sweepfile import Sweep
 from afmctl.fit import candidates as cd
+from afmctl.fit import cores
 from afmctl.fit import extension as ext
 from afmctl.fit import gridbase as gb
 from afmctl.fit import heldbase as hb
@@ -293,7 +293,7 @@ def _judge_all(names: Sequence[str], job: _Job, floor: float,
         if jobs <= 1:
             done = {n: said(n, _judge(n, job)) for n in order}
         else:  # leaving the pool (an error, Ctrl-C) terminates the workers; they ignore SIGINT
-            with mp.get_context("fork").Pool(jobs, _ignore_interrupt) as pool:
+            with mp.get_context("fork").Pool(jobs, cores.pool_worker) as pool:
                 done = {n: said(n, j) for n, j in pool.imap_unordered(_named_judge,
                                                                       [(n, job) for n in order])}
     finally:
@@ -304,9 +304,6 @@ def _judge_all(names: Sequence[str], job: _Job, floor: float,
 def _named_judge(task: tuple[str, _Job]) -> tuple[str, Judged]:
     return task[0], _judge(*task)
 
-
-def _ignore_interrupt() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:

@@ -27,6 +27,7 @@ in Section 2.2 of the paper.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -35,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl.files.sweepfile import Sweep
+from afmctl.fit import cores
 from afmctl.model import hysteresis as hy
 from afmctl.model import rod as rd
 from afmctl.model import transducer as td
@@ -346,21 +348,19 @@ def run_from(pol: hy.Polarization, fields: Sequence[FloatArray], starts: Sequenc
     for i, (e, start, dt) in enumerate(zip(fields, starts, dts or [1e-4] * len(fields),
                                           strict=True)):
         ck = (key, pol.n_coercive, starts[:i + 1])
-        if cache is None or ck not in cache:
+        entry = None if cache is None else cache.get(ck)  # one lookup: a cache may be shared
+        if entry is None:                                 # by threads (cores.together)
             if start == "previous" and state is not None:
                 st = state
             else:
                 st = hy.initial_state(pol, "depoled" if start == "previous" else start)  # type: ignore[arg-type]
             kern = kern or hy.build_kernel(pol)
-            q, end = hy.run(kern, e, st, dt)
-            if cache is None:
-                out.append(q)
-                state = end
-                continue
-            if len(cache) > 256:
-                cache.clear()
-            cache[ck] = (q, end)
-        q, state = cache[ck]
+            entry = hy.run(kern, e, st, dt)
+            if cache is not None:
+                if len(cache) > 256:
+                    cache.clear()
+                cache[ck] = entry
+        q, state = entry
         out.append(q)
     return out
 
@@ -531,7 +531,7 @@ class LognormalSpace:
         e_max, nyq = extent(self.preps)
         grid = [np.log([mf * e_max, 0.5, 0.3 * mf * e_max, rf * e_max, 0.45 * nyq, 0.5])
                 for mf in (0.2, 0.5, 0.9) for rf in (0.05, 0.2, 0.6)]
-        costs = [cost(x) for x in grid]
+        costs = cores.together([functools.partial(cost, x) for x in grid])  # side by side
         return [grid[i] for i in np.argsort(costs)]
 
     def tune_rod(self, x: FloatArray, cost: Callable[[FloatArray], float]) -> FloatArray:
@@ -540,7 +540,8 @@ class LognormalSpace:
         _, nyq = extent(self.preps)
         freqs = [f for f in (30.0, 100.0, 300.0, 1000.0, 3000.0) if f < 0.45 * nyq]
         cands = [x] + [np.concatenate((x[:4], np.log([f, 0.3]))) for f in freqs]
-        return min(cands, key=cost)
+        costs = cores.together([functools.partial(cost, x) for x in cands])
+        return cands[int(np.argmin(costs))]  # the first of equals, as min() would
 
     def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
         return with_initial(to_model(np.exp(x), beta, self.scales, thickness_um), self.starts)

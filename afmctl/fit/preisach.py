@@ -36,6 +36,7 @@ HEM's (:mod:`afmctl.fit.representation`).
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -47,6 +48,7 @@ from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
 from afmctl.files.sweepfile import Sweep, holds_s
+from afmctl.fit import cores
 from afmctl.fit import parametrization as pz
 from afmctl.fit import preisach_coarse as pc
 from afmctl.fit import uncertainty as unc
@@ -322,12 +324,18 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                      np.array([float(np.mean(y)) for y in data.y]))
 
     sizes = pc.blocks(data.fields, data.dts, min(settings.creep_taus_s)) if coarse else None
-    top: list[tuple[float, Fitted, Theta]] = []  # the best two (each holds its basis columns)
-    for starts in cands:  # the start states: one linear step each, the cheapest to compare
+
+    def first_step(starts: tuple[str, ...]) -> tuple[float, Fitted, Theta]:
         full = Problem(data, grid, starts, settings.creep_taus_s)
         fitted = Fitted(full, pc.coarse(full, sizes) if sizes is not None else full)
         run = gauss_newton(fitted.fit, start_theta(), pen, lam0, False, 1)
-        top = sorted([*top, (run.cost, fitted, run.theta)], key=lambda r: r[0])[:2]
+        return run.cost, fitted, run.theta
+
+    top: list[tuple[float, Fitted, Theta]] = []  # the best two (each holds its basis columns)
+    for at in range(0, len(cands), cores.workers()):  # the start states: one linear step each,
+        batch = cands[at:at + cores.workers()]        # the cheapest to compare
+        firsts = cores.together([functools.partial(first_step, s) for s in batch])
+        top = sorted([*top, *firsts], key=lambda r: r[0])[:2]
     best, runner_up = top[0], (top[1] if len(top) > 1 else None)
     prob = best[1]
     say(f"Preisach grid {ec.size} x {ei.size} from {settings.coef_coercive} x "
@@ -338,14 +346,21 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
            "; first fitted with each sweep's rows standing for "
            + ", ".join(f"{w}{' (means)' if b > 1 else ''}" for w, b in
                        zip(prob.fit.weights, prob.fit.blocks, strict=True)) + " samples"))
-    plain = _plain(prob.fit, best[2], pen, lam0, settings)
+    # with a core spare, the runner-up's fits run beside the best's, in case they are retried
+    ahead = runner_up if runner_up is not None and cores.spare() else None
+    plain, alt_plain = _beside(lambda: _plain(prob.fit, best[2], pen, lam0, settings),
+                               None if ahead is None else
+                               lambda: _plain(ahead[1].fit, ahead[2], pen, lam0, settings))
     crept = forced = crept_force = None
     if float(np.max(prob.full.ratios(plain.theta))) <= creep_above:
         say(f"  no creep fitted: without it every sweep is within {creep_above:g}x its noise")
     else:
-        crept = _crept(prob, plain.theta, pen, lam0, settings)
+        crept, alt = _beside(lambda: _crept(prob, plain.theta, pen, lam0, settings),
+                             None if ahead is None or alt_plain is None else
+                             lambda: _crept(ahead[1], alt_plain.theta, pen, lam0, settings))
         if runner_up is not None and _retry(prob.full, plain, crept):
-            prob, plain, crept = _retried(prob, plain, crept, runner_up, pen, lam0, settings, say)
+            prob, plain, crept = _retried(prob, plain, crept, runner_up, pen, lam0, settings, say,
+                                          None if alt is None else (alt_plain, alt))
     shown = [("without creep", prob.full, plain)] + ([("with creep", prob.full, crept)]
                                                       if crept else [])
     if on_force and crept is not None:
@@ -395,15 +410,26 @@ def _retry(prob: Problem, plain: Run, crept: Run) -> bool:
     return bool(np.max(after) > RETRY_ABOVE and np.sum(after ** 2) < 0.5 * np.sum(before ** 2))
 
 
+def _beside(call: Callable[[], Run], other: Callable[[], Run] | None) -> tuple[Run, Run | None]:
+    """``call()``, and ``other()`` (None if None) run beside it (:func:`cores.together`)."""
+    if other is None:
+        return call(), None
+    first, second = cores.together([call, other])
+    return first, second
+
+
 def _retried(prob: Fitted, plain: Run, crept: Run, runner_up: tuple[float, Fitted, Theta],
-             pen: FloatArray, lam: float, settings: Settings, say: Callable[[str], None]
-             ) -> tuple[Fitted, Run, Run]:
-    """The fits without and with creep again from the runner-up start assignment; the pair whose
-    creep fit misses the sweeps less (sum of squares over the noise, on the full problems) is
-    returned."""
+             pen: FloatArray, lam: float, settings: Settings, say: Callable[[str], None],
+             done: tuple[Run, Run] | None = None) -> tuple[Fitted, Run, Run]:
+    """The fits without and with creep again from the runner-up start assignment (``done``: as
+    already fitted beside the first); the pair whose creep fit misses the sweeps less (sum of
+    squares over the noise, on the full problems) is returned."""
     other = runner_up[1]
-    alt_plain = _plain(other.fit, runner_up[2], pen, lam, settings)
-    alt = _crept(other, alt_plain.theta, pen, lam, settings)
+    if done is None:
+        alt_plain = _plain(other.fit, runner_up[2], pen, lam, settings)
+        alt = _crept(other, alt_plain.theta, pen, lam, settings)
+    else:
+        alt_plain, alt = done
     miss = [float(np.sum(p.full.ratios(r.theta) ** 2)) for p, r in ((prob, crept), (other, alt))]
     say(f"  creep fit from starts {', '.join(prob.full.starts)} left {miss[0]:.3g}, from "
         f"{', '.join(other.full.starts)} {miss[1]:.3g} (sum of (RMS / noise)^2): "
@@ -449,8 +475,9 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
         runs_by["creep on the force"] = (fitted.force_problem, True, fitted.crept_force)
     scores: dict[str, float] = {}
     choice: tuple[float, str, float, FloatArray] | None = None
-    for label, (p, creep, run) in runs_by.items():
-        per = heldout(p, run.theta, pen, settings.smoothing, creep)
+    pers = cores.together([functools.partial(heldout, p, run.theta, pen, settings.smoothing, creep)
+                           for p, creep, run in runs_by.values()])
+    for label, per in zip(runs_by, pers, strict=True):
         for lam in per:
             score = float(np.sum(per[lam] ** 2 / data.noise ** 2))
             scores[f"{label}, smoothing {lam:g}"] = score

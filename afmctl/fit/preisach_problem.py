@@ -165,7 +165,7 @@ def make_grid(fields: Sequence[FloatArray], settings: Settings) -> tuple[FloatAr
     return ec, ei, h
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _nonzeros(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per row of ``m`` its nonzero columns (``idx[r, :cnt[r]]``, in order)."""
     idx = np.zeros(m.shape, np.int64)
@@ -178,7 +178,7 @@ def _nonzeros(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return idx, cnt
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _coef_columns(y: np.ndarray, ei: np.ndarray, inv: float, mi: np.ndarray,
                   mj: np.ndarray, plays: bool) -> np.ndarray:
     """``sum_ij mi[i, a] mj[j, b] erf((y_i + E_I,j) inv)`` per sample, shape (N, A B); with

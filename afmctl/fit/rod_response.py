@@ -20,7 +20,7 @@ from afmctl.fit import parametrization as pz
 FloatArray = NDArray[np.float64]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _rod_rows(phi: np.ndarray, gam: np.ndarray, x: np.ndarray, scale: np.ndarray,
               rows: np.ndarray, out: np.ndarray, col0: int) -> None:
     n, k = x.shape

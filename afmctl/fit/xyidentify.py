@@ -30,7 +30,6 @@ absorbed the coupling's static part at that position).
 from __future__ import annotations
 
 import multiprocessing as mp
-import signal as sig
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -42,6 +41,7 @@ from numpy.typing import NDArray
 from afmctl.errors import FitInputError
 from afmctl.files.sweepfile import Sweep
 from afmctl.files.xysweepfile import AXES, XYSweep
+from afmctl.fit import cores
 from afmctl.fit import coupling as fc
 from afmctl.fit import identify as idf
 from afmctl.fit import modes
@@ -180,7 +180,7 @@ def fit(sweeps: Sequence[XYSweep], settings: idf.Settings = idf.Settings(),
     if jobs <= 1:
         results = [_fit_axis(t, say) for t in tasks]
     else:
-        with mp.get_context("fork").Pool(min(jobs, len(tasks)), _ignore_interrupt) as pool:
+        with mp.get_context("fork").Pool(min(jobs, len(tasks)), cores.pool_worker) as pool:
             results = pool.map(_fit_axis, tasks)
     axes = dict(zip(AXES, results, strict=True))
     for a, r in axes.items():
@@ -201,6 +201,3 @@ def _fit_axis(task: tuple[str, list[Sweep], idf.Settings, tuple[float, ...]],
     result = modes.refined(idf.fit(data, settings, tell), data, modes_hz, settings.window_s)
     return modes.reidentified(result, data, modes_hz, settings, tell)
 
-
-def _ignore_interrupt() -> None:
-    sig.signal(sig.SIGINT, sig.SIG_IGN)

@@ -138,7 +138,7 @@ def offset(creep: Creep | None, z: FloatArray) -> float:
     return float(np.dot(creep.weights, z[:creep.size]))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _update(p: float, a: np.ndarray, r: np.ndarray, z: np.ndarray) -> None:
     """Advance the state ``z = (z_j, y_j)`` by one sample of hysteretic output ``p``."""
     n = a.size
@@ -222,7 +222,7 @@ def lagged(x: FloatArray, tau_s: FloatArray, dt: float, z0: FloatArray) -> Float
                    np.array([float(v) for v in z0[:a.size]]))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _lagged(x: np.ndarray, a: np.ndarray, z0: np.ndarray) -> np.ndarray:
     out = np.empty((x.size, a.size))
     z = z0.copy()
@@ -233,7 +233,7 @@ def _lagged(x: np.ndarray, a: np.ndarray, z0: np.ndarray) -> np.ndarray:
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _add_columns(out: np.ndarray, x: np.ndarray, idx: np.ndarray, a: np.ndarray,
                  c: np.ndarray, z0: np.ndarray, x0: np.ndarray, fresh: bool
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -281,7 +281,7 @@ def add_lag_columns(out: FloatArray, tau_s: FloatArray, weights: FloatArray, x: 
                         np.ascontiguousarray(x0, dtype=float), start is None)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _held(x: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
     y = np.empty(x.size)
     idx = np.empty(x.size, dtype=np.int64)

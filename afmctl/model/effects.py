@@ -235,7 +235,7 @@ def _linear(ad: FloatArray, bd: FloatArray, ca: FloatArray, da: float, v: FloatA
     return y, x0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _slope(v: float, r: float, u: float, w: float, zeta: float, second: bool,
            slew: float) -> tuple[float, float]:  # pragma: no cover - compiled
     drive = r if second else w * (u - v)

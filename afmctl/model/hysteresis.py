@@ -367,7 +367,7 @@ def initial_state(params: Polarization, how: Initial | str | NDArray = "depoled"
 # ----------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _step(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray,
           wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray) -> float:
     """Advance the state ``st`` by one sample at field ``e`` (MV/m) held for ``dt`` s into ``out``
@@ -424,7 +424,7 @@ def _step(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: n
     return (e * wtot + mean) / eta + p_r * thermal_step(e, dt, st, out, ec, wc, ei, cw, fscale, nu0)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _matrix_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray, tab: np.ndarray) -> float:
     """Kernel of a weight matrix on the grid (:mod:`afmctl.model.preisach`): per coercive row the
     play output ``y_i``, then the row's ``g_i(y_i) = sum_j w_ij erf((y_i + E_I,j) / (sqrt(2)
@@ -460,13 +460,13 @@ def _matrix_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray, tab:
     return acc
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _bouc_wen_slope(h: float, s: float, a: float, hs: float, kappa: float, n: float) -> float:
     q = 1.0 if s * a * h > 0.0 else kappa  # |h| grows: 1; toward zero: kappa
     return a * (1.0 - q * abs(h / hs) ** n)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _bouc_wen_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray) -> float:
     """Bouc-Wen ``h`` (:mod:`afmctl.model.boucwen`, ``ec = [A, h_s, kappa, n]``) after the field
     moves monotonically from ``st[1]`` to ``e`` (MV/m) from ``st[0]``: RK4 in ``E``; ``out`` (may
@@ -490,13 +490,13 @@ def _bouc_wen_step(e: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray) ->
     return h
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def banded(kind: int) -> bool:
     """Whether the kernel has a quiet band (:func:`_quiet_band`): play outputs or relays."""
     return kind == 0 or kind == 1 or kind == 3
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _quiet_band(kind: int, st: np.ndarray, ec: np.ndarray, ei: np.ndarray) -> tuple[float, float]:
     """Open field interval (MV/m) inside which no relay of the state ``st`` can switch.
 

@@ -41,13 +41,13 @@ FloatArray = NDArray[np.float64]
 _NONE = np.zeros(0)  # no creep elements
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _poly(g1: float, g2: float, g3: float, p: float) -> float:
     """``g1 p + g2 p^2 + g3 p^3``: the force of (16) (with its cubic) or its prediction."""
     return (g1 + (g2 + g3 * p) * p) * p
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _root(g1: float, g2: float, g3: float, rhs: float) -> float:
     """The root of ``_poly(g1, g2, g3, p) = rhs`` on the branch through ``p = 0`` where the slope
     is positive (NaN if there is none): the quadratic's closed form, then Newton on the cubic."""
@@ -68,7 +68,7 @@ def _root(g1: float, g2: float, g3: float, rhs: float) -> float:
     return math.nan
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _predict(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray,
              wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray, c0: float,
              g1: float, g2: float, g3: float, creep: float) -> tuple[float, float]:
@@ -78,7 +78,7 @@ def _predict(kind: int, e: float, dt: float, st: np.ndarray, out: np.ndarray, ec
     return c0 + _poly(g1, g2, g3, p + creep), p
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _solve(kind: int, target: float, e0: float, y0: float, slope: float, floor: float,
            e_min: float, e_max: float, dt: float, st: np.ndarray, sc: np.ndarray, ec: np.ndarray,
            wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, scal: np.ndarray, c0: float, g1: float, g2: float,

@@ -187,7 +187,7 @@ def row_tables(grid: PreisachGrid) -> tuple[float, float, FloatArray, FloatArray
     return y0, h, g, slope
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _play(e: np.ndarray, r: np.ndarray, y: np.ndarray) -> np.ndarray:
     out = np.empty((e.size, r.size))
     for k in range(e.size):

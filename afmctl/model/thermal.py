@@ -43,7 +43,7 @@ RATE_Z_LO, RATE_Z_HI, RATE_PER_UNIT = -6.5, 25.0, 256
 RATE_REL_ERROR = 2e-8
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def erfcx(z: float) -> float:
     """Scaled complementary error function exp(z^2) erfc(z), stable for all real z."""
     if z < 25.0:
@@ -72,7 +72,7 @@ def _rate_table() -> FloatArray:
 RATE_TABLE = _rate_table()
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def rate(z: float, nu0: float, table: np.ndarray) -> float:
     """``nu0 / erfcx(z)`` (1/s): the switching likelihood (7)-(8) at the scaled field ``z``, from
     ``table`` (:data:`RATE_TABLE`) inside its span, from the formula outside."""
@@ -84,7 +84,7 @@ def rate(z: float, nu0: float, table: np.ndarray) -> float:
     return nu0 * (table[k, 0] + t * (table[k, 1] + t * (table[k, 2] + t * table[k, 3])))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _cell(x: float, ee: float, ec: float, dt: float, s: float, zcut: float, nu0: float,
           table: np.ndarray) -> tuple[float, float, float]:
     """New ``x_+`` of a hysteron (effective field ``ee``, coercive field ``ec``; MV/m) held
@@ -114,7 +114,7 @@ def _cell(x: float, ee: float, ec: float, dt: float, s: float, zcut: float, nu0:
     return xeq + (x - xeq) * math.exp(-(pm + pp) * dt), pm, pp
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def thermal_step(e: float, dt: float, st: np.ndarray, out: np.ndarray, ec: np.ndarray,
                  wc: np.ndarray, ei: np.ndarray, cw: np.ndarray, fscale: float,
                  nu0: float) -> float:
