@@ -57,6 +57,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize
 
+from afmctl.fit import cores
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.parametrization import FieldGrid, every_kth, field_grid
 from afmctl.fit.preisach_problem import Data
@@ -551,7 +552,7 @@ def _solve(prob: Problem, x0: FloatArray, creep: bool) -> optimize.OptimizeResul
     sol = optimize.least_squares(lambda z: prob.residual(full(z)), x0[free],
                                  bounds=(lo[free], hi[free]), x_scale="jac",
                                  max_nfev=NFEV_PER_PARAMETER * int(free.sum()),
-                                 diff_step=DIFF_STEP)
+                                 diff_step=DIFF_STEP, workers=cores.mapped)
     sol.x, sol.free = full(sol.x), free
     return sol
 

@@ -15,12 +15,14 @@ laboratory's PC may be running the stage beside.
 
 from __future__ import annotations
 
+import functools
 import os
 import signal
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import TypeVar
 
+A = TypeVar("A")
 T = TypeVar("T")
 #: Calls run at once at most (each holds its own linearized problem).
 MAX_WORKERS = 2
@@ -102,7 +104,14 @@ def together(calls: Sequence[Callable[[], T]]) -> list[T]:
     return results  # type: ignore[return-value]
 
 
+def mapped(fun: Callable[[A], T], xs: Iterable[A]) -> list[T]:
+    """``list(map(fun, xs))``, the calls side by side (:func:`together`): the ``workers`` of
+    :func:`scipy.optimize.least_squares`, whose finite differences each evaluate the model on
+    every sweep."""
+    return together([functools.partial(fun, x) for x in xs])
+
+
 _inside = threading.local()
 _alone = False
 
-__all__ = ["MAX_WORKERS", "workers", "pool_worker", "spare", "together"]
+__all__ = ["MAX_WORKERS", "workers", "pool_worker", "spare", "together", "mapped"]

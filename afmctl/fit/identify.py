@@ -19,9 +19,8 @@ are always those of the final model at the default node counts and the full rate
 
 from __future__ import annotations
 
-import functools
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -342,13 +341,6 @@ def _residual_fn(space: Space, y: FloatArray) -> Callable[[FloatArray], FloatArr
     return residual
 
 
-def _beside(fun: Callable[[FloatArray], FloatArray], xs: Iterable[FloatArray]
-            ) -> list[FloatArray]:
-    """``map(fun, xs)``, the calls side by side (:func:`afmctl.fit.cores.together`): the solver's
-    finite differences, whose evaluations each run the hysteresis (13) on every sweep."""
-    return cores.together([functools.partial(fun, x) for x in xs])
-
-
 def _cost(space: Space, y: FloatArray, x: FloatArray) -> float:
     return float(np.sum(_residual_fn(space, y)(x) ** 2))
 
@@ -358,7 +350,7 @@ def _solve(space: Space, x0: FloatArray, prob: Problem) -> optimize.OptimizeResu
     x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
     sol = optimize.least_squares(_residual_fn(space, prob.y), x0, bounds=(lo, hi),
                                  x_scale=space.x_scale, diff_step=1e-6,
-                                 max_nfev=prob.settings.max_nfev, workers=_beside)
+                                 max_nfev=prob.settings.max_nfev, workers=cores.mapped)
     prob.nfev += int(sol.nfev)
     return sol
 

@@ -30,7 +30,13 @@ stage), the grid is fitted at once; if its worst held-out error is then :data:`D
 below the HEM's, the HEM's second solve, restarts and refinements are skipped (on the
 out-of-family stages of the benches they never closed such a gap: a Prandtl-Ishlinskii stage's
 HEM went from 12.6x to 7.5x the noise in 110 s of restarts, polishing and a general density,
-against the grid's 2.7x; preisach-u's second solve took 40 s to stay at 43x).
+against the grid's 2.7x; preisach-u's second solve took 40 s to stay at 43x). Before that grid,
+if a measured minor loop stays open (:mod:`afmctl.fit.closure`), Bouc-Wen is fitted first
+(:meth:`Grid.bouc_wen_first`): within the noise floor it decides, and neither the grid nor the
+HEM's restarts are fitted (bw-u of the benches: 153 -> 32 s, the same errors to 0.001x the
+noise); otherwise it is set aside after a start that leaves some sweep over
+:data:`FIRST_GIVE_UP` times its noise, which is what creep's open loops cost (4-10 s on the
+creeping Preisach stages).
 """
 
 from __future__ import annotations
@@ -69,6 +75,11 @@ EDGE = 0.05
 REVERSALS_NEEDED = 4
 #: The grid is kept only if its worst held-out error is below this share of the HEM's.
 MARGIN = 0.9
+#: Bouc-Wen fitted before the grid (:meth:`Grid.bouc_wen_first`, a minor loop open) stops after a
+#: start that leaves some sweep over this many times its noise: on stages whose loops creep
+#: open (a Preisach-type stage with creep) it is far off, and the grid is fitted next
+#: (preisach-b-creep: stopped after its first start, 10 s, at 97x).
+FIRST_GIVE_UP = 4.5
 #: Where the grid's worst held-out error is within identify's noise floor
 #: (:data:`afmctl.fit.identify.FLOOR`, 1.5x the noise), Bouc-Wen is not fitted (with
 #: ``representation = "auto"``): the grid is already at the floor, and Bouc-Wen could only bring
@@ -90,6 +101,9 @@ class Grid:
         self.fit: pf.PreisachFit | None = None
         self.bw: bf.BoucWenFit | None = None
         self.decided = False
+        #: Bouc-Wen, fitted first (the minor loops stay open), is within the noise floor
+        self.by_bouc_wen = False
+        self.tried_first = False
 
     def data(self) -> pf.Data:
         return pf.sweep_data(self.sweeps, self.thickness, self.noise, self.settings.window_s)
@@ -111,26 +125,58 @@ class Grid:
         over :data:`DECISIVE` times the grid's worst held-out error (not expected to win from there)."""
         if self.bw is None:
             self.say("fitting a Bouc-Wen model (its minor loops need not close) ...")
-            rod0 = ((self.fit.model.rod.natural_hz, self.fit.model.rod.damping_ratio)
-                    if self.fit is not None else
-                    rod_of(x_hem))
-            chained = [(first,) + ("previous",) * (len(starts) - 1)
-                       for first in ("depoled", "negative", "positive")]
-            give_up = (None if self.fit is None else
-                       DECISIVE * float(np.max(self.fit.heldout_rms_um / self.noise)))
-            try:
-                self.bw = bf.fit(self.data(), [tuple(starts), *chained], rod0, self.thickness,
-                                 self.settings.mass_kg, self.settings.p_r, say=self.say,
-                                 give_up=give_up, field_step=self.settings.field_step)
-            except ValueError as exc:
-                self.say(f"  no Bouc-Wen fit: {exc}")
+            self.bw = self._bouc_wen(starts, x_hem, None if self.fit is None else
+                                     DECISIVE * float(np.max(self.fit.heldout_rms_um / self.noise)))
         return self.bw
+
+    def _bouc_wen(self, starts: Sequence[str], x_hem: FloatArray,
+                  give_up: float | None) -> bf.BoucWenFit | None:
+        rod0 = ((self.fit.model.rod.natural_hz, self.fit.model.rod.damping_ratio)
+                if self.fit is not None else rod_of(x_hem))
+        chained = [(first,) + ("previous",) * (len(starts) - 1)
+                   for first in ("depoled", "negative", "positive")]
+        try:
+            return bf.fit(self.data(), [tuple(starts), *chained], rod0, self.thickness,
+                          self.settings.mass_kg, self.settings.p_r, say=self.say,
+                          give_up=give_up, field_step=self.settings.field_step)
+        except ValueError as exc:
+            self.say(f"  no Bouc-Wen fit: {exc}")
+            return None
+
+    def bouc_wen_first(self, starts: Sequence[str], x_hem: FloatArray) -> bool:
+        """With ``representation = "auto"`` and a measured minor loop that stays open: Bouc-Wen
+        before the grid, stopped after a start that leaves some sweep above
+        :data:`FIRST_GIVE_UP` times its noise. True (and kept) if its worst error is then within
+        identify's noise floor: the grid, a Preisach-type model, cannot close that gap, and
+        could only bring the fit closer to the noise. Otherwise it is set aside, and Bouc-Wen is
+        fitted again later as before, if at all (started at the grid's rod, judged against the
+        grid's error)."""
+        from afmctl.fit import identify as idf
+
+        if self.tried_first or self.settings.representation != "auto":
+            return self.by_bouc_wen
+        self.tried_first = True
+        if closure.check(self.sweeps, self.noise)["close"] is not False:
+            return False
+        self.say("a measured minor loop stays open: a Bouc-Wen model first (kept if within the "
+                 "noise floor) ...")
+        bw = self._bouc_wen(starts, x_hem, FIRST_GIVE_UP)
+        worst = np.inf if bw is None else float(np.max(bw.heldout_rms_um / self.noise))
+        if worst > idf.FLOOR:
+            self.say(f"  Bouc-Wen left {worst:.2f}x the noise (over {idf.FLOOR:g}x): set aside; "
+                     "the Preisach grid next")
+            return False
+        self.bw, self.by_bouc_wen = bw, True
+        return True
 
     def early(self, space: pz.LognormalSpace, sol: optimize.OptimizeResult,
               ratio: FloatArray) -> bool:
         """After the HEM's first start: True if the grid makes its restarts moot."""
         if self.settings.representation not in ("auto", "preisach") or float(np.max(ratio)) <= EARLY:
             return False
+        if self.bouc_wen_first(space.starts, sol.x):
+            self.decided = True
+            return True
         fit, was = self.run(space.starts, sol.x), self.decided
         self.decided = bool(DECISIVE * np.max(fit.heldout_rms_um / self.noise)
                             < float(np.max(ratio)))
@@ -148,7 +194,8 @@ class Grid:
         from afmctl.fit import identify as idf
 
         want = self.settings.representation
-        grid = self.run(space.starts, sol.x) if want in ("auto", "preisach") else None
+        grid = (self.run(space.starts, sol.x) if want in ("auto", "preisach")
+                and not self.by_bouc_wen else None)
         loops = closure.check(self.sweeps, self.noise)["close"]
         worst = {"hem": max(s.rms_over_noise for s in hem.sweeps)}
         if grid is not None:
@@ -175,6 +222,11 @@ class Grid:
                                    "interior_reversals": interior_reversals(self.sweeps),
                                    "interior_loops": grid.interior_loops,
                                    "force_cubic_fitted": grid.cubic}
+        elif self.by_bouc_wen:
+            figures["preisach"] = {"skipped": (
+                f"a measured minor loop stays open and Bouc-Wen, fitted first, is within "
+                f"identify's noise floor ({worst['bouc-wen']:.2f}x): a Preisach-type grid "
+                "could only bring the fit closer to the noise")}
         figures["bouc_wen"] = (bf.figures(bw, self.noise) if bw is not None else
                                {"skipped": _why_no_bouc_wen(want, loops, worst, settled)})
         self.say(f"representation: {chosen} ({why})")

@@ -205,8 +205,9 @@ def test_inverse_tracks_the_foreign_stage(stage_and_set: tuple, fitted: bf.BoucW
 
 @pytest.mark.slow
 def test_identify_chooses_bouc_wen_through_the_cli(stage_and_set: tuple, tmp_path) -> None:
-    """``afmctl identify --json`` on the set: the paper's model and the grid stay far above the
-    noise, the loops are open, Bouc-Wen is fitted and kept, and its model file reads back. The
+    """``afmctl identify --json`` on the set: the paper's model stays far above the noise, the
+    loops are open, Bouc-Wen is fitted first and kept within the noise floor (the grid, which
+    cannot open a loop, is not fitted, and the figures say why), and its model file reads back. The
     HEM without restarts (a profile's ``[identify] restarts = 0``): its restarts took 110 of the
     test's 150 s and leave it at 40x the noise on this stage (bw-u of the benches)."""
     _, _, sweeps = stage_and_set
@@ -225,6 +226,8 @@ def test_identify_chooses_bouc_wen_through_the_cli(stage_and_set: tuple, tmp_pat
     assert figures["bouc_wen"]["worst_heldout_over_noise"] < 2.0
     assert figures["hem"]["worst_over_noise"] > 3 * figures["bouc_wen"]["worst_heldout_over_noise"]
     assert doc["minor_loops"]["close"] is False
+    assert "minor loop stays open" in figures["preisach"]["skipped"]
+    assert "a Bouc-Wen model first" in res.stderr and "fitting the Preisach grid" not in res.stderr
     assert isinstance(mf.read(tmp_path / "m.toml").polarization, BoucWen)
 
 

@@ -87,6 +87,9 @@ def test_identify_chooses_the_grid_and_reaches_the_noise_floor(
     assert figures["chosen"] == "preisach"
     assert figures["preisach"]["worst_heldout_over_noise"] < 1.5
     assert figures["hem"]["worst_over_noise"] > 5  # the paper's model is off its family here
+    # creep opens the minor loops: Bouc-Wen is tried first, far off, and set aside for the grid
+    assert doc["minor_loops"]["close"] is False
+    assert "Bouc-Wen left" in stderr and "set aside; the Preisach grid next" in stderr
     # nested loops from 0 V reverse at 2 voltages inside the range: too few for the grid's
     # interior, and identify says which sweep design would give it the rest
     assert figures["preisach"]["interior_reversals"] == 2
