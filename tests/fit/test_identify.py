@@ -303,3 +303,33 @@ def test_a_stage_of_the_family_fitted_from_the_wrong_start_is_solved_again_befor
     space, sol = idf.solve_round(depoled, np.log(FAR_THETA * 1.1), prob, grid_far_ahead)
     assert "depoled" not in space.starts and not asked
     assert np.max(prob.per_sweep(sol.fun)) <= idf.FLOOR
+
+
+def _stall_problem() -> idf.Problem:
+    """Two sweeps of 100 judged samples each, noise 0.01 um."""
+    s = sw.from_arrays(np.linspace(0.0, 100.0, 100), np.zeros(100), 1000.0)
+    prep = idf.pz.prepare(s, 1.0, 0.0, None)
+    return idf.Problem((), [prep, prep], np.zeros(200), np.array([0.01, 0.01]), idf.Settings(),
+                       lambda _m: None)
+
+
+@pytest.mark.parametrize(("miss_um", "fall", "stops_at"), [
+    (0.1, 0.0, idf.STALL_STEPS + 1),    # 10x the noise, flat: stopped after STALL_STEPS steps
+    (0.1, 0.002, None),                 # 10x, falling by 0.2 % a step: goes on
+    (0.04, 0.0, None),                  # 4x, flat: within EARLY, left to the solver's tolerances
+])
+def test_a_first_solve_stops_where_it_crawls_far_off(miss_um: float, fall: float,
+                                                     stops_at: int | None) -> None:
+    """The first solve's callback raises StopIteration where the cost fell by less than
+    STALL_SHARE of itself over STALL_STEPS steps and some sweep is over EARLY x its noise."""
+    from scipy.optimize import OptimizeResult
+
+    callback, stopped = idf._stalled(_stall_problem()), None
+    for step in range(1, 40):
+        fun = np.full(200, miss_um * (1.0 - fall) ** step)
+        try:
+            callback(OptimizeResult(cost=0.5 * float(fun @ fun), fun=fun))
+        except StopIteration:
+            stopped = step
+            break
+    assert stopped == stops_at
