@@ -58,6 +58,7 @@ from numpy.typing import NDArray
 from scipy import optimize
 
 from afmctl.fit import cores
+from afmctl.fit import stall
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.parametrization import FieldGrid, every_kth, field_grid
 from afmctl.fit.preisach_problem import Data
@@ -469,7 +470,7 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     best, hopeless = None, False
     for _, x0 in sorted(distinct.values(), key=lambda f: f[0])[:MAX_STARTS]:
         sol = _searched(prob, _solve(prob, prob.state_search(prob.rod_search(x0)),
-                                     creep=False), good)
+                                     creep=False, give_up=give_up), good, give_up)
         again = best is not None and abs(sol.cost - best.cost) <= SAME * best.cost
         best = sol if best is None or sol.cost < best.cost else best
         if give_up is not None:
@@ -507,8 +508,8 @@ def _rms(prob: Problem, x: FloatArray) -> tuple[FloatArray, FloatArray, list[Flo
     return rms, off, predicted
 
 
-def _searched(prob: Problem, sol: optimize.OptimizeResult, good: float
-              ) -> optimize.OptimizeResult:
+def _searched(prob: Problem, sol: optimize.OptimizeResult, good: float,
+              give_up: float | None = None) -> optimize.OptimizeResult:
     """``sol``, or where its cost is above ``good`` and :meth:`Problem.state_search` moves a
     state at its shape, the solve from there if that ends lower. The start shape is crude and
     its state search may miss (foreign-xy-6's y axis: from the rod of identify's grid fit, every
@@ -519,7 +520,7 @@ def _searched(prob: Problem, sol: optimize.OptimizeResult, good: float
     x = prob.state_search(sol.x)
     if np.array_equal(x, sol.x):
         return sol
-    again = _solve(prob, x, creep=False)
+    again = _solve(prob, x, creep=False, give_up=give_up)
     return again if again.cost < sol.cost else sol
 
 
@@ -533,10 +534,15 @@ def _rod_searched(prob: Problem, sol: optimize.OptimizeResult) -> FloatArray:
     return again.x if again.cost < sol.cost else sol.x
 
 
-def _solve(prob: Problem, x0: FloatArray, creep: bool) -> optimize.OptimizeResult:
+def _solve(prob: Problem, x0: FloatArray, creep: bool,
+           give_up: float | None = None) -> optimize.OptimizeResult:
     """Least squares from ``x0``; without ``creep`` its weight is held at 0 (each start
     assignment is fitted so, and creep added to the best: free from the start, it led one
-    assignment of a creep-free stage to a far minimum with the weight at its bound)."""
+    assignment of a creep-free stage to a far minimum with the weight at its bound). With
+    ``give_up``, stopped where it stalls (:mod:`afmctl.fit.stall`) while the RMS over the noise
+    of all the sweeps together is over ``give_up``: some sweep is then over it too, and
+    :func:`fit` would give up after this start (on pi-b-creep the first start crawled from 45
+    to 125 steps at 99.2-99.3e6)."""
     x0 = np.array(x0, float)
     x0[CREEP_AT] = CREEP_START if creep else 0.0  # off its bound: the trust region starts moving
     lo, hi = _bounds(prob, x0)
@@ -552,7 +558,11 @@ def _solve(prob: Problem, x0: FloatArray, creep: bool) -> optimize.OptimizeResul
     sol = optimize.least_squares(lambda z: prob.residual(full(z)), x0[free],
                                  bounds=(lo[free], hi[free]), x_scale="jac",
                                  max_nfev=NFEV_PER_PARAMETER * int(free.sum()),
-                                 diff_step=DIFF_STEP, workers=cores.mapped)
+                                 diff_step=DIFF_STEP, workers=cores.mapped,
+                                 callback=None if give_up is None else stall.callback(
+                                     lambda r: math.sqrt(2 * r.cost / prob.samples) > give_up))
+    if sol.status == -2:
+        sol.message = stall.message(f"the sweeps over {give_up:.3g}x their noise")
     sol.x, sol.free = full(sol.x), free
     return sol
 

@@ -39,6 +39,7 @@ from afmctl.fit import density as dn
 from afmctl.fit import noise as ns
 from afmctl.fit import parametrization as pz
 from afmctl.fit import representation as rep
+from afmctl.fit import stall
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.prediction import (
     SweepError,
@@ -65,13 +66,9 @@ START_MARGIN = 25.0
 #: those starts left more than this share of the first solve's worst error (sweep RMS / noise).
 STARTS_LEFT = 0.5
 #: The first solve from the first start, where the grid may be fitted after it
-#: (:func:`solve_round` with ``enough``), stops once its cost has fallen by less than this share
-#: of itself over :data:`STALL_STEPS` steps while some sweep is over
-#: :data:`afmctl.fit.representation.EARLY` times its noise: a model off its family crawls
-#: there (preisach-u: 47.80x after 12 steps, 47.84x after the budget's 300, 26 s). What
-#: follows is as before from where it stopped: the starts re-chosen, the grid asked.
-STALL_SHARE = 1e-3
-STALL_STEPS = 10
+#: (:func:`solve_round` with ``enough``), stops where it stalls (:mod:`afmctl.fit.stall`) while
+#: some sweep is over :data:`afmctl.fit.representation.EARLY` times its noise. What follows is
+#: as before from where it stopped: the starts re-chosen, the grid asked.
 #: Two sweeps' sensor zeros disagree when they differ by more than this many times the larger of
 #: their fit RMS (or noise): more than a misfit's mean could shift a fitted offset.
 OFFSET_AGREE = 5.0
@@ -354,36 +351,24 @@ def _cost(space: Space, y: FloatArray, x: FloatArray) -> float:
 
 
 def _solve(space: Space, x0: FloatArray, prob: Problem,
-           stall: bool = False) -> optimize.OptimizeResult:
-    """Least squares from ``x0`` (``stall``: stopped where :func:`_stalled` says)."""
+           stop_stalled: bool = False) -> optimize.OptimizeResult:
+    """Least squares from ``x0`` (``stop_stalled``: stopped where :func:`_stalled` says)."""
     lo, hi = space.bounds()
     x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
     sol = optimize.least_squares(_residual_fn(space, prob.y), x0, bounds=(lo, hi),
                                  x_scale=space.x_scale, diff_step=1e-6,
                                  max_nfev=prob.settings.max_nfev, workers=cores.mapped,
-                                 callback=_stalled(prob) if stall else None)
+                                 callback=_stalled(prob) if stop_stalled else None)
     if sol.status == -2:
-        sol.message = (f"stalled: the cost fell by less than {STALL_SHARE:.1%} of itself in "
-                       f"{STALL_STEPS} steps, some sweep over {rep.EARLY:g}x its noise")
+        sol.message = stall.message(f"some sweep over {rep.EARLY:g}x its noise")
     prob.nfev += int(sol.nfev)
     return sol
 
 
 def _stalled(prob: Problem) -> Callable[[optimize.OptimizeResult], None]:
-    """A :func:`scipy.optimize.least_squares` callback that stops the solve (``StopIteration``)
-    once its cost has fallen by less than :data:`STALL_SHARE` of itself over the last
-    :data:`STALL_STEPS` steps while some sweep is over :data:`afmctl.fit.representation.EARLY`
-    times its noise."""
-    costs: list[float] = []
-
-    def callback(intermediate_result: optimize.OptimizeResult) -> None:
-        costs.append(float(intermediate_result.cost))
-        if (len(costs) > STALL_STEPS
-                and costs[-1 - STALL_STEPS] - costs[-1] < STALL_SHARE * costs[-1]
-                and float(np.max(prob.per_sweep(intermediate_result.fun))) > rep.EARLY):
-            raise StopIteration
-
-    return callback
+    """:func:`afmctl.fit.stall.callback`, far off while some sweep is over
+    :data:`afmctl.fit.representation.EARLY` times its noise."""
+    return stall.callback(lambda r: float(np.max(prob.per_sweep(r.fun))) > rep.EARLY)
 
 
 def choose_starts(space: pz.LognormalSpace, x: FloatArray, y: FloatArray,
@@ -439,7 +424,7 @@ def solve_round(space: pz.LognormalSpace, x0: FloatArray, prob: Problem,
     :data:`STARTS_LEFT` of the first solution's worst error: where the starts explained most of
     it (a stage of the paper's family fitted from the wrong state), the refit may reach the
     noise floor, and is run first."""
-    sol = _solve(space, x0, prob, stall=enough is not None)
+    sol = _solve(space, x0, prob, stop_stalled=enough is not None)
     chosen = choose_starts(space, sol.x, prob.y, START_MARGIN * float(np.mean(prob.noise ** 2)))
     if chosen.starts == space.starts:
         return space, sol

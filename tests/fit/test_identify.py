@@ -11,6 +11,7 @@ from afmctl.files import modelfile
 from afmctl.files import sweepfile as sw
 from afmctl.fit import density as dn
 from afmctl.fit import identify as idf
+from afmctl.fit import stall
 from afmctl.model.transducer import Transducer
 from afmctl.planning import sweepdesign as sd
 from tests.harness.emulated import NOISE_UM, PROFILE, SAMPLE_RATE_HZ
@@ -314,14 +315,14 @@ def _stall_problem() -> idf.Problem:
 
 
 @pytest.mark.parametrize(("miss_um", "fall", "stops_at"), [
-    (0.1, 0.0, idf.STALL_STEPS + 1),    # 10x the noise, flat: stopped after STALL_STEPS steps
+    (0.1, 0.0, stall.STEPS + 1),       # 10x the noise, flat: stopped after STEPS steps
     (0.1, 0.002, None),                 # 10x, falling by 0.2 % a step: goes on
     (0.04, 0.0, None),                  # 4x, flat: within EARLY, left to the solver's tolerances
 ])
 def test_a_first_solve_stops_where_it_crawls_far_off(miss_um: float, fall: float,
                                                      stops_at: int | None) -> None:
     """The first solve's callback raises StopIteration where the cost fell by less than
-    STALL_SHARE of itself over STALL_STEPS steps and some sweep is over EARLY x its noise."""
+    stall.SHARE of itself over stall.STEPS steps and some sweep is over EARLY x its noise."""
     from scipy.optimize import OptimizeResult
 
     callback, stopped = idf._stalled(_stall_problem()), None
