@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from afmctl.files import sweepfile as sw
-from afmctl.fit import baselines, identify
+from afmctl.fit import baselines, cores, identify
 from afmctl.model import hysteresis as hy
 from afmctl.model import rod as rd
 from afmctl.model.transducer import Transducer
@@ -171,7 +171,9 @@ def family(names: str, jobs: int, cache: Path | None, design: str) -> dict[str, 
     from concurrent.futures import ProcessPoolExecutor
 
     cases = family_sets.cases_named(names)
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    # stages side by side take the cores: each then fits one call at a time (cores.pool_worker)
+    with ProcessPoolExecutor(max_workers=jobs,
+                             initializer=cores.pool_worker if jobs > 1 else None) as pool:
         rows = list(pool.map(family_stage, [c.name for c in cases], [cache] * len(cases),
                              [design] * len(cases)))
     for r in rows:

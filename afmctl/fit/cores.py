@@ -75,13 +75,14 @@ def together(calls: Sequence[Callable[[], T]]) -> list[T]:
     errors: list[BaseException | None] = [None] * n
     left = iter(range(n))
     lock = threading.Lock()
+    stop = threading.Event()  # the caller was interrupted: take no further call
 
     def work(catch: type[BaseException]) -> None:
         _inside.busy = True
         try:
             while True:
                 with lock:
-                    i = next(left, None)
+                    i = None if stop.is_set() else next(left, None)
                 if i is None:
                     return
                 try:
@@ -95,7 +96,11 @@ def together(calls: Sequence[Callable[[], T]]) -> list[T]:
                for _ in range(min(helpers, n - 1))]
     for t in threads:
         t.start()
-    work(Exception)  # an interrupt here leaves at once
+    try:
+        work(Exception)  # an interrupt here leaves at once ...
+    except BaseException:
+        stop.set()  # ... and the other threads end after the call they are in
+        raise
     for t in threads:
         t.join()
     for exc in errors:

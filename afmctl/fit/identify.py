@@ -67,8 +67,9 @@ START_MARGIN = 25.0
 STARTS_LEFT = 0.5
 #: The first solve from the first start, where the grid may be fitted after it
 #: (:func:`solve_round` with ``enough``), stops where it stalls (:mod:`afmctl.fit.stall`) while
-#: some sweep is over :data:`afmctl.fit.representation.EARLY` times its noise. What follows is
-#: as before from where it stopped: the starts re-chosen, the grid asked.
+#: some sweep is over :data:`afmctl.fit.representation.EARLY` times its noise. The starts are
+#: then re-chosen and the grid asked as before; if the grid does not decide, the solve goes on
+#: from where it stopped (:func:`global_fit`).
 #: Two sweeps' sensor zeros disagree when they differ by more than this many times the larger of
 #: their fit RMS (or noise): more than a misfit's mean could shift a fitted offset.
 OFFSET_AGREE = 5.0
@@ -465,9 +466,17 @@ def global_fit(prob: Problem, enough: Enough | None = None
         ratio = prob.per_sweep(sol.fun)
         prob.say(f"  {sol.message} (status {sol.status}); RMS / noise per sweep "
                  + " / ".join(f"{r:.2f}" for r in ratio))
+        decided = bool(np.all(ratio <= FLOOR)) or (not k and enough is not None
+                                                    and enough(space, sol, ratio))
+        if sol.status == -2 and not decided:  # stalled, and kept after all: solved on
+            sol = _solve(space, sol.x, prob)
+            ratio = prob.per_sweep(sol.fun)
+            prob.say(f"  solved on: {sol.message} (status {sol.status}); RMS / noise per sweep "
+                     + " / ".join(f"{r:.2f}" for r in ratio))
+            decided = bool(np.all(ratio <= FLOOR))
         if best is None or sol.cost < best[1].cost:
             best = (space, sol)
-        if np.all(ratio <= FLOOR) or (not k and enough is not None and enough(space, sol, ratio)):
+        if decided:
             break
     assert best is not None
     return best[0], best[1], restarts

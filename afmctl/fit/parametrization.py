@@ -230,11 +230,12 @@ _DISC_CACHE: dict[tuple[float, float, float], rd.Discrete] = {}
 
 def _discretize(fn: float, zeta: float, dt: float) -> rd.Discrete:
     key = (fn, zeta, dt)
-    if key not in _DISC_CACHE:
+    disc = _DISC_CACHE.get(key)  # one lookup: the solver's evaluations may run on threads
+    if disc is None:
         if len(_DISC_CACHE) > 256:
             _DISC_CACHE.clear()
-        _DISC_CACHE[key] = unit_oscillator_zoh(fn, zeta, dt)
-    return _DISC_CACHE[key]
+        disc = _DISC_CACHE[key] = unit_oscillator_zoh(fn, zeta, dt)
+    return disc
 
 
 def unit_oscillator_zoh(fn: float, zeta: float, dt: float) -> rd.Discrete:
@@ -541,7 +542,7 @@ class LognormalSpace:
         freqs = [f for f in (30.0, 100.0, 300.0, 1000.0, 3000.0) if f < 0.45 * nyq]
         cands = [x] + [np.concatenate((x[:4], np.log([f, 0.3]))) for f in freqs]
         costs = cores.together([functools.partial(cost, x) for x in cands])
-        return cands[int(np.argmin(costs))]  # the first of equals, as min() would
+        return cands[min(range(len(cands)), key=costs.__getitem__)]  # as min(cands, key=cost)
 
     def model(self, x: FloatArray, beta: FloatArray, thickness_um: float) -> td.Transducer:
         return with_initial(to_model(np.exp(x), beta, self.scales, thickness_um), self.starts)

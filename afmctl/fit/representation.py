@@ -54,6 +54,7 @@ from afmctl.fit import closure
 from afmctl.fit import preisach as pf
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.parametrization import rod_of, turning_points
+from afmctl.fit.prediction import finite_or_none
 from afmctl.model import boucwen as bm
 from afmctl.model import preisach as pr
 
@@ -104,6 +105,8 @@ class Grid:
         #: Bouc-Wen, fitted first (the minor loops stay open), is within the noise floor
         self.by_bouc_wen = False
         self.tried_first = False
+        #: the worst error (over the noise) of Bouc-Wen fitted first and set aside (inf: no fit)
+        self.first_worst: float | None = None
 
     def data(self) -> pf.Data:
         return pf.sweep_data(self.sweeps, self.thickness, self.noise, self.settings.window_s)
@@ -163,8 +166,10 @@ class Grid:
         bw = self._bouc_wen(starts, x_hem, FIRST_GIVE_UP)
         worst = np.inf if bw is None else float(np.max(bw.heldout_rms_um / self.noise))
         if worst > idf.FLOOR:
-            self.say(f"  Bouc-Wen left {worst:.2f}x the noise (over {idf.FLOOR:g}x): set aside; "
-                     "the Preisach grid next")
+            self.first_worst = worst
+            self.say(("  no Bouc-Wen fit" if bw is None else
+                      f"  Bouc-Wen left {worst:.2f}x the noise (over {idf.FLOOR:g}x)")
+                     + ": set aside; the Preisach grid next")
             return False
         self.bw, self.by_bouc_wen = bw, True
         return True
@@ -229,6 +234,8 @@ class Grid:
                 "could only bring the fit closer to the noise")}
         figures["bouc_wen"] = (bf.figures(bw, self.noise) if bw is not None else
                                {"skipped": _why_no_bouc_wen(want, loops, worst, settled)})
+        if self.first_worst is not None:  # fitted before the grid and set aside (None: no fit)
+            figures["bouc_wen"]["first_set_aside_over_noise"] = finite_or_none(self.first_worst)
         self.say(f"representation: {chosen} ({why})")
         if chosen == "preisach" and grid is not None:
             return self._result(hem, prob, grid, figures, estimates(grid.model, grid))

@@ -275,3 +275,20 @@ def test_creep_goes_on_across_a_known_hold_as_one_record_would() -> None:
     unknown = problem([np.nan, np.nan]).forces(x)
     assert np.array_equal(unknown[0], forces[0])
     assert np.max(np.abs(unknown[1] - forces[1])) > 1e-4
+
+
+@pytest.mark.slow
+def test_a_fit_whose_differences_run_side_by_side_is_the_fit_alone(
+        stage_and_set: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The solver's finite differences on two threads (:func:`afmctl.fit.cores.mapped`) and one
+    after another: the same fit, to the last bit."""
+    from afmctl.fit import cores
+
+    data, chained = _data(stage_and_set)
+    fits = []
+    for n in (1, 2):
+        monkeypatch.setattr(cores.os, "sched_getaffinity", lambda _pid, n=n: set(range(n)))
+        fits.append(bf.fit(data, chained, (1000.0, 0.1), THICKNESS_UM, 0.05, 0.3,
+                           field_step=FIELD_STEP))
+    assert fits[0].parameters == fits[1].parameters and fits[0].iterations == fits[1].iterations
+    np.testing.assert_array_equal(fits[0].heldout_rms_um, fits[1].heldout_rms_um)

@@ -20,11 +20,15 @@ from afmctl.model import preisach as pr
 from tests.harness.preisach_plant import PreisachStage, standard_sweeps
 
 
+def cores_here(monkeypatch: pytest.MonkeyPatch, n: int) -> None:
+    """This process may use ``n`` cores, whatever the machine's (threads run side by side on one
+    core too): what :func:`cores.workers` reads."""
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda _pid: set(range(n)))
+
+
 @pytest.fixture
 def two(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Two workers, whatever this machine's cores (threads run side by side on one core too)."""
-    monkeypatch.setattr(cores, "workers", lambda: 1 if getattr(cores._inside, "busy", False)
-                        else 2)
+    cores_here(monkeypatch, 2)
 
 
 def test_together_returns_every_result_in_the_calls_order(two: None) -> None:
@@ -39,20 +43,31 @@ def test_together_returns_every_result_in_the_calls_order(two: None) -> None:
     assert len(set(seen)) == 2  # the caller's thread and one other
 
 
+def test_at_most_two_run_at_once_and_one_core_runs_them_in_turn(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    cores_here(monkeypatch, 8)
+    assert cores.workers() == cores.MAX_WORKERS == 2
+    cores_here(monkeypatch, 1)
+    names = cores.together([lambda: threading.current_thread().name] * 3)
+    assert cores.workers() == 1 and set(names) == {threading.current_thread().name}
+
+
 def test_an_error_is_raised_after_every_other_call_has_ended(two: None) -> None:
     ended: list[int] = []
 
-    def fails() -> int:
-        raise ValueError("bad sweep")
+    def fails(what: str) -> int:
+        time.sleep(0.02 if what == "first" else 0.0)  # the first in order fails last
+        raise ValueError(f"bad sweep: {what}")
 
     def slow(i: int) -> int:
         time.sleep(0.05)
         ended.append(i)
         return i
 
-    with pytest.raises(ValueError, match="bad sweep"):
-        cores.together([lambda: slow(0), fails, lambda: slow(2), lambda: slow(3)])
-    assert sorted(ended) == [0, 2, 3]
+    with pytest.raises(ValueError, match="bad sweep: first"):
+        cores.together([lambda: slow(0), lambda: fails("first"), lambda: slow(2),
+                        lambda: fails("second"), lambda: slow(4)])
+    assert sorted(ended) == [0, 2, 4]
 
 
 def test_calls_inside_a_call_run_one_after_another(two: None) -> None:
@@ -71,8 +86,7 @@ def _worker_state() -> tuple[object, int]:
 
 
 def _fit(monkeypatch: pytest.MonkeyPatch, workers: int) -> pf.PreisachFit:
-    monkeypatch.setattr(cores, "workers", lambda: 1 if getattr(cores._inside, "busy", False)
-                        else workers)
+    cores_here(monkeypatch, workers)
     sweeps = standard_sweeps(PreisachStage(seed=3, creep_per_element=0.0075))
     data = pf.Data([s.voltage_v / 100.0 for s in sweeps], [s.mask(None) for s in sweeps],
                    [s.displacement_um[s.mask(None)] for s in sweeps], [s.dt for s in sweeps],
@@ -89,7 +103,16 @@ def test_the_grid_fitted_side_by_side_is_the_grid_fitted_alone(
     beside the best's before it is known to be needed; the held-out errors of three runs are
     judged side by side."""
     monkeypatch.setattr(pf, "RETRY_ABOVE", 0.5)
+    retried: list[bool] = []
+    real = pf._retried
+
+    def spy(*args: object, **kwargs: object) -> object:
+        retried.append(args[-1] is not None or kwargs.get("done") is not None)
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(pf, "_retried", spy)
     want, got = _fit(monkeypatch, 1), _fit(monkeypatch, 2)
+    assert retried == [False, True]  # alone: fitted when asked; beside: already fitted
     assert got.starts == want.starts and got.creep == want.creep
     assert got.candidates == want.candidates  # every run's held-out score
     np.testing.assert_array_equal(got.heldout_rms_um, want.heldout_rms_um)
@@ -114,8 +137,7 @@ def test_the_papers_model_fitted_with_its_differences_side_by_side_is_the_same(
                        {"layer_thickness_um": "100"})
     fits = []
     for workers in (1, 2):
-        monkeypatch.setattr(cores, "workers", lambda w=workers: 1 if getattr(
-            cores._inside, "busy", False) else w)
+        cores_here(monkeypatch, workers)
         fits.append(idf.fit([s]))
     np.testing.assert_array_equal(fits[0].x, fits[1].x)
     assert fits[0].nfev == fits[1].nfev

@@ -334,3 +334,27 @@ def test_a_first_solve_stops_where_it_crawls_far_off(miss_um: float, fall: float
             stopped = step
             break
     assert stopped == stops_at
+
+
+@pytest.mark.slow
+def test_a_stalled_first_solve_that_is_kept_after_all_is_solved_on(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A Preisach stage of the independent plant, far off the paper's model: its first solve
+    stalls (status -2); where the grid does not decide (``enough`` says no), the solve goes on
+    from there to the solver's own end, and that is what is kept. (The starts are held as they
+    are: re-chosen, they would be refitted without the rule anyway.)"""
+    from tests.harness.preisach_plant import PreisachStage, standard_sweeps
+
+    monkeypatch.setattr(idf, "choose_starts", lambda space, *_a, **_k: space)
+    sweeps = standard_sweeps(PreisachStage(seed=3))
+    st = dc.replace(idf.Settings(), restarts=0)
+    preps = [idf.pz.prepare(s, 100.0, st.field_step, None) for s in sweeps]
+    noise = np.array([idf.ns.sensor_noise_um(s.displacement_um) for s in sweeps])
+    said: list[str] = []
+    prob = idf.Problem(sweeps, preps, np.concatenate([p.y for p in preps]), noise, st,
+                       said.append)
+    asked: list[int] = []
+    _, sol, _ = idf.global_fit(prob, lambda _s, r, _q: bool(asked.append(r.status)))
+    assert asked == [-2]  # asked once, at the stalled solve ...
+    assert any(m.startswith("  stalled:") for m in said)
+    assert any(m.startswith("  solved on:") for m in said) and sol.status > 0  # ... then on
