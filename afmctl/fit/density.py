@@ -31,6 +31,7 @@ from afmctl.fit.parametrization import (
     Scales,
     at_full_rate,
     build_model,
+    cached,
     extent,
     offset_columns,
     project,
@@ -151,36 +152,30 @@ class DiscreteSpace:
     def _columns_h(self, std: float) -> list[FloatArray]:
         """Per node, its hat's share of ``erf(y_j / (sqrt(2) sigma_I))`` over the quadrature
         nodes ``j`` at the full rate (cached per sigma_I)."""
-        got = self._h.get(std)  # one lookup: the solver's evaluations may run on threads
-        if got is None:
-            if len(self._h) > 4:
-                self._h.clear()
+        def make() -> list[FloatArray]:
             fields = [p.field[p.keep] for p in self.preps]
             per_node = [run_from(hy.Polarization(1.0, 1.0, hy.Discrete((float(n),), (1.0,)),
                                                  hy.Normal(std)), fields, self.starts)
                         for n in self.fine]
-            got = self._h[std] = [
-                np.column_stack([at_full_rate(p.field.size, p.keep, q[i] - fields[i])
-                                 for q in per_node]) @ self.hat
-                for i, p in enumerate(self.preps)]
-        return got
+            return [np.column_stack([at_full_rate(p.field.size, p.keep, q[i] - fields[i])
+                                     for q in per_node]) @ self.hat
+                    for i, p in enumerate(self.preps)]
+
+        return cached(self._h, std, make, 4)
 
     def _basis(self, std: float, fn: float, zeta: float) -> list[_Basis]:
         """Per sweep: field, ``H`` and their filtered ``L[E]``, ``L[H]`` on the mask. ``Q`` and
         ``L[Q]`` are linear in the weights ``c``, so only ``L[Q^2]`` is filtered per evaluation."""
-        key = (std, fn, zeta)
-        out = self._b.get(key)  # one lookup, as in _columns_h
-        if out is None:
-            if len(self._b) > 4:
-                self._b.clear()
+        def make() -> list[_Basis]:
             out = []
             for p, h in zip(self.preps, self._columns_h(std), strict=True):
                 e = at_full_rate(p.field.size, p.keep, p.field[p.keep])
                 le = unit_filter(e, fn, zeta, p.dt)[p.mask]
                 lh = np.column_stack([unit_filter(col, fn, zeta, p.dt)[p.mask] for col in h.T])
                 out.append(_Basis(e, h, le, lh))
-            self._b[key] = out
-        return out
+            return out
+
+        return cached(self._b, (std, fn, zeta), make, 4)
 
     def design(self, x: FloatArray) -> FloatArray:
         k = self.nodes.size

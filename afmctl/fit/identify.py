@@ -463,16 +463,12 @@ def global_fit(prob: Problem, enough: Enough | None = None
             restarts += 1
             prob.say(f"restart {k}: " + ", ".join(f"{v:.3g}" for v in np.exp(x0)))
         space, sol = solve_round(space, x0, prob, None if k else enough)
-        ratio = prob.per_sweep(sol.fun)
-        prob.say(f"  {sol.message} (status {sol.status}); RMS / noise per sweep "
-                 + " / ".join(f"{r:.2f}" for r in ratio))
+        ratio = _said(prob, sol)
         decided = bool(np.all(ratio <= FLOOR)) or (not k and enough is not None
                                                     and enough(space, sol, ratio))
         if sol.status == -2 and not decided:  # stalled, and kept after all: solved on
             sol = _solve(space, sol.x, prob)
-            ratio = prob.per_sweep(sol.fun)
-            prob.say(f"  solved on: {sol.message} (status {sol.status}); RMS / noise per sweep "
-                     + " / ".join(f"{r:.2f}" for r in ratio))
+            ratio = _said(prob, sol, "solved on: ")
             decided = bool(np.all(ratio <= FLOOR))
         if best is None or sol.cost < best[1].cost:
             best = (space, sol)
@@ -480,6 +476,14 @@ def global_fit(prob: Problem, enough: Enough | None = None
             break
     assert best is not None
     return best[0], best[1], restarts
+
+
+def _said(prob: Problem, sol: optimize.OptimizeResult, lead: str = "") -> FloatArray:
+    """Each sweep's RMS over its noise at ``sol``, said with the solver's message."""
+    ratio = prob.per_sweep(sol.fun)
+    prob.say(f"  {lead}{sol.message} (status {sol.status}); RMS / noise per sweep "
+             + " / ".join(f"{r:.2f}" for r in ratio))
+    return ratio
 
 
 def _discretization_matters(space: pz.LognormalSpace, x: FloatArray, n_c: int,

@@ -31,6 +31,7 @@ import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -226,16 +227,32 @@ def unit_filter(x: FloatArray, fn: float, zeta: float, dt: float) -> FloatArray:
 
 
 _DISC_CACHE: dict[tuple[float, float, float], rd.Discrete] = {}
+K = TypeVar("K")
+V = TypeVar("V")
+
+
+def cached(cache: dict[K, V], key: K, make: Callable[[], V], limit: int) -> V:
+    """``cache[key]``, made by ``make()`` and kept if missing (the cache emptied first once it
+    holds more than ``limit``). One lookup, so threads may share a cache (the solver's
+    evaluations side by side, :func:`afmctl.fit.cores.mapped`): a check, another thread's
+    ``clear()``, then a read would fail.
+
+    Examples
+    --------
+    >>> c = {}
+    >>> cached(c, "a", lambda: 1, 2), cached(c, "a", lambda: 2, 2)
+    (1, 1)
+    """
+    got = cache.get(key)
+    if got is None:
+        if len(cache) > limit:
+            cache.clear()
+        got = cache[key] = make()
+    return got
 
 
 def _discretize(fn: float, zeta: float, dt: float) -> rd.Discrete:
-    key = (fn, zeta, dt)
-    disc = _DISC_CACHE.get(key)  # one lookup: the solver's evaluations may run on threads
-    if disc is None:
-        if len(_DISC_CACHE) > 256:
-            _DISC_CACHE.clear()
-        disc = _DISC_CACHE[key] = unit_oscillator_zoh(fn, zeta, dt)
-    return disc
+    return cached(_DISC_CACHE, (fn, zeta, dt), lambda: unit_oscillator_zoh(fn, zeta, dt), 256)
 
 
 def unit_oscillator_zoh(fn: float, zeta: float, dt: float) -> rd.Discrete:
@@ -348,20 +365,19 @@ def run_from(pol: hy.Polarization, fields: Sequence[FloatArray], starts: Sequenc
     out, state = [], None
     for i, (e, start, dt) in enumerate(zip(fields, starts, dts or [1e-4] * len(fields),
                                           strict=True)):
-        ck = (key, pol.n_coercive, starts[:i + 1])
-        entry = None if cache is None else cache.get(ck)  # one lookup: a cache may be shared
-        if entry is None:                                 # by threads (cores.together)
-            if start == "previous" and state is not None:
-                st = state
+        def simulated(e: FloatArray = e, start: str = start, dt: FloatArray | float = dt,
+                      before: hy.PolarizationState | None = state
+                      ) -> tuple[FloatArray, hy.PolarizationState]:
+            nonlocal kern
+            if start == "previous" and before is not None:
+                st = before
             else:
                 st = hy.initial_state(pol, "depoled" if start == "previous" else start)  # type: ignore[arg-type]
             kern = kern or hy.build_kernel(pol)
-            entry = hy.run(kern, e, st, dt)
-            if cache is not None:
-                if len(cache) > 256:
-                    cache.clear()
-                cache[ck] = entry
-        q, state = entry
+            return hy.run(kern, e, st, dt)
+
+        q, state = (simulated() if cache is None else
+                    cached(cache, (key, pol.n_coercive, starts[:i + 1]), simulated, 256))
         out.append(q)
     return out
 

@@ -332,9 +332,10 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
         return run.cost, fitted, run.theta
 
     top: list[tuple[float, Fitted, Theta]] = []  # the best two (each holds its basis columns)
-    for at in range(0, len(cands), cores.workers()):  # the start states: one linear step each,
-        batch = cands[at:at + cores.workers()]        # the cheapest to compare
-        firsts = cores.together([functools.partial(first_step, s) for s in batch])
+    at_once = cores.workers()
+    for at in range(0, len(cands), at_once):  # the start states: one linear step each, the
+        firsts = cores.together([functools.partial(first_step, s)  # cheapest to compare
+                                 for s in cands[at:at + at_once]])
         top = sorted([*top, *firsts], key=lambda r: r[0])[:2]
     best, runner_up = top[0], (top[1] if len(top) > 1 else None)
     prob = best[1]
