@@ -109,6 +109,34 @@ def together(calls: Sequence[Callable[[], T]]) -> list[T]:
     return results  # type: ignore[return-value]
 
 
+def beside(call: Callable[[], T], other: Callable[[threading.Event], T],
+           wanted: Callable[[T], bool]) -> tuple[T, T | None]:
+    """``call()``, and ``other(stop)`` beside it (:func:`together`; start it only where a core is
+    :func:`spare`): work that may not be needed, done in case it is.
+
+    Once ``call`` has returned, ``wanted(its result)`` says whether ``other``'s is needed; if not,
+    ``stop`` is set, which ``other`` is to check between its steps and return early on, and its
+    result is dropped (None). So the caller does not wait for work it will not use.
+
+    Examples
+    --------
+    >>> beside(lambda: 1, lambda stop: 2, lambda first: first > 0)
+    (1, 2)
+    >>> beside(lambda: 0, lambda stop: 2, lambda first: first > 0)
+    (0, None)
+    """
+    stop = threading.Event()
+
+    def first() -> T:
+        out = call()
+        if not wanted(out):
+            stop.set()
+        return out
+
+    out, second = together([first, functools.partial(other, stop)])
+    return out, None if stop.is_set() else second
+
+
 def mapped(fun: Callable[[A], T], xs: Iterable[A]) -> list[T]:
     """``list(map(fun, xs))``, the calls side by side (:func:`together`): the ``workers`` of
     :func:`scipy.optimize.least_squares`, whose finite differences each evaluate the model on
@@ -119,4 +147,4 @@ def mapped(fun: Callable[[A], T], xs: Iterable[A]) -> list[T]:
 _inside = threading.local()
 _alone = False
 
-__all__ = ["MAX_WORKERS", "workers", "pool_worker", "spare", "together", "mapped"]
+__all__ = ["MAX_WORKERS", "workers", "pool_worker", "spare", "together", "beside", "mapped"]

@@ -38,6 +38,7 @@ from __future__ import annotations
 import copy
 import functools
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -351,15 +352,19 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     ahead = runner_up if runner_up is not None and cores.spare() else None
     plain, alt_plain = _beside(lambda: _plain(prob.fit, best[2], pen, lam0, settings),
                                None if ahead is None else
-                               lambda: _plain(ahead[1].fit, ahead[2], pen, lam0, settings))
+                               lambda _stop: _plain(ahead[1].fit, ahead[2], pen, lam0, settings))
     crept = forced = crept_force = None
     if float(np.max(prob.full.ratios(plain.theta))) <= creep_above:
         say(f"  no creep fitted: without it every sweep is within {creep_above:g}x its noise")
-    else:
+    else:  # the runner-up's creep fit is stopped once the best's needs no retry
         crept, alt = _beside(lambda: _crept(prob, plain.theta, pen, lam0, settings),
                              None if ahead is None or alt_plain is None else
-                             lambda: _crept(ahead[1], alt_plain.theta, pen, lam0, settings))
-        if runner_up is not None and _retry(prob.full, plain, crept):
+                             lambda stop: _crept(ahead[1], alt_plain.theta, pen, lam0, settings,
+                                                 stop=stop),
+                             lambda run: _retry(prob.full, plain, run))
+        retry = (alt is not None if ahead is not None
+                 else runner_up is not None and _retry(prob.full, plain, crept))
+        if runner_up is not None and retry:
             prob, plain, crept = _retried(prob, plain, crept, runner_up, pen, lam0, settings, say,
                                           None if alt is None else (alt_plain, alt))
     shown = [("without creep", prob.full, plain)] + ([("with creep", prob.full, crept)]
@@ -411,12 +416,13 @@ def _retry(prob: Problem, plain: Run, crept: Run) -> bool:
     return bool(np.max(after) > RETRY_ABOVE and np.sum(after ** 2) < 0.5 * np.sum(before ** 2))
 
 
-def _beside(call: Callable[[], Run], other: Callable[[], Run] | None) -> tuple[Run, Run | None]:
-    """``call()``, and ``other()`` (None if None) run beside it (:func:`cores.together`)."""
+def _beside(call: Callable[[], Run], other: Callable[[threading.Event], Run] | None,
+            wanted: Callable[[Run], bool] = lambda _run: True) -> tuple[Run, Run | None]:
+    """``call()``, and ``other(stop)`` (None if None) run beside it, its result dropped (and the
+    fit stopped) unless ``wanted(call's result)`` (:func:`cores.beside`)."""
     if other is None:
         return call(), None
-    first, second = cores.together([call, other])
-    return first, second
+    return cores.beside(call, other, wanted)
 
 
 def _retried(prob: Fitted, plain: Run, crept: Run, runner_up: tuple[float, Fitted, Theta],
@@ -439,7 +445,7 @@ def _retried(prob: Fitted, plain: Run, crept: Run, runner_up: tuple[float, Fitte
 
 
 def _crept(fitted: Fitted, plain: Theta, pen: FloatArray, lam: float, settings: Settings,
-           warm: Theta | None = None) -> Run:
+           warm: Theta | None = None, stop: threading.Event | None = None) -> Run:
     """The creep elements fitted on ``fitted.fit`` from the fit without them, both problems'
     thresholds set on the range of what drives them there (``Q``, or ``g(Q)`` with the creep on
     the force), the rod searched again with the creep found.
@@ -447,7 +453,8 @@ def _crept(fitted: Fitted, plain: Theta, pen: FloatArray, lam: float, settings: 
     ``warm``: start from this fit with creep instead (the other placement's: its weights are
     shares of the same thresholds' fractions, so they start the force's creep near its answer:
     on pi-u-creep the last run took 16 steps where it had stopped on its budget of 40, to about
-    the same error), else from ``plain`` with no creep.
+    the same error), else from ``plain`` with no creep. ``stop``: as :func:`gauss_newton`'s (the
+    fit returned as it stands once set).
     """
     prob = fitted.fit
     drives = prob.forces(plain) if prob.creep_on_force else prob.hysteretic(plain)
@@ -458,8 +465,10 @@ def _crept(fitted: Fitted, plain: Theta, pen: FloatArray, lam: float, settings: 
         elements.c = np.zeros(prob.el_tau.size)
     else:
         elements = warm.copy()
-    run = gauss_newton(prob, elements, pen, lam, True, settings.max_iter)
-    return gauss_newton(prob, refit_rod(prob, run.theta), pen, lam, True, settings.max_iter)
+    run = gauss_newton(prob, elements, pen, lam, True, settings.max_iter, stop)
+    if stop is not None and stop.is_set():
+        return run
+    return gauss_newton(prob, refit_rod(prob, run.theta), pen, lam, True, settings.max_iter, stop)
 
 
 def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],

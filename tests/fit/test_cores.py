@@ -75,6 +75,29 @@ def test_calls_inside_a_call_run_one_after_another(two: None) -> None:
     assert inner == [1, 1] and cores.workers() == 2
 
 
+def test_work_beside_that_is_not_wanted_is_stopped_and_dropped(two: None) -> None:
+    steps: list[int] = []
+    started = threading.Event()
+
+    def other(stop: threading.Event) -> str:
+        started.set()
+        n = 0
+        while not stop.is_set() and n < 500:  # 5 s unless stopped
+            time.sleep(0.01)
+            n += 1
+        steps.append(n)
+        return "fitted"
+
+    def first(value: int) -> int:
+        assert started.wait(5.0)  # the other is running beside
+        return value
+
+    assert cores.beside(lambda: first(0), other, lambda out: out > 0) == (0, None)
+    assert steps[-1] < 500  # stopped, not run to its end
+    assert cores.beside(lambda: first(1), other, lambda out: out > 0) == (1, "fitted")
+    assert steps[-1] == 500
+
+
 def test_a_pool_worker_ignores_ctrl_c_and_runs_its_calls_alone() -> None:
     with mp.get_context("fork").Pool(1, cores.pool_worker) as pool:
         handler, workers = pool.apply(_worker_state)
@@ -121,6 +144,30 @@ def test_the_grid_fitted_side_by_side_is_the_grid_fitted_alone(
     assert isinstance(g, pr.PreisachGrid) and isinstance(w, pr.PreisachGrid)
     np.testing.assert_array_equal(g.matrix, w.matrix)
     assert got.model.creep == want.model.creep and got.model.rod == want.model.rod
+
+
+@pytest.mark.slow
+def test_a_runner_up_not_needed_is_stopped_and_the_grid_is_the_grid_fitted_alone(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without a retry, the runner-up's creep fit beside the best's is told to stop once the
+    best's is done (if it has not ended first), and nothing of it reaches the fit."""
+    stops: list[threading.Event] = []
+    real = pf._crept
+
+    def spy(*args: object, **kwargs: object) -> object:
+        stop = kwargs.get("stop")
+        if isinstance(stop, threading.Event):
+            stops.append(stop)
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(pf, "_crept", spy)
+    want, got = _fit(monkeypatch, 1), _fit(monkeypatch, 2)
+    assert [s.is_set() for s in stops] == [True]  # the runner-up's, beside; alone: none
+    assert got.starts == want.starts and got.candidates == want.candidates
+    np.testing.assert_array_equal(got.heldout_rms_um, want.heldout_rms_um)
+    g, w = got.model.polarization, want.model.polarization
+    assert isinstance(g, pr.PreisachGrid) and isinstance(w, pr.PreisachGrid)
+    np.testing.assert_array_equal(g.matrix, w.matrix)
 
 
 def test_the_papers_model_fitted_with_its_differences_side_by_side_is_the_same(
