@@ -271,11 +271,15 @@ class Runs:
     #: problem (elements' thresholds set on ``g(Q)``'s range) and its fit
     force_problem: Problem | None
     crept_force: Run | None
+    #: what ``runs``' ``judge`` said of each fit: without creep, with it, with it on the force
+    #: (as many as were fitted; empty without a judge)
+    judged: tuple[Any, ...] = ()
 
 
 def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
          settings: Settings, say: Callable[[str], None], on_force: bool = True,
-         creep_above: float = 0.0, coarse: bool = False) -> Runs:
+         creep_above: float = 0.0, coarse: bool = False,
+         judge: Callable[[Problem, FloatArray, Run, bool], Any] | None = None) -> Runs:
     """The grid fitted without and with creep at the middle smoothing (and, if ``on_force``,
     with creep on the force).
 
@@ -299,6 +303,10 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
         judged on every k-th sample (:mod:`afmctl.fit.preisach_coarse`); the runs returned hold
         the full problems (their creep elements set as the fits left them), on which each fit
         is judged and shown, and from which the caller takes its last steps (identify's).
+    judge : callable, optional
+        Called on each fit (``(problem, penalty, run, with creep)``; identify: its held-out
+        errors), the first two side by side with the creep on the force, that one's after it
+        (:func:`cores.together`); what it returns is :attr:`Runs.judged`.
 
     Returns
     -------
@@ -369,16 +377,24 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                                           None if alt is None else (alt_plain, alt))
     shown = [("without creep", prob.full, plain)] + ([("with creep", prob.full, crept)]
                                                       if crept else [])
+    calls: list[Callable[[], Any]] = [] if judge is None else [
+        functools.partial(judge, prob.full, pen, run, creep)
+        for run, creep in ((plain, False), (crept, True)) if run is not None]
     if on_force and crept is not None:
         forced = prob.forced()
-        crept_force = _crept(forced, plain.theta, pen, lam0, settings, crept.theta)
+        calls.insert(0, functools.partial(_force, forced, plain.theta, crept.theta, pen, lam0,
+                                          settings, judge))
+    judged = cores.together(calls)
+    if forced is not None:
+        crept_force, on_it = judged.pop(0)
+        judged.append(on_it)
         shown.append(("with creep on the force", forced.full, crept_force))
     for label, p, run in shown:
         say(f"  {label}: RMS / noise per sweep "
             + " / ".join(f"{r:.2f}" for r in p.ratios(run.theta))
             + f" ({run.iterations} steps{'' if run.converged else ', stopped on its budget'})")
     return Runs(prob.full, pen, lam0, plain, crept, None if forced is None else forced.full,
-                crept_force)
+                crept_force, tuple(judged) if judge is not None else ())
 
 
 @dataclass(frozen=True)
@@ -471,22 +487,34 @@ def _crept(fitted: Fitted, plain: Theta, pen: FloatArray, lam: float, settings: 
     return gauss_newton(prob, refit_rod(prob, run.theta), pen, lam, True, settings.max_iter, stop)
 
 
+def _force(forced: Fitted, plain: Theta, crept: Theta, pen: FloatArray, lam: float,
+           settings: Settings, judge: Callable[[Problem, FloatArray, Run, bool], Any] | None
+           ) -> tuple[Run, Any]:
+    """The creep on the force fitted from the fit with creep (:func:`_crept`), and ``judge``'s
+    word on it (None without a judge)."""
+    run = _crept(forced, plain, pen, lam, settings, crept)
+    return run, None if judge is None else judge(forced.full, pen, run, True)
+
+
 def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
          thickness_um: float, mass_kg: float, settings: Settings,
          say: Callable[[str], None]) -> PreisachFit:
     t0 = time.perf_counter()
+
+    def held(prob: Problem, pen: FloatArray, run: Run, creep: bool) -> dict[float, FloatArray]:
+        return heldout(prob, run.theta, pen, settings.smoothing, creep)
+
     fitted = runs(data, starts_candidates, rod0, settings, say, creep_above=CREEP_ABOVE,
-                  coarse=True)
+                  coarse=True, judge=held)
     pen = fitted.penalty
     runs_by = {"no creep": (fitted.problem, False, fitted.plain)}
     if fitted.crept is not None:
         runs_by["creep"] = (fitted.problem, True, fitted.crept)
     if fitted.force_problem is not None and fitted.crept_force is not None:
         runs_by["creep on the force"] = (fitted.force_problem, True, fitted.crept_force)
+    pers = fitted.judged
     scores: dict[str, float] = {}
     choice: tuple[float, str, float, FloatArray] | None = None
-    pers = cores.together([functools.partial(heldout, p, run.theta, pen, settings.smoothing, creep)
-                           for p, creep, run in runs_by.values()])
     for label, per in zip(runs_by, pers, strict=True):
         for lam in per:
             score = float(np.sum(per[lam] ** 2 / data.noise ** 2))
@@ -497,7 +525,10 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     _, label, lam, per = choice
     prob, creep, run = runs_by[label]
     final = gauss_newton(prob, run.theta, pen, lam, creep, settings.max_iter)
-    per = heldout(prob, final.theta, pen, [lam], creep)[lam]  # of the fit written
+    helds, spreads = cores.together([  # the held-out error of the fit written, and its spread
+        functools.partial(heldout, prob, final.theta, pen, [lam], creep),
+        functools.partial(scalar_uncertainty, prob, final.theta, creep)])
+    per = helds[lam]
     say("  held-out RMS / noise per sweep "
         + " / ".join(f"{r:.2f}" for r in per / data.noise)
         + f" ({'with ' + label if creep else 'without creep'}, smoothing {lam:g}; "
@@ -506,7 +537,7 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     return PreisachFit(model, prob.starts, final.theta.offsets, per, lam, creep, scores,
                        final.iterations, final.converged, time.perf_counter() - t0,
                        prob.ratios(final.theta), prob.grid.active.size,
-                       scalar_uncertainty(prob, final.theta, creep), settings.p_scale,
+                       spreads, settings.p_scale,
                        prob.predict(final.theta, full=True), prob.interior_loops,
                        prob.cubic)
 
