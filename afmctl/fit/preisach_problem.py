@@ -16,6 +16,7 @@ the model exactly and linearizes it for the solver of :mod:`afmctl.fit.preisach`
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from afmctl.fit import cores
 from afmctl.fit import parametrization as pz
 from afmctl.fit.rod_response import quasi_static, rod_filter, rod_rows
 from afmctl.model import creep as cr
@@ -180,15 +182,16 @@ def _nonzeros(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @nb.njit(cache=True, nogil=True)
 def _coef_columns(y: np.ndarray, ei: np.ndarray, inv: float, mi: np.ndarray,
-                  mj: np.ndarray, plays: bool) -> np.ndarray:
-    """``sum_ij mi[i, a] mj[j, b] erf((y_i + E_I,j) inv)`` per sample, shape (N, A B); with
-    ``plays``, then each row's ``sum_j erf((y_i + E_I,j) inv)`` (N, A B + N_i), from the same
-    erfs. Only the interpolations' nonzero entries are visited (two per node of a hat)."""
+                  mj: np.ndarray, plays: bool, col_of: np.ndarray, out: np.ndarray) -> None:
+    """``out[:, col_of[a B + b]] += sum_ij mi[i, a] mj[j, b] erf((y_i + E_I,j) inv)`` per sample
+    (a column of -1 is not kept); with ``plays``, then ``out[:, col_of[A B + i]]`` is row ``i``'s
+    ``sum_j erf((y_i + E_I,j) inv)``, from the same erfs. Only the interpolations' nonzero
+    entries are visited (two per node of a hat); each sample's row depends on its plays' outputs
+    alone, so a span of samples is computed alike on its own."""
     n, ni = y.shape
     nj, nb_ = ei.size, mj.shape[1]
     ia, na_ = _nonzeros(mi)
     jb, nbj = _nonzeros(mj)
-    out = np.zeros((n, mi.shape[1] * nb_ + (ni if plays else 0)))
     rows = np.zeros((ni, nb_))  # each row's erfs, summed per coefficient, at its output ...
     lines = np.zeros(ni)
     at = np.full(ni, np.nan)  # ... ``at``: a held play's are not computed again
@@ -210,21 +213,30 @@ def _coef_columns(y: np.ndarray, ei: np.ndarray, inv: float, mi: np.ndarray,
             for k in range(na_[i]):
                 a = ia[i, k]
                 for b in range(nb_):
-                    out[t, a * nb_ + b] += mi[i, a] * row[b]
-            if plays:
-                out[t, mi.shape[1] * nb_ + i] = lines[i]
-    return out
+                    c = col_of[a * nb_ + b]
+                    if c >= 0:
+                        out[t, c] += mi[i, a] * row[b]
+            if plays and col_of[mi.shape[1] * nb_ + i] >= 0:
+                out[t, col_of[mi.shape[1] * nb_ + i]] = lines[i]
 
 
 def basis(field: FloatArray, grid: Grid, y0: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Columns of every coefficient (row-major over the coefficient grid, then each row's play
-    with ``grid.plays``), shape (N, A B [+ N_i]): the polarization the interpolated cells
-    ``erf((y_i + E_I,j) / (sqrt(2) spread))`` give with that coefficient 1 and the others 0; and
-    the play outputs after the sweep (its end state)."""
+    """Columns of the grid's active coefficients (``grid.active``, of the coefficient grid
+    row-major, then each row's play with ``grid.plays``), shape (N, active): the polarization the
+    interpolated cells ``erf((y_i + E_I,j) / (sqrt(2) spread))`` give with that coefficient 1 and
+    the others 0; and the play outputs after the sweep (its end state). With a core spare, the
+    sweep's two halves are computed side by side (:func:`afmctl.fit.cores.together`)."""
     y = pr.play(field, grid.coercive, y0)
-    cols = _coef_columns(y, grid.interaction, 1.0 / (math.sqrt(2.0) * grid.spread), grid.mi,
-                         grid.mj, grid.plays)
-    return cols, y[-1]
+    n_all = grid.mi.shape[1] * grid.mj.shape[1] + (grid.coercive.size if grid.plays else 0)
+    col_of = np.full(n_all, -1, dtype=np.int64)
+    col_of[grid.active] = np.arange(grid.active.size)
+    out = np.zeros((y.shape[0], grid.active.size))
+    cuts = np.linspace(0, y.shape[0], cores.workers() + 1).astype(int)
+    inv = 1.0 / (math.sqrt(2.0) * grid.spread)
+    cores.together([functools.partial(_coef_columns, y[a:b], grid.interaction, inv, grid.mi,
+                                      grid.mj, grid.plays, col_of, out[a:b])
+                    for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b > a])
+    return out, y[-1]
 
 
 @dataclass
@@ -360,7 +372,7 @@ class Problem:
             else:
                 y0 = pr.start_outputs(grid.coercive, "depoled" if start == "previous" else start)
             cols, y_end = basis(e, grid, y0)
-            self.phi.append(np.ascontiguousarray(cols[:, grid.active]))
+            self.phi.append(cols)
 
     def hysteretic(self, th: Theta) -> list[FloatArray]:
         return [p @ th.w + th.r * e for p, e in zip(self.phi, self.data.fields, strict=True)]
