@@ -23,21 +23,25 @@ FloatArray = NDArray[np.float64]
 @nb.njit(cache=True, nogil=True)
 def _rod_rows(phi: np.ndarray, gam: np.ndarray, x: np.ndarray, scale: np.ndarray,
               rows: np.ndarray, out: np.ndarray, col0: int) -> None:
-    n, k = x.shape
+    """:func:`rod_rows` (1-D views: the loops vectorize)."""
+    m = x.shape[1]
     p = x[0] * scale[0]
-    v = np.zeros(k)
+    v = np.zeros(m)
+    a00, a01, a10, a11, g0, g1 = phi[0, 0], phi[0, 1], phi[1, 0], phi[1, 1], gam[0], gam[1]
     r = 0
-    for t in range(n):
-        take = r < rows.size and rows[r] == t
-        for j in range(k):
-            if take:
-                out[r, col0 + j] = p[j]
-            f = scale[t] * x[t, j]
-            p_new = phi[0, 0] * p[j] + phi[0, 1] * v[j] + gam[0] * f
-            v[j] = phi[1, 0] * p[j] + phi[1, 1] * v[j] + gam[1] * f
-            p[j] = p_new
-        if take:
+    for t in range(x.shape[0]):
+        if r < rows.size and rows[r] == t:
+            o = out[r, col0:col0 + m]
+            for j in range(m):
+                o[j] = p[j]
             r += 1
+        xt = x[t]
+        st = scale[t]
+        for j in range(m):
+            f = st * xt[j]
+            p_new = a00 * p[j] + a01 * v[j] + g0 * f
+            v[j] = a10 * p[j] + a11 * v[j] + g1 * f
+            p[j] = p_new
 
 
 def rod_rows(x: FloatArray, scale: FloatArray, fn: float, zeta: float, dt: float,

@@ -235,28 +235,24 @@ def _lagged(x: np.ndarray, a: np.ndarray, z0: np.ndarray) -> np.ndarray:
 
 @nb.njit(cache=True, nogil=True)
 def _add_columns(out: np.ndarray, x: np.ndarray, idx: np.ndarray, a: np.ndarray,
-                 c: np.ndarray, z0: np.ndarray, x0: np.ndarray, fresh: bool
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    n, k = out.shape
-    z = np.empty((a.size, k))  # element-major: the inner loops run along the columns, contiguous
-    for j in range(a.size):
-        for i in range(k):
-            z[j, i] = x[idx[0], i] if fresh else z0[i, j]
-    acc = np.empty(k)
-    for t in range(n):
+                 c: np.ndarray, z: np.ndarray, x0: np.ndarray) -> None:
+    """:func:`add_lag_columns`, the elements' states ``z`` (elements, K: element-major, the inner
+    loops run along the columns, contiguous) stepped in place."""
+    m = out.shape[1]
+    acc = np.empty(m)
+    for t in range(out.shape[0]):
         row = idx[t]
-        xv = x[row] if row >= 0 else x0
+        xv = x[row] if row >= 0 else x0  # 1-D views: the loops vectorize (4x)
         acc[:] = 0.0
         for j in range(a.size):  # each column's sum in the elements' order, as one by one
             cj, aj, bj = c[j], a[j], 1.0 - a[j]
-            for i in range(k):
-                acc[i] += cj * z[j, i]
-                z[j, i] = aj * z[j, i] + bj * xv[i]
-        for i in range(k):
-            out[t, i] += acc[i]
-    last = idx[n - 1]
-    held = x[last].copy() if last >= 0 else x0.copy()
-    return np.ascontiguousarray(z.T), held
+            zj = z[j]
+            for i in range(m):
+                acc[i] += cj * zj[i]
+                zj[i] = aj * zj[i] + bj * xv[i]
+        ot = out[t]
+        for i in range(m):
+            ot[i] += acc[i]
 
 
 def add_lag_columns(out: FloatArray, tau_s: FloatArray, weights: FloatArray, x: FloatArray,
@@ -274,11 +270,17 @@ def add_lag_columns(out: FloatArray, tau_s: FloatArray, weights: FloatArray, x: 
     first sample). Returns the elements' states after the last sample and what the play then
     holds, per column: the ``start`` of a record that follows this one."""
     a = np.exp(-float(dt) / np.asarray(tau_s, float))
+    xs = np.ascontiguousarray(x, dtype=float)
+    x_idx = np.ascontiguousarray(idx)
     k = out.shape[1]
-    z0, x0 = (np.zeros((k, a.size)), np.zeros(k)) if start is None else start
-    return _add_columns(out, np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(idx),
-                        a, np.asarray(weights, dtype=float), np.ascontiguousarray(z0, dtype=float),
-                        np.ascontiguousarray(x0, dtype=float), start is None)
+    if start is None:
+        z, x0 = np.repeat(xs[x_idx[0]][None, :], a.size, axis=0), np.zeros(k)
+    else:
+        z = np.ascontiguousarray(np.asarray(start[0], dtype=float).T)
+        x0 = np.ascontiguousarray(start[1], dtype=float)
+    _add_columns(out, xs, x_idx, a, np.asarray(weights, dtype=float), z, x0)
+    last = x_idx[-1]
+    return np.ascontiguousarray(z.T), (xs[last].copy() if last >= 0 else x0.copy())
 
 
 @nb.njit(cache=True, nogil=True)
