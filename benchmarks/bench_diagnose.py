@@ -60,6 +60,7 @@ from afmctl.drivers.device.foreign.stages import random_stage  # noqa: E402
 from afmctl.files import sweepfile as sw  # noqa: E402
 from afmctl.files.profile import default_profile  # noqa: E402
 from afmctl.fit import candidates as cd
+from afmctl.fit import cores
 from afmctl.fit import diagnose as dg  # noqa: E402
 from afmctl.fit.diagnosis import json_safe  # noqa: E402
 from afmctl.fit import extension as ext  # noqa: E402
@@ -379,7 +380,9 @@ def family(names: str, other: str, jobs: int) -> dict[str, Any]:
     if other != "none":
         chosen += [c.name for c in family_sets.cases_named(other, family_sets.OTHER_FORM_CASES)]
     rows = []
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    # stages side by side take the cores: each then fits one call at a time (cores.pool_worker)
+    with ProcessPoolExecutor(max_workers=jobs,
+                             initializer=cores.pool_worker if jobs > 1 else None) as pool:
         for future in as_completed([pool.submit(family_row, n) for n in chosen]):
             rows.append(future.result())
             r = rows[-1]
@@ -455,7 +458,8 @@ def main() -> None:
         chosen = [c for c in chosen if c[2] in keep]
     t0 = time.perf_counter()
     rows = []
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+    with ProcessPoolExecutor(max_workers=args.jobs,
+                             initializer=cores.pool_worker if args.jobs > 1 else None) as pool:
         for future in as_completed([pool.submit(run_case, c, args.design) for c in chosen]):
             row = future.result()
             rows.append(row)

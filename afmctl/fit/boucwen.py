@@ -135,6 +135,9 @@ class BoucWenFit:
         Per sweep, the RMS on its judged samples, um (in-sample: see the module).
     iterations, converged, seconds
         Function evaluations, whether the solver met its tolerance, wall time (s).
+    how : str
+        How the solve ended: ``converged``, ``stopped on its budget``, or the stall's message
+        (:mod:`afmctl.fit.stall`: stopped where it crawled, far off).
     predicted : list of ndarray
         The fit's readings on every sample of each sweep (um), with the sweep's sensor zero.
     parameters : dict
@@ -154,6 +157,7 @@ class BoucWenFit:
     predicted: list[FloatArray]
     parameters: dict[str, float]
     uncertainty: dict[str, Any]
+    how: str
 
 
 def names(n_sweeps: int) -> tuple[str, ...]:
@@ -494,7 +498,9 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     return BoucWenFit(build(sol.x, prob, off, mass_kg, thickness_um, p_scale), states(sol.x),
                       off, rms, int(sol.nfev), bool(sol.status > 0), seconds, predicted,
                       {k: float(v) for k, v in zip(names(len(off)), sol.x, strict=True)},
-                      _uncertainty(sol, prob.samples))
+                      _uncertainty(sol, prob.samples),
+                      "converged" if sol.status > 0 else
+                      str(sol.message) if sol.status == -2 else "stopped on its budget")
 
 
 def _rms(prob: Problem, x: FloatArray) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
@@ -560,11 +566,19 @@ def _solve(prob: Problem, x0: FloatArray, creep: bool,
                                  max_nfev=NFEV_PER_PARAMETER * int(free.sum()),
                                  diff_step=DIFF_STEP, workers=cores.mapped,
                                  callback=None if give_up is None else stall.callback(
-                                     lambda r: math.sqrt(2 * r.cost / prob.samples) > give_up))
+                                     _far(prob, give_up)))
     if sol.status == -2:
         sol.message = stall.message(f"the sweeps over {give_up:.3g}x their noise")
     sol.x, sol.free = full(sol.x), free
     return sol
+
+
+def _far(prob: Problem, give_up: float) -> Callable[[optimize.OptimizeResult], bool]:
+    """Whether a solve's state is over ``give_up`` times the noise: the RMS over the noise of
+    every judged sample together (the residuals are over each sweep's noise; a row of a thinned
+    sweep weighs ``k``, so twice the cost over :attr:`Problem.samples` is the full rate's mean
+    square)."""
+    return lambda r: math.sqrt(2.0 * float(r.cost) / prob.samples) > give_up
 
 
 def _uncertainty(sol: optimize.OptimizeResult, samples: int) -> dict[str, Any]:

@@ -167,6 +167,12 @@ class PreisachFit:
     interior_loops: int
     cubic: bool
 
+    @property
+    def how(self) -> str:
+        """How the final Gauss-Newton fit ended (as :attr:`BoucWenFit.how
+        <afmctl.fit.boucwen.BoucWenFit.how>`)."""
+        return "converged" if self.converged else "stopped on its budget"
+
 
 def build(th: Theta, prob: Problem, scales_mass: float, thickness_um: float,
           p_scale: float, creep: bool) -> td.Transducer:

@@ -251,9 +251,8 @@ class Grid:
         model = fit.model  # judged with each sweep's own history: sensor zero, creep transient
         errors = idf.judge_set(self.sweeps, fit.predicted, fit.starts, fit.offsets,
                                self.settings.window_s)
-        how = "converged" if fit.converged else "stopped on its budget"
         name = "Preisach grid: Gauss-Newton" if figures["chosen"] == "preisach" else "Bouc-Wen"
-        msg = f"{name} {how} after {fit.iterations} steps"
+        msg = f"{name} {fit.how} after {fit.iterations} steps"
         return idf.FitResult(
             model, est, errors, fit.converged, 1 if fit.converged else 0, msg,
             prob.nfev + fit.iterations, time.perf_counter() - self.t0, hem.thickness_known, hem.x,

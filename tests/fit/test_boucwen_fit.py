@@ -155,6 +155,43 @@ def test_a_fit_told_to_give_up_stops_after_its_first_start(stage_and_set: tuple,
     assert np.all(stopped.heldout_rms_um >= 0.99 * fitted.heldout_rms_um)
 
 
+def test_a_solve_is_far_off_where_all_its_sweeps_together_are_over_the_bound(
+        stage_and_set: tuple, fitted: bf.BoucWenFit) -> None:
+    """The stall rule's "far off" (:func:`bf._far`), on the fit's own residual: the RMS over the
+    noise of every judged sample together, computed here from each sweep's RMS and count."""
+    from scipy.optimize import OptimizeResult
+
+    data, _ = _data(stage_and_set)
+    prob = bf.Problem(data, FIELD_STEP, bf.MAX_ROWS)
+    res = prob.residual(np.array([fitted.parameters[k] for k in bf.names(len(data.y))]))
+    counts = np.array([y.size for y in data.y])
+    together = float(np.sqrt(np.sum(counts * (fitted.heldout_rms_um / data.noise) ** 2)
+                             / counts.sum()))
+    state = OptimizeResult(cost=0.5 * float(res @ res))
+    assert bf._far(prob, 0.97 * together)(state) and not bf._far(prob, 1.03 * together)(state)
+
+
+def test_a_fit_stopped_where_it_stalls_says_so(monkeypatch: pytest.MonkeyPatch,
+                                               stage_and_set: tuple) -> None:
+    """A Bouc-Wen solve the stall rule stops is not "stopped on its budget": its ``how`` (what
+    identify's message says of a chosen Bouc-Wen) is the stall's message."""
+    from afmctl.fit import stall
+
+    def at_once(far):  # type: ignore[no-untyped-def]
+        def callback(intermediate_result):  # type: ignore[no-untyped-def]
+            raise StopIteration
+
+        return callback
+
+    monkeypatch.setattr(bf.stall, "callback", at_once)
+    data, chained = _data(stage_and_set)
+    stopped = bf.fit(data, chained, (1000.0, 0.1), THICKNESS_UM, 0.05, 0.3, give_up=0.5,
+                     field_step=FIELD_STEP)
+    assert not stopped.converged
+    assert stopped.how.startswith("stalled: the cost fell by less than")
+    assert stopped.how == stall.message("the sweeps over 0.5x their noise")
+
+
 def test_fit_reaches_near_the_noise_on_every_sweep(stage_and_set: tuple,
                                                    fitted: bf.BoucWenFit) -> None:
     """Every sweep, the open reversal curves included, within 2x the stage's gauge noise."""
