@@ -26,7 +26,10 @@ and without creep, two with frame drift, served by the emulated device (``[emula
 their three standard triangles recorded through the driver and identified with default settings.
 ``family_at_floor`` counts the stages whose every sweep is within 1.5x the true noise,
 ``family_worst_over_noise`` the largest ratio, ``family_median_seconds`` the median fit time,
-``family_rows`` one row per stage. ``--family-only`` runs this part alone (``--family-jobs 2``
+``family_rows`` one row per stage. Before each stage the in-family fit of ``identify_seconds`` is
+timed again (``reference_seconds`` in its row): ``family_reference_seconds`` is their median and
+``family_median_over_reference`` the median of each stage's time over its own reference, a figure
+that moves far less than seconds when a shared machine's pace drifts. ``--family-only`` runs this part alone (``--family-jobs 2``
 fits two stages at once; ``--family-cache DIR`` keeps each fit for bench_track and bench_learn).
 
 The last line printed is one JSON object. Run from the repo root:
@@ -95,19 +98,41 @@ def nominal() -> Transducer:
     return Transducer(pol, rd.Rod(0.05, 39.27, 123370.0, 3.8, 0.5, 0.0), 100.0)
 
 
-def emulated() -> dict[str, object]:
+def _emulated_sweep(true: Transducer, rng: np.random.Generator, f: float,
+                    v: np.ndarray) -> sw.Sweep:
+    u = identify.predict(true, v, 1 / RATE_HZ) + NOISE_UM * rng.standard_normal(v.size)
+    return sw.from_arrays(v, u, RATE_HZ, {"layer_thickness_um": "100"}, f"triangle_{f:g}hz")
+
+
+def standard_sweeps() -> tuple[Transducer, np.random.Generator, list[sw.Sweep]]:
+    """The nominal stage, its noise's generator after them, and its three standard triangles."""
     true, rng = nominal(), np.random.default_rng(2026)
+    return true, rng, [_emulated_sweep(true, rng, f, v)
+                       for _, f, v in sd.standard_set(150.0, RATE_HZ)[:3]]
 
-    def sweep(f: float, v: np.ndarray) -> sw.Sweep:
-        u = identify.predict(true, v, 1 / RATE_HZ) + NOISE_UM * rng.standard_normal(v.size)
-        return sw.from_arrays(v, u, RATE_HZ, {"layer_thickness_um": "100"}, f"triangle_{f:g}hz")
 
-    std = [sweep(f, v) for _, f, v in sd.standard_set(150.0, RATE_HZ)[:3]]
+def reference_seconds() -> float:
+    """The wall time of ``identify.fit`` on the nominal stage's standard triangles (as
+    ``identify_seconds``): the machine's pace at that moment, timed beside each out-of-family
+    stage (a shared machine's speed drifts by a third and more over a bench's 20 minutes)."""
+    std = standard_sweeps()[2]
+    identify.fit(std[2:], identify.Settings(max_nfev=2))  # warm the JIT caches (not timed)
+    times = []
+    for _ in range(2):  # the faster of two: a pace, not a passing hiccup
+        t0 = time.perf_counter()
+        identify.fit(std)
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def emulated() -> dict[str, object]:
+    true, rng, std = standard_sweeps()
     identify.fit(std[2:], identify.Settings(max_nfev=2))  # warm the JIT caches (not timed)
     t0, c0 = time.perf_counter(), time.process_time()
     res = identify.fit(std)
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
-    unseen = identify.sweep_error(res.model, sweep(13.95, sd.voltage_triangle(13.95, 150.0, 5, RATE_HZ)))
+    unseen = identify.sweep_error(res.model, _emulated_sweep(
+        true, rng, 13.95, sd.voltage_triangle(13.95, 150.0, 5, RATE_HZ)))
     return {"identify_seconds": seconds, "identify_cpu_seconds": cpu,
             "identify_success": res.success, "identify_at_noise_floor": res.at_noise_floor,
             "emulated_fit_rms_um": [s.rms_um for s in res.sweeps],
@@ -156,6 +181,7 @@ def foreign(n: int, seed: int, keep: Path | None) -> dict[str, object]:
 def family_stage(name: str, cache: Path | None, design: str) -> dict[str, object]:
     """Record and identify one out-of-family stage (:mod:`family_sets`) from ``design``."""
     case = family_sets.cases_named(name, design=design)[0]
+    reference = reference_seconds()
     with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
         sweeps = family_sets.record(s, Path(tmp) / "sweeps")
         fit = family_sets.identified(case, sweeps, s.noise_um, cache)
@@ -163,7 +189,8 @@ def family_stage(name: str, cache: Path | None, design: str) -> dict[str, object
     return {"stage": case.name, "family": case.family, "drive_V": list(case.drive_V),
             "creep": case.creep, "drift": case.drift, "noise_um": s.noise_um,
             "rms_over_noise": ratios, "at_floor": max(ratios) <= identify.FLOOR,
-            "success": fit["success"], "seconds": fit["seconds"], "cached": fit["cached"]}
+            "success": fit["success"], "seconds": fit["seconds"], "cached": fit["cached"],
+            "reference_seconds": reference}
 
 
 def family(names: str, jobs: int, cache: Path | None, design: str) -> dict[str, object]:
@@ -184,6 +211,9 @@ def family(names: str, jobs: int, cache: Path | None, design: str) -> dict[str, 
     return {"family_stages": len(rows), "family_at_floor": sum(bool(r["at_floor"]) for r in rows),
             "family_worst_over_noise": max(worst),
             "family_median_seconds": float(np.median([r["seconds"] for r in rows])),
+            "family_reference_seconds": float(np.median([r["reference_seconds"] for r in rows])),
+            "family_median_over_reference": float(np.median([
+                r["seconds"] / r["reference_seconds"] for r in rows])),  # type: ignore[operator]
             "family_rows": rows}
 
 
