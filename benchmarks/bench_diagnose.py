@@ -60,7 +60,7 @@ from afmctl.drivers.device.foreign.stages import random_stage  # noqa: E402
 from afmctl.files import sweepfile as sw  # noqa: E402
 from afmctl.files.profile import default_profile  # noqa: E402
 from afmctl.fit import candidates as cd
-from afmctl.fit import cores
+from afmctl.fit import cores  # noqa: E402
 from afmctl.fit import diagnose as dg  # noqa: E402
 from afmctl.fit.diagnosis import json_safe  # noqa: E402
 from afmctl.fit import extension as ext  # noqa: E402

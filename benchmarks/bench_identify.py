@@ -112,9 +112,11 @@ def standard_sweeps() -> tuple[Transducer, np.random.Generator, list[sw.Sweep]]:
 
 
 def reference_seconds() -> float:
-    """The wall time of ``identify.fit`` on the nominal stage's standard triangles (as
-    ``identify_seconds``): the machine's pace at that moment, timed beside each out-of-family
-    stage (a shared machine's speed drifts by a third and more over a bench's 20 minutes)."""
+    """The wall time of ``identify.fit`` on the nominal stage's standard triangles (those of
+    ``identify_seconds``; with ``--family-jobs`` > 1 on one core, as the stages are): the
+    machine's pace at that moment, timed beside each out-of-family stage (a shared machine's
+    speed drifts by a third and more over a bench's 20 minutes). A stage whose fit was cached
+    has none (None)."""
     std = standard_sweeps()[2]
     identify.fit(std[2:], identify.Settings(max_nfev=2))  # warm the JIT caches (not timed)
     times = []
@@ -185,12 +187,20 @@ def family_stage(name: str, cache: Path | None, design: str) -> dict[str, object
     with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
         sweeps = family_sets.record(s, Path(tmp) / "sweeps")
         fit = family_sets.identified(case, sweeps, s.noise_um, cache)
+    if fit["cached"]:  # its time was measured in an earlier run: no reference of that moment
+        reference = None
     ratios = fit["rms_over_noise"]
     return {"stage": case.name, "family": case.family, "drive_V": list(case.drive_V),
             "creep": case.creep, "drift": case.drift, "noise_um": s.noise_um,
             "rms_over_noise": ratios, "at_floor": max(ratios) <= identify.FLOOR,
             "success": fit["success"], "seconds": fit["seconds"], "cached": fit["cached"],
             "reference_seconds": reference}
+
+
+def _median(values: list[object]) -> float | None:
+    """The median of the values that are not None (None if none is)."""
+    kept = [float(v) for v in values if v is not None]  # type: ignore[arg-type]
+    return float(np.median(kept)) if kept else None
 
 
 def family(names: str, jobs: int, cache: Path | None, design: str) -> dict[str, object]:
@@ -211,9 +221,10 @@ def family(names: str, jobs: int, cache: Path | None, design: str) -> dict[str, 
     return {"family_stages": len(rows), "family_at_floor": sum(bool(r["at_floor"]) for r in rows),
             "family_worst_over_noise": max(worst),
             "family_median_seconds": float(np.median([r["seconds"] for r in rows])),
-            "family_reference_seconds": float(np.median([r["reference_seconds"] for r in rows])),
-            "family_median_over_reference": float(np.median([
-                r["seconds"] / r["reference_seconds"] for r in rows])),  # type: ignore[operator]
+            "family_reference_seconds": _median([r["reference_seconds"] for r in rows]),
+            "family_median_over_reference": _median([
+                r["seconds"] / r["reference_seconds"] for r in rows  # type: ignore[operator]
+                if r["reference_seconds"] is not None]),
             "family_rows": rows}
 
 

@@ -128,8 +128,13 @@ def beside(call: Callable[[], T], other: Callable[[threading.Event], T],
     stop = threading.Event()
 
     def first() -> T:
-        out = call()
-        if not wanted(out):
+        try:
+            out = call()
+            keep = wanted(out)
+        except BaseException:
+            stop.set()  # the other's work will not be used either
+            raise
+        if not keep:
             stop.set()
         return out
 

@@ -322,7 +322,8 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
         again with the creep found and ``settings.max_iter`` more steps: without creep the
         hysteresis misfit of a creeping stage can hide its rod (pi-b-creep's 1247 Hz rod was
         kept at 8.76 kHz; found at 1250 Hz after). A creep fit left above :data:`RETRY_ABOVE`
-        is done again from the runner-up start assignment (:func:`_retried`).
+        is done again from the runner-up start assignment (:func:`_retried`); with ``judge``,
+        what it said of each fit (:attr:`Runs.judged`).
     """
     ec, ei, spread = make_grid(data.fields, settings)
     cands = [tuple(s) for s in dict.fromkeys(tuple(s) for s in starts_candidates)]
@@ -376,6 +377,7 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                              lambda stop: _crept(ahead[1], alt_plain.theta, pen, lam0, settings,
                                                  stop=stop),
                              lambda run: _retry(prob.full, plain, run))
+        assert ahead is None or alt_plain is not None  # beside: alt None iff not wanted
         retry = (alt is not None if ahead is not None
                  else runner_up is not None and _retry(prob.full, plain, crept))
         if runner_up is not None and retry:
@@ -383,6 +385,7 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                                           None if alt is None else (alt_plain, alt))
     shown = [("without creep", prob.full, plain)] + ([("with creep", prob.full, crept)]
                                                       if crept else [])
+    del top, best, runner_up, ahead, alt_plain  # the other start assignments' bases: freed
     calls: list[Callable[[], Any]] = [] if judge is None else [
         functools.partial(judge, prob.full, pen, run, creep)
         for run, creep in ((plain, False), (crept, True)) if run is not None]
@@ -531,10 +534,7 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     _, label, lam, per = choice
     prob, creep, run = runs_by[label]
     final = gauss_newton(prob, run.theta, pen, lam, creep, settings.max_iter)
-    helds, spreads = cores.together([  # the held-out error of the fit written, and its spread
-        functools.partial(heldout, prob, final.theta, pen, [lam], creep),
-        functools.partial(scalar_uncertainty, prob, final.theta, creep)])
-    per = helds[lam]
+    per = heldout(prob, final.theta, pen, [lam], creep)[lam]  # of the fit written
     say("  held-out RMS / noise per sweep "
         + " / ".join(f"{r:.2f}" for r in per / data.noise)
         + f" ({'with ' + label if creep else 'without creep'}, smoothing {lam:g}; "
@@ -543,7 +543,7 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     return PreisachFit(model, prob.starts, final.theta.offsets, per, lam, creep, scores,
                        final.iterations, final.converged, time.perf_counter() - t0,
                        prob.ratios(final.theta), prob.grid.active.size,
-                       spreads, settings.p_scale,
+                       scalar_uncertainty(prob, final.theta, creep), settings.p_scale,
                        prob.predict(final.theta, full=True), prob.interior_loops,
                        prob.cubic)
 

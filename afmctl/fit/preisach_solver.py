@@ -161,7 +161,8 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
     weights), so each step is damped by ``mu diag(G)`` (and the rod by at least a prior: a step
     of 0.3 in its logs must buy the noise's sum of squares), ``mu`` raised until the step lowers
     the true cost and lowered after it does. Once ``stop`` is set (its result no longer
-    wanted: :func:`afmctl.fit.cores.beside`), no further step is taken."""
+    wanted: :func:`afmctl.fit.cores.beside`), no further step is taken, and the run returned
+    means nothing (its cost is inf if no step was)."""
     dtd = pen.T @ pen
     k = th.w.size
     n_bounded = k + 1 + (th.c.size if creep else 0)

@@ -276,7 +276,7 @@ def add_lag_columns(out: FloatArray, tau_s: FloatArray, weights: FloatArray, x: 
     if start is None:
         z, x0 = np.repeat(xs[x_idx[0]][None, :], a.size, axis=0), np.zeros(k)
     else:
-        z = np.ascontiguousarray(np.asarray(start[0], dtype=float).T)
+        z = np.ascontiguousarray(np.array(start[0], dtype=float).T)  # a copy: stepped in place
         x0 = np.ascontiguousarray(start[1], dtype=float)
     _add_columns(out, xs, x_idx, a, np.asarray(weights, dtype=float), z, x0)
     last = x_idx[-1]

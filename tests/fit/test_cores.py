@@ -98,6 +98,24 @@ def test_work_beside_that_is_not_wanted_is_stopped_and_dropped(two: None) -> Non
     assert steps[-1] == 500
 
 
+def test_work_beside_a_call_that_fails_is_stopped_and_the_error_raised(two: None) -> None:
+    ended: list[bool] = []
+    started = threading.Event()
+
+    def other(stop: threading.Event) -> str:
+        started.set()
+        ended.append(stop.wait(5.0))  # True: told to stop, not timed out
+        return "fitted"
+
+    def fails() -> int:
+        assert started.wait(5.0)
+        raise ValueError("bad sweep")
+
+    with pytest.raises(ValueError, match="bad sweep"):
+        cores.beside(fails, other, lambda out: True)
+    assert ended == [True]
+
+
 def test_a_pool_worker_ignores_ctrl_c_and_runs_its_calls_alone() -> None:
     with mp.get_context("fork").Pool(1, cores.pool_worker) as pool:
         handler, workers = pool.apply(_worker_state)
