@@ -2,10 +2,15 @@
 
 The fits' heavy parts release Python's global lock: the numba kernels are compiled ``nogil``,
 and NumPy's products, copies and ufuncs release it. So fits that do not depend on each other
-(the grid's start assignments, its runner-up's fits beside the best's, the held-out errors of
-its runs) can share one process's memory, their bases of hundreds of MB included, and still
-run at once. SciPy's NNLS holds the lock (a tenth of a grid fit's time), as does the Python
-between the kernels.
+(the grid's start assignments' first steps, the held-out errors of its runs) can share one
+process's memory, their bases of hundreds of MB included, and still run at once. SciPy's NNLS
+holds the lock (a tenth of a grid fit's time), as does the Python between the kernels.
+
+Only work that is needed runs so: the grid's kernels stream their bases through memory, and two
+of them at once share its bandwidth. On this project's 2-core machine two linearizations at
+once took 1.4x as long as one alone (so 1.4x the work per second, each 1.4x slower). Work that
+might not be needed (the runner-up start assignment's fits, beside the best's in case they
+were asked for) slowed the fit it ran beside by about a fifth, and is no longer started.
 
 Results do not depend on the threads: each call computes what it would alone (one BLAS thread
 each, as the fits ask), and :func:`together` returns them in the calls' order. At most
@@ -48,12 +53,6 @@ def pool_worker() -> None:
     global _alone
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _alone = True
-
-
-def spare() -> bool:
-    """True if a call run beside another costs no time (a second core is free for it): worth
-    starting work that may not be needed."""
-    return workers() > 1
 
 
 def together(calls: Sequence[Callable[[], T]]) -> list[T]:
@@ -109,39 +108,6 @@ def together(calls: Sequence[Callable[[], T]]) -> list[T]:
     return results  # type: ignore[return-value]
 
 
-def beside(call: Callable[[], T], other: Callable[[threading.Event], T],
-           wanted: Callable[[T], bool]) -> tuple[T, T | None]:
-    """``call()``, and ``other(stop)`` beside it (:func:`together`; start it only where a core is
-    :func:`spare`): work that may not be needed, done in case it is.
-
-    Once ``call`` has returned, ``wanted(its result)`` says whether ``other``'s is needed; if not,
-    ``stop`` is set, which ``other`` is to check between its steps and return early on, and its
-    result is dropped (None). So the caller does not wait for work it will not use.
-
-    Examples
-    --------
-    >>> beside(lambda: 1, lambda stop: 2, lambda first: first > 0)
-    (1, 2)
-    >>> beside(lambda: 0, lambda stop: 2, lambda first: first > 0)
-    (0, None)
-    """
-    stop = threading.Event()
-
-    def first() -> T:
-        try:
-            out = call()
-            keep = wanted(out)
-        except BaseException:
-            stop.set()  # the other's work will not be used either
-            raise
-        if not keep:
-            stop.set()
-        return out
-
-    out, second = together([first, functools.partial(other, stop)])
-    return out, None if stop.is_set() else second
-
-
 def mapped(fun: Callable[[A], T], xs: Iterable[A]) -> list[T]:
     """``list(map(fun, xs))``, the calls side by side (:func:`together`): the ``workers`` of
     :func:`scipy.optimize.least_squares`, whose finite differences each evaluate the model on
@@ -152,4 +118,4 @@ def mapped(fun: Callable[[A], T], xs: Iterable[A]) -> list[T]:
 _inside = threading.local()
 _alone = False
 
-__all__ = ["MAX_WORKERS", "workers", "pool_worker", "spare", "together", "beside", "mapped"]
+__all__ = ["MAX_WORKERS", "workers", "pool_worker", "together", "mapped"]

@@ -38,7 +38,6 @@ from __future__ import annotations
 import copy
 import functools
 import math
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -363,29 +362,19 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
            "; first fitted with each sweep's rows standing for "
            + ", ".join(f"{w}{' (means)' if b > 1 else ''}" for w, b in
                        zip(prob.fit.weights, prob.fit.blocks, strict=True)) + " samples"))
-    # with a core spare, the runner-up's fits run beside the best's, in case they are retried
-    ahead = runner_up if runner_up is not None and cores.spare() else None
-    plain, alt_plain = _beside(lambda: _plain(prob.fit, best[2], pen, lam0, settings),
-                               None if ahead is None else
-                               lambda _stop: _plain(ahead[1].fit, ahead[2], pen, lam0, settings))
+    # the runner-up's fits only if asked for: run beside the best's in case they were, they
+    # slowed the best's by a fifth (both stream their bases through the one memory bus)
+    plain = _plain(prob.fit, best[2], pen, lam0, settings)
     crept = forced = crept_force = None
     if float(np.max(prob.full.ratios(plain.theta))) <= creep_above:
         say(f"  no creep fitted: without it every sweep is within {creep_above:g}x its noise")
-    else:  # the runner-up's creep fit is stopped once the best's needs no retry
-        crept, alt = _beside(lambda: _crept(prob, plain.theta, pen, lam0, settings),
-                             None if ahead is None or alt_plain is None else
-                             lambda stop: _crept(ahead[1], alt_plain.theta, pen, lam0, settings,
-                                                 stop=stop),
-                             lambda run: _retry(prob.full, plain, run))
-        assert ahead is None or alt_plain is not None  # beside: alt None iff not wanted
-        retry = (alt is not None if ahead is not None
-                 else runner_up is not None and _retry(prob.full, plain, crept))
-        if runner_up is not None and retry:
-            prob, plain, crept = _retried(prob, plain, crept, runner_up, pen, lam0, settings, say,
-                                          None if alt is None else (alt_plain, alt))
+    else:
+        crept = _crept(prob, plain.theta, pen, lam0, settings)
+        if runner_up is not None and _retry(prob.full, plain, crept):
+            prob, plain, crept = _retried(prob, plain, crept, runner_up, pen, lam0, settings, say)
     shown = [("without creep", prob.full, plain)] + ([("with creep", prob.full, crept)]
                                                       if crept else [])
-    del top, best, runner_up, ahead, alt_plain  # the other start assignments' bases: freed
+    del top, best, runner_up  # the other start assignments' bases: freed
     calls: list[Callable[[], Any]] = [] if judge is None else [
         functools.partial(judge, prob.full, pen, run, creep)
         for run, creep in ((plain, False), (crept, True)) if run is not None]
@@ -441,27 +430,15 @@ def _retry(prob: Problem, plain: Run, crept: Run) -> bool:
     return bool(np.max(after) > RETRY_ABOVE and np.sum(after ** 2) < 0.5 * np.sum(before ** 2))
 
 
-def _beside(call: Callable[[], Run], other: Callable[[threading.Event], Run] | None,
-            wanted: Callable[[Run], bool] = lambda _run: True) -> tuple[Run, Run | None]:
-    """``call()``, and ``other(stop)`` (None if None) run beside it, its result dropped (and the
-    fit stopped) unless ``wanted(call's result)`` (:func:`cores.beside`)."""
-    if other is None:
-        return call(), None
-    return cores.beside(call, other, wanted)
-
-
 def _retried(prob: Fitted, plain: Run, crept: Run, runner_up: tuple[float, Fitted, Theta],
-             pen: FloatArray, lam: float, settings: Settings, say: Callable[[str], None],
-             done: tuple[Run, Run] | None = None) -> tuple[Fitted, Run, Run]:
-    """The fits without and with creep again from the runner-up start assignment (``done``: as
-    already fitted beside the first); the pair whose creep fit misses the sweeps less (sum of
-    squares over the noise, on the full problems) is returned."""
+             pen: FloatArray, lam: float, settings: Settings, say: Callable[[str], None]
+             ) -> tuple[Fitted, Run, Run]:
+    """The fits without and with creep again from the runner-up start assignment; the pair
+    whose creep fit misses the sweeps less (sum of squares over the noise, on the full problems)
+    is returned."""
     other = runner_up[1]
-    if done is None:
-        alt_plain = _plain(other.fit, runner_up[2], pen, lam, settings)
-        alt = _crept(other, alt_plain.theta, pen, lam, settings)
-    else:
-        alt_plain, alt = done
+    alt_plain = _plain(other.fit, runner_up[2], pen, lam, settings)
+    alt = _crept(other, alt_plain.theta, pen, lam, settings)
     miss = [float(np.sum(p.full.ratios(r.theta) ** 2)) for p, r in ((prob, crept), (other, alt))]
     say(f"  creep fit from starts {', '.join(prob.full.starts)} left {miss[0]:.3g}, from "
         f"{', '.join(other.full.starts)} {miss[1]:.3g} (sum of (RMS / noise)^2): "
@@ -470,7 +447,7 @@ def _retried(prob: Fitted, plain: Run, crept: Run, runner_up: tuple[float, Fitte
 
 
 def _crept(fitted: Fitted, plain: Theta, pen: FloatArray, lam: float, settings: Settings,
-           warm: Theta | None = None, stop: threading.Event | None = None) -> Run:
+           warm: Theta | None = None) -> Run:
     """The creep elements fitted on ``fitted.fit`` from the fit without them, both problems'
     thresholds set on the range of what drives them there (``Q``, or ``g(Q)`` with the creep on
     the force), the rod searched again with the creep found.
@@ -478,8 +455,7 @@ def _crept(fitted: Fitted, plain: Theta, pen: FloatArray, lam: float, settings: 
     ``warm``: start from this fit with creep instead (the other placement's: its weights are
     shares of the same thresholds' fractions, so they start the force's creep near its answer:
     on pi-u-creep the last run took 16 steps where it had stopped on its budget of 40, to about
-    the same error), else from ``plain`` with no creep. ``stop``: as :func:`gauss_newton`'s (the
-    fit returned as it stands once set).
+    the same error), else from ``plain`` with no creep.
     """
     prob = fitted.fit
     drives = prob.forces(plain) if prob.creep_on_force else prob.hysteretic(plain)
@@ -490,10 +466,8 @@ def _crept(fitted: Fitted, plain: Theta, pen: FloatArray, lam: float, settings: 
         elements.c = np.zeros(prob.el_tau.size)
     else:
         elements = warm.copy()
-    run = gauss_newton(prob, elements, pen, lam, True, settings.max_iter, stop)
-    if stop is not None and stop.is_set():
-        return run
-    return gauss_newton(prob, refit_rod(prob, run.theta), pen, lam, True, settings.max_iter, stop)
+    run = gauss_newton(prob, elements, pen, lam, True, settings.max_iter)
+    return gauss_newton(prob, refit_rod(prob, run.theta), pen, lam, True, settings.max_iter)
 
 
 def _force(forced: Fitted, plain: Theta, crept: Theta, pen: FloatArray, lam: float,

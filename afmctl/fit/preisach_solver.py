@@ -11,7 +11,6 @@ that does not lower the true cost is halved.
 from __future__ import annotations
 
 import math
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -155,14 +154,12 @@ class Run:
 
 
 def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, creep: bool,
-                 max_iter: int, stop: threading.Event | None = None) -> Run:
+                 max_iter: int) -> Run:
     """Fit ``prob`` from ``th`` by Levenberg-Marquardt steps of the bounded linear problem: the
     linearization is good only near ``th`` (the map's ``s Q^2 + t Q^3`` and the creep multiply the
     weights), so each step is damped by ``mu diag(G)`` (and the rod by at least a prior: a step
     of 0.3 in its logs must buy the noise's sum of squares), ``mu`` raised until the step lowers
-    the true cost and lowered after it does. Once ``stop`` is set (its result no longer
-    wanted: :func:`afmctl.fit.cores.beside`), no further step is taken, and the run returned
-    means nothing (its cost is inf if no step was)."""
+    the true cost and lowered after it does."""
     dtd = pen.T @ pen
     k = th.w.size
     n_bounded = k + 1 + (th.c.size if creep else 0)
@@ -172,8 +169,6 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
     cost = math.inf
     mu, it, converged = 1e-4, 0, False
     for it in range(1, max_iter + 1):  # noqa: B007 (returned)
-        if stop is not None and stop.is_set():
-            break
         designs, rhs = prob.linearize(th, creep)
         rod = bool(th.w.any() or th.r > 0)  # from nothing the rod has no derivative yet
         g, h = _system(designs, rhs, th, creep, rod)
