@@ -431,27 +431,22 @@ class Problem:
         return ([output_map(q, th.s, th.t) for q in qs] if self.creep_on_force else qs)
 
     def crept(self, x: FloatArray, q: FloatArray, c: FloatArray, dt: float,
-              out: FloatArray | None = None, link: Link | None = None,
-              key: str = "") -> FloatArray:
-        """``sum_j c_j Z_j`` linearized in the hysteresis: each element's play held where it
-        last moved on ``q``, applied to the columns of ``x`` (N, K) (or to ``x`` (N,)); added to
-        ``out`` (``x``'s shape, not ``x`` itself: rows of ``x`` are read after ``out``'s are
-        written) if given, else to zeros.
+              link: Link | None = None, key: str = "") -> FloatArray:
+        """``x`` plus ``sum_j c_j Z_j`` linearized in the hysteresis: each element's play held
+        where it last moved on ``q``, applied to the columns of ``x`` (N, K) (or to ``x`` (N,));
+        a new array.
 
         ``link``: the sweep's place in the chain (:class:`Link`); where the sweep started from
         the one before (``link.start``), its columns' elements start where that sweep's columns
         of the same parameters (``link.carry[key]``) left theirs, relaxed over the hold, so the
         design holds every sweep's share in a later one's creep. What this sweep leaves is put
         in ``link.carry[key]``."""
-        out = np.zeros(x.shape) if out is None else out
-        cols, into = x.reshape(x.shape[0], -1), out.reshape(x.shape[0], -1)
         n_tau = self.taus.size
-        left = []
+        groups, on_at = [], []
         for i, r in enumerate(self.thresholds):
             ci = c[i * n_tau:(i + 1) * n_tau]
             on = ci > 0  # (non-negative least squares leaves many at 0)
             if not on.any():
-                left.append(None)
                 continue
             if link is None or link.start is None:
                 idx, start = cr.play_hold(q, r)[1], None
@@ -460,10 +455,17 @@ class Problem:
                 z, held = link.carry[key][i]
                 decay = np.exp(-link.gap_s / self.taus[on])
                 start = (held[:, None] + (z - held[:, None]) * decay, held)
-            left.append(cr.add_lag_columns(into, self.taus[on], ci[on], cols, idx, dt, start))
+            groups.append(cr.Lags(self.taus[on], ci[on], idx, start))
+            on_at.append(i)
+        if not groups:
+            return x.copy()
+        out, ends = cr.add_lag_columns(x.reshape(x.shape[0], -1), groups, dt)
         if link is not None:
+            left: list[Any] = [None] * len(self.thresholds)
+            for i, end in zip(on_at, ends, strict=True):
+                left[i] = end
             link.carry[key] = left
-        return out
+        return out.reshape(x.shape)
 
     def transients(self, th: Theta) -> list[FloatArray]:
         """Each sweep's creep transient (um, full rate; zeros without)."""
@@ -573,8 +575,8 @@ class Problem:
         elements' states, :meth:`creep_states`), and its derivatives before ``L``."""
         q = p @ th.w + th.r * e
         qt = q + z @ th.c + tr if creep else q
-        cp, ce = ((self.crept(p, q, th.c, dt, p.copy(), link, "p"),
-                   self.crept(e, q, th.c, dt, e.copy(), link, "e"))
+        cp, ce = ((self.crept(p, q, th.c, dt, link, "p"),
+                   self.crept(e, q, th.c, dt, link, "e"))
                   if creep and th.c.any() else (p, e))
         return Parts(output_map(qt, th.s, th.t), 1.0 + (2.0 * th.s + 3.0 * th.t * qt) * qt,
                      cp, ce, z, qt * qt, qt * qt * qt)
@@ -591,7 +593,7 @@ class Problem:
 
         def through(x: FloatArray, key: str) -> FloatArray:
             x = np.ascontiguousarray(x)
-            return self.crept(x, g, th.c, dt, x.copy(), link, key) if crept else x
+            return self.crept(x, g, th.c, dt, link, key) if crept else x
 
         return Parts(g + z @ th.c + tr if creep else g, np.ones(q.size),
                      through(m0[:, None] * p, "p"), through(m0 * e, "e"), z,

@@ -234,53 +234,86 @@ def _lagged(x: np.ndarray, a: np.ndarray, z0: np.ndarray) -> np.ndarray:
 
 
 @nb.njit(cache=True, nogil=True)
-def _add_columns(out: np.ndarray, x: np.ndarray, idx: np.ndarray, a: np.ndarray,
-                 c: np.ndarray, z: np.ndarray, x0: np.ndarray) -> None:
-    """:func:`add_lag_columns`, the elements' states ``z`` (elements, K: element-major, the inner
-    loops run along the columns, contiguous) stepped in place."""
+def _add_columns(out: np.ndarray, base: np.ndarray, x: np.ndarray, idx: np.ndarray,
+                 a: np.ndarray, c: np.ndarray, group: np.ndarray, z: np.ndarray,
+                 x0: np.ndarray) -> None:
+    """:func:`add_lag_columns`: ``out[t] = base[t] + acc_0 + acc_1 + ...`` (in that order),
+    ``acc_g`` group ``g``'s elements' weighted states before sample ``t``, summed in the
+    elements' order; the states ``z`` (elements, K: element-major, the inner loops run along the
+    columns, contiguous) stepped in place. One pass over ``out`` for every group."""
     m = out.shape[1]
-    acc = np.empty(m)
+    acc = np.empty((idx.shape[0], m))
     for t in range(out.shape[0]):
-        row = idx[t]
-        xv = x[row] if row >= 0 else x0  # 1-D views: the loops vectorize (4x)
-        acc[:] = 0.0
-        for j in range(a.size):  # each column's sum in the elements' order, as one by one
+        acc[:, :] = 0.0
+        for j in range(a.size):
+            g = group[j]
+            row = idx[g, t]
+            xv = x[row] if row >= 0 else x0[g]  # 1-D views: the loops vectorize (4x)
+            ag, zj = acc[g], z[j]
             cj, aj, bj = c[j], a[j], 1.0 - a[j]
-            zj = z[j]
             for i in range(m):
-                acc[i] += cj * zj[i]
+                ag[i] += cj * zj[i]
                 zj[i] = aj * zj[i] + bj * xv[i]
-        ot = out[t]
+        ot, bt = out[t], base[t]
         for i in range(m):
-            ot[i] += acc[i]
+            ot[i] = bt[i]
+        for g in range(idx.shape[0]):
+            ag = acc[g]
+            for i in range(m):
+                ot[i] += ag[i]
 
 
-def add_lag_columns(out: FloatArray, tau_s: FloatArray, weights: FloatArray, x: FloatArray,
-                    idx: NDArray[np.int64], dt: float,
-                    start: tuple[FloatArray, FloatArray] | None = None
-                    ) -> tuple[FloatArray, FloatArray]:
-    """``out += sum_j c_j z_j`` of linear elements (``tau_s``, ``weights``) on every column of
-    ``x[idx]`` (N, K) at once, each from rest at its first sample (z before each sample, as in
-    :func:`run`): the creep of every basis column of a fit, each held where ``idx`` says (a
-    play's last move, :func:`play_hold`). ``x[idx]`` is never copied (for a fit's basis it is
-    hundreds of MB, and the copy took as long as the filtering).
+@dataclass(frozen=True)
+class Lags:
+    """A group of linear creep elements on the columns of a basis :func:`add_lag_columns` takes:
+    time constants (s), weights, the sample each column is held at before every sample (a
+    play's last move, :func:`play_hold`; -1: still holding what it held before the first) and,
+    optionally, where the elements start: (states (K, elements), held (K,)); None: from rest
+    at the first sample."""
 
-    ``start`` = (states (K, elements), held (K,)): the columns' elements start from these
-    instead, and an ``idx`` of -1 is the play still holding ``held`` (what it held before the
-    first sample). Returns the elements' states after the last sample and what the play then
+    tau_s: FloatArray
+    weights: FloatArray
+    idx: NDArray[np.int64]
+    start: tuple[FloatArray, FloatArray] | None = None
+
+
+def add_lag_columns(x: FloatArray, groups: list[Lags], dt: float
+                    ) -> tuple[FloatArray, list[tuple[FloatArray, FloatArray]]]:
+    """``x + sum_g sum_j c_gj z_gj`` for linear elements in groups (:class:`Lags`) on every
+    column of ``x[idx_g]`` (N, K) at once: the creep of every basis column of a fit, each
+    group's held where its play says. ``x[idx]`` is never copied (for a fit's basis it is
+    hundreds of MB, and the copy took as long as the filtering), and ``out`` is written once for
+    all groups (a pass over it per group, and a copy of ``x`` to add to, took half the time).
+
+    Returns the sum (a new array), and per group the elements' states after the last sample and what the play then
     holds, per column: the ``start`` of a record that follows this one."""
-    a = np.exp(-float(dt) / np.asarray(tau_s, float))
     xs = np.ascontiguousarray(x, dtype=float)
-    x_idx = np.ascontiguousarray(idx)
-    k = out.shape[1]
-    if start is None:
-        z, x0 = np.repeat(xs[x_idx[0]][None, :], a.size, axis=0), np.zeros(k)
-    else:
-        z = np.ascontiguousarray(np.array(start[0], dtype=float).T)  # a copy: stepped in place
-        x0 = np.ascontiguousarray(start[1], dtype=float)
-    _add_columns(out, xs, x_idx, a, np.asarray(weights, dtype=float), z, x0)
-    last = x_idx[-1]
-    return np.ascontiguousarray(z.T), (xs[last].copy() if last >= 0 else x0.copy())
+    k = xs.shape[1]
+    idx = np.ascontiguousarray(np.stack([g.idx for g in groups]))
+    a = np.concatenate([np.exp(-float(dt) / np.asarray(g.tau_s, float)) for g in groups])
+    group = np.concatenate([np.full(len(g.tau_s), i) for i, g in enumerate(groups)])
+    z = np.empty((a.size, k))
+    x0 = np.zeros((len(groups), k))
+    at = 0
+    for i, g in enumerate(groups):
+        n = len(g.tau_s)
+        if g.start is None:
+            z[at:at + n] = xs[g.idx[0]][None, :]
+        else:  # copies: stepped in place
+            z[at:at + n] = np.asarray(g.start[0], dtype=float).T
+            x0[i] = g.start[1]
+        at += n
+    result = np.empty(xs.shape)
+    _add_columns(result, xs, xs, idx, a,
+                 np.concatenate([np.asarray(g.weights, dtype=float) for g in groups]),
+                 group.astype(np.int64), z, x0)
+    left, at = [], 0
+    for i, g in enumerate(groups):
+        n, last = len(g.tau_s), int(g.idx[-1])
+        left.append((np.ascontiguousarray(z[at:at + n].T),
+                     xs[last].copy() if last >= 0 else x0[i].copy()))
+        at += n
+    return result, left
 
 
 @nb.njit(cache=True, nogil=True)

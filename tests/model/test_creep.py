@@ -151,19 +151,50 @@ def test_lagged_is_each_elements_lfilter_to_the_last_bit() -> None:
 def test_lag_columns_of_held_columns_are_the_elements_filters_combined() -> None:
     """:func:`add_lag_columns` on every column of ``x[idx]`` (held where a play last moved)
     equals each element's own filter (:func:`lagged`, scipy's lfilter) weighted and summed,
-    added to what ``out`` held."""
+    added to ``x``."""
     rng = np.random.default_rng(3)
     x = rng.standard_normal((3000, 4))
     q = np.cumsum(rng.standard_normal(3000))
     idx = cr.play_hold(q, 3.0)[1]
     tau, w, dt = np.array([0.02, 0.3, 5.0]), np.array([0.5, 0.3, 0.2]), 1e-3
-    out = np.ones(x.shape)
-    cr.add_lag_columns(out, tau, w, x, idx, dt)
+    out, _ = cr.add_lag_columns(x, [cr.Lags(tau, w, idx)], dt)
     held = x[idx]
-    want = 1.0 + np.column_stack([cr.lagged(held[:, i], tau, dt, np.full(3, held[0, i])) @ w
-                                  for i in range(4)])
+    want = x + np.column_stack([cr.lagged(held[:, i], tau, dt, np.full(3, held[0, i])) @ w
+                                for i in range(4)])
     np.testing.assert_allclose(out, want, atol=1e-12)
     assert len(set(idx.tolist())) < idx.size  # the play holds: some samples repeat
+
+
+def test_groups_of_lag_columns_at_once_are_the_groups_one_after_another() -> None:
+    """Groups (plays of other widths, one from given start states and holding before its first
+    sample) written in one pass equal each group's creep added to ``x`` in turn, stepped here
+    sample by sample in NumPy, to the last bit, with the same end states."""
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal((2000, 6))
+    q = np.cumsum(rng.standard_normal(2000))
+    dt = 1e-3
+    start = (rng.standard_normal((6, 2)), rng.standard_normal(6))
+    groups = [cr.Lags(np.array([0.01, 1.0]), np.array([0.4, 0.1]), cr.play_hold(q, 0.0)[1]),
+              cr.Lags(np.array([0.1]), np.array([0.3]), cr.play_hold(q, 2.0)[1]),
+              cr.Lags(np.array([0.05, 10.0]), np.array([0.2, 0.6]),
+                      cr.play_hold(np.concatenate(([q[0] + 1.0], q)), 4.0)[1][1:] - 1, start)]
+    assert groups[2].idx[0] == -1  # the play holds what it held before the first sample
+    got, ends = cr.add_lag_columns(x, groups, dt)
+    want = x.copy()
+    for g, (z_end, held_end) in zip(groups, ends, strict=True):
+        a = np.exp(-dt / g.tau_s)
+        z = (np.repeat(x[g.idx[0]][None, :], a.size, axis=0) if g.start is None
+             else g.start[0].T.copy())
+        before = np.zeros(x.shape[1]) if g.start is None else g.start[1]
+        for t, row in enumerate(g.idx):
+            xv = x[row] if row >= 0 else before
+            acc = np.zeros(x.shape[1])
+            for j in range(a.size):
+                acc += g.weights[j] * z[j]
+                z[j] = a[j] * z[j] + (1.0 - a[j]) * xv
+            want[t] += acc
+        assert np.array_equal(z.T, z_end) and np.array_equal(x[g.idx[-1]], held_end)
+    assert np.array_equal(got, want)
 
 
 @pytest.mark.parametrize("seconds", [0.004, 0.3, 4.0, 70.0])
