@@ -85,14 +85,20 @@ def speed() -> dict[str, float]:
 
 def creep_columns(n: int = 100_000, k: int = 384) -> dict[str, float]:
     """The creep of a fit's basis columns at a play's held samples (``n`` samples, ``k``
-    columns, three elements: the grid's linearization): in place
-    (:func:`afmctl.model.creep.add_lag_columns`) against the basis copied at the held samples
-    first (the way before, measured here with the same compiled loop on the copy)."""
+    columns, three elements: the grid's linearization), :func:`afmctl.model.creep.add_lag_columns`:
+    reading the basis where the play holds it (``creep_columns_in_place_s``) against the basis
+    copied at the held samples first (``creep_columns_copy_s``, the way before stop 52, with the
+    same compiled loop on the copy); and three play widths' groups written in one pass
+    (``creep_groups_fused_s``, since stop 59) against a call per width
+    (``creep_groups_one_by_one_s``: a pass over the columns per width, as before)."""
     rng = np.random.default_rng(0)
     x = rng.standard_normal((n, k))
-    idx = cr.play_hold(np.cumsum(rng.standard_normal(n)), 5.0)[1]
+    q = np.cumsum(rng.standard_normal(n))
+    idx = cr.play_hold(q, 5.0)[1]
     tau, w = np.array([0.01, 0.1, 1.0]), np.array([0.3, 0.2, 0.1])
     every = np.arange(n)
+    groups = [cr.Lags(tau[:2], w[:2], cr.play_hold(q, 0.0)[1]), cr.Lags(tau[1:], w[1:], idx),
+              cr.Lags(tau[2:], w[2:], cr.play_hold(q, 20.0)[1])]
 
     def in_place() -> None:
         cr.add_lag_columns(x, [cr.Lags(tau, w, idx)], 1e-4)
@@ -100,10 +106,19 @@ def creep_columns(n: int = 100_000, k: int = 384) -> dict[str, float]:
     def copied() -> None:
         cr.add_lag_columns(x[idx], [cr.Lags(tau, w, every)], 1e-4)
 
+    def fused() -> None:
+        cr.add_lag_columns(x, groups, 1e-4)
+
+    def one_by_one() -> None:
+        for g in groups:
+            cr.add_lag_columns(x, [g], 1e-4)
+
     in_place()
     slow, fast = best_time(copied), best_time(in_place)
+    apart, together = best_time(one_by_one), best_time(fused)
     return {"creep_columns_copy_s": slow, "creep_columns_in_place_s": fast,
-            "creep_columns_speedup": slow / fast}
+            "creep_columns_speedup": slow / fast, "creep_groups_one_by_one_s": apart,
+            "creep_groups_fused_s": together, "creep_groups_speedup": apart / together}
 
 
 def other_family(root: Path) -> dict[str, object]:

@@ -362,8 +362,8 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
            "; first fitted with each sweep's rows standing for "
            + ", ".join(f"{w}{' (means)' if b > 1 else ''}" for w, b in
                        zip(prob.fit.weights, prob.fit.blocks, strict=True)) + " samples"))
-    # the runner-up's fits only if asked for: run beside the best's in case they were, they
-    # slowed the best's by a fifth (both stream their bases through the one memory bus)
+    # the runner-up's fits run only if the retry asks for them (run beside the best's in
+    # advance, they slowed it by a fifth: both stream their bases through one memory bus)
     plain = _plain(prob.fit, best[2], pen, lam0, settings)
     crept = forced = crept_force = None
     if float(np.max(prob.full.ratios(plain.theta))) <= creep_above:

@@ -457,11 +457,10 @@ class Problem:
                 start = (held[:, None] + (z - held[:, None]) * decay, held)
             groups.append(cr.Lags(self.taus[on], ci[on], idx, start))
             on_at.append(i)
-        if not groups:
-            return x.copy()
-        out, ends = cr.add_lag_columns(x.reshape(x.shape[0], -1), groups, dt)
-        if link is not None:
-            left: list[Any] = [None] * len(self.thresholds)
+        out, ends = (cr.add_lag_columns(x.reshape(x.shape[0], -1), groups, dt) if groups
+                     else (x.copy(), []))
+        if link is not None:  # per threshold: None where its elements are all off
+            left: list[tuple[FloatArray, FloatArray] | None] = [None] * len(self.thresholds)
             for i, end in zip(on_at, ends, strict=True):
                 left[i] = end
             link.carry[key] = left

@@ -27,6 +27,7 @@ sample. The state is ``(z_1 ... z_n, y_1 ... y_n)``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numba as nb
@@ -234,13 +235,12 @@ def _lagged(x: np.ndarray, a: np.ndarray, z0: np.ndarray) -> np.ndarray:
 
 
 @nb.njit(cache=True, nogil=True)
-def _add_columns(out: np.ndarray, base: np.ndarray, x: np.ndarray, idx: np.ndarray,
-                 a: np.ndarray, c: np.ndarray, group: np.ndarray, z: np.ndarray,
-                 x0: np.ndarray) -> None:
-    """:func:`add_lag_columns`: ``out[t] = base[t] + acc_0 + acc_1 + ...`` (in that order),
+def _add_columns(out: np.ndarray, x: np.ndarray, idx: np.ndarray, a: np.ndarray,
+                 c: np.ndarray, group: np.ndarray, z: np.ndarray, x0: np.ndarray) -> None:
+    """:func:`add_lag_columns`: ``out[t] = x[t] + acc_0 + acc_1 + ...`` (in that order),
     ``acc_g`` group ``g``'s elements' weighted states before sample ``t``, summed in the
     elements' order; the states ``z`` (elements, K: element-major, the inner loops run along the
-    columns, contiguous) stepped in place. One pass over ``out`` for every group."""
+    columns, contiguous) stepped in place. A single pass over ``out`` for all the groups."""
     m = out.shape[1]
     acc = np.empty((idx.shape[0], m))
     for t in range(out.shape[0]):
@@ -254,22 +254,22 @@ def _add_columns(out: np.ndarray, base: np.ndarray, x: np.ndarray, idx: np.ndarr
             for i in range(m):
                 ag[i] += cj * zj[i]
                 zj[i] = aj * zj[i] + bj * xv[i]
-        ot, bt = out[t], base[t]
+        ot, xt = out[t], x[t]
         for i in range(m):
-            ot[i] = bt[i]
+            ot[i] = xt[i]
         for g in range(idx.shape[0]):
             ag = acc[g]
             for i in range(m):
                 ot[i] += ag[i]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Lags:
-    """A group of linear creep elements on the columns of a basis :func:`add_lag_columns` takes:
-    time constants (s), weights, the sample each column is held at before every sample (a
-    play's last move, :func:`play_hold`; -1: still holding what it held before the first) and,
-    optionally, where the elements start: (states (K, elements), held (K,)); None: from rest
-    at the first sample."""
+    """A group of linear creep elements on the columns of a basis (:func:`add_lag_columns`):
+    time constants ``tau_s`` (s) and ``weights``; ``idx``, the sample each column is held at,
+    at every sample (a play's last move, :func:`play_hold`; -1: the play still holds what it
+    held before the first sample); ``start``, where the elements start: (states (K, elements),
+    held (K,)), or None: from rest at the first sample (then ``idx[0]`` is a sample)."""
 
     tau_s: FloatArray
     weights: FloatArray
@@ -277,21 +277,32 @@ class Lags:
     start: tuple[FloatArray, FloatArray] | None = None
 
 
-def add_lag_columns(x: FloatArray, groups: list[Lags], dt: float
+def add_lag_columns(x: FloatArray, groups: Sequence[Lags], dt: float
                     ) -> tuple[FloatArray, list[tuple[FloatArray, FloatArray]]]:
     """``x + sum_g sum_j c_gj z_gj`` for linear elements in groups (:class:`Lags`) on every
-    column of ``x[idx_g]`` (N, K) at once: the creep of every basis column of a fit, each
-    group's held where its play says. ``x[idx]`` is never copied (for a fit's basis it is
-    hundreds of MB, and the copy took as long as the filtering), and ``out`` is written once for
-    all groups (a pass over it per group, and a copy of ``x`` to add to, took half the time).
+    column of ``x[idx_g]`` (``x``: N samples by K columns; ``dt``, the sample period, s): the
+    creep of every basis column of a fit, each group's held where its play says. ``x[idx]`` is
+    never copied (for a fit's basis it is hundreds of MB, and the copy took as long as the
+    filtering), and the sum is written in a single pass for all the groups (a pass per group,
+    after a copy of ``x`` to add to, took half the time).
 
-    Returns the sum (a new array), and per group the elements' states after the last sample and what the play then
-    holds, per column: the ``start`` of a record that follows this one."""
+    Returns the sum (a new array) and, per group, the elements' states after the last sample
+    and what the play then holds, per column: the ``start`` of a record that follows this one.
+    """
     xs = np.ascontiguousarray(x, dtype=float)
+    if xs.ndim != 2 or not groups:
+        raise ValueError("add_lag_columns: x is (samples, columns), with at least one group")
+    for g in groups:  # the compiled loop checks no bounds
+        if len(g.weights) != len(g.tau_s) or len(g.idx) != xs.shape[0]:
+            raise ValueError(f"add_lag_columns: {len(g.weights)} weights for {len(g.tau_s)} "
+                             f"time constants, {len(g.idx)} held samples for {xs.shape[0]}")
+        if g.start is None and g.idx[0] < 0:
+            raise ValueError("add_lag_columns: a group from rest starts at a sample (idx[0] >= 0)")
     k = xs.shape[1]
-    idx = np.ascontiguousarray(np.stack([g.idx for g in groups]))
+    idx = np.ascontiguousarray(np.stack([np.asarray(g.idx, np.int64) for g in groups]))
     a = np.concatenate([np.exp(-float(dt) / np.asarray(g.tau_s, float)) for g in groups])
-    group = np.concatenate([np.full(len(g.tau_s), i) for i, g in enumerate(groups)])
+    group = np.concatenate([np.full(len(g.tau_s), i, dtype=np.int64)
+                            for i, g in enumerate(groups)])
     z = np.empty((a.size, k))
     x0 = np.zeros((len(groups), k))
     at = 0
@@ -304,13 +315,13 @@ def add_lag_columns(x: FloatArray, groups: list[Lags], dt: float
             x0[i] = g.start[1]
         at += n
     result = np.empty(xs.shape)
-    _add_columns(result, xs, xs, idx, a,
+    _add_columns(result, xs, idx, a,
                  np.concatenate([np.asarray(g.weights, dtype=float) for g in groups]),
-                 group.astype(np.int64), z, x0)
+                 group, z, x0)
     left, at = [], 0
     for i, g in enumerate(groups):
         n, last = len(g.tau_s), int(g.idx[-1])
-        left.append((np.ascontiguousarray(z[at:at + n].T),
+        left.append((z[at:at + n].T.copy(),
                      xs[last].copy() if last >= 0 else x0[i].copy()))
         at += n
     return result, left

@@ -34,20 +34,24 @@ def problem(on_force: bool, gap_s: float = math.nan) -> pp.Problem:
     return prob
 
 
+@pytest.mark.parametrize("first_off", [False, True])
 @pytest.mark.parametrize("gap_s", [math.nan, 0.0, 0.05])
 @pytest.mark.parametrize("on_force", [False, True])
-def test_the_design_is_the_models_derivative_and_b0_its_rest(on_force: bool, gap_s: float
-                                                            ) -> None:
+def test_the_design_is_the_models_derivative_and_b0_its_rest(on_force: bool, gap_s: float,
+                                                            first_off: bool) -> None:
     """``y - rhs = b0`` and ``A x + b0`` is the model to first order: a step ``h`` in every
     parameter but the rod's moves the exact prediction by ``A h`` up to O(h^2) (halving ``h``
     quarters the miss); at the point itself ``A x0 + b0`` is the prediction. Also where the
     second sweep's creep goes on from the first's (``gap_s`` >= 0): the design then carries the
-    first sweep's columns into the second's creep."""
+    first sweep's columns into the second's creep, each play width's from its own (``first_off``:
+    the first width's elements all at 0, so the second's are the only ones carried)."""
     prob = problem(on_force, gap_s)
     prob.cubic = True
     rng = np.random.default_rng(5)
     th = pp.Theta(rng.uniform(0.5, 2.0, 24), 0.7, rng.uniform(0.0, 0.02, 6), 0.004, 2e-5,
                   np.log(60.0), np.log(0.3), np.array([0.5, -0.2]))
+    if first_off:
+        th.c[:3] = 0.0
     designs, rhs = prob.linearize(th, True)
     k, nc = th.w.size, th.c.size
 
