@@ -5,7 +5,8 @@ and Algorithm 3 (:func:`afmctl.model.inverse.algorithm3`, horizon 2) on a 27.9 H
 at 10 kHz, for the emulated stage's HEM (its own node count) and for a Preisach grid of the size
 identify fits (64 x 48 cells, with creep); ``grid_over_hem_forward`` and ``grid_over_hem_inverse``
 are the grid's time over the HEM's. ``creep_columns_speedup``: the creep of a fit's basis
-columns computed in place against the basis copied first (:func:`creep_columns`).
+columns computed in place against the basis copied first, and ``creep_groups_speedup``: three
+play widths' creep in one pass against a call per width (:func:`creep_columns`).
 
 Accuracy: ``identify`` (default settings) on each sweep set of ``../shared/data/other-family/``
 (``--data`` overrides), the per-sweep RMS over the set's sensor noise as the README gives it,
