@@ -298,33 +298,24 @@ def add_lag_columns(x: FloatArray, groups: Sequence[Lags], dt: float
                              f"time constants, {len(g.idx)} held samples for {xs.shape[0]}")
         if g.start is None and g.idx[0] < 0:
             raise ValueError("add_lag_columns: a group from rest starts at a sample (idx[0] >= 0)")
-    k = xs.shape[1]
+    sizes = [len(g.tau_s) for g in groups]
+    rows = [slice(b - n, b) for n, b in zip(sizes, np.cumsum(sizes), strict=True)]  # of z
     idx = np.ascontiguousarray(np.stack([np.asarray(g.idx, np.int64) for g in groups]))
     a = np.concatenate([np.exp(-float(dt) / np.asarray(g.tau_s, float)) for g in groups])
-    group = np.concatenate([np.full(len(g.tau_s), i, dtype=np.int64)
-                            for i, g in enumerate(groups)])
-    z = np.empty((a.size, k))
-    x0 = np.zeros((len(groups), k))
-    at = 0
-    for i, g in enumerate(groups):
-        n = len(g.tau_s)
+    z = np.empty((a.size, xs.shape[1]))
+    x0 = np.zeros((len(groups), xs.shape[1]))
+    for i, (g, at) in enumerate(zip(groups, rows, strict=True)):
         if g.start is None:
-            z[at:at + n] = xs[g.idx[0]][None, :]
+            z[at] = xs[g.idx[0]][None, :]
         else:  # copies: stepped in place
-            z[at:at + n] = np.asarray(g.start[0], dtype=float).T
+            z[at] = np.asarray(g.start[0], dtype=float).T
             x0[i] = g.start[1]
-        at += n
     result = np.empty(xs.shape)
     _add_columns(result, xs, idx, a,
                  np.concatenate([np.asarray(g.weights, dtype=float) for g in groups]),
-                 group, z, x0)
-    left, at = [], 0
-    for i, g in enumerate(groups):
-        n, last = len(g.tau_s), int(g.idx[-1])
-        left.append((z[at:at + n].T.copy(),
-                     xs[last].copy() if last >= 0 else x0[i].copy()))
-        at += n
-    return result, left
+                 np.repeat(np.arange(len(groups), dtype=np.int64), sizes), z, x0)
+    return result, [(z[at].T.copy(), xs[g.idx[-1]].copy() if g.idx[-1] >= 0 else x0[i].copy())
+                    for i, (g, at) in enumerate(zip(groups, rows, strict=True))]
 
 
 @nb.njit(cache=True, nogil=True)
