@@ -46,6 +46,7 @@ identify compares.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import time
@@ -466,8 +467,10 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     rod = (min(max(rod0[0], 1.0), 0.4 / min(data.dts)),
            min(max(rod0[1], ZETA_BOUNDS[0]), ZETA_BOUNDS[1]))
     prob = Problem(data, field_step, MAX_ROWS)
-    distinct = {tuple(np.round(x0, 3)): (sse, x0) for c in starts_candidates
-                for sse, x0 in start(prob, rod, c)}  # assignments alike in effect: once
+    # each assignment's start shapes side by side (their Bouc-Wen runs release the lock)
+    found = cores.mapped(functools.partial(start, prob, rod), starts_candidates)
+    distinct = {tuple(np.round(x0, 3)): (sse, x0) for shapes in found
+                for sse, x0 in shapes}  # assignments alike in effect: once
     if not distinct:
         raise ValueError("no Bouc-Wen shape has a loop (c = 0)")
     good = 0.5 * GOOD ** 2 * sum(y.size for y in data.y)  # the cost at GOOD x the noise

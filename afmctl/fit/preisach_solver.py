@@ -5,7 +5,7 @@ search, and the held-out error that chooses the smoothing.
 Each Gauss-Newton step linearizes the model about the last point and solves the linear problem
 exactly: the free variables (``s``, ``t``, the rod, one offset per sweep) eliminated from the
 normal equations, then :func:`scipy.optimize.nnls` on the bounded ones (``w, r, c >= 0``). A step
-that does not lower the true cost is halved.
+that does not lower the true cost is damped more (:func:`gauss_newton`).
 """
 
 from __future__ import annotations
@@ -21,9 +21,13 @@ from scipy import optimize
 from afmctl.fit.preisach_problem import FOLDS, MAP, Grid, Problem, Theta
 
 FloatArray = NDArray[np.float64]
+#: :meth:`Problem.linearize`'s designs and known terms, per sweep.
+Linearized = tuple[list[FloatArray], list[FloatArray]]
 #: A Gauss-Newton fit has converged once a step lowers the cost by less than this share of the
 #: noise's sum of squares (the RMS over the noise then moves by less than 5e-4 of itself).
 TOL_SHARE = 1e-3
+#: Levenberg damping a Gauss-Newton fit starts with (a share of ``diag(G)``).
+MU_START = 1e-4
 #: Largest change of log f_n or log zeta in one Gauss-Newton step (a trust region).
 MAX_LOG_STEP = 0.5
 #: Levenberg damping of each held-out fold's fit toward the full fit (``mu diag(G)``, the least
@@ -154,12 +158,14 @@ class Run:
 
 
 def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, creep: bool,
-                 max_iter: int) -> Run:
+                 max_iter: int, mu0: float = MU_START) -> Run:
     """Fit ``prob`` from ``th`` by Levenberg-Marquardt steps of the bounded linear problem: the
     linearization is good only near ``th`` (the map's ``s Q^2 + t Q^3`` and the creep multiply the
     weights), so each step is damped by ``mu diag(G)`` (and the rod by at least a prior: a step
-    of 0.3 in its logs must buy the noise's sum of squares), ``mu`` raised until the step lowers
-    the true cost and lowered after it does."""
+    of 0.3 in its logs must buy the noise's sum of squares).
+
+    ``mu`` starts at ``mu0``, is raised until the step lowers the true cost and lowered after it
+    does."""
     dtd = pen.T @ pen
     k = th.w.size
     n_bounded = k + 1 + (th.c.size if creep else 0)
@@ -167,7 +173,7 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
     th.d = np.zeros(sum(prob.n_trans)) if creep else np.zeros(0)
     lam = 0.0
     cost = math.inf
-    mu, it, converged = 1e-4, 0, False
+    mu, it, converged = mu0, 0, False
     for it in range(1, max_iter + 1):  # noqa: B007 (returned)
         designs, rhs = prob.linearize(th, creep)
         rod = bool(th.w.any() or th.r > 0)  # from nothing the rod has no derivative yet
@@ -259,15 +265,15 @@ def _clamp(new: float, old: float, bounds: tuple[float, float]) -> float:
 
 
 def heldout(prob: Problem, th: Theta, pen: FloatArray, lam_rel: Sequence[float],
-            creep: bool) -> dict[float, FloatArray]:
+            creep: bool, linearized: Linearized | None = None) -> dict[float, FloatArray]:
     """Held-out RMS per sweep (um) at each relative smoothing in ``lam_rel``: the weights, the
     reversible slope and the offsets fitted on all folds but one, judged on that one with the
     exact model, each fold in turn. The few scalars (``s``, creep weights and transients, rod)
     stay at the full fit's ``th``: refitted without the damping of :func:`gauss_newton` they
     would slide along the valleys they share with the weights, and their own optimism is that
     of a handful of parameters. The problem is linearized at ``th`` (a step of the size of the
-    folds' difference)."""
-    designs, rhs = prob.linearize(th, creep)
+    folds' difference); ``linearized``: that linearization, if the caller has it already."""
+    designs, rhs = linearized or prob.linearize(th, creep)
     k, nc, n_s = th.w.size, th.c.size if creep else 0, len(prob.phi)
     fixed = np.concatenate((th.c if creep else [], [th.s, th.t]))
     at_d = k + 1 + nc + MAP + 2 + n_s

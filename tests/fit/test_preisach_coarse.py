@@ -9,6 +9,7 @@ import pytest
 
 from afmctl.fit import preisach as pf
 from afmctl.fit import preisach_coarse as pc
+from afmctl.fit import preisach_solver as ps
 from afmctl.fit import rod_response as rr
 from afmctl.model import creep as cr
 from afmctl.planning import sweepdesign as sd
@@ -65,33 +66,83 @@ def creeping() -> tuple[pf.Data, pf.Runs]:
     return data, full
 
 
-def test_a_fit_in_block_means_ends_where_the_full_fit_does(
-        monkeypatch: pytest.MonkeyPatch, creeping: tuple[pf.Data, pf.Runs]) -> None:
-    """On the independent Preisach plant with creep of 1.5 % per decade, its slow sweep at 1 kHz
-    in blocks of 7 samples (0.5 % of the range, coarser than the default's 0.2 %, which would
-    make blocks of 2 of this short sweep: too few to block): the grid and its creep fitted on
-    the problem with the slow sweep in block means (``runs`` says so), then a few steps on the
-    full problem, reach the full fit's misfit per sweep within 2 %, with the same creep per
-    decade of time (0.1-100 s after a step) within 10 %."""
-    monkeypatch.setattr(pc, "BLOCK_SHARE", 0.005)
-    data, full = creeping
-    assert pc.blocks(data.fields, data.dts, 0.01) == [7, 1, 1]
-    settings = pf.Settings()
+@pytest.fixture(scope="module")
+def quick(creeping: tuple[pf.Data, pf.Runs]) -> tuple[pf.Runs, list[str]]:
+    """The same runs on the problem with the slow sweep at 1 kHz in blocks of 7 samples (0.5 % of
+    the range, coarser than the default's 0.2 %, which would make blocks of 2 of this short
+    sweep: too few to block), and what they said."""
+    data, _ = creeping
     said: list[str] = []
-    quick = pf.runs(data, [("positive",) * 3], (2000.0, 0.3), settings, said.append,
-                    on_force=False, creep_above=0.0, coarse=True)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(pc, "BLOCK_SHARE", 0.005)
+        assert pc.blocks(data.fields, data.dts, 0.01) == [7, 1, 1]
+        runs = pf.runs(data, [("positive",) * 3], (2000.0, 0.3), pf.Settings(), said.append,
+                       on_force=False, creep_above=0.0, coarse=True)
+    return runs, said
+
+
+def test_a_fit_in_block_means_ends_where_the_full_fit_does(
+        creeping: tuple[pf.Data, pf.Runs], quick: tuple[pf.Runs, list[str]]) -> None:
+    """On the independent Preisach plant with creep of 1.5 % per decade, its slow sweep in blocks
+    of 7 samples: the grid and its creep fitted on the problem with the slow sweep in block means
+    (``runs`` says so), then a few steps on the full problem, reach the full fit's misfit per
+    sweep within 2 %, with the same creep per decade of time (0.1-100 s after a step) within
+    10 %."""
+    _, full = creeping
+    settings = pf.Settings()
+    quick_runs, said = quick
     assert any("first fitted with each sweep's rows standing for 7 (means), 1, 1 samples" in m
                for m in said), said
-    assert quick.crept is not None and full.crept is not None
-    assert quick.problem.blocks == [1, 1, 1]  # the runs come back on the full problem
-    last = pf.gauss_newton(quick.problem, quick.crept.theta, quick.penalty, quick.smoothing, True,
-                           settings.max_iter)
+    assert quick_runs.crept is not None and full.crept is not None
+    assert quick_runs.problem.blocks == [1, 1, 1]  # the runs come back on the full problem
+    last = pf.gauss_newton(quick_runs.problem, quick_runs.crept.theta, quick_runs.penalty,
+                           quick_runs.smoothing, True, settings.max_iter)
     ref = full.problem.ratios(full.crept.theta)
-    got = quick.problem.ratios(last.theta)
+    got = quick_runs.problem.ratios(last.theta)
     np.testing.assert_allclose(got, ref, rtol=0.02)
     decade = [cr.Creep(tuple(map(float, full.problem.el_tau)), tuple(map(float, r.theta.c))
                        ).per_decade() for r in (full.crept, last)]
     assert abs(decade[1] - decade[0]) < 0.1 * decade[0], decade
+
+
+def test_the_last_steps_start_nearly_undamped_and_end_where_damped_ones_do(
+        quick: tuple[pf.Runs, list[str]]) -> None:
+    """identify's last steps on the full problem, from the fit in block means, start with the
+    damping :data:`afmctl.fit.preisach.POLISH_MU`: they end at the misfit per sweep the usual
+    start (:data:`afmctl.fit.preisach_solver.MU_START`) ends at, within 0.2 %, in no more
+    steps."""
+    runs, _ = quick
+    assert runs.crept is not None
+    prob, settings = runs.problem, pf.Settings()
+    ends = {mu0: pf.gauss_newton(prob, runs.crept.theta, runs.penalty, runs.smoothing, True,
+                                 settings.max_iter, mu0)
+            for mu0 in (pf.POLISH_MU, ps.MU_START)}
+    polished, usual = ends[pf.POLISH_MU], ends[ps.MU_START]
+    np.testing.assert_allclose(prob.ratios(polished.theta), prob.ratios(usual.theta), rtol=2e-3)
+    assert polished.iterations <= usual.iterations, (polished.iterations, usual.iterations)
+
+
+def test_the_held_out_error_and_the_uncertainty_take_the_linearization_given(
+        monkeypatch: pytest.MonkeyPatch, creeping: tuple[pf.Data, pf.Runs]) -> None:
+    """identify linearizes its fit once for its held-out error and its uncertainty: given the
+    problem linearized at the fit, neither linearizes it again, and both are what they are
+    without it, to the last bit."""
+    _, full = creeping
+    assert full.crept is not None
+    prob, th, pen, lams = full.problem, full.crept.theta, full.penalty, [1e-6, 1e-4]
+    given = prob.linearize(th, True)
+    calls: list[object] = []
+    linearize = type(prob).linearize
+    monkeypatch.setattr(type(prob), "linearize",
+                        lambda self, *a: calls.append(a) or linearize(self, *a))
+    reused = (pf.heldout(prob, th, pen, lams, True, given),
+              pf.scalar_uncertainty(prob, th, True, given))
+    assert calls == []
+    alone = pf.heldout(prob, th, pen, lams, True), pf.scalar_uncertainty(prob, th, True)
+    assert len(calls) == 2
+    for lam in lams:
+        np.testing.assert_array_equal(reused[0][lam], alone[0][lam])
+    assert reused[1] == alone[1]
 
 
 def test_the_block_problem_holds_the_block_means_of_the_judged_readings_weighed(
