@@ -99,7 +99,7 @@ RETRY_ABOVE = 1.5
 #: problem's fit) start with, a share of ``diag(G)`` (:func:`gauss_newton`'s ``mu0``): the fit
 #: starts near the full problem's minimum, where its linearization foresees each step (on pi-u
 #: the five steps from the usual 1e-4 each fell as foreseen to 1 %, held back only by the
-#: damping); from 1e-6 they took two, to the same errors within 1e-4 of the noise.
+#: damping); from 1e-6 they took two, to the same errors within 1e-3 of the noise.
 POLISH_MU = 1e-6
 
 __all__ = ["CREEP_TAUS_S", "CREEP_THRESHOLDS", "SMOOTHING", "BLOCKS", "FOLDS", "TRANSIENT_SPAN",
@@ -515,8 +515,10 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     _, label, lam, per = choice
     prob, creep, run = runs_by[label]
     final = gauss_newton(prob, run.theta, pen, lam, creep, settings.max_iter, POLISH_MU)
-    at_final = prob.linearize(final.theta, creep)  # for both below
+    at_final = prob.linearize(final.theta, creep)  # for both, then freed (hundreds of MB)
     per = heldout(prob, final.theta, pen, [lam], creep, at_final)[lam]  # of the fit written
+    spread = scalar_uncertainty(prob, final.theta, creep, at_final)
+    del at_final
     say("  held-out RMS / noise per sweep "
         + " / ".join(f"{r:.2f}" for r in per / data.noise)
         + f" ({'with ' + label if creep else 'without creep'}, smoothing {lam:g}; "
@@ -525,7 +527,7 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     return PreisachFit(model, prob.starts, final.theta.offsets, per, lam, creep, scores,
                        final.iterations, final.converged, time.perf_counter() - t0,
                        prob.ratios(final.theta), prob.grid.active.size,
-                       scalar_uncertainty(prob, final.theta, creep, at_final), settings.p_scale,
+                       spread, settings.p_scale,
                        prob.predict(final.theta, full=True), prob.interior_loops,
                        prob.cubic)
 
@@ -534,8 +536,9 @@ def scalar_uncertainty(prob: Problem, th: Theta, creep: bool,
                        linearized: Linearized | None = None) -> dict[str, Any]:
     """Gauss-Newton ``s^2 (J^T J)^+`` of the scalar parameters at ``th``, the weights held (they
     are bounded; the held-out error judges the density instead); ``linearized``: the problem
-    linearized at ``th`` (:meth:`Problem.linearize`), if the caller has it already."""
-    designs, _ = linearized or prob.linearize(th, creep)
+    linearized at ``th`` with ``creep`` (:meth:`Problem.linearize`, not checked), if the caller
+    has it already."""
+    designs, _ = prob.linearize(th, creep) if linearized is None else linearized
     k = th.w.size
     a = np.vstack(designs)[:, k:]
     res = np.concatenate([y - u for y, u in zip(prob.data.y, prob.predict(th), strict=True)])

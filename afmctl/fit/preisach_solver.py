@@ -272,8 +272,9 @@ def heldout(prob: Problem, th: Theta, pen: FloatArray, lam_rel: Sequence[float],
     stay at the full fit's ``th``: refitted without the damping of :func:`gauss_newton` they
     would slide along the valleys they share with the weights, and their own optimism is that
     of a handful of parameters. The problem is linearized at ``th`` (a step of the size of the
-    folds' difference); ``linearized``: that linearization, if the caller has it already."""
-    designs, rhs = linearized or prob.linearize(th, creep)
+    folds' difference); ``linearized``: that linearization (``prob.linearize(th, creep)``, not
+    checked), if the caller has it already."""
+    designs, rhs = prob.linearize(th, creep) if linearized is None else linearized
     k, nc, n_s = th.w.size, th.c.size if creep else 0, len(prob.phi)
     fixed = np.concatenate((th.c if creep else [], [th.s, th.t]))
     at_d = k + 1 + nc + MAP + 2 + n_s

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
@@ -120,17 +121,19 @@ def test_the_last_steps_start_nearly_undamped_and_end_where_damped_ones_do(
     polished, usual = ends[pf.POLISH_MU], ends[ps.MU_START]
     np.testing.assert_allclose(prob.ratios(polished.theta), prob.ratios(usual.theta), rtol=2e-3)
     assert polished.iterations <= usual.iterations, (polished.iterations, usual.iterations)
+    assert not np.array_equal(polished.theta.w, usual.theta.w)  # mu0 took other steps
 
 
 def test_the_held_out_error_and_the_uncertainty_take_the_linearization_given(
         monkeypatch: pytest.MonkeyPatch, creeping: tuple[pf.Data, pf.Runs]) -> None:
     """identify linearizes its fit once for its held-out error and its uncertainty: given the
-    problem linearized at the fit, neither linearizes it again, and both are what they are
-    without it, to the last bit."""
+    problem linearized at the fit, neither linearizes it again nor changes it, and both are what
+    they are without it (the held-out errors to the last bit)."""
     _, full = creeping
     assert full.crept is not None
     prob, th, pen, lams = full.problem, full.crept.theta, full.penalty, [1e-6, 1e-4]
     given = prob.linearize(th, True)
+    kept = copy.deepcopy(given)
     calls: list[object] = []
     linearize = type(prob).linearize
     monkeypatch.setattr(type(prob), "linearize",
@@ -143,6 +146,8 @@ def test_the_held_out_error_and_the_uncertainty_take_the_linearization_given(
     for lam in lams:
         np.testing.assert_array_equal(reused[0][lam], alone[0][lam])
     assert reused[1] == alone[1]
+    for got, want in zip([*given[0], *given[1]], [*kept[0], *kept[1]], strict=True):
+        np.testing.assert_array_equal(got, want)  # neither changed it for the other
 
 
 def test_the_block_problem_holds_the_block_means_of_the_judged_readings_weighed(
