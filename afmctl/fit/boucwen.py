@@ -113,6 +113,12 @@ SAME = 1e-6
 #: by 2, on a bipolar one (44,893) not. The fit's readings and figures are then judged on every
 #: sample.
 MAX_ROWS = 50_000
+#: A solve with ``give_up`` (:func:`_solve`) stalls when its cost falls by less than this share
+#: of itself in :data:`afmctl.fit.stall.STEPS` steps while over ``give_up`` times the noise
+#: (the stall's default, 0.1 %, let preisach-u-drift's Bouc-Wen crawl from 50.05x to 49.92x the
+#: noise in 20 more steps, 1.4 s, where 4.5x was asked: a hundredth of the cost needed). From
+#: there at 1 % in 10 steps the solve would need hundreds of steps to reach ``give_up``.
+GIVE_UP_SHARE = 1e-2
 #: Start, upper bound and least weight kept (below it: no creep) per element.
 CREEP_START, CREEP_MAX, CREEP_MIN = 1e-3, 0.05, 1e-5
 
@@ -523,11 +529,14 @@ def _searched(prob: Problem, sol: optimize.OptimizeResult, good: float,
     state at its shape, the solve from there if that ends lower. The start shape is crude and
     its state search may miss (foreign-xy-6's y axis: from the rod of identify's grid fit, every
     start ended with the both-axes file's state near 0 and the sweeps at 10-14x the noise); at
-    the solved shape it does not."""
+    the solved shape it does not. With ``give_up``, only if the search lowers the cost by
+    :data:`GIVE_UP_SHARE` (on preisach-u-creep it moved a state for nothing, 29.86x the noise
+    either way, and the solve from there took 11 steps, 1.2 s, to stall at 29.86x again)."""
     if sol.cost <= good:
         return sol
     x = prob.state_search(sol.x)
-    if np.array_equal(x, sol.x):
+    if np.array_equal(x, sol.x) or (give_up is not None and not prob.cost(prob.readings(x))
+                                    < (1.0 - GIVE_UP_SHARE) * sol.cost):
         return sol
     again = _solve(prob, x, creep=False, give_up=give_up)
     return again if again.cost < sol.cost else sol
@@ -569,9 +578,9 @@ def _solve(prob: Problem, x0: FloatArray, creep: bool,
                                  max_nfev=NFEV_PER_PARAMETER * int(free.sum()),
                                  diff_step=DIFF_STEP, workers=cores.mapped,
                                  callback=None if give_up is None else stall.callback(
-                                     _far(prob, give_up)))
+                                     _far(prob, give_up), GIVE_UP_SHARE))
     if sol.status == -2:
-        sol.message = stall.message(f"the sweeps over {give_up:.3g}x their noise")
+        sol.message = stall.message(f"the sweeps over {give_up:.3g}x their noise", GIVE_UP_SHARE)
     sol.x, sol.free = full(sol.x), free
     return sol
 

@@ -20,11 +20,11 @@ SHARE = 1e-3
 STEPS = 10
 
 
-def callback(far_off: Callable[[optimize.OptimizeResult], bool]
+def callback(far_off: Callable[[optimize.OptimizeResult], bool], share: float = SHARE
              ) -> Callable[[optimize.OptimizeResult], None]:
     """A ``callback`` that raises ``StopIteration`` once the cost has fallen by less than
-    :data:`SHARE` of itself over the last :data:`STEPS` steps while ``far_off(result)`` (the
-    step's ``cost``, ``fun`` ...) is true.
+    ``share`` of itself over the last :data:`STEPS` steps while ``far_off(result)`` (the step's
+    ``cost``, ``fun`` ...) is true.
 
     Examples
     --------
@@ -41,16 +41,17 @@ def callback(far_off: Callable[[optimize.OptimizeResult], bool]
 
     def check(intermediate_result: optimize.OptimizeResult) -> None:
         costs.append(float(intermediate_result.cost))
-        if (len(costs) > STEPS and costs[-1 - STEPS] - costs[-1] < SHARE * costs[-1]
+        if (len(costs) > STEPS and costs[-1 - STEPS] - costs[-1] < share * costs[-1]
                 and far_off(intermediate_result)):
             raise StopIteration
 
     return check
 
 
-def message(far: str) -> str:
-    """The solve's message where :func:`callback` stopped it; ``far`` says how far off."""
-    return f"stalled: the cost fell by less than {SHARE:.1%} of itself in {STEPS} steps, {far}"
+def message(far: str, share: float = SHARE) -> str:
+    """The solve's message where :func:`callback` (with ``share``) stopped it; ``far`` says how
+    far off."""
+    return f"stalled: the cost fell by less than {share:.1%} of itself in {STEPS} steps, {far}"
 
 
 __all__ = ["SHARE", "STEPS", "callback", "message"]

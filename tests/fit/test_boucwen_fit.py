@@ -177,7 +177,7 @@ def test_a_fit_stopped_where_it_stalls_says_so(monkeypatch: pytest.MonkeyPatch,
     identify's message says of a chosen Bouc-Wen) is the stall's message."""
     from afmctl.fit import stall
 
-    def at_once(far):  # type: ignore[no-untyped-def]
+    def at_once(far, share=stall.SHARE):  # type: ignore[no-untyped-def]
         def callback(intermediate_result):  # type: ignore[no-untyped-def]
             raise StopIteration
 
@@ -189,7 +189,59 @@ def test_a_fit_stopped_where_it_stalls_says_so(monkeypatch: pytest.MonkeyPatch,
                      field_step=FIELD_STEP)
     assert not stopped.converged
     assert stopped.how.startswith("stalled: the cost fell by less than")
-    assert stopped.how == stall.message("the sweeps over 0.5x their noise")
+    assert stopped.how == stall.message("the sweeps over 0.5x their noise", bf.GIVE_UP_SHARE)
+
+
+def test_a_solve_that_may_give_up_stalls_at_a_hundredth_in_ten_steps() -> None:
+    """With ``give_up`` a solve stalls (far off) once its cost falls by less than
+    :data:`bf.GIVE_UP_SHARE` (1 %) of itself in ten steps: a cost falling 0.05 % a step is
+    stopped at the eleventh, which the stall's default share (0.1 %) lets go on."""
+    from scipy.optimize import OptimizeResult
+
+    from afmctl.fit import stall
+
+    def steps_until_stopped(share: float) -> int:
+        check = stall.callback(lambda r: True, share)
+        for step in range(1, 40):
+            try:
+                check(OptimizeResult(cost=1.0 * 0.9995 ** step))
+            except StopIteration:
+                return step
+        return 0
+
+    assert steps_until_stopped(bf.GIVE_UP_SHARE) == stall.STEPS + 1
+    assert steps_until_stopped(stall.SHARE) == 0
+
+
+def test_a_state_search_that_gains_nothing_is_not_solved_again_when_giving_up(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``_searched`` with ``give_up`` solves again from the state search only if the search
+    lowered the cost by :data:`bf.GIVE_UP_SHARE`; without ``give_up`` whenever it moved a
+    state."""
+    from scipy.optimize import OptimizeResult
+
+    solved: list[object] = []
+    monkeypatch.setattr(bf, "_solve", lambda prob, x, creep, give_up=None:
+                        solved.append(x) or OptimizeResult(x=x, cost=0.0))
+
+    class Searched:  # the state search moves a state; the cost at it is ``after``
+        def __init__(self, after: float) -> None:
+            self.after = after
+
+        def state_search(self, x: np.ndarray) -> np.ndarray:
+            return x + 1.0
+
+        def readings(self, x: np.ndarray) -> list[np.ndarray]:
+            return [x]
+
+        def cost(self, u: list[np.ndarray]) -> float:
+            return self.after
+
+    sol = OptimizeResult(x=np.zeros(3), cost=100.0)
+    for after, give_up, again in ((99.5, 4.5, False), (98.0, 4.5, True), (99.5, None, True)):
+        solved.clear()
+        bf._searched(Searched(after), sol, 1.0, give_up)  # type: ignore[arg-type]
+        assert bool(solved) == again, (after, give_up)
 
 
 def test_fit_reaches_near_the_noise_on_every_sweep(stage_and_set: tuple,
