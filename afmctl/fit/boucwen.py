@@ -117,7 +117,7 @@ MAX_ROWS = 50_000
 #: of itself in :data:`afmctl.fit.stall.STEPS` steps while over ``give_up`` times the noise
 #: (the stall's default, 0.1 %, let preisach-u-drift's Bouc-Wen crawl from 50.05x to 49.92x the
 #: noise in 20 more steps, 1.4 s, where 4.5x was asked: a hundredth of the cost needed). From
-#: there at 1 % in 10 steps the solve would need hundreds of steps to reach ``give_up``.
+#: there, falling 1 % in 10 steps, the solve would need thousands of steps to reach ``give_up``.
 GIVE_UP_SHARE = 1e-2
 #: Start, upper bound and least weight kept (below it: no creep) per element.
 CREEP_START, CREEP_MAX, CREEP_MIN = 1e-3, 0.05, 1e-5
