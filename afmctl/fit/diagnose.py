@@ -85,7 +85,7 @@ class Settings:
     max_slew_v_per_s: float | None = None
     held: bool = True
     grid: bool = True
-    grid_fit: pf.Settings = pf.Settings()
+    grid_fit: pf.Settings = gb.GRID_SETTINGS
     creep_rule: gb.CreepRule = gb.CreepRule()
 
 

@@ -350,7 +350,8 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     def first_step(starts: tuple[str, ...]) -> tuple[float, Fitted, Theta]:
         full = Problem(data, grid, starts, settings.creep_taus_s)
         fitted = Fitted(full, pc.coarse(full, sizes) if sizes is not None else full)
-        run = gauss_newton(fitted.fit, start_theta(), pen, lam0, False, 1)
+        run = gauss_newton(fitted.fit, start_theta(), pen, lam0, False, 1,
+                           gain_ratio=settings.gain_ratio_damping)
         return run.cost, fitted, run.theta
 
     top: list[tuple[float, Fitted, Theta]] = []  # the best two (each holds its basis columns)
@@ -427,8 +428,10 @@ class Fitted:
 def _plain(prob: Problem, th: Theta, pen: FloatArray, lam: float, settings: Settings) -> Run:
     """The grid without creep from ``th``: the rod searched twice, ``settings.max_iter // 4``
     Gauss-Newton steps after each search."""
-    run = gauss_newton(prob, refit_rod(prob, th), pen, lam, False, settings.max_iter // 4)
-    return gauss_newton(prob, refit_rod(prob, run.theta), pen, lam, False, settings.max_iter // 4)
+    steps = functools.partial(gauss_newton, pen=pen, lam_rel=lam, creep=False,
+                              max_iter=settings.max_iter // 4,
+                              gain_ratio=settings.gain_ratio_damping)
+    return steps(prob, refit_rod(prob, steps(prob, refit_rod(prob, th)).theta))
 
 
 def _retry(prob: Problem, plain: Run, crept: Run) -> bool:
@@ -473,8 +476,9 @@ def _crept(fitted: Fitted, plain: Theta, pen: FloatArray, lam: float, settings: 
         elements.c = np.zeros(prob.el_tau.size)
     else:
         elements = warm.copy()
-    run = gauss_newton(prob, elements, pen, lam, True, settings.max_iter)
-    return gauss_newton(prob, refit_rod(prob, run.theta), pen, lam, True, settings.max_iter)
+    steps = functools.partial(gauss_newton, pen=pen, lam_rel=lam, creep=True,
+                              max_iter=settings.max_iter, gain_ratio=settings.gain_ratio_damping)
+    return steps(prob, refit_rod(prob, steps(prob, elements).theta))
 
 
 def _force(forced: Fitted, plain: Theta, crept: Theta, pen: FloatArray, lam: float,
@@ -514,7 +518,8 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     assert choice is not None
     _, label, lam, per = choice
     prob, creep, run = runs_by[label]
-    final = gauss_newton(prob, run.theta, pen, lam, creep, settings.max_iter, POLISH_MU)
+    final = gauss_newton(prob, run.theta, pen, lam, creep, settings.max_iter, POLISH_MU,
+                         settings.gain_ratio_damping)
     at_final = prob.linearize(final.theta, creep)  # for both, then freed (hundreds of MB)
     per = heldout(prob, final.theta, pen, [lam], creep, at_final)[lam]  # of the fit written
     spread = scalar_uncertainty(prob, final.theta, creep, at_final)

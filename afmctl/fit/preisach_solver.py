@@ -158,14 +158,16 @@ class Run:
 
 
 def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, creep: bool,
-                 max_iter: int, mu0: float = MU_START) -> Run:
+                 max_iter: int, mu0: float = MU_START, gain_ratio: bool = False) -> Run:
     """Fit ``prob`` from ``th`` by Levenberg-Marquardt steps of the bounded linear problem: the
     linearization is good only near ``th`` (the map's ``s Q^2 + t Q^3`` and the creep multiply the
     weights), so each step is damped by ``mu diag(G)`` (and the rod by at least a prior: a step
     of 0.3 in its logs must buy the noise's sum of squares).
 
-    ``mu`` starts at ``mu0``, is raised until the step lowers the true cost and lowered after it
-    does."""
+    ``mu`` starts at ``mu0`` and is raised (x8) until the step lowers the true cost; after it
+    does, it is quartered. With ``gain_ratio``, Nielsen's rule instead: raised x2, x4, x8 ...,
+    and after a step multiplied by ``max(1/3, 1 - (2 rho - 1)^3)``, ``rho`` the true fall over the
+    linearized one (``x' G x - 2 h' x`` at the step's start and end)."""
     dtd = pen.T @ pen
     k = th.w.size
     n_bounded = k + 1 + (th.c.size if creep else 0)
@@ -173,7 +175,7 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
     th.d = np.zeros(sum(prob.n_trans)) if creep else np.zeros(0)
     lam = 0.0
     cost = math.inf
-    mu, it, converged = mu0, 0, False
+    mu, nu, it, converged = mu0, 2.0 if gain_ratio else 8.0, 0, False
     for it in range(1, max_iter + 1):  # noqa: B007 (returned)
         designs, rhs = prob.linearize(th, creep)
         rod = bool(th.w.any() or th.r > 0)  # from nothing the rod has no derivative yet
@@ -188,6 +190,7 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
             at = slice(n_bounded + MAP, n_bounded + MAP + 2)
             diag[at] = np.maximum(diag[at], prob.noise_sse / 0.3 ** 2 / max(mu, 1e-12))
         fresh = not (th.w.any() or th.r > 0)
+        here = float(x0 @ g @ x0 - 2.0 * h @ x0)  # the linearized cost at the start (+ const.)
         accepted = False
         for _ in range(12):
             damp = 0.0 if fresh else mu
@@ -200,13 +203,20 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
             if c_new < cost:
                 accepted = True
                 break
-            mu = max(mu * 8.0, 1e-6)
+            mu = max(mu * nu, 1e-6)
+            nu = 2.0 * nu if gain_ratio else nu
             fresh = False
         if not accepted:
             converged = True  # no step lowers the cost: a (local) minimum
             break
         gain = cost - c_new
-        th, cost, mu = trial, c_new, max(mu / 4.0, 1e-9)
+        if gain_ratio:
+            x1 = _pack(trial, creep, rod)
+            rho = gain / max(here - float(x1 @ g @ x1 - 2.0 * h @ x1), 1e-300)
+            mu, nu = max(mu * max(1.0 / 3.0, 1.0 - (2.0 * min(rho, 1.0) - 1.0) ** 3), 1e-9), 2.0
+        else:
+            mu = max(mu / 4.0, 1e-9)
+        th, cost = trial, c_new
         if gain < TOL_SHARE * prob.noise_sse:  # the RMS / noise moves by < 1e-4 of itself
             converged = True
             break

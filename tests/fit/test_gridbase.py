@@ -9,6 +9,7 @@ the full-size case on 14 stages."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -30,7 +31,7 @@ RATE_HZ = 5000.0
 #: Half identify's Gauss-Newton steps: the test's budget (a coarser grid of 12 x 18 coefficients
 #: left the creep stage at 8x the noise and the drift stage at 2.4x, where this one leaves 7.4x
 #: and 1.2x).
-FAST = pf.Settings(max_iter=20)
+FAST = dataclasses.replace(gb.GRID_SETTINGS, max_iter=20)
 
 
 def triangles(stage: fst.FamilyStage, seed: int) -> list[sw.Sweep]:
