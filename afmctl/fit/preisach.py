@@ -52,6 +52,7 @@ from afmctl.fit import cores
 from afmctl.fit import parametrization as pz
 from afmctl.fit import preisach_coarse as pc
 from afmctl.fit import uncertainty as unc
+from afmctl.fit.preisach_basis import Grid, basis, hat_matrix
 from afmctl.fit.preisach_problem import (
     BLOCKS,
     CREEP_TAUS_S,
@@ -60,12 +61,9 @@ from afmctl.fit.preisach_problem import (
     SMOOTHING,
     TRANSIENT_SPAN,
     Data,
-    Grid,
     Problem,
     Settings,
     Theta,
-    basis,
-    hat_matrix,
     make_grid,
 )
 from afmctl.fit.preisach_solver import (

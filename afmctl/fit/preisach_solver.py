@@ -18,7 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize
 
-from afmctl.fit.preisach_problem import FOLDS, MAP, Grid, Problem, Theta
+from afmctl.fit.preisach_basis import Grid
+from afmctl.fit.preisach_problem import FOLDS, MAP, Problem, Theta
 
 FloatArray = NDArray[np.float64]
 #: :meth:`Problem.linearize`'s designs and known terms, per sweep.

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from afmctl.fit import preisach_basis as pb
 from afmctl.fit import preisach_problem as pp
 from afmctl.model import creep as cr
 
@@ -26,8 +27,8 @@ def problem(on_force: bool, gap_s: float = math.nan) -> pp.Problem:
                    gaps_s=[math.nan, gap_s])
     settings = pp.Settings(n_coercive=8, n_interaction=12, coef_coercive=4, coef_interaction=6)
     ec, ei, spread = pp.make_grid(fields, settings)
-    mi, mj = pp.hat_matrix(ec.size, 4), pp.hat_matrix(ei.size, 6)
-    grid = pp.Grid(ec, ei, spread, mi, mj, np.arange(24))
+    mi, mj = pb.hat_matrix(ec.size, 4), pb.hat_matrix(ei.size, 6)
+    grid = pb.Grid(ec, ei, spread, mi, mj, np.arange(24))
     prob = pp.Problem(data, grid, ("positive", "previous"), (0.01, 0.1, 1.0))
     prob.set_thresholds((0.0, 0.3))
     prob.creep_on_force = on_force
@@ -107,10 +108,10 @@ def test_a_plays_coefficient_is_its_rows_line_in_the_models_kernel() -> None:
     settings = pp.Settings(n_coercive=8, n_interaction=12, coef_coercive=4, coef_interaction=6)
     ec, ei, spread = pp.make_grid([e], settings)
     active = np.flatnonzero(rng.random(24 + 8) < 0.8)
-    grid = pp.Grid(ec, ei, spread, pp.hat_matrix(ec.size, 4), pp.hat_matrix(ei.size, 6), active,
+    grid = pb.Grid(ec, ei, spread, pb.hat_matrix(ec.size, 4), pb.hat_matrix(ei.size, 6), active,
                    plays=True)
     coef = rng.uniform(0.0, 0.02, active.size)
-    cols, _ = pp.basis(e, grid, pr.start_outputs(ec, "depoled"))
+    cols, _ = pb.basis(e, grid, pr.start_outputs(ec, "depoled"))
     model = pr.PreisachGrid(tuple(ec), tuple(ei), spread, tuple(map(tuple, grid.weights(coef))),
                             0.0)
     p, _ = hy.run(model, e, hy.initial_state(model))
