@@ -60,6 +60,7 @@ FloatArray = NDArray[np.float64]
 #: and up, read as a drift, where the fixed rule's put 3 %: three triangles do not fix which time
 #: constants carry the creep, and the verdict must not follow the optimizer's path).
 GRID_SETTINGS = pf.Settings(gain_ratio_damping=False)
+
 #: What a verdict on the grid means (:attr:`afmctl.fit.diagnosis.Diagnosis.explanation`).
 CAUSES = {
     "none": "the stage's hysteresis is not of the paper's family (its lognormal / normal "
@@ -242,7 +243,7 @@ def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
     say : callable
         One-line progress messages.
     settings : afmctl.fit.preisach.Settings
-        The grid's fit (identify's by default).
+        The grid's fit (diagnose's by default: :data:`GRID_SETTINGS`, the fixed damping rule).
     rule : CreepRule
     bar : afmctl.fit.verdict.Rule
         The verdict's thresholds (diagnose's).

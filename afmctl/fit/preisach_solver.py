@@ -159,16 +159,17 @@ class Run:
 
 
 def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, creep: bool,
-                 max_iter: int, mu0: float = MU_START, gain_ratio: bool = False) -> Run:
+                 max_iter: int, mu0: float = MU_START, *, gain_ratio: bool = False) -> Run:
     """Fit ``prob`` from ``th`` by Levenberg-Marquardt steps of the bounded linear problem: the
     linearization is good only near ``th`` (the map's ``s Q^2 + t Q^3`` and the creep multiply the
     weights), so each step is damped by ``mu diag(G)`` (and the rod by at least a prior: a step
     of 0.3 in its logs must buy the noise's sum of squares).
 
     ``mu`` starts at ``mu0`` and is raised (x8) until the step lowers the true cost; after it
-    does, it is quartered. With ``gain_ratio``, Nielsen's rule instead: raised x2, x4, x8 ...,
-    and after a step multiplied by ``max(1/3, 1 - (2 rho - 1)^3)``, ``rho`` the true fall over the
-    linearized one (``x' G x - 2 h' x`` at the step's start and end)."""
+    does, it is quartered (the fixed rule, the default: diagnose's grid). With ``gain_ratio``,
+    Nielsen's rule instead (identify's grid, :attr:`Settings.gain_ratio_damping`): raised x2, x4,
+    x8 ..., and after a step multiplied by ``max(1/3, 1 - (2 rho - 1)^3)``, ``rho`` the true fall
+    over the linearized one (:func:`_nielsen`)."""
     dtd = pen.T @ pen
     k = th.w.size
     n_bounded = k + 1 + (th.c.size if creep else 0)
@@ -191,7 +192,6 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
             at = slice(n_bounded + MAP, n_bounded + MAP + 2)
             diag[at] = np.maximum(diag[at], prob.noise_sse / 0.3 ** 2 / max(mu, 1e-12))
         fresh = not (th.w.any() or th.r > 0)
-        here = float(x0 @ g @ x0 - 2.0 * h @ x0)  # the linearized cost at the start (+ const.)
         accepted = False
         for _ in range(12):
             damp = 0.0 if fresh else mu
@@ -212,9 +212,7 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
             break
         gain = cost - c_new
         if gain_ratio:
-            x1 = _pack(trial, creep, rod)
-            rho = gain / max(here - float(x1 @ g @ x1 - 2.0 * h @ x1), 1e-300)
-            mu, nu = max(mu * max(1.0 / 3.0, 1.0 - (2.0 * min(rho, 1.0) - 1.0) ** 3), 1e-9), 2.0
+            mu, nu = _nielsen(mu, gain, _pack(trial, creep, rod) - x0, x0, g, h), 2.0
         else:
             mu = max(mu / 4.0, 1e-9)
         th, cost = trial, c_new
@@ -222,6 +220,20 @@ def gauss_newton(prob: Problem, th: Theta, pen: FloatArray, lam_rel: float, cree
             converged = True
             break
     return Run(th, cost, it, converged)
+
+
+def _nielsen(mu: float, gain: float, dx: FloatArray, x0: FloatArray, g: FloatArray,
+             h: FloatArray) -> float:
+    """Nielsen's update of the damping after a step ``dx`` from ``x0`` that lowered the cost by
+    ``gain``: ``mu max(1/3, 1 - (2 rho - 1)^3)``, ``rho`` the gain over the linearized cost's fall
+    ``dx' (2 h - G (2 x0 + dx))`` (``x' G x - 2 h' x`` at the start less at the end, without
+    subtracting the two). A fall the linearization does not foresee (a step the rod's clamp
+    bent) leaves ``mu`` as it was."""
+    fall = float(dx @ (2.0 * h - g @ (2.0 * x0 + dx)))
+    if fall <= 0.0:
+        return mu
+    rho = min(gain / fall, 1.0)
+    return max(mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9)
 
 
 def refit_rod(prob: Problem, th: Theta) -> Theta:

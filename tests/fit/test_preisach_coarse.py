@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import copy
+import inspect
 import math
+from typing import Any
 
 import numpy as np
 import pytest
 
+from afmctl.fit import diagnose as dg
+from afmctl.fit import gridbase as gb
 from afmctl.fit import preisach as pf
 from afmctl.fit import preisach_coarse as pc
 from afmctl.fit import preisach_solver as ps
@@ -68,22 +72,31 @@ def creeping() -> tuple[pf.Data, pf.Runs]:
 
 
 @pytest.fixture(scope="module")
-def quick(creeping: tuple[pf.Data, pf.Runs]) -> tuple[pf.Runs, list[str]]:
+def quick(creeping: tuple[pf.Data, pf.Runs]) -> tuple[pf.Runs, list[str], list[bool]]:
     """The same runs on the problem with the slow sweep at 1 kHz in blocks of 7 samples (0.5 % of
     the range, coarser than the default's 0.2 %, which would make blocks of 2 of this short
-    sweep: too few to block), and what they said."""
+    sweep: too few to block), what they said, and the damping rule of each Gauss-Newton run
+    (``gain_ratio``)."""
     data, _ = creeping
     said: list[str] = []
+    rules: list[bool] = []
+    solve = pf.gauss_newton
+
+    def recorded(*args: Any, **kwargs: Any) -> ps.Run:
+        rules.append(kwargs.get("gain_ratio", False))
+        return solve(*args, **kwargs)
+
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(pc, "BLOCK_SHARE", 0.005)
+        patch.setattr(pf, "gauss_newton", recorded)
         assert pc.blocks(data.fields, data.dts, 0.01) == [7, 1, 1]
         runs = pf.runs(data, [("positive",) * 3], (2000.0, 0.3), pf.Settings(), said.append,
                        on_force=False, creep_above=0.0, coarse=True)
-    return runs, said
+    return runs, said, rules
 
 
 def test_a_fit_in_block_means_ends_where_the_full_fit_does(
-        creeping: tuple[pf.Data, pf.Runs], quick: tuple[pf.Runs, list[str]]) -> None:
+        creeping: tuple[pf.Data, pf.Runs], quick: tuple[pf.Runs, list[str], list[bool]]) -> None:
     """On the independent Preisach plant with creep of 1.5 % per decade, its slow sweep in blocks
     of 7 samples: the grid and its creep fitted on the problem with the slow sweep in block means
     (``runs`` says so), then a few steps on the full problem, reach the full fit's misfit per
@@ -91,13 +104,14 @@ def test_a_fit_in_block_means_ends_where_the_full_fit_does(
     10 %."""
     _, full = creeping
     settings = pf.Settings()
-    quick_runs, said = quick
+    quick_runs, said, _ = quick
     assert any("first fitted with each sweep's rows standing for 7 (means), 1, 1 samples" in m
                for m in said), said
     assert quick_runs.crept is not None and full.crept is not None
     assert quick_runs.problem.blocks == [1, 1, 1]  # the runs come back on the full problem
     last = pf.gauss_newton(quick_runs.problem, quick_runs.crept.theta, quick_runs.penalty,
-                           quick_runs.smoothing, True, settings.max_iter)
+                           quick_runs.smoothing, True, settings.max_iter,
+                           gain_ratio=settings.gain_ratio_damping)
     ref = full.problem.ratios(full.crept.theta)
     got = quick_runs.problem.ratios(last.theta)
     np.testing.assert_allclose(got, ref, rtol=0.02)
@@ -107,16 +121,16 @@ def test_a_fit_in_block_means_ends_where_the_full_fit_does(
 
 
 def test_the_last_steps_start_nearly_undamped_and_end_where_damped_ones_do(
-        quick: tuple[pf.Runs, list[str]]) -> None:
+        quick: tuple[pf.Runs, list[str], list[bool]]) -> None:
     """identify's last steps on the full problem, from the fit in block means, start with the
     damping :data:`afmctl.fit.preisach.POLISH_MU`: they end at the misfit per sweep the usual
     start (:data:`afmctl.fit.preisach_solver.MU_START`) ends at, within 0.2 %, in no more
     steps."""
-    runs, _ = quick
+    runs, _, _ = quick
     assert runs.crept is not None
     prob, settings = runs.problem, pf.Settings()
     ends = {mu0: pf.gauss_newton(prob, runs.crept.theta, runs.penalty, runs.smoothing, True,
-                                 settings.max_iter, mu0)
+                                 settings.max_iter, mu0, gain_ratio=settings.gain_ratio_damping)
             for mu0 in (pf.POLISH_MU, ps.MU_START)}
     polished, usual = ends[pf.POLISH_MU], ends[ps.MU_START]
     np.testing.assert_allclose(prob.ratios(polished.theta), prob.ratios(usual.theta), rtol=2e-3)
@@ -230,3 +244,16 @@ def test_nielsens_damping_fits_the_creep_in_fewer_steps_to_the_same_misfit(
                                rtol=0.01)
     assert ends[True].iterations < ends[False].iterations, {
         r: e.iterations for r, e in ends.items()}
+
+
+def test_identifys_grid_is_damped_by_nielsens_rule_and_diagnoses_by_the_fixed_one(
+        quick: tuple[pf.Runs, list[str], list[bool]]) -> None:
+    """Every Gauss-Newton run of identify's grid (``runs`` with the default settings) is damped by
+    Nielsen's rule; diagnose's grid, by default, by the fixed one (its creep verdict follows the
+    damping's path: :data:`afmctl.fit.gridbase.GRID_SETTINGS`)."""
+    _, _, rules = quick
+    assert rules and all(rules), rules
+    assert pf.Settings().gain_ratio_damping
+    assert gb.GRID_SETTINGS.gain_ratio_damping is False
+    assert dg.Settings().grid_fit is gb.GRID_SETTINGS
+    assert inspect.signature(gb.judge).parameters["settings"].default is gb.GRID_SETTINGS
