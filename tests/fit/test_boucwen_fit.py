@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from scipy.optimize import OptimizeResult
 
 from afmctl.cli import main
 from afmctl.files import modelfile as mf
@@ -25,6 +26,7 @@ from afmctl.fit import boucwen as bf
 from afmctl.fit import identify as idf
 from afmctl.fit import parametrization as pz
 from afmctl.fit import preisach_problem as pp
+from afmctl.fit import stall
 from afmctl.model import creep as cr
 from afmctl.model import inverse as inv
 from afmctl.model.boucwen import BoucWen
@@ -159,8 +161,6 @@ def test_a_solve_is_far_off_where_all_its_sweeps_together_are_over_the_bound(
         stage_and_set: tuple, fitted: bf.BoucWenFit) -> None:
     """The stall rule's "far off" (:func:`bf._far`), on the fit's own residual: the RMS over the
     noise of every judged sample together, computed here from each sweep's RMS and count."""
-    from scipy.optimize import OptimizeResult
-
     data, _ = _data(stage_and_set)
     prob = bf.Problem(data, FIELD_STEP, bf.MAX_ROWS)
     res = prob.residual(np.array([fitted.parameters[k] for k in bf.names(len(data.y))]))
@@ -175,8 +175,6 @@ def test_a_fit_stopped_where_it_stalls_says_so(monkeypatch: pytest.MonkeyPatch,
                                                stage_and_set: tuple) -> None:
     """A Bouc-Wen solve the stall rule stops is not "stopped on its budget": its ``how`` (what
     identify's message says of a chosen Bouc-Wen) is the stall's message."""
-    from afmctl.fit import stall
-
     def at_once(far, share=stall.SHARE):  # type: ignore[no-untyped-def]
         def callback(intermediate_result):  # type: ignore[no-untyped-def]
             raise StopIteration
@@ -196,10 +194,6 @@ def test_a_solve_that_may_give_up_stalls_at_a_hundredth_in_ten_steps() -> None:
     """With ``give_up`` a solve stalls (far off) once its cost falls by less than
     :data:`bf.GIVE_UP_SHARE` (1 %) of itself in ten steps: a cost falling 0.05 % a step is
     stopped at the eleventh, which the stall's default share (0.1 %) lets go on."""
-    from scipy.optimize import OptimizeResult
-
-    from afmctl.fit import stall
-
     def steps_until_stopped(share: float) -> int:
         check = stall.callback(lambda r: True, share)
         for step in range(1, 40):
@@ -218,8 +212,6 @@ def test_a_state_search_that_gains_nothing_is_not_solved_again_when_giving_up(
     """``_searched`` with ``give_up`` solves again from the state search only if the search
     lowered the cost by :data:`bf.GIVE_UP_SHARE`; without ``give_up`` whenever it moved a
     state."""
-    from scipy.optimize import OptimizeResult
-
     solved: list[object] = []
     monkeypatch.setattr(bf, "_solve", lambda prob, x, creep, give_up=None:
                         solved.append(x) or OptimizeResult(x=x, cost=0.0))
