@@ -110,6 +110,13 @@ or a Bouc-Wen polarization (:mod:`afmctl.model.boucwen`, whose minor loops need 
     initial_state = "h=-0.557000"              # also: h at the first field, share of h_s
                                                # (identify's fitted start of the last sweep)
 
+and, on the paper's polarization, viscous relaxation of the switching (:mod:`afmctl.model.viscous`:
+the hysterons see the field through a first-order lag; ``afmctl diagnose`` writes it as a form of
+``thermal-relaxation``)::
+
+    [polarization.viscous]
+    relaxation_time_s = 0.0026
+
 and a cubic term of the force that (16) does not have, ``+ a3 P^3`` (optional, 0 when absent; the
 Preisach grid's fit writes it, see :attr:`afmctl.model.rod.Rod.a3`)::
 
@@ -136,6 +143,7 @@ from afmctl.model.effects import Effects, SecondMode
 from afmctl.model.preisach import PreisachGrid
 from afmctl.model.rod import Rod
 from afmctl.model.transducer import Transducer
+from afmctl.model.viscous import Viscous
 
 FORMAT = "afmctl-model"
 FORMAT_VERSION = 3
@@ -279,10 +287,11 @@ def _density_dict(d: hy.Lognormal | hy.Normal | hy.Discrete) -> dict[str, Any]:
 
 
 def version_for(model: Transducer) -> int:
-    """The lowest format version that holds ``model`` (3 for a Preisach grid, Bouc-Wen, creep or
-    the force's cubic)."""
+    """The lowest format version that holds ``model`` (3 for a Preisach grid, Bouc-Wen, creep,
+    viscous relaxation or the force's cubic)."""
     return 3 if (isinstance(model.polarization, (PreisachGrid, BoucWen))
-                 or model.creep is not None or model.rod.a3 != 0.0) else 2
+                 or model.creep is not None or model.viscous is not None
+                 or model.rod.a3 != 0.0) else 2
 
 
 def _polarization_dict(pol: hy.Polarization | PreisachGrid | BoucWen) -> dict[str, Any]:
@@ -311,6 +320,8 @@ def _polarization_dict(pol: hy.Polarization | PreisachGrid | BoucWen) -> dict[st
 def to_dict(model: Transducer) -> dict[str, Any]:
     """The model as nested dicts (the TOML tables)."""
     pd = _polarization_dict(model.polarization)
+    if model.viscous is not None:
+        pd["viscous"] = {"relaxation_time_s": model.viscous.time_s}
     r = model.rod
     out = {
         "format": FORMAT, "format_version": version_for(model),
@@ -515,11 +526,13 @@ def from_table(t: Table) -> Transducer:
         n_interaction=p.integer("n_interaction", 64, minimum=1),
         kernel=p.string("kernel", "auto", choices=("auto", "normal", "grid")),  # type: ignore[arg-type]
         thermal=thermal)
-    return _transducer(t, pol, effects)
+    visc = p.table("viscous", required=False)
+    return _transducer(t, pol, effects, None if visc is None else
+                       Viscous(visc.number("relaxation_time_s", positive=True)))
 
 
 def _transducer(t: Table, pol: hy.Polarization | PreisachGrid | BoucWen,
-                effects: Effects | None) -> Transducer:
+                effects: Effects | None, viscous: Viscous | None = None) -> Transducer:
     """The rest of the model around its polarization: rod, thickness, effects, creep."""
     if effects is None:
         effects, thermal = effects_from_table(t.table("effects", required=False))
@@ -535,7 +548,7 @@ def _transducer(t: Table, pol: hy.Polarization | PreisachGrid | BoucWen,
     tt = t.table("transducer")
     assert tt is not None
     return Transducer(pol, rod, tt.number("thickness_um", positive=True), effects,  # type: ignore[arg-type]
-                      _initial_state(tt, pol), _creep(t.table("creep", required=False)))
+                      _initial_state(tt, pol), _creep(t.table("creep", required=False)), viscous)
 
 
 def _initial_state(tt: Table, pol: object) -> str:
@@ -584,7 +597,7 @@ def load_tables(t: Table, ver: int) -> tuple[Transducer, Envelope | None, FitRec
     one axis's table of a two-axis file, read as version ``ver``)."""
     model = from_table(t)
     if ver < 3 <= version_for(model):
-        raise t.fail("format_version", f"a Preisach grid or creep needs version 3, got {ver}")
+        raise t.fail("format_version", f"a Preisach grid, creep or viscous relaxation needs version 3, got {ver}")
     env_t = t.table("envelope", required=False) if ver >= 2 else None
     env = None if env_t is None else _envelope(env_t)
     unc = t.table("uncertainty", required=False) if ver >= 2 else None

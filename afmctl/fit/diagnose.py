@@ -250,7 +250,7 @@ def _readings_on(table: dict[str, Judged], job: _Job, name: str, sweep: Sweep) -
     fitted = table[name].fitted
     prep = pz.prepare(sweep, job.thickness, job.settings.identify.field_step, None)
     start = fitted.starts[0] if fitted.starts[0] != "previous" else "depoled"
-    space = _space(name, job).on([prep], (start,))
+    space = _space(fitted.name, job).on([prep], (start,))
     beta = np.concatenate((fitted.beta[:space.n_rod], fitted.beta[-1:]))
     return space.readings(fitted.x, beta)[0]
 
@@ -315,6 +315,26 @@ def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:
     return names + [t for n in names if (t := cd.TWINS.get(n)) in cd.NAMES and t not in names]
 
 
+def with_forms(names: Sequence[str]) -> list[str]:
+    """``names`` and the second form of every cause in them (:data:`afmctl.fit.candidates.FORMS`)."""
+    return list(names) + [f for f, cause in cd.FORMS.items() if cause in names]
+
+
+def in_forms(table: dict[str, Judged]) -> dict[str, Judged]:
+    """The table with each cause fitted in several forms (:func:`with_forms`; or in a second
+    form alone, asked for by its name) under the cause's name alone: the form with the lower RMS
+    on the fitted halves (the held-out halves stay unseen by the choice), each form's RMS on
+    both halves recorded."""
+    out = {n: j for n, j in table.items() if n not in cd.FORMS}
+    for form, cause in cd.FORMS.items():
+        if form in table:
+            tried = (out[cause], table[form]) if cause in out else (table[form],)
+            best = min(tried, key=lambda j: j.fit_rms_um)
+            out[cause] = replace(best, forms=tuple((j.fitted.name, j.fit_rms_um,
+                                                    j.heldout_rms_um) for j in tried))
+    return out
+
+
 def _twin_from(sensor: str, table: dict[str, Judged], job: _Job) -> Judged:
     """The twin-only candidate of ``sensor`` fitted from the sensor cause's fit (its model's
     ``x`` and start states; quasi-statically the two are the same readings) and judged on the
@@ -330,8 +350,7 @@ def _twin_from(sensor: str, table: dict[str, Judged], job: _Job) -> Judged:
 
 def scored(table: dict[str, Judged]) -> list[vd.Scored]:
     """The table's held-out RMS and parameters added, for the verdict."""
-    return [vd.Scored(j.fitted.name, j.heldout_rms_um, j.n_params, j.fit_rms_um)
-            for j in table.values()]
+    return [vd.Scored(n, j.heldout_rms_um, j.n_params, j.fit_rms_um) for n, j in table.items()]
 
 
 def choose(table: dict[str, Judged], floor_um: float, rule: vd.Rule) -> str:
@@ -405,7 +424,8 @@ def diagnose(sweeps: Sequence[Sweep], settings: Settings = Settings(),
         data, x0 = _base_fit(halves, thickness, settings, start, say)
         whole = [pz.prepare(s, thickness, settings.identify.field_step, None) for s in sweeps]
         job = _Job(data, x0, thickness, range_um, settings, whole, tuple(sweeps))
-        table = _judge_all(candidate_names(len(sweeps), settings), job, floor, say)
+        table = in_forms(_judge_all(with_forms(candidate_names(len(sweeps), settings)), job,
+                                    floor, say))
         for sensor in [n for n in cd.TWINS if n in table and cd.TWINS[n] in cd.TWIN_ONLY]:
             say(f"fitting {cd.TWINS[sensor]}, the twin of {sensor}, from its fit ...")
             j = table[cd.TWINS[sensor]] = _twin_from(sensor, table, job)

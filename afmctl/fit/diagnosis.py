@@ -41,7 +41,9 @@ def fitted_text(parameters: dict[str, float]) -> str:
 class Judged:
     """One candidate: its fit on the first halves, its RMS error (um) on the second halves
     (overall and per sweep), the fit's wall time (s) and its RMS error on the first halves (um,
-    the same root mean of per-sweep mean squares; NaN: not computed)."""
+    the same root mean of per-sweep mean squares; NaN: not computed) and, for a cause fitted in
+    more than one form (:data:`afmctl.fit.candidates.FORMS`), each form's RMS on the fitted and
+    the held-out halves (um): the fit is the form that fitted its halves best."""
 
     fitted: ext.Extended
     n_params: int
@@ -49,6 +51,7 @@ class Judged:
     heldout_per_sweep_um: tuple[float, ...]
     fit_seconds: float
     fit_rms_um: float = math.nan
+    forms: tuple[tuple[str, float, float], ...] = ()
 
     def as_dict(self, base_rms: float, noise_um: float) -> dict[str, Any]:
         return {"heldout_rms_um": self.heldout_rms_um, "gain": ratio(base_rms, self.heldout_rms_um),
@@ -57,7 +60,10 @@ class Judged:
                 "heldout_rms_per_sweep_um": list(self.heldout_per_sweep_um),
                 "fit_rms_um": None if math.isnan(self.fit_rms_um) else self.fit_rms_um,
                 "fitted": self.fitted.parameters, "fit_success": self.fitted.success,
-                "fit_evaluations": self.fitted.nfev, "fit_seconds": round(self.fit_seconds, 2)}
+                "fit_evaluations": self.fitted.nfev, "fit_seconds": round(self.fit_seconds, 2),
+                "form": self.fitted.name,
+                **({"forms": {n: {"fit_rms_um": f, "heldout_rms_um": h}
+                              for n, f, h in self.forms}} if self.forms else {})}
 
 
 @dataclass(frozen=True)

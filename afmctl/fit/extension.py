@@ -36,6 +36,7 @@ from afmctl.fit.relaxation import (
 from afmctl.model import effects as fx
 from afmctl.model import hysteresis as hy
 from afmctl.model import transducer as td
+from afmctl.model import viscous as vs
 
 FloatArray = NDArray[np.float64]
 #: ``Q`` of this many recent parameter sets is remembered (:meth:`ExtendedSpace._q`).
@@ -171,6 +172,9 @@ class ExtendedSpace:
                 chain = fx.compile_chain(self._amplifier(phi, 1.0), p.dt)
                 e = fx.lag(chain, e, float(e[0]))[0]
                 keep = np.union1d(keep, pz.turning_points(e))
+            elif name == "viscous-relaxation":  # the hysterons' field; from rest at the first
+                e = vs.lagged(vs.Viscous(math.exp(phi[0])), e, p.dt, float(e[0]))[0]
+                keep = np.union1d(keep, pz.turning_points(e))
             out.append((e, keep))
         return out
 
@@ -197,6 +201,9 @@ class ExtendedSpace:
             return [pz.at_full_rate(e.size, keep, q) + pz.at_full_rate(e.size, k, d)
                     for (e, keep), q, (_, k), d
                     in zip(fields, q_keep, fine, self._thermal(theta, phi, fine), strict=True)]
+        if self.candidate.name == "viscous-relaxation":  # the reversible part sees the field
+            return [pz.at_full_rate(e.size, keep, q) + (p.field - e)
+                    for (e, keep), q, p in zip(fields, q_keep, self.preps, strict=True)]
         return [pz.at_full_rate(e.size, keep, q) for (e, keep), q in zip(fields, q_keep,
                                                                            strict=True)]
 
@@ -397,6 +404,8 @@ class ExtendedSpace:
                 interaction=grid.interaction))
         elif name == "amplifier-lag":
             model = replace(model, effects=self._amplifier(phi, thickness_um))
+        elif name == "viscous-relaxation":
+            model = replace(model, viscous=vs.Viscous(math.exp(phi[0])))
         elif name == "sensor-nonlinearity":
             model = replace(model, effects=gauge)
         elif name == "voltage-gain-drift":
@@ -419,6 +428,8 @@ def physical(name: str, model: td.Transducer,
         return {"bandwidth_Hz": e.amplifier_bandwidth_hz,
                 "damping_ratio": e.amplifier_damping_ratio or math.nan,
                 "slew_V_per_s": e.amplifier_slew_v_per_s or math.inf}
+    if name == "viscous-relaxation" and model.viscous is not None:
+        return {"relaxation_time_s": model.viscous.time_s}
     if name == "sensor-delay":
         return {"delay_s": e.sensor_delay_s, "window_s": e.sensor_window_s}
     if name == "sensor-nonlinearity":
@@ -571,7 +582,9 @@ def fit(space: ExtendedSpace, x_base: FloatArray, thickness_um: float,
     lower cost's start gets the whole joint fit on a grid that resolves small field scales
     (:data:`THERMAL_JOINT`), polished on the fine one with 1/:data:`FINE_SHARE` of the budget.
     A ``sequenced`` candidate (a gain per run) is fitted, each with the whole budget, from the
-    base's states and from every first state of the sweeps in sequence; the lowest cost wins."""
+    base's states and from every first state of the sweeps in sequence; the lowest cost wins.
+    ``max_nfev`` is multiplied by the candidate's :attr:`~afmctl.fit.candidates.Candidate.budget`."""
+    max_nfev *= space.candidate.budget
     spaces = [space]
     if space.candidate.own_states:
         spaces = [space.with_grid(THERMAL_COARSE)]

@@ -48,9 +48,9 @@ def static_um(model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[st
         v = gain * np.asarray(s.voltage_v, dtype=float)
         v, _ = fx.lag(chain, v, float(v[0]))
         st = idf.start_state(model, start, float(v[0]), prev)
-        f, _, end, _ = td.driving_force(td.compile_model(model, s.dt), v, st)
+        f, _, end = td.driving_force(td.compile_model(model, s.dt), v, st)
         out.append(f / model.rod.k * UM_PER_M)
-        prev = end
+        prev = end.polarization
     return out
 
 

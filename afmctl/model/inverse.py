@@ -137,15 +137,20 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
                 row: np.ndarray, gain: float, a1: float, a2: float, a3: float, offset: float,
                 floor: float, e_min: float, e_max: float, tol: float, ca: np.ndarray,
                 cc: np.ndarray, cr_: np.ndarray, z: np.ndarray, on_force: bool, keep: int,
-                st_kept: np.ndarray, x_kept: np.ndarray, z_kept: np.ndarray
+                st_kept: np.ndarray, x_kept: np.ndarray, z_kept: np.ndarray, lag_a: float,
+                lag: np.ndarray, lag_kept: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fields for targets ``target[k]`` = desired u at sample ``k + d`` (um), rod state ``x`` (m).
 
     ``ca``, ``cc``, ``cr_``, ``z``: creep factors ``a_j``, weights ``c_j``, thresholds and state
     (updated in place; empty without creep, :mod:`afmctl.model.creep`), driven by ``P_h`` or, if
     ``on_force``, by the force ``F(P_h)`` and added to it (N). ``p_init`` is the
-    hysteretic output ``P_h``. ``st_kept``, ``x_kept``, ``z_kept`` get the state after the first
-    ``keep`` samples (left as they are if ``keep`` is not in ``1 ... N``).
+    hysteretic output ``P_h``. ``lag``: the hysterons' field at the first sample's start (MV/m,
+    updated in place; empty: no viscous lag), ``lag_a`` its factor (:mod:`afmctl.model.viscous`):
+    the hysteresis of sample ``k`` then steps at that field, known from the past, and ``P`` is
+    ``P_h + lin (E - E_v)``, solved for ``E`` in closed form. ``st_kept``, ``x_kept``, ``z_kept``,
+    ``lag_kept`` get the state after the first ``keep`` samples (left as they are if ``keep`` is
+    not in ``1 ... N``).
     """
     n = target.size
     e_out = np.empty(n)
@@ -170,7 +175,17 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
         # inside the quiet band P(E) = lin E + off + p_switch: solve the force law exactly
         p = _root(g1, g2, g3, target[k] - c0) - creep
         e = (p - off - p_switch) / lin
-        if lo < e < hi and e_min <= e <= e_max:
+        if lag.size:  # the hysterons step at their lagged field; P is affine in E
+            p_h = _step(kind, lag[0], dt, st, sc, ec, wc, ei, cw, scal)
+            st[:] = sc
+            if math.isnan(p):
+                e = e_max if target[k] > c0 else e_min
+            else:
+                e = min(max(lag[0] + (p - p_h) / lin, e_min), e_max)
+            p = p_h + lin * (e - lag[0])
+            err[k] = abs(c0 + _poly(g1, g2, g3, p + creep) - target[k])
+            lag[0] = lag_a * lag[0] + (1.0 - lag_a) * e
+        elif lo < e < hi and e_min <= e <= e_max:
             err[k] = 0.0
         else:
             if kind == 2:  # u~ with the field held at E_{k-1}: thermally active dipoles go
@@ -197,6 +212,7 @@ def _algorithm3(kind: int, target: np.ndarray, e_init: float, p_init: float, x: 
             st_kept[:] = st
             x_kept[:] = x
             z_kept[:] = z
+            lag_kept[:] = lag
     return e_out, u_out, err
 
 
@@ -247,7 +263,7 @@ def algorithm2(params: hy.Polarization, p_target: FloatArray, state: hy.Polariza
                           dt, k.ec, k.wc, k.ei, k.cw, k.scal, np.eye(2), np.zeros(2),
                           np.zeros(2), 1e-6, 1.0, 0.0, 0.0, 0.0, 0.5 / params.eta,
                           -e_max if e_min is None else e_min, e_max, tol, _NONE, _NONE, _NONE,
-                          _NONE, False, -1, _NONE, _NONE, _NONE)
+                          _NONE, False, -1, _NONE, _NONE, _NONE, 0.0, _NONE, _NONE)
     p_out, _ = hy.run(k, e, state, dt)
     return Inversion(e, p_out, w, hy.PolarizationState(k.kind, st))
 
@@ -313,16 +329,20 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
     dfdp = abs(rod.force_slope(float(p0[0]) + (0.0 if on_force else cr.offset(creep, z)))
                ) or abs(rod.a1)
     floor = 0.5 * gain * dfdp * 1e6 / cm.model.polarization.eta
-    kept = (np.empty_like(st), np.empty_like(x), np.empty_like(z))
+    lag = (np.zeros(0) if cm.model.viscous is None else
+           np.array([float(state.lag[0]) if state.lag.size else e_init]))
+    lag_a = 0.0 if cm.model.viscous is None else cm.model.viscous.factor(cm.dt)
+    kept = (np.empty_like(st), np.empty_like(x), np.empty_like(z), np.empty_like(lag))
     e, pred, w = _algorithm3(cm.kernel.kind, target, e_init, p0[0], x, st, cm.dt, cm.kernel.ec,
                              cm.kernel.wc, cm.kernel.ei, cm.kernel.cw, cm.kernel.scal,
                              cm.disc.phi, cm.disc.gamma, row, gain, rod.a1, rod.a2, rod.a3, rod.offset_um,
                              floor, -e_max if e_min is None else e_min, e_max, tol_um, ca, cc,
-                             cth, z, on_force, -1 if keep is None else keep, *kept)
+                             cth, z, on_force, -1 if keep is None else keep, *kept[:3], lag_a,
+                             lag, kept[3])
     at = None
     if keep is not None and 1 <= keep <= u.size:
-        at = tr.StageState(hy.PolarizationState(ps.kind, kept[0]), kept[1], kept[2])
-    return Inversion(e, pred, w, tr.StageState(hy.PolarizationState(ps.kind, st), x, z), at)
+        at = tr.StageState(hy.PolarizationState(ps.kind, kept[0]), kept[1], kept[2], kept[3])
+    return Inversion(e, pred, w, tr.StageState(hy.PolarizationState(ps.kind, st), x, z, lag), at)
 
 
 # ----------------------------------------------------------------------------------------------

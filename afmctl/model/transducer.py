@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 from afmctl.model import creep as cr
 from afmctl.model import hysteresis as hy
 from afmctl.model import rod as rd
+from afmctl.model import viscous as vs
 from afmctl.model.effects import Effects
 
 FloatArray = NDArray[np.float64]
@@ -43,6 +44,10 @@ class Transducer:
         voltage range it is driven over, e.g. below 0 V on a unipolar stage): the default
         state of :func:`initial`. A Bouc-Wen model's may be a state named by its value
         (:func:`afmctl.model.hysteresis.bouc_wen_state`), fitted.
+    viscous : viscous.Viscous or None
+        Viscous relaxation of the switching (:mod:`afmctl.model.viscous`): the hysterons of (13)
+        see the field through a first-order lag, the reversible part does not. Only with the
+        paper's densities (:class:`~afmctl.model.hysteresis.Polarization`); none by default.
     """
 
     polarization: hy.Polarization
@@ -51,6 +56,12 @@ class Transducer:
     effects: Effects = field(default_factory=Effects)
     initial: hy.Initial | str = "depoled"
     creep: cr.Creep | None = None
+    viscous: vs.Viscous | None = None
+
+    def __post_init__(self) -> None:
+        if self.viscous is not None and not isinstance(self.polarization, hy.Polarization):
+            raise ValueError("viscous relaxation needs the paper's polarization model (13), "
+                             f"not {type(self.polarization).__name__}")
 
     def field(self, voltage_v: FloatArray) -> FloatArray:
         return np.asarray(voltage_v, dtype=float) / self.thickness_um
@@ -58,12 +69,15 @@ class Transducer:
 
 @dataclass(frozen=True)
 class StageState:
-    """Hysteresis memory, rod state ``[u (m), u' (m/s)]`` and creep state (C/m^2 per element;
-    empty without creep)."""
+    """Hysteresis memory, rod state ``[u (m), u' (m/s)]``, creep state (C/m^2 per element;
+    empty without creep) and the field the hysterons see at the next sample's start (MV/m,
+    :mod:`afmctl.model.viscous`; empty without viscous relaxation, or at rest at the next
+    sample's field)."""
 
     polarization: hy.PolarizationState
     rod: FloatArray
     creep: FloatArray = field(default_factory=lambda: np.zeros(0))
+    lag: FloatArray = field(default_factory=lambda: np.zeros(0))
 
 
 def initial(model: Transducer, how: hy.Initial | str | None = None,
@@ -72,8 +86,10 @@ def initial(model: Transducer, how: hy.Initial | str | None = None,
     :attr:`Transducer.initial`), then ``voltage_v`` applied quasi-statically (and held long
     enough for any creep to settle)."""
     ps = hy.initial_state(model.polarization, model.initial if how is None else how)
-    p, ps = hy.run(model.polarization, np.array([voltage_v / model.thickness_um]), ps)
-    return at_rest(model, ps, float(p[0]))
+    e = voltage_v / model.thickness_um
+    p, ps = hy.run(model.polarization, np.array([e]), ps)
+    st = at_rest(model, ps, float(p[0]))
+    return st if model.viscous is None else replace(st, lag=np.array([e]))
 
 
 def at_rest(model: Transducer, ps: hy.PolarizationState, p_h: float) -> StageState:
@@ -127,26 +143,47 @@ def simulate(cm: Compiled, voltage_v: FloatArray,
     state : StageState
         State after the last sample.
     """
-    f, p, ps, z = driving_force(cm, voltage_v, state)
+    f, p, inner = driving_force(cm, voltage_v, state)
     u, x = rd.simulate(cm.model.rod, cm.disc, f, state.rod)
-    return u, p, StageState(ps, x, z)
+    return u, p, replace(inner, rod=x)
+
+
+def reversible_slope(kernel: hy.Kernel) -> float:
+    """The reversible part's slope ``W / eta`` of the paper's model (13), C/m^2 per MV/m."""
+    return float(kernel.scal[5] / kernel.scal[0])
+
+
+def polarization(cm: Compiled, voltage_v: FloatArray, state: StageState
+                 ) -> tuple[FloatArray, hy.PolarizationState, FloatArray]:
+    """The polarization (13) during each sample (C/m^2, before creep), through the viscous lag
+    where the model has one (:mod:`afmctl.model.viscous`), the hysteresis memory and the lag's
+    state after the last sample."""
+    e = cm.model.field(voltage_v)
+    if cm.model.viscous is None or e.size == 0:
+        p, ps = hy.run(cm.kernel, e, state.polarization, cm.dt)
+        return p, ps, state.lag
+    start = float(state.lag[0]) if state.lag.size else float(e[0])
+    e_v, end = vs.lagged(cm.model.viscous, e, cm.dt, start)
+    p, ps = hy.run(cm.kernel, e_v, state.polarization, cm.dt)
+    return p + reversible_slope(cm.kernel) * (e - e_v), ps, np.array([end])
 
 
 def driving_force(cm: Compiled, voltage_v: FloatArray, state: StageState
-                  ) -> tuple[FloatArray, FloatArray, hy.PolarizationState, FloatArray]:
+                  ) -> tuple[FloatArray, FloatArray, StageState]:
     """The force (16) on the rod during each sample (N), with creep where the model has it
     (:attr:`afmctl.model.creep.Creep.acts_on`), the polarization (C/m^2; with creep if that acts
-    on it), and the hysteresis and creep states after the last sample."""
-    p, ps = hy.run(cm.kernel, cm.model.field(voltage_v), state.polarization, cm.dt)
+    on it), and the state after the last sample but the rod's (``state``'s own)."""
+    p, ps, lag = polarization(cm, voltage_v, state)
     creep, z = cm.model.creep, state.creep
     if creep is None:
-        return cm.model.rod.force(p), p, ps, z
-    if creep.acts_on == "force":
+        f = cm.model.rod.force(p)
+    elif creep.acts_on == "force":
         f = cm.model.rod.force(p)
         f, z = cr.run(creep, f, cm.dt, z if z.size else cr.rest_state(creep, _first(f)))
-        return f, p, ps, z
-    p, z = cr.run(creep, p, cm.dt, z if z.size else cr.rest_state(creep, _first(p)))
-    return cm.model.rod.force(p), p, ps, z
+    else:
+        p, z = cr.run(creep, p, cm.dt, z if z.size else cr.rest_state(creep, _first(p)))
+        f = cm.model.rod.force(p)
+    return f, p, StageState(ps, state.rod, z, lag)
 
 
 #: :func:`held`: a hold of up to this many samples is simulated sample by sample; a longer one

@@ -17,8 +17,20 @@ VOCABULARY = set(cd.NAMES) - {"none"}
 def test_the_catalogue_names_every_candidate_once_with_its_physics() -> None:
     assert cd.NAMES[0] == "none" and len(set(cd.NAMES)) == len(cd.NAMES)
     assert all(len(text) > 40 for text in cd.CAUSES.values())
-    assert set(cd.SLOWEST_FIRST) <= VOCABULARY and set(cd.INPUT_SIDE) <= VOCABULARY
+    forms = set(cd.FORMS)
+    assert set(cd.SLOWEST_FIRST) <= VOCABULARY | forms and set(cd.INPUT_SIDE) <= VOCABULARY | forms
     assert dg.Settings().candidates == cd.NAMES
+
+
+def test_every_second_form_is_fitted_as_a_candidate_of_its_cause() -> None:
+    """A form is a cause of the vocabulary written another way: in the catalogue, never a
+    cause of its own, fitted whenever its cause is."""
+    cat = cd.catalogue(3, 1.5, 5000.0, 300.0, 30.0)
+    assert set(cd.FORMS.values()) <= VOCABULARY and not set(cd.FORMS) & set(cd.NAMES)
+    assert set(cd.FORMS) <= set(cat)
+    assert dg.with_forms(["none", "thermal-relaxation"]) == ["none", "thermal-relaxation",
+                                                              "viscous-relaxation"]
+    assert dg.with_forms(["none", "amplifier-lag"]) == ["none", "amplifier-lag"]
 
 
 def test_the_emulated_device_hides_every_cause_of_the_catalogue() -> None:
