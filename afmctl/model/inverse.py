@@ -277,7 +277,11 @@ def algorithm3(cm: tr.Compiled, u_target_um: FloatArray, state: tr.StageState,
     With creep (:attr:`afmctl.model.transducer.Transducer.creep`) the creep part of each sample
     is known from the samples before it (:mod:`afmctl.model.creep`): the inverse solves for the
     hysteretic output that, with it, gives the force the target needs, and carries the creep state,
-    so a held or slow trajectory does not drift.
+    so a held or slow trajectory does not drift. With viscous relaxation
+    (:attr:`afmctl.model.transducer.Transducer.viscous`) the hysterons' field of each sample is
+    known from the samples before it, so the hysteresis steps there and the field solves the
+    force law in closed form through the reversible part (the lag's state starts from
+    ``state.lag``, or at ``e_init`` if that is empty).
 
     Parameters
     ----------
