@@ -240,7 +240,7 @@ def run_case(case: tuple[str, float | None, int], design: str = "standard") -> d
         **truth, "index": index, "named": d.cause, "gain": d.gain, "base_rms_um": d.base_rms_um,
         "extended_rms_um": d.extended_rms_um, "noise_est_um": d.noise_um,
         "base_over_noise": d.base_over_noise, "extended_over_noise": d.extended_over_noise,
-        "closest": d.closest.fitted.name,
+        "closest": d.closest.cause,
         "closest_explained_fraction": d.closest_dict()["explained_fraction"],
         "fitted": d.table[d.cause].fitted.parameters if d.cause in d.table else {},
         "twins": list(d.twins), "separating_sweep": d.separating,
@@ -309,7 +309,7 @@ def family_row(name: str) -> dict[str, Any]:
             "wrong": named not in ("none", "unexplained", "indistinguishable")
             and named not in present,
             "noise_um": s.noise_um, "base_over_noise": d.base_over_noise,
-            "extended_over_noise": d.extended_over_noise, "closest": d.closest.fitted.name,
+            "extended_over_noise": d.extended_over_noise, "closest": d.closest.cause,
             "closest_explained_fraction": d.closest_dict()["explained_fraction"],
             "drift_hint": any(h["feature"] == "drift" for h in d.suggestions()),
             "true_creep_per_decade": s.truth.creep.per_decade if s.truth.creep else 0.0,

@@ -81,7 +81,7 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
                           f"--force to overwrite it")
     check_output_dir(out, "--out", OUTPUTS, force)
     say(f"diagnosing {len(data)} sweep(s): "
-        f"{len(dg.candidate_names(len(data), settings))} candidates ...")
+        f"{len(dg.with_forms(dg.candidate_names(len(data), settings)))} candidates ...")
     d = dg.diagnose(data, settings, start, progress=say, noise_um=noise)
     doc = d.as_dict()
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"  # before anything is written

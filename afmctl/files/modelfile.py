@@ -508,6 +508,9 @@ def from_table(t: Table) -> Transducer:
     assert p is not None
     kind = p.string("type", "hem", choices=("hem", "preisach", "bouc-wen"))
     if kind != "hem":
+        if p.table("viscous", required=False) is not None:
+            raise p.fail("viscous", "viscous relaxation needs the paper's polarization "
+                                    f"(type = \"hem\"), not type = \"{kind}\"")
         return _transducer(t, _preisach(p) if kind == "preisach" else _bouc_wen(p), None)
     coercive = _density(p.table("coercive"), ("lognormal", "discrete"))  # type: ignore[arg-type]
     if isinstance(coercive, hy.Discrete) and min(coercive.nodes) <= 0:

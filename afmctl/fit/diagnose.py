@@ -317,7 +317,7 @@ def candidate_names(n_sweeps: int, settings: Settings) -> list[str]:
 
 def with_forms(names: Sequence[str]) -> list[str]:
     """``names`` and the second form of every cause in them (:data:`afmctl.fit.candidates.FORMS`)."""
-    return list(names) + [f for f, cause in cd.FORMS.items() if cause in names]
+    return list(names) + [f for f, cause in cd.FORMS.items() if cause in names and f not in names]
 
 
 def in_forms(table: dict[str, Judged]) -> dict[str, Judged]:
@@ -329,7 +329,7 @@ def in_forms(table: dict[str, Judged]) -> dict[str, Judged]:
     for form, cause in cd.FORMS.items():
         if form in table:
             tried = (out[cause], table[form]) if cause in out else (table[form],)
-            best = min(tried, key=lambda j: j.fit_rms_um)
+            best = min(tried, key=lambda j: (math.isnan(j.fit_rms_um), j.fit_rms_um))
             out[cause] = replace(best, forms=tuple((j.fitted.name, j.fit_rms_um,
                                                     j.heldout_rms_um) for j in tried))
     return out

@@ -53,6 +53,17 @@ class Judged:
     fit_rms_um: float = math.nan
     forms: tuple[tuple[str, float, float], ...] = ()
 
+    @property
+    def cause(self) -> str:
+        """The cause this fit stands for (a second form's, :data:`afmctl.fit.candidates.FORMS`)."""
+        return cd.FORMS.get(self.fitted.name, self.fitted.name)
+
+    @property
+    def label(self) -> str:
+        """The cause, and the form fitted when it is a second form (for the reader)."""
+        name = self.fitted.name
+        return f"{self.cause} ({name})" if name in cd.FORMS else name
+
     def as_dict(self, base_rms: float, noise_um: float) -> dict[str, Any]:
         return {"heldout_rms_um": self.heldout_rms_um, "gain": ratio(base_rms, self.heldout_rms_um),
                 "over_noise": ratio(self.heldout_rms_um, noise_um),
@@ -189,11 +200,10 @@ class Diagnosis:
         phrase."""
         c, base, base_name = self._closest()
         frac = vd.explained(base, c.heldout_rms_um, self.noise_um)
-        return {"model": c.fitted.name, "heldout_rms_um": c.heldout_rms_um,
+        return {"model": c.cause, "form": c.fitted.name, "heldout_rms_um": c.heldout_rms_um,
                 "over_noise": ratio(c.heldout_rms_um, self.noise_um), "explained_fraction": frac,
                 "base": base_name, "text": vd.closest_phrase(
-                    c.fitted.name if base_name != HELD_BASE else
-                    f"{c.fitted.name} (on {base_name})", frac)}
+                    c.label if base_name != HELD_BASE else f"{c.label} (on {base_name})", frac)}
 
     def suggestions(self) -> list[dict[str, str]]:
         """What would tell more: the residual's hints when unexplained, the separating sweep
@@ -242,7 +252,7 @@ class Diagnosis:
     def evidence(self) -> str:
         """One paragraph: why this cause (or none, or unexplained)."""
         ranked = sorted(self.table.values(), key=lambda j: j.heldout_rms_um)
-        lines = [f"{j.fitted.name}: held-out {j.heldout_rms_um:.4f} um "
+        lines = [f"{j.label}: held-out {j.heldout_rms_um:.4f} um "
                  f"({ratio(j.heldout_rms_um, self.noise_um):.2f}x noise), gain "
                  f"{ratio(self.paper_rms_um, j.heldout_rms_um):.2f} (needs "
                  f"{required_gain(j.n_params):.2f})" for j in ranked[:3]]
@@ -250,7 +260,7 @@ class Diagnosis:
                  f"{self.base_over_noise:.2f}x noise")
         if self.cause == "unexplained":
             c = self.closest
-            head = (f"unexplained: {floor}, the closest model ({c.fitted.name}) at "
+            head = (f"unexplained: {floor}, the closest model ({c.label}) at "
                     f"{ratio(c.heldout_rms_um, self.noise_um):.2f}x: nothing reaches the floor"
                     f" ({self.closest_dict()['text']})")
         elif self.separating is not None:

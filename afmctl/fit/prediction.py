@@ -82,7 +82,7 @@ def start_state(model: td.Transducer, start: str, v0: float,
     :data:`afmctl.fit.parametrization.STARTS`), then ``v0`` applied quasi-statically, rod at rest."""
     if start == "previous" and previous is not None:
         p, ps = hy.run(model.polarization, np.array([v0 / model.thickness_um]), previous)
-        return td.at_rest(model, ps, float(p[0]))
+        return td.at_rest(model, ps, float(p[0]), v0 / model.thickness_um)
     return td.initial(model, "depoled" if start == "previous" else start, v0)  # type: ignore[arg-type]
 
 

@@ -88,20 +88,23 @@ def initial(model: Transducer, how: hy.Initial | str | None = None,
     ps = hy.initial_state(model.polarization, model.initial if how is None else how)
     e = voltage_v / model.thickness_um
     p, ps = hy.run(model.polarization, np.array([e]), ps)
-    st = at_rest(model, ps, float(p[0]))
-    return st if model.viscous is None else replace(st, lag=np.array([e]))
+    return at_rest(model, ps, float(p[0]), e)
 
 
-def at_rest(model: Transducer, ps: hy.PolarizationState, p_h: float) -> StageState:
-    """The stage settled at hysteretic output ``p_h`` (C/m^2) with memory ``ps``: creep elements
-    settled, rod in static equilibrium."""
+def at_rest(model: Transducer, ps: hy.PolarizationState, p_h: float,
+            field_mv_m: float) -> StageState:
+    """The stage settled at hysteretic output ``p_h`` (C/m^2) with memory ``ps`` under the field
+    ``field_mv_m`` (MV/m): creep elements settled, rod in static equilibrium, the hysterons'
+    lagged field (a model with viscous relaxation) at that field."""
     creep, f_h = model.creep, float(model.rod.force(np.array([p_h]))[0])
+    lag = np.zeros(0) if model.viscous is None else np.array([float(field_mv_m)])
     if creep is not None and creep.acts_on == "force":
         z = cr.rest_state(creep, f_h)
-        return StageState(ps, rd.rest_state(model.rod, f_h + cr.offset(creep, z)), z)
+        return StageState(ps, rd.rest_state(model.rod, f_h + cr.offset(creep, z)), z, lag)
     z = cr.rest_state(creep, p_h)
     p = p_h + cr.offset(creep, z)
-    return StageState(ps, rd.rest_state(model.rod, float(model.rod.force(np.array([p]))[0])), z)
+    return StageState(ps, rd.rest_state(model.rod, float(model.rod.force(np.array([p]))[0])), z,
+                      lag)
 
 
 @dataclass(frozen=True)

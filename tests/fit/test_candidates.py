@@ -47,3 +47,33 @@ def test_the_benchmarks_judge_every_cause() -> None:
     assert set(bench_diagnose.IN_VOCABULARY) == VOCABULARY
     assert set(bench_learn.CAUSES) == VOCABULARY
     assert set(foreign_learn.CAUSES) == set(cd.NAMES)
+
+
+def test_a_cause_keeps_the_form_that_fits_its_halves_best() -> None:
+    """``in_forms``: the better fit on the fitted halves wins under the cause's name (a NaN fit
+    RMS never wins), the held-out halves play no part, and a form asked for alone stands for its
+    cause; each form's figures are recorded."""
+    from dataclasses import replace as rep
+
+    from afmctl.fit.diagnosis import Judged
+    from afmctl.fit.extension import Extended
+
+    def judged(name: str, fit_rms: float, heldout: float) -> Judged:
+        ext = Extended(name, None, (), {}, True, 1, None, (), (), None)  # type: ignore[arg-type]
+        return Judged(ext, 1, heldout, (heldout,), 1.0, fit_rms)
+
+    kernel, viscous = judged("thermal-relaxation", 0.3, 0.1), judged("viscous-relaxation", 0.05, 0.2)
+    out = dg.in_forms({"none": judged("none", 1.0, 1.0), "thermal-relaxation": kernel,
+                       "viscous-relaxation": viscous})
+    assert list(out) == ["none", "thermal-relaxation"]
+    won = out["thermal-relaxation"]
+    assert won.fitted.name == "viscous-relaxation" and won.cause == "thermal-relaxation"
+    assert won.label == "thermal-relaxation (viscous-relaxation)"
+    assert won.forms == (("thermal-relaxation", 0.3, 0.1), ("viscous-relaxation", 0.05, 0.2))
+    nan = dg.in_forms({"thermal-relaxation": rep(kernel, fit_rms_um=float("nan")),
+                       "viscous-relaxation": rep(viscous, fit_rms_um=9.0)})
+    assert nan["thermal-relaxation"].fitted.name == "viscous-relaxation"
+    alone = dg.in_forms({"viscous-relaxation": viscous})
+    assert list(alone) == ["thermal-relaxation"] and alone["thermal-relaxation"] is not viscous
+    assert dg.with_forms(["thermal-relaxation", "viscous-relaxation"]) == [
+        "thermal-relaxation", "viscous-relaxation"]

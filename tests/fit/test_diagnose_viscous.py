@@ -74,3 +74,35 @@ def test_the_written_model_predicts_what_the_fit_was_judged_by(diagnosed, tmp_pa
     without = dc.replace(back, viscous=None)
     off = idf.predict_set(without, halves, d.extended.starts, d.extended.offsets_um)
     assert max(float(np.max(np.abs(a - b))) for a, b in zip(got, off, strict=True)) > 10 * rms
+
+
+def test_the_fits_samples_follow_a_lagged_field_through_holds_and_steps(profile) -> None:
+    """The candidate's residual runs the hysterons on a subset of the samples and draws a line
+    between them; on the separating design's holds and fast steps a lagged field keeps moving
+    while the command rests. Its ``Q`` equals the hysteresis run on every sample of the lagged
+    field to 0.5 % of the range (:func:`afmctl.fit.extension.settling`); on the command's
+    samples and the lagged field's turning points alone it missed by more than 5 %."""
+    from afmctl.files import sweepfile
+    from afmctl.fit import extension as ext
+    from afmctl.fit import parametrization as pz
+    from afmctl.model import viscous as vs
+    from afmctl.planning import sweepdesign as sd
+
+    fs, lim = profile.sample_rate_hz, profile.limits
+    v, _ = sd.separating_sweep((lim.v_min, lim.v_max), fs, lim.max_rate_v_per_ms * 1e3)
+    prep = pz.prepare(sweepfile.from_arrays(v, np.zeros_like(v), fs), profile.thickness_um,
+                      0.001, None)
+    cand = cd.catalogue(1, float(np.max(np.abs(prep.field))), fs / 2, 300.0,
+                        cd.field_rate_max([prep]))["viscous-relaxation"]
+    space = ext.ExtendedSpace(cand, [prep], pz.LognormalSpace([prep], pz.Scales(), 64,
+                                                              ("depoled",)), 0.001, 50.0)
+    theta = np.array([0.6, 0.4, 0.1, 0.5, 300.0, 0.3])
+    for tau in (1e-3, 2.5e-3, 1e-2):
+        e_v = vs.lagged(vs.Viscous(tau), prep.field, prep.dt, float(prep.field[0]))[0]
+        full = pz.hysteresis(theta, [e_v], 64, starts=("depoled",))[0] + (prep.field - e_v)
+        got = space._q(theta, np.array([np.log(tau)]))[0]
+        assert np.max(np.abs(got - full)) < 0.005 * np.ptp(full), tau
+        sparse = np.union1d(prep.keep, pz.turning_points(e_v))
+        line = pz.at_full_rate(e_v.size, sparse, pz.hysteresis(
+            theta, [e_v[sparse]], 64, starts=("depoled",))[0]) + (prep.field - e_v)
+        assert np.max(np.abs(line - full)) > 0.05 * np.ptp(full), tau

@@ -64,7 +64,7 @@ def _polarization(model: tr.Transducer, v: np.ndarray) -> np.ndarray:
 
 def test_a_short_lag_is_the_papers_model_and_a_long_one_freezes_the_hysterons(
         nominal: tr.Transducer) -> None:
-    """On a 0.5 Hz triangle over +-150 V: with tau = 0.1 ms the polarization is (13)'s with the
+    """On a 0.5 Hz triangle over +-150 V: with tau = 1e-10 s the polarization is (13)'s with the
     field a sample late (equal to round-off); with tau = 1000 s the hysterons keep their start and
     ``P`` is the start's plus the reversible slope times the field's change: a line, where the
     paper's model has its loop."""
@@ -158,3 +158,22 @@ def test_model_file_round_trip(nominal: tr.Transducer, tmp_path: Path) -> None:
     path.write_text(text.replace("relaxation_time_s = 0.00257", "relaxation_time_s = -1.0"))
     with pytest.raises(Exception, match="relaxation_time_s"):
         modelfile.read(path)
+
+
+def test_every_state_at_rest_carries_the_lag(nominal: tr.Transducer) -> None:
+    """A stage at rest under a field has its hysterons there too, however the state was made
+    (the model's initial state, the one a sweep that carries on from the last starts in), so
+    the forward model and the inverse start the lag at the same field."""
+    from afmctl.fit import prediction
+
+    model = dc.replace(nominal, viscous=vs.Viscous(2.5e-3))
+    st = tr.initial(model, voltage_v=60.0)
+    assert st.lag.tolist() == [60.0 / model.thickness_um]
+    after = prediction.start_state(model, "previous", 90.0, st.polarization)
+    assert after.lag.tolist() == [90.0 / model.thickness_um]
+    assert tr.initial(nominal, voltage_v=60.0).lag.size == 0
+    cm = tr.compile_model(model, DT)
+    ud = 20.0 + triangle(27.9, 10.0, 1.0)
+    res = inv.algorithm3(cm, ud, after, e_init=90.0 / model.thickness_um, horizon=2, e_max=1.5)
+    u, _, _ = tr.simulate(cm, res.voltage(model.thickness_um), after)
+    np.testing.assert_allclose(u, res.predicted, atol=1e-9)
