@@ -600,7 +600,8 @@ def load_tables(t: Table, ver: int) -> tuple[Transducer, Envelope | None, FitRec
     one axis's table of a two-axis file, read as version ``ver``)."""
     model = from_table(t)
     if ver < 3 <= version_for(model):
-        raise t.fail("format_version", f"a Preisach grid, creep or viscous relaxation needs version 3, got {ver}")
+        raise t.fail("format_version", "a Preisach grid, creep or viscous relaxation needs "
+                                       f"version 3, got {ver}")
     env_t = t.table("envelope", required=False) if ver >= 2 else None
     env = None if env_t is None else _envelope(env_t)
     unc = t.table("uncertainty", required=False) if ver >= 2 else None
