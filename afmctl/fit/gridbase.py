@@ -32,6 +32,15 @@ docs/results/diagnose.md):
   neighbouring time constants; creep spreads it over decades: the weight must span at least
   ``decades`` decades (the shortest range of time constants holding 80 % of it).
 
+"Weight" in these shares is the creep each element adds within the record (:func:`seen`): an
+element whose time constant is far longer than the record moves by ``c t / tau`` during it, so
+the record fixes ``c / tau`` and not ``c``, and the fit may put a slow trend on the 1000 s
+element with ten times the weight it would need on the 100 s one. On pi-b-creep's three
+triangles, chained from sweep to sweep (8.7 s), the raw weights put 67 % on 100 s and up and
+gave 3.4 % of a step per decade (the stage's is 1.2 %); each sweep fitted from rest put 0 % there
+and 1.24 %. For the same reason the creep per decade is read between 0.1 s and the record's end
+(at most 100 s).
+
 Pure numerics: no I/O.
 """
 
@@ -46,7 +55,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from afmctl.files.sweepfile import Sweep
+from afmctl.files.sweepfile import Sweep, holds_s
 from afmctl.fit import extension as ext
 from afmctl.fit import preisach as pf
 from afmctl.fit import verdict as vd
@@ -93,10 +102,10 @@ class CreepRule:
     Attributes
     ----------
     per_decade : float
-        Least creep per decade of time, as a share of a step (0.003: 0.3 %).
+        Least creep per decade of time within the record, as a share of a step (0.003: 0.3 %).
     short_share, long_share : float
-        Shares of the elements' total weight on time constants up to ``short_s`` and from
-        ``long_s`` (s).
+        Shares of the creep the elements add within the record (:func:`seen`) on time constants
+        up to ``short_s`` and from ``long_s`` (s).
     gain, drift_gain : float
         Least held-out RMS ratio (without over with creep) for creep and for a drift.
     decades : float
@@ -118,8 +127,9 @@ class GridBase:
     """The grid fitted without (``plain``) and with (``crept``) creep, as diagnose's
     :class:`~afmctl.fit.extension.Extended` (the model, its starts and sensor zeros), each with
     its held-out RMS (um, overall and per sweep); the readings the grid with creep gives on the
-    sweeps (um: what ``extended.toml`` reproduces), the creep elements' figures, the noise floor
-    (um) and rule they are read with, and the wall time (s)."""
+    sweeps (um: what ``extended.toml`` reproduces), the creep elements' figures over the record's
+    span (s, :func:`record_s`), the noise floor (um) and rule they are read with, and the wall
+    time (s)."""
 
     plain: ext.Extended
     crept: ext.Extended
@@ -132,6 +142,7 @@ class GridBase:
     short_share: float
     long_share: float
     span_decades: float
+    record_s: float
     floor_um: float
     rule: CreepRule
     bar: vd.Rule
@@ -180,10 +191,10 @@ class GridBase:
         """The grid's figures in one clause."""
         return (f"held-out {self.plain_rms_um / self.floor_um:.2f}x the noise without creep, "
                 f"{self.crept_rms_um / self.floor_um:.2f}x with it (gain {self.gain:.2f}, "
-                f"{100 * self.explained:.0f} % of the excess); the creep elements take "
-                f"{100 * self.per_decade:.2f} % of a step per decade, "
-                f"{100 * self.short_share:.0f} % of their weight on the sub-second ones and "
-                f"{100 * self.long_share:.0f} % on 100 s and up, 80 % of it within "
+                f"{100 * self.explained:.0f} % of the excess); over the record's "
+                f"{self.record_s:.3g} s the creep elements add {100 * self.per_decade:.2f} % of "
+                f"a step per decade, {100 * self.short_share:.0f} % of it on the sub-second ones "
+                f"and {100 * self.long_share:.0f} % on 100 s and up, 80 % of it within "
                 f"{self.span_decades:.1f} decades")
 
     def as_dict(self) -> dict[str, Any]:
@@ -198,7 +209,8 @@ class GridBase:
                 "creep_per_decade": self.per_decade,
                 "creep_share_subsecond": self.short_share,
                 "creep_share_100s_up": self.long_share,
-                "creep_span_decades": self.span_decades, "creep": self.creep(),
+                "creep_span_decades": self.span_decades, "creep_record_s": self.record_s,
+                "creep": self.creep(),
                 "drift": self.drift(), "seconds": round(self.seconds, 2),
                 "method": "the Preisach grid fitted on the whole sweeps without and with its "
                           "creep elements (10 ms - 1000 s; each fit with the same step budget), "
@@ -207,11 +219,32 @@ class GridBase:
                           "rod held at the full fit)"}
 
 
-def shares(tau_s: FloatArray, weights: FloatArray, rule: CreepRule = CreepRule()
-           ) -> tuple[float, float, float]:
-    """The share of the creep weight on time constants up to ``rule.short_s`` and from
+def record_s(sweeps: Sequence[Sweep]) -> float:
+    """The longest stretch of time the sweeps cover without a break, s: sweeps the files chain
+    (:func:`afmctl.files.sweepfile.holds_s`, as the grid's creep follows them) with their holds,
+    else the longest sweep."""
+    out, run = 0.0, 0.0
+    for s, hold in zip(sweeps, holds_s(sweeps), strict=True):
+        length = s.voltage_v.shape[0] * s.dt
+        run = run + hold + length if math.isfinite(hold) else length
+        out = max(out, run)
+    return out
+
+
+def seen(tau_s: FloatArray, weights: FloatArray, record: float) -> FloatArray:
+    """The creep each element adds within ``record`` seconds of a step:
+    ``c_j (1 - exp(-record / tau_j))`` (:func:`afmctl.model.creep.step_response`, term by
+    term); ``c_j`` itself for an infinite record."""
+    return np.asarray(weights, float) * -np.expm1(-record / np.asarray(tau_s, float))
+
+
+def shares(tau_s: FloatArray, weights: FloatArray, rule: CreepRule = CreepRule(),
+           record: float = math.inf) -> tuple[float, float, float]:
+    """The share of the creep the elements add within ``record`` seconds (:func:`seen`; their
+    weights for an infinite record) on time constants up to ``rule.short_s`` and from
     ``rule.long_s``, and the span (decades) of the shortest range of time constants holding
     80 % of it (0 without weight)."""
+    weights = seen(tau_s, weights, record)
     total = float(np.sum(weights))
     if total <= 0:
         return 0.0, 0.0, 0.0
@@ -271,15 +304,16 @@ def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
                                       run.iterations, np.zeros(0), prob.starts,
                                       tuple(float(o) for o in run.theta.offsets), np.zeros(0)),
                          per)
-    c = crept.theta.c
-    short, long, span = shares(prob.el_tau, c, rule)
+    c, record = crept.theta.c, record_s(sweeps)
+    short, long, span = shares(prob.el_tau, c, rule, record)
     # (the thresholds do not enter a step's creep much larger than them: weights alone)
-    per_decade = cr.Creep(tuple(map(float, prob.el_tau)), tuple(map(float, c))).per_decade()
+    per_decade = cr.Creep(tuple(map(float, prob.el_tau)), tuple(map(float, c))).per_decade(
+        t_hi=min(100.0, max(record, 1.0)))
     (p_fit, p_per), (c_fit, c_per) = judged[False], judged[True]
     return GridBase(p_fit, c_fit, _root_mean(p_per), _root_mean(c_per),
                     tuple(map(float, p_per)), tuple(map(float, c_per)),
                     tuple(prob.predict(crept.theta, full=True)), per_decade, short, long,
-                    span, vd.floor(noise_um), rule, bar, time.perf_counter() - t0)
+                    span, record, vd.floor(noise_um), rule, bar, time.perf_counter() - t0)
 
 
 def _root_mean(per_sweep_um: FloatArray) -> float:

@@ -57,6 +57,30 @@ def test_shares_of_the_creep_weight() -> None:
     assert gb.shares(taus, np.zeros(22)) == (0.0, 0.0, 0.0)
 
 
+def test_the_shares_are_of_what_the_record_sees() -> None:
+    # within 10 s the 1000 s element adds 1 - exp(-0.01) of its weight: a hundredth
+    taus = np.array([0.01, 1000.0])
+    assert gb.seen(taus, np.array([1.0, 3.0]), 10.0) == pytest.approx(
+        [1.0, 3.0 * (1 - np.exp(-0.01))])
+    short, long, _ = gb.shares(taus, np.array([1.0, 3.0]), record=10.0)
+    assert short == pytest.approx(1.0 / (1.0 + 3.0 * (1 - np.exp(-0.01))))
+    assert long == pytest.approx(1.0 - short)
+    # a slow trend alone is a slow trend whatever the record: every share on the slowest
+    assert gb.shares(taus, np.array([0.0, 3.0]), record=10.0)[:2] == pytest.approx((0.0, 1.0))
+
+
+def test_the_record_is_the_chain_of_sweeps_the_files_link() -> None:
+    def at(started: float | None, n: int) -> sw.Sweep:
+        meta = {"layer_thickness_um": "100"} | ({} if started is None else
+                                                {"started_s": f"{started:g}"})
+        return sw.from_arrays(np.zeros(n), np.zeros(n), 1000.0, meta, "s")
+
+    # 2 s, a hold of 0.5 s, 1 s: 3.5 s; a sweep without a start stands alone
+    assert gb.record_s([at(0.0, 2000), at(2.5, 1000)]) == pytest.approx(3.5)
+    assert gb.record_s([at(None, 2000), at(None, 3000)]) == pytest.approx(3.0)
+    assert gb.record_s([at(0.0, 2000), at(10_000.0, 1000)]) == pytest.approx(2.0)
+
+
 def diagnosed(stage: fst.FamilyStage, seed: int) -> tuple[list[sw.Sweep], dg.Diagnosis]:
     """The stage's triangles diagnosed with the paper's model alone as the candidate (the grid
     comes in once it leaves them unexplained)."""
@@ -105,7 +129,7 @@ def grid_of(plain: float, crept: float, per_decade: float = 0.01, short: float =
             long: float = 0.2, span: float = 3.0) -> gb.GridBase:
     """A GridBase with these figures (held-out RMS in multiples of a floor of 1 um)."""
     return gb.GridBase(None, None, plain, crept, (plain,), (crept,), (),  # type: ignore[arg-type]
-                       per_decade, short, long, span, 1.0, gb.CreepRule(), vd.Rule(), 0.0)
+                       per_decade, short, long, span, 10.0, 1.0, gb.CreepRule(), vd.Rule(), 0.0)
 
 
 @pytest.mark.parametrize(("figures", "verdict"), [
