@@ -32,14 +32,17 @@ docs/results/diagnose.md):
   neighbouring time constants; creep spreads it over decades: the weight must span at least
   ``decades`` decades (the shortest range of time constants holding 80 % of it).
 
-"Weight" in these shares is the creep each element adds within the record (:func:`seen`): an
-element whose time constant is far longer than the record moves by ``c t / tau`` during it, so
-the record fixes ``c / tau`` and not ``c``, and the fit may put a slow trend on the 1000 s
-element with ten times the weight it would need on the 100 s one. On pi-b-creep's three
-triangles, chained from sweep to sweep (8.7 s), the raw weights put 67 % on 100 s and up and
-gave 3.4 % of a step per decade (the stage's is 1.2 %); each sweep fitted from rest put 0 % there
-and 1.24 %. For the same reason the creep per decade is read between 0.1 s and the record's end
-(at most 100 s).
+Creep and thermal relaxation are read from the creep each element adds within the record
+(:func:`seen`, :attr:`GridBase.seen`), not from its weight: an element far slower than the record
+moves by ``c t / tau`` during it, so the record fixes ``c / tau`` and not ``c``, and the fit may
+put a slow trend on the 1000 s element with ten times the weight it would need on the 100 s one.
+On pi-b-creep's three triangles, chained from sweep to sweep (8.7 s), the weights put 67 % on
+100 s and up and 3.4 % of a step per decade (the stage's is 1.2 %), read as a drift; what the
+record sees puts 13 % there and 1.44 % per decade: creep. The creep per decade is read from
+0.1 s to the record's end (at most 100 s). A drift is read from the weights
+(:attr:`GridBase.weights`): a trend that no decade of creep describes is one whose fit needs
+weight on the slowest elements, and within the record it adds little (on the drift stage of
+``tests/fit/test_gridbase.py``, 0.07 % of a step per decade over 7.2 s).
 
 Pure numerics: no I/O.
 """
@@ -49,7 +52,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -123,13 +126,25 @@ class CreepRule:
 
 
 @dataclass(frozen=True)
+class Elements:
+    """The creep elements' figures, read one way (:func:`elements`): creep per decade (a share
+    of a step), the shares on the sub-second elements and on those of 100 s and up, and the span
+    (decades) of the shortest range of time constants holding 80 %."""
+
+    per_decade: float
+    short_share: float
+    long_share: float
+    span_decades: float
+
+
+@dataclass(frozen=True)
 class GridBase:
     """The grid fitted without (``plain``) and with (``crept``) creep, as diagnose's
     :class:`~afmctl.fit.extension.Extended` (the model, its starts and sensor zeros), each with
     its held-out RMS (um, overall and per sweep); the readings the grid with creep gives on the
-    sweeps (um: what ``extended.toml`` reproduces), the creep elements' figures over the record's
-    span (s, :func:`record_s`), the noise floor (um) and rule they are read with, and the wall
-    time (s)."""
+    sweeps (um: what ``extended.toml`` reproduces), the creep elements' figures read from what
+    they add over the record's span (``seen``; s, :func:`record_s`) and from their weights
+    (``weights``), the noise floor (um) and rule they are read with, and the wall time (s)."""
 
     plain: ext.Extended
     crept: ext.Extended
@@ -138,10 +153,8 @@ class GridBase:
     plain_per_sweep_um: tuple[float, ...]
     crept_per_sweep_um: tuple[float, ...]
     crept_readings: tuple[FloatArray, ...]
-    per_decade: float
-    short_share: float
-    long_share: float
-    span_decades: float
+    seen: Elements
+    weights: Elements
     record_s: float
     floor_um: float
     rule: CreepRule
@@ -165,15 +178,16 @@ class GridBase:
 
     def creep(self) -> bool:
         """Whether the elements describe log-time creep (the module docstring's rule)."""
-        r = self.rule
-        return (self.per_decade >= r.per_decade and self.short_share >= r.short_share
-                and self.gain >= r.gain and self.span_decades >= r.decades and self._clears())
+        r, e = self.rule, self.seen
+        return (e.per_decade >= r.per_decade and e.short_share >= r.short_share
+                and self.gain >= r.gain and e.span_decades >= r.decades and self._clears())
 
     def drift(self) -> bool:
-        """Whether the elements sit on the slowest time constants: a drift, not creep."""
-        r = self.rule
-        return (self.per_decade >= r.per_decade and self.short_share < r.short_share
-                and self.long_share >= r.long_share and self.gain >= r.drift_gain
+        """Whether the elements' weights sit on the slowest time constants: a drift, not
+        creep."""
+        r, e = self.rule, self.weights
+        return (e.per_decade >= r.per_decade and e.short_share < r.short_share
+                and e.long_share >= r.long_share and self.gain >= r.drift_gain
                 and self._clears())
 
     def verdict(self) -> str:
@@ -189,13 +203,15 @@ class GridBase:
 
     def text(self) -> str:
         """The grid's figures in one clause."""
+        e, w = self.seen, self.weights
         return (f"held-out {self.plain_rms_um / self.floor_um:.2f}x the noise without creep, "
                 f"{self.crept_rms_um / self.floor_um:.2f}x with it (gain {self.gain:.2f}, "
                 f"{100 * self.explained:.0f} % of the excess); over the record's "
-                f"{self.record_s:.3g} s the creep elements add {100 * self.per_decade:.2f} % of "
-                f"a step per decade, {100 * self.short_share:.0f} % of it on the sub-second ones "
-                f"and {100 * self.long_share:.0f} % on 100 s and up, 80 % of it within "
-                f"{self.span_decades:.1f} decades")
+                f"{self.record_s:.3g} s the creep elements add {100 * e.per_decade:.2f} % of "
+                f"a step per decade, {100 * e.short_share:.0f} % of it on the sub-second ones "
+                f"and {100 * e.long_share:.0f} % on 100 s and up, 80 % of it within "
+                f"{e.span_decades:.1f} decades (their weights: {100 * w.short_share:.0f} % and "
+                f"{100 * w.long_share:.0f} %)")
 
     def as_dict(self) -> dict[str, Any]:
         """The ``grid`` object of ``diagnosis.json`` (um, shares, decades, s)."""
@@ -206,10 +222,11 @@ class GridBase:
                 "heldout_rms_per_sweep_um": {"without_creep": list(self.plain_per_sweep_um),
                                              "with_creep": list(self.crept_per_sweep_um)},
                 "creep_gain": self.gain, "creep_explained_fraction": self.explained,
-                "creep_per_decade": self.per_decade,
-                "creep_share_subsecond": self.short_share,
-                "creep_share_100s_up": self.long_share,
-                "creep_span_decades": self.span_decades, "creep_record_s": self.record_s,
+                "creep_per_decade": self.seen.per_decade,
+                "creep_share_subsecond": self.seen.short_share,
+                "creep_share_100s_up": self.seen.long_share,
+                "creep_span_decades": self.seen.span_decades, "creep_record_s": self.record_s,
+                "creep_weights": asdict(self.weights),
                 "creep": self.creep(),
                 "drift": self.drift(), "seconds": round(self.seconds, 2),
                 "method": "the Preisach grid fitted on the whole sweeps without and with its "
@@ -236,6 +253,17 @@ def seen(tau_s: FloatArray, weights: FloatArray, record: float) -> FloatArray:
     ``c_j (1 - exp(-record / tau_j))`` (:func:`afmctl.model.creep.step_response`, term by
     term); ``c_j`` itself for an infinite record."""
     return np.asarray(weights, float) * -np.expm1(-record / np.asarray(tau_s, float))
+
+
+def elements(tau_s: FloatArray, weights: FloatArray, rule: CreepRule = CreepRule(),
+             record: float = math.inf) -> Elements:
+    """The elements' figures from what they add within ``record`` seconds (their weights for an
+    infinite record): :func:`shares`, and the creep per decade from 0.1 s to the record's end
+    (at most 100 s; :meth:`afmctl.model.creep.Creep.per_decade`, weights alone: the thresholds
+    do not enter a step much larger than them)."""
+    short, long, span = shares(tau_s, weights, rule, record)
+    creep = cr.Creep(tuple(map(float, tau_s)), tuple(map(float, weights)))
+    return Elements(creep.per_decade(t_hi=min(100.0, max(record, 1.0))), short, long, span)
 
 
 def shares(tau_s: FloatArray, weights: FloatArray, rule: CreepRule = CreepRule(),
@@ -305,15 +333,12 @@ def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
                                       tuple(float(o) for o in run.theta.offsets), np.zeros(0)),
                          per)
     c, record = crept.theta.c, record_s(sweeps)
-    short, long, span = shares(prob.el_tau, c, rule, record)
-    # (the thresholds do not enter a step's creep much larger than them: weights alone)
-    per_decade = cr.Creep(tuple(map(float, prob.el_tau)), tuple(map(float, c))).per_decade(
-        t_hi=min(100.0, max(record, 1.0)))
     (p_fit, p_per), (c_fit, c_per) = judged[False], judged[True]
     return GridBase(p_fit, c_fit, _root_mean(p_per), _root_mean(c_per),
                     tuple(map(float, p_per)), tuple(map(float, c_per)),
-                    tuple(prob.predict(crept.theta, full=True)), per_decade, short, long,
-                    span, record, vd.floor(noise_um), rule, bar, time.perf_counter() - t0)
+                    tuple(prob.predict(crept.theta, full=True)),
+                    elements(prob.el_tau, c, rule, record), elements(prob.el_tau, c, rule), record,
+                    vd.floor(noise_um), rule, bar, time.perf_counter() - t0)
 
 
 def _root_mean(per_sweep_um: FloatArray) -> float:

@@ -97,7 +97,7 @@ def test_a_creeping_stage_out_of_the_family_is_diagnosed_creep(tmp_path: Path) -
     assert d.cause == "creep", d.evidence()
     g = d.grid
     assert g is not None and d.on_grid and g.creep() and not g.drift()
-    assert g.gain >= 1.5 and g.short_share >= 0.1 and g.per_decade >= 0.003
+    assert g.gain >= 1.5 and g.seen.short_share >= 0.1 and g.seen.per_decade >= 0.003
     assert d.paper_rms_um > 1.5 * g.crept_rms_um  # the paper's model alone misses it
     assert d.extended_model.creep is not None and d.base_model.creep is None
     # the CLI's files: the models read back, the report and the JSON name the grid's verdict
@@ -128,8 +128,9 @@ def test_a_drifting_stage_is_not_diagnosed_creep_and_gets_a_drift_hint() -> None
 def grid_of(plain: float, crept: float, per_decade: float = 0.01, short: float = 0.3,
             long: float = 0.2, span: float = 3.0) -> gb.GridBase:
     """A GridBase with these figures (held-out RMS in multiples of a floor of 1 um)."""
+    figures = gb.Elements(per_decade, short, long, span)
     return gb.GridBase(None, None, plain, crept, (plain,), (crept,), (),  # type: ignore[arg-type]
-                       per_decade, short, long, span, 10.0, 1.0, gb.CreepRule(), vd.Rule(), 0.0)
+                       figures, figures, 10.0, 1.0, gb.CreepRule(), vd.Rule(), 0.0)
 
 
 @pytest.mark.parametrize(("figures", "verdict"), [
@@ -148,6 +149,23 @@ def grid_of(plain: float, crept: float, per_decade: float = 0.01, short: float =
         "none-but-drift", "thermal", "tiny"])
 def test_the_creep_rule(figures: dict[str, float], verdict: str) -> None:
     assert grid_of(**figures).verdict() == verdict
+
+
+def test_creep_is_read_from_what_the_record_sees_and_a_drift_from_the_weights() -> None:
+    def grid(plain: float, crept: float, seen: gb.Elements, weights: gb.Elements) -> gb.GridBase:
+        return gb.GridBase(None, None, plain, crept, (plain,), (crept,), (),  # type: ignore[arg-type]
+                           seen, weights, 8.65, 1.0, gb.CreepRule(), vd.Rule(), 0.0)
+
+    # pi-b-creep's chained triangles: weights on the slowest elements, the record sees creep
+    chained = grid(34.6, 3.48, gb.Elements(0.0144, 0.49, 0.13, 3.0),
+                   gb.Elements(0.0336, 0.096, 0.667, 1.5))
+    assert chained.creep() and chained.verdict() == "creep"
+    assert not grid(34.6, 3.48, chained.weights, chained.weights).creep()
+    # the drift stage of this file: a trend the record sees little of, on the slowest weights
+    drifting = grid(1.18, 1.04, gb.Elements(0.0007, 0.0, 1.0, 1.0),
+                    gb.Elements(0.01, 0.0, 1.0, 1.0))
+    assert drifting.drift() and not drifting.creep() and drifting.verdict() == "unexplained"
+    assert not grid(1.18, 1.04, drifting.seen, drifting.seen).drift()
 
 
 def test_the_drift_hint_needs_the_elements_to_explain_the_misfit() -> None:
