@@ -131,9 +131,18 @@ class CreepRule:
 
 @dataclass(frozen=True)
 class Elements:
-    """The creep elements' figures, read one way (:func:`elements`): creep per decade (a share
-    of a step), the shares on the sub-second elements and on those of 100 s and up, and the span
-    (decades) of the shortest range of time constants holding 80 %."""
+    """The creep elements' figures, read one way (:func:`elements`).
+
+    Attributes
+    ----------
+    per_decade : float
+        Creep per decade of time after a step, as a share of the step.
+    short_share, long_share : float
+        Shares (0-1) on the time constants up to :attr:`CreepRule.short_s` and from
+        :attr:`CreepRule.long_s`.
+    span_decades : float
+        Span (decades) of the shortest range of time constants holding 80 %.
+    """
 
     per_decade: float
     short_share: float
