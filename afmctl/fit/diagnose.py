@@ -45,6 +45,7 @@ from threadpoolctl import threadpool_limits
 
 from afmctl.errors import DiagnoseInputError
 from afmctl.files.sweepfile import Sweep
+from afmctl.fit import candidate_space as cs
 from afmctl.fit import candidates as cd
 from afmctl.fit import cores
 from afmctl.fit import extension as ext
@@ -99,7 +100,7 @@ def first_half(s: Sweep) -> Sweep:
     return s.head(s.time_s.size // 2)
 
 
-def heldout(space: ext.ExtendedSpace, fitted: ext.Extended,
+def heldout(space: cs.ExtendedSpace, fitted: ext.Extended,
             sweeps: Sequence[Sweep]) -> tuple[float, tuple[float, ...], float]:
     """Error of a fitted candidate on the second half of every sweep, the part no fit saw, and
     on the first halves it was fitted on.
@@ -107,7 +108,8 @@ def heldout(space: ext.ExtendedSpace, fitted: ext.Extended,
     Parameters
     ----------
     space : ExtendedSpace
-        The candidate on the whole sweeps (:meth:`~afmctl.fit.extension.ExtendedSpace.on`): its
+        The candidate on the whole sweeps
+        (:meth:`~afmctl.fit.candidate_space.ExtendedSpace.on`): its
         readings are computed exactly as in the fit, the state carried from each sweep's start
         through both halves.
     fitted : Extended
@@ -221,21 +223,21 @@ class _Job:
     sweeps: tuple[Sweep, ...]
 
 
-def _space(name: str, job: _Job, progress: ext.Progress | None = None) -> ext.ExtendedSpace:
+def _space(name: str, job: _Job, progress: cs.Progress | None = None) -> cs.ExtendedSpace:
     """Candidate ``name`` on the first halves, from the base parameters ``job.x0``; a gauge error
     fitted in the frame of the whole sweeps' slowest readings and stated in that of a lab's
     linear calibration on the slowest of the recorded sweeps."""
     data = job.data
     cand = cd.catalogue(len(data.preps), data.e_max, data.nyquist_hz,
                          pz.rod_of(job.x0)[0], cd.field_rate_max(data.preps))[name]
-    return ext.ExtendedSpace(cand, data.preps, data.base, job.settings.identify.field_step,
+    return cs.ExtendedSpace(cand, data.preps, data.base, job.settings.identify.field_step,
                              job.range_um, gauge_frame=cd.calibration_frame(job.whole),
                              calibration_um=cd.recorded_calibration(job.sweeps),
                              progress=progress)
 
 
-def _fit(name: str, job: _Job, progress: ext.Progress | None = None
-         ) -> tuple[ext.Extended, int, ext.ExtendedSpace]:
+def _fit(name: str, job: _Job, progress: cs.Progress | None = None
+         ) -> tuple[ext.Extended, int, cs.ExtendedSpace]:
     """Fit candidate ``name`` (:func:`_space`): the fit, the parameters it adds, its space."""
     space = _space(name, job, progress)
     fitted, space = ext.fit(space, job.x0, job.thickness, job.settings.max_nfev,
@@ -255,7 +257,8 @@ def _readings_on(table: dict[str, Judged], job: _Job, name: str, sweep: Sweep) -
     return space.readings(fitted.x, beta)[0]
 
 
-#: Where the candidates' fits say how far they are (:class:`afmctl.fit.extension.Progress`):
+#: Where the candidates' fits say how far they are
+#: (:class:`afmctl.fit.candidate_space.Progress`):
 #: set by :func:`_judge_all` for its worker processes, which inherit it (forked).
 _progress_say: Callable[[str], None] | None = None
 
@@ -263,7 +266,7 @@ _progress_say: Callable[[str], None] | None = None
 def _judge(name: str, job: _Job) -> Judged:
     """Fit candidate ``name`` on the first halves and judge it on the second halves."""
     t1 = time.perf_counter()
-    progress = None if _progress_say is None else ext.Progress(_progress_say, name)
+    progress = None if _progress_say is None else cs.Progress(_progress_say, name)
     fitted, n_params, space = _fit(name, job, progress)
     rms, per, fit_rms = heldout(space.on(job.whole), fitted, job.sweeps)
     return Judged(fitted, n_params, rms, per, time.perf_counter() - t1, fit_rms)
@@ -281,7 +284,7 @@ def _judge_all(names: Sequence[str], job: _Job, floor: float,
     jobs = min(job.settings.jobs or os.cpu_count() or 1, len(names))
     order = sorted(names, key=lambda n: cd.SLOWEST_FIRST.index(n) if n in cd.SLOWEST_FIRST else 9)
     say(f"fitting {len(names)} candidates, {jobs} at a time (a long fit says how far it is "
-        f"every {ext.PROGRESS_S:.0f} s) ...")
+        f"every {cs.PROGRESS_S:.0f} s) ...")
 
     def said(name: str, j: Judged) -> Judged:
         say(f"  {name:20s} held-out RMS {j.heldout_rms_um:.4f} um = "

@@ -49,6 +49,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl.files.sweepfile import Sweep
+from afmctl.fit import candidate_space as cs
 from afmctl.fit import candidates as cd
 from afmctl.fit import extension as ext
 from afmctl.fit import heldfit as hf
@@ -212,7 +213,7 @@ class Held:
         if name != "voltage-gain-drift":
             return tuple([1.0] * len(sweeps))
         k = len(self.sweeps) - 1
-        g = np.exp(ext.log_gains(phi[:k]))
+        g = np.exp(cs.log_gains(phi[:k]))
         delta, tau = float(phi[k]), float(np.exp(phi[k + 1]))
         if delta == 0.0:
             return tuple(float(v) for v in g)
@@ -348,7 +349,7 @@ class Held:
         gains = self.gains(name, phi)
         model = replace(hf.with_rod(self.model, fn, zn, a,
                                     float(zeros[pz.zero_sweep(self.starts)])), effects=effects)
-        return ext.Extended(name, model, gains, params | ext.physical(name, model, gains),
+        return ext.Extended(name, model, gains, params | cs.physical(name, model, gains),
                             success, nfev, z, tuple(self.starts), tuple(float(v) for v in zeros),
                             beta)
 

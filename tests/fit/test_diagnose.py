@@ -20,7 +20,7 @@ from click.testing import CliRunner
 from afmctl.cli import main
 from afmctl.experiment import runner as experiment
 from afmctl.files import sweepfile as sw
-from afmctl.fit import candidates, extension, verdict
+from afmctl.fit import candidate_space, candidates, extension, verdict
 from afmctl.fit import diagnose as dg
 from afmctl.model import effects as fx
 from afmctl.planning import sweepdesign as sd
@@ -167,7 +167,7 @@ def test_candidate_residual_vanishes_at_the_truth(name: str, effects: fx.Effects
     cand = candidates.catalogue(2, *pz.extent(preps), float(np.exp(x[4])),
                                candidates.field_rate_max(preps))[name]
     frame = (effects.sensor_center_um, effects.sensor_half_range_um)
-    space = extension.ExtendedSpace(cand, preps, base, 0.004, range_um,
+    space = candidate_space.ExtendedSpace(cand, preps, base, 0.004, range_um,
                                     gauge_frame=frame if name == "sensor-nonlinearity" else None)
     z = np.concatenate((x, phi if phi is not None else [2e-3 * range_um, -2e-5 * range_um ** 2]))
     r = space.residual(z)

@@ -80,10 +80,10 @@ def test_the_fits_samples_follow_a_lagged_field_through_holds_and_steps(profile)
     """The candidate's residual runs the hysterons on a subset of the samples and draws a line
     between them; on the separating design's holds and fast steps a lagged field keeps moving
     while the command rests. Its ``Q`` equals the hysteresis run on every sample of the lagged
-    field to 0.5 % of the range (:func:`afmctl.fit.extension.settling`); on the command's
+    field to 0.5 % of the range (:func:`afmctl.fit.candidate_space.settling`); on the command's
     samples and the lagged field's turning points alone it missed by more than 5 %."""
     from afmctl.files import sweepfile
-    from afmctl.fit import extension as ext
+    from afmctl.fit import candidate_space as cs
     from afmctl.fit import parametrization as pz
     from afmctl.model import viscous as vs
     from afmctl.planning import sweepdesign as sd
@@ -94,7 +94,7 @@ def test_the_fits_samples_follow_a_lagged_field_through_holds_and_steps(profile)
                       0.001, None)
     cand = cd.catalogue(1, float(np.max(np.abs(prep.field))), fs / 2, 300.0,
                         cd.field_rate_max([prep]))["viscous-relaxation"]
-    space = ext.ExtendedSpace(cand, [prep], pz.LognormalSpace([prep], pz.Scales(), 64,
+    space = cs.ExtendedSpace(cand, [prep], pz.LognormalSpace([prep], pz.Scales(), 64,
                                                               ("depoled",)), 0.001, 50.0)
     theta = np.array([0.6, 0.4, 0.1, 0.5, 300.0, 0.3])
     for tau in (1e-3, 2.5e-3, 1e-2):
