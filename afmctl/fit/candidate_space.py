@@ -38,7 +38,6 @@ PROGRESS_S = 15.0
 SETTLING_GROWTH = 1.25
 
 
-
 @dataclass
 class Progress:
     """Progress lines of one candidate's fit (``say``: one line each, e.g. to stderr): each
@@ -224,8 +223,9 @@ class ExtendedSpace:
                           sensor_third_moment_um3=mu3, sensor_fourth_moment_um4=mu4)
 
     def gauge_seeds(self, x: FloatArray) -> list[tuple[float, float]]:
-        """Where else a refit through a gauge error starts (:func:`_fit_from`, from the model
-        ``x`` a first refit gave): the cubic error solved by least squares, the curvature at 0.
+        """Where else a refit through a gauge error starts (:func:`afmctl.fit.extension._started`,
+        from the model ``x`` a first refit gave): the cubic error solved by least squares, the
+        curvature at 0.
         A strong gauge is out of reach of local runs from the base model, which bent its loops
         and its rod term ``a2 L[Q^2]`` to take up the gauge's error. The readings are
         ``y = w + c P2(w) + c3 P3(w)`` with ``w`` linear in the gains and zeros, so to first

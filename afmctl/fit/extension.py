@@ -20,7 +20,7 @@ from scipy import optimize
 from afmctl.fit import identify as idf
 from afmctl.fit import noise as ns
 from afmctl.fit import parametrization as pz
-from afmctl.fit.candidate_space import ExtendedSpace
+from afmctl.fit.candidate_space import ExtendedSpace, physical
 from afmctl.fit.candidates import INPUT_SIDE
 from afmctl.fit.relaxation import THERMAL_COARSE, THERMAL_FINE, THERMAL_JOINT, density_starts
 from afmctl.model import transducer as td
@@ -77,7 +77,7 @@ def _stage(space: ExtendedSpace, text: str) -> None:
 def _rebase(space: ExtendedSpace, z: FloatArray, settings: idf.Settings,
             globally: bool = True) -> tuple[ExtendedSpace, FloatArray]:
     """``x`` and each sweep's start fitted afresh with the effect of ``z`` held
-    (:meth:`ExtendedSpace.through`): the base fit had distorted ``x`` and the starts to absorb
+    (:meth:`~afmctl.fit.candidate_space.ExtendedSpace.through`): the base fit had distorted ``x`` and the starts to absorb
     the effect (a rod slowed to a third of its resonance under a strong amplifier lag; loops
     widened by a sensor's latency, bent by a gauge error). Through an amplifier with identify's
     global fit (its grid of starting points, restarts while a sweep stays off its noise): too

@@ -20,7 +20,7 @@ from click.testing import CliRunner
 from afmctl.cli import main
 from afmctl.experiment import runner as experiment
 from afmctl.files import sweepfile as sw
-from afmctl.fit import candidate_space, candidates, extension, verdict
+from afmctl.fit import candidate_space, candidates, verdict
 from afmctl.fit import diagnose as dg
 from afmctl.model import effects as fx
 from afmctl.planning import sweepdesign as sd

@@ -25,7 +25,7 @@ from afmctl.drivers.device.foreign import stage as plant
 from afmctl.drivers.device.foreign.effects import Thermal as ForeignThermal
 from afmctl.drivers.device.foreign.stages import random_stage
 from afmctl.fit import diagnose as dg
-from afmctl.fit import extension as ext
+from afmctl.fit import candidate_space as cs
 from afmctl.fit import parametrization as pz
 from afmctl.fit import relaxation
 from afmctl.model import hysteresis as hy
@@ -158,7 +158,7 @@ def test_the_relaxation_candidate_says_how_far_it_is(monkeypatch: pytest.MonkeyP
     as it starts and, every PROGRESS_S seconds (0 here: at every residual), how many residuals
     it has evaluated; the lines reach ``progress`` before the candidate's result. The stage is
     a clean foreign one: thermal relaxation is not named on it."""
-    monkeypatch.setattr(ext, "PROGRESS_S", 0.0)
+    monkeypatch.setattr(cs, "PROGRESS_S", 0.0)
     _, sweeps, _, _ = bench.make_stage("none", None, 1, refit=False)
     lines: list[str] = []
     d = dg.diagnose(sweeps, dg.Settings(candidates=THERMAL_RIVALS, jobs=1),

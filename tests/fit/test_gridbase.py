@@ -24,7 +24,6 @@ from afmctl.files import sweepfile as sw
 from afmctl.fit import diagnose as dg
 from afmctl.fit import gridbase as gb
 from afmctl.fit import identify as idf
-from afmctl.fit import preisach as pf
 from afmctl.fit import verdict as vd
 from afmctl.model import creep as cr
 from afmctl.planning import sweepdesign as sd
