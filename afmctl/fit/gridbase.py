@@ -223,8 +223,8 @@ class GridBase:
                 f"{self.record_s:.3g} s the creep elements add {100 * e.per_decade:.2f} % of "
                 f"a step per decade, {100 * e.short_share:.0f} % of it on the sub-second ones "
                 f"and {100 * e.long_share:.0f} % on 100 s and up, 80 % of it within "
-                f"{e.span_decades:.1f} decades (their weights: {100 * w.short_share:.0f} % and "
-                f"{100 * w.long_share:.0f} %)")
+                f"{e.span_decades:.1f} decades (of their weights, {100 * w.short_share:.0f} % "
+                f"on the sub-second ones and {100 * w.long_share:.0f} % on 100 s and up)")
 
     def as_dict(self) -> dict[str, Any]:
         """The ``grid`` object of ``diagnosis.json`` (um, shares, decades, s)."""
