@@ -172,8 +172,8 @@ def load(model: tr.Transducer, model_path: str | Path, output_v: float,
     for ok, why in checks:
         if not ok:
             return None, f"{path.name} not used: {why}"
-    lag = np.zeros(0) if model.viscous is None else np.array([rec.held_v / model.thickness_um])
-    state = tr.StageState(hy.PolarizationState(rec.kind, rec.values), rec.rod, rec.creep, lag)
+    state = tr.StageState(hy.PolarizationState(rec.kind, rec.values), rec.rod, rec.creep,
+                          tr.rest_lag(model, rec.held_v / model.thickness_um))
     seen = tuple(fr.Observation(float(t), float(o)) for t, o in rec.observations)
     return (Twin(model, rec.dt_s, state, rec.ended_s, rec.held_v, rec.run_count, seen),
             f"from {path}")

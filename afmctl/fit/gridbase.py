@@ -392,8 +392,8 @@ def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
                                       tuple(float(o) for o in run.theta.offsets), np.zeros(0)),
                          per)
     c = crept.theta.c
-    record = record_s([s.voltage_v.shape[0] * s.dt for s in sweeps], prob.data.gaps_s
-                      or [math.nan] * len(sweeps), prob.chained)
+    record = record_s([s.voltage_v.shape[0] * s.dt for s in sweeps], prob.data.holds_s,
+                      prob.chained)
     (p_fit, p_per), (c_fit, c_per) = judged[False], judged[True]
     return GridBase(p_fit, c_fit, _root_mean(p_per), _root_mean(c_per),
                     tuple(map(float, p_per)), tuple(map(float, c_per)),

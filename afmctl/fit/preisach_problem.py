@@ -146,6 +146,11 @@ class Data:
     #: rest; empty: none known)
     gaps_s: list[float] = field(default_factory=list)
 
+    @property
+    def holds_s(self) -> list[float]:
+        """:attr:`gaps_s`, one per sweep (all NaN when none is known)."""
+        return self.gaps_s or [math.nan] * len(self.fields)
+
     def __post_init__(self) -> None:
         if not self.folds:
             for y in self.y:
@@ -303,7 +308,7 @@ class Problem:
         would ramp from its first sample's level, which the stage's never did); else (None)
         from rest at its first sample."""
         out, starts, end = [], [], None
-        gaps = self.data.gaps_s or [math.nan] * len(drives)
+        gaps = self.data.holds_s
         for x, dt, gap in zip(drives, self.data.dts, gaps, strict=True):
             start = None if end is None or not self.chained or not gap >= 0.0 else (
                 end[0], end[0][:, None] + (end[1] - end[0][:, None]) * np.exp(-gap / self.taus))
@@ -424,7 +429,7 @@ class Problem:
         n = len(self.phi)
         zs, starts = (self.creep_starts(self.creep_drives(th)) if creep
                       else ([np.zeros((e.size, 0)) for e in self.data.fields], [None] * n))
-        gaps = self.data.gaps_s or [math.nan] * n
+        gaps = self.data.holds_s
         carry: dict[str, list[Any]] = {}
         designs, rhs = [], []
         for i, (p, e, dt, m, y, tr, z) in enumerate(zip(self.phi, self.data.fields, self.data.dts,

@@ -91,13 +91,19 @@ def initial(model: Transducer, how: hy.Initial | str | None = None,
     return at_rest(model, ps, float(p[0]), e)
 
 
+def rest_lag(model: Transducer, field_mv_m: float) -> FloatArray:
+    """The hysterons' lagged field after a rest under ``field_mv_m`` (MV/m): that field for a
+    model with viscous relaxation (:attr:`Transducer.viscous`), empty otherwise."""
+    return np.zeros(0) if model.viscous is None else np.array([float(field_mv_m)])
+
+
 def at_rest(model: Transducer, ps: hy.PolarizationState, p_h: float,
             field_mv_m: float) -> StageState:
     """The stage settled at hysteretic output ``p_h`` (C/m^2) with memory ``ps`` under the field
     ``field_mv_m`` (MV/m): creep elements settled, rod in static equilibrium, the hysterons'
     lagged field (a model with viscous relaxation) at that field."""
     creep, f_h = model.creep, float(model.rod.force(np.array([p_h]))[0])
-    lag = np.zeros(0) if model.viscous is None else np.array([float(field_mv_m)])
+    lag = rest_lag(model, field_mv_m)
     if creep is not None and creep.acts_on == "force":
         z = cr.rest_state(creep, f_h)
         return StageState(ps, rd.rest_state(model.rod, f_h + cr.offset(creep, z)), z, lag)
