@@ -294,17 +294,20 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def family_row(name: str) -> dict[str, Any]:
-    """Diagnose on one out-of-family or other-form stage's standard triangles."""
+def family_row(name: str, design: str = "standard") -> dict[str, Any]:
+    """Diagnose on one out-of-family or other-form stage's standard triangles (``design``
+    ``separating``: and the separating sweep after them)."""
     case = family_sets.cases_named(name, family_sets.FAMILY_CASES
                                    + family_sets.OTHER_FORM_CASES)[0]
     with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
-        sweeps = family_sets.record(s, Path(tmp) / "sweeps", reversals=False)
+        sweeps = family_sets.record(s, Path(tmp) / "sweeps", reversals=False,
+                                    separating=design == "separating")
         d = dg.diagnose(sweeps, dg.Settings(jobs=1))
         tracked = family_track(s, d, sweeps) if d.extended is not d.base else {}
     present = {c for c in ("creep" if case.creep else None, case.effect) if c}
     named = d.cause
-    return {"stage": case.name, "family": case.family, "creep": case.creep, "drift": case.drift,
+    return {"stage": case.name, "design": design, "family": case.family, "creep": case.creep,
+            "drift": case.drift,
             "effect": case.effect, "want": case.cause, "named": named,
             "wrong": named not in ("none", "unexplained", "indistinguishable")
             and named not in present,
@@ -374,8 +377,9 @@ def _worse(row: dict[str, Any]) -> bool:
     return any(b is not None and e is not None and e > b for b, e in pairs)
 
 
-def family(names: str, other: str, jobs: int) -> dict[str, Any]:
-    """Diagnose on the chosen out-of-family and other-form stages (``none``: no such stage)."""
+def family(names: str, other: str, jobs: int, design: str = "standard") -> dict[str, Any]:
+    """Diagnose on the chosen out-of-family and other-form stages (``none``: no such stage),
+    recorded with ``design`` (:func:`family_row`)."""
     chosen = [] if names == "none" else [c.name for c in family_sets.cases_named(names)]
     if other != "none":
         chosen += [c.name for c in family_sets.cases_named(other, family_sets.OTHER_FORM_CASES)]
@@ -383,7 +387,7 @@ def family(names: str, other: str, jobs: int) -> dict[str, Any]:
     # stages side by side take the cores: each then fits one call at a time (cores.pool_worker)
     with ProcessPoolExecutor(max_workers=jobs,
                              initializer=cores.pool_worker if jobs > 1 else None) as pool:
-        for future in as_completed([pool.submit(family_row, n) for n in chosen]):
+        for future in as_completed([pool.submit(family_row, n, design) for n in chosen]):
             rows.append(future.result())
             r = rows[-1]
             log(f"  {r['stage']:30s} (want {r['want']}): named {r['named']:20s} base "
@@ -448,7 +452,7 @@ def main() -> None:
         if args.json:
             print(json.dumps(timed))
         return
-    fam = family(args.family, args.other_form, args.jobs)
+    fam = family(args.family, args.other_form, args.jobs, args.design)
     if args.family_only:
         print(json.dumps(json_safe(fam)))
         return

@@ -240,20 +240,29 @@ def session(case: Case) -> Iterator[Session]:
         yield Session(case, prof, Probe(stage), clock)
 
 
-def record(s: Session, folder: Path, reversals: bool | None = None) -> list[Any]:
+def record(s: Session, folder: Path, reversals: bool | None = None, separating: bool = False
+           ) -> list[Any]:
     """The three standard triangles over the drive range and (``reversals``, default the case's)
     the reversal curves of ``afmctl sweep --design reversals``, recorded through the driver: what
     identify asks for on a stage off the paper's model family (without them the grid's interior,
-    every minor loop a tracking triangle makes, is the smoothing's guess)."""
+    every minor loop a tracking triangle makes, is the smoothing's guess); or (``separating``)
+    the separating sweep of ``afmctl sweep --design separating``."""
     from afmctl.experiment import runner
     from afmctl.files import sweepfile
     from afmctl.planning import sweepdesign
 
     sweeps = calibration.record_standard(s.probe, s.profile, folder)
+    lim = s.profile.limits
+    rate = lim.max_rate_v_per_ms * 1e3
+    extra = None
     if s.case.reversals if reversals is None else reversals:
-        lim = s.profile.limits
-        name, freq, v, meta = sweepdesign.reversals_sweep(
-            (lim.v_min, lim.v_max), s.profile.sample_rate_hz, lim.max_rate_v_per_ms * 1e3)
+        extra = sweepdesign.reversals_sweep((lim.v_min, lim.v_max), s.profile.sample_rate_hz,
+                                            rate)
+    elif separating:
+        extra = sweepdesign.design_set("separating", s.profile.sample_rate_hz, rate,
+                                       (lim.v_min, lim.v_max))[-1]
+    if extra is not None:
+        name, freq, v, meta = extra
         path = folder / f"{name}.csv"  # written once complete, read back as a lab's file
         runner.record_sweep(s.probe, name, freq, v, s.profile.sample_rate_hz,
                             {"layer_thickness_um": f"{s.profile.thickness_um:g}", **meta},

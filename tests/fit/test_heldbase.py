@@ -26,6 +26,7 @@ from afmctl.fit import diagnosis_report
 from afmctl.fit import extension as ext
 from afmctl.fit import heldbase as hb
 from afmctl.fit import identify as idf
+from afmctl.fit.rod_response import rod_filter
 from afmctl.model import effects as fx
 from afmctl.model.transducer import Transducer
 from afmctl.planning import sweepdesign as sd
@@ -33,8 +34,10 @@ from afmctl.planning import sweepdesign as sd
 RATE = 10_000.0
 
 
-def _held(nominal: Transducer, emulate: Callable[..., sw.Sweep]) -> hb.Held:
-    """The nominal model held on three short emulated triangles (0.5, 5.58, 27.9 Hz)."""
+def _held(nominal: Transducer, emulate: Callable[..., sw.Sweep], gauge_in_base: bool = False
+          ) -> hb.Held:
+    """The nominal model held on three short emulated triangles (0.5, 5.58, 27.9 Hz); its
+    density identified on positions (``gauge_in_base``: on readings, as at first)."""
     sweeps = [emulate(sd.loop(hz, 0.0, 150.0, cycles, RATE), hz, seed)
               for seed, (hz, cycles) in enumerate(((0.5, 1), (5.58, 2), (27.9, 4)))]
     masks = [s.mask(None) for s in sweeps]
@@ -42,7 +45,8 @@ def _held(nominal: Transducer, emulate: Callable[..., sw.Sweep]) -> hb.Held:
     return hb.Held(nominal, sweeps, ["depoled", "previous", "previous"],
                    [m & h for m, h in zip(masks, half, strict=True)],
                    [m & ~h for m, h in zip(masks, half, strict=True)],
-                   np.full(3, 0.01), cd.reading_frame(cd.recorded_calibration(sweeps)))
+                   np.full(3, 0.01), cd.reading_frame(cd.recorded_calibration(sweeps)),
+                   gauge_in_base)
 
 
 @pytest.mark.parametrize("name", ["none", "second-mode", "sensor-delay", "sensor-nonlinearity",
@@ -52,7 +56,8 @@ def test_the_model_of_a_fit_reads_what_the_fit_reads(
     """Every cause's fit, restated as a model with its effect, per-sweep gains and sensor zeros
     (what ``extended.toml`` holds), predicts through afmctl's own simulation the readings the fit
     computed by variable projection, to within 0.1 % of the noise: the model file is the fit.
-    The effect's parameters are set off its off state so that each path is exercised."""
+    The effect's parameters are set off its off state so that each path is exercised. (A gauge
+    is written only from a base identified apart from it: the next test.)"""
     held = _held(nominal, emulate)
     c = held.causes[name]
     phi = {"second-mode": [math.log(900.0), math.log(0.05)], "sensor-delay": [3.5, 6.3],
@@ -73,6 +78,35 @@ def test_the_model_of_a_fit_reads_what_the_fit_reads(
         assert fitted.model.effects.amplifier_rails_v == pytest.approx((0.0, 151.5))
         assert max(float(np.max(g * s.voltage_v)) for g, s in zip(
             fitted.gains, held.sweeps, strict=True)) > 153.0
+
+
+def test_a_gauge_on_a_base_that_carries_it_sees_only_the_rods_dynamics(
+        nominal: Transducer, emulate: Callable[..., sw.Sweep]) -> None:
+    """identify's density, fitted on a gauge's readings, carries the gauge's static part. On
+    such a base the gauge's held form drives the rod with the positions whose readings the
+    static output is (their gauge gives it back, to 1e-9) and reads the rod's output through the
+    gauge. On the slow triangle, where the rod follows, that is the base's own reading (to 1e-5
+    of the gauge's error); on the fast one the rod's lag shows it 100 times more. On a base identified apart from
+    the gauge the form is the plain one; a gauge left on a base that carries it is refused."""
+    carried, apart = _held(nominal, emulate, True), _held(nominal, emulate)
+    z = np.concatenate((carried.rod, [0.04, -0.02]))
+    g = carried.statics("sensor-nonlinearity", z[2:])
+    e = carried.effects("sensor-nonlinearity", z[2:])
+    cols = carried.columns("sensor-nonlinearity", z, g, carried.sweeps)
+    none = carried.columns("none", z[:2], g, carried.sweeps)
+    for s, gs, col in zip(carried.sweeps, g, cols, strict=True):
+        x = fx.ungauge(e, gs)
+        assert np.max(np.abs(fx.gauge(e, x) - gs)) < 1e-9 * np.ptp(gs)
+        assert np.max(np.abs(col[:, 0] - rod_filter(x, *np.exp(z[:2]), s.dt))) < 1e-9 * np.ptp(gs)
+    err = np.ptp(fx.gauge(e, g[0]) - g[0])
+    seen = [fx.gauge(e, col[:, 0]) - n[:, 0] for col, n in zip(cols, none, strict=True)]
+    slow, fast = np.max(np.abs(seen[0][seen[0].size // 10:])), np.max(np.abs(seen[2]))
+    assert slow < 1e-5 * err and fast > 100 * slow, (slow / err, fast / err)
+    plain = apart.columns("sensor-nonlinearity", z, g, apart.sweeps)
+    assert all(np.array_equal(p, n) for p, n in zip(plain, none, strict=True))
+    fitted = apart.extended("sensor-nonlinearity", z, np.array([1.0, 0.0, 0.0, 0.0]), True, 1)
+    assert "identified apart" in (hb.refusal(fitted, True) or "")
+    assert hb.refusal(fitted) is None
 
 
 def test_a_mode_on_its_damping_bound_or_carrying_the_stroke_is_refused(
