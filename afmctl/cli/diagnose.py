@@ -92,7 +92,7 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
         f"{d.noise_um:.4f} um); wrote {out}/" + ", ".join(OUTPUTS[1:] + OUTPUTS[:1]))
     if d.cause == "unexplained":
         say(d.closest_dict()["text"])
-    for s in d.suggestions() if d.separating is not None else []:
+    for s in d.suggestions() if d.cause != "unexplained" else []:  # the closest says more
         say(f"{s['reading']}: {s['measure']}")
     if as_json:
         click.echo(json.dumps(doc, allow_nan=False))

@@ -207,10 +207,13 @@ class Diagnosis:
 
     def suggestions(self) -> list[dict[str, str]]:
         """What would tell more: the residual's hints when unexplained, the separating sweep
-        when indistinguishable (none otherwise)."""
+        when indistinguishable, the reversal curves when creep was named on sweeps that reverse
+        at few voltages inside their range (none otherwise)."""
         if self.cause == "unexplained":
             drift = [gb.DRIFT_HINT] if self.grid is not None and self.grid.drift() else []
             return drift + vd.suggestions(self.signature)
+        if self.cause == "creep" and self.grid is not None:
+            return self.grid.hints()
         if self.separating is not None:
             s = self.separating
             return [{"feature": "twins", "reading": f"{s['sensor']} and its actuator-side twin "

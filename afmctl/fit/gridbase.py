@@ -63,6 +63,7 @@ from afmctl.files.sweepfile import Sweep
 from afmctl.fit import extension as ext
 from afmctl.fit import preisach as pf
 from afmctl.fit import verdict as vd
+from afmctl.fit.representation import REVERSALS_NEEDED, interior_reversals
 from afmctl.model import creep as cr
 
 FloatArray = NDArray[np.float64]
@@ -84,6 +85,17 @@ CAUSES = {
              "decade of time, over decades (not one exponential knee)",
 }
 #: The suggestion when the creep elements sit on the slowest time constants (:meth:`GridBase.drift`).
+#: A creep verdict on sweeps that reverse at fewer than
+#: :data:`~afmctl.fit.representation.REVERSALS_NEEDED` voltages inside their range (the grid's
+#: interior is the smoothing's guess, as identify warns): :meth:`GridBase.hints`.
+INTERIOR_HINT = {
+    "feature": "loop-interior",
+    "reading": "the Preisach grid with creep was fitted on sweeps that reverse at few voltages "
+               "inside their range: inside the loop, where a tracking triangle's minor loops "
+               "run, its density is the smoothing's guess, and extended.toml can track worse "
+               "than the model without creep",
+    "measure": "before tracking with extended.toml, record the reversal curves (`afmctl sweep "
+               "--design reversals`) and diagnose or identify with them"}
 DRIFT_HINT = {
     "feature": "drift",
     "reading": "the Preisach grid's creep elements put their weight on the 100-1000 s time "
@@ -157,7 +169,9 @@ class GridBase:
     its held-out RMS (um, overall and per sweep); the readings the grid with creep gives on the
     sweeps (um: what ``extended.toml`` reproduces), the creep elements' figures read from what
     they add over the record's span (``seen``; s, :func:`record_s`) and from their weights
-    (``weights``), the noise floor (um) and rule they are read with, and the wall time (s)."""
+    (``weights``), the noise floor (um) and rule they are read with, the wall time (s) and the
+    voltages inside their range at which the sweeps reverse
+    (:func:`afmctl.fit.representation.interior_reversals`)."""
 
     plain: ext.Extended
     crept: ext.Extended
@@ -173,6 +187,7 @@ class GridBase:
     rule: CreepRule
     bar: vd.Rule
     seconds: float
+    interior_reversals: int = REVERSALS_NEEDED
 
     @property
     def gain(self) -> float:
@@ -188,6 +203,11 @@ class GridBase:
         """The grid with creep near the floor, or nearly all of the grid's misfit explained."""
         b = self.bar
         return self.crept_rms_um <= b.near * self.floor_um or self.explained >= b.clearly_explained
+
+    def hints(self) -> list[dict[str, str]]:
+        """What would tell more when the verdict is ``creep``: the reversal curves, if the
+        sweeps reverse at too few voltages inside their range (:data:`INTERIOR_HINT`)."""
+        return [INTERIOR_HINT] if self.interior_reversals < REVERSALS_NEEDED else []
 
     def creep(self) -> bool:
         """Whether the elements describe log-time creep (the module docstring's rule)."""
@@ -240,7 +260,7 @@ class GridBase:
                 "creep_share_100s_up": self.seen.long_share,
                 "creep_span_decades": self.seen.span_decades, "creep_record_s": self.record_s,
                 "creep_weights": asdict(self.weights),
-                "creep": self.creep(),
+                "creep": self.creep(), "interior_reversals": self.interior_reversals,
                 "drift": self.drift(), "seconds": round(self.seconds, 2),
                 "method": "the Preisach grid fitted on the whole sweeps without and with its "
                           "creep elements (10 ms - 1000 s; each fit with the same step budget), "
@@ -399,7 +419,8 @@ def judge(sweeps: Sequence[Sweep], thickness_um: float, mass_kg: float,
                     tuple(map(float, p_per)), tuple(map(float, c_per)),
                     tuple(prob.predict(crept.theta, full=True)),
                     elements(prob.el_tau, c, rule, record), elements(prob.el_tau, c, rule), record,
-                    vd.floor(noise_um), rule, bar, time.perf_counter() - t0)
+                    vd.floor(noise_um), rule, bar, time.perf_counter() - t0,
+                    interior_reversals(sweeps))
 
 
 def _root_mean(per_sweep_um: FloatArray) -> float:

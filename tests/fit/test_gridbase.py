@@ -118,6 +118,10 @@ def test_a_creeping_stage_out_of_the_family_is_diagnosed_creep(tmp_path: Path) -
     _write(d, sweeps, tuple(f"{s.path}.csv" for s in sweeps), tmp_path, "{}")
     doc = json.loads(json.dumps(d.as_dict(), allow_nan=False))
     assert doc["base_model"] == "the Preisach grid without creep" and doc["grid"]["creep"]
+    # three full-range triangles: no reversal inside the range, so the creep model's loop
+    # interior is the smoothing's guess, and the diagnosis says which sweeps would fix that
+    assert doc["grid"]["interior_reversals"] == 0
+    assert d.suggestions() == [gb.INTERIOR_HINT] and "--design reversals" in str(doc)
     assert "creep" in doc["explanation"] and "decade" in doc["evidence"]
     assert "Preisach grid" in doc["method"]
     assert "| preisach-grid with creep |" in (tmp_path / "report.md").read_text()
@@ -181,6 +185,16 @@ def test_creep_is_read_from_what_the_record_sees_and_a_drift_from_the_weights() 
                     gb.Elements(0.0096, 0.007, 0.99, 1.0))
     assert drifting.drift() and not drifting.creep() and drifting.verdict() == "unexplained"
     assert not grid(1.52, 1.03, drifting.seen, drifting.seen).drift()
+
+
+def test_a_creep_verdict_asks_for_reversal_curves_only_when_the_sweeps_lack_them() -> None:
+    """identify's rule (:data:`afmctl.fit.representation.REVERSALS_NEEDED` reversal voltages
+    inside the range): the reversals design has 7 of each kind; full-range triangles none."""
+    few = dataclasses.replace(grid_of(10.0, 2.0), interior_reversals=0)
+    enough = dataclasses.replace(few, interior_reversals=7)
+    assert few.verdict() == enough.verdict() == "creep"
+    assert few.hints() == [gb.INTERIOR_HINT] and enough.hints() == []
+    assert few.as_dict()["interior_reversals"] == 0
 
 
 def test_the_drift_hint_needs_the_elements_to_explain_the_misfit() -> None:
