@@ -59,8 +59,7 @@ def _v_range(v_range: tuple[float, float] | None, prof) -> tuple[float, float]: 
               default="standard",
               show_default=True,
               help="standard: the paper's set; separating: the same and one more sweep of holds, "
-                   "full-range ramps near the slew limit, fast steps and a multisine that tell "
-                   "causes apart for `afmctl diagnose`; "
+                   "fast steps and a multisine that tell causes apart for `afmctl diagnose`; "
                    "reversals: the same and first-order reversal curves (`reversals.csv`), for "
                    "a stage off the paper's model family (the Preisach grid's interior); with --axes "
                    "each axis's curves after its triangles.")
@@ -81,8 +80,7 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
           band_hz: float | None) -> None:
     """Record the standard identification set over the stage's voltage range: triangles at
     0.279, 5.58 and 27.9 Hz (Fig. 2) and nested minor loops at 0.1 Hz (Fig. 1(b)); with
-    `--design separating` also a sweep of holds, full-range ramps near the slew limit, fast
-    steps and a multisine (`separating.csv`);
+    `--design separating` also a sweep of holds, fast steps and a multisine (`separating.csv`);
     with `--design reversals` also first-order reversal curves (`reversals.csv`).
 
     Each sweep is written to --out as it arrives (NAME.incomplete.csv); an interrupted one stays

@@ -151,10 +151,6 @@ INTERIOR_REVERSALS = 7
 INTERIOR_LAST = 0.06
 #: Fraction of the usable slew rate the fast steps and the multisine may use (the guard's margin).
 SLEW_USE = 0.5
-#: Fraction of the usable slew rate of the separating sweep's full-range ramps: a gauge's law and
-#: the same law before the rod part by the rod's lag squared, which grows as the slew squared
-#: (``python -m benchmarks.gauge_twins``: 0.57x the noise at half the slew, 2.0x at all of it).
-RAMP_USE = 0.9
 #: The multisine's highest tone, as a fraction of the sample rate.
 MULTISINE_TOP = 1 / 20
 
@@ -221,10 +217,6 @@ def separating_sweep(v_range: tuple[float, float], sample_rate_hz: float,
 
     * ramp to ``v_hi`` at the 5.58 Hz triangle's slew, **hold** (creep and thermal relaxation move
       the stage at constant voltage; a gain drift does not);
-    * full-range **steps** down and up, twice, at ``RAMP_USE`` of the usable slew, each held: a
-      gauge's nonlinearity reads the rod's ringing at either end of the range through its own
-      slope, a nonlinearity before the rod rings with the rod (the two part by the rod's lag
-      squared: only ramps near the slew limit tell them apart);
     * fast **steps** (at ``SLEW_USE`` of the usable slew) to 1/2, 3/4 and 1/4 of the range, each
       held: their ringing and the approach to rest separate an amplifier's lag (rounded corner), a
       reading's delay (a shift) and a second mode (a ring at its own frequency), and the holds on
@@ -251,14 +243,13 @@ def separating_sweep(v_range: tuple[float, float], sample_rate_hz: float,
     """
     lo, hi = v_range
     span, v0 = hi - lo, min(max(0.0, lo), hi)
-    fast, full = SLEW_USE * max_rate_v_per_s, RAMP_USE * max_rate_v_per_s
+    fast = SLEW_USE * max_rate_v_per_s
     slow = min(2 * span * 5.58, fast)
     hold = {"long": 0.1, "short": 0.04}
     plan: list[tuple[str, FloatArray]] = []
     v = v0
     for _ in range(repeats):
         for kind, target, rate, rest in (("ramp", hi, slow, "long"),
-                                         *(("step", end, full, "short") for end in (lo, hi) * 2),
                                          ("step", lo + 0.5 * span, fast, "short"),
                                          ("step", lo + 0.75 * span, fast, "short"),
                                          ("step", lo + 0.25 * span, fast, "short"),
