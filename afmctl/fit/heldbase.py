@@ -20,8 +20,8 @@ the causes around it:
   the same polynomial before the rod's dynamics, never named, fitted on the gauge's base);
   identify's density took a gauge's static part up, so on that base the gauge's form is
   ``gauge(L[ungauge(g)])``, which differs from the base only through the rod's lag, and a gauge
-  that takes anything off has the density identified again on the positions it gives
-  (:func:`rebases`; a gauge left on the first base is refused: :func:`refusal`). On the
+  that takes a fifth off the base's cost has the density identified again on the positions it
+  gives (:func:`rebases`; a gauge left on the first base is refused: :func:`refusal`). On the
   other-form gap-law stage other-sensor-nonlinearity-0 with eight full-range ramps at 0.95 of
   the usable slew added to the triangles: 1.49x the noise held out without it, 1.05x with it,
   its twin 1.35x (1.95x on the ramps; docs/results/diagnose.md, stop 64);
@@ -390,7 +390,8 @@ def refusal(fitted: ext.Extended, gauge_in_base: bool = False) -> str | None:
     the rod)."""
     if fitted.name == "sensor-nonlinearity" and gauge_in_base:
         return ("the gauge was not identified apart from the density, which carries its static "
-                "part (identified again through it, the density fitted the first halves worse)")
+                "part (it took less than a fifth off the base's cost, or the density identified "
+                "again through it fitted the first halves worse)")
     mode = fitted.model.effects.second_mode
     if fitted.name != "second-mode" or mode is None:
         return None
@@ -436,14 +437,13 @@ class HeldBase:
 
 def rebases(held: Held, name: str, cost: float, base_cost: float) -> bool:
     """Whether cause ``name``, fitted at ``cost`` on ``held`` (the base's: ``base_cost``), has
-    its density identified again through it (:func:`rebased`): an input-side cause that takes a
-    fifth off the base's cost (:data:`REBASE_GAIN`), and a gauge that takes anything off a base
-    that carries it (on such a base the held form, the gauge's inverse before the rod and the
-    gauge after it, sees only the rod's dynamics; the model is written from the density
-    identified on the positions the gauge gives)."""
-    if name == "sensor-nonlinearity" and held.gauge_in_base:
-        return cost < base_cost
-    return held.causes[name].input_side and cost < REBASE_GAIN * base_cost
+    its density identified again through it (:func:`rebased`): an input-side cause, or a gauge
+    on a base that carries it, that takes a fifth off the base's cost (:data:`REBASE_GAIN`).
+    On such a base the gauge's held form (its inverse before the rod, the gauge after it) sees
+    only the rod's dynamics, and its model is written from the density identified on the
+    positions the gauge gives; a gauge not identified apart is refused (:func:`refusal`)."""
+    gauge = name == "sensor-nonlinearity" and held.gauge_in_base
+    return (held.causes[name].input_side or gauge) and cost < REBASE_GAIN * base_cost
 
 
 def rebased(held: Held, name: str, fit: Fit, halves: Sequence[Sweep], settings: idf.Settings,
