@@ -296,11 +296,11 @@ def log(msg: str) -> None:
 
 def family_row(name: str, design: str = "standard") -> dict[str, Any]:
     """Diagnose on one out-of-family or other-form stage's standard triangles (``design``
-    ``separating``: and the separating sweep after them)."""
+    ``separating`` or ``reversals``: and that design's sweep after them)."""
     case = family_sets.cases_named(name, family_sets.FAMILY_CASES
                                    + family_sets.OTHER_FORM_CASES)[0]
     with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
-        sweeps = family_sets.record(s, Path(tmp) / "sweeps", reversals=False,
+        sweeps = family_sets.record(s, Path(tmp) / "sweeps", reversals=design == "reversals",
                                     separating=design == "separating")
         d = dg.diagnose(sweeps, dg.Settings(jobs=1))
         tracked = family_track(s, d, sweeps) if d.extended is not d.base else {}

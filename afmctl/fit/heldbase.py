@@ -168,9 +168,13 @@ class Held:
     def __init__(self, model: td.Transducer, sweeps: Sequence[Sweep], starts: Sequence[str],
                  fit_masks: Sequence[NDArray[np.bool_]],
                  judged_masks: Sequence[NDArray[np.bool_]], noise: FloatArray,
-                 frame: tuple[float, float, float, float], gauge_in_base: bool = True) -> None:
+                 frame: tuple[float, float, float, float], gauge_in_base: bool = True,
+                 offsets: Sequence[float] | None = None) -> None:
         self.model, self.sweeps, self.starts = model, list(sweeps), list(starts)
         self.gauge_in_base = gauge_in_base
+        # each sweep's sensor zero as identified (um): the static output in the readings' frame
+        self.offsets = np.nan_to_num(np.zeros(len(self.sweeps)) if offsets is None
+                                     else np.asarray(offsets, dtype=float))
         self.fit_masks, self.judged_masks = list(fit_masks), list(judged_masks)
         self.noise, self.frame = np.asarray(noise, dtype=float), frame
         self.g = hf.static_um(model, sweeps, starts)
@@ -244,17 +248,18 @@ class Held:
         return self._last[1]
 
     def columns(self, name: str, z: FloatArray, g: Sequence[FloatArray],
-                sweeps: Sequence[Sweep]) -> list[FloatArray]:
+                sweeps: Sequence[Sweep], offsets: FloatArray | None = None) -> list[FloatArray]:
         """Per sweep: the design columns (N x k) of cause ``name`` at ``z`` on static
-        displacements ``g`` (um)."""
+        displacements ``g`` (um; their sensor zeros ``offsets``, default the sweeps')."""
         fn, zn = np.exp(z[:2])
         phi, out = z[2:], []
-        for gs, s in zip(g, sweeps, strict=True):
+        offsets = self.offsets if offsets is None else offsets
+        for gs, s, o in zip(g, sweeps, offsets, strict=True):
             if name == "actuator-nonlinearity":
                 out.append(rod_filter(np.column_stack((gs, gs * gs, gs ** 3)), fn, zn, s.dt))
                 continue
-            if name == "sensor-nonlinearity" and self.gauge_in_base:
-                gs = fx.ungauge(self.effects(name, phi), gs)
+            if name == "sensor-nonlinearity" and self.gauge_in_base:  # in the readings' frame
+                gs = fx.ungauge(self.effects(name, phi), gs + o) - o
             u = rod_filter(gs, fn, zn, s.dt)
             if name == "second-mode":
                 out.append(np.column_stack((u, *hf.mode_parts(u, *np.exp(phi), s.dt))))
@@ -308,8 +313,20 @@ class Held:
                         key=prob.cost)[:1 if c.input_side else POLISHED] for r in rods]
                 if start is None else [[start]])
         best = prob.polish([z for run in runs for z in run], lo, hi, max_nfev)
-        return (best.x, prob.solve(best.x)[0], bool(best.success and best.status > 0), best.nfev,
-                2.0 * float(best.cost))
+        beta = prob.solve(best.x)[0]
+        cost = (self.reading_cost(name, best.x, beta, prob.w) if name == "sensor-nonlinearity"
+                else 2.0 * float(best.cost))
+        return best.x, beta, bool(best.success and best.status > 0), best.nfev, cost
+
+    def reading_cost(self, name: str, z: FloatArray, beta: FloatArray, w: FloatArray) -> float:
+        """The weighted sum of squares (each sweep's weight ``w``) of the fit on its rows in the
+        readings' units: a gauge's solver weighs the positions its inverse gives the readings,
+        whose scale moves with the gauge (its cost would not compare with the base's)."""
+        cols = self.columns(name, z, self.statics(name, z[2:], True), self.fit_sweeps)
+        got = self.readings(name, z, beta, cols)
+        return float(sum(np.sum((ws * (s.displacement_um - u))[m[:s.time_s.size]] ** 2)
+                         for ws, s, u, m in zip(w, self.fit_sweeps, got, self.fit_masks,
+                                                strict=True)))
 
     def through(self, name: str, phi: FloatArray, halves: Sequence[Sweep],
                 settings: idf.Settings) -> Held:
@@ -330,7 +347,8 @@ class Held:
         res = idf.fit(again, replace(settings, representation="hem", density="discrete"))
         return Held(res.model, self.sweeps, [e.start for e in res.sweeps], self.fit_masks,
                     self.judged_masks, self.noise, self.frame,
-                    self.gauge_in_base and name != "sensor-nonlinearity")
+                    self.gauge_in_base and name != "sensor-nonlinearity",
+                    [e.offset_um for e in res.sweeps])
 
     def heldout(self, name: str, z: FloatArray, beta: FloatArray
                 ) -> tuple[float, tuple[float, ...], float]:
@@ -376,15 +394,15 @@ class Held:
         start = fitted.starts[0] if fitted.starts[0] != "previous" else "depoled"
         z, beta = fitted.x, fitted.beta
         g = hf.static_um(replace(self.model, effects=self.effects(name, z[2:])), [sweep], [start])
-        cols = self.columns(name, z, g, [sweep])
+        cols = self.columns(name, z, g, [sweep], self.offsets[-1:])
         k = cols[0].shape[1]
         return self.readings(name, z, np.concatenate((beta[:k], beta[-1:])), cols)[0]
 
 
 def refusal(fitted: ext.Extended, gauge_in_base: bool = False) -> str | None:
     """Why a fitted cause cannot be what it says (None: it can): a gauge still fitted on a base
-    that carries it (``gauge_in_base``: its density was not identified again through the gauge, :func:`rebased`:
-    no model states the hysteresis and the gauge apart), a second mode whose damping ends on its
+    that carries it (``gauge_in_base``: its density was not identified again through the gauge,
+    :func:`rebased`: no model states the hysteresis and the gauge apart), a second mode whose damping ends on its
     upper bound (:data:`MODE_DAMPING`: a filter's corner, not a resonance) or whose gain is
     beyond :data:`afmctl.fit.heldfit.GAIN_BOUNDS` (a "mode" carrying as much of the stroke as
     the rod)."""
@@ -501,7 +519,8 @@ def judge(sweeps: Sequence[Sweep], halves: Sequence[Sweep], noise: Sequence[floa
     held = Held(res.model, sweeps, [e.start for e in res.sweeps],
                 [m & h for m, h in zip(masks, half, strict=True)],
                 [m & ~h for m, h in zip(masks, half, strict=True)], np.asarray(noise, float),
-                cd.reading_frame(cd.recorded_calibration(sweeps)))
+                cd.reading_frame(cd.recorded_calibration(sweeps)), True,
+                [e.offset_um for e in res.sweeps])
     tried = [n for n in held.causes if n == "none" or n in names
              or (n in cd.TWIN_ONLY and any(cd.TWINS.get(s) == n for s in names))]
     table, helds, base_cost = {}, {}, math.inf
