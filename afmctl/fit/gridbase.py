@@ -84,7 +84,6 @@ CAUSES = {
              "voltage the stage keeps moving the way it last moved, by about the same amount per "
              "decade of time, over decades (not one exponential knee)",
 }
-#: The suggestion when the creep elements sit on the slowest time constants (:meth:`GridBase.drift`).
 #: A creep verdict on sweeps that reverse at fewer than
 #: :data:`~afmctl.fit.representation.REVERSALS_NEEDED` voltages inside their range (the grid's
 #: interior is the smoothing's guess, as identify warns): :meth:`GridBase.hints`.
@@ -96,6 +95,7 @@ INTERIOR_HINT = {
                "than the model without creep",
     "measure": "before tracking with extended.toml, record the reversal curves (`afmctl sweep "
                "--design reversals`) and diagnose or identify with them"}
+#: The suggestion when the creep elements sit on the slowest time constants (:meth:`GridBase.drift`).
 DRIFT_HINT = {
     "feature": "drift",
     "reading": "the Preisach grid's creep elements put their weight on the 100-1000 s time "

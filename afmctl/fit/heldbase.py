@@ -402,10 +402,10 @@ class Held:
 def refusal(fitted: ext.Extended, gauge_in_base: bool = False) -> str | None:
     """Why a fitted cause cannot be what it says (None: it can): a gauge still fitted on a base
     that carries it (``gauge_in_base``: its density was not identified again through the gauge,
-    :func:`rebased`: no model states the hysteresis and the gauge apart), a second mode whose damping ends on its
-    upper bound (:data:`MODE_DAMPING`: a filter's corner, not a resonance) or whose gain is
-    beyond :data:`afmctl.fit.heldfit.GAIN_BOUNDS` (a "mode" carrying as much of the stroke as
-    the rod)."""
+    :func:`rebased`: no model states the hysteresis and the gauge apart), a second mode whose
+    damping ends on its upper bound (:data:`MODE_DAMPING`: a filter's corner, not a resonance)
+    or whose gain is beyond :data:`afmctl.fit.heldfit.GAIN_BOUNDS` (a "mode" carrying as much
+    of the stroke as the rod)."""
     if fitted.name == "sensor-nonlinearity" and gauge_in_base:
         return ("the gauge was not identified apart from the density, which carries its static "
                 "part (it took less than a fifth off the base's cost, or the density identified "
