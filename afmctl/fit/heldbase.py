@@ -466,8 +466,9 @@ def rebases(held: Held, name: str, cost: float, base_cost: float) -> bool:
 
 def rebased(held: Held, name: str, fit: Fit, halves: Sequence[Sweep], settings: idf.Settings,
             max_nfev: int, say: Callable[[str], None]) -> tuple[Held, Fit]:
-    """Input-side cause ``name``'s ``fit`` (:meth:`Held.fit`) with the density identified again
-    through its effect (:meth:`Held.through`) and the cause refitted on it from that
+    """Cause ``name``'s ``fit`` (:meth:`Held.fit`; an input-side cause, or a gauge on a base that
+    carries it: :func:`rebases`) with the density identified again through its effect
+    (:meth:`Held.through`) and the cause refitted on it from that
     identification's rod, in turn, up to :data:`REBASES` times while each round takes a fifth
     off the cost (:data:`REBASE_GAIN`); a round that fits the first halves worse is not kept.
     A density identified without the effect had absorbed part of it, and the effect fitted on
