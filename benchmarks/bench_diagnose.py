@@ -300,10 +300,9 @@ def family_row(name: str, design: str = "standard") -> dict[str, Any]:
     case = family_sets.cases_named(name, family_sets.FAMILY_CASES
                                    + family_sets.OTHER_FORM_CASES)[0]
     with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
-        sweeps = family_sets.record(s, Path(tmp) / "sweeps", reversals=design == "reversals",
-                                    separating=design == "separating")
+        sweeps = _recorded(s, Path(tmp), design)
         d = dg.diagnose(sweeps, dg.Settings(jobs=1))
-        tracked = family_track(s, d, sweeps) if d.extended is not d.base else {}
+    tracked = family_track(case, design, d) if d.extended is not d.base else {}
     present = {c for c in ("creep" if case.creep else None, case.effect) if c}
     named = d.cause
     return {"stage": case.name, "design": design, "family": case.family, "creep": case.creep,
@@ -322,21 +321,33 @@ def family_row(name: str, design: str = "standard") -> dict[str, Any]:
             "seconds": round(d.seconds, 1), **tracked}
 
 
-def family_track(s: Any, d: dg.Diagnosis, sweeps: list[sw.Sweep]) -> dict[str, Any]:
+def _recorded(s: Any, folder: Path, design: str) -> list[sw.Sweep]:
+    """The three standard triangles and ``design``'s sweep after them, recorded on ``s``."""
+    return family_sets.record(s, folder / "sweeps", reversals=design == "reversals",
+                              separating=design == "separating")
+
+
+def family_track(case: Any, design: str, d: dg.Diagnosis) -> dict[str, Any]:
     """When diagnose named a cause: bench_track's triangles tracked open loop through the
-    inverse of the base and of the extended model diagnose wrote, judged by the stage's true
-    position (:func:`family_sets.tracked`, 3 periods)."""
-    span = family_sets.span_of(sweeps)
-    out: dict[str, Any] = {}
-    for freq, frac in family_sets.TRIANGLES:
-        for name, model in (("base", d.base_model), ("extended", d.extended_model)):
-            key = f"track_{freq:g}hz_{name}_true_rms_um"
-            try:
-                out[key] = family_sets.tracked(s, model, freq, frac, span, 3,
-                                               ("inverse",))["inverse"]
-            except guard.LimitError as exc:
-                out[key] = None
-                out[f"track_{freq:g}hz_{name}_refused"] = str(exc)
+    inverse of the base and of the extended model diagnose wrote, each on the stage as the
+    sweeps left it (a new session records them again: the stage and its noise are seeded, so
+    they are the sweeps diagnose saw) and planned from that model's twin of it, as ``afmctl
+    track`` plans from the twin diagnose leaves beside the model, in the frame the twin reads;
+    judged by the stage's true position (:func:`family_sets.tracked`, 3 periods)."""
+    out: dict[str, Any] = {"track_planned_from": "twin"}
+    for name, model in (("base", d.base_model), ("extended", d.extended_model)):
+        with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
+            sweeps = _recorded(s, Path(tmp), design)
+            s.frame = family_sets.follow(s, model, sweeps)
+            span = family_sets.span_of(sweeps)
+            for freq, frac in family_sets.TRIANGLES:
+                key = f"track_{freq:g}hz_{name}_true_rms_um"
+                try:
+                    out[key] = family_sets.tracked(s, model, freq, frac, span, 3,
+                                                   ("inverse",))["inverse"]
+                except guard.LimitError as exc:
+                    out[key] = None
+                    out[f"track_{freq:g}hz_{name}_refused"] = str(exc)
     return out
 
 

@@ -21,6 +21,8 @@ from afmctl.cli.base import (
 from afmctl.errors import InputError, OutputError
 
 OUTPUTS = ("diagnosis.json", "base.toml", "extended.toml", "report.md", "residuals.png")
+#: Each model's twin of the stage as the sweeps left it, beside it where the sweeps say their holds.
+TWINS = ("base.twin.json", "extended.twin.json")
 
 
 @main.command()
@@ -48,7 +50,9 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     and measure the gain on held-out data.
 
     Writes diagnosis.json, base.toml and extended.toml (model files for track), report.md and
-    residuals.png to --out.
+    residuals.png to --out, and beside each model, where the sweeps say when they were recorded,
+    its twin of the stage as the sweeps left it (base.twin.json, extended.twin.json): track plans
+    a creeping stage's next run from it, as from identify's.
     """
     from afmctl.files import modelfile
     from afmctl.files import sweepfile as sweeps
@@ -79,17 +83,20 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     if (out / "diagnosis.json").exists() and not force:
         raise OutputError(f"--out {out}: already holds a diagnosis; choose another folder or add "
                           f"--force to overwrite it")
-    check_output_dir(out, "--out", OUTPUTS, force)
+    check_output_dir(out, "--out", OUTPUTS + TWINS, force)
     say(f"diagnosing {len(data)} sweep(s): "
         f"{len(dg.with_forms(dg.candidate_names(len(data), settings)))} candidates ...")
     d = dg.diagnose(data, settings, start, progress=say, noise_um=noise)
     doc = d.as_dict()
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"  # before anything is written
     with writing(out, "--out"):
-        _write(d, data, sweep_files, out, text)
+        twins = _write(d, data, sweep_files, out, text)
     say(f"cause: {d.cause} (held-out RMS {d.base_rms_um:.4f} -> {d.extended_rms_um:.4f} um, "
         f"gain {d.gain:.2f}; {d.base_over_noise:.2f}x -> {d.extended_over_noise:.2f}x the noise "
         f"{d.noise_um:.4f} um); wrote {out}/" + ", ".join(OUTPUTS[1:] + OUTPUTS[:1]))
+    if twins:
+        say(f"wrote {', '.join(twins)} (each model's twin of the stage as the sweeps left it: "
+            f"track plans a creeping stage's next run from it)")
     if d.cause == "unexplained":
         say(d.closest_dict()["text"])
     for s in d.suggestions() if d.cause != "unexplained" else []:  # the closest says more
@@ -98,11 +105,15 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
         click.echo(json.dumps(doc, allow_nan=False))
 
 
-def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:  # noqa: ANN001
-    """Every file of a diagnosis, each atomic, ``diagnosis.json`` last (marks it complete)."""
+def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str  # noqa: ANN001
+           ) -> list[str]:
+    """Every file of a diagnosis, each atomic, ``diagnosis.json`` last (marks it complete); the
+    names of the twins written."""
     from afmctl import plots
+    from afmctl.experiment import twin
     from afmctl.experiment.runner import atomic_write
-    from afmctl.files import modelfile
+    from afmctl.files import modelfile, twinfile
+    from afmctl.files.sweepfile import in_recorded_order
     from afmctl.fit import diagnosis_report
     make_dir(out, "--out")
     header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
@@ -112,6 +123,11 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     modelfile.write(d.extended_model, out / "extended.toml",
                     header=header + f"\nextended with: {d.cause}",
                     fit=_record(d, names, extended=True))
+    twins = []
+    for model, path in ((d.base_model, out / "base.toml"), (d.extended_model, out / "extended.toml")):
+        twinfile.path_for(path).unlink(missing_ok=True)  # an earlier diagnosis's (--force)
+        kept = twin.keep_beside(model, in_recorded_order(data), path)
+        twins += [] if kept is None else [kept.name]
     before, after = d.predictions(data)
     partial = out / "residuals.partial.png"
     plots.diagnosis_figure(data, before, after, d.base_model.thickness_um,
@@ -119,6 +135,7 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str) -> None:
     partial.replace(out / "residuals.png")
     atomic_write(out / "report.md", diagnosis_report.report(d, "residuals.png"))
     atomic_write(out / "diagnosis.json", text)  # last: marks the folder complete
+    return twins
 
 
 

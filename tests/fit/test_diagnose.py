@@ -20,9 +20,11 @@ from click.testing import CliRunner
 from afmctl.cli import main
 from afmctl.experiment import runner as experiment
 from afmctl.files import sweepfile as sw
+from afmctl.files import twinfile
 from afmctl.fit import candidate_space, candidates, verdict
 from afmctl.fit import diagnose as dg
 from afmctl.model import effects as fx
+from afmctl.model import transducer as tr
 from afmctl.planning import sweepdesign as sd
 from afmctl.planning import track
 from benchmarks import bench_diagnose as bench
@@ -52,8 +54,12 @@ def test_foreign_stage_verdict(cause: str, strength: float, index: int,
 @pytest.mark.slow
 def test_cli_on_a_clean_foreign_stage_claims_nothing(tmp_path: Path) -> None:
     (tmp_path / "sweeps").mkdir()
+    t0 = 1000.0  # one after another, 0.5 s apart, but at three rates: no twin can follow them
     for s in stage_sweeps("none", None, 0):
-        sw.write(s, tmp_path / "sweeps" / f"{s.path}.csv")
+        sw.write(sw.from_arrays(s.voltage_v, s.displacement_um, 1 / s.dt,
+                                {**s.meta, "started_s": f"{t0:.6f}"}),
+                 tmp_path / "sweeps" / f"{s.path}.csv")
+        t0 += s.voltage_v.size * s.dt + 0.5
     files = sorted(str(p) for p in (tmp_path / "sweeps").glob("*.csv"))
     out = tmp_path / "diag"
     res = CliRunner().invoke(main, ["diagnose", *files, "--out", str(out), "--json"])
@@ -70,8 +76,35 @@ def test_cli_on_a_clean_foreign_stage_claims_nothing(tmp_path: Path) -> None:
     assert json.loads((out / "diagnosis.json").read_text()) == doc
     for name in ("base.toml", "extended.toml", "report.md", "residuals.png"):
         assert (out / name).stat().st_size > 0
+    assert "twin.json" not in res.stderr and not list(out.glob("*.twin.json"))
     again = CliRunner().invoke(main, ["diagnose", *files, "--out", str(out)])
     assert again.exit_code == 2 and "already holds a diagnosis" in again.stderr
+
+
+@pytest.mark.slow
+def test_cli_leaves_each_models_twin_beside_it(nominal, tmp_path: Path) -> None:  # noqa: ANN001
+    """A sweep that says when it started: base.toml and extended.toml each get their twin of the
+    stage as the sweep left it (of that model file, as track checks), and a second diagnosis
+    with --force on a sweep that does not say removes them rather than leave them stale."""
+    v = sd.voltage_triangle(27.9, 150.0, 3, 10_000.0)
+    u, _, _ = tr.simulate(tr.compile_model(nominal, 1e-4), v, tr.initial(nominal))
+    u = u + np.random.default_rng(0).normal(0.0, 0.02, u.size)
+    timed = {"layer_thickness_um": f"{nominal.thickness_um:g}", "started_s": "1000.0"}
+    sw.write(sw.from_arrays(v, u, 10_000.0, timed), tmp_path / "timed.csv")
+    out = tmp_path / "diag"
+    res = CliRunner().invoke(main, ["diagnose", str(tmp_path / "timed.csv"), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "wrote base.twin.json, extended.twin.json" in res.stderr
+    for name in ("base", "extended"):
+        kept = twinfile.read(out / f"{name}.twin.json")
+        assert kept.model_sha256 == twinfile.digest(out / f"{name}.toml")
+        assert kept.held_v == pytest.approx(float(v[-1]))
+    del timed["started_s"]
+    sw.write(sw.from_arrays(v, u, 10_000.0, timed), tmp_path / "untimed.csv")
+    res = CliRunner().invoke(main, ["diagnose", str(tmp_path / "untimed.csv"), "--out", str(out),
+                                    "--force"])
+    assert res.exit_code == 0, res.output
+    assert not list(out.glob("*.twin.json"))
 
 
 def test_bad_input_exits_2_and_writes_nothing(tmp_path: Path, nominal) -> None:  # noqa: ANN001

@@ -149,6 +149,9 @@ def test_the_guide_runs_as_written_on_a_fresh_clone(tmp_path: Path) -> None:
     # 6: diagnose names the hidden cause
     diagnosis = json.loads((clone / "diagnose" / "diagnosis.json").read_text())
     assert diagnosis["cause"] == "sensor-delay", diagnosis["cause"]
+    assert "wrote base.twin.json, extended.twin.json" in out["afmctl diagnose"].stderr
+    # 7: track plans from the extended model's twin, which diagnose left beside it
+    assert "the stage as the model's twin follows it" in out["afmctl track"].stderr
     # 7: the reach, the triangle tracked at its centre, the readings corrected and named
     reach = out["afmctl reach"].stdout
     centre = float(re.search(r"^centre: ([\d.]+) um", reach, re.M).group(1))  # type: ignore[union-attr]
