@@ -300,7 +300,7 @@ def family_row(name: str, design: str = "standard") -> dict[str, Any]:
     case = family_sets.cases_named(name, family_sets.FAMILY_CASES
                                    + family_sets.OTHER_FORM_CASES)[0]
     with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
-        sweeps = _recorded(s, Path(tmp), design)
+        sweeps = _family_recorded(s, Path(tmp), design)
         d = dg.diagnose(sweeps, dg.Settings(jobs=1))
     tracked = family_track(case, design, d) if d.extended is not d.base else {}
     present = {c for c in ("creep" if case.creep else None, case.effect) if c}
@@ -321,7 +321,7 @@ def family_row(name: str, design: str = "standard") -> dict[str, Any]:
             "seconds": round(d.seconds, 1), **tracked}
 
 
-def _recorded(s: Any, folder: Path, design: str) -> list[sw.Sweep]:
+def _family_recorded(s: Any, folder: Path, design: str) -> list[sw.Sweep]:
     """The three standard triangles and ``design``'s sweep after them, recorded on ``s``."""
     return family_sets.record(s, folder / "sweeps", reversals=design == "reversals",
                               separating=design == "separating")
@@ -337,7 +337,7 @@ def family_track(case: Any, design: str, d: dg.Diagnosis) -> dict[str, Any]:
     out: dict[str, Any] = {"track_planned_from": "twin"}
     for name, model in (("base", d.base_model), ("extended", d.extended_model)):
         with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
-            sweeps = _recorded(s, Path(tmp), design)
+            sweeps = _family_recorded(s, Path(tmp), design)
             s.frame = family_sets.follow(s, model, sweeps)
             span = family_sets.span_of(sweeps)
             for freq, frac in family_sets.TRIANGLES:
