@@ -101,16 +101,18 @@ def _report(result: Any, data: Any = None, reach: str = "", loops: str = "") -> 
 
 
 def _warn_few_reversals(result: Any) -> None:
-    """The Preisach grid kept on sweeps that reverse at few voltages inside their range: its
+    """The Preisach grid kept on sweeps that trace reversal curves from few voltages inside their
+    range: its
     interior (every minor loop a tracking waveform makes) is the smoothing's guess."""
     from afmctl.fit import representation as rep
 
     n = result.representations.get("preisach", {}).get("interior_reversals")
     if result.representation == "preisach" and n is not None and n < rep.REVERSALS_NEEDED:
-        click.echo(f"warning: the Preisach grid was fitted to sweeps that reverse at {n} "
-                   f"voltage(s) inside their range: minor loops inside it are the smoothing's "
-                   f"guess; record `afmctl sweep --design reversals` (reversal curves) and "
-                   f"identify with them", err=True)
+        click.echo(f"warning: the Preisach grid was fitted to sweeps that trace reversal curves "
+                   f"from {n} voltage(s) inside their range (steps and a multisine jump over "
+                   f"them): minor loops inside it are the smoothing's guess; record the reversal "
+                   f"curves (`afmctl sweep --design reversals --only reversals`, into the same "
+                   f"folder) and identify with them", err=True)
     grid = result.representations.get("preisach", {})
     if result.representation == "preisach" and grid.get("force_cubic_fitted") is False:
         click.echo(f"note: the force's cubic a3 P^3 is held at 0: the sweeps run "

@@ -84,17 +84,18 @@ CAUSES = {
              "voltage the stage keeps moving the way it last moved, by about the same amount per "
              "decade of time, over decades (not one exponential knee)",
 }
-#: A creep verdict on sweeps that reverse at fewer than
+#: A creep verdict on sweeps that trace reversal curves from fewer than
 #: :data:`~afmctl.fit.representation.REVERSALS_NEEDED` voltages inside their range (the grid's
 #: interior is the smoothing's guess, as identify warns): :meth:`GridBase.hints`.
 INTERIOR_HINT = {
     "feature": "loop-interior",
-    "reading": "the Preisach grid with creep was fitted on sweeps that reverse at few voltages "
-               "inside their range: inside the loop, where a tracking triangle's minor loops "
-               "run, its density is the smoothing's guess, and extended.toml can track worse "
-               "than the model without creep",
+    "reading": "the Preisach grid with creep was fitted on sweeps that trace reversal curves "
+               "from few voltages inside their range: inside the loop, where a tracking "
+               "triangle's minor loops run, its density is the smoothing's guess, and "
+               "extended.toml can track worse than the model without creep",
     "measure": "before tracking with extended.toml, record the reversal curves (`afmctl sweep "
-               "--design reversals`) and diagnose or identify with them"}
+               "--design reversals --only reversals`, into the same folder) and diagnose or "
+               "identify with them"}
 #: The suggestion when the creep elements sit on the slowest time constants (:meth:`GridBase.drift`).
 DRIFT_HINT = {
     "feature": "drift",
@@ -206,7 +207,7 @@ class GridBase:
 
     def hints(self) -> list[dict[str, str]]:
         """What would tell more when the verdict is ``creep``: the reversal curves, if the
-        sweeps reverse at too few voltages inside their range (:data:`INTERIOR_HINT`)."""
+        sweeps trace them from too few voltages inside their range (:data:`INTERIOR_HINT`)."""
         return [INTERIOR_HINT] if self.interior_reversals < REVERSALS_NEEDED else []
 
     def creep(self) -> bool:
