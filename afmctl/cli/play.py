@@ -181,6 +181,8 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
         data.update({k: v for k, v in it.as_dict().items()
                      if k not in ("iteration", "gain_change", "judged_um")})
         data["between_samples_from"] = between_from
+        data.update(_moved_on(w.meta, data["rms_steady_um"],
+                              it.outcome.scored_um[tracking] - u, round((period or 0.0) / dt)))
         s = it.outcome.score
         part = f"steady part, from {s.steady_from_s:.4g} s" if s.steady else "whole run"
         between = ("" if s.rms_between_um is None
@@ -194,8 +196,38 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
         written.append("play.png")
     experiment.write_summary(data, out / "summary.json")
     click.echo(f"wrote {out}/" + ", ".join(written), err=True)
+    if data.get("moved_on"):
+        click.echo(f"warning: the replay misses by {data['rms_steady_um']:.4f} um RMS, "
+                   f"{data['rms_steady_um'] / data['learned_rms_steady_um']:.1f}x what the "
+                   f"waveform did when it was learned ({data['learned_rms_steady_um']:.4f} um), "
+                   f"its mean error {data['mean_error_um']:+.4f} um: the stage has moved on since "
+                   f"(creep, drift); `afmctl play {Path(wave).name} --model "
+                   f"{model_path or 'MODEL'} --relearn 2` learns it again where the stage is now "
+                   f"and says how far it moved", err=True)
     if as_json:
         click.echo(json.dumps(experiment.json_ready(data)))
+
+
+#: A replay this many times the RMS its waveform had when learned: the stage has moved on.
+MOVED_ON = 2.0
+
+
+def _moved_on(meta: dict[str, str], rms_um: float | None, error_um: Any, skip: int
+              ) -> dict[str, Any]:
+    """Whether a replay (steady RMS ``rms_um``, um; tracking error ``error_um``, um, its first
+    ``skip`` samples not judged) misses by :data:`MOVED_ON` times what its waveform did when
+    learned (the header's ``rms_steady_um``, written by ``track --learn``); no keys for a
+    waveform that does not say."""
+    import numpy as np
+    try:
+        learned = float(meta["rms_steady_um"])
+    except (KeyError, ValueError):
+        return {}
+    if rms_um is None:
+        return {}
+    return {"learned_rms_steady_um": learned,
+            "mean_error_um": float(np.nanmean(np.asarray(error_um, float)[skip:])),
+            "moved_on": bool(rms_um > MOVED_ON * learned)}
 
 
 def _relearn(w: Any, wave: Path, prof: Any, model: Any, model_path: str | None,

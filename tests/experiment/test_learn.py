@@ -593,6 +593,20 @@ def test_track_learn_writes_every_iteration_and_play_reproduces_it(model_file: P
     assert played["rms_between_um"] == pytest.approx(kept["rms_between_um"], rel=1e-5)
     assert played["rms_steady_um"] == pytest.approx(kept["rms_steady_um"], rel=0.25)
     assert runfile.read(rep / "run_play.csv").complete
+    assert played["learned_rms_steady_um"] == pytest.approx(kept["rms_steady_um"], rel=1e-5)
+    assert played["moved_on"] is False and "--relearn" not in res.stderr
+    assert abs(played["mean_error_um"]) < played["rms_steady_um"]
+    # a waveform that had done five times better when learned: the stage has moved on since,
+    # and the replay says so and how to learn it again (the header is what it compares with)
+    text = (out / "waveform_learned.csv").read_text()
+    was = next(ln for ln in text.splitlines() if ln.startswith("# rms_steady_um: "))
+    better = f"# rms_steady_um: {float(was.split(': ')[1]) / 5:.7g}"
+    (tmp_path / "better.csv").write_text(text.replace(was, better))
+    res = CliRunner().invoke(main, ["play", str(tmp_path / "better.csv"), "--out",
+                                    str(tmp_path / "moved"), "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout.strip().splitlines()[-1])["moved_on"] is True
+    assert "the stage has moved on since" in res.stderr and "--relearn 2" in res.stderr
 
     # --relearn: the replay is iteration 0 of learning resumed from the file's reference (the
     # same voltages, re-planned), and says how far the stage moved since the learned run (this
