@@ -332,13 +332,16 @@ def family_track(case: Any, design: str, d: dg.Diagnosis) -> dict[str, Any]:
     inverse of the base and of the extended model diagnose wrote, each on the stage as the
     sweeps left it (a new session records them again: the stage and its noise are seeded, so
     they are the sweeps diagnose saw) and planned from that model's twin of it, as ``afmctl
-    track`` plans from the twin diagnose leaves beside the model, in the frame the twin reads;
-    judged by the stage's true position (:func:`family_sets.tracked`, 3 periods)."""
-    out: dict[str, Any] = {"track_planned_from": "twin"}
+    track`` plans from the twin diagnose leaves beside the model, in the frame the twin reads
+    (``track_base_planned_from``, ``track_extended_planned_from``: ``twin``, or ``rest`` where
+    the sweeps gave none); judged by the stage's true position (:func:`family_sets.tracked`, 3
+    periods)."""
+    out: dict[str, Any] = {}
     for name, model in (("base", d.base_model), ("extended", d.extended_model)):
         with tempfile.TemporaryDirectory() as tmp, family_sets.session(case) as s:
             sweeps = _family_recorded(s, Path(tmp), design)
             s.frame = family_sets.follow(s, model, sweeps)
+            out[f"track_{name}_planned_from"] = "twin" if s.frame else "rest"
             span = family_sets.span_of(sweeps)
             for freq, frac in family_sets.TRIANGLES:
                 key = f"track_{freq:g}hz_{name}_true_rms_um"

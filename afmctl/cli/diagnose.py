@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import click
@@ -62,7 +63,9 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
 
     slew = None if profile is None else load_profile_or_exit(profile).limits.slew_v_per_ms * 1e3
     settings = dg.Settings(identify=fit_settings(profile), jobs=jobs, max_slew_v_per_s=slew)
-    data = [sweeps.read_complete(f) for f in sweep_files]
+    # in the order recorded where the files say (a shell glob sorts triangle_27.9hz before
+    # triangle_5.58hz): each sweep's creep and the holds between them, as identify fits them
+    data = sweeps.in_recorded_order([sweeps.read_complete(f) for f in sweep_files])
     start = None if model_path is None else modelfile.read(model_path)
     if start is not None:
         equivalent = parametrization.lognormal_equivalent(start)
@@ -97,6 +100,10 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     if twins:
         say(f"wrote {', '.join(twins)} (each model's twin of the stage as the sweeps left it: "
             f"track plans a creeping stage's next run from it)")
+    elif any(math.isfinite(s.started_s) for s in data):
+        say(f"no twin written: the sweeps do not say every hold between them (each needs "
+            f"started_s, one sample rate, no overlap and at most {sweeps.HOLD_MAX_S:g} s between "
+            f"two): track starts the models at rest")
     if d.cause == "unexplained":
         say(d.closest_dict()["text"])
     for s in d.suggestions() if d.cause != "unexplained" else []:  # the closest says more
@@ -113,7 +120,6 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str  # noqa: 
     from afmctl.experiment import twin
     from afmctl.experiment.runner import atomic_write
     from afmctl.files import modelfile, twinfile
-    from afmctl.files.sweepfile import in_recorded_order
     from afmctl.fit import diagnosis_report
     make_dir(out, "--out")
     header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
@@ -126,7 +132,7 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str  # noqa: 
     twins = []
     for model, path in ((d.base_model, out / "base.toml"), (d.extended_model, out / "extended.toml")):
         twinfile.path_for(path).unlink(missing_ok=True)  # an earlier diagnosis's (--force)
-        kept = twin.keep_beside(model, in_recorded_order(data), path)
+        kept = twin.keep_beside(model, data, path)  # data: in the order recorded
         twins += [] if kept is None else [kept.name]
     before, after = d.predictions(data)
     partial = out / "residuals.partial.png"

@@ -109,10 +109,12 @@ def _warn_few_reversals(result: Any) -> None:
     n = result.representations.get("preisach", {}).get("interior_reversals")
     if result.representation == "preisach" and n is not None and n < rep.REVERSALS_NEEDED:
         click.echo(f"warning: the Preisach grid was fitted to sweeps that trace reversal curves "
-                   f"from {n} voltage(s) inside their range (steps and a multisine jump over "
-                   f"them): minor loops inside it are the smoothing's guess; record the reversal "
-                   f"curves (`afmctl sweep --design reversals --only reversals`, into the same "
-                   f"folder) and identify with them", err=True)
+                   f"from {n} voltage(s) inside their range (a triangle over the whole range "
+                   f"traces none, and steps and a fast multisine jump over theirs): minor loops "
+                   f"inside it are the smoothing's guess; record the reversal curves with the "
+                   f"standard set, back to back (`afmctl sweep --design reversals --out "
+                   f"NEW_FOLDER`, about a minute, so that a creeping stage's twin follows them) "
+                   f"and identify on those", err=True)
     grid = result.representations.get("preisach", {})
     if result.representation == "preisach" and grid.get("force_cubic_fitted") is False:
         click.echo(f"note: the force's cubic a3 P^3 is held at 0: the sweeps run "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shlex
 from pathlib import Path
 from typing import Any
 
@@ -137,7 +138,7 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     from afmctl.experiment import runner as experiment
     from afmctl.files import modelfile, waveformfile
     from afmctl.model import effects as fx
-    from afmctl.planning import track
+    from afmctl.planning import ilc, track
     prof = load_profile_or_exit(profile_path)
     try:
         w = waveformfile.read(wave)
@@ -181,8 +182,8 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
         data.update({k: v for k, v in it.as_dict().items()
                      if k not in ("iteration", "gain_change", "judged_um")})
         data["between_samples_from"] = between_from
-        data.update(_moved_on(w.meta, data["rms_steady_um"],
-                              it.outcome.scored_um[tracking] - u, round((period or 0.0) / dt)))
+        data.update(_moved_on(w.meta, model_path, data["rms_steady_um"],
+                              -it.error_um[ilc.steady_part(desired)]))
         s = it.outcome.score
         part = f"steady part, from {s.steady_from_s:.4g} s" if s.steady else "whole run"
         between = ("" if s.rms_between_um is None
@@ -197,13 +198,16 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     experiment.write_summary(data, out / "summary.json")
     click.echo(f"wrote {out}/" + ", ".join(written), err=True)
     if data.get("moved_on"):
+        again = shlex.join(["afmctl", "play", wave, *(["--profile", profile_path]
+                                                      if profile_path else []),
+                            "--model", model_path or w.meta.get("model", "MODEL"),
+                            "--relearn", "2"])
         click.echo(f"warning: the replay misses by {data['rms_steady_um']:.4f} um RMS, "
                    f"{data['rms_steady_um'] / data['learned_rms_steady_um']:.1f}x what the "
                    f"waveform did when it was learned ({data['learned_rms_steady_um']:.4f} um), "
-                   f"its mean error {data['mean_error_um']:+.4f} um: the stage has moved on since "
-                   f"(creep, drift); `afmctl play {Path(wave).name} --model "
-                   f"{model_path or 'MODEL'} --relearn 2` learns it again where the stage is now "
-                   f"and says how far it moved", err=True)
+                   f"its mean error (readings less desired) {data['mean_error_um']:+.4f} um: the "
+                   f"stage has moved on since (creep, drift); `{again}` learns it again where "
+                   f"the stage is now and says how far it moved", err=True)
     if as_json:
         click.echo(json.dumps(experiment.json_ready(data)))
 
@@ -212,21 +216,21 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
 MOVED_ON = 2.0
 
 
-def _moved_on(meta: dict[str, str], rms_um: float | None, error_um: Any, skip: int
+def _moved_on(meta: dict[str, str], model_path: str | None, rms_um: float, error_um: Any
               ) -> dict[str, Any]:
-    """Whether a replay (steady RMS ``rms_um``, um; tracking error ``error_um``, um, its first
-    ``skip`` samples not judged) misses by :data:`MOVED_ON` times what its waveform did when
-    learned (the header's ``rms_steady_um``, written by ``track --learn``); no keys for a
-    waveform that does not say."""
+    """Whether a replay (steady RMS ``rms_um``, um; its steady part's readings less desired,
+    ``error_um``, um) misses by :data:`MOVED_ON` times what its waveform did when learned (the
+    header's ``rms_steady_um``, written by ``track --learn``). No keys for a waveform that does
+    not say, nor for one learned with readings corrected for a sensor effect and replayed
+    without ``--model`` (the two would not be scored alike)."""
     import numpy as np
     try:
         learned = float(meta["rms_steady_um"])
     except (KeyError, ValueError):
         return {}
-    if rms_um is None:
+    if model_path is None and meta.get("readings_corrected_for", "{}") not in ("{}", ""):
         return {}
-    return {"learned_rms_steady_um": learned,
-            "mean_error_um": float(np.nanmean(np.asarray(error_um, float)[skip:])),
+    return {"learned_rms_steady_um": learned, "mean_error_um": float(np.nanmean(error_um)),
             "moved_on": bool(rms_um > MOVED_ON * learned)}
 
 

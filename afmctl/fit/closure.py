@@ -88,16 +88,23 @@ def _at(v: FloatArray, y: FloatArray, va: float) -> tuple[float, float, float]:
 
 
 def _alike(into: FloatArray, back: FloatArray) -> bool:
-    """Whether two passes' mean voltage rates (per sample) are within :data:`RATE` of each other."""
-    a, b = float(np.mean(np.abs(np.diff(into)))), float(np.mean(np.abs(np.diff(back))))
+    """Whether two passes' mean voltage rates (per sample, over the samples that move: a pause
+    at the reversal is no slower pass) are within :data:`RATE` of each other."""
+    a, b = (float(np.mean(m)) if (m := _moving(p)).size else 0.0 for p in (into, back))
     return max(a, b) <= RATE * min(a, b)
+
+
+def _moving(v: FloatArray) -> FloatArray:
+    """The voltage steps (V, absolute) of the samples of ``v`` that move."""
+    d = np.abs(np.diff(v))
+    return d[d > 0.0]
 
 
 def loop_gaps(sweep: Sweep, noise_um: float) -> tuple[list[Gap], int]:
     """Every minor loop of ``sweep`` that returns to its reversal voltage, with its closure gap,
     and how many such loops were not checked because a pass is not quasi-static
-    (:data:`SMOOTH`) or the two move at rates too far apart (:data:`RATE`). A loop is one only if its excursion stays within the reversal before
-    ``v_a`` (a maximum's excursion does not go below the minimum it rose from): one that goes
+    (:data:`SMOOTH`) or the two move at rates too far apart (:data:`RATE`). A loop is one only
+    if its excursion stays within the reversal before ``v_a`` (a maximum's excursion does not go below the minimum it rose from): one that goes
     past it wipes that reversal out, and the return meets ``v_a`` on another branch, whatever
     the stage's memory (on the reversal-curve design 150 -> 55 -> 84 -> 0 -> 84 V, a Preisach
     stage's two readings at 84 V differ by 4.3 um)."""

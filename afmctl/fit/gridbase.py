@@ -93,9 +93,9 @@ INTERIOR_HINT = {
                "from few voltages inside their range: inside the loop, where a tracking "
                "triangle's minor loops run, its density is the smoothing's guess, and "
                "extended.toml can track worse than the model without creep",
-    "measure": "before tracking with extended.toml, record the reversal curves (`afmctl sweep "
-               "--design reversals --only reversals`, into the same folder) and diagnose or "
-               "identify with them"}
+    "measure": "before tracking with extended.toml, record the reversal curves with the "
+               "standard set, back to back (`afmctl sweep --design reversals --out NEW_FOLDER`, "
+               "so that the models' twins follow them) and diagnose or identify on those"}
 #: The suggestion when the creep elements sit on the slowest time constants (:meth:`GridBase.drift`).
 DRIFT_HINT = {
     "feature": "drift",

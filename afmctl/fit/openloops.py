@@ -7,7 +7,7 @@ fit then trades the triangles for them and is worse everywhere. On the out-of-fa
 the curves stayed at 42.7x the noise against 3.3-4.0x on the triangles; on foreign-xy-2's
 Bouc-Wen y axis at 270x against 5-9x, and the raster's slow axis landed 8.8 pixels off.
 
-A sweep is left out when it reverses inside its range
+A sweep is left out when it traces reversal curves from inside its range
 (:func:`afmctl.fit.representation.interior_reversals`: it carries minor loops), its loops are
 open, and the fit's error on it is the worst of all and more than :data:`SPOILS` times the median
 of the other sweeps'. The model is then fitted again without it, and it is judged (held out) by

@@ -72,7 +72,7 @@ DECISIVE = 3.0
 #: Reversals farther than this share of the range from its ends are inside it.
 EDGE = 0.05
 #: Below this many interior reversal voltages the grid's interior is the smoothing's guess (the
-#: CLI says so and suggests ``afmctl sweep --design reversals``, which has 7 of each kind).
+#: CLI says so and suggests ``afmctl sweep --design reversals``, whose curves reverse at 19).
 REVERSALS_NEEDED = 4
 #: A branch leaving a reversal teaches the grid its interior only if it is traced, not jumped:
 #: moving no faster than this many times the sweep's range per second (twice the 5.58 Hz
@@ -82,8 +82,10 @@ REVERSALS_NEEDED = 4
 #: hid that the grid missed a 62-124 V loop by 7x the noise (0.18 um; with the reversals design
 #: 1.4x).
 TRACED_RANGES_PER_S = 4 * 5.58
-#: ... and over at least this share of the range (a multisine's wiggles trace little).
+#: ... over at least this share of the range (a multisine's wiggles trace little).
 TRACED_SHARE = 0.1
+#: Reversal voltages closer than this share of the range are one.
+LEVEL = 0.02
 #: The grid is kept only if its worst held-out error is below this share of the HEM's.
 MARGIN = 0.9
 #: Bouc-Wen fitted before the grid (:meth:`Grid.bouc_wen_first`, a minor loop open) stops after a
@@ -302,12 +304,12 @@ def first_start(prob: idf.Problem, space: pz.LognormalSpace, sol: optimize.Optim
 
 
 def interior_reversals(sweeps: Sequence[Sweep]) -> int:
-    """How many distinct voltages (to 2 % of the range) the sweeps reverse at inside their range
-    (more than :data:`EDGE` of it from either end), the branch after the reversal traced (at
-    most :data:`TRACED_RANGES_PER_S` over its moving samples, and over at least
-    :data:`TRACED_SHARE` of the range): the reversal curves a Preisach
-    grid learns its interior from. Triangles over the whole range have none; nor have steps
-    and a multisine.
+    """How many distinct voltages (more than 2 % of the range apart) the sweeps reverse at
+    inside their range (more than :data:`EDGE` of it from either end), the branch after the
+    reversal traced: at least :data:`TRACED_SHARE` of the range travelled by samples that move
+    no faster than :data:`TRACED_RANGES_PER_S`. These are the reversal curves a Preisach grid
+    learns its interior from. Triangles over the whole range have none; nor have steps and a
+    fast multisine, which jump over their branches.
 
     Examples
     --------
@@ -324,18 +326,17 @@ def interior_reversals(sweeps: Sequence[Sweep]) -> int:
     lo = min(float(np.min(s.voltage_v)) for s in sweeps)
     hi = max(float(np.max(s.voltage_v)) for s in sweeps)
     span = max(hi - lo, 1e-12)
-    levels = set()
+    levels = []
     for s in sweeps:
         v = np.asarray(s.voltage_v, float)
         turns = turning_points(v)
         for a, b in zip(turns[1:-1], turns[2:]):  # the ends are no reversals
             u = (v[a] - lo) / span
-            moving = np.count_nonzero(np.diff(v[a:b + 1]) != 0.0)
-            step = abs(v[b] - v[a])
-            traced = TRACED_SHARE * span <= step <= TRACED_RANGES_PER_S * span * moving * s.dt
-            if EDGE < u < 1 - EDGE and traced:
-                levels.add(round(float(u) * 50))
-    return len(levels)
+            steps = np.abs(np.diff(v[a:b + 1]))
+            travel = float(np.sum(steps[steps <= TRACED_RANGES_PER_S * span * s.dt]))
+            if EDGE < u < 1 - EDGE and travel >= TRACED_SHARE * span:
+                levels.append(float(u))
+    return int(np.count_nonzero(np.diff(np.sort(levels)) > LEVEL)) + 1 if levels else 0
 
 
 def _grid_figures(fit: pf.PreisachFit, noise: FloatArray) -> dict[str, Any]:

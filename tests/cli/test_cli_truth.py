@@ -268,4 +268,7 @@ def test_dry_run_waveforms_carry_their_metadata_and_play_warns_on_another_profil
     assert any(ln.startswith("warning: waveform_inverse.csv was made with model") for ln in lines)
     result = next(ln for ln in lines if ln.startswith("play: "))
     assert result.count("RMS") == 1 and "steady part" in result
+    # a planned (not learned) waveform says nothing of what it did: nothing to compare with
+    summary = json.loads((out / "summary.json").read_text())
+    assert "moved_on" not in summary and "learned_rms_steady_um" not in summary
     assert (out / "play.png").stat().st_size > 10_000
