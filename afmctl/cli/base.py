@@ -301,3 +301,13 @@ def say(message: str) -> None:
     """A line of progress or human-readable results on stderr."""
     click.echo(message, err=True)
 
+
+def say_no_twin(sweeps: Any) -> None:
+    """Why no twin was written beside a model, when ``sweeps`` say when they started: one of
+    the holds between them is not known (:func:`afmctl.files.sweepfile.holds_s`)."""
+    from afmctl.files.sweepfile import HOLD_MAX_S
+    if any(math.isfinite(s.started_s) for s in sweeps):
+        say(f"no twin written: the sweeps do not say every hold between them (each needs "
+            f"started_s, one sample rate, no overlap and at most {HOLD_MAX_S:g} s between two; "
+            f"record them back to back): track starts the model at rest")
+

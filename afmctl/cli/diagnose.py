@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import click
@@ -16,6 +15,7 @@ from afmctl.cli.base import (
     main,
     make_dir,
     say,
+    say_no_twin,
     timestamped,
     writing,
 )
@@ -100,10 +100,8 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     if twins:
         say(f"wrote {', '.join(twins)} (each model's twin of the stage as the sweeps left it: "
             f"track plans a creeping stage's next run from it)")
-    elif any(math.isfinite(s.started_s) for s in data):
-        say(f"no twin written: the sweeps do not say every hold between them (each needs "
-            f"started_s, one sample rate, no overlap and at most {sweeps.HOLD_MAX_S:g} s between "
-            f"two): track starts the models at rest")
+    else:
+        say_no_twin(data)
     if d.cause == "unexplained":
         say(d.closest_dict()["text"])
     for s in d.suggestions() if d.cause != "unexplained" else []:  # the closest says more

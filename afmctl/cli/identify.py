@@ -16,6 +16,7 @@ from afmctl.cli.base import (
     main,
     make_dir,
     say,
+    say_no_twin,
     writing,
 )
 
@@ -203,6 +204,8 @@ def identify(sweep_files: tuple[str, ...], profile: str | None, output: str, as_
         if kept is not None:
             say(f"wrote {kept} (the model's twin of the stage as the sweeps left it: track plans "
                 f"a creeping stage's next run from it)")
+        else:
+            say_no_twin(data)
     if plots_dir is not None:
         fitted = idf.predict_set(result.model, data, [s.start for s in result.sweeps],
                                  [s.offset_um for s in result.sweeps])

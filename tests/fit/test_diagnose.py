@@ -77,7 +77,10 @@ def test_cli_on_a_clean_foreign_stage_claims_nothing(tmp_path: Path) -> None:
     for name in ("base.toml", "extended.toml", "report.md", "residuals.png"):
         assert (out / name).stat().st_size > 0
     assert "twin.json" not in res.stderr and not list(out.glob("*.twin.json"))
-    assert "no twin written: the sweeps do not say every hold" in res.stderr
+    assert "no twin written: the sweeps do not say every hold" in res.stderr  # nor identify:
+    res = CliRunner().invoke(main, ["identify", *files, "-o", str(tmp_path / "m.toml")])
+    assert res.exit_code == 0 and "no twin written" in res.stderr, res.output
+    assert not (tmp_path / "m.twin.json").exists()
     again = CliRunner().invoke(main, ["diagnose", *files, "--out", str(out)])
     assert again.exit_code == 2 and "already holds a diagnosis" in again.stderr
 
