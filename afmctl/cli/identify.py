@@ -103,8 +103,7 @@ def _report(result: Any, data: Any = None, reach: str = "", loops: str = "") -> 
 
 def _warn_few_reversals(result: Any) -> None:
     """The Preisach grid kept on sweeps that trace reversal curves from few voltages inside their
-    range: its
-    interior (every minor loop a tracking waveform makes) is the smoothing's guess."""
+    range: its interior (every minor loop a tracking waveform makes) is the smoothing's guess."""
     from afmctl.fit import representation as rep
 
     n = result.representations.get("preisach", {}).get("interior_reversals")

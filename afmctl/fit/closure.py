@@ -50,7 +50,7 @@ NOISES = 3.0
 MIN_SAMPLES = 8
 #: A pass whose quadratic leaves a residual RMS above this many times the noise is not checked.
 SMOOTH = 2.0
-#: Two passes whose mean voltage rates (V/s) differ by more than this factor are not compared.
+#: Two passes whose mean voltage rates differ by more than this factor are not compared.
 RATE = 1.25
 #: An excursion that passes the reversal before ``v_a`` by more than this share of the sweep's
 #: range wipes it out (:func:`loop_gaps`); by less it counts as returning there (a sampled
@@ -104,10 +104,11 @@ def loop_gaps(sweep: Sweep, noise_um: float) -> tuple[list[Gap], int]:
     """Every minor loop of ``sweep`` that returns to its reversal voltage, with its closure gap,
     and how many such loops were not checked because a pass is not quasi-static
     (:data:`SMOOTH`) or the two move at rates too far apart (:data:`RATE`). A loop is one only
-    if its excursion stays within the reversal before ``v_a`` (a maximum's excursion does not go below the minimum it rose from): one that goes
-    past it wipes that reversal out, and the return meets ``v_a`` on another branch, whatever
-    the stage's memory (on the reversal-curve design 150 -> 55 -> 84 -> 0 -> 84 V, a Preisach
-    stage's two readings at 84 V differ by 4.3 um)."""
+    if its excursion stays within the reversal before ``v_a`` (a maximum's excursion does not
+    go below the minimum it rose from): one that goes past it wipes that reversal out, and the
+    return meets ``v_a`` on another branch, whatever the stage's memory (on the reversal-curve
+    design 150 -> 55 -> 84 -> 0 -> 84 V, a Preisach stage's two readings at 84 V differ by
+    4.3 um)."""
     v, y = sweep.voltage_v, sweep.displacement_um
     turns = turning_points(v)
     span = float(np.ptp(v))
@@ -141,10 +142,9 @@ def loop_gaps(sweep: Sweep, noise_um: float) -> tuple[list[Gap], int]:
 def check(sweeps: Sequence[Sweep], noise_um: Sequence[float]) -> dict[str, Any]:
     """The closure of every minor loop of ``sweeps`` (``noise_um``: each sweep's sensor noise):
     ``checked`` and ``open`` loops, ``unsteady`` ones (not checked: a pass not quasi-static, or
-    two at rates too far apart),
-    ``close`` (None: no loop checked, so the sweeps cannot tell), the widest gap (``worst``:
-    sweep, voltage, time, gap and its standard error in um, gap over the noise) and one
-    sentence (``text``)."""
+    two at rates too far apart), ``close`` (None: no loop checked, so the sweeps cannot tell),
+    the widest gap (``worst``: sweep, voltage, time, gap and its standard error in um, gap over
+    the noise) and one sentence (``text``)."""
     found = [loop_gaps(s, n) for s, n in zip(sweeps, noise_um, strict=True)]
     gaps = [g for each, _ in found for g in each]
     opened = [g for g in gaps if g.open]
