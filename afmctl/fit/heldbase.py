@@ -193,6 +193,16 @@ class Held:
         # the last input-side statics, by (cause, phi, fitted): a Jacobian's rod columns reuse it
         self._last: tuple[tuple[str, bytes, bool], list[FloatArray]] | None = None
 
+    @classmethod
+    def identified(cls, res: idf.FitResult, sweeps: Sequence[Sweep],
+                   fit_masks: Sequence[NDArray[np.bool_]],
+                   judged_masks: Sequence[NDArray[np.bool_]], noise: FloatArray,
+                   frame: tuple[float, float, float, float], gauge_in_base: bool) -> Held:
+        """The Held of an identification ``res`` (its model, each sweep's start and sensor
+        zero) on whole ``sweeps``."""
+        return cls(res.model, sweeps, [e.start for e in res.sweeps], fit_masks, judged_masks,
+                   noise, frame, gauge_in_base, [e.offset_um for e in res.sweeps])
+
     # -- the model of each cause ------------------------------------------------------------
 
     def effects(self, name: str, phi: FloatArray) -> fx.Effects:
@@ -345,10 +355,8 @@ class Held:
             again.append(replace(s, voltage_v=fx.lag(fx.compile_chain(effects, s.dt), v,
                                                      float(v[0]))[0]))
         res = idf.fit(again, replace(settings, representation="hem", density="discrete"))
-        return Held(res.model, self.sweeps, [e.start for e in res.sweeps], self.fit_masks,
-                    self.judged_masks, self.noise, self.frame,
-                    self.gauge_in_base and name != "sensor-nonlinearity",
-                    [e.offset_um for e in res.sweeps])
+        return Held.identified(res, self.sweeps, self.fit_masks, self.judged_masks, self.noise,
+                               self.frame, self.gauge_in_base and name != "sensor-nonlinearity")
 
     def heldout(self, name: str, z: FloatArray, beta: FloatArray
                 ) -> tuple[float, tuple[float, ...], float]:
@@ -517,11 +525,10 @@ def judge(sweeps: Sequence[Sweep], halves: Sequence[Sweep], noise: Sequence[floa
     say("  general density: RMS / noise per half " + " / ".join(f"{r:.2f}" for r in ratios))
     masks = [s.mask(None) for s in sweeps]
     half = [np.arange(s.time_s.size) < s.time_s.size // 2 for s in sweeps]
-    held = Held(res.model, sweeps, [e.start for e in res.sweeps],
-                [m & h for m, h in zip(masks, half, strict=True)],
-                [m & ~h for m, h in zip(masks, half, strict=True)], np.asarray(noise, float),
-                cd.reading_frame(cd.recorded_calibration(sweeps)), True,
-                [e.offset_um for e in res.sweeps])
+    held = Held.identified(res, sweeps, [m & h for m, h in zip(masks, half, strict=True)],
+                           [m & ~h for m, h in zip(masks, half, strict=True)],
+                           np.asarray(noise, float),
+                           cd.reading_frame(cd.recorded_calibration(sweeps)), True)
     tried = [n for n in held.causes if n == "none" or n in names
              or (n in cd.TWIN_ONLY and any(cd.TWINS.get(s) == n for s in names))]
     table, helds, base_cost = {}, {}, math.inf
