@@ -55,14 +55,15 @@ def _v_range(v_range: tuple[float, float] | None, prof) -> tuple[float, float]: 
               metavar="VMIN VMAX",
               help="Voltage range the sweeps cover, V (default: the profile's [v_min, v_max]; "
                    "must contain 0 V).")
-@click.option("--design", type=click.Choice(["standard", "separating", "reversals"]),
+@click.option("--design", type=click.Choice(["standard", "separating", "reversals", "full"]),
               default="standard",
               show_default=True,
               help="standard: the paper's set; separating: the same and one more sweep of holds, "
                    "fast steps and a multisine that tell causes apart for `afmctl diagnose`; "
                    "reversals: the same and first-order reversal curves (`reversals.csv`), for "
                    "a stage off the paper's model family (the Preisach grid's interior); with --axes "
-                   "each axis's curves after its triangles.")
+                   "each axis's curves after its triangles; full: the set, the separating sweep "
+                   "and the reversal curves (a lab stage's first calibration).")
 @click.option("--only", multiple=True, metavar="NAME",
               help="Record only this sweep of the set (repeatable), e.g. triangle_27.9hz.")
 @click.option("--resume", is_flag=True,
@@ -81,7 +82,8 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
     """Record the standard identification set over the stage's voltage range: triangles at
     0.279, 5.58 and 27.9 Hz (Fig. 2) and nested minor loops at 0.1 Hz (Fig. 1(b)); with
     `--design separating` also a sweep of holds, fast steps and a multisine (`separating.csv`);
-    with `--design reversals` also first-order reversal curves (`reversals.csv`).
+    with `--design reversals` also first-order reversal curves (`reversals.csv`); with
+    `--design full` both.
 
     Each sweep is written to --out as it arrives (NAME.incomplete.csv); an interrupted one stays
     there, marked, until `--resume` records what is missing (the whole sweep then replaces it).
@@ -93,9 +95,9 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
     prof = load_profile_or_exit(profile_path)
     if axes is not None:
         from afmctl.cli.xysweep import sweep_xy
-        if v_range is not None or only or design == "separating":
+        if v_range is not None or only or design in ("separating", "full"):
             raise InputError("--axes records the whole two-axis set over each axis's range: "
-                             "without --v-range, --only or --design separating")
+                             "without --v-range, --only, --design separating or full")
         sweep_xy(prof, axes, Path(out_dir), band_hz, resume, design)
         return
     lo, hi = _v_range(v_range, prof)

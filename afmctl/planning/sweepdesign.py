@@ -137,8 +137,10 @@ def standard_set(amplitude_v: float = 150.0, sample_rate_hz: float = 10_000.0,
 #: Sweep set designs: ``standard`` (:func:`standard_set`), ``separating`` (the same set and one
 #: sweep of holds, fast steps and a multisine, :func:`separating_sweep`) and ``reversals`` (the same
 #: set and first-order reversal curves, :func:`reversal_curves`: a stage off the paper's model
-#: family, whose Preisach grid needs reversal points inside the range).
-DESIGNS = ("standard", "separating", "reversals")
+#: family, whose Preisach grid needs reversal points inside the range) and ``full`` (the set, the
+#: separating sweep and the reversal curves: a lab's first calibration, which cannot yet know
+#: whether its stage is of the paper's family).
+DESIGNS = ("standard", "separating", "reversals", "full")
 #: Name of the separating design's extra sweep.
 SEPARATING_NAME = "separating"
 #: Name of the reversals design's extra sweep, and its reversal voltages per kind.
@@ -351,24 +353,27 @@ def segments_text(segments: tuple[Segment, ...], sample_rate_hz: float) -> str:
 def design_set(design: str, sample_rate_hz: float, max_rate_v_per_s: float,
                v_range: tuple[float, float]) -> list[tuple[str, float, FloatArray, dict[str, str]]]:
     """The sweeps of ``design`` (one of :data:`DESIGNS`) as (name, frequency_hz, voltage_v, meta):
-    :func:`standard_set`, and for ``separating`` also :func:`separating_sweep` (its
-    ``frequency_hz`` the repetition rate). ``meta`` gives the design and the segment kinds.
+    :func:`standard_set`, for ``separating`` and ``full`` also :func:`separating_sweep` (its
+    ``frequency_hz`` the repetition rate), for ``reversals`` and ``full`` also
+    :func:`reversals_sweep`, in that order. ``meta`` gives the design and the segment kinds.
 
     Examples
     --------
     >>> [n for n, _, _, _ in design_set("separating", 1000.0, 5e4, (0.0, 150.0))][-2:]
     ['minor_loops_0.1hz', 'separating']
+    >>> [n for n, _, _, _ in design_set("full", 1000.0, 5e4, (0.0, 150.0))][-3:]
+    ['minor_loops_0.1hz', 'separating', 'reversals']
     """
     if design not in DESIGNS:
         raise ValueError(f"unknown sweep design {design!r} (one of {', '.join(DESIGNS)})")
     out = [(name, f, v, {"design": design, "segments": "triangle"})
            for name, f, v in standard_set(sample_rate_hz=sample_rate_hz, v_range=v_range)]
-    if design == "separating":
+    if design in ("separating", "full"):
         v, segs = separating_sweep(v_range, sample_rate_hz, max_rate_v_per_s)
         reps = 2 * sample_rate_hz / v.size
         out.append((SEPARATING_NAME, reps, v,
                     {"design": design, "segments": segments_text(segs, sample_rate_hz)}))
-    if design == "reversals":
+    if design in ("reversals", "full"):
         out.append(reversals_sweep(v_range, sample_rate_hz, max_rate_v_per_s, design))
     return out
 

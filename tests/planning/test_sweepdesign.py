@@ -167,9 +167,23 @@ def test_triangle_and_standard_set() -> None:
 def test_every_sweep_ends_exactly_where_it_started(v_range: tuple[float, float]) -> None:
     """Issue 27 item 16: the 27.9 Hz sweep ended one sample short of 0 V (-0.384 V) and the next
     track planned from there; every sweep of every design ends at its start (0 V here)."""
-    for name, _, v, _ in sd.design_set("separating", 10_000.0, 5e4, v_range):
+    for name, _, v, _ in sd.design_set("full", 10_000.0, 5e4, v_range):
         assert v[0] == 0.0 and v[-1] == 0.0, (name, v[-1])
         assert np.abs(np.diff(v)).max() <= 5.0, name  # no step: within 50 V/ms at 10 kHz
+
+
+@pytest.mark.parametrize("v_range", [(0.0, 150.0), (-150.0, 150.0)])
+def test_full_design_is_the_separating_and_the_reversals_designs(
+        v_range: tuple[float, float]) -> None:
+    """A lab's first calibration (the guide's step 4) records both extra sweeps: the separating
+    sweep for diagnose and the reversal curves for the Preisach grid's interior."""
+    full = sd.design_set("full", 10_000.0, 5e4, v_range)
+    parts = sd.design_set("separating", 10_000.0, 5e4, v_range) + \
+        sd.design_set("reversals", 10_000.0, 5e4, v_range)[-1:]
+    assert [(n, f) for n, f, _, _ in full] == [(n, f) for n, f, _, _ in parts]
+    for (_, _, a, meta), (_, _, b, theirs) in zip(full, parts, strict=True):
+        np.testing.assert_array_equal(a, b)
+        assert meta == {**theirs, "design": "full"}
 
 
 @pytest.mark.parametrize("v_range", [(0.0, 150.0), (-30.0, 150.0), (-150.0, 150.0)])
