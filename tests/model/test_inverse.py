@@ -177,3 +177,22 @@ def test_algorithm3_keeps_the_state_simulate_reaches(nominal: tr.Transducer,
     assert got.creep.size == (6 if creeps else 0)
     assert not np.allclose(got.rod, res.state.rod)  # not the state after the last sample
     assert inv.algorithm3(cm, ud, st0, horizon=2, e_max=1.5).kept is None
+
+
+def test_a_first_order_stage_is_inverted_at_a_short_horizon(nominal: tr.Transducer) -> None:
+    """A heavily damped rod (a stage that acts as a first-order lag, here 700 Hz like an
+    independent tester's) has a zero eigenvalue in the horizon inverse's state map that
+    round-off puts just below zero. It is no alternating mode: the smooth horizon stays short,
+    and the corners of a 27.9 Hz triangle are turned when they come, not ``d`` samples early."""
+    k = nominal.rod.k  # the static gain kept; a light rod (7 kHz) damped to a 700 Hz lag
+    m, c = k / (2 * np.pi * 7000.0) ** 2, k / (2 * np.pi * 700.0)
+    lagging = dc.replace(nominal, rod=dc.replace(nominal.rod, m=m, c=c))
+    assert lagging.rod.damping_ratio > 4.9
+    cm = tr.compile_model(lagging, DT)
+    d = rd.smooth_horizon(cm.disc)
+    assert d <= 2
+    ud = triangle(27.9, 27.04, 3)
+    period = int(1 / 27.9 / DT)
+    worst = {h: np.max(np.abs(tracking_error(lagging, ud, inv.algorithm3(
+        cm, ud, tr.initial(lagging), horizon=h, e_max=1.5), period))) for h in (d, 8)}
+    assert worst[d] < 0.25 * worst[8] and worst[d] < 0.2, worst
