@@ -415,6 +415,11 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
         return
     say(cal.describe())
     make_dir(out, "--out")
+    idle = stage.now_s() - tw.ended_s
+    if idle > experiment.IDLE_S:
+        say(f"the stage has held {tw.held_v:g} V for {idle:.0f} s since the twin's last recording: "
+            f"reading it there for {experiment.READ_S:g} s, to see where its frame is now")
+        tw = experiment.read_held(stage, tw)
 
     def plan_for(name: str, state: Any, frame: Any) -> Any:
         if frame.basis != "none":

@@ -168,6 +168,29 @@ def run_all(stage: PlayingStage, plans: Mapping[str, track.Waveform], desired: t
 #: How long after planning a run is taken to start, s, until a start has been seen (then: the
 #: last start's delay).
 LEAD_S = 0.1
+#: A stage that has held its output this long since the twin's last recording (s) is read
+#: before a run is planned from the twin (:func:`read_held`) ...
+IDLE_S = 10.0
+#: ... over this long, s.
+READ_S = 0.2
+
+
+def read_held(stage: PlayingStage, tw: Twin) -> Twin:
+    """The twin after reading the stage at the output it holds for :data:`READ_S`: a recording
+    that moves nothing, whose readings against the model are an observation of the frame now
+    (:mod:`afmctl.model.frame`). The sweeps' own observations span a minute and the fit between
+    them takes minutes: a frame drifting 2 nm/s (an independent tester's stage) had moved
+    0.55 um unseen when the first run was planned, and that run was off by all of it (0.52 um
+    on a 27.9 Hz triangle, 7.4x better than the linear filter; the next run, planned with its
+    observation, 67x). The twin is returned as it was if the stage does not say when the
+    recording started."""
+    v = np.full(max(2, int(round(READ_S / tw.dt_s))), tw.held_v)
+    rec = stage.play(v)
+    started = getattr(stage, "run_started_s", None)
+    if started is None:
+        return tw
+    readings = np.where(rec.valid, rec.displacement_um, np.nan)
+    return tw.after(v, started, getattr(stage, "run_count", None), readings)
 
 
 def run_following(stage: PlayingStage, tw: Twin,

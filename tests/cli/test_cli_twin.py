@@ -21,12 +21,15 @@ from afmctl.model.transducer import Transducer
 RATE = 10_000.0
 
 
-def timed_sweeps(model: Transducer, counts: tuple[int, int]) -> list[sweepfile.Sweep]:
-    """Two triangles as a stage recorded them a minute ago, 0.5 s apart, as runs ``counts``,
-    read as ``model`` moves from rest (the readings the twin compares itself with)."""
+def timed_sweeps(model: Transducer, counts: tuple[int, int], ago_s: float = 2.0
+                 ) -> list[sweepfile.Sweep]:
+    """Two triangles as a stage recorded them ``ago_s`` seconds ago (within
+    :data:`afmctl.experiment.runner.IDLE_S` by default: no reading before the run), 0.5 s apart,
+    as runs ``counts``, read as ``model`` moves from rest (the readings the twin compares itself
+    with)."""
     v = np.interp(np.arange(4000), [0, 2000, 3999], [0.0, 120.0, 0.0])
     u = tr.simulate(tr.compile_model(model, 1 / RATE), v, tr.initial(model))[0]
-    t0 = time.monotonic() - 60.0
+    t0 = time.monotonic() - ago_s - 2 * (0.5 + v.size / RATE)
     return [sweepfile.from_arrays(v, u, RATE,
                                   {"started_s": f"{t0 + k * (0.5 + v.size / RATE):.6f}",
                                    "run_count": str(c)})
@@ -52,6 +55,7 @@ def test_track_plans_from_the_twin_while_it_follows_the_stage(nominal: Transduce
     res = CliRunner().invoke(main, [*argv, "--out", str(tmp_path / "a")])
     assert res.exit_code == 0, res.output
     assert "the stage as the model's twin follows it" in res.stderr
+    assert "reading it there" not in res.stderr  # the sweeps are 2 s old
     after = twinfile.read(kept)
     assert after.run_count == 1 and after.ended_s > before.ended_s
     assert json.loads(res.stdout.strip().splitlines()[-1])["filters"]["inverse"]["rms_um"] < 0.5
@@ -93,3 +97,22 @@ def test_no_twin_without_the_holds(nominal: Transducer, tmp_path: Path) -> None:
     assert twin.keep_beside(nominal, bare, model) is None
     assert twin.keep_beside(nominal, bare[:1], model) is None  # one sweep, no time either
     assert not (tmp_path / "model.twin.json").exists()
+
+
+def test_a_stage_idle_since_its_twin_is_read_before_the_run(nominal: Transducer,
+                                                           tmp_path: Path) -> None:
+    """Sweeps a minute old: track reads the stage where it holds before planning (a run of its
+    own on the device's counter, its readings one more observation of the frame), says so, and
+    the twin it keeps has seen the reading and the run."""
+    model = tmp_path / "model.toml"
+    modelfile.write(nominal, model)
+    kept = twin.keep_beside(nominal, timed_sweeps(nominal, (-1, 0), ago_s=60.0), model)
+    assert kept is not None
+    res = CliRunner().invoke(main, ["track", "triangle", "--freq", "27.9", "--amplitude",
+                                    "27.04", "--model", str(model), "--filter", "inverse",
+                                    "--json", "--out", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    said = [ln for ln in res.stderr.splitlines() if "reading it there" in ln]
+    assert len(said) == 1 and "held 0 V for 6" in said[0], res.stderr
+    after = twinfile.read(kept)
+    assert after.run_count == 2 and after.observations.shape == (4, 2)

@@ -133,3 +133,36 @@ def test_a_drifting_frame_is_read_from_the_readings_and_planned_in() -> None:
     assert tw_k.frame(tw_k.ended_s).um_per_s == pytest.approx(rate_um_s, rel=0.05)
     assert errors[False] > 1.0
     assert errors[True] < 0.02
+
+
+def test_a_held_stage_is_read_where_it_holds() -> None:
+    """:func:`runner.read_held` on an emulated stage whose plant is the twin's model: a run that
+    moves nothing (the output stays where it was held), one more on the device's counter, and one
+    more observation, at the time of the reading (the stage's clock, two minutes after the
+    sweeps), whose offset is the plant's readings less the model's: zero within the noise."""
+    prof = default_profile()
+    model = prof.emulator.plant_model  # type: ignore[union-attr]
+    clock = {"t": 100.0}
+
+    def tick() -> float:  # the device's time runs 10 ms per call (the runs play)
+        clock["t"] += 0.01
+        return clock["t"]
+
+    with InProcessStage(prof, clock=tick) as stage:
+        sweeps = []
+        for top in (120.0, 60.0):
+            v = triangle(int(0.2 * prof.sample_rate_hz), top)
+            sweeps.append(runner.record_sweep(stage, "s", 5.0, v, prof.sample_rate_hz,
+                                              settle_s=0.0))
+            clock["t"] += 1.0
+        tw = twin.from_sweeps(model, sweeps)
+        assert tw is not None and len(tw.observations) == 2
+        clock["t"] += 120.0
+        read = runner.read_held(stage, tw)
+        assert stage.voltage() == 0.0 and stage.run_count == tw.run_count + 1
+    assert len(read.observations) == 3 and read.observations[:2] == tw.observations
+    ob = read.observations[-1]
+    assert ob.at_s == pytest.approx(clock["t"], abs=runner.READ_S)
+    noise = prof.emulator.noise_um  # type: ignore[union-attr]
+    assert abs(ob.offset_um) < 5 * noise / np.sqrt(0.5 * runner.READ_S * prof.sample_rate_hz)
+    assert read.held_v == tw.held_v and read.ended_s > ob.at_s
