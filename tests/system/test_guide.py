@@ -9,7 +9,7 @@ the clone, as written; the only edits are the ones the guide asks for in step 1 
 URL and voltage range "for your hardware"). Step 6 diagnoses every sweep, as written.
 
 What the guide promises is checked on the way: the link and a reading, conformance, four whole
-sweeps and the separating one, identify flagging the delay and reporting the reach, diagnose
+sweeps, the separating one and the reversal curves, identify flagging the delay and reporting the reach, diagnose
 naming it (the separating sweep's steps tell it from an amplifier's lag), the triangle
 tracked at the reach's centre with the readings corrected (and the true position, simulated from
 the voltages the stage played, as close to the trajectory as the scores say), learning, replay.
@@ -137,9 +137,9 @@ def test_the_guide_runs_as_written_on_a_fresh_clone(tmp_path: Path) -> None:
     assert re.search(r"^reading_um: -?\d+\.\d+ \(mean of", out["afmctl status"].stdout, re.M)
     assert out["afmctl set"].stdout.startswith("output 10 V; reading ")
     assert out["afmctl safe"].stdout.strip() == "safe: stopped, output 0 V"
-    # 4: the four standard sweeps and the separating one, whole
+    # 4: the four standard sweeps, the separating one and the reversal curves, whole
     assert sorted(p.name for p in (clone / "sweeps").iterdir()) == [
-        "minor_loops_0.1hz.csv", "separating.csv", "triangle_0.279hz.csv",
+        "minor_loops_0.1hz.csv", "reversals.csv", "separating.csv", "triangle_0.279hz.csv",
         "triangle_27.9hz.csv", "triangle_5.58hz.csv"]
     # 5: identify flags the delay and reports the reach
     from afmctl.files import modelfile
