@@ -9,8 +9,8 @@ the clone, as written; the only edits are the ones the guide asks for in step 1 
 URL and voltage range "for your hardware"). Step 6 diagnoses every sweep, as written.
 
 What the guide promises is checked on the way: the link and a reading, conformance, four whole
-sweeps, the separating one and the reversal curves, identify flagging the delay and reporting the reach, diagnose
-naming it (the separating sweep's steps tell it from an amplifier's lag), the triangle
+sweeps, the separating one and the reversal curves, identify flagging the delay and reporting
+the reach, diagnose naming it (the separating sweep's steps tell it from an amplifier's lag), the triangle
 tracked at the reach's centre with the readings corrected (and the true position, simulated from
 the voltages the stage played, as close to the trajectory as the scores say), learning, replay.
 """
