@@ -112,16 +112,16 @@ def _warn_few_reversals(result: Any) -> None:
                    f"from {n} voltage(s) inside their range (a triangle over the whole range "
                    f"traces none, and steps and a fast multisine jump over theirs): minor loops "
                    f"inside it are the smoothing's guess; record the reversal curves with the "
-                   f"standard set, back to back (`afmctl sweep --design reversals --out "
-                   f"NEW_FOLDER`, about a minute, so that a creeping stage's twin follows them) "
-                   f"and identify on those", err=True)
+                   f"standard set and the separating sweep, back to back (`afmctl sweep --design "
+                   f"full --out NEW_FOLDER`, about a minute, so that a creeping stage's twin "
+                   f"follows them) and identify on those", err=True)
     grid = result.representations.get("preisach", {})
     if result.representation == "preisach" and grid.get("force_cubic_fitted") is False:
         click.echo(f"note: the force's cubic a3 P^3 is held at 0: the sweeps run "
                    f"{grid['interior_loops']} loop(s) with both ends inside their range, and "
                    f"first-order reversal curves alone fit as well with any cubic; a stage whose "
                    f"displacement is not quadratic in its hysteresis (a modified Prandtl-"
-                   f"Ishlinskii stage) needs `afmctl sweep --design reversals` (interior loops)",
+                   f"Ishlinskii stage) needs `afmctl sweep --design full` (interior loops)",
                    err=True)
 
 

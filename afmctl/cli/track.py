@@ -415,11 +415,9 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
         return
     say(cal.describe())
     make_dir(out, "--out")
-    idle = stage.now_s() - tw.ended_s
-    if idle > experiment.IDLE_S:
-        say(f"the stage has held {tw.held_v:g} V for {idle:.0f} s since the twin's last recording: "
-            f"reading it there for {experiment.READ_S:g} s, to see where its frame is now")
-        tw = experiment.read_held(stage, tw)
+    idle_s = stage.now_s() - tw.ended_s
+    if idle_s > experiment.IDLE_S:
+        tw = _read_held(stage, tw, idle_s, out, meta)
 
     def plan_for(name: str, state: Any, frame: Any) -> Any:
         if frame.basis != "none":
@@ -433,6 +431,21 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
                                      done=outcomes)
     if after is not None:
         twin.save(after, cal.path)
+
+
+def _read_held(stage: Any, tw: Any, idle_s: float, out: Path, meta: dict[str, Any]) -> Any:
+    """Read the stage where it holds (:func:`afmctl.experiment.runner.read_held`) into
+    ``out``, say what it read, and record it in ``meta`` (the runs' headers, summary.json)."""
+    from afmctl.experiment import runner as experiment
+    say(f"the stage has held {tw.held_v:g} V for {idle_s:.0f} s since the twin's last "
+        f"recording: reading it there for {experiment.READ_S:g} s ({experiment.READ_FILE}), to "
+        f"see how far its readings have moved from the model (a drifting mount, creep)")
+    tw = experiment.read_held(stage, tw, out / experiment.READ_FILE, meta)
+    if tw.read is not None:
+        say(f"read: the readings sit {tw.read.offset_um:+.4f} um from the model's")
+        meta.update({"read_after_idle_s": round(idle_s, 3),
+                     "read_offset_um": tw.read.offset_um, "read_file": experiment.READ_FILE})
+    return tw
 
 
 def _run_count(stage: Any) -> int | None:

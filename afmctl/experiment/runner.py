@@ -173,24 +173,42 @@ LEAD_S = 0.1
 IDLE_S = 10.0
 #: ... over this long, s.
 READ_S = 0.2
+#: The run file of that reading, in the run's output folder.
+READ_FILE = "run_read.csv"
 
 
-def read_held(stage: PlayingStage, tw: Twin) -> Twin:
-    """The twin after reading the stage at the output it holds for :data:`READ_S`: a recording
-    that moves nothing, whose readings against the model are an observation of the frame now
-    (:mod:`afmctl.model.frame`). The sweeps' own observations span a minute and the fit between
-    them takes minutes: a frame drifting 2 nm/s (an independent tester's stage) had moved
-    0.55 um unseen when the first run was planned, and that run was off by all of it (0.52 um
-    on a 27.9 Hz triangle, 7.4x better than the linear filter; the next run, planned with its
-    observation, 67x). The twin is returned as it was if the stage does not say when the
-    recording started."""
-    v = np.full(max(2, int(round(READ_S / tw.dt_s))), tw.held_v)
-    rec = stage.play(v)
+def read_held(stage: PlayingStage, tw: Twin, path: Path, meta: Mapping[str, object]) -> Twin:
+    """The twin after reading the stage at the output it holds (``tw.held_v``) for
+    :data:`READ_S`: a run that moves nothing, streamed to ``path`` like any run, whose readings
+    against the model are the twin's ``read`` (:meth:`Twin.planning_frame` anchors the next
+    run's frame on it). The sweeps' own observations span a minute and the fit after them
+    takes minutes: a frame drifting 2 nm/s (an independent tester's stage) had moved 0.55 um
+    unseen when the first run was planned, and that run was off by all of it (0.52 um on a
+    27.9 Hz triangle, 7.4x better than the linear filter; the next run, planned with its
+    observation, 67x).
+
+    Raises
+    ------
+    ValueError
+        If the stage does not hold ``tw.held_v`` (within 1 mV): reading it there would move it.
+    """
+    now_v = stage.voltage()
+    if abs(now_v - tw.held_v) > 1e-3:
+        raise ValueError(f"the stage holds {now_v:.4f} V, not the twin's {tw.held_v:.4f} V")
+    n = max(2, int(round(READ_S / tw.dt_s)))
+    wf = track.Waveform("read", tw.dt_s, np.full(n, tw.held_v), np.full(n, np.nan), slice(0, 0))
+    u, _, _ = stream(stage, wf, path, meta)
+    return _followed(stage, tw, wf.voltage_v, u, read=True) or tw
+
+
+def _followed(stage: PlayingStage, tw: Twin, voltage_v: FloatArray, readings_um: FloatArray,
+              read: bool = False) -> Twin | None:
+    """``tw`` after the run the stage just played (:meth:`Twin.after`, from the stage's start
+    time and run counter); None if the stage does not say when the run started."""
     started = getattr(stage, "run_started_s", None)
     if started is None:
-        return tw
-    readings = np.where(rec.valid, rec.displacement_um, np.nan)
-    return tw.after(v, started, getattr(stage, "run_count", None), readings)
+        return None
+    return tw.after(voltage_v, started, getattr(stage, "run_count", None), readings_um, read)
 
 
 def run_following(stage: PlayingStage, tw: Twin,
@@ -211,12 +229,11 @@ def run_following(stage: PlayingStage, tw: Twin,
         wf = plan_for(name, tw.at(asked), tw.planning_frame(asked))
         outcome = run_all(stage, {name: wf}, desired, out, meta, between_model, progress,
                           sensor, done)[name]
-        started = getattr(stage, "run_started_s", None)
-        if started is None:
+        followed = _followed(stage, tw, wf.voltage_v, outcome.displacement_um)
+        if followed is None:
             return None
-        lead = max(0.0, started - asked + lead)
-        tw = tw.after(wf.voltage_v, started, getattr(stage, "run_count", None),
-                      outcome.displacement_um)
+        lead = max(0.0, stage.run_started_s - asked + lead)  # type: ignore[attr-defined]
+        tw = followed
     return tw
 
 

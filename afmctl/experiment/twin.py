@@ -58,6 +58,10 @@ class Twin:
         The device's run counter after that run, if the stage reported it.
     observations : tuple of frame.Observation
         The readings of the recordings followed against the model (oldest first), where given.
+    read : frame.Observation or None
+        The last reading of the stage where it held its output (:meth:`after` with
+        ``read=True``), kept apart from ``observations`` (it anchors the next run's frame, not a
+        drift's slope) and not saved.
     """
 
     model: tr.Transducer
@@ -67,6 +71,7 @@ class Twin:
     held_v: float
     run_count: int | None = None
     observations: tuple[fr.Observation, ...] = ()
+    read: fr.Observation | None = None
 
     def at(self, when_s: float) -> tr.StageState:
         """The state at ``when_s`` (s, the stage's clock), ``held_v`` held since ``ended_s``
@@ -75,19 +80,25 @@ class Twin:
         return tr.held(tr.compile_model(self.model, self.dt_s), self.held_v, hold, self.state)
 
     def after(self, voltage_v: ArrayLike, started_s: float, run_count: int | None = None,
-              readings_um: ArrayLike | None = None) -> Twin:
+              readings_um: ArrayLike | None = None, read: bool = False) -> Twin:
         """The twin once ``voltage_v`` (V, one value per sample) has played from ``started_s``
         (s, the stage's clock: :attr:`afmctl.drivers.player.Recording.started_s`) as run
         ``run_count`` of the device's counter; ``readings_um`` (um, NaN where missing), the
-        sensor's over it, are compared with the model (:func:`afmctl.model.frame.observe`)."""
+        sensor's over it, are compared with the model (:func:`afmctl.model.frame.observe`): one
+        more of ``observations``, or with ``read`` (a reading at the held output) the new
+        ``read``."""
         v = np.asarray(voltage_v, dtype=float)
         u, _, state = tr.simulate(tr.compile_model(self.model, self.dt_s), v, self.at(started_s))
-        seen = self.observations
+        seen, last = self.observations, self.read
         if readings_um is not None:
             ob = self._observe(u, np.asarray(readings_um, dtype=float), started_s)
-            seen = seen if ob is None else (*seen, ob)
+            if ob is not None and read:
+                last = ob
+            elif ob is not None:
+                seen = (*seen, ob)
         return dc.replace(self, state=state, ended_s=started_s + v.size * self.dt_s,
-                          held_v=float(v[-1]), run_count=run_count, observations=seen)
+                          held_v=float(v[-1]), run_count=run_count, observations=seen,
+                          read=last)
 
     def frame(self, when_s: float) -> fr.Frame:
         """Where readings taken from ``when_s`` on (s, the stage's clock) will sit from the
@@ -95,9 +106,13 @@ class Twin:
         return fr.estimate(self.observations, when_s)
 
     def planning_frame(self, when_s: float) -> fr.Frame:
-        """The frame a run starting at ``when_s`` is planned in: :meth:`frame` where it drifts
+        """The frame a run starting at ``when_s`` is planned in: from ``read`` if it is the
+        latest (:func:`afmctl.model.frame.anchored`), else :meth:`frame` where it drifts
         steadily, else the model's own zero (a last recording's offset alone is not followed:
         on a stage that does not drift it is what the model missed on another trajectory)."""
+        if self.read is not None and (not self.observations
+                                      or self.read.at_s >= self.observations[-1].at_s):
+            return fr.anchored(self.observations, self.read, when_s)
         seen = self.frame(when_s)
         return seen if seen.um_per_s != 0.0 else fr.Frame()
 

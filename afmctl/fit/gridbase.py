@@ -94,8 +94,9 @@ INTERIOR_HINT = {
                "triangle's minor loops run, its density is the smoothing's guess, and "
                "extended.toml can track worse than the model without creep",
     "measure": "before tracking with extended.toml, record the reversal curves with the "
-               "standard set, back to back (`afmctl sweep --design reversals --out NEW_FOLDER`, "
-               "so that the models' twins follow them) and diagnose or identify on those"}
+               "standard set and the separating sweep, back to back (`afmctl sweep --design "
+               "full --out NEW_FOLDER`, so that the models' twins follow them) and diagnose or "
+               "identify on those"}
 #: The suggestion when the creep elements sit on the slowest time constants (:meth:`GridBase.drift`).
 DRIFT_HINT = {
     "feature": "drift",

@@ -72,7 +72,7 @@ DECISIVE = 3.0
 #: Reversals farther than this share of the range from its ends are inside it.
 EDGE = 0.05
 #: Below this many interior reversal voltages the grid's interior is the smoothing's guess (the
-#: CLI says so and suggests ``afmctl sweep --design reversals``, whose curves reverse at 19).
+#: CLI says so and suggests ``afmctl sweep --design full``, whose curves reverse at 19).
 REVERSALS_NEEDED = 4
 #: A branch leaving a reversal teaches the grid its interior only if it is traced, not jumped:
 #: moving no faster than this many times the sweep's range per second (twice the 5.58 Hz

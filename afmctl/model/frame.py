@@ -99,6 +99,23 @@ def estimate(observations: Sequence[Observation], when_s: float) -> Frame:
                  f"drift {1e3 * rate:+.2f} nm/s over {len(last)} recordings ({span:.0f} s)")
 
 
+def anchored(observations: Sequence[Observation], read: Observation, when_s: float) -> Frame:
+    """The frame at ``when_s`` (s) from a reading of the stage where it holds its output
+    (``read``, taken just before a run) and the ``observations`` before it (oldest first): the
+    reading's offset, moved on at the steady drift rate of those observations if they show one
+    (the module's rule), else held. The reading sets where the frame is, not how fast it moves:
+    minutes after sweeps that span one, its single point would decide the slope (on a creeping
+    stage that does not drift, a -0.18 um miss at rest read as -0.84 nm/s)."""
+    last = observations[-MAX_POINTS:]
+    rate = _steady_rate(np.array([o.at_s for o in last]), np.array([o.offset_um for o in last]))
+    ago = when_s - read.at_s
+    basis = f"read at the held output {ago:.1f} s before"
+    if rate is None:
+        return Frame(read.offset_um, 0.0, basis)
+    return Frame(read.offset_um + rate * ago, rate,
+                 f"{basis}, drift {1e3 * rate:+.2f} nm/s over {len(last)} recordings")
+
+
 def _steady_rate(t: FloatArray, y: FloatArray) -> float | None:
     """The slope of ``y`` on ``t`` (um/s) if it is steady (see the module), else None."""
     if t.size < MIN_POINTS:

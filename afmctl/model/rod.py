@@ -110,7 +110,7 @@ def smooth_horizon(disc: Discrete, d_max: int = 64) -> int:
     leaves the state to evolve with ``M_d = Phi - Gamma C Phi^d / g_d``. For ``d = 1`` one eigenvalue
     of ``M_d`` is the sampling zero of the discretized rod, near -1 at high sample rates: the field
     chatters between samples. Returns the first ``d`` whose eigenvalues all lie inside the unit
-    circle with a real part that is positive or zero up to :data:`ROUND_OFF`.
+    circle, each with a positive real part or within :data:`ROUND_OFF` of zero.
 
     A heavily overdamped rod (a stage that behaves as a first-order lag) has a pole so fast that
     ``e^{lambda dt}`` is zero in double precision, and ``M_d`` a zero eigenvalue that round-off
@@ -122,7 +122,7 @@ def smooth_horizon(disc: Discrete, d_max: int = 64) -> int:
     for d in range(1, d_max + 1):
         row, gain = disc.horizon(d)
         ev = np.linalg.eigvals(disc.phi - np.outer(disc.gamma, row) / gain)
-        if np.all(ev.real > -ROUND_OFF) and np.all(np.abs(ev) < 1):
+        if np.all((ev.real > 0) | (np.abs(ev) < ROUND_OFF)) and np.all(np.abs(ev) < 1):
             return d
     return d_max
 

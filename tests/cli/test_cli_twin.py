@@ -102,8 +102,8 @@ def test_no_twin_without_the_holds(nominal: Transducer, tmp_path: Path) -> None:
 def test_a_stage_idle_since_its_twin_is_read_before_the_run(nominal: Transducer,
                                                            tmp_path: Path) -> None:
     """Sweeps a minute old: track reads the stage where it holds before planning (a run of its
-    own on the device's counter, its readings one more observation of the frame), says so, and
-    the twin it keeps has seen the reading and the run."""
+    own on the device's counter and in its own run file), says so and what it read, records it
+    in summary.json, and the twin it keeps has followed the reading and the run."""
     model = tmp_path / "model.toml"
     modelfile.write(nominal, model)
     kept = twin.keep_beside(nominal, timed_sweeps(nominal, (-1, 0), ago_s=60.0), model)
@@ -114,5 +114,9 @@ def test_a_stage_idle_since_its_twin_is_read_before_the_run(nominal: Transducer,
     assert res.exit_code == 0, res.output
     said = [ln for ln in res.stderr.splitlines() if "reading it there" in ln]
     assert len(said) == 1 and "held 0 V for 6" in said[0], res.stderr
-    after = twinfile.read(kept)
-    assert after.run_count == 2 and after.observations.shape == (4, 2)
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["read_file"] == "run_read.csv" and summary["read_after_idle_s"] > 60.0
+    assert f"read: the readings sit {summary['read_offset_um']:+.4f} um" in res.stderr
+    assert (tmp_path / "a" / "run_read.csv").is_file()
+    after = twinfile.read(kept)  # the read is not saved: it anchored this run's frame only
+    assert after.run_count == 2 and after.observations.shape == (3, 2)

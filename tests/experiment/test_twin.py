@@ -135,13 +135,20 @@ def test_a_drifting_frame_is_read_from_the_readings_and_planned_in() -> None:
     assert errors[True] < 0.02
 
 
-def test_a_held_stage_is_read_where_it_holds() -> None:
-    """:func:`runner.read_held` on an emulated stage whose plant is the twin's model: a run that
-    moves nothing (the output stays where it was held), one more on the device's counter, and one
-    more observation, at the time of the reading (the stage's clock, two minutes after the
-    sweeps), whose offset is the plant's readings less the model's: zero within the noise."""
+def test_a_held_stage_is_read_where_it_holds(tmp_path: Path) -> None:
+    """:func:`runner.read_held` on an emulated stage, two minutes after its sweeps and a move to
+    20 V, through a twin whose model reads 0.5 um above the plant (the rod's offset): a run that
+    moves nothing (20 V held throughout, written to its run file), one more on the device's
+    counter, and the twin's ``read`` at the time of the reading with the readings less the
+    model, -0.5 um within the noise; the next run's frame is anchored on it. A twin whose held
+    output is not the stage's is refused before anything plays."""
+    import dataclasses as dc
+
+    from afmctl.files import runfile
+    from afmctl.planning import track
     prof = default_profile()
-    model = prof.emulator.plant_model  # type: ignore[union-attr]
+    plant = prof.emulator.plant_model  # type: ignore[union-attr]
+    model = dc.replace(plant, rod=dc.replace(plant.rod, offset_um=plant.rod.offset_um + 0.5))
     clock = {"t": 100.0}
 
     def tick() -> float:  # the device's time runs 10 ms per call (the runs play)
@@ -154,15 +161,23 @@ def test_a_held_stage_is_read_where_it_holds() -> None:
             v = triangle(int(0.2 * prof.sample_rate_hz), top)
             sweeps.append(runner.record_sweep(stage, "s", 5.0, v, prof.sample_rate_hz,
                                               settle_s=0.0))
-            clock["t"] += 1.0
         tw = twin.from_sweeps(model, sweeps)
-        assert tw is not None and len(tw.observations) == 2
+        assert tw is not None and len(tw.observations) == 2 and tw.read is None
+        move = track.raised_cosine(0.0, 20.0, 400)
+        rec = stage.play(move)
+        tw = tw.after(move, rec.started_s, rec.run_count, rec.displacement_um)
         clock["t"] += 120.0
-        read = runner.read_held(stage, tw)
-        assert stage.voltage() == 0.0 and stage.run_count == tw.run_count + 1
-    assert len(read.observations) == 3 and read.observations[:2] == tw.observations
-    ob = read.observations[-1]
-    assert ob.at_s == pytest.approx(clock["t"], abs=runner.READ_S)
+        with pytest.raises(ValueError, match="holds 20.0000 V"):
+            runner.read_held(stage, dc.replace(tw, held_v=0.0), tmp_path / "no.csv", {})
+        assert not (tmp_path / "no.csv").exists()
+        read = runner.read_held(stage, tw, tmp_path / "read.csv", {"what": "a test"})
+        assert stage.voltage() == 20.0 and stage.run_count == tw.run_count + 1
+    run = runfile.read(tmp_path / "read.csv")
+    assert run.complete and np.all(run.voltage_v == 20.0)
+    assert read.observations == tw.observations and read.run_count == tw.run_count + 1
+    ob = read.read
+    assert ob is not None and ob.at_s > tw.ended_s + 120.0
     noise = prof.emulator.noise_um  # type: ignore[union-attr]
-    assert abs(ob.offset_um) < 5 * noise / np.sqrt(0.5 * runner.READ_S * prof.sample_rate_hz)
-    assert read.held_v == tw.held_v and read.ended_s > ob.at_s
+    assert ob.offset_um == pytest.approx(-0.5, abs=5 * noise / np.sqrt(1000))
+    assert read.planning_frame(ob.at_s + 0.2).offset_um == pytest.approx(ob.offset_um, abs=1e-3)
+    assert read.held_v == 20.0 and read.ended_s > ob.at_s

@@ -121,7 +121,7 @@ def test_a_creeping_stage_out_of_the_family_is_diagnosed_creep(tmp_path: Path) -
     # three full-range triangles: no reversal inside the range, so the creep model's loop
     # interior is the smoothing's guess, and the diagnosis says which sweeps would fix that
     assert doc["grid"]["interior_reversals"] == 0
-    assert d.suggestions() == [gb.INTERIOR_HINT] and "--design reversals" in str(doc)
+    assert d.suggestions() == [gb.INTERIOR_HINT] and "--design full" in str(doc)
     assert "creep" in doc["explanation"] and "decade" in doc["evidence"]
     assert "Preisach grid" in doc["method"]
     assert "| preisach-grid with creep |" in (tmp_path / "report.md").read_text()

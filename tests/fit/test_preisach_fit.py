@@ -93,7 +93,7 @@ def test_identify_chooses_the_grid_and_reaches_the_noise_floor(
     # nested loops from 0 V reverse at 2 voltages inside the range: too few for the grid's
     # interior, and identify says which sweep design would give it the rest
     assert figures["preisach"]["interior_reversals"] == 2
-    assert "--design reversals" in stderr
+    assert "--design full" in stderr
     # and no loop has both ends inside the range: the force's cubic is held at 0, and said so
     assert figures["preisach"]["interior_loops"] == 0
     assert figures["preisach"]["force_cubic_fitted"] is False

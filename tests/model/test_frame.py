@@ -60,3 +60,27 @@ def test_an_observation_is_the_second_half_of_a_recording() -> None:
     ob = fr.observe(t, readings, np.zeros(10))
     assert ob == fr.Observation(float(np.mean([5.0, 6.0, 8.0, 9.0])), 1.0)
     assert fr.observe(t, np.full(10, np.nan), np.zeros(10)) is None
+
+
+def test_a_reading_at_the_held_output_sets_the_level_not_the_slope() -> None:
+    """Six sweeps over a minute at a steady offset (a stage that creeps but does not drift), then
+    a reading 200 s on, 0.18 um off (what the model misses at rest): the frame anchored on the
+    reading is at its offset and does not move, where the straight line through all seven would
+    have taken the single far point for a drift and followed it."""
+    sweeps = line([0.0, 10.0, 20.0, 30.0, 40.0, 50.0], 0.0, 0.0, 0.004)
+    read = fr.Observation(250.0, -0.18)
+    f = fr.anchored(sweeps, read, 250.5)
+    assert f.offset_um == -0.18 and f.um_per_s == 0.0
+    assert f.basis == "read at the held output 0.5 s before"
+    assert fr.estimate([*sweeps, read], 250.5).um_per_s < -5e-4  # the line's false drift
+
+
+def test_a_reading_moves_on_at_a_drift_the_observations_before_it_show() -> None:
+    """A steady drift of 2 nm/s over six recordings: the reading sets the level, the drift
+    carries it to the run's start."""
+    obs = line([0.0, 10.0, 20.0, 30.0, 40.0, 50.0], 0.1, 0.002, 0.0005)
+    f = fr.anchored(obs, fr.Observation(300.0, 0.75), 302.0)
+    assert f.um_per_s == pytest.approx(0.002, rel=0.05)
+    assert f.offset_um == pytest.approx(0.75 + 2 * f.um_per_s)
+    assert f.basis.startswith("read at the held output 2.0 s before, drift +") \
+        and f.basis.endswith(" nm/s over 6 recordings")
