@@ -97,7 +97,7 @@ def sweep(profile_path: str | None, out_dir: str, v_range: tuple[float, float] |
         from afmctl.cli.xysweep import sweep_xy
         if v_range is not None or only or design in ("separating", "full"):
             raise InputError("--axes records the whole two-axis set over each axis's range: "
-                             "without --v-range, --only, --design separating or full")
+                             "no --v-range or --only, and --design standard or reversals only")
         sweep_xy(prof, axes, Path(out_dir), band_hz, resume, design)
         return
     lo, hi = _v_range(v_range, prof)
