@@ -23,8 +23,12 @@ checked, and is counted as ``unsteady``. Nor is a loop whose two passes move at 
 :data:`RATE` apart: the rod's lag (and any rate dependence) is the same on two passes at one rate
 and cancels from the gap, but not between a slow and a fast one (the separating sweep's
 multisine left every Preisach and Prandtl-Ishlinskii stage of the family benches 10-23x the
-noise "open", its passes 1.9-2.5 times apart in rate). Pure numerics on sweeps already read:
-no I/O.
+noise "open", its passes 1.9-2.5 times apart in rate). Nor, lastly, is a loop with a pass
+faster than :data:`SLOW_RANGES_PER_S`: two passes at one rate cancel the rod's lag, not its
+inertia, which a fast pass that speeds up or slows down through ``v_a`` shows differently each
+way (the same multisine's reversal at 79 V, about 5 V/ms, left Preisach and Prandtl-Ishlinskii
+stages with 1100-1400 Hz rods 7-16x the noise "open", an independent tester's two among them;
+``/tmp/s66/fastloops.py``). Pure numerics on sweeps already read: no I/O.
 """
 
 from __future__ import annotations
@@ -52,6 +56,9 @@ MIN_SAMPLES = 8
 SMOOTH = 2.0
 #: Two passes whose mean voltage rates differ by more than this factor are not compared.
 RATE = 1.25
+#: Nor two of which one moves (mean voltage rate) faster than this many times the sweep's range
+#: per second: twice the 5.58 Hz triangle's slew, the reversals design's curves' rate.
+SLOW_RANGES_PER_S = 4 * 5.58
 #: An excursion that passes the reversal before ``v_a`` by more than this share of the sweep's
 #: range wipes it out (:func:`loop_gaps`); by less it counts as returning there (a sampled
 #: triangle's turning points differ by up to one step: 0.84 V at 27.9 Hz and 10 kHz on 150 V).
@@ -87,11 +94,12 @@ def _at(v: FloatArray, y: FloatArray, va: float) -> tuple[float, float, float]:
     return float(coef[0]), float(np.sqrt(max(cov[0, 0], 0.0))), float(np.sqrt(np.mean(res ** 2)))
 
 
-def _alike(into: FloatArray, back: FloatArray) -> bool:
+def _alike(into: FloatArray, back: FloatArray, fastest: float) -> bool:
     """Whether two passes' mean voltage rates (per sample, over the samples that move: a pause
-    at the reversal is no slower pass) are within :data:`RATE` of each other."""
+    at the reversal is no slower pass) are within :data:`RATE` of each other, and neither
+    above ``fastest`` (V per sample)."""
     a, b = (float(np.mean(m)) if (m := _moving(p)).size else 0.0 for p in (into, back))
-    return max(a, b) <= RATE * min(a, b)
+    return max(a, b) <= min(RATE * min(a, b), fastest)
 
 
 def _moving(v: FloatArray) -> FloatArray:
@@ -103,7 +111,8 @@ def _moving(v: FloatArray) -> FloatArray:
 def loop_gaps(sweep: Sweep, noise_um: float) -> tuple[list[Gap], int]:
     """Every minor loop of ``sweep`` that returns to its reversal voltage, with its closure gap,
     and how many such loops were not checked because a pass is not quasi-static
-    (:data:`SMOOTH`) or the two move at rates too far apart (:data:`RATE`). A loop is one only
+    (:data:`SMOOTH`, :data:`SLOW_RANGES_PER_S`) or the two move at rates too far apart
+    (:data:`RATE`). A loop is one only
     if its excursion stays within the reversal before ``v_a`` (a maximum's excursion does not
     go below the minimum it rose from): one that goes past it wipes that reversal out, and the
     return meets ``v_a`` on another branch, whatever the stage's memory (on the reversal-curve
@@ -131,7 +140,8 @@ def loop_gaps(sweep: Sweep, noise_um: float) -> tuple[list[Gap], int]:
             continue
         y_into, se_into, rms_into = _at(v[into], y[into], va)
         y_back, se_back, rms_back = _at(v[ret], y[ret], va)
-        if max(rms_into, rms_back) > SMOOTH * noise_um or not _alike(v[into], v[ret]):
+        if (max(rms_into, rms_back) > SMOOTH * noise_um
+                or not _alike(v[into], v[ret], SLOW_RANGES_PER_S * span * sweep.dt)):
             unsteady += 1
             continue
         out.append(Gap(sweep.path or sweep.name, va, float(sweep.time_s[b]), y_back - y_into,
@@ -153,7 +163,7 @@ def check(sweeps: Sequence[Sweep], noise_um: Sequence[float]) -> dict[str, Any]:
                            "unsteady": sum(n for _, n in found),
                            "close": None if not gaps else not opened, "worst": None,
                            "thresholds": {"stderr": SIGMAS, "noise": NOISES, "smooth": SMOOTH,
-                                          "rate": RATE}}
+                                          "rate": RATE, "slow_ranges_per_s": SLOW_RANGES_PER_S}}
     if worst is not None:
         out["worst"] = {"sweep": worst.sweep, "voltage_V": worst.voltage_v,
                         "time_s": worst.time_s, "gap_um": worst.gap_um,

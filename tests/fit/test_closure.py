@@ -17,6 +17,7 @@ from afmctl.cli import main
 from afmctl.drivers.device.foreign import family_stage as fst
 from afmctl.files import sweepfile as sw
 from afmctl.fit import closure
+from afmctl.planning import sweepdesign as sd
 from benchmarks import family_sets
 from tests.harness.paths import PROFILES
 
@@ -83,11 +84,14 @@ def test_a_ringing_turnaround_is_not_checked(tmp_path: Path,
     Hz triangle rings the rod at the turnarounds, so a quadratic in the voltage does not describe
     the passes there and their "gaps" are the ringing's phase. Those loops are not checked, and
     the loops close. Taken as they come, one of them was 5 standard errors open, and identify
-    fitted Bouc-Wen for nothing (97 of its 173 s)."""
+    fitted Bouc-Wen for nothing (97 of its 173 s). (Every pass of that triangle is also faster
+    than :data:`closure.SLOW_RANGES_PER_S`, which alone leaves nothing checked.)"""
     case = family_sets.cases_named("preisach-u")[0]
     with family_sets.session(case) as s:
         sweeps = family_sets.record(s, tmp_path, reversals=False)
     fast = [w for w in sweeps if (w.frequency_hz or 0.0) > 20.0]
+    assert closure.check(fast, [s.noise_um])["close"] is None  # all faster than SLOW_RANGES
+    monkeypatch.setattr(closure, "SLOW_RANGES_PER_S", math.inf)  # the quadratic's rule alone
     out = closure.check(fast, [s.noise_um])
     assert out["unsteady"] >= 3 and out["close"] is True, out
     assert "not quasi-static" in out["text"]
@@ -110,8 +114,32 @@ def test_passes_at_unlike_rates_are_not_compared(tmp_path: Path,
     assert out["checked"] == 0 and out["unsteady"] >= 5 and out["close"] is None, out
     assert "unlike rates" in out["text"]
     monkeypatch.setattr(closure, "RATE", math.inf)  # every pair compared, whatever its rates
+    monkeypatch.setattr(closure, "SLOW_RANGES_PER_S", math.inf)
     loose = closure.check(sep, [s.noise_um])
     assert loose["close"] is False and loose["worst"]["gap_over_noise"] > 10, loose
+
+
+@pytest.mark.parametrize("family, seed", [("preisach", 4), ("prandtl-ishlinskii", 1)])
+def test_fast_passes_at_one_rate_are_not_compared(family: str, seed: int,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """The separating sweep's multisine on independently written stages with a 1400 Hz rod
+    damped 0.25 (like an independent tester's, which drew the false warning): at its reversal
+    at 79 V both passes move at about 5 V/ms, alike, and the rod's inertia, not the stage's
+    memory, leaves them 8-14x the noise apart. Faster than twice the 5.58 Hz triangle's slew,
+    they are not compared; taken as they come, the loop is open."""
+    rate = 10_000.0
+    v, _ = sd.separating_sweep((0.0, 150.0), rate, 5e4)
+    stage = fst.random_family_stage(np.random.default_rng(seed), family, resonance_hz=1400.0,
+                                    damping=0.25, noise_um=0.03)
+    _, reading, _ = fst.run(stage, v, rate, fst.initial_state(stage))
+    noisy = reading + np.random.default_rng(seed + 100).normal(0.0, stage.noise_um, v.size)
+    sep = [sw.from_arrays(v, noisy, rate, {"layer_thickness_um": "100"}, path="separating.csv")]
+    out = closure.check(sep, [stage.noise_um])
+    assert out["checked"] == 0 and out["close"] is None and out["unsteady"] == 10, out
+    monkeypatch.setattr(closure, "SLOW_RANGES_PER_S", math.inf)
+    loose = closure.check(sep, [stage.noise_um])
+    assert loose["close"] is False and loose["worst"]["gap_over_noise"] > 7, loose
+    assert abs(loose["worst"]["voltage_V"] - 79.3) < 0.1
 
 
 def test_no_return_to_a_reversal_cannot_tell() -> None:
