@@ -73,12 +73,16 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
                    f"{it.outcome.waveform.max_slew_v_per_ms:.1f} V/ms{gain}", err=True)
         write(result)
 
+    start = None
+    if resume is None and cal is not None:
+        from afmctl.cli.track import learning_start
+        start = learning_start(stage, cal, out, meta)
     click.echo(f"learning {desired.label}: up to {iterations} iterations after the "
                + ("replayed" if resume is not None else seed) + " waveform ...", err=True)
     result = learn.run(stage, model, desired, prof.limits, out, meta, iterations, law, truth,
                        seed, how[0], progress_printer(True), each,
                        envelope=modelfile.read_envelope(model_name), extrapolate=how[1],
-                       resume=resume)
+                       resume=resume, start=start)
     data = write(result)
     if resume is not None and resume.readings_um is not None:
         data["replay_offset_um"] = result.iterations[0].offset_um

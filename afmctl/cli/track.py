@@ -433,6 +433,30 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
         twin.save(after, cal.path)
 
 
+def learning_start(stage: Any, cal: Any, out: Path, meta: dict[str, Any]) -> Any:
+    """Where ``track --learn`` starts its iteration 0 (:func:`afmctl.experiment.learn.run`'s
+    ``start``): the model's state and the readings' frame from the twin, as track plans (the
+    stage read first if it has idled), or None (from rest, in the model's zero); said either
+    way."""
+    from afmctl.experiment import runner as experiment
+    from afmctl.experiment import twin
+    tw, why = twin.load(cal.model, cal.path, stage.voltage(), _run_count(stage))
+    if tw is None:
+        say(f"learning starts from rest in the model's zero ({why}): iteration 0 sits off by any "
+            f"creep or drift since the sweeps, and the first iteration takes it out")
+        return None
+    say(f"learning starts from the stage as the model's twin follows it ({why})")
+    idle_s = stage.now_s() - tw.ended_s
+    if idle_s > experiment.IDLE_S:
+        tw = _read_held(stage, tw, idle_s, out, meta)
+    when = stage.now_s() + experiment.LEAD_S
+    frame = tw.planning_frame(when)
+    if frame.basis != "none":
+        say(f"iteration 0: readings expected {frame.offset_um:+.4f} um from the model's zero at "
+            f"its start ({frame.basis}); planned in that frame")
+    return tw.at(when), frame
+
+
 def _read_held(stage: Any, tw: Any, idle_s: float, out: Path, meta: dict[str, Any]) -> Any:
     """Read the stage where it holds (:func:`afmctl.experiment.runner.read_held`) into
     ``out``, say what it read, and record it in ``meta`` (the runs' headers, summary.json)."""

@@ -27,6 +27,7 @@ from afmctl import guard
 from afmctl.experiment import runner as experiment
 from afmctl.files.modelfile import Envelope
 from afmctl.model import effects as fx
+from afmctl.model import frame as fr
 from afmctl.model import transducer as tr
 from afmctl.planning import ilc, track
 
@@ -65,20 +66,22 @@ class Planner:
 
 def planner(model: tr.Transducer, desired: track.Desired, limits: guard.Limits,
             start_v: float = 0.0, seed: str = "inverse", condition: bool = True,
-            envelope: Envelope | None = None, extrapolate: bool = False
-            ) -> tuple[Planner, track.Waveform]:
+            envelope: Envelope | None = None, extrapolate: bool = False,
+            state: tr.StageState | None = None) -> tuple[Planner, track.Waveform]:
     """The planner and iteration 0's waveform (``seed``: ``inverse``, or the paper's ``linear``
     filter, learning then through the line instead of the model). ``envelope`` bounds the
-    conditioning and the waveforms as in :func:`afmctl.planning.track.plan`."""
+    conditioning and the waveforms as in :func:`afmctl.planning.track.plan`; ``state`` is the
+    model's at the start (default: at rest at ``start_v``; a twin's, to start where a creeping
+    stage is)."""
     if seed not in ("inverse", "linear"):
         raise ValueError(f"unknown seed filter {seed!r}")
-    plans = track.plan(model, desired, limits, start_v, ("inverse", seed), condition=condition,
-                       envelope=envelope, extrapolate=extrapolate)
+    plans = track.plan(model, desired, limits, start_v, ("inverse", seed), state=state,
+                       condition=condition, envelope=envelope, extrapolate=extrapolate)
     inv = plans["inverse"]
     cm = tr.compile_model(model, desired.dt_s)
     pre = (track.conditioning(track.conditioning_limits(limits, envelope), start_v, desired.dt_s)
            if condition else np.zeros(0))
-    st0 = tr.initial(model, voltage_v=start_v)
+    st0 = tr.initial(model, voltage_v=start_v) if state is None else state
     _, _, st = tr.simulate(cm, pre, st0)
     v_tr = inv.voltage_v[inv.tracking]
     p = Planner(cm, limits, start_v, st, pre, seed, inv.horizons,
@@ -314,7 +317,8 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         law: ilc.Law = DEFAULT_LAW, truth: tr.Transducer | None = None, seed: str = "inverse",
         condition: bool = True, progress: experiment.Progress | None = None,
         on_iteration: OnIteration | None = None, envelope: Envelope | None = None,
-        extrapolate: bool = False, resume: Resume | None = None) -> Result:
+        extrapolate: bool = False, resume: Resume | None = None,
+        start: tuple[tr.StageState, fr.Frame] | None = None) -> Result:
     """Play iteration 0 and up to ``iterations`` learning iterations on ``stage``.
 
     Every iteration's run file goes to ``out`` (``run_<seed>_iterNN.csv``) as it plays;
@@ -325,7 +329,10 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     or a diverging error end learning early (``Result.stop`` says which). With ``resume``,
     iteration 0 replays its kept waveform (re-planned from its reference: the same voltages)
     and the next ones re-learn from there with its tuning; the replay's ``offset_um`` is how
-    far the stage has moved since the kept run.
+    far the stage has moved since the kept run. ``start`` (the model's state when the stage
+    starts, and the frame its readings will be in: a twin's, :meth:`Twin.planning_frame`)
+    plans iteration 0 as ``afmctl track`` does, its reference the trajectory less the frame;
+    without it, from rest in the model's zero.
 
     Raises
     ------
@@ -335,8 +342,12 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     out.mkdir(parents=True, exist_ok=True)
     start_v = stage.voltage()
     t0 = time.perf_counter()
-    p, wf = planner(model, desired, limits, start_v, seed, condition, envelope, extrapolate)
+    p, wf = planner(model, desired, limits, start_v, seed, condition, envelope, extrapolate,
+                    None if start is None else start[0])
     ref = desired.u_um.copy()
+    if start is not None and resume is None and start[1].basis != "none":
+        ref = ref - start[1].along(wf.tracking.start, ref.size, desired.dt_s)
+        wf = plan_reference(p, desired, ref)
     tuning = ilc.Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex))
     if resume is not None:
         ref, tuning = resume.reference_um.copy(), resume.tuning or tuning
