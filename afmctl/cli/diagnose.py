@@ -104,6 +104,10 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
         say_no_twin(data)
     if d.cause == "unexplained":
         say(d.closest_dict()["text"])
+    if d.kept_grid:
+        say(f"base.toml and extended.toml hold the Preisach grid without creep (held-out "
+            f"{d.file_over_noise[0]:.2f}x the noise; the paper's model {d.base_over_noise:.2f}x): "
+            f"the best model diagnose fitted, with nothing added; identify's model does as well")
     for s in d.suggestions() if d.cause != "unexplained" else []:  # the closest says more
         say(f"{s['reading']}: {s['measure']}")
     if as_json:
@@ -122,13 +126,16 @@ def _write(d, data, sweep_files: tuple[str, ...], out: Path, text: str  # noqa: 
     make_dir(out, "--out")
     header = "afmctl diagnose: " + ", ".join(Path(f).name for f in sweep_files)
     names = tuple(Path(f).name for f in sweep_files)
-    modelfile.write(d.base_model, out / "base.toml", header=header + f"\n{d.base_name}",
+    base, extended = d.file_models
+    kept = " (kept: the best model diagnose fitted)" if d.kept_grid else ""
+    modelfile.write(base, out / "base.toml",
+                    header=header + f"\n{d.files_name}",
                     fit=_record(d, names, extended=False))
-    modelfile.write(d.extended_model, out / "extended.toml",
-                    header=header + f"\nextended with: {d.cause}",
+    modelfile.write(extended, out / "extended.toml",
+                    header=header + f"\nextended with: {d.cause}{kept}",
                     fit=_record(d, names, extended=True))
     twins = []
-    for model, path in ((d.base_model, out / "base.toml"), (d.extended_model, out / "extended.toml")):
+    for model, path in ((base, out / "base.toml"), (extended, out / "extended.toml")):
         twinfile.path_for(path).unlink(missing_ok=True)  # an earlier diagnosis's (--force)
         kept = twin.keep_beside(model, data, path)  # data: in the order recorded
         twins += [] if kept is None else [kept.name]
@@ -148,8 +155,12 @@ def _record(d, names: tuple[str, ...], extended: bool):  # noqa: ANN001, ANN202 
     held-out data show (a named cause the base lacks; no cause found; above 2x the noise)."""
     from afmctl.files.modelfile import FitRecord
     from afmctl.fit.identify import WARN
-    over = d.extended_over_noise if extended else d.base_over_noise
+    over = d.file_over_noise[1 if extended else 0]
     held = f"held-out RMS {over:.1f}x the noise"
+    if d.kept_grid:
+        return FitRecord("diagnose", f"no candidate cause explains the residual: the Preisach "
+                                     f"grid without creep kept ({held}; the paper's model "
+                                     f"{d.base_over_noise:.1f}x)", not over <= WARN, names)
     if d.cause == "unexplained":
         return FitRecord("diagnose", f"no candidate cause explains the residual ({held})", True,
                          names)

@@ -26,6 +26,7 @@ from afmctl.fit import gridbase as gb
 from afmctl.fit import identify as idf
 from afmctl.fit import verdict as vd
 from afmctl.model import creep as cr
+from afmctl.model.preisach import PreisachGrid
 from afmctl.planning import sweepdesign as sd
 
 RATE_HZ = 5000.0
@@ -134,13 +135,22 @@ def test_a_creeping_stage_out_of_the_family_is_diagnosed_creep(tmp_path: Path) -
     assert modelfile.read(tmp_path / "base.toml").creep is None
 
 
-def test_a_drifting_stage_is_not_diagnosed_creep_and_gets_a_drift_hint() -> None:
+def test_a_drifting_stage_is_not_diagnosed_creep_and_gets_a_drift_hint(tmp_path: Path) -> None:
+    """Unexplained (a drift), with the drift hint; the model files are the grid without creep
+    (nothing absorbed), the best model diagnose fitted, not the paper's model it judged."""
     stage = fst.random_family_stage(np.random.default_rng(12), "preisach", drift=True)
-    _, d = diagnosed(stage, 12)
+    sweeps, d = diagnosed(stage, 12)
     assert d.grid is not None and not d.grid.creep() and d.grid.drift(), d.evidence()
     assert d.cause == "unexplained" and not d.on_grid
     assert d.suggestions()[0] == gb.DRIFT_HINT
     assert d.base_model.creep is None and d.extended_model.creep is None  # nothing absorbed
+    assert d.kept_grid and d.grid.plain_rms_um < 0.5 * d.paper_rms_um
+    _write(d, sweeps, tuple(f"{s.path}.csv" for s in sweeps), tmp_path, "{}")
+    for name in ("base.toml", "extended.toml"):
+        back = modelfile.read(tmp_path / name)
+        assert isinstance(back.polarization, PreisachGrid) and back.creep is None
+    assert "the Preisach grid without creep kept" in (tmp_path / "extended.toml").read_text()
+    assert d.as_dict()["model_files"] == "the Preisach grid without creep (no cause named)"
 
 
 def grid_of(plain: float, crept: float, per_decade: float = 0.01, short: float = 0.3,
