@@ -77,7 +77,9 @@ def test_the_reversals_design_adds_each_axis_reversal_curves_the_other_held() ->
 
 @pytest.mark.parametrize("argv, words", [
     (["--profile", "emulated", "--axes", "x,y"], "not a two-axis"),
-    (["--profile", "emulated-xy", "--axes", "x,y", "--v-range", "0", "10"], "without --v-range"),
+    (["--profile", "emulated-xy", "--axes", "x,y", "--v-range", "0", "10"], "no --v-range"),
+    (["--profile", "emulated-xy", "--axes", "x,y", "--design", "full"],
+     "--design standard or reversals only"),
     (["--profile", "emulated-xy", "--axes", "y,z"], "--axes x,y"),
 ])
 def test_sweep_axes_refusals_exit_2(tmp_path: Path, argv: list[str], words: str) -> None:
