@@ -107,7 +107,8 @@ def diagnose(sweep_files: tuple[str, ...], model_path: str | None, profile: str 
     if d.kept_grid:
         say(f"base.toml and extended.toml hold the Preisach grid without creep (held-out "
             f"{d.file_over_noise[0]:.2f}x the noise; the paper's model {d.base_over_noise:.2f}x): "
-            f"the best model diagnose fitted, with nothing added; identify's model does as well")
+            f"the best model diagnose fitted, with nothing added (or track with identify's "
+            f"model)")
     for s in d.suggestions() if d.cause != "unexplained" else []:  # the closest says more
         say(f"{s['reading']}: {s['measure']}")
     if as_json:
