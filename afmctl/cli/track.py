@@ -415,14 +415,10 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
         return
     say(cal.describe())
     make_dir(out, "--out")
-    idle_s = stage.now_s() - tw.ended_s
-    if idle_s > experiment.IDLE_S:
-        tw = _read_held(stage, tw, idle_s, out, meta)
+    tw = _read_if_idle(stage, tw, out, meta)
 
     def plan_for(name: str, state: Any, frame: Any) -> Any:
-        if frame.basis != "none":
-            say(f"{name}: readings expected {frame.offset_um:+.4f} um from the model's zero at "
-                f"its start ({frame.basis}); planned in that frame")
+        _say_frame(name, frame)
         return _plan(prof, cal, desired, stage.voltage(), tuple(dict.fromkeys(("inverse", name))),
                      how, state, frame)[name]
 
@@ -446,21 +442,29 @@ def learning_start(stage: Any, cal: Any, out: Path, meta: dict[str, Any]) -> Any
             f"creep or drift since the sweeps, and the first iteration takes it out")
         return None
     say(f"learning starts from the stage as the model's twin follows it ({why})")
-    idle_s = stage.now_s() - tw.ended_s
-    if idle_s > experiment.IDLE_S:
-        tw = _read_held(stage, tw, idle_s, out, meta)
+    tw = _read_if_idle(stage, tw, out, meta)
     when = stage.now_s() + experiment.LEAD_S
     frame = tw.planning_frame(when)
-    if frame.basis != "none":
-        say(f"iteration 0: readings expected {frame.offset_um:+.4f} um from the model's zero at "
-            f"its start ({frame.basis}); planned in that frame")
+    _say_frame("iteration 0", frame)
     return tw.at(when), frame
 
 
-def _read_held(stage: Any, tw: Any, idle_s: float, out: Path, meta: dict[str, Any]) -> Any:
-    """Read the stage where it holds (:func:`afmctl.experiment.runner.read_held`) into
-    ``out``, say what it read, and record it in ``meta`` (the runs' headers, summary.json)."""
+def _say_frame(name: str, frame: Any) -> None:
+    """Say the frame a run (``name``) is planned in, unless it is the model's own zero."""
+    if frame.basis != "none":
+        say(f"{name}: readings expected {frame.offset_um:+.4f} um from the model's zero at its "
+            f"start ({frame.basis}); planned in that frame")
+
+
+def _read_if_idle(stage: Any, tw: Any, out: Path, meta: dict[str, Any]) -> Any:
+    """The twin, after reading the stage where it holds (:func:`afmctl.experiment.runner.
+    read_held`, into ``out``) if it has idled more than :data:`~afmctl.experiment.runner.IDLE_S`
+    since the twin's last recording; what it read is said and recorded in ``meta`` (the runs'
+    headers, summary.json)."""
     from afmctl.experiment import runner as experiment
+    idle_s = stage.now_s() - tw.ended_s
+    if idle_s <= experiment.IDLE_S:
+        return tw
     say(f"the stage has held {tw.held_v:g} V for {idle_s:.0f} s since the twin's last "
         f"recording: reading it there for {experiment.READ_S:g} s ({experiment.READ_FILE}), to "
         f"see how far its readings have moved from the model (a drifting mount, creep)")

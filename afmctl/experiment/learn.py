@@ -67,16 +67,18 @@ class Planner:
 def planner(model: tr.Transducer, desired: track.Desired, limits: guard.Limits,
             start_v: float = 0.0, seed: str = "inverse", condition: bool = True,
             envelope: Envelope | None = None, extrapolate: bool = False,
-            state: tr.StageState | None = None) -> tuple[Planner, track.Waveform]:
+            state: tr.StageState | None = None, frame: fr.Frame = fr.Frame()
+            ) -> tuple[Planner, track.Waveform]:
     """The planner and iteration 0's waveform (``seed``: ``inverse``, or the paper's ``linear``
     filter, learning then through the line instead of the model). ``envelope`` bounds the
     conditioning and the waveforms as in :func:`afmctl.planning.track.plan`; ``state`` is the
     model's at the start (default: at rest at ``start_v``; a twin's, to start where a creeping
-    stage is)."""
+    stage is) and ``frame`` where the readings will sit from the model (default: its zero)."""
     if seed not in ("inverse", "linear"):
         raise ValueError(f"unknown seed filter {seed!r}")
     plans = track.plan(model, desired, limits, start_v, ("inverse", seed), state=state,
-                       condition=condition, envelope=envelope, extrapolate=extrapolate)
+                       condition=condition, envelope=envelope, extrapolate=extrapolate,
+                       frame=frame)
     inv = plans["inverse"]
     cm = tr.compile_model(model, desired.dt_s)
     pre = (track.conditioning(track.conditioning_limits(limits, envelope), start_v, desired.dt_s)
@@ -342,12 +344,12 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     out.mkdir(parents=True, exist_ok=True)
     start_v = stage.voltage()
     t0 = time.perf_counter()
+    state, frame = start if start is not None else (None, fr.Frame())
+    if resume is not None:  # the replay's reference is the kept one
+        frame = fr.Frame()
     p, wf = planner(model, desired, limits, start_v, seed, condition, envelope, extrapolate,
-                    None if start is None else start[0])
-    ref = desired.u_um.copy()
-    if start is not None and resume is None and start[1].basis != "none":
-        ref = ref - start[1].along(wf.tracking.start, ref.size, desired.dt_s)
-        wf = plan_reference(p, desired, ref)
+                    state, frame)
+    ref = desired.u_um - frame.along(wf.tracking.start, desired.u_um.size, desired.dt_s)
     tuning = ilc.Tuning(0, law.cutoff_hz, np.zeros(0), np.zeros(0, complex))
     if resume is not None:
         ref, tuning = resume.reference_um.copy(), resume.tuning or tuning

@@ -81,7 +81,7 @@ REVERSALS_NEEDED = 4
 #: (non-separable density) identified on the separating design, counted as reversal curves they
 #: hid that the grid missed a 62-124 V loop by 7x the noise (0.18 um; with the reversals design
 #: 1.4x).
-TRACED_RANGES_PER_S = 4 * 5.58
+TRACED_RANGES_PER_S = closure.SLOW_RANGES_PER_S  # the rate closure takes as quasi-static
 #: ... over at least this share of the range (a multisine's wiggles trace little).
 TRACED_SHARE = 0.1
 #: Reversal voltages closer than this share of the range are one.

@@ -85,18 +85,16 @@ def estimate(observations: Sequence[Observation], when_s: float) -> Frame:
     see the module's text. No observations: the model's own zero."""
     if not observations:
         return Frame()
-    last = observations[-MAX_POINTS:]
-    t = np.array([o.at_s for o in last])
-    y = np.array([o.offset_um for o in last])
+    t, y = _latest(observations)
     rate = _steady_rate(t, y)
     if rate is None:
-        return Frame(float(y[-1]), 0.0, f"offset of the last of {len(last)} recordings")
+        return Frame(float(y[-1]), 0.0, f"offset of the last of {t.size} recordings")
     span = float(t[-1] - t[0])
     t_mean, y_mean = float(np.mean(t)), float(np.mean(y))
     at = min(when_s, float(t[-1]) + span)
     moving = rate if when_s < float(t[-1]) + span else 0.0
     return Frame(y_mean + rate * (at - t_mean), moving,
-                 f"drift {1e3 * rate:+.2f} nm/s over {len(last)} recordings ({span:.0f} s)")
+                 f"drift {1e3 * rate:+.2f} nm/s over {t.size} recordings ({span:.0f} s)")
 
 
 def anchored(observations: Sequence[Observation], read: Observation, when_s: float) -> Frame:
@@ -106,14 +104,21 @@ def anchored(observations: Sequence[Observation], read: Observation, when_s: flo
     (the module's rule), else held. The reading sets where the frame is, not how fast it moves:
     minutes after sweeps that span one, its single point would decide the slope (on a creeping
     stage that does not drift, a -0.18 um miss at rest read as -0.84 nm/s)."""
-    last = observations[-MAX_POINTS:]
-    rate = _steady_rate(np.array([o.at_s for o in last]), np.array([o.offset_um for o in last]))
+    t, y = _latest(observations)
+    rate = _steady_rate(t, y)
     ago = when_s - read.at_s
     basis = f"read at the held output {ago:.1f} s before"
     if rate is None:
         return Frame(read.offset_um, 0.0, basis)
     return Frame(read.offset_um + rate * ago, rate,
-                 f"{basis}, drift {1e3 * rate:+.2f} nm/s over {len(last)} recordings")
+                 f"{basis}, drift {1e3 * rate:+.2f} nm/s over {t.size} recordings")
+
+
+def _latest(observations: Sequence[Observation]) -> tuple[FloatArray, FloatArray]:
+    """Times (s) and offsets (um) of the latest :data:`MAX_POINTS` observations."""
+    last = observations[-MAX_POINTS:]
+    return (np.array([o.at_s for o in last], dtype=float),
+            np.array([o.offset_um for o in last], dtype=float))
 
 
 def _steady_rate(t: FloatArray, y: FloatArray) -> float | None:
