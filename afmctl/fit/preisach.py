@@ -51,6 +51,7 @@ from afmctl.files.sweepfile import Sweep, holds_s
 from afmctl.fit import cores
 from afmctl.fit import parametrization as pz
 from afmctl.fit import preisach_coarse as pc
+from afmctl.fit import preisach_problem as pp
 from afmctl.fit import uncertainty as unc
 from afmctl.fit.preisach_basis import Grid, basis, hat_matrix
 from afmctl.fit.preisach_problem import (
@@ -100,6 +101,9 @@ RETRY_ABOVE = 1.5
 #: damping); from 1e-6 they took two, to the same errors within 1e-3 of the noise (both with
 #: the fixed rule, stop 60; the last steps now follow Nielsen's, stop 61).
 POLISH_MU = 1e-6
+#: Lighter smoothings are tried only while some sweep is above this many times its noise held
+#: out (:func:`_finer`): below, there is nothing left for them to gain, and each costs a fit.
+FINER_ABOVE = 1.1
 
 __all__ = ["CREEP_TAUS_S", "CREEP_THRESHOLDS", "SMOOTHING", "BLOCKS", "FOLDS", "TRANSIENT_SPAN",
            "Settings", "hat_matrix", "Grid", "make_grid", "basis", "Data", "rod_filter", "Theta",
@@ -332,7 +336,8 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     """
     ec, ei, spread = make_grid(data.fields, settings)
     cands = [tuple(s) for s in dict.fromkeys(tuple(s) for s in starts_candidates)]
-    mi = hat_matrix(ec.size, settings.coef_coercive)
+    power = settings.coercive_power if pp.interior_loops(data.fields) >= pp.CUBIC_LOOPS else 1.0
+    mi = hat_matrix(ec.size, settings.coef_coercive, power)
     mj = hat_matrix(ei.size, settings.coef_interaction)
     grid = Grid(ec, ei, spread, mi, mj,
                 _active(data, ec, ei, spread, mi, mj, cands, settings.plays), settings.plays)
@@ -517,12 +522,8 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     assert choice is not None
     _, label, lam, per = choice
     prob, creep, run = runs_by[label]
-    final = gauss_newton(prob, run.theta, pen, lam, creep, settings.max_iter, POLISH_MU,
-                         gain_ratio=settings.gain_ratio_damping)
-    at_final = prob.linearize(final.theta, creep)  # for both, then freed (hundreds of MB)
-    per = heldout(prob, final.theta, pen, [lam], creep, at_final)[lam]  # of the fit written
-    spread = scalar_uncertainty(prob, final.theta, creep, at_final)
-    del at_final
+    final, lam, per = _finer(prob, run.theta, pen, lam, creep, settings, say)
+    spread = scalar_uncertainty(prob, final.theta, creep)
     say("  held-out RMS / noise per sweep "
         + " / ".join(f"{r:.2f}" for r in per / data.noise)
         + f" ({'with ' + label if creep else 'without creep'}, smoothing {lam:g}; "
@@ -534,6 +535,42 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
                        spread, settings.p_scale,
                        prob.predict(final.theta, full=True), prob.interior_loops,
                        prob.cubic)
+
+
+def _polished(prob: Problem, th: Theta, pen: FloatArray, lam: float, creep: bool,
+              settings: Settings) -> tuple[Run, FloatArray]:
+    """The fit at smoothing ``lam`` from ``th`` (Gauss-Newton from :data:`POLISH_MU`) and its
+    held-out RMS per sweep (um)."""
+    run = gauss_newton(prob, th, pen, lam, creep, settings.max_iter, POLISH_MU,
+                       gain_ratio=settings.gain_ratio_damping)
+    return run, heldout(prob, run.theta, pen, [lam], creep)[lam]
+
+
+def _finer(prob: Problem, th: Theta, pen: FloatArray, lam: float, creep: bool,
+           settings: Settings, say: Callable[[str], None]) -> tuple[Run, float, FloatArray]:
+    """The fit at the chosen smoothing ``lam``, then refitted at each lighter one in turn
+    (:data:`~afmctl.fit.preisach_problem.FINER_SMOOTHING`) while that is better held out (sum
+    of squares over the noise variance) and some sweep is above :data:`FINER_ABOVE` times its
+    noise held out: the fit kept, its smoothing and its held-out RMS per
+    sweep (um)."""
+    def score(per: FloatArray) -> float:
+        return float(np.sum(per ** 2 / prob.data.noise ** 2))
+
+    best = (*_polished(prob, th, pen, lam, creep, settings), lam)
+    for lighter in sorted({*settings.smoothing, *settings.finer_smoothing}, reverse=True):
+        if lighter >= lam:
+            continue
+        if float(np.max(best[1] / prob.data.noise)) <= FINER_ABOVE:
+            break
+        trial = (*_polished(prob, best[0].theta, pen, lighter, creep, settings), lighter)
+        better = score(trial[1]) < score(best[1])
+        say(f"  smoothing {lighter:g}: held-out RMS / noise per sweep "
+            + " / ".join(f"{r:.2f}" for r in trial[1] / prob.data.noise)
+            + ("" if better else f" (kept {best[2]:g})"))
+        if not better:
+            break
+        best = trial
+    return best[0], best[2], best[1]
 
 
 def scalar_uncertainty(prob: Problem, th: Theta, creep: bool,

@@ -24,12 +24,23 @@ FloatArray = NDArray[np.float64]
 __all__ = ["Grid", "basis", "hat_matrix"]
 
 
-def hat_matrix(n_fine: int, n_coarse: int) -> FloatArray:
-    """Linear interpolation from ``n_coarse`` equally spaced nodes to ``n_fine`` ones, spanning
-    the same interval, shape (n_fine, n_coarse); rows sum to 1, entries >= 0."""
-    x = np.linspace(0.0, n_coarse - 1.0, n_fine)
-    j = np.minimum(np.floor(x).astype(int), n_coarse - 2)
-    t = x - j
+def hat_matrix(n_fine: int, n_coarse: int, power: float = 1.0) -> FloatArray:
+    """Linear interpolation from ``n_coarse`` nodes to ``n_fine`` equally spaced ones, spanning
+    the same interval, shape (n_fine, n_coarse); rows sum to 1, entries >= 0. Node ``k`` sits
+    at ``(k / (n_coarse - 1))**power`` of the interval: equally spaced with ``power`` 1, closer
+    together at the interval's start above 1.
+
+    Examples
+    --------
+    >>> hat_matrix(5, 3)[:, 1]
+    array([0. , 0.5, 1. , 0.5, 0. ])
+    >>> np.round(hat_matrix(5, 3, power=2.0)[:, 1], 3)
+    array([0.   , 1.   , 0.667, 0.333, 0.   ])
+    """
+    nodes = (n_fine - 1.0) * (np.arange(n_coarse) / (n_coarse - 1.0)) ** power
+    x = np.arange(n_fine, dtype=float)
+    j = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, n_coarse - 2)
+    t = (x - nodes[j]) / (nodes[j + 1] - nodes[j])
     m = np.zeros((n_fine, n_coarse))
     m[np.arange(n_fine), j] = 1.0 - t
     m[np.arange(n_fine), j + 1] = t
