@@ -72,8 +72,11 @@ FloatArray = NDArray[np.float64]
 #: The grid's fit for diagnose: Gauss-Newton damped by the fixed rule, not Nielsen's (on
 #: ``tests/fit/test_gridbase.py``'s creeping stage Nielsen's path put 85 % of the creep on 100 s
 #: and up, read as a drift, where the fixed rule's put 3 %: three triangles do not fix which time
-#: constants carry the creep, and the verdict must not follow the optimizer's path).
-GRID_SETTINGS = pf.Settings(gain_ratio_damping=False)
+#: constants carry the creep, and the verdict must not follow the optimizer's path). Its
+#: coefficients stay equally spaced along the coercive field whatever the sweeps: identify's
+#: closer nodes at small fields (``coercive_power``, stop 67) have not been through
+#: bench_diagnose's verdicts.
+GRID_SETTINGS = pf.Settings(gain_ratio_damping=False, coercive_power=1.0)
 
 #: What a verdict on the grid means (:attr:`afmctl.fit.diagnosis.Diagnosis.explanation`).
 CAUSES = {
