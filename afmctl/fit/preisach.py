@@ -68,6 +68,7 @@ from afmctl.fit.preisach_problem import (
     make_grid,
 )
 from afmctl.fit.preisach_solver import (
+    HELDOUT_DAMPING,
     Linearized,
     Run,
     bounded_solve,
@@ -104,6 +105,8 @@ POLISH_MU = 1e-6
 #: Lighter smoothings are tried only while some sweep is above this many times its noise held
 #: out (:func:`_finer`): below, there is nothing left for them to gain, and each costs a fit.
 FINER_ABOVE = 1.1
+#: ... and a lighter one is kept only if it lowers the held-out sum of squares by this share.
+FINER_GAIN = 0.01
 
 __all__ = ["CREEP_TAUS_S", "CREEP_THRESHOLDS", "SMOOTHING", "BLOCKS", "FOLDS", "TRANSIENT_SPAN",
            "Settings", "hat_matrix", "Grid", "make_grid", "basis", "Data", "rod_filter", "Theta",
@@ -136,7 +139,9 @@ class PreisachFit:
     creep : bool
         Whether creep was kept (it lowered the held-out error).
     candidates : dict
-        Held-out sum of squares over noise variance of every (creep, smoothing) tried.
+        Held-out sum of squares over noise variance of every (creep, smoothing) tried, and of
+        the chosen fit refitted at its smoothing and the lighter ones (``..., refitted``:
+        :func:`_finer`, scored with a lighter pull towards the fit).
     iterations, converged, seconds
         Gauss-Newton iterations of the final fit, whether it converged, wall time (s).
     insample_over_noise : ndarray
@@ -522,7 +527,8 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     assert choice is not None
     _, label, lam, per = choice
     prob, creep, run = runs_by[label]
-    final, lam, per = _finer(prob, run.theta, pen, lam, creep, settings, say)
+    final, lam, per, refits = _finer(prob, run.theta, pen, lam, creep, settings, say)
+    scores.update({f"{label}, smoothing {k:g}, refitted": v for k, v in refits.items()})
     spread = scalar_uncertainty(prob, final.theta, creep)
     say("  held-out RMS / noise per sweep "
         + " / ".join(f"{r:.2f}" for r in per / data.noise)
@@ -540,37 +546,41 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
 def _polished(prob: Problem, th: Theta, pen: FloatArray, lam: float, creep: bool,
               settings: Settings) -> tuple[Run, FloatArray]:
     """The fit at smoothing ``lam`` from ``th`` (Gauss-Newton from :data:`POLISH_MU`) and its
-    held-out RMS per sweep (um)."""
+    held-out RMS per sweep (um), each fold's fit pulled towards it by no more than a tenth of
+    the smoothing (:func:`heldout`'s ``damping``), so that lighter smoothings are not judged
+    with the held-out samples' help."""
     run = gauss_newton(prob, th, pen, lam, creep, settings.max_iter, POLISH_MU,
                        gain_ratio=settings.gain_ratio_damping)
-    return run, heldout(prob, run.theta, pen, [lam], creep)[lam]
+    damping = min(HELDOUT_DAMPING, 0.1 * lam)
+    return run, heldout(prob, run.theta, pen, [lam], creep, damping=damping)[lam]
 
 
 def _finer(prob: Problem, th: Theta, pen: FloatArray, lam: float, creep: bool,
-           settings: Settings, say: Callable[[str], None]) -> tuple[Run, float, FloatArray]:
-    """The fit at the chosen smoothing ``lam``, then refitted at each lighter one in turn
-    (:data:`~afmctl.fit.preisach_problem.FINER_SMOOTHING`) while that is better held out (sum
-    of squares over the noise variance) and some sweep is above :data:`FINER_ABOVE` times its
-    noise held out: the fit kept, its smoothing and its held-out RMS per
-    sweep (um)."""
+           settings: Settings, say: Callable[[str], None]
+           ) -> tuple[Run, float, FloatArray, dict[float, float]]:
+    """The fit at the chosen smoothing ``lam``, then refitted at each lighter one of
+    ``settings.smoothing`` and ``settings.finer_smoothing`` in turn while that is better held
+    out by :data:`FINER_GAIN` (sum of squares over the noise variance, :func:`_polished`) and
+    some sweep is above :data:`FINER_ABOVE` times its noise held out: the fit kept, its
+    smoothing, its held-out RMS per sweep (um) and every refit's score."""
     def score(per: FloatArray) -> float:
         return float(np.sum(per ** 2 / prob.data.noise ** 2))
 
     best = (*_polished(prob, th, pen, lam, creep, settings), lam)
+    scores = {lam: score(best[1])}
     for lighter in sorted({*settings.smoothing, *settings.finer_smoothing}, reverse=True):
-        if lighter >= lam:
+        if lighter >= lam or float(np.max(best[1] / prob.data.noise)) <= FINER_ABOVE:
             continue
-        if float(np.max(best[1] / prob.data.noise)) <= FINER_ABOVE:
-            break
         trial = (*_polished(prob, best[0].theta, pen, lighter, creep, settings), lighter)
-        better = score(trial[1]) < score(best[1])
+        scores[lighter] = score(trial[1])
+        better = scores[lighter] < (1.0 - FINER_GAIN) * scores[best[2]]
         say(f"  smoothing {lighter:g}: held-out RMS / noise per sweep "
             + " / ".join(f"{r:.2f}" for r in trial[1] / prob.data.noise)
             + ("" if better else f" (kept {best[2]:g})"))
         if not better:
             break
         best = trial
-    return best[0], best[2], best[1]
+    return best[0], best[2], best[1], scores
 
 
 def scalar_uncertainty(prob: Problem, th: Theta, creep: bool,

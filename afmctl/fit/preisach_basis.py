@@ -37,7 +37,13 @@ def hat_matrix(n_fine: int, n_coarse: int, power: float = 1.0) -> FloatArray:
     >>> np.round(hat_matrix(5, 3, power=2.0)[:, 1], 3)
     array([0.   , 1.   , 0.667, 0.333, 0.   ])
     """
+    if n_fine < 2 or n_coarse < 2 or power <= 0.0:
+        raise ValueError(f"hat_matrix needs 2 nodes or more each way and a positive power, "
+                         f"got {n_fine}, {n_coarse}, {power}")
     nodes = (n_fine - 1.0) * (np.arange(n_coarse) / (n_coarse - 1.0)) ** power
+    if nodes[1] < 1.0 or nodes[-1] - nodes[-2] < 1.0:
+        raise ValueError(f"hat_matrix: {n_coarse} nodes at power {power} fall less than one of "
+                         f"the {n_fine} rows apart")
     x = np.arange(n_fine, dtype=float)
     j = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, n_coarse - 2)
     t = (x - nodes[j]) / (nodes[j + 1] - nodes[j])
