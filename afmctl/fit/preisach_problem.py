@@ -118,10 +118,10 @@ class Settings:
     equally spaced, 0.0025 and 0.0038 um at power 1.5 (32 x 48 equally spaced: 0.022 um);
     their noise is 0.02-0.03 um. Only a set with :data:`CUBIC_LOOPS` interior loops (the
     reversal curves, ``afmctl sweep --design full``; the separating sweep's steps and multisine
-    count too, as for the cubic, though measured only with the curves beside them) gets them: it is the loops inside the range
-    that pin the density near the diagonal; on three triangles of a creeping Preisach stage the
-    finer nodes left the creep a direction that moved 25 % between two fits of equal misfit
-    (4 % equally spaced).
+    count too, as for the cubic, though measured only with the curves beside them) gets them:
+    it is the loops inside the range that pin the density near the diagonal; on three
+    triangles of a creeping Preisach stage the finer nodes left the creep a direction that
+    moved 25 % between two fits of equal misfit (4 % equally spaced).
     """
 
     n_coercive: int = 64
