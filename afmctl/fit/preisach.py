@@ -68,7 +68,6 @@ from afmctl.fit.preisach_problem import (
     make_grid,
 )
 from afmctl.fit.preisach_solver import (
-    HELDOUT_DAMPING,
     Linearized,
     Run,
     bounded_solve,
@@ -141,7 +140,7 @@ class PreisachFit:
     candidates : dict
         Held-out sum of squares over noise variance of every (creep, smoothing) tried, and of
         the chosen fit refitted at its smoothing and the lighter ones (``..., refitted``:
-        :func:`_finer`, scored with a lighter pull towards the fit).
+        :func:`_finer`).
     iterations, converged, seconds
         Gauss-Newton iterations of the final fit, whether it converged, wall time (s).
     insample_over_noise : ndarray
@@ -546,13 +545,10 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
 def _polished(prob: Problem, th: Theta, pen: FloatArray, lam: float, creep: bool,
               settings: Settings) -> tuple[Run, FloatArray]:
     """The fit at smoothing ``lam`` from ``th`` (Gauss-Newton from :data:`POLISH_MU`) and its
-    held-out RMS per sweep (um), each fold's fit pulled towards it by no more than a tenth of
-    the smoothing (:func:`heldout`'s ``damping``), so that lighter smoothings are not judged
-    with the held-out samples' help."""
+    held-out RMS per sweep (um)."""
     run = gauss_newton(prob, th, pen, lam, creep, settings.max_iter, POLISH_MU,
                        gain_ratio=settings.gain_ratio_damping)
-    damping = min(HELDOUT_DAMPING, 0.1 * lam)
-    return run, heldout(prob, run.theta, pen, [lam], creep, damping=damping)[lam]
+    return run, heldout(prob, run.theta, pen, [lam], creep)[lam]
 
 
 def _finer(prob: Problem, th: Theta, pen: FloatArray, lam: float, creep: bool,

@@ -288,8 +288,7 @@ def _clamp(new: float, old: float, bounds: tuple[float, float]) -> float:
 
 
 def heldout(prob: Problem, th: Theta, pen: FloatArray, lam_rel: Sequence[float],
-            creep: bool, linearized: Linearized | None = None,
-            damping: float = HELDOUT_DAMPING) -> dict[float, FloatArray]:
+            creep: bool, linearized: Linearized | None = None) -> dict[float, FloatArray]:
     """Held-out RMS per sweep (um) at each relative smoothing in ``lam_rel``: the weights, the
     reversible slope and the offsets fitted on all folds but one, judged on that one with the
     exact model, each fold in turn. The few scalars (``s``, creep weights and transients, rod)
@@ -297,10 +296,7 @@ def heldout(prob: Problem, th: Theta, pen: FloatArray, lam_rel: Sequence[float],
     would slide along the valleys they share with the weights, and their own optimism is that
     of a handful of parameters. The problem is linearized at ``th`` (a step of the size of the
     folds' difference); ``linearized``: that linearization (``prob.linearize(th, creep)``, not
-    checked), if the caller has it already. ``damping``: each fold's fit is pulled towards
-    ``th`` by this share of ``diag(G)`` (``th`` was fitted on every fold: below the smoothing
-    the pull, not the penalty, would hold the weak directions where the held-out samples put
-    them)."""
+    checked), if the caller has it already."""
     designs, rhs = prob.linearize(th, creep) if linearized is None else linearized
     k, nc, n_s = th.w.size, th.c.size if creep else 0, len(prob.phi)
     fixed = np.concatenate((th.c if creep else [], [th.s, th.t]))
@@ -327,9 +323,9 @@ def heldout(prob: Problem, th: Theta, pen: FloatArray, lam_rel: Sequence[float],
         sse = np.zeros(n_s)
         count = np.zeros(n_s)
         for q in range(FOLDS):
-            g = g_all - parts[q][0] + damping * np.diag(diag)  # the other folds
+            g = g_all - parts[q][0] + HELDOUT_DAMPING * np.diag(diag)  # the other folds
             g[:k, :k] += lam_r * scale * dtd
-            x = bounded_solve(g, h_all - parts[q][1] + damping * diag * x_th, k + 1)
+            x = bounded_solve(g, h_all - parts[q][1] + HELDOUT_DAMPING * diag * x_th, k + 1)
             fitted = th.copy()
             fitted.w, fitted.r, fitted.offsets = x[:k].copy(), float(x[k]), x[k + 1:].copy()
             for i, (y, u, f) in enumerate(zip(prob.data.y, prob.predict(fitted), folds,
