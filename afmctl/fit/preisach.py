@@ -340,8 +340,8 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     """
     ec, ei, spread = make_grid(data.fields, settings)
     cands = [tuple(s) for s in dict.fromkeys(tuple(s) for s in starts_candidates)]
-    power = settings.coercive_power if pp.interior_loops(data.fields) >= pp.CUBIC_LOOPS else 1.0
-    mi = hat_matrix(ec.size, settings.coef_coercive, power)
+    close = pp.interior_loops(data.fields) >= pp.CLOSE_NODES_LOOPS
+    mi = hat_matrix(ec.size, settings.coef_coercive, settings.coercive_power if close else 1.0)
     mj = hat_matrix(ei.size, settings.coef_interaction)
     grid = Grid(ec, ei, spread, mi, mj,
                 _active(data, ec, ei, spread, mi, mj, cands, settings.plays), settings.plays)

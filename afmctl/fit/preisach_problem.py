@@ -75,6 +75,12 @@ MAP = 2
 #: stage it took tracking from 0.016 to 0.118 um while the fit stayed at 1.07x its noise). Below
 #: it ``t`` stays 0, the paper's force (16).
 CUBIC_LOOPS = 4
+#: The coefficients' closer nodes at small coercive fields (:attr:`Settings.coercive_power`) are
+#: used only on a set with this many interior loops: at 10 kHz the reversal curves alone have 10
+#: on 0-150 V, the standard set none there and 5 on -150-150 V (its nested loops), where the
+#: closer nodes took the family plant's bipolar creeping PI stage's fast triangle from 1.30 to
+#: 2.31x its noise; the separating sweep has 54.
+CLOSE_NODES_LOOPS = 10
 #: A loop is interior when both its ends lie farther than this share of the set's field range
 #: from either end of it ...
 INTERIOR_EDGE = 0.1
@@ -116,9 +122,9 @@ class Settings:
     or map to an independent tester's two Preisach stages (their six sweeps, ``--design
     full``), the same 16 x 24 coefficients left 0.061 and 0.081 um RMS on the reversal curves
     equally spaced, 0.0025 and 0.0038 um at power 1.5 (32 x 48 equally spaced: 0.022 um);
-    their noise is 0.02-0.03 um. Only a set with :data:`CUBIC_LOOPS` interior loops (the
-    reversal curves, ``afmctl sweep --design full``; the separating sweep's steps and multisine
-    count too, as for the cubic, though measured only with the curves beside them) gets them:
+    their noise is 0.02-0.03 um. Only a set with :data:`CLOSE_NODES_LOOPS` interior loops (the
+    reversal curves, ``afmctl sweep --design full``; the separating sweep's multisine counts
+    too, though measured only with the curves beside it) gets them:
     it is the loops inside the range that pin the density near the diagonal; on three
     triangles of a creeping Preisach stage the finer nodes left the creep a direction that
     moved 25 % between two fits of equal misfit (4 % equally spaced).

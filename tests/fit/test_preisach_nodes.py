@@ -11,6 +11,7 @@ from scipy.optimize import nnls
 from afmctl.fit import preisach_basis as pb
 from afmctl.fit import preisach_problem as pp
 from afmctl.model import preisach as pr
+from afmctl.planning import sweepdesign as sd
 
 
 def relays(v: np.ndarray, step_v: float = 0.5) -> np.ndarray:
@@ -82,8 +83,12 @@ def test_the_nodes_of_power_one_are_equally_spaced() -> None:
 
 
 def test_the_reversal_curves_have_the_inner_loops_that_earn_the_close_nodes() -> None:
-    """The grid gets the close nodes from a set with :data:`CUBIC_LOOPS` inner loops
-    (:func:`afmctl.fit.preisach.runs`): the reversal curves here have them, triangles none."""
-    tri = np.interp(np.arange(400), [0, 100, 200, 300, 399], [0.0, 100.0, 0.0, 100.0, 0.0])
-    assert pp.interior_loops([reversal_curves() / 100.0]) >= pp.CUBIC_LOOPS
-    assert pp.interior_loops([tri / 100.0]) == 0
+    """The grid gets the close nodes from a set with :data:`CLOSE_NODES_LOOPS` inner loops
+    (:func:`afmctl.fit.preisach.runs`): the reversal curves of ``afmctl sweep --design
+    reversals`` have them, the standard set has not, unipolar or bipolar (its nested loops)."""
+    for v_range in ((0.0, 150.0), (-150.0, 150.0)):
+        standard = [v / 100.0 for _, _, v in sd.standard_set(sample_rate_hz=10_000.0,
+                                                              v_range=v_range)]
+        curves = sd.reversals_sweep(v_range, 10_000.0, 1_670.0)[2] / 100.0
+        assert pp.interior_loops(standard) < pp.CLOSE_NODES_LOOPS
+        assert pp.interior_loops(standard + [curves]) >= pp.CLOSE_NODES_LOOPS
