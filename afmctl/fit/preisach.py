@@ -554,17 +554,21 @@ def _polished(prob: Problem, th: Theta, pen: FloatArray, lam: float, creep: bool
 def _finer(prob: Problem, th: Theta, pen: FloatArray, lam: float, creep: bool,
            settings: Settings, say: Callable[[str], None]
            ) -> tuple[Run, float, FloatArray, dict[float, float]]:
-    """The fit at the chosen smoothing ``lam``, then refitted at each lighter one of
-    ``settings.smoothing`` and ``settings.finer_smoothing`` in turn while that is better held
-    out by :data:`FINER_GAIN` (sum of squares over the noise variance, :func:`_polished`) and
-    some sweep is above :data:`FINER_ABOVE` times its noise held out: the fit kept, its
-    smoothing, its held-out RMS per sweep (um) and every refit's score."""
+    """The fit at the chosen smoothing ``lam``, then, on a set with the reversal curves
+    (:data:`~afmctl.fit.preisach_problem.CLOSE_NODES_LOOPS` interior loops, where it was
+    measured), refitted at each lighter one of ``settings.smoothing`` and
+    ``settings.finer_smoothing`` in turn while that is better held out by :data:`FINER_GAIN`
+    (sum of squares over the noise variance, :func:`_polished`) and some sweep is above
+    :data:`FINER_ABOVE` times its noise held out: the fit kept, its smoothing, its held-out RMS
+    per sweep (um) and every refit's score."""
     def score(per: FloatArray) -> float:
         return float(np.sum(per ** 2 / prob.data.noise ** 2))
 
     best = (*_polished(prob, th, pen, lam, creep, settings), lam)
     scores = {lam: score(best[1])}
-    for lighter in sorted({*settings.smoothing, *settings.finer_smoothing}, reverse=True):
+    curves = prob.interior_loops >= pp.CLOSE_NODES_LOOPS
+    ladder = sorted({*settings.smoothing, *settings.finer_smoothing}, reverse=True) if curves else []
+    for lighter in ladder:
         if lighter >= lam or float(np.max(best[1] / prob.data.noise)) <= FINER_ABOVE:
             continue
         trial = (*_polished(prob, best[0].theta, pen, lighter, creep, settings), lighter)

@@ -11,11 +11,13 @@ import numpy as np
 import pytest
 
 from afmctl.fit import preisach as pf
+from afmctl.fit import preisach_problem as pp
 
 NOISE = np.array([0.02, 0.02])
 
 
-def walk(held: dict[float, list[float]], lam: float, monkeypatch: pytest.MonkeyPatch
+def walk(held: dict[float, list[float]], lam: float, monkeypatch: pytest.MonkeyPatch,
+         loops: int = pp.CLOSE_NODES_LOOPS
          ) -> tuple[float, list[float], list[str], dict[float, float]]:
     """``_finer`` from ``lam`` with each smoothing's held-out RMS / noise per sweep from
     ``held``: the smoothing kept, those refitted in order, what it said, the scores."""
@@ -28,7 +30,7 @@ def walk(held: dict[float, list[float]], lam: float, monkeypatch: pytest.MonkeyP
 
     monkeypatch.setattr(pf, "_polished", polished)
     said: list[str] = []
-    prob = SimpleNamespace(data=SimpleNamespace(noise=NOISE))
+    prob = SimpleNamespace(data=SimpleNamespace(noise=NOISE), interior_loops=loops)
     run, kept, per, scores = pf._finer(prob, None, None, lam, False, pf.Settings(),  # type: ignore[arg-type]
                                        said.append)
     assert run.theta == kept and np.allclose(per, np.asarray(held[kept]) * NOISE)
@@ -65,3 +67,11 @@ def test_the_walk_goes_down_to_the_finest(monkeypatch: pytest.MonkeyPatch) -> No
     kept, tried, _, _ = walk(held, 1e-6, monkeypatch)
     assert kept == 1e-8 and tried == [1e-6, 1e-7, 1e-8]
     assert min(pf.Settings().finer_smoothing) == 1e-8
+
+
+def test_a_set_without_the_reversal_curves_keeps_the_chosen_smoothing(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Measured only with the curves: on three triangles the chosen fit is kept as it was."""
+    held = {1e-5: [1.3, 2.0], 1e-6: [1.0, 1.0]}
+    kept, tried, said, _ = walk(held, 1e-5, monkeypatch, loops=pp.CLOSE_NODES_LOOPS - 1)
+    assert kept == 1e-5 and tried == [1e-5] and said == []
