@@ -50,7 +50,8 @@ SMOOTHING = (1e-6, 1e-5, 1e-4, 1e-3)
 #: (:func:`afmctl.fit.preisach._finer`). The folds, linearized at a fit with the map and the rod
 #: where it left them, cannot see how far a lighter one would get: on an independent tester's
 #: Preisach stage (reversal curves, ``--design full``) they chose 1e-5 from the fit at 1e-4,
-#: 2.3x the noise held out; refitted at 1e-6 it was 1.29x. On three triangles of a creeping
+#: 2.3x the noise held out; refitted from there, 1.57x at 1e-6 and 1.37x at 1e-8 (a fit
+#: started at 1e-6: 1.29x). On three triangles of a creeping
 #: Preisach stage a fit at 1e-6 was 100x held out, where 1e-4 gave 7.6x: the start stays where
 #: the data of any design are enough.
 FINER_SMOOTHING = (1e-7, 1e-8)
@@ -78,8 +79,9 @@ CUBIC_LOOPS = 4
 #: The coefficients' closer nodes at small coercive fields (:attr:`Settings.coercive_power`) are
 #: used only on a set with this many interior loops: at 10 kHz the reversal curves alone have 10
 #: on 0-150 V, the standard set none there and 5 on -150-150 V (its nested loops), where the
-#: closer nodes took the family plant's bipolar creeping PI stage's fast triangle from 1.30 to
-#: 2.31x its noise; the separating sweep has 54.
+#: closer nodes and :func:`afmctl.fit.preisach._finer` together took the family plant's bipolar
+#: creeping PI stage's fast triangle from 1.30 to 2.31x its noise (which of the two, not
+#: measured); the separating sweep has 54.
 CLOSE_NODES_LOOPS = 10
 #: A loop is interior when both its ends lie farther than this share of the set's field range
 #: from either end of it ...
