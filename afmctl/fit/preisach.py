@@ -526,9 +526,10 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
     assert choice is not None
     _, label, lam, per = choice
     prob, creep, run = runs_by[label]
-    final, lam, per, refits = _finer(prob, run.theta, pen, lam, creep, settings, say)
+    final, lam, per, refits, at_final = _finer(prob, run.theta, pen, lam, creep, settings, say)
     scores.update({f"{label}, smoothing {k:g}, refitted": v for k, v in refits.items()})
-    spread = scalar_uncertainty(prob, final.theta, creep)
+    spread = scalar_uncertainty(prob, final.theta, creep, at_final)
+    del at_final
     say("  held-out RMS / noise per sweep "
         + " / ".join(f"{r:.2f}" for r in per / data.noise)
         + f" ({'with ' + label if creep else 'without creep'}, smoothing {lam:g}; "
@@ -543,44 +544,47 @@ def _fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
 
 
 def _polished(prob: Problem, th: Theta, pen: FloatArray, lam: float, creep: bool,
-              settings: Settings) -> tuple[Run, FloatArray]:
-    """The fit at smoothing ``lam`` from ``th`` (Gauss-Newton from :data:`POLISH_MU`) and its
-    held-out RMS per sweep (um)."""
+              settings: Settings) -> tuple[Run, FloatArray, Linearized]:
+    """The fit at smoothing ``lam`` from ``th`` (Gauss-Newton from :data:`POLISH_MU`), its
+    held-out RMS per sweep (um) and the problem linearized there (for its uncertainty too)."""
     run = gauss_newton(prob, th, pen, lam, creep, settings.max_iter, POLISH_MU,
                        gain_ratio=settings.gain_ratio_damping)
-    return run, heldout(prob, run.theta, pen, [lam], creep)[lam]
+    at = prob.linearize(run.theta, creep)
+    return run, heldout(prob, run.theta, pen, [lam], creep, at)[lam], at
 
 
 def _finer(prob: Problem, th: Theta, pen: FloatArray, lam: float, creep: bool,
            settings: Settings, say: Callable[[str], None]
-           ) -> tuple[Run, float, FloatArray, dict[float, float]]:
+           ) -> tuple[Run, float, FloatArray, dict[float, float], Linearized | None]:
     """The fit at the chosen smoothing ``lam``, then, on a set with the reversal curves
     (:data:`~afmctl.fit.preisach_problem.CLOSE_NODES_LOOPS` interior loops, where it was
     measured), refitted at each lighter one of ``settings.smoothing`` and
     ``settings.finer_smoothing`` in turn while that is better held out by :data:`FINER_GAIN`
     (sum of squares over the noise variance, :func:`_polished`) and some sweep is above
     :data:`FINER_ABOVE` times its noise held out: the fit kept, its smoothing, its held-out RMS
-    per sweep (um) and every refit's score."""
+    per sweep (um), every refit's score, and the problem linearized at the fit kept (None if a
+    refit was tried after it: one linearization, hundreds of MB, is kept at a time)."""
     def score(per: FloatArray) -> float:
         return float(np.sum(per ** 2 / prob.data.noise ** 2))
 
-    best = (*_polished(prob, th, pen, lam, creep, settings), lam)
-    scores = {lam: score(best[1])}
+    run, per, at = _polished(prob, th, pen, lam, creep, settings)
+    scores = {lam: score(per)}
     curves = prob.interior_loops >= pp.CLOSE_NODES_LOOPS
     ladder = sorted({*settings.smoothing, *settings.finer_smoothing}, reverse=True) if curves else []
-    for lighter in ladder:
-        if lighter >= lam or float(np.max(best[1] / prob.data.noise)) <= FINER_ABOVE:
-            continue
-        trial = (*_polished(prob, best[0].theta, pen, lighter, creep, settings), lighter)
+    for lighter in (x for x in ladder if x < lam):
+        if float(np.max(per / prob.data.noise)) <= FINER_ABOVE:
+            break
+        at = None  # freed before the refit's own
+        trial = _polished(prob, run.theta, pen, lighter, creep, settings)
         scores[lighter] = score(trial[1])
-        better = scores[lighter] < (1.0 - FINER_GAIN) * scores[best[2]]
+        better = scores[lighter] < (1.0 - FINER_GAIN) * scores[lam]
         say(f"  smoothing {lighter:g}: held-out RMS / noise per sweep "
             + " / ".join(f"{r:.2f}" for r in trial[1] / prob.data.noise)
-            + ("" if better else f" (kept {best[2]:g})"))
+            + ("" if better else f" (kept {lam:g})"))
         if not better:
             break
-        best = trial
-    return best[0], best[2], best[1], scores
+        (run, per, at), lam = trial, lighter
+    return run, lam, per, scores, at
 
 
 def scalar_uncertainty(prob: Problem, th: Theta, creep: bool,

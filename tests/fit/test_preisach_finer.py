@@ -24,15 +24,15 @@ def walk(held: dict[float, list[float]], lam: float, monkeypatch: pytest.MonkeyP
     tried: list[float] = []
 
     def polished(prob: Any, th: Any, pen: Any, lam_: float, creep: bool, settings: Any
-                 ) -> tuple[Any, np.ndarray]:
+                 ) -> tuple[Any, np.ndarray, Any]:
         tried.append(lam_)
-        return SimpleNamespace(theta=lam_), np.asarray(held[lam_]) * NOISE
+        return SimpleNamespace(theta=lam_), np.asarray(held[lam_]) * NOISE, None
 
     monkeypatch.setattr(pf, "_polished", polished)
     said: list[str] = []
     prob = SimpleNamespace(data=SimpleNamespace(noise=NOISE), interior_loops=loops)
-    run, kept, per, scores = pf._finer(prob, None, None, lam, False, pf.Settings(),  # type: ignore[arg-type]
-                                       said.append)
+    run, kept, per, scores, _ = pf._finer(prob, None, None, lam, False,  # type: ignore[arg-type]
+                                          pf.Settings(), said.append)
     assert run.theta == kept and np.allclose(per, np.asarray(held[kept]) * NOISE)
     return kept, tried, said, scores
 
