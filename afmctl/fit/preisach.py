@@ -76,6 +76,7 @@ from afmctl.fit.preisach_solver import (
     heldout,
     penalty,
     refit_rod,
+    rod_rivals,
 )
 from afmctl.fit.rod_response import rod_filter
 from afmctl.model import creep as cr
@@ -486,7 +487,8 @@ def _crept(fitted: Fitted, plain: Theta, pen: FloatArray, lam: float, settings: 
         elements = warm.copy()
     steps = functools.partial(gauss_newton, pen=pen, lam_rel=lam, creep=True,
                               max_iter=settings.max_iter, gain_ratio=settings.gain_ratio_damping)
-    return steps(prob, refit_rod(prob, steps(prob, elements).theta))
+    tries = [steps(prob, th) for th in rod_rivals(prob, steps(prob, elements).theta)]
+    return min(tries, key=lambda run: run.cost)
 
 
 def _force(forced: Fitted, plain: Theta, crept: Theta, pen: FloatArray, lam: float,

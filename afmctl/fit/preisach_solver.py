@@ -38,6 +38,14 @@ MAX_LOG_STEP = 0.5
 HELDOUT_DAMPING = 1e-6
 #: The rod's coarse search (:func:`refit_rod`): natural frequencies x damping ratios, log-spaced.
 ROD_GRID = (24, 8)
+#: A rod polish (:func:`rod_rivals`) this many times away in natural frequency from the best is a
+#: rival, fitted from too, if its sum of squares with the hysteresis held is within
+#: ``ROD_RIVAL_SSE`` times the best's. Measured: pi-b-creep's true rod 1.4 % above the 8.76 kHz
+#: one its weights were fitted with, the independent Preisach plant's (700 Hz) 1.3x above a
+#: 9.3 kHz one (tests/fit/test_preisach_rod.py): both won once the weights followed them; a
+#: rival 5x above lost (161 against 48).
+ROD_RIVAL_RATIO = 1.5
+ROD_RIVAL_SSE = 2.0
 #: Bounds of the rod's damping ratio (those of the parametric fit).
 ZETA_BOUNDS = (0.003, 5.0)
 
@@ -238,11 +246,27 @@ def _nielsen(mu: float, gain: float, dx: FloatArray, x0: FloatArray, g: FloatArr
 
 def refit_rod(prob: Problem, th: Theta) -> Theta:
     """The rod's natural frequency and damping, and each sweep's offset, by least squares with the
+    hysteresis and creep held at ``th``: the first of :func:`rod_rivals`."""
+    return rod_rivals(prob, th)[0]
+
+
+def rod_rivals(prob: Problem, th: Theta) -> list[Theta]:
+    """The rod's natural frequency and damping, and each sweep's offset, by least squares with the
     hysteresis and creep held at ``th``: ``g(Q~)`` does not depend on the rod, so each trial is
     one filter pass per sweep. A coarse grid over the frequency bounds and damping ratios first
     (Gauss-Newton's rod prior, a trust region sized to the whole set's noise, cannot walk far
     on the fast sweep's evidence alone), then a local least-squares polish from the best point
-    and from ``th``'s; the better of that and ``th`` is returned."""
+    and from ``th``'s.
+
+    Returns
+    -------
+    list of Theta
+        The best of the two polishes and ``th`` itself; then, if another of the three is at a
+        natural frequency :data:`ROD_RIVAL_RATIO` or more away and misses by at most
+        :data:`ROD_RIVAL_SSE` times as much, that one (the rival: with the hysteresis held, the
+        true rod can lose to the one the weights were fitted with, pi-b-creep's 1.25 kHz to
+        8.76 kHz; :func:`afmctl.fit.preisach._crept` fits from both).
+    """
     forces = prob.forces(th)
 
     def residual(x: FloatArray) -> FloatArray:
@@ -259,14 +283,23 @@ def refit_rod(prob: Problem, th: Theta) -> Theta:
               for z in np.linspace(math.log(0.01), math.log(2.0), ROD_GRID[1])]
     here = np.array([th.log_fn, th.log_zeta])
     sse = [float(np.sum(residual(x) ** 2)) for x in coarse]
-    best, best_sse = here, float(np.sum(residual(here) ** 2))
+    found = [(float(np.sum(residual(here) ** 2)), here)]
     for x0 in (coarse[int(np.argmin(sse))], here):
         sol = optimize.least_squares(residual, np.clip(x0, lo + 1e-9, hi - 1e-9),
                                      bounds=(lo, hi), x_scale=0.1, max_nfev=60)
-        if 2 * sol.cost < best_sse:
-            best, best_sse = sol.x, 2 * float(sol.cost)
+        found.append((2.0 * float(sol.cost), sol.x))
+    found.sort(key=lambda f: f[0])
+    best_sse, best = found[0]
+    rivals = [x for c, x in found[1:] if c <= ROD_RIVAL_SSE * best_sse
+              and abs(float(x[0] - best[0])) >= math.log(ROD_RIVAL_RATIO)]
+    return [_with_rod(prob, th, forces, x) for x in [best] + rivals[:1]]
+
+
+def _with_rod(prob: Problem, th: Theta, forces: list[FloatArray], x: FloatArray) -> Theta:
+    """``th`` with the rod's log natural frequency and damping ``x`` and each sweep's offset
+    fitted to it (``forces``: ``prob.forces(th)``)."""
     out = th.copy()
-    out.log_fn, out.log_zeta = float(best[0]), float(best[1])
+    out.log_fn, out.log_zeta = float(x[0]), float(x[1])
     fn, zeta = math.exp(out.log_fn), math.exp(out.log_zeta)
     out.offsets = np.array([float(np.mean(y - prob.rod(i, g, fn, zeta)[m]))
                             for i, (g, m, y) in enumerate(zip(forces, prob.data.masks,
