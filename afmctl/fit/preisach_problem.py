@@ -78,10 +78,13 @@ MAP = 2
 CUBIC_LOOPS = 4
 #: The coefficients' closer nodes at small coercive fields (:attr:`Settings.coercive_power`) are
 #: used only on a set with this many interior loops: at 10 kHz the reversal curves alone have 10
-#: on 0-150 V, the standard set none there and 5 on -150-150 V (its nested loops), where the
-#: closer nodes and :func:`afmctl.fit.preisach._finer` together took the family plant's bipolar
-#: creeping PI stage's fast triangle from 1.30 to 2.31x its noise (which of the two, not
-#: measured); the separating sweep has 54.
+#: on 0-150 V, the standard set none there and 5 on -150-150 V (its nested loops); the separating
+#: sweep has 54. The gate was at 4 once, and on the family plant's bipolar creeping PI stage the
+#: closer nodes took its fast triangle from 1.30 to 2.31x its noise (equal spacing restored it,
+#: the lighter refits of :func:`afmctl.fit.preisach._finer` switched off did not): its weights
+#: had followed an 8.76 kHz rod and kept its 1.25 kHz one out, which
+#: :func:`afmctl.fit.preisach_solver.rod_rivals` now mends (stop 68, with the curves; the
+#: standard sets were not measured again at a lower gate).
 CLOSE_NODES_LOOPS = 10
 #: A loop is interior when both its ends lie farther than this share of the set's field range
 #: from either end of it ...
