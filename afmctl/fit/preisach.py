@@ -335,9 +335,10 @@ def runs(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[flo
         each search), then with creep from there (``settings.max_iter`` steps), the rod searched
         again with the creep found and ``settings.max_iter`` more steps: without creep the
         hysteresis misfit of a creeping stage can hide its rod (pi-b-creep's 1247 Hz rod was
-        kept at 8.76 kHz; found at 1250 Hz after). A creep fit left above :data:`RETRY_ABOVE`
-        is done again from the runner-up start assignment (:func:`_retried`); with ``judge``,
-        what it said of each fit (:attr:`Runs.judged`).
+        kept at 8.76 kHz; found at 1250 Hz after); the last steps run from the search's rival
+        rod too, if it offers one, and the lower cost is kept (:func:`_crept`). A creep fit
+        left above :data:`RETRY_ABOVE` is done again from the runner-up start assignment
+        (:func:`_retried`); with ``judge``, what it said of each fit (:attr:`Runs.judged`).
     """
     ec, ei, spread = make_grid(data.fields, settings)
     cands = [tuple(s) for s in dict.fromkeys(tuple(s) for s in starts_candidates)]
@@ -469,7 +470,10 @@ def _crept(fitted: Fitted, plain: Theta, pen: FloatArray, lam: float, settings: 
            warm: Theta | None = None) -> Run:
     """The creep elements fitted on ``fitted.fit`` from the fit without them, both problems'
     thresholds set on the range of what drives them there (``Q``, or ``g(Q)`` with the creep on
-    the force), the rod searched again with the creep found.
+    the force), the rod searched again with the creep found and the last ``settings.max_iter``
+    steps run from its best rod and from its rival, if it offers one
+    (:func:`~afmctl.fit.preisach_solver.rod_rivals`): the lower cost is kept (both at the same
+    smoothing; each run scales the penalty from its own start, which differ by about 1e-6).
 
     ``warm``: start from this fit with creep instead (the other placement's: its weights are
     shares of the same thresholds' fractions, so they start the force's creep near its answer:

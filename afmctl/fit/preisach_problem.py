@@ -83,8 +83,9 @@ CUBIC_LOOPS = 4
 #: closer nodes took its fast triangle from 1.30 to 2.31x its noise (equal spacing restored it,
 #: the lighter refits of :func:`afmctl.fit.preisach._finer` switched off did not): its weights
 #: had followed an 8.76 kHz rod and kept its 1.25 kHz one out, which
-#: :func:`afmctl.fit.preisach_solver.rod_rivals` now mends (stop 68, with the curves; the
-#: standard sets were not measured again at a lower gate).
+#: :func:`afmctl.fit.preisach_solver.rod_rivals` now mends (stop 68: 1.31x, measured at this
+#: gate on the bench's set with the reversal curves). The gate stays: the standard sets below it
+#: were not measured again with the closer nodes and the rival.
 CLOSE_NODES_LOOPS = 10
 #: A loop is interior when both its ends lie farther than this share of the set's field range
 #: from either end of it ...

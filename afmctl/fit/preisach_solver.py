@@ -36,11 +36,11 @@ MAX_LOG_STEP = 0.5
 #: added to ``Q`` is undone by a new gain and ``s``, exactly), along which an undamped fold fit
 #: slides to where the exact model is 100x the noise off.
 HELDOUT_DAMPING = 1e-6
-#: The rod's coarse search (:func:`refit_rod`): natural frequencies x damping ratios, log-spaced.
+#: The rod's coarse search (:func:`rod_rivals`): natural frequencies x damping ratios, log-spaced.
 ROD_GRID = (24, 8)
-#: A rod polish (:func:`rod_rivals`) this many times away in natural frequency from the best is a
-#: rival, fitted from too, if its sum of squares with the hysteresis held is within
-#: ``ROD_RIVAL_SSE`` times the best's. Measured: pi-b-creep's true rod 1.4 % above the 8.76 kHz
+#: A rod :func:`rod_rivals` weighed (the one it started from, or a polish) this many times away in
+#: natural frequency from the best is a rival, fitted from too, if its sum of squares with the
+#: hysteresis held is within ``ROD_RIVAL_SSE`` times the best's. Measured: pi-b-creep's true rod 1.4 % above the 8.76 kHz
 #: one its weights were fitted with, the independent Preisach plant's (700 Hz) 1.3x above a
 #: 9.3 kHz one (tests/fit/test_preisach_rod.py): both won once the weights followed them; a
 #: rival 5x above lost (161 against 48).
@@ -258,14 +258,20 @@ def rod_rivals(prob: Problem, th: Theta) -> list[Theta]:
     on the fast sweep's evidence alone), then a local least-squares polish from the best point
     and from ``th``'s.
 
+    Parameters
+    ----------
+    prob : Problem
+    th : Theta
+        The fit whose hysteresis and creep are held (its rod is weighed as it is and polished).
+
     Returns
     -------
     list of Theta
-        The best of the two polishes and ``th`` itself; then, if another of the three is at a
-        natural frequency :data:`ROD_RIVAL_RATIO` or more away and misses by at most
-        :data:`ROD_RIVAL_SSE` times as much, that one (the rival: with the hysteresis held, the
-        true rod can lose to the one the weights were fitted with, pi-b-creep's 1.25 kHz to
-        8.76 kHz; :func:`afmctl.fit.preisach._crept` fits from both).
+        The best of the two polishes and ``th`` itself, each sweep's offset fitted to it; then,
+        if another of the three is at a natural frequency :data:`ROD_RIVAL_RATIO` or more away
+        and misses by at most :data:`ROD_RIVAL_SSE` times as much, that one (the rival: with
+        the hysteresis held, the true rod can lose to the one the weights were fitted with,
+        pi-b-creep's 1.25 kHz to 8.76 kHz; :func:`afmctl.fit.preisach._crept` fits from both).
     """
     forces = prob.forces(th)
 

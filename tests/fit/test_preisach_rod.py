@@ -13,6 +13,8 @@ from afmctl.fit import preisach_solver as ps
 from tests.fit.test_preisach_fit import data_of
 from tests.harness.preisach_plant import PreisachStage, standard_sweeps
 
+pytestmark = pytest.mark.slow  # a creep fit of the grid: a minute or two
+
 TRUE_HZ = PreisachStage().natural_hz
 
 
@@ -72,3 +74,18 @@ def test_weights_fitted_with_a_wrong_rod_keep_it_and_the_true_one_is_offered_as_
     assert again[1].cost < 0.5 * again[0].cost
     assert float(np.max(prob.ratios(again[1].theta))) < 1.2
     assert abs(_hz(again[1].theta) / TRUE_HZ - 1.0) < 0.02
+
+
+def test_a_creep_fit_started_on_a_wrong_rod_ends_at_the_plants_rod(fitted: pf.Runs) -> None:
+    """``_crept`` (identify's creep fit) warm-started from weights and creep of nothing and the rod
+    at 8 kHz: its own steps keep a rod near 9 kHz (the test above); the steps it takes again
+    from the search's rival end at the plant's rod, at the noise, and that fit is the one it
+    returns."""
+    assert fitted.crept is not None
+    prob = fitted.problem
+    start = _with_rod(fitted.crept.theta, 8000.0, 0.008)
+    start.w, start.r, start.c = np.zeros_like(start.w), 0.0, np.zeros_like(start.c)
+    run = pf._crept(pf.Fitted(prob, prob), fitted.plain.theta, fitted.penalty, fitted.smoothing,
+                    pf.Settings(), warm=start)
+    assert abs(_hz(run.theta) / TRUE_HZ - 1.0) < 0.02
+    assert float(np.max(prob.ratios(run.theta))) < 1.2
