@@ -40,10 +40,10 @@ HELDOUT_DAMPING = 1e-6
 ROD_GRID = (24, 8)
 #: A rod :func:`rod_rivals` weighed (the one it started from, or a polish) this many times away in
 #: natural frequency from the best is a rival, fitted from too, if its sum of squares with the
-#: hysteresis held is within ``ROD_RIVAL_SSE`` times the best's. Measured: pi-b-creep's true rod 1.4 % above the 8.76 kHz
-#: one its weights were fitted with, the independent Preisach plant's (700 Hz) 1.3x above a
-#: 9.3 kHz one (tests/fit/test_preisach_rod.py): both won once the weights followed them; a
-#: rival 5x above lost (161 against 48).
+#: hysteresis held is within ``ROD_RIVAL_SSE`` times the best's. Measured: pi-b-creep's true rod
+#: 1.4 % above the 8.76 kHz one its weights were fitted with, the independent Preisach plant's
+#: (700 Hz) 1.3x above a 9.3 kHz one (tests/fit/test_preisach_rod.py): both won once the weights
+#: followed them; a rival 5x above lost (161 against 48).
 ROD_RIVAL_RATIO = 1.5
 ROD_RIVAL_SSE = 2.0
 #: Bounds of the rod's damping ratio (those of the parametric fit).
