@@ -268,7 +268,8 @@ def _relearn(w: Any, wave: Path, prof: Any, model: Any, model_path: str | None,
         click.echo(f"warning: the learned run ({w.meta.get('run_file', 'not named')}) is not "
                    f"beside {wave.name}: how far the stage has moved is not told", err=True)
     horizons = tuple(int(h) for h in w.meta.get("horizons", "").split(",") if h.strip())
-    resume = learn.Resume(w.reference_um[tracking], horizons, readings)
+    resume = learn.Resume(w.reference_um[tracking], horizons, readings,
+                          voltage_v=w.voltage_v)
     seed = w.meta.get("filter", "inverse")
     with opened_stage(prof) as stage:
         learn_track(desired, prof, model, model_path, stage, iterations, {},

@@ -243,13 +243,15 @@ class Resume:
     """Where a replay of earlier learning starts: the kept iteration's reference (tracking
     part, um) and inversion horizons, its run's readings (whole run, um: the replay's
     conditioning readings are compared with them to tell how far the stage has moved since,
-    creep and drift; None: not told) and that learning's tuning of ``L`` and ``Q`` (None:
-    measured on the replay, as on a first iteration 0)."""
+    creep and drift; None: not told), that learning's tuning of ``L`` and ``Q`` (None:
+    measured on the replay, as on a first iteration 0) and the kept waveform's voltages (whole
+    run, V; None: re-planned from the reference)."""
 
     reference_um: FloatArray
     horizons: tuple[int, ...] = ()
     readings_um: FloatArray | None = None
     tuning: ilc.Tuning | None = None
+    voltage_v: FloatArray | None = None
 
     @classmethod
     def kept(cls, result: Result) -> Resume:
@@ -257,7 +259,7 @@ class Resume:
         it = result.best_iteration
         assert it.reference_um is not None
         return cls(it.reference_um, it.outcome.waveform.horizons, it.outcome.displacement_um,
-                   result.tuning)
+                   result.tuning, it.outcome.waveform.voltage_v)
 
 
 @dataclass
@@ -329,9 +331,11 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     simulates, for judging between the samples (None: not judged there; the model's own
     simulation would only show the model inverting itself). A refused waveform, the noise floor
     or a diverging error end learning early (``Result.stop`` says which). With ``resume``,
-    iteration 0 replays its kept waveform (re-planned from its reference: the same voltages)
-    and the next ones re-learn from there with its tuning; the replay's ``offset_um`` is how
-    far the stage has moved since the kept run. ``start`` (the model's state when the stage
+    iteration 0 replays its kept waveform (its voltages, if ``resume`` has them, else re-planned
+    from its reference) and the next ones re-learn from there with its tuning, each planned
+    from its reference with the kept voltages' difference from their own plan added
+    (:func:`_replayed`); the replay's ``offset_um`` is how far the stage has moved since the
+    kept run. ``start`` (the model's state when the stage
     starts, and the frame its readings will be in: a twin's, :meth:`Twin.planning_frame`)
     plans iteration 0 as ``afmctl track`` does, its reference the trajectory less the frame;
     without it, from rest in the model's zero.
@@ -356,6 +360,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         if resume.horizons:  # the kept run's (grown) horizons
             p = dc.replace(p, horizons=resume.horizons)
         wf = plan_reference(p, desired, ref)
+    wf, kept_v = _replayed(wf, resume, limits, start_v)
     done: list[Iteration] = []
     compute: list[float] = []
     noise, best, stop, sigma, step = float("nan"), 0, "iterations done", 0.0, Step()
@@ -369,6 +374,8 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
             taken = (step.start, step.scale)
             try:
                 wf = plan_reference(p, desired, ref)
+                if kept_v is not None:
+                    wf = _shifted(wf, kept_v, limits, start_v)
             except (guard.LimitError, track.EnvelopeError) as exc:
                 stop = f"refused: {exc}"
                 break
@@ -408,6 +415,35 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         if stop != "iterations done":
             break
     return Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma)
+
+
+def _replayed(wf: track.Waveform, resume: Resume | None, limits: guard.Limits, start_v: float
+              ) -> tuple[track.Waveform, FloatArray | None]:
+    """A replay's iteration 0: the kept voltages themselves, and their difference from ``wf``
+    (the kept reference planned now), which every re-learned waveform carries: the kept run
+    was planned from the state learning started in (the model's twin, :mod:`afmctl.
+    experiment.twin`), a replay from rest, and the same reference then gives other voltages (an
+    independent tester's creeping stage: -0.292 um replayed as learned, +0.354 um re-planned).
+    ``wf`` and None without kept voltages of the same length.
+
+    Raises
+    ------
+    guard.LimitError
+        If the kept voltages leave the limits from the stage's present output ``start_v``.
+    """
+    if resume is None or resume.voltage_v is None or resume.voltage_v.size != wf.voltage_v.size:
+        return wf, None
+    kept = np.asarray(resume.voltage_v, dtype=float)
+    guard.check(kept, wf.dt_s, limits, start_v, "kept waveform")
+    return dc.replace(wf, voltage_v=kept.copy()), kept - wf.voltage_v
+
+
+def _shifted(wf: track.Waveform, shift_v: FloatArray, limits: guard.Limits, start_v: float
+             ) -> track.Waveform:
+    """``wf`` with ``shift_v`` (V, per sample) added, guard-checked (:func:`_replayed`)."""
+    v = wf.voltage_v + shift_v
+    guard.check(v, wf.dt_s, limits, start_v, "re-learned waveform")
+    return dc.replace(wf, voltage_v=v)
 
 
 def stop_rule(done: list[Iteration], no_step_left: bool, floor: float, noise: float,

@@ -357,6 +357,36 @@ def test_learning_brings_a_wrong_model_to_the_noise_floor(profile: Profile, nomi
     assert all(runfile.read(tmp_path / f).complete for f in files)
 
 
+def test_a_replay_plays_the_kept_voltages_and_relearns_carrying_them(
+        profile: Profile, nominal: Transducer, tmp_path: Path) -> None:
+    """A replay whose kept voltages are not what its reference plans to now (learning planned
+    them from the model's twin, a replay plans from rest; here the kept voltages drawn 1 % toward
+    the middle of the range): iteration 0 plays the kept voltages to the bit, and the next
+    iteration's waveform is its own plan plus the kept voltages' difference from theirs."""
+    stage_profile = softer_rod(profile)
+    res = learn_on(stage_profile, nominal, tmp_path / "learn", 6)
+    kept = learn.Resume.kept(res)
+    assert kept.voltage_v is not None
+    mid = 0.5 * (profile.limits.v_min + profile.limits.v_max)
+    drawn = mid + 0.99 * (kept.voltage_v - mid)
+    desired = track.triangle(27.9, 27.04, 0.0, 3, 1 / profile.sample_rate_hz)
+    with InProcessStage(stage_profile, clock=accelerated(8.0)) as stage:
+        start_v = stage.voltage()
+        rep = learn.run(stage, nominal, desired, profile.limits, tmp_path / "replay", {}, 1,
+                        ilc.Law(), resume=dc.replace(kept, voltage_v=drawn))
+    assert len(rep.iterations) == 2
+    played = [it.outcome.waveform.voltage_v for it in rep.iterations]
+    np.testing.assert_array_equal(played[0], drawn)
+    np.testing.assert_allclose(runfile.read(tmp_path / "replay" / "run_inverse_iter00.csv")
+                               .voltage_v, drawn, atol=1e-6)  # the run file's 1 uV
+    p, _ = learn.planner(nominal, desired, profile.limits, start_v)
+    p = dc.replace(p, horizons=kept.horizons)
+    shift = drawn - learn.plan_reference(p, desired, kept.reference_um).voltage_v
+    assert np.max(np.abs(shift)) > 0.3  # V: what a re-planned iteration would have dropped
+    again = learn.plan_reference(p, desired, rep.iterations[1].reference_um).voltage_v
+    np.testing.assert_allclose(played[1], again + shift, atol=1e-9)
+
+
 def test_amplifier_lag_the_model_lacks_is_learned(profile: Profile, nominal: Transducer,
                                                    tmp_path: Path) -> None:
     """A 450 Hz amplifier the model lacks: G measured on iteration 0 lags; learning cuts the
