@@ -137,6 +137,13 @@ def smooth_horizon(disc: Discrete, d_max: int = 64) -> int:
     return best + 1 if radii[best] < 1.0 else d_max
 
 
+def horizon_radius(disc: Discrete, d: int) -> float:
+    """The spectral radius of the horizon-``d`` inverse's state map ``M_d``
+    (:func:`smooth_horizon`): 1 or more, the inverse at that horizon is unstable."""
+    row, gain = disc.horizon(d)
+    return float(np.max(np.abs(np.linalg.eigvals(disc.phi - np.outer(disc.gamma, row) / gain))))
+
+
 def discretize(rod: Rod, dt: float) -> Discrete:
     """Exact discretization (18) of the rod at sample period ``dt`` (s)."""
     a = np.array([[0.0, 1.0], [-rod.k / rod.m, -rod.c / rod.m]])

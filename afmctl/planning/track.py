@@ -226,7 +226,7 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
     st, v_prev = state, start_v
     for i, (s, e) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
         last: guard.LimitError | None = None
-        for d in (h for h in HORIZONS if h >= (max(d0, fixed[i]) if fixed else d0)):
+        for d in _ladder(cm.disc, max(d0, fixed[i]) if fixed else d0):
             res = inv.algorithm3(cm, target[s:e + d - 1], st, e_init=v_prev / thick, horizon=d,
                                  e_min=e_lim[0], e_max=e_lim[1], keep=e - s)
             v = res.voltage(thick)[:e - s]
@@ -246,6 +246,15 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
     return np.concatenate(parts), tuple(horizons)
 
 
+def _ladder(disc: rd.Discrete, start: int) -> list[int]:
+    """The horizons a waveform tries, in turn: ``start`` (the smooth one, which need not be one of
+    :data:`HORIZONS`), then each of :data:`HORIZONS` above it whose inverse is stable
+    (:func:`afmctl.model.rod.horizon_radius` below 1): an unstable one rails at the limits or,
+    mildly unstable, passes the guard and chatters. On a rod resonating above a quarter of the
+    sample rate the smooth horizon can be 7 and the next of HORIZONS, 8, unstable."""
+    return [start] + [h for h in HORIZONS if h > start and rd.horizon_radius(disc, h) < 1.0]
+
+
 def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.StageState,
                    start_v: float, limits: guard.Limits, e_lim: tuple[float, float],
                    build: Any, fixed: tuple[int, ...] | None = None) -> Waveform:
@@ -254,7 +263,7 @@ def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: 
     dt = cm.dt
     last: guard.LimitError | None = None
     best: tuple[float, Waveform] | None = None
-    for d in (h for h in HORIZONS if h >= max((rd.smooth_horizon(cm.disc), *(fixed or ())))):
+    for d in _ladder(cm.disc, max((rd.smooth_horizon(cm.disc), *(fixed or ())))):
         res = inv.algorithm3(cm, target, state, e_init=start_v / cm.model.thickness_um,
                              horizon=d, e_min=e_lim[0], e_max=e_lim[1])
         v = fx.unlag_limited(chain, res.voltage(cm.model.thickness_um), start_v,

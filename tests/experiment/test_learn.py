@@ -721,3 +721,26 @@ def test_learn_png_counts_iterations_in_whole_numbers(profile: Profile, nominal:
     lo, hi = fig.axes[0].get_xlim()
     ticks = [t for t in fig.axes[0].get_xticks() if lo <= t <= hi]
     assert len(ticks) >= 2 and all(float(t).is_integer() for t in ticks), ticks
+
+
+def test_a_replays_shift_is_carried_part_by_part_onto_a_plan_of_another_shape() -> None:
+    """A re-learned plan whose ramps are longer or shorter than the kept one's (they follow the
+    reference's ends): the shift goes onto its conditioning and tracking parts as it was, and
+    along a straight line over its ramps, ending at the kept last sample's."""
+    n_pre, n_tr = 5, 8
+    shift = np.concatenate((np.linspace(0.1, 0.2, n_pre), [0.3, 0.4], np.full(n_tr, 0.5),
+                            [0.6, 0.7, 0.8]))
+    carried = learn.Carried(shift, slice(n_pre + 2, n_pre + 2 + n_tr), n_pre)
+    for ramp_in, ramp_out in ((4, 1), (0, 5)):
+        size = n_pre + ramp_in + n_tr + ramp_out
+        t = slice(n_pre + ramp_in, n_pre + ramp_in + n_tr)
+        wf = track.Waveform("inverse", DT, np.zeros(size), np.full(size, np.nan), t)
+        v = carried.added(wf)
+        np.testing.assert_array_equal(v[:n_pre], shift[:n_pre])
+        np.testing.assert_array_equal(v[t], shift[carried.tracking])
+        line = np.linspace(0.2, 0.5, ramp_in + 2)[1:-1]
+        np.testing.assert_allclose(v[n_pre:t.start], line)
+        np.testing.assert_allclose(v[t.stop:], np.linspace(0.5, 0.8, ramp_out + 1)[1:])
+    same = track.Waveform("inverse", DT, np.ones(shift.size), np.full(shift.size, np.nan),
+                          carried.tracking)
+    np.testing.assert_array_equal(carried.added(same), 1.0 + shift)  # the kept shape: as it is
