@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from afmctl import guard
+from afmctl.experiment import replay
 from afmctl.experiment import runner as experiment
 from afmctl.files.modelfile import Envelope
 from afmctl.model import effects as fx
@@ -334,9 +335,10 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     iteration 0 replays its kept waveform (its voltages, if ``resume`` has them, else re-planned
     from its reference) and the next ones re-learn from there with its tuning, each planned
     from its reference with the kept voltages' difference from their own plan added
-    (:class:`Carried`), guard-checked from the stage's output then; the replay's
-    ``offset_um`` is how far the stage has moved since the kept run. ``start`` (the model's
-    state when the stage starts, and the frame its readings will be in: a twin's, :meth:`Twin.planning_frame`)
+    (:class:`afmctl.experiment.replay.Carried`), guard-checked from the stage's output then;
+    the replay's ``offset_um`` is how far the stage has moved since the kept run. ``start``
+    (the model's state when the stage starts, and the frame its readings will be in: a twin's,
+    :meth:`Twin.planning_frame`)
     plans iteration 0 as ``afmctl track`` does, its reference the trajectory less the frame;
     without it, from rest in the model's zero.
 
@@ -360,7 +362,8 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         if resume.horizons:  # the kept run's (grown) horizons
             p = dc.replace(p, horizons=resume.horizons)
         wf = plan_reference(p, desired, ref)
-    wf, carried = _replayed(wf, resume, limits, start_v, p.prefix_v.size)
+    wf, carried = replay.replayed(wf, None if resume is None else resume.voltage_v, limits,
+                                  start_v, p.prefix_v.size)
     done: list[Iteration] = []
     compute: list[float] = []
     noise, best, stop, sigma, step = float("nan"), 0, "iterations done", 0.0, Step()
@@ -417,59 +420,6 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         if stop != "iterations done":
             break
     return Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma)
-
-
-@dataclass(frozen=True)
-class Carried:
-    """What a replay's re-learned waveforms carry (:func:`_replayed`): the kept voltages less
-    the kept reference's plan now, V (``shift_v``, whose tracking part is ``tracking``)."""
-
-    shift_v: FloatArray
-    tracking: slice
-    n_prefix: int
-
-    def added(self, wf: track.Waveform) -> FloatArray:
-        """``wf``'s voltages with the shift added: as it is if ``wf`` has the kept plan's shape;
-        else part by part, on the conditioning (the first ``n_prefix`` samples) and the tracking
-        part, the ramps between (which follow the reference's ends, and so can be of other
-        lengths) getting a straight line from one part's shift to the next, and the ramp out
-        one to the shift of the last sample."""
-        v = wf.voltage_v.copy()
-        t, n, d = wf.tracking, self.n_prefix, self.shift_v
-        if v.size == d.size and t == self.tracking:
-            return v + d
-        v[:n] += d[:n]
-        v[t] += d[self.tracking]
-        first, last = d[self.tracking.start], d[self.tracking.stop - 1]
-        v[n:t.start] += np.linspace(d[n - 1] if n else first, first, t.start - n + 2)[1:-1]
-        v[t.stop:] += np.linspace(last, d[-1], v.size - t.stop + 1)[1:]
-        return v
-
-
-def _replayed(wf: track.Waveform, resume: Resume | None, limits: guard.Limits, start_v: float,
-              n_prefix: int) -> tuple[track.Waveform, Carried | None]:
-    """A replay's iteration 0: the kept voltages themselves, and what every re-learned waveform
-    carries: their difference from ``wf`` (the kept reference planned now, its conditioning the
-    first ``n_prefix`` samples). The kept run was planned from the state learning started in
-    (the model's twin, :mod:`afmctl.experiment.twin`), a replay from rest, and the same
-    reference then gives other voltages (an independent tester's creeping stage: -0.292 um
-    replayed as learned, +0.354 um re-planned). Kept voltages of another shape than ``wf`` (a
-    stage that now starts at another voltage) are played, and nothing is carried; without kept
-    voltages, ``wf`` as planned.
-
-    Raises
-    ------
-    guard.LimitError
-        If the kept voltages leave the limits from the stage's present output ``start_v``.
-    """
-    if resume is None or resume.voltage_v is None:
-        return wf, None
-    kept = np.asarray(resume.voltage_v, dtype=float)
-    guard.check(kept, wf.dt_s, limits, start_v, "kept waveform")
-    played = dc.replace(wf, voltage_v=kept.copy())
-    if kept.size != wf.voltage_v.size:
-        return played, None
-    return played, Carried(kept - wf.voltage_v, wf.tracking, n_prefix)
 
 
 def stop_rule(done: list[Iteration], no_step_left: bool, floor: float, noise: float,

@@ -16,7 +16,7 @@ from scipy import signal
 from afmctl import plots
 from afmctl.cli import main
 from afmctl.drivers.inprocess import InProcessStage, accelerated
-from afmctl.experiment import learn
+from afmctl.experiment import learn, replay
 from afmctl.files import modelfile, runfile
 from afmctl.files.profile import Profile
 from afmctl.model import effects as fx
@@ -730,7 +730,7 @@ def test_a_replays_shift_is_carried_part_by_part_onto_a_plan_of_another_shape() 
     n_pre, n_tr = 5, 8
     shift = np.concatenate((np.linspace(0.1, 0.2, n_pre), [0.3, 0.4], np.full(n_tr, 0.5),
                             [0.6, 0.7, 0.8]))
-    carried = learn.Carried(shift, slice(n_pre + 2, n_pre + 2 + n_tr), n_pre)
+    carried = replay.Carried(shift, slice(n_pre + 2, n_pre + 2 + n_tr), n_pre)
     for ramp_in, ramp_out in ((4, 1), (0, 5)):
         size = n_pre + ramp_in + n_tr + ramp_out
         t = slice(n_pre + ramp_in, n_pre + ramp_in + n_tr)
