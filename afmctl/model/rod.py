@@ -128,8 +128,7 @@ def smooth_horizon(disc: Discrete, d_max: int = 64) -> int:
     """
     radii = []
     for d in range(1, d_max + 1):
-        row, gain = disc.horizon(d)
-        ev = np.linalg.eigvals(disc.phi - np.outer(disc.gamma, row) / gain)
+        ev = _horizon_eigvals(disc, d)
         if np.all((ev.real > 0) | (np.abs(ev) < ROUND_OFF)) and np.all(np.abs(ev) < 1):
             return d
         radii.append(float(np.max(np.abs(ev))))
@@ -140,8 +139,13 @@ def smooth_horizon(disc: Discrete, d_max: int = 64) -> int:
 def horizon_radius(disc: Discrete, d: int) -> float:
     """The spectral radius of the horizon-``d`` inverse's state map ``M_d``
     (:func:`smooth_horizon`): 1 or more, the inverse at that horizon is unstable."""
+    return float(np.max(np.abs(_horizon_eigvals(disc, d))))
+
+
+def _horizon_eigvals(disc: Discrete, d: int) -> NDArray[np.complex128]:
+    """The eigenvalues of ``M_d = Phi - Gamma C Phi^d / g_d`` (:func:`smooth_horizon`)."""
     row, gain = disc.horizon(d)
-    return float(np.max(np.abs(np.linalg.eigvals(disc.phi - np.outer(disc.gamma, row) / gain))))
+    return np.linalg.eigvals(disc.phi - np.outer(disc.gamma, row) / gain)
 
 
 def discretize(rod: Rod, dt: float) -> Discrete:

@@ -222,11 +222,12 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
     """
     thick, dt = cm.model.thickness_um, cm.dt
     d0 = rd.smooth_horizon(cm.disc)
+    stable = _stable(cm.disc)
     parts, horizons = [], []
     st, v_prev = state, start_v
     for i, (s, e) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
         last: guard.LimitError | None = None
-        for d in _ladder(cm.disc, max(d0, fixed[i]) if fixed else d0):
+        for d in _ladder(stable, max(d0, fixed[i]) if fixed else d0):
             res = inv.algorithm3(cm, target[s:e + d - 1], st, e_init=v_prev / thick, horizon=d,
                                  e_min=e_lim[0], e_max=e_lim[1], keep=e - s)
             v = res.voltage(thick)[:e - s]
@@ -246,13 +247,19 @@ def _invert_stretches(cm: tr.Compiled, target: FloatArray, state: tr.StageState,
     return np.concatenate(parts), tuple(horizons)
 
 
-def _ladder(disc: rd.Discrete, start: int) -> list[int]:
+def _stable(disc: rd.Discrete) -> tuple[int, ...]:
+    """The :data:`HORIZONS` whose inverse is stable (:func:`afmctl.model.rod.horizon_radius`
+    below 1): an unstable one rails at the limits or, mildly unstable, passes the guard and
+    chatters."""
+    return tuple(h for h in HORIZONS if rd.horizon_radius(disc, h) < 1.0)
+
+
+def _ladder(stable: tuple[int, ...], start: int) -> list[int]:
     """The horizons a waveform tries, in turn: ``start`` (the smooth one, which need not be one of
-    :data:`HORIZONS`), then each of :data:`HORIZONS` above it whose inverse is stable
-    (:func:`afmctl.model.rod.horizon_radius` below 1): an unstable one rails at the limits or,
-    mildly unstable, passes the guard and chatters. On a rod resonating above a quarter of the
-    sample rate the smooth horizon can be 7 and the next of HORIZONS, 8, unstable."""
-    return [start] + [h for h in HORIZONS if h > start and rd.horizon_radius(disc, h) < 1.0]
+    :data:`HORIZONS`), then each of the ``stable`` ones above it (:func:`_stable`). On a rod
+    resonating above a quarter of the sample rate the smooth horizon can be 7 and the next of
+    HORIZONS, 8, unstable."""
+    return [start] + [h for h in stable if h > start]
 
 
 def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.StageState,
@@ -263,7 +270,7 @@ def _invert_lagged(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: 
     dt = cm.dt
     last: guard.LimitError | None = None
     best: tuple[float, Waveform] | None = None
-    for d in _ladder(cm.disc, max((rd.smooth_horizon(cm.disc), *(fixed or ())))):
+    for d in _ladder(_stable(cm.disc), max((rd.smooth_horizon(cm.disc), *(fixed or ())))):
         res = inv.algorithm3(cm, target, state, e_init=start_v / cm.model.thickness_um,
                              horizon=d, e_min=e_lim[0], e_max=e_lim[1])
         v = fx.unlag_limited(chain, res.voltage(cm.model.thickness_um), start_v,
