@@ -148,3 +148,25 @@ def test_learning_starts_where_the_twin_says(nominal: Transducer, tmp_path: Path
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
     assert summary["read_file"] == "run_read.csv"
     assert summary["iterations"][0]["rms_steady_um"] < 0.5
+
+
+def test_learning_reads_the_stage_even_just_after_a_recording(nominal: Transducer,
+                                                             tmp_path: Path) -> None:
+    """``track --learn`` reads the stage before iteration 0 even when the twin's last recording
+    is seconds old (track itself would not: within ``IDLE_S`` it plans from the recordings'
+    line), and iteration 0 is planned in the frame that reading anchors. A line through the
+    recordings alone took a 1 um step across a hold for a -4 nm/s drift on a tester's stage."""
+    model = tmp_path / "model.toml"
+    modelfile.write(nominal, model)
+    assert twin.keep_beside(nominal, timed_sweeps(nominal, (-1, 0), top_v=0.0), model)
+    res = CliRunner().invoke(main, ["track", "triangle", "--freq", "27.9", "--amplitude", "27.04",
+                                    "--model", str(model), "--learn", "1", "--json",
+                                    "--out", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    said = [ln for ln in res.stderr.splitlines() if "reading it there" in ln]
+    assert len(said) == 1 and "held 0 V for " in said[0], res.stderr
+    assert "iteration 0: readings expected" in res.stderr
+    assert "read at the held output" in res.stderr
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["read_file"] == "run_read.csv" and summary["read_after_idle_s"] < 10.0
+    assert abs(summary["read_offset_um"]) < 0.01
