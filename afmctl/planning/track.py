@@ -386,6 +386,12 @@ def _refined(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.Sta
         return (trial, trial_miss, moved) if np.sum(trial_miss ** 2) < np.sum(miss ** 2) else None
 
     best, miss = wf, missed(wf)
+    lead = model_lead(goal[:-1], goal[:-1] - miss, max(best.horizons, default=1) - 1)
+    if lead:  # aim that many samples later: the whole samples first, the rest as below
+        found = better(np.concatenate([np.full(lead, target[0]), target[:-lead]])[:-1]
+                       - target[:-1])
+        if found is not None:
+            best, miss, target = found
     for _ in range(REFINE):
         if float(np.max(np.abs(miss))) <= REFINE_TOL_UM:
             break
@@ -396,6 +402,16 @@ def _refined(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.Sta
             return best if found is None else found[0]
         best, miss, target = found
     return best
+
+
+def model_lead(goal: FloatArray, u: FloatArray, most: int) -> int:
+    """The whole samples ``L`` (0 ... ``most``) by which ``u`` runs ahead of ``goal`` (um, the
+    same samples): ``u[j] ~ goal[j + L]``. A horizon-``d`` inverse holds the force ``d`` samples
+    ahead; a rod that settles within a sample then reaches each target up to ``d - 1`` samples
+    early (an independent tester's 3.5 kHz Bouc-Wen stage at horizon 4: 3 samples, 0.68 um on a
+    27.9 Hz triangle over 40 um, 0.014 um aimed 3 samples later)."""
+    rms = [float(np.mean((u[:u.size - m] - goal[m:]) ** 2)) for m in range(min(most, u.size - 1) + 1)]
+    return int(np.argmin(rms))
 
 
 def followable(miss: FloatArray, natural_hz: float, dt_s: float) -> FloatArray:
