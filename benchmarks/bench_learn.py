@@ -38,6 +38,10 @@ re-learned from there for up to 2 iterations (``learn.run`` resumed from the kep
 the replay measures how far the stage has moved). ``family_learn_ok`` counts the stages within
 2x the noise, ``family_replay_ok`` those whose replay is within 2x again after at most 2
 re-learning iterations, ``family_replay_raw_ok`` those whose replay as it was already is.
+``family_replay_moved_ok`` counts those within 2x whose replay, on the same stage learned again
+in a session of its own, is played as ``afmctl play --model`` plays a learned waveform
+(:func:`afmctl.experiment.replay.moved_replay`: the conditioning first, the rest moved for how
+far its last 0.1 s says the stage has moved; one run, no re-learning).
 
 Run: ``python benchmarks/bench_learn.py --json`` (last line one JSON object); ``--stage
 sensor-nonlinearity`` (any name of ``--stages``, or ``foreign:<effect>``, or ``foreign:earlier``)
@@ -61,7 +65,7 @@ import numpy as np
 from afmctl.drivers.device import plant as em
 from afmctl.drivers.inprocess import InProcessStage, accelerated
 from afmctl.errors import LimitError, StageError
-from afmctl.experiment import calibration, learn
+from afmctl.experiment import calibration, learn, replay
 from afmctl.files.profile import Profile, default_profile
 from afmctl.fit import diagnose as dg
 from afmctl.fit import identify
@@ -324,15 +328,51 @@ def family_row(case: family_sets.Case, cache: Path | None, tmp: Path) -> dict[st
     return row
 
 
+def moved_row(case: family_sets.Case, cache: Path | None, tmp: Path) -> dict[str, Any]:
+    """The stage of :func:`family_row` in a session of its own, learned the same way, and its
+    kept waveform played :data:`REPLAY_AFTER_S` later as ``afmctl play --model`` plays it
+    (``moved_replay_*``: the move it read, um, and the trajectory's true RMS)."""
+    with family_sets.session(case) as s:
+        sweeps = family_sets.record(s, tmp / "sweeps")
+        model = family_sets.identified(case, sweeps, s.noise_um, cache)["model"]
+        lo, hi = family_sets.span_of(sweeps)
+        desired = track.triangle(FREQ_HZ, min(AMP_UM, 0.6 * (hi - lo)), 0.5 * (lo + hi), 3,
+                                 1 / s.profile.sample_rate_hz)
+        try:
+            res = learn.run(s.probe, model, desired, s.profile.limits, tmp / "learn", {}, 5,
+                            ilc.Law())
+            kept = res.best_iteration
+            assert kept.reference_um is not None
+            s.clock.skip(REPLAY_AFTER_S)
+            p, _ = learn.planner(model, desired, s.profile.limits, s.probe.voltage())
+            got = replay.moved_replay(
+                s.probe, kept.outcome.waveform, kept.outcome.displacement_um, kept.reference_um,
+                kept.offset_um - kept.predicted_offset_um,
+                lambda r: learn.plan_reference(p, desired, r), p.prefix_v, s.profile.limits,
+                (tmp / "moved_conditioning.csv", tmp / "moved.csv"), {})
+        except (LimitError, StageError) as exc:
+            return {"moved_replay_stop": f"refused: {exc}", "moved_replay_ok": False}
+        err = s.probe.positions[-1][got.waveform.tracking] - desired.u_um
+    rms = float(np.sqrt(np.mean(err[ilc.steady_part(desired)] ** 2)))
+    log(f"  {case.name:18s}: replayed {REPLAY_AFTER_S:g} s later as play does it: moved "
+        f"{got.move_um if got.move_um is not None else float('nan'):+.3f} um, "
+        f"{rms / s.noise_um:.2f}x noise{'' if got.moved else ' (as learned: ' + got.why + ')'}")
+    return {"moved_replay_move_um": got.move_um, "moved_replay_moved": got.moved,
+            "moved_replay_rms_um": rms, "moved_replay_over_noise": rms / s.noise_um,
+            "moved_replay_ok": rms <= 2 * s.noise_um}
+
+
 def family(names: str, cache: Path | None, design: str = "reversals") -> dict[str, Any]:
     """The ``family_*`` keys."""
     rows = []
     with tempfile.TemporaryDirectory() as td:
         for case in family_sets.cases_named(names, design=design):
-            rows.append(family_row(case, cache, Path(td) / case.name))
+            rows.append({**family_row(case, cache, Path(td) / case.name),
+                         **moved_row(case, cache, Path(td) / f"{case.name}-moved")})
     return {"family_stages": len(rows), "family_learn_ok": sum(r["ok"] for r in rows),
             "family_replay_ok": sum(r["replay_ok"] for r in rows),
             "family_replay_raw_ok": sum(r["replay_raw_ok"] for r in rows),
+            "family_replay_moved_ok": sum(r["moved_replay_ok"] for r in rows),
             "family_rows": rows}
 
 

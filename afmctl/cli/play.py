@@ -122,8 +122,12 @@ def _tracking(desired_um: Any) -> slice:
                    "learned reference (a stage that has moved on since: creep, drift), through "
                    "--model; says how far the stage has moved (needs a waveform_learned.csv "
                    "with its reference_um column).")
+@click.option("--as-learned", is_flag=True,
+              help="Play a learned waveform's voltages as they were learned, in one run (by "
+                   "default, with --model, its conditioning first tells how far the stage has "
+                   "moved since, and the rest is moved for it).")
 def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: str | None,
-         as_json: bool, relearn: int) -> None:
+         as_json: bool, relearn: int, as_learned: bool) -> None:
     """Replay a saved waveform (time_s,voltage_V[,desired_um] CSV, e.g. a learned one; or a
     two-axis one, time_s,voltage_x_V,voltage_y_V[,desired_x_um,desired_y_um], on a two-axis
     stage).
@@ -132,7 +136,11 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     summary.json, play.png and scores (against desired_um, if the file has it) are track's. A
     waveform whose header names another profile or model is played with a warning. With
     --relearn N the replay is iteration 0 of learning resumed from the waveform's reference
-    (the outputs of ``track --learn``).
+    (the outputs of ``track --learn``). A learned waveform played with --model (its run file
+    beside it) is played in two runs: its conditioning (run_play_conditioning.csv), whose last
+    0.1 s against the learned run's tell how far the stage has moved since (creep, drift), then
+    the rest (run_play.csv) with the voltages that move the model by as much added
+    (--as-learned: one run, as it was learned).
     """
     import numpy as np
 
@@ -164,22 +172,32 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
     sensor = model.effects if model is not None else fx.Effects()
     tracking = _tracking(w.desired_um)
     wf = track.Waveform("play", dt, w.voltage_v, w.desired_um, tracking)
+    desired = None
+    if tracking.stop > tracking.start:
+        period = float(w.meta["period_s"]) if "period_s" in w.meta else None
+        u = w.desired_um[tracking]
+        desired = track.Desired(dt, u, period, float(np.ptp(u)), w.meta.get("trajectory", "none"))
+    kept_um = None if as_learned or model is None or desired is None else _kept_readings(w, Path(wave))
+    moved_um: float | None = None
     with opened_stage(prof) as stage:
         stage.check_waveform(w.voltage_v)  # refused before the folder is made, nothing sent
         out = _out_dir(out_dir, "afmctl-play")
         meta = {"profile": prof.name, "waveform": Path(wave).name,
                 "trajectory": w.meta.get("trajectory", "none"),
                 "sample_rate_Hz": prof.sample_rate_hz}
-        measured = experiment.stream(stage, wf, out / "run_play.csv", meta,
-                                     progress_printer(True))
+        if kept_um is not None and model_path is not None and desired is not None:
+            wf, measured, moved_um = _moved(w, wf, kept_um, desired, model, model_path, prof,
+                                            stage, out, meta)
+        else:
+            measured = experiment.stream(stage, wf, out / "run_play.csv", meta,
+                                         progress_printer(True))
     data: dict[str, Any] = {**meta, "samples": int(w.voltage_v.size),
                             "complete": measured[2],
                             "max_slew_V_per_ms": wf.max_slew_v_per_ms}
+    if moved_um is not None:
+        data["replay_moved_um"] = moved_um
     written = ["run_play.csv", "summary.json"]
-    if tracking.stop > tracking.start:
-        period = float(w.meta["period_s"]) if "period_s" in w.meta else None
-        u = w.desired_um[tracking]
-        desired = track.Desired(dt, u, period, float(np.ptp(u)), data["trajectory"])
+    if desired is not None:
         truth, between_from = experiment.between_truth(prof)
         it = learn.judge(wf, desired, 0, measured, out / "run_play.csv", sensor,
                          learn.between_error(wf, desired, truth))
@@ -214,6 +232,51 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
                    f"the stage is now and says how far it moved", err=True)
     if as_json:
         click.echo(json.dumps(experiment.json_ready(data)))
+
+
+def _kept_readings(w: Any, wave: Path) -> Any:
+    """The learned run's readings (um; its run file beside the waveform, named in its header, of
+    the waveform's length), or None (a waveform not learned, or its run not beside it)."""
+    from afmctl.files import runfile
+    kept = wave.parent / w.meta.get("run_file", "")
+    if w.reference_um is None or not w.meta.get("run_file") or not kept.is_file():
+        return None
+    run = runfile.read(kept)
+    return run.displacement_um if run.displacement_um.size == w.voltage_v.size else None
+
+
+def _moved(w: Any, wf: Any, kept_um: Any, desired: Any, model: Any, model_path: str, prof: Any,
+           stage: Any, out: Path, meta: dict[str, Any]) -> tuple[Any, Any, float | None]:
+    """A learned waveform played moved for how far the stage has moved since it was learned
+    (:func:`afmctl.experiment.replay.moved_replay`): the part after the conditioning as played,
+    its run's measurements, and the move (um; None if not read), said either way."""
+    from afmctl.experiment import learn, replay
+    from afmctl.experiment import runner as experiment
+    from afmctl.files import modelfile
+    from afmctl.guard import LimitError
+    seed = w.meta.get("filter", "inverse")
+    try:
+        p, _ = learn.planner(model, desired, prof.limits, stage.voltage(),
+                             "linear" if seed == "linear" else "inverse",
+                             envelope=modelfile.read_envelope(model_path), extrapolate=True)
+    except LimitError as exc:
+        click.echo(f"replay: played as learned (the model cannot plan the trajectory now: {exc})",
+                   err=True)
+        return wf, experiment.stream(stage, wf, out / "run_play.csv", meta,
+                                     progress_printer(True)), None
+    got = replay.moved_replay(stage, wf, kept_um, w.reference_um[wf.tracking],
+                              replay.offset_miss(w.meta),
+                              lambda r: learn.plan_reference(p, desired, r), p.prefix_v,
+                              prof.limits, (out / "run_play_conditioning.csv", out / "run_play.csv"),
+                              meta, progress_printer(True))
+    if got.move_um is not None:
+        click.echo(f"replay: the stage has moved {got.move_um:+.4f} um since the learned run "
+                   f"(the conditioning's last {replay.MOVE_WINDOW_S:g} s against that run's); "
+                   + ("the rest of the waveform moved for it (--as-learned: as it was)"
+                      if got.moved else f"the rest played as learned ({got.why})"), err=True)
+    elif got.why:
+        click.echo(f"replay: played as learned ({got.why})", err=True)
+    return got.waveform, got.measured, got.move_um
 
 
 #: A replay this many times the RMS its waveform had when learned: the stage has moved on.

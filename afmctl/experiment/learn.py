@@ -570,7 +570,8 @@ def waveform_text(it: Iteration, desired: track.Desired, meta: Mapping[str, obje
     info = {**meta, "trajectory": desired.label, "iteration": it.index,
             "rms_steady_um": f"{it.steady_um:.6g}", "run_file": it.outcome.run_file.name,
             "filter": wf.filter.rpartition("_iter")[0] or wf.filter,
-            "horizons": ",".join(str(h) for h in wf.horizons)}
+            "horizons": ",".join(str(h) for h in wf.horizons),
+            replay.OFFSET_MISS_KEY: f"{it.offset_um - it.predicted_offset_um:.9g}"}
     if desired.period_s is not None:
         info["period_s"] = f"{desired.period_s:.9g}"
     ref = None

@@ -1,15 +1,21 @@
-"""A replay of learning (:func:`afmctl.experiment.learn.run` resumed): its iteration 0 plays the
-kept voltages, and what its re-learned waveforms carry from them."""
+"""A replay of learning. Resumed (:func:`afmctl.experiment.learn.run`), its iteration 0 plays the
+kept voltages and its re-learned waveforms carry them (:class:`Carried`). Played once
+(``afmctl play --model``, :func:`moved_replay`), the kept conditioning tells how far the stage
+has moved since (creep, drift) and the rest of the waveform is moved for it."""
 
 from __future__ import annotations
 
 import dataclasses as dc
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
 from afmctl import guard
+from afmctl.errors import EnvelopeError
+from afmctl.experiment import runner
 from afmctl.planning import track
 
 FloatArray = NDArray[np.float64]
@@ -66,3 +72,101 @@ def replayed(wf: track.Waveform, kept_v: FloatArray | None, limits: guard.Limits
     if kept.size != wf.voltage_v.size:
         return played, None
     return played, Carried(kept - wf.voltage_v, wf.tracking, n_prefix)
+
+
+#: The header key of a learned waveform (``waveform_learned.csv``): the kept run's slow offset less
+#: the one its reference was planned for (um), a miss the replay takes out too.
+OFFSET_MISS_KEY = "offset_miss_um"
+#: The move is read over the conditioning's last this many seconds, just before the trajectory
+#: (s). After a minute's hold a creeping stage recovers during the conditioning itself: on the
+#: family's creeping PI stage the readings sat -1.05 um from the kept run's on the rise, -0.89
+#: on the fall, -0.77 over its last 0.1 s, and the trajectory needed -0.78.
+MOVE_WINDOW_S = 0.1
+
+
+@dataclass(frozen=True)
+class Moved:
+    """A replay played by :func:`moved_replay`: ``waveform`` the part after the conditioning as
+    played (its tracking part the trajectory), ``measured`` its run's (readings um, voltages V,
+    complete), ``move_um`` how far the stage had moved from the kept run (None if not read),
+    ``moved`` whether the voltages were moved for it, ``why`` if not."""
+
+    waveform: track.Waveform
+    measured: tuple[FloatArray, FloatArray, bool]
+    move_um: float | None
+    moved: bool
+    why: str = ""
+
+
+def unit_shift(kept: track.Waveform, reference_um: FloatArray,
+               plan: Callable[[FloatArray], track.Waveform], n_prefix: int) -> FloatArray | None:
+    """The voltages (V per um, ``kept``'s shape) that move the model's position by -1 um: the
+    plan of the kept reference (um, its tracking part) less 1 um, less the plan of the reference,
+    both by ``plan`` (from one state; conditioning the first ``n_prefix`` samples), part by part
+    onto ``kept`` (:meth:`Carried.added`). Through the hysteresis a move in position is not one
+    in voltage; the plans tell it, and for moves of a micrometre or two it is linear (the
+    family's creeping PI stage, 0.83 um: 0.004 V RMS from planning the move itself, of 0.46 V).
+    None if the two plans differ in shape (the ramp into the trajectory changed length)."""
+    a, b = plan(reference_um), plan(reference_um - 1.0)
+    if a.voltage_v.size != b.voltage_v.size or a.tracking != b.tracking:
+        return None
+    return Carried(b.voltage_v - a.voltage_v, a.tracking, n_prefix).added(kept) - kept.voltage_v
+
+
+def conditioning_move(readings_um: FloatArray, kept_um: FloatArray, n_prefix: int,
+                      dt_s: float) -> float:
+    """How far the stage reads from the kept run (um): the mean difference of the two runs'
+    readings over the conditioning's last :data:`MOVE_WINDOW_S` (the same voltages, the same
+    wiped-out state; NaN if no sample of either is there)."""
+    part = slice(max(0, n_prefix - int(round(MOVE_WINDOW_S / dt_s))), n_prefix)
+    d = readings_um[part] - kept_um[part]
+    return float(np.mean(d[np.isfinite(d)])) if np.isfinite(d).any() else float("nan")
+
+
+def moved_replay(stage: runner.PlayingStage, kept: track.Waveform, kept_um: FloatArray,
+                 reference_um: FloatArray, miss_um: float,
+                 plan: Callable[[FloatArray], track.Waveform], prefix_v: FloatArray,
+                 limits: guard.Limits, paths: tuple[Path, Path], meta: Mapping[str, object],
+                 progress: runner.Progress | None = None) -> Moved:
+    """Play the learned waveform ``kept`` (its run's readings ``kept_um``, um; its reference, um)
+    moved for how far the stage has moved since: its conditioning (``prefix_v``, V: the one
+    planned now) to ``paths[0]``; the move read on it (:func:`conditioning_move`) plus the kept
+    run's offset miss ``miss_um`` (um); then the rest, to ``paths[1]``, with the move's voltages
+    added (:func:`unit_shift`; as learned where they would leave the limits). A waveform whose
+    first samples are not ``prefix_v`` (to 10 uV: a waveform file keeps microvolts) is played
+    whole, as learned."""
+    n = prefix_v.size
+    if n == 0 or kept.voltage_v.size <= n or not np.allclose(kept.voltage_v[:n], prefix_v, rtol=0.0, atol=1e-5):
+        return Moved(kept, runner.stream(stage, kept, paths[1], meta, progress), None, False,
+                     "its conditioning is not the one planned now")
+    try:
+        unit = unit_shift(kept, reference_um, plan, n)
+        why = "" if unit is not None else "the move changes the ramp into the trajectory"
+    except (guard.LimitError, EnvelopeError) as exc:
+        unit, why = None, f"the model cannot plan the move: {exc}"
+    t = kept.tracking
+    head = track.Waveform(kept.filter, kept.dt_s, kept.voltage_v[:n], kept.desired_um[:n],
+                          slice(0, 0))
+    move = conditioning_move(runner.stream(stage, head, paths[0], meta)[0], kept_um, n,
+                             kept.dt_s) + miss_um
+    v = kept.voltage_v
+    if unit is not None and np.isfinite(move):
+        try:
+            v = kept.voltage_v + move * unit
+            guard.check(v[n:], kept.dt_s, limits, stage.voltage(), "moved replay")
+        except guard.LimitError as exc:
+            v, why = kept.voltage_v, str(exc)
+    rest = track.Waveform(kept.filter, kept.dt_s, v[n:], kept.desired_um[n:],
+                          slice(t.start - n, t.stop - n), kept.horizons)
+    measured = runner.stream(stage, rest, paths[1], meta, progress)
+    return Moved(rest, measured, move if np.isfinite(move) else None, v is not kept.voltage_v,
+                 why)
+
+
+def offset_miss(meta: Mapping[str, str]) -> float:
+    """The kept run's offset miss a learned waveform's header gives (:data:`OFFSET_MISS_KEY`, um;
+    0 if it does not)."""
+    try:
+        return float(meta.get(OFFSET_MISS_KEY, 0.0))
+    except ValueError:
+        return 0.0

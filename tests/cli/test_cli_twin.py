@@ -170,3 +170,34 @@ def test_learning_reads_the_stage_even_just_after_a_recording(nominal: Transduce
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
     assert summary["read_file"] == "run_read.csv" and summary["read_after_idle_s"] < 10.0
     assert abs(summary["read_offset_um"]) < 0.01
+
+
+def test_a_learned_waveform_is_replayed_conditioning_first_and_moved(nominal: Transducer,
+                                                                    tmp_path: Path) -> None:
+    """``play WAVE --model``: a learned waveform plays its conditioning first
+    (run_play_conditioning.csv), says how far the stage has moved since the learned run (here
+    nothing: the same emulated plant, so within the noise), and plays the rest moved for it
+    (run_play.csv, scored as before); ``--as-learned`` plays it whole in one run, as it was."""
+    model = tmp_path / "model.toml"
+    modelfile.write(nominal, model)
+    res = CliRunner().invoke(main, ["track", "triangle", "--freq", "27.9", "--amplitude",
+                                    "27.04", "--model", str(model), "--learn", "1", "--json",
+                                    "--out", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    wave = tmp_path / "a" / "waveform_learned.csv"
+    assert "# offset_miss_um:" in wave.read_text()
+    learned = json.loads(res.stdout.strip().splitlines()[-1])["iterations"]
+    res = CliRunner().invoke(main, ["play", str(wave), "--model", str(model), "--json",
+                                    "--out", str(tmp_path / "b")])
+    assert res.exit_code == 0, res.output
+    assert "replay: the stage has moved" in res.stderr and "moved for it" in res.stderr
+    assert (tmp_path / "b" / "run_play_conditioning.csv").is_file()
+    data = json.loads(res.stdout.strip().splitlines()[-1])
+    assert abs(data["replay_moved_um"]) < 0.01
+    assert data["rms_steady_um"] < 1.5 * min(it["rms_steady_um"] for it in learned)
+    res = CliRunner().invoke(main, ["play", str(wave), "--model", str(model), "--as-learned",
+                                    "--json", "--out", str(tmp_path / "c")])
+    assert res.exit_code == 0, res.output
+    assert "replay:" not in res.stderr
+    assert not (tmp_path / "c" / "run_play_conditioning.csv").exists()
+    assert "replay_moved_um" not in json.loads(res.stdout.strip().splitlines()[-1])
