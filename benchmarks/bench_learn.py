@@ -349,7 +349,8 @@ def moved_row(case: family_sets.Case, cache: Path | None, tmp: Path) -> dict[str
                 s.probe, kept.outcome.waveform, kept.outcome.displacement_um, kept.reference_um,
                 kept.offset_um - kept.predicted_offset_um,
                 lambda r: learn.plan_reference(p, desired, r), p.prefix_v, s.profile.limits,
-                (tmp / "moved_conditioning.csv", tmp / "moved.csv"), {})
+                (tmp / "moved_conditioning.csv", tmp / "moved.csv"), {},
+                wipes=all(it.offset_from != "tracking" for it in res.iterations))
         except (LimitError, StageError) as exc:
             return {"moved_replay_stop": f"refused: {exc}", "moved_replay_ok": False}
         err = s.probe.positions[-1][got.waveform.tracking] - desired.u_um

@@ -166,6 +166,9 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
         _play_xy(w, prof, Path(wave).name, out_dir, as_json)
         return
     model = modelfile.read(model_path) if model_path else None
+    if relearn and as_learned:
+        fail("--as-learned plays the waveform as it was learned, --relearn learns it again: "
+             "give one of them")
     if relearn:
         _relearn(w, Path(wave), prof, model, model_path, relearn, out_dir, as_json)
         return
@@ -177,7 +180,8 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
         period = float(w.meta["period_s"]) if "period_s" in w.meta else None
         u = w.desired_um[tracking]
         desired = track.Desired(dt, u, period, float(np.ptp(u)), w.meta.get("trajectory", "none"))
-    kept_um = None if as_learned or model is None or desired is None else _kept_readings(w, Path(wave))
+    kept_um = (None if as_learned or model is None or desired is None
+               else _kept_readings(w, Path(wave)))
     moved_um: float | None = None
     with opened_stage(prof) as stage:
         stage.check_waveform(w.voltage_v)  # refused before the folder is made, nothing sent
@@ -185,22 +189,25 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
         meta = {"profile": prof.name, "waveform": Path(wave).name,
                 "trajectory": w.meta.get("trajectory", "none"),
                 "sample_rate_Hz": prof.sample_rate_hz}
+        whole = wf
         if kept_um is not None and model_path is not None and desired is not None:
-            wf, measured, moved_um = _moved(w, wf, kept_um, desired, model, model_path, prof,
-                                            stage, out, meta)
+            got, moved_um = _moved(w, wf, kept_um, desired, model, model_path, prof, stage, out,
+                                   meta)
+            wf, whole, measured = got.waveform, got.whole, got.measured
         else:
             measured = experiment.stream(stage, wf, out / "run_play.csv", meta,
                                          progress_printer(True))
-    data: dict[str, Any] = {**meta, "samples": int(w.voltage_v.size),
+    data: dict[str, Any] = {**meta, "samples": int(wf.voltage_v.size),
                             "complete": measured[2],
                             "max_slew_V_per_ms": wf.max_slew_v_per_ms}
     if moved_um is not None:
         data["replay_moved_um"] = moved_um
-    written = ["run_play.csv", "summary.json"]
+    written = [*(["run_play_conditioning.csv"] if whole is not wf else []), "run_play.csv",
+               "summary.json"]
     if desired is not None:
         truth, between_from = experiment.between_truth(prof)
         it = learn.judge(wf, desired, 0, measured, out / "run_play.csv", sensor,
-                         learn.between_error(wf, desired, truth))
+                         learn.between_error(whole, desired, truth))
         data.update({k: v for k, v in it.as_dict().items()
                      if k not in ("iteration", "gain_change", "judged_um")})
         data["between_samples_from"] = between_from
@@ -237,19 +244,25 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
 def _kept_readings(w: Any, wave: Path) -> Any:
     """The learned run's readings (um; its run file beside the waveform, named in its header, of
     the waveform's length), or None (a waveform not learned, or its run not beside it)."""
+    from afmctl.errors import FileFormatError
     from afmctl.files import runfile
     kept = wave.parent / w.meta.get("run_file", "")
     if w.reference_um is None or not w.meta.get("run_file") or not kept.is_file():
         return None
-    run = runfile.read(kept)
+    try:
+        run = runfile.read(kept)
+    except FileFormatError as exc:
+        click.echo(f"replay: played as learned (the learned run {kept.name} is not readable: "
+                   f"{exc})", err=True)
+        return None
     return run.displacement_um if run.displacement_um.size == w.voltage_v.size else None
 
 
 def _moved(w: Any, wf: Any, kept_um: Any, desired: Any, model: Any, model_path: str, prof: Any,
-           stage: Any, out: Path, meta: dict[str, Any]) -> tuple[Any, Any, float | None]:
+           stage: Any, out: Path, meta: dict[str, Any]) -> tuple[Any, float | None]:
     """A learned waveform played moved for how far the stage has moved since it was learned
-    (:func:`afmctl.experiment.replay.moved_replay`): the part after the conditioning as played,
-    its run's measurements, and the move (um; None if not read), said either way."""
+    (:func:`afmctl.experiment.replay.moved_replay`: its :class:`~afmctl.experiment.replay.Moved`)
+    and the move (um; None if not read), said either way."""
     from afmctl.experiment import learn, replay
     from afmctl.experiment import runner as experiment
     from afmctl.files import modelfile
@@ -258,25 +271,26 @@ def _moved(w: Any, wf: Any, kept_um: Any, desired: Any, model: Any, model_path: 
     try:
         p, _ = learn.planner(model, desired, prof.limits, stage.voltage(),
                              "linear" if seed == "linear" else "inverse",
-                             envelope=modelfile.read_envelope(model_path), extrapolate=True)
+                             envelope=modelfile.read_envelope(model_path))
     except LimitError as exc:
-        click.echo(f"replay: played as learned (the model cannot plan the trajectory now: {exc})",
-                   err=True)
-        return wf, experiment.stream(stage, wf, out / "run_play.csv", meta,
-                                     progress_printer(True)), None
+        why = f"the model cannot plan the trajectory now: {exc}"
+        click.echo(f"replay: played as learned ({why})", err=True)
+        measured = experiment.stream(stage, wf, out / "run_play.csv", meta, progress_printer(True))
+        return replay.Moved(wf, wf, measured, None, False, why), None
     got = replay.moved_replay(stage, wf, kept_um, w.reference_um[wf.tracking],
                               replay.offset_miss(w.meta),
                               lambda r: learn.plan_reference(p, desired, r), p.prefix_v,
                               prof.limits, (out / "run_play_conditioning.csv", out / "run_play.csv"),
-                              meta, progress_printer(True))
+                              meta, progress_printer(True),
+                              wipes=w.meta.get(replay.OFFSET_FROM_KEY) != "tracking")
     if got.move_um is not None:
         click.echo(f"replay: the stage has moved {got.move_um:+.4f} um since the learned run "
                    f"(the conditioning's last {replay.MOVE_WINDOW_S:g} s against that run's); "
                    + ("the rest of the waveform moved for it (--as-learned: as it was)"
                       if got.moved else f"the rest played as learned ({got.why})"), err=True)
-    elif got.why:
+    else:
         click.echo(f"replay: played as learned ({got.why})", err=True)
-    return got.waveform, got.measured, got.move_um
+    return got, got.move_um
 
 
 #: A replay this many times the RMS its waveform had when learned: the stage has moved on.

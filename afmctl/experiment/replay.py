@@ -84,33 +84,74 @@ OFFSET_MISS_KEY = "offset_miss_um"
 MOVE_WINDOW_S = 0.1
 
 
+#: The header key of a learned waveform saying where learning read its runs' slow offsets:
+#: ``tracking`` where the conditioning did not wipe out the stage's past (a Bouc-Wen stage), and
+#: the conditioning then cannot tell how far the stage has moved.
+OFFSET_FROM_KEY = "offset_from"
+#: The moves (um) the model's plans are made at before a replay, both ways: a move between two is
+#: interpolated, one beyond them extrapolated from the last two. Through the hysteresis a move in
+#: position is not one in voltage, nor linear in it: scaled from 1 um alone, a 3.4 um move (a
+#: drifting stage 180 s later) missed 2.6x the noise, a 5.6 um one 7.4x.
+MOVES_UM = (1.0, 4.0)
+
+
 @dataclass(frozen=True)
 class Moved:
-    """A replay played by :func:`moved_replay`: ``waveform`` the part after the conditioning as
-    played (its tracking part the trajectory), ``measured`` its run's (readings um, voltages V,
-    complete), ``move_um`` how far the stage had moved from the kept run (None if not read),
-    ``moved`` whether the voltages were moved for it, ``why`` if not."""
+    """A replay played by :func:`moved_replay`: ``waveform`` the part scored as played (the
+    part after the conditioning; the whole waveform where it was played as learned in one run),
+    ``whole`` the whole waveform as played (conditioning included), ``measured`` ``waveform``'s
+    run's (readings um, voltages V, complete), ``move_um`` how far the stage had moved from the
+    kept run (None if not read), ``moved`` whether the voltages were moved for it, ``why`` if
+    not."""
 
     waveform: track.Waveform
+    whole: track.Waveform
     measured: tuple[FloatArray, FloatArray, bool]
     move_um: float | None
     moved: bool
     why: str = ""
 
 
-def unit_shift(kept: track.Waveform, reference_um: FloatArray,
-               plan: Callable[[FloatArray], track.Waveform], n_prefix: int) -> FloatArray | None:
-    """The voltages (V per um, ``kept``'s shape) that move the model's position by -1 um: the
-    plan of the kept reference (um, its tracking part) less 1 um, less the plan of the reference,
-    both by ``plan`` (from one state; conditioning the first ``n_prefix`` samples), part by part
-    onto ``kept`` (:meth:`Carried.added`). Through the hysteresis a move in position is not one
-    in voltage; the plans tell it, and for moves of a micrometre or two it is linear (the
-    family's creeping PI stage, 0.83 um: 0.004 V RMS from planning the move itself, of 0.46 V).
-    None if the two plans differ in shape (the ramp into the trajectory changed length)."""
-    a, b = plan(reference_um), plan(reference_um - 1.0)
-    if a.voltage_v.size != b.voltage_v.size or a.tracking != b.tracking:
-        return None
-    return Carried(b.voltage_v - a.voltage_v, a.tracking, n_prefix).added(kept) - kept.voltage_v
+@dataclass(frozen=True)
+class Shifts:
+    """The voltages (V, rows of the kept waveform's shape) that move the model's position by
+    ``-moves_um`` (um, increasing, 0 among them: nothing added)."""
+
+    moves_um: FloatArray
+    added_v: FloatArray
+
+    def at(self, move_um: float) -> FloatArray:
+        """The voltages for ``move_um`` (um): linear between the two moves about it, and beyond
+        the last, along the last two."""
+        m = self.moves_um
+        hi = int(np.clip(np.searchsorted(m, move_um), 1, m.size - 1))
+        w = (move_um - m[hi - 1]) / (m[hi] - m[hi - 1])
+        return (1.0 - w) * self.added_v[hi - 1] + w * self.added_v[hi]
+
+
+def shifts(kept: track.Waveform, reference_um: FloatArray,
+           plan: Callable[[FloatArray], track.Waveform], n_prefix: int) -> Shifts | None:
+    """The model's plans of the kept reference (um, its tracking part) moved by each of
+    :data:`MOVES_UM` both ways, less its plan unmoved, all by ``plan`` (from one state;
+    conditioning the first ``n_prefix`` samples), part by part onto ``kept``
+    (:meth:`Carried.added`): the voltages each move takes. A move whose plan differs from the
+    unmoved one in shape or horizons is left out, beyond the first (None if that one is: the
+    ramp into or out of the trajectory changed length)."""
+    a = plan(reference_um)
+    moves, rows = [0.0], [np.zeros(kept.voltage_v.size)]
+    for size in MOVES_UM:
+        for m in (-size, size):
+            b = plan(reference_um - m)
+            if (b.voltage_v.size != a.voltage_v.size or b.tracking != a.tracking
+                    or b.horizons != a.horizons):
+                if size == MOVES_UM[0]:
+                    return None
+                continue
+            moves.append(m)
+            rows.append(Carried(b.voltage_v - a.voltage_v, a.tracking, n_prefix).added(kept)
+                        - kept.voltage_v)
+    order = np.argsort(moves)
+    return Shifts(np.asarray(moves)[order], np.asarray(rows)[order])
 
 
 def conditioning_move(readings_um: FloatArray, kept_um: FloatArray, n_prefix: int,
@@ -123,44 +164,61 @@ def conditioning_move(readings_um: FloatArray, kept_um: FloatArray, n_prefix: in
     return float(np.mean(d[np.isfinite(d)])) if np.isfinite(d).any() else float("nan")
 
 
+def _not_moved(kept: track.Waveform, prefix_v: FloatArray, wipes: bool) -> str:
+    """Why ``kept`` is played as learned in one run ("" if it is not)."""
+    n = prefix_v.size
+    if not wipes:
+        return ("the conditioning does not wipe out this stage's past (learning read its runs' "
+                "offsets on their tracking parts), so it cannot tell how far the stage moved")
+    if n == 0 or kept.voltage_v.size <= n:
+        return "the waveform has no conditioning"
+    if not np.allclose(kept.voltage_v[:n], prefix_v, rtol=0.0, atol=1e-5):
+        return "its conditioning is not the one planned now (another start voltage or range)"
+    return ""
+
+
 def moved_replay(stage: runner.PlayingStage, kept: track.Waveform, kept_um: FloatArray,
                  reference_um: FloatArray, miss_um: float,
                  plan: Callable[[FloatArray], track.Waveform], prefix_v: FloatArray,
                  limits: guard.Limits, paths: tuple[Path, Path], meta: Mapping[str, object],
-                 progress: runner.Progress | None = None) -> Moved:
+                 progress: runner.Progress | None = None, wipes: bool = True) -> Moved:
     """Play the learned waveform ``kept`` (its run's readings ``kept_um``, um; its reference, um)
     moved for how far the stage has moved since: its conditioning (``prefix_v``, V: the one
     planned now) to ``paths[0]``; the move read on it (:func:`conditioning_move`) plus the kept
     run's offset miss ``miss_um`` (um); then the rest, to ``paths[1]``, with the move's voltages
-    added (:func:`unit_shift`; as learned where they would leave the limits). A waveform whose
-    first samples are not ``prefix_v`` (to 10 uV: a waveform file keeps microvolts) is played
-    whole, as learned."""
+    added (:func:`shifts`, planned before the first run so that the second follows it at once;
+    as learned where they would leave the limits). Played whole, as learned, to ``paths[1]``:
+    a waveform whose conditioning does not wipe out the stage's past (``wipes`` False), or
+    whose first samples are not ``prefix_v`` (to 10 uV: a waveform file keeps microvolts)."""
     n = prefix_v.size
-    if n == 0 or kept.voltage_v.size <= n or not np.allclose(kept.voltage_v[:n], prefix_v, rtol=0.0, atol=1e-5):
-        return Moved(kept, runner.stream(stage, kept, paths[1], meta, progress), None, False,
-                     "its conditioning is not the one planned now")
+    why = _not_moved(kept, prefix_v, wipes)
+    if why:
+        measured = runner.stream(stage, kept, paths[1], meta, progress)
+        return Moved(kept, kept, measured, None, False, why)
     try:
-        unit = unit_shift(kept, reference_um, plan, n)
-        why = "" if unit is not None else "the move changes the ramp into the trajectory"
+        found = shifts(kept, reference_um, plan, n)
+        why = "" if found is not None else "the move changes the ramp into or out of the trajectory"
     except (guard.LimitError, EnvelopeError) as exc:
-        unit, why = None, f"the model cannot plan the move: {exc}"
-    t = kept.tracking
+        found, why = None, f"the model cannot plan the move: {exc}"
     head = track.Waveform(kept.filter, kept.dt_s, kept.voltage_v[:n], kept.desired_um[:n],
                           slice(0, 0))
     move = conditioning_move(runner.stream(stage, head, paths[0], meta)[0], kept_um, n,
                              kept.dt_s) + miss_um
     v = kept.voltage_v
-    if unit is not None and np.isfinite(move):
+    if not np.isfinite(move):
+        why = "no readings over the conditioning's last part"
+    elif found is not None:
         try:
-            v = kept.voltage_v + move * unit
+            v = kept.voltage_v + found.at(move)
             guard.check(v[n:], kept.dt_s, limits, stage.voltage(), "moved replay")
         except guard.LimitError as exc:
             v, why = kept.voltage_v, str(exc)
+    t = kept.tracking
     rest = track.Waveform(kept.filter, kept.dt_s, v[n:], kept.desired_um[n:],
                           slice(t.start - n, t.stop - n), kept.horizons)
     measured = runner.stream(stage, rest, paths[1], meta, progress)
-    return Moved(rest, measured, move if np.isfinite(move) else None, v is not kept.voltage_v,
-                 why)
+    return Moved(rest, dc.replace(kept, voltage_v=v), measured,
+                 move if np.isfinite(move) else None, v is not kept.voltage_v, why)
 
 
 def offset_miss(meta: Mapping[str, str]) -> float:

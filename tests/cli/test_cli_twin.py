@@ -9,14 +9,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from afmctl.cli import main
 from afmctl.experiment import twin
 from afmctl.files import modelfile, sweepfile, twinfile
+from afmctl.files.profile import default_profile
 from afmctl.model import creep as cr
 from afmctl.model import transducer as tr
 from afmctl.model.transducer import Transducer
+from afmctl.planning import track
 
 RATE = 10_000.0
 
@@ -200,4 +203,25 @@ def test_a_learned_waveform_is_replayed_conditioning_first_and_moved(nominal: Tr
     assert res.exit_code == 0, res.output
     assert "replay:" not in res.stderr
     assert not (tmp_path / "c" / "run_play_conditioning.csv").exists()
-    assert "replay_moved_um" not in json.loads(res.stdout.strip().splitlines()[-1])
+    as_learned = json.loads(res.stdout.strip().splitlines()[-1])
+    assert "replay_moved_um" not in as_learned
+    # the learned run read 0.2 um higher over the conditioning's end than the stage does now:
+    # the stage has moved -0.2 um, and the replay aims 0.2 um higher, where it then reads
+    run = tmp_path / "a" / wave.read_text().split("# run_file: ")[1].split()[0]
+    lines = run.read_text().splitlines()
+    head = next(i for i, ln in enumerate(lines) if ln.startswith("seq,")) + 1
+    cols = lines[head - 1].split(",")
+    col = cols.index("displacement_um")
+    n_prefix = track.conditioning(default_profile().limits, 0.0, 1 / RATE).size
+    for i in range(head + n_prefix - 1000, head + n_prefix):
+        row = lines[i].split(",")
+        row[col] = f"{float(row[col]) + 0.2:.6f}"
+        lines[i] = ",".join(row)
+    run.write_text("\n".join(lines) + "\n")
+    res = CliRunner().invoke(main, ["play", str(wave), "--model", str(model), "--json",
+                                    "--out", str(tmp_path / "d")])
+    assert res.exit_code == 0, res.output
+    moved = json.loads(res.stdout.strip().splitlines()[-1])
+    assert moved["replay_moved_um"] == pytest.approx(-0.2, abs=0.01)
+    assert moved["mean_error_um"] == pytest.approx(0.2, abs=0.02)
+    assert moved["rms_between_um"] == pytest.approx(as_learned["rms_between_um"], abs=0.2)
