@@ -446,7 +446,7 @@ def learning_start(stage: Any, cal: Any, out: Path, meta: dict[str, Any]) -> Any
             f"creep or drift since the sweeps, and the first iteration takes it out")
         return None
     say(f"learning starts from the stage as the model's twin follows it ({why})")
-    tw = _read_if_idle(stage, tw, out, meta, idle_s=0.0)
+    tw = _read_if_idle(stage, tw, out, meta, longer_than_s=-1.0)
     when = stage.now_s() + experiment.LEAD_S
     frame = tw.planning_frame(when)
     _say_frame("iteration 0", frame)
@@ -461,13 +461,13 @@ def _say_frame(name: str, frame: Any) -> None:
 
 
 def _read_if_idle(stage: Any, tw: Any, out: Path, meta: dict[str, Any],
-                  idle_s: float | None = None) -> Any:
+                  longer_than_s: float | None = None) -> Any:
     """The twin, after reading the stage where it holds (:func:`afmctl.experiment.runner.
-    read_held`, into ``out``) if it has idled more than ``idle_s`` (s; None:
+    read_held`, into ``out``) if it has idled more than ``longer_than_s`` (s; None:
     :data:`~afmctl.experiment.runner.IDLE_S`) since the twin's last recording; what it read is
     said and recorded in ``meta`` (the runs' headers, summary.json)."""
     from afmctl.experiment import runner as experiment
-    limit = experiment.IDLE_S if idle_s is None else idle_s
+    limit = experiment.IDLE_S if longer_than_s is None else longer_than_s
     idle_s = stage.now_s() - tw.ended_s
     if idle_s <= limit:
         return tw

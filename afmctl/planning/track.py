@@ -366,8 +366,9 @@ def _refined(cm: tr.Compiled, chain: fx.Chain, target: FloatArray, state: tr.Sta
     (:func:`followable`) is added instead: the rest excites the horizon-``d`` inverse (a 418 Hz,
     4.5 %-damped rod on a 30 Hz raster line: 0.161 um RMS, 0.38 of a sample ahead; the whole miss
     0.93 um, the followable part 0.041 um), and the refinement ends there: each try is a whole
-    inversion. A refinement the guard refuses, or that misses more, is not kept. Not with an
-    amplifier lag (its own inversion)."""
+    inversion. A refinement the guard refuses, or that misses more, is not kept. First, a plan
+    whose simulation runs whole samples ahead of its target (:func:`model_lead`) is aimed that
+    many samples later, kept on the same rule. Not with an amplifier lag (its own inversion)."""
     if chain.lag_a != 0.0:
         return wf
     goal = target

@@ -217,10 +217,10 @@ def test_a_rod_faster_than_the_horizon_is_aimed_later_and_so_is_a_replan(
     horizon of several samples, and the horizon-``d`` inverse holds the force ``d`` samples
     ahead: a rod that settles within a sample reached each point of the triangle ``d - 1``
     samples early (:func:`afmctl.planning.track.model_lead`). The plan is aimed that many
-    samples later; so is a plan from the first one's horizons, as learning re-plans (before,
-    the first was mended by the refinement's luck and the re-plan was not: the tester's stage
-    then learned a waveform 3 samples early, 0.68 um where it had been 0.135). Judged by the
-    model's own simulation."""
+    samples later; so is a plan from the first one's horizons, as learning re-plans. Before,
+    on this rod both missed by 0.091 um RMS; on the tester's own model the refinement happened
+    to mend the first plan and not the re-plan, and its stage learned a waveform 3 samples
+    early, 0.68 um where it had been 0.135. Judged by the model's own simulation."""
     import dataclasses as dc
 
     w = 2 * np.pi * 3500.0
