@@ -350,7 +350,7 @@ def moved_row(case: family_sets.Case, cache: Path | None, tmp: Path) -> dict[str
                 kept.offset_um - kept.predicted_offset_um,
                 lambda r: learn.plan_reference(p, desired, r), p.prefix_v, s.profile.limits,
                 (tmp / "moved_conditioning.csv", tmp / "moved.csv"), {},
-                wipes=all(it.offset_from != "tracking" for it in res.iterations))
+                noise_um=res.noise_um)
         except (LimitError, StageError) as exc:
             return {"moved_replay_stop": f"refused: {exc}", "moved_replay_ok": False}
         err = s.probe.positions[-1][got.waveform.tracking] - desired.u_um

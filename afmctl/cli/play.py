@@ -278,11 +278,11 @@ def _moved(w: Any, wf: Any, kept_um: Any, desired: Any, model: Any, model_path: 
         measured = experiment.stream(stage, wf, out / "run_play.csv", meta, progress_printer(True))
         return replay.Moved(wf, wf, measured, None, False, why), None
     got = replay.moved_replay(stage, wf, kept_um, w.reference_um[wf.tracking],
-                              replay.offset_miss(w.meta),
+                              replay.header_float(w.meta, replay.OFFSET_MISS_KEY, 0.0),
                               lambda r: learn.plan_reference(p, desired, r), p.prefix_v,
                               prof.limits, (out / "run_play_conditioning.csv", out / "run_play.csv"),
                               meta, progress_printer(True),
-                              wipes=w.meta.get(replay.OFFSET_FROM_KEY) != "tracking")
+                              noise_um=replay.header_float(w.meta, replay.NOISE_KEY, float("nan")))
     if got.move_um is not None:
         click.echo(f"replay: the stage has moved {got.move_um:+.4f} um since the learned run "
                    f"(the conditioning's last {replay.MOVE_WINDOW_S:g} s against that run's); "

@@ -588,9 +588,7 @@ def write_outputs(result: Result, desired: track.Desired, law: ilc.Law,
     ``learn.png`` beside them: :func:`afmctl.plots.learn_figure`)."""
     data = summary(result, desired, law, meta)
     experiment.write_summary(data, out / "summary.json")
-    read_on = ("tracking" if any(x.offset_from == "tracking" for x in result.iterations)
-               else "conditioning")
     experiment.atomic_write(out / "waveform_learned.csv",
                             waveform_text(result.best_iteration, desired,
-                                          {**meta, replay.OFFSET_FROM_KEY: read_on}))
+                                          {**meta, replay.NOISE_KEY: f"{result.noise_um:.6g}"}))
     return data

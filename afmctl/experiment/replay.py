@@ -6,6 +6,7 @@ has moved since (creep, drift) and the rest of the waveform is moved for it."""
 from __future__ import annotations
 
 import dataclasses as dc
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -84,10 +85,15 @@ OFFSET_MISS_KEY = "offset_miss_um"
 MOVE_WINDOW_S = 0.1
 
 
-#: The header key of a learned waveform saying where learning read its runs' slow offsets:
-#: ``tracking`` where the conditioning did not wipe out the stage's past (a Bouc-Wen stage), and
-#: the conditioning then cannot tell how far the stage has moved.
-OFFSET_FROM_KEY = "offset_from"
+#: The header key of a learned waveform: learning's estimate of the readings' noise (um).
+NOISE_KEY = "noise_um"
+#: The conditioning tells how far the stage has moved only where its readings differ from the
+#: learned run's by an offset and a slow trend (creep recovering) within this many times the
+#: noise of two runs (RMS of the rest, from the conditioning's peak on; learning's own rule,
+#: :data:`afmctl.experiment.learn.OFFSET_AGREE`): a stage that does not wipe out its past
+#: (Bouc-Wen) reads its history there too. On one swung to a rail between learning and the
+#: replay, a move read so made the replay 6.9x the noise where as learned it was 1.8x.
+AGREE = 5.0
 #: The moves (um) the model's plans are made at before a replay, both ways: a move between two is
 #: interpolated, one beyond them extrapolated from the last two. Through the hysteresis a move in
 #: position is not one in voltage, nor linear in it: scaled from 1 um alone, a 3.4 um move (a
@@ -164,12 +170,24 @@ def conditioning_move(readings_um: FloatArray, kept_um: FloatArray, n_prefix: in
     return float(np.mean(d[np.isfinite(d)])) if np.isfinite(d).any() else float("nan")
 
 
-def _not_moved(kept: track.Waveform, prefix_v: FloatArray, wipes: bool) -> str:
+def conditioning_misfit(readings_um: FloatArray, kept_um: FloatArray, prefix_v: FloatArray,
+                        dt_s: float) -> float:
+    """RMS (um) of the two runs' difference of readings over the conditioning ``prefix_v``, from
+    its peak on, left by a straight line in time (an offset and creep's slow trend); NaN with
+    fewer than three samples read in both."""
+    part = slice(int(np.argmax(prefix_v)), prefix_v.size)
+    d = readings_um[part] - kept_um[part]
+    t = dt_s * np.arange(d.size)
+    ok = np.isfinite(d)
+    if ok.sum() < 3:
+        return float("nan")
+    fit = np.polyfit(t[ok], d[ok], 1)
+    return float(np.sqrt(np.mean((d[ok] - np.polyval(fit, t[ok])) ** 2)))
+
+
+def _not_moved(kept: track.Waveform, prefix_v: FloatArray) -> str:
     """Why ``kept`` is played as learned in one run ("" if it is not)."""
     n = prefix_v.size
-    if not wipes:
-        return ("the conditioning does not wipe out this stage's past (learning read its runs' "
-                "offsets on their tracking parts), so it cannot tell how far the stage moved")
     if n == 0 or kept.voltage_v.size <= n:
         return "the waveform has no conditioning"
     if not np.allclose(kept.voltage_v[:n], prefix_v, rtol=0.0, atol=1e-5):
@@ -181,17 +199,20 @@ def moved_replay(stage: runner.PlayingStage, kept: track.Waveform, kept_um: Floa
                  reference_um: FloatArray, miss_um: float,
                  plan: Callable[[FloatArray], track.Waveform], prefix_v: FloatArray,
                  limits: guard.Limits, paths: tuple[Path, Path], meta: Mapping[str, object],
-                 progress: runner.Progress | None = None, wipes: bool = True) -> Moved:
+                 progress: runner.Progress | None = None, noise_um: float = float("nan")
+                 ) -> Moved:
     """Play the learned waveform ``kept`` (its run's readings ``kept_um``, um; its reference, um)
     moved for how far the stage has moved since: its conditioning (``prefix_v``, V: the one
     planned now) to ``paths[0]``; the move read on it (:func:`conditioning_move`) plus the kept
     run's offset miss ``miss_um`` (um); then the rest, to ``paths[1]``, with the move's voltages
     added (:func:`shifts`, planned before the first run so that the second follows it at once;
-    as learned where they would leave the limits). Played whole, as learned, to ``paths[1]``:
-    a waveform whose conditioning does not wipe out the stage's past (``wipes`` False), or
-    whose first samples are not ``prefix_v`` (to 10 uV: a waveform file keeps microvolts)."""
+    as learned where they would leave the limits, or where the conditioning's readings differ
+    from the learned run's by more than an offset and a trend, :data:`AGREE` times the noise of
+    two runs, ``noise_um`` um: :func:`conditioning_misfit`). Played whole, as learned, to
+    ``paths[1]``: a waveform whose first samples are not ``prefix_v`` (to 10 uV: a waveform file
+    keeps microvolts)."""
     n = prefix_v.size
-    why = _not_moved(kept, prefix_v, wipes)
+    why = _not_moved(kept, prefix_v)
     if why:
         measured = runner.stream(stage, kept, paths[1], meta, progress)
         return Moved(kept, kept, measured, None, False, why)
@@ -202,11 +223,16 @@ def moved_replay(stage: runner.PlayingStage, kept: track.Waveform, kept_um: Floa
         found, why = None, f"the model cannot plan the move: {exc}"
     head = track.Waveform(kept.filter, kept.dt_s, kept.voltage_v[:n], kept.desired_um[:n],
                           slice(0, 0))
-    move = conditioning_move(runner.stream(stage, head, paths[0], meta)[0], kept_um, n,
-                             kept.dt_s) + miss_um
+    read = runner.stream(stage, head, paths[0], meta)[0]
+    move = conditioning_move(read, kept_um, n, kept.dt_s) + miss_um
+    misfit = conditioning_misfit(read, kept_um, prefix_v, kept.dt_s)
     v = kept.voltage_v
     if not np.isfinite(move):
         why = "no readings over the conditioning's last part"
+    elif misfit > AGREE * math.sqrt(2.0) * noise_um:
+        why = (f"the conditioning read {misfit:.4f} um RMS apart from the learned run's beyond an "
+               f"offset and a trend: the stage's past differs (it does not wipe out), and the "
+               f"move is not told")
     elif found is not None:
         try:
             v = kept.voltage_v + found.at(move)
@@ -221,10 +247,10 @@ def moved_replay(stage: runner.PlayingStage, kept: track.Waveform, kept_um: Floa
                  move if np.isfinite(move) else None, v is not kept.voltage_v, why)
 
 
-def offset_miss(meta: Mapping[str, str]) -> float:
-    """The kept run's offset miss a learned waveform's header gives (:data:`OFFSET_MISS_KEY`, um;
-    0 if it does not)."""
+def header_float(meta: Mapping[str, str], key: str, default: float) -> float:
+    """A learned waveform's header number ``key`` (:data:`OFFSET_MISS_KEY`, :data:`NOISE_KEY`),
+    ``default`` where it does not say (a waveform learned before the key)."""
     try:
-        return float(meta.get(OFFSET_MISS_KEY, 0.0))
+        return float(meta.get(key, default))
     except ValueError:
-        return 0.0
+        return default

@@ -136,10 +136,49 @@ def test_a_drifting_stage_replayed_a_minute_later_is_moved_for_the_drift_in_one_
         got = replay.moved_replay(probe, kept.outcome.waveform, kept.outcome.displacement_um,
                                   kept.reference_um, kept.offset_um - kept.predicted_offset_um,
                                   lambda r: learn.plan_reference(p, desired, r), p.prefix_v,
-                                  s.profile.limits, (tmp_path / "a.csv", tmp_path / "b.csv"), {})
+                                  s.profile.limits, (tmp_path / "a.csv", tmp_path / "b.csv"), {},
+                                  noise_um=res.noise_um)
         true = probe.positions[-1][got.waveform.tracking] - desired.u_um
         drifted = s.truth.drift_um_per_s * (probe.starts[-2] - probe.starts[res.best])
     rms = float(np.sqrt(np.mean(true[ilc.steady_part(desired)] ** 2)))
     assert got.moved and got.move_um is not None
     assert got.move_um == pytest.approx(drifted, rel=0.03), (got.move_um, drifted)
     assert rms <= 2 * s.noise_um, (rms, s.noise_um, float(np.mean(true)))
+
+
+def test_a_stage_that_does_not_forget_is_replayed_as_learned_after_another_history(
+        tmp_path: Path) -> None:
+    """``bw-b`` (Bouc-Wen: no wiping-out) swung to its lower rail and back between learning and
+    the replay: the conditioning's readings then differ from the learned run's by its history
+    (0.70 um RMS beyond an offset and a trend, against the noise's 0.012 um), the move they
+    would give (-0.10 um) is not a move, and the rest plays as learned (1.79x the noise; moved
+    for it: 6.9x, a reviewer's measurement). With nothing played between, it is moved."""
+    from afmctl.experiment import replay
+    from afmctl.experiment import runner as experiment
+
+    case = family_sets.cases_named("bw-b")[0]
+    model = modelfile.read(DATA / f"family-{case.name}.toml")
+    amp, centre = TRIANGLE[case.name]
+    with family_sets.session(case) as s:
+        dt, lim = 1 / s.profile.sample_rate_hz, s.profile.limits
+        desired = track.triangle(27.9, amp, centre, 3, dt)
+        res = learn.run(s.probe, model, desired, lim, tmp_path / "learn", {}, 5, ilc.Law())
+        kept = res.best_iteration
+        assert kept.reference_um is not None
+
+        def replayed(k: int) -> replay.Moved:
+            p, _ = learn.planner(model, desired, lim, s.probe.voltage())
+            return replay.moved_replay(
+                s.probe, kept.outcome.waveform, kept.outcome.displacement_um, kept.reference_um,
+                kept.offset_um - kept.predicted_offset_um,
+                lambda r: learn.plan_reference(p, desired, r), p.prefix_v, lim,
+                (tmp_path / f"c{k}.csv", tmp_path / f"r{k}.csv"), {}, noise_um=res.noise_um)
+
+        same = replayed(0)
+        swing = np.concatenate([np.linspace(0.0, lim.v_min, 4000), np.full(2000, lim.v_min),
+                                np.linspace(lim.v_min, 0.0, 4000), np.zeros(2000)])
+        experiment.stream(s.probe, track.Waveform("swing", dt, swing, np.full(swing.size, np.nan),
+                                                  slice(0, 0)), tmp_path / "swing.csv", {})
+        other = replayed(1)
+    assert same.moved
+    assert not other.moved and "past differs" in other.why, other.why
