@@ -13,6 +13,8 @@ benches fit them, kept in ``data/`` (identify takes 6-16 minutes a stage on this
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +50,22 @@ def true_rms(probe: family_sets.Probe, first: int, res: learn.Result,
             for i, it in enumerate(res.iterations)]
 
 
+@contextlib.contextmanager
+def learned_on(name: str, model_file: str, tmp: Path) -> Iterator[tuple[Any, Timed, Any,
+                                                                        track.Desired,
+                                                                        learn.Result]]:
+    """Stage ``name``'s session, its timed probe, the model ``data/model_file``, the bench's
+    27.9 Hz triangle and learning's result there (5 iterations), inside the session."""
+    model = modelfile.read(DATA / model_file)
+    amp, centre = TRIANGLE[name]
+    with family_sets.session(family_sets.cases_named(name)[0]) as s:
+        probe = Timed(s.probe, s.clock)
+        desired = track.triangle(27.9, amp, centre, 3, 1 / s.profile.sample_rate_hz)
+        res = learn.run(probe, model, desired, s.profile.limits, tmp / "learn", {}, 5,
+                        ilc.Law())
+        yield s, probe, model, desired, res
+
+
 def test_a_drifting_stage_replayed_a_minute_later_is_relearned_in_two_iterations(
         tmp_path: Path) -> None:
     """A Preisach stage (non-separable density) whose frame drifts 18.5 nm/s (noise 15 nm).
@@ -62,14 +80,8 @@ def test_a_drifting_stage_replayed_a_minute_later_is_relearned_in_two_iterations
     change there was no re-learning replay (the bench replayed the waveform as it was: 75 x);
     a first version, which let the replay's offset-free error count as its best, halved its
     step from there and ended at 3.3 x."""
-    case = family_sets.cases_named("preisach-u-drift")[0]
-    model = modelfile.read(DATA / f"family-{case.name}.toml")
-    amp, centre = TRIANGLE[case.name]
-    with family_sets.session(case) as s:
-        probe = Timed(s.probe, s.clock)
-        desired = track.triangle(27.9, amp, centre, 3, 1 / s.profile.sample_rate_hz)
-        res = learn.run(probe, model, desired, s.profile.limits, tmp_path / "learn", {}, 5,
-                        ilc.Law())
+    with learned_on("preisach-u-drift", "family-preisach-u-drift.toml", tmp_path) as (
+            s, probe, model, desired, res):
         learned = true_rms(probe, 0, res, desired)
         kept_at = probe.starts[res.best]
         s.clock.skip(60.0)
@@ -121,14 +133,8 @@ def test_a_drifting_stage_replayed_a_minute_later_is_moved_for_the_drift_in_one_
     (0.052 um, 3.3x the noise)."""
     from afmctl.experiment import replay
 
-    case = family_sets.cases_named("preisach-u-drift")[0]
-    model = modelfile.read(DATA / f"family-{case.name}-reversals.toml")
-    amp, centre = TRIANGLE[case.name]
-    with family_sets.session(case) as s:
-        probe = Timed(s.probe, s.clock)
-        desired = track.triangle(27.9, amp, centre, 3, 1 / s.profile.sample_rate_hz)
-        res = learn.run(probe, model, desired, s.profile.limits, tmp_path / "learn", {}, 5,
-                        ilc.Law())
+    with learned_on("preisach-u-drift", "family-preisach-u-drift-reversals.toml", tmp_path) as (
+            s, probe, model, desired, res):
         kept = res.best_iteration
         s.clock.skip(60.0)
         p, _ = learn.planner(model, desired, s.profile.limits, probe.voltage())
