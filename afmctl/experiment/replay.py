@@ -97,8 +97,9 @@ AGREE = 5.0
 #: The moves (um) the model's plans are made at before a replay, both ways: a move between two is
 #: interpolated, one beyond them extrapolated from the last two. Through the hysteresis a move in
 #: position is not one in voltage, nor linear in it: scaled from 1 um alone, a 3.4 um move (a
-#: drifting stage 180 s later) missed 2.6x the noise, a 5.6 um one 7.4x.
-MOVES_UM = (1.0, 4.0)
+#: drifting stage 180 s later) missed 2.6x the noise, a 5.6 um one 7.4x; from these, 0.57x and
+#: 1.3x (2.2x without the plans at 8 um).
+MOVES_UM = (1.0, 4.0, 8.0)
 
 
 @dataclass(frozen=True)
@@ -141,13 +142,19 @@ def shifts(kept: track.Waveform, reference_um: FloatArray,
     :data:`MOVES_UM` both ways, less its plan unmoved, all by ``plan`` (from one state;
     conditioning the first ``n_prefix`` samples), part by part onto ``kept``
     (:meth:`Carried.added`): the voltages each move takes. A move whose plan differs from the
-    unmoved one in shape or horizons is left out, beyond the first (None if that one is: the
-    ramp into or out of the trajectory changed length)."""
+    unmoved one in shape or horizons, or that the model cannot plan (out of reach, the limits,
+    its envelope), is left out, beyond the first (None if that one is: the ramp into or out of
+    the trajectory changed length; the first's planning errors are raised)."""
     a = plan(reference_um)
     moves, rows = [0.0], [np.zeros(kept.voltage_v.size)]
     for size in MOVES_UM:
         for m in (-size, size):
-            b = plan(reference_um - m)
+            try:
+                b = plan(reference_um - m)
+            except (guard.LimitError, EnvelopeError):
+                if size == MOVES_UM[0]:
+                    raise
+                continue
             if (b.voltage_v.size != a.voltage_v.size or b.tracking != a.tracking
                     or b.horizons != a.horizons):
                 if size == MOVES_UM[0]:
