@@ -36,8 +36,6 @@ MIN_POINTS = 4
 MAX_POINTS = 12
 #: ... and its slope this many standard errors (their scatter about the line) from zero.
 SIGNIFICANT = 3.0
-#: Recordings on each side of a hold that make it a step (:func:`latest_group`).
-STEP_POINTS = 2
 
 
 @dataclass(frozen=True)
@@ -137,15 +135,12 @@ def _latest(observations: Sequence[Observation]) -> tuple[FloatArray, FloatArray
 def latest_group(t: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray, float]:
     """The recordings (times s, offsets um) after a step, and the hold before them (s); all of
     them and 0 where there is none. A step: across the longest gap between two recordings, longer
-    than the recordings on either side span, with at least :data:`STEP_POINTS` on each side, two
-    levels (each side's mean) leave no more scatter than one line through all of them. (One
-    recording alone after a gap is not a level: on a stage that does not drift its offset is what
-    the model missed on that recording's trajectory; on the family's bw-u-creep, followed so,
-    it took 17.0 to 16.7 the slow triangle's ratio to the linear filter.)"""
-    if t.size < 2 * STEP_POINTS:
+    than the recordings on either side span, two levels (each side's mean) leave no more
+    scatter than one line through all of them."""
+    if t.size < 3:
         return t, y, 0.0
     gaps = np.diff(t)
-    i = int(np.argmax(gaps[STEP_POINTS - 1:t.size - STEP_POINTS])) + STEP_POINTS - 1
+    i = int(np.argmax(gaps))
     if gaps[i] <= max(t[i] - t[0], t[-1] - t[i + 1]):
         return t, y, 0.0
     before, after = y[:i + 1], y[i + 1:]

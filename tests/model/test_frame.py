@@ -65,15 +65,16 @@ def test_an_observation_is_the_second_half_of_a_recording() -> None:
 def test_a_reading_at_the_held_output_sets_the_level_not_the_slope() -> None:
     """Six sweeps over a minute at a steady offset (a stage that creeps but does not drift), then
     a reading 200 s on, 0.18 um off (what the model misses at rest): the frame anchored on the
-    reading is at its offset and does not move, where the straight line through all seven would
-    have taken the single far point for a drift and followed it (one recording after a hold is
-    not a step: :data:`afmctl.model.frame.STEP_POINTS`)."""
+    reading is at its offset and does not move. Not anchored, the seven are a step across the
+    hold (:func:`afmctl.model.frame.latest_group`), not the drift a straight line through them
+    took the single far point for: the frame is the far point's level, not moving."""
     sweeps = line([0.0, 10.0, 20.0, 30.0, 40.0, 50.0], 0.0, 0.0, 0.004)
     read = fr.Observation(250.0, -0.18)
     f = fr.anchored(sweeps, read, 250.5)
     assert f.offset_um == -0.18 and f.um_per_s == 0.0
     assert f.basis == "read at the held output 0.5 s before"
-    assert fr.estimate([*sweeps, read], 250.5).um_per_s < -5e-4  # the line's false drift
+    stepped = fr.estimate([*sweeps, read], 250.5)
+    assert stepped.um_per_s == 0.0 and stepped.after_step and stepped.offset_um == -0.18
 
 
 def test_a_reading_moves_on_at_a_drift_the_observations_before_it_show() -> None:
