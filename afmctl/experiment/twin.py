@@ -108,14 +108,13 @@ class Twin:
     def planning_frame(self, when_s: float) -> fr.Frame:
         """The frame a run starting at ``when_s`` is planned in: from ``read`` if it is the
         latest (:func:`afmctl.model.frame.anchored`), else :meth:`frame` where it drifts
-        steadily or stepped over a hold (:func:`afmctl.model.frame.latest_group`), else the
-        model's own zero (a last recording's offset alone is not followed: on a stage that does
-        not drift it is what the model missed on another trajectory)."""
+        steadily, else the model's own zero (a last recording's offset alone is not followed:
+        on a stage that does not drift it is what the model missed on another trajectory)."""
         if self.read is not None and (not self.observations
                                       or self.read.at_s >= self.observations[-1].at_s):
             return fr.anchored(self.observations, self.read, when_s)
         seen = self.frame(when_s)
-        return seen if seen.um_per_s != 0.0 or seen.after_step else fr.Frame()
+        return seen if seen.um_per_s != 0.0 else fr.Frame()
 
     def _observe(self, rod_um: np.ndarray, readings_um: np.ndarray, started_s: float
                  ) -> fr.Observation | None:

@@ -12,12 +12,7 @@ over its second half (the first may still carry a start the model got wrong), at
 line where it is steady (at least :data:`MIN_POINTS` of them, its slope :data:`SIGNIFICANT`
 standard errors from zero over their scatter), else the last one's offset; the line is never
 followed further past the last observation than the observations span (a drift does not go on
-for ever: beyond, it is held where the line left it). Recordings in two groups across a hold
-longer than either group spans, which two levels describe at least as well as one line, are a
-step (:func:`latest_group`): a creeping stage the model's creep misses over a long hold reads so
-(an independent tester's: six sweeps at -0.08 ... 0.00 um, then, after identify's 193 s, runs at
--1.05 ... -0.99 um, read as a drift of -4.1 nm/s), and only the group after it is read, its
-level where it shows no steady line. Pure numerics.
+for ever: beyond, it is held where the line left it). Pure numerics.
 """
 
 from __future__ import annotations
@@ -57,13 +52,11 @@ class Observation:
 @dataclass(frozen=True)
 class Frame:
     """Where the readings of a run will sit from the model: ``offset_um`` (um) at its first
-    sample, moving by ``um_per_s`` (um/s); ``basis`` says how it was found; ``after_step``: the
-    level of the recordings after a step (:func:`latest_group`)."""
+    sample, moving by ``um_per_s`` (um/s); ``basis`` says how it was found."""
 
     offset_um: float = 0.0
     um_per_s: float = 0.0
     basis: str = "none"
-    after_step: bool = False
 
     def along(self, first: int, n: int, dt_s: float) -> FloatArray:
         """The frame at samples ``first ... first + n - 1`` of the run (um), ``dt_s`` s apart."""
@@ -93,11 +86,7 @@ def estimate(observations: Sequence[Observation], when_s: float) -> Frame:
     if not observations:
         return Frame()
     t, y = _latest(observations)
-    t, y, held = latest_group(t, y)
     rate = _steady_rate(t, y)
-    if rate is None and held:
-        return Frame(float(np.mean(y)), 0.0, f"offset of the {t.size} recordings after a "
-                     f"{held:.0f} s hold (a step, not a drift)", after_step=True)
     if rate is None:
         return Frame(float(y[-1]), 0.0, f"offset of the last of {t.size} recordings")
     span = float(t[-1] - t[0])
@@ -116,7 +105,7 @@ def anchored(observations: Sequence[Observation], read: Observation, when_s: flo
     minutes after sweeps that span one, its single point would decide the slope (on a creeping
     stage that does not drift, a -0.18 um miss at rest read as -0.84 nm/s)."""
     t, y = _latest(observations)
-    rate = _steady_rate(*latest_group(t, y)[:2])
+    rate = _steady_rate(t, y)
     ago = when_s - read.at_s
     basis = f"read at the held output {ago:.1f} s before"
     if rate is None:
@@ -130,24 +119,6 @@ def _latest(observations: Sequence[Observation]) -> tuple[FloatArray, FloatArray
     last = observations[-MAX_POINTS:]
     return (np.array([o.at_s for o in last], dtype=float),
             np.array([o.offset_um for o in last], dtype=float))
-
-
-def latest_group(t: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray, float]:
-    """The recordings (times s, offsets um) after a step, and the hold before them (s); all of
-    them and 0 where there is none. A step: across the longest gap between two recordings, longer
-    than the recordings on either side span, two levels (each side's mean) leave no more
-    scatter than one line through all of them."""
-    if t.size < 3:
-        return t, y, 0.0
-    gaps = np.diff(t)
-    i = int(np.argmax(gaps))
-    if gaps[i] <= max(t[i] - t[0], t[-1] - t[i + 1]):
-        return t, y, 0.0
-    before, after = y[:i + 1], y[i + 1:]
-    two = float(np.sum((before - before.mean()) ** 2) + np.sum((after - after.mean()) ** 2))
-    fit = np.polyfit(t - t.mean(), y, 1)
-    one = float(np.sum((y - np.polyval(fit, t - t.mean())) ** 2))
-    return (t[i + 1:], after, float(gaps[i])) if two <= one else (t, y, 0.0)
 
 
 def _steady_rate(t: FloatArray, y: FloatArray) -> float | None:

@@ -65,16 +65,14 @@ def test_an_observation_is_the_second_half_of_a_recording() -> None:
 def test_a_reading_at_the_held_output_sets_the_level_not_the_slope() -> None:
     """Six sweeps over a minute at a steady offset (a stage that creeps but does not drift), then
     a reading 200 s on, 0.18 um off (what the model misses at rest): the frame anchored on the
-    reading is at its offset and does not move. Not anchored, the seven are a step across the
-    hold (:func:`afmctl.model.frame.latest_group`), not the drift a straight line through them
-    took the single far point for: the frame is the far point's level, not moving."""
+    reading is at its offset and does not move, where the straight line through all seven would
+    have taken the single far point for a drift and followed it."""
     sweeps = line([0.0, 10.0, 20.0, 30.0, 40.0, 50.0], 0.0, 0.0, 0.004)
     read = fr.Observation(250.0, -0.18)
     f = fr.anchored(sweeps, read, 250.5)
     assert f.offset_um == -0.18 and f.um_per_s == 0.0
     assert f.basis == "read at the held output 0.5 s before"
-    stepped = fr.estimate([*sweeps, read], 250.5)
-    assert stepped.um_per_s == 0.0 and stepped.after_step and stepped.offset_um == -0.18
+    assert fr.estimate([*sweeps, read], 250.5).um_per_s < -5e-4  # the line's false drift
 
 
 def test_a_reading_moves_on_at_a_drift_the_observations_before_it_show() -> None:
@@ -86,30 +84,3 @@ def test_a_reading_moves_on_at_a_drift_the_observations_before_it_show() -> None
     assert f.offset_um == pytest.approx(0.75 + 2 * f.um_per_s)
     assert f.basis.startswith("read at the held output 2.0 s before, drift +") \
         and f.basis.endswith(" nm/s over 6 recordings")
-
-
-#: An independent tester's creeping stage (no drift), the twin's recordings against the model:
-#: six sweeps, identify's 193 s, then a read and three runs (times s on the stage's clock, um).
-TESTER_STAGE_3 = [(3905.47, -0.0793), (3908.75, -0.0658), (3909.82, -0.0639), (3942.99, -0.0720),
-                  (3956.05, -0.0084), (3958.85, 0.0025), (4152.92, -1.0516), (4153.93, -1.0514),
-                  (4166.35, -1.0359), (4178.99, -0.9910)]
-
-
-def test_a_step_across_a_hold_is_not_read_as_a_drift() -> None:
-    """The tester's recordings: a line through all of them said -4.1 nm/s, and a run planned on
-    it 10 s later sat 0.15 um off. They are two levels across the hold, and only those after it
-    are read: no falling drift, and the frame where the last recordings are."""
-    obs = [fr.Observation(t, y) for t, y in TESTER_STAGE_3]
-    f = fr.estimate(obs, 4190.0)
-    assert f.um_per_s >= 0.0
-    assert -1.06 < f.offset_um < -0.95
-    assert "after a 194 s hold" in f.basis or f.basis.startswith("drift +")
-
-
-def test_a_steady_drift_across_a_hold_is_still_a_drift() -> None:
-    """A frame drifting 20 nm/s, recorded for 50 s, held 190 s, recorded again: one line
-    describes it better than two levels, and it is followed."""
-    obs = line([0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 240.0, 250.0], 0.1, 0.02, 0.001)
-    f = fr.estimate(obs, 260.0)
-    assert f.um_per_s == pytest.approx(0.02, rel=0.02)
-    assert not f.after_step
