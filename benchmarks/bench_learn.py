@@ -65,7 +65,7 @@ import numpy as np
 from afmctl.drivers.device import plant as em
 from afmctl.drivers.inprocess import InProcessStage, accelerated
 from afmctl.errors import LimitError, StageError
-from afmctl.experiment import calibration, learn, replay
+from afmctl.experiment import calibration, learn
 from afmctl.files.profile import Profile, default_profile
 from afmctl.fit import diagnose as dg
 from afmctl.fit import identify
@@ -278,11 +278,7 @@ def family_row(case: family_sets.Case, cache: Path | None, tmp: Path) -> dict[st
     from it (``learn.run`` resumed: ``relearned_*``; the drift it measured, ``replay_drift_um``).
     """
     with family_sets.session(case) as s:
-        sweeps = family_sets.record(s, tmp / "sweeps")
-        fit = family_sets.identified(case, sweeps, s.noise_um, cache)
-        lo, hi = family_sets.span_of(sweeps)
-        desired = track.triangle(FREQ_HZ, min(AMP_UM, 0.6 * (hi - lo)), 0.5 * (lo + hi), 3,
-                                 1 / s.profile.sample_rate_hz)
+        fit, desired = _fitted(case, cache, tmp, s)
         row: dict[str, Any] = {"stage": case.name, "family": case.family, "creep": case.creep,
                                "drift": case.drift, "noise_um": s.noise_um}
 
@@ -328,29 +324,31 @@ def family_row(case: family_sets.Case, cache: Path | None, tmp: Path) -> dict[st
     return row
 
 
+def _fitted(case: family_sets.Case, cache: Path | None, tmp: Path, s: Any
+            ) -> tuple[dict[str, Any], track.Desired]:
+    """The standard sweeps recorded on ``s``, the fit on them (:func:`family_sets.identified`) and
+    the triangle learned on the stage: 27.04 um, or 60 % of the fast sweep's span if less, about
+    its middle."""
+    sweeps = family_sets.record(s, tmp / "sweeps")
+    fit = family_sets.identified(case, sweeps, s.noise_um, cache)
+    lo, hi = family_sets.span_of(sweeps)
+    return fit, track.triangle(FREQ_HZ, min(AMP_UM, 0.6 * (hi - lo)), 0.5 * (lo + hi), 3,
+                               1 / s.profile.sample_rate_hz)
+
+
 def moved_row(case: family_sets.Case, cache: Path | None, tmp: Path) -> dict[str, Any]:
     """The stage of :func:`family_row` in a session of its own, learned the same way, and its
     kept waveform played :data:`REPLAY_AFTER_S` later as ``afmctl play --model`` plays it
     (``moved_replay_*``: the move it read, um, and the trajectory's true RMS)."""
     with family_sets.session(case) as s:
-        sweeps = family_sets.record(s, tmp / "sweeps")
-        model = family_sets.identified(case, sweeps, s.noise_um, cache)["model"]
-        lo, hi = family_sets.span_of(sweeps)
-        desired = track.triangle(FREQ_HZ, min(AMP_UM, 0.6 * (hi - lo)), 0.5 * (lo + hi), 3,
-                                 1 / s.profile.sample_rate_hz)
+        fit, desired = _fitted(case, cache, tmp, s)
+        model = fit["model"]
         try:
             res = learn.run(s.probe, model, desired, s.profile.limits, tmp / "learn", {}, 5,
                             ilc.Law())
-            kept = res.best_iteration
-            assert kept.reference_um is not None
             s.clock.skip(REPLAY_AFTER_S)
-            p, _ = learn.planner(model, desired, s.profile.limits, s.probe.voltage())
-            got = replay.moved_replay(
-                s.probe, kept.outcome.waveform, kept.outcome.displacement_um, kept.reference_um,
-                kept.offset_um - kept.predicted_offset_um,
-                lambda r: learn.plan_reference(p, desired, r), p.prefix_v, s.profile.limits,
-                (tmp / "moved_conditioning.csv", tmp / "moved.csv"), {},
-                noise_um=res.noise_um)
+            got = learn.replayed_moved(s.probe, model, desired, s.profile.limits, res,
+                                       (tmp / "moved_conditioning.csv", tmp / "moved.csv"))
         except (LimitError, StageError) as exc:
             return {"moved_replay_stop": f"refused: {exc}", "moved_replay_ok": False}
         err = s.probe.positions[-1][got.waveform.tracking] - desired.u_um

@@ -189,12 +189,13 @@ def play(wave: str, profile_path: str | None, model_path: str | None, out_dir: s
         meta = {"profile": prof.name, "waveform": Path(wave).name,
                 "trajectory": w.meta.get("trajectory", "none"),
                 "sample_rate_Hz": prof.sample_rate_hz}
-        whole = wf
-        if kept_um is not None and model_path is not None and desired is not None:
-            got, moved_um = _moved(w, wf, kept_um, desired, model, model_path, prof, stage, out,
-                                   meta)
-            wf, whole, measured = got.waveform, got.whole, got.measured
+        got = (_moved(w, wf, kept_um, desired, model, model_path, prof, stage, out, meta)
+               if kept_um is not None and model_path is not None and desired is not None
+               else None)
+        if got is not None:
+            wf, whole, measured, moved_um = got.waveform, got.whole, got.measured, got.move_um
         else:
+            whole = wf
             measured = experiment.stream(stage, wf, out / "run_play.csv", meta,
                                          progress_printer(True))
     data: dict[str, Any] = {**meta, "samples": int(wf.voltage_v.size),
@@ -259,12 +260,11 @@ def _kept_readings(w: Any, wave: Path) -> Any:
 
 
 def _moved(w: Any, wf: Any, kept_um: Any, desired: Any, model: Any, model_path: str, prof: Any,
-           stage: Any, out: Path, meta: dict[str, Any]) -> tuple[Any, float | None]:
+           stage: Any, out: Path, meta: dict[str, Any]) -> Any:
     """A learned waveform played moved for how far the stage has moved since it was learned
-    (:func:`afmctl.experiment.replay.moved_replay`: its :class:`~afmctl.experiment.replay.Moved`)
-    and the move (um; None if not read), said either way."""
+    (:func:`afmctl.experiment.replay.moved_replay`: its :class:`~afmctl.experiment.replay.Moved`),
+    said either way; None, nothing played, if the model cannot plan the trajectory now."""
     from afmctl.experiment import learn, replay
-    from afmctl.experiment import runner as experiment
     from afmctl.files import modelfile
     from afmctl.guard import LimitError
     seed = w.meta.get("filter", "inverse")
@@ -273,10 +273,9 @@ def _moved(w: Any, wf: Any, kept_um: Any, desired: Any, model: Any, model_path: 
                              "linear" if seed == "linear" else "inverse",
                              envelope=modelfile.read_envelope(model_path))
     except LimitError as exc:
-        why = f"the model cannot plan the trajectory now: {exc}"
-        click.echo(f"replay: played as learned ({why})", err=True)
-        measured = experiment.stream(stage, wf, out / "run_play.csv", meta, progress_printer(True))
-        return replay.Moved(wf, wf, measured, None, False, why), None
+        click.echo(f"replay: played as learned (the model cannot plan the trajectory now: {exc})",
+                   err=True)
+        return None
     got = replay.moved_replay(stage, wf, kept_um, w.reference_um[wf.tracking],
                               replay.header_float(w.meta, replay.OFFSET_MISS_KEY, 0.0),
                               lambda r: learn.plan_reference(p, desired, r), p.prefix_v,
@@ -290,7 +289,7 @@ def _moved(w: Any, wf: Any, kept_um: Any, desired: Any, model: Any, model_path: 
                       if got.moved else f"the rest played as learned ({got.why})"), err=True)
     else:
         click.echo(f"replay: played as learned ({got.why})", err=True)
-    return got, got.move_um
+    return got
 
 
 #: A replay this many times the RMS its waveform had when learned: the stage has moved on.

@@ -422,6 +422,22 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     return Result(tuple(done), best, stop, noise, tuning, tuple(compute), sigma)
 
 
+def replayed_moved(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Desired,
+                   limits: guard.Limits, result: Result, paths: tuple[Path, Path]
+                   ) -> replay.Moved:
+    """``result``'s kept waveform played as ``afmctl play --model`` plays a learned one
+    (:func:`afmctl.experiment.replay.moved_replay`), planned through ``model`` from the stage's
+    present output, in process (its run's readings, reference, offset miss and noise from
+    ``result``; run files ``paths``)."""
+    kept = result.best_iteration
+    assert kept.reference_um is not None
+    p, _ = planner(model, desired, limits, stage.voltage())
+    return replay.moved_replay(stage, kept.outcome.waveform, kept.outcome.displacement_um,
+                               kept.reference_um, kept.offset_um - kept.predicted_offset_um,
+                               lambda r: plan_reference(p, desired, r), p.prefix_v, limits,
+                               paths, {}, noise_um=result.noise_um)
+
+
 def stop_rule(done: list[Iteration], no_step_left: bool, floor: float, noise: float,
               law: ilc.Law, sigma: float) -> str:
     """Why learning stops after the last of ``done`` ("" to go on): its error at the mean gain

@@ -133,19 +133,11 @@ def test_a_drifting_stage_replayed_a_minute_later_is_moved_for_the_drift_in_one_
     move goes through its minor loops, and the fit on the triangles alone misses 3.4 % of it
     (0.052 um, 3.3x the noise). Five minutes later (a 5.6 um move) too: 1.29x, where the move's
     voltages scaled from a plan at 1 um made it 7.4x, and from plans at 1 and 4 um 2.2x."""
-    from afmctl.experiment import replay
-
     with learned_on("preisach-u-drift", "family-preisach-u-drift-reversals.toml", tmp_path) as (
             s, probe, model, desired, res):
-        kept = res.best_iteration
         s.clock.skip(idle_s)
-        p, _ = learn.planner(model, desired, s.profile.limits, probe.voltage())
-        assert kept.reference_um is not None
-        got = replay.moved_replay(probe, kept.outcome.waveform, kept.outcome.displacement_um,
-                                  kept.reference_um, kept.offset_um - kept.predicted_offset_um,
-                                  lambda r: learn.plan_reference(p, desired, r), p.prefix_v,
-                                  s.profile.limits, (tmp_path / "a.csv", tmp_path / "b.csv"), {},
-                                  noise_um=res.noise_um)
+        got = learn.replayed_moved(probe, model, desired, s.profile.limits, res,
+                                   (tmp_path / "a.csv", tmp_path / "b.csv"))
         true = probe.positions[-1][got.waveform.tracking] - desired.u_um
         drifted = s.truth.drift_um_per_s * (probe.starts[-2] - probe.starts[res.best])
     rms = float(np.sqrt(np.mean(true[ilc.steady_part(desired)] ** 2)))
@@ -171,16 +163,10 @@ def test_a_stage_that_does_not_forget_is_replayed_as_learned_after_another_histo
         dt, lim = 1 / s.profile.sample_rate_hz, s.profile.limits
         desired = track.triangle(27.9, amp, centre, 3, dt)
         res = learn.run(s.probe, model, desired, lim, tmp_path / "learn", {}, 5, ilc.Law())
-        kept = res.best_iteration
-        assert kept.reference_um is not None
 
         def replayed(k: int) -> replay.Moved:
-            p, _ = learn.planner(model, desired, lim, s.probe.voltage())
-            return replay.moved_replay(
-                s.probe, kept.outcome.waveform, kept.outcome.displacement_um, kept.reference_um,
-                kept.offset_um - kept.predicted_offset_um,
-                lambda r: learn.plan_reference(p, desired, r), p.prefix_v, lim,
-                (tmp_path / f"c{k}.csv", tmp_path / f"r{k}.csv"), {}, noise_um=res.noise_um)
+            return learn.replayed_moved(s.probe, model, desired, lim, res,
+                                        (tmp_path / f"c{k}.csv", tmp_path / f"r{k}.csv"))
 
         same = replayed(0)
         swing = np.concatenate([np.linspace(0.0, lim.v_min, 4000), np.full(2000, lim.v_min),
