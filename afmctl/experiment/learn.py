@@ -37,6 +37,10 @@ DEFAULT_LAW = ilc.Law()
 #: The conditioning's gain and offset are not used when they leave more than this many times the
 #: noise of two runs unexplained on it (:func:`offset_checked`).
 OFFSET_AGREE = 5.0
+#: The run's slow offset is carried along the conditioning's slope to the middle of the tracking
+#: part, but no farther past the conditioning than this many times the stretch it was fitted on
+#: (a log-time creep is no straight line over seconds; :func:`run_change`).
+CARRY_WINDOWS = 1.0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -505,19 +509,29 @@ def run_change(it: Iteration, first: FloatArray, s: FloatArray, prefix_v: FloatA
     """The run's applied-voltage gain relative to that of the run whose readings are ``first``
     (um) (fraction) and its slow offset
     (um: creep, drift), from the conditioning excursion ``prefix_v`` that starts every
-    iteration: the coefficient along ``s`` and the free offset of the difference of the two
-    runs' readings (corrected for ``sensor``) from its peak on, where the same voltages have
-    wiped out what came before, so that nothing but the gain, the slow offset and the noise
-    tells the two runs apart. In units of the model's ``s``: a stage that moves ``c`` times as
-    far per volt as the model reads ``c`` times its gain change, and ``d s`` is the stage's own
-    movement, which is what learning removes. Also returns the RMS the two left unexplained
-    (um: the noise of two runs if the excursion wiped out what came before)."""
-    chain = fx.compile_chain(sensor, it.outcome.waveform.dt_s)
-    part = slice(int(np.argmax(prefix_v)), prefix_v.size)
+    iteration: the coefficient along ``s``, the free offset and a free slope of the difference
+    of the two runs' readings (corrected for ``sensor``) from its peak on, where the same
+    voltages have wiped out what came before, so that nothing but the gain, the slow offset and
+    the noise tells the two runs apart. In units of the model's ``s``: a stage that moves ``c``
+    times as far per volt as the model reads ``c`` times its gain change, and ``d s`` is the
+    stage's own movement, which is what learning removes.
+
+    The offset is the line's value at the middle of the tracking part (at most
+    :data:`CARRY_WINDOWS` fitted stretches past the conditioning): a run that follows the one
+    before it closely sees that run's creep relax faster than one after a rest, and the offset
+    on the conditioning missed what the tester's creeping, drifting stage did on the tracking
+    part by 0.012-0.018 um (its learning ended as "diverging" on that); the slope's value there
+    came within 0.002 um. Also returns the RMS the fit left unexplained (um: the noise of two
+    runs if the excursion wiped out what came before)."""
+    wf = it.outcome.waveform
+    chain = fx.compile_chain(sensor, wf.dt_s)
+    peak = int(np.argmax(prefix_v))
+    part = slice(peak, prefix_v.size)
+    middle = (wf.tracking.start + wf.tracking.stop - 1) / 2
+    at = min(middle, prefix_v.size + CARRY_WINDOWS * (prefix_v.size - peak))
+    ramp = (np.arange(peak, prefix_v.size) - at) * wf.dt_s
     w = [fx.sensor_correct(chain, x)[part] for x in (first, it.outcome.displacement_um)]
-    d, o = ilc.gain_and_offset(w[1] - w[0], s[part])
-    left = (w[1] - w[0]) - (d * s[part] + o)
-    return d, o, float(np.sqrt(np.nanmean(left ** 2))) if np.isfinite(left).any() else 0.0
+    return ilc.gain_and_offset(w[1] - w[0], s[part], ramp)
 
 
 def at_mean_gain(done: list[Iteration], desired: track.Desired, law: ilc.Law

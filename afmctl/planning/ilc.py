@@ -93,7 +93,8 @@ iteration worse than the best the next step starts from the best at half the ste
 :attr:`Law.min_step`).
 
 **Creep and drift.** The conditioning also gives each run's slow offset against the first run
-(the free offset of :func:`gain_and_offset`); the next run's is predicted
+(the free offset of :func:`gain_and_offset`, with a free slope: carried to the tracking part,
+where a creep that relaxes at another rate in each run has moved on); the next run's is predicted
 (:func:`predicted_offset`), the reference shifted by the predicted change, and learning learns
 from (and the divergence stop and the step look at) the error the run would have made at its
 predicted offset: the drift's predictable part is followed, its unpredictable part not chased.
@@ -492,17 +493,23 @@ def bridged(x: FloatArray, keep: NDArray[np.bool_]) -> FloatArray:
     return np.interp(k, k[keep], x[keep])
 
 
-def gain_and_offset(x: FloatArray, s: FloatArray) -> tuple[float, float]:
+def gain_and_offset(x: FloatArray, s: FloatArray, ramp_s: FloatArray | None = None
+                    ) -> tuple[float, float, float]:
     """Least-squares coefficient of ``x`` (um) along the gain direction ``s`` (um per unit gain)
-    with a free offset (NaN skipped), and that offset (um): the change of the stage's gain
-    that moves it by ``x``, and the constant shift (creep, drift) that comes with it."""
+    with a free offset (NaN skipped), that offset (um) and the RMS the two leave unexplained
+    (um): the change of the stage's gain that moves it by ``x``, and the constant shift (creep,
+    drift) that comes with it.
+
+    With ``ramp_s`` (s, each sample's time less the time the offset is wanted at) a free slope
+    is fitted too, and the offset is the line's value where ``ramp_s`` is 0: the two runs'
+    creep need not relax at the same rate (:func:`afmctl.experiment.learn.run_change`)."""
     k = np.isfinite(x) & np.isfinite(s)
     if not k.any():
-        return 0.0, 0.0
-    sc = s[k] - s[k].mean()
-    ss = float(np.sum(sc**2))
-    d = float(np.sum(x[k] * sc) / ss) if ss > 0 else 0.0
-    return d, float(np.mean(x[k]) - d * np.mean(s[k]))
+        return 0.0, 0.0, 0.0
+    along = s[k] if np.ptp(s[k]) > 0 else np.zeros(int(k.sum()))  # no gain where s is flat
+    a = np.column_stack([along, np.ones(int(k.sum()))] + ([] if ramp_s is None else [ramp_s[k]]))
+    c = np.linalg.lstsq(a, x[k], rcond=None)[0]
+    return float(c[0]), float(c[1]), float(np.sqrt(np.mean((x[k] - a @ c) ** 2)))
 
 
 def predicted_offset(offsets: FloatArray) -> float:

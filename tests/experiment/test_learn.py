@@ -261,9 +261,27 @@ def test_gain_and_offset_separate_a_gain_change_from_a_slow_offset() -> None:
     rng = np.random.default_rng(3)
     s = 40.0 + 30.0 * np.sin(np.linspace(0, 7, 4000))  # um per unit gain, with a mean
     x = 0.02 * s + 0.3 + 0.01 * rng.standard_normal(s.size)
-    d, o = ilc.gain_and_offset(x, s)
+    d, o, left = ilc.gain_and_offset(x, s)
     assert d == pytest.approx(0.02, abs=1e-4) and o == pytest.approx(0.3, abs=5e-3)
-    assert ilc.gain_and_offset(np.full(5, np.nan), s[:5]) == (0.0, 0.0)
+    assert left == pytest.approx(0.01, rel=0.05)  # the noise
+    assert ilc.gain_and_offset(np.full(5, np.nan), s[:5]) == (0.0, 0.0, 0.0)
+
+
+def test_gain_and_offset_carry_a_slope_to_where_the_offset_is_wanted() -> None:
+    """A conditioning that holds after its excursion (``s`` flat there), two runs whose creep
+    relaxes at rates 0.08 um/s apart: the offset with the slope is the difference's value at the
+    time asked for (0.3 s after the window), where the mean offset misses it by the slope times
+    the distance from the window's middle."""
+    rng = np.random.default_rng(4)
+    t = np.arange(4000) * 1e-4  # s
+    s = np.where(t < 0.2, 60.0 * (1 - t / 0.2), 0.0)  # the descent from the peak, then a hold
+    at = t[-1] + 0.3
+    x = 0.01 * s + 0.1 - 0.08 * (t - at) + 0.02 * rng.standard_normal(t.size)
+    d, o, left = ilc.gain_and_offset(x, s, t - at)
+    assert d == pytest.approx(0.01, abs=2e-4) and o == pytest.approx(0.1, abs=4e-3)
+    assert left == pytest.approx(0.02, rel=0.05)
+    _, mean_o, _ = ilc.gain_and_offset(x, s)
+    assert abs(mean_o - 0.1) > 0.02  # without the slope: 0.08 um/s x ~0.4 s off
 
 
 def test_predicted_offset_continues_a_drift_and_a_relaxing_creep() -> None:
