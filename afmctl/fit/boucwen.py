@@ -440,7 +440,8 @@ def creep_of(weight: float) -> cr.Creep | None:
 def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[float, float],
         thickness_um: float, mass_kg: float, p_scale: float,
         say: Callable[[str], None] | None = None, give_up: float | None = None,
-        field_step: float = 0.0) -> BoucWenFit:
+        field_step: float = 0.0,
+        give_up_why: str = "where another representation is far below") -> BoucWenFit:
     """Fit the Bouc-Wen model to ``data``.
 
     Parameters
@@ -463,6 +464,8 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
         :data:`afmctl.fit.representation.DECISIVE` times the grid's worst held-out error; on
         pi-u-creep, the grid at 1.53x, Bouc-Wen's first start left 62x, and the whole fit had
         taken 100 s to end at 43x). The fit returned is that start's, without creep.
+        ``give_up_why`` says why in the progress line (the first try, before any other
+        representation: that it will not reach the noise floor from there).
     field_step : float
         ``eta`` is computed where the field has moved by this share of its peak (and at every
         turning point and hold) and interpolated in between (:func:`_eta`; identify passes its
@@ -502,7 +505,7 @@ def fit(data: Data, starts_candidates: Sequence[Sequence[str]], rod0: tuple[floa
     seconds = time.perf_counter() - t0
     say(f"  Bouc-Wen: {sol.nfev} evaluations, {seconds:.1f} s; RMS / noise per sweep "
         + " / ".join(f"{v:.2f}" for v in rms / data.noise)
-        + (f" (stopped: above {give_up:.3g}x, where another representation is far below)"
+        + (f" (stopped: above {give_up:.3g}x, {give_up_why})"
            if hopeless else ""))
     return BoucWenFit(build(sol.x, prob, off, mass_kg, thickness_um, p_scale), states(sol.x),
                       off, rms, int(sol.nfev), bool(sol.status > 0), seconds, predicted,

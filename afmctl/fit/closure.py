@@ -192,6 +192,6 @@ def _text(out: dict[str, Any], worst: Gap | None) -> str:
                 f"consistent with a Preisach-type hysteresis (return-point memory)")
     return (f"minor loops do NOT close: {out['open']} of {out['checked']} open{rang}, the widest by "
             f"{where}. The stage has no return-point memory (a rate-independent hysteresis "
-            f"that is not of Preisach type, such as Bouc-Wen), or it creeps or drifts between "
-            f"the passes; no Preisach-type model (the paper's, the Preisach grid) fits such "
-            f"loops to the noise")
+            f"that is not of Preisach type, such as Bouc-Wen: no Preisach-type model, the "
+            f"paper's or the Preisach grid, fits such loops to the noise), or it creeps or "
+            f"drifts between the passes (a model with creep can close them)")

@@ -103,6 +103,13 @@ FIRST_GIVE_UP = 4.5
 #: may still be kept over a settled grid if it beats it by :data:`MARGIN`.)
 
 
+#: How each representation's worst error (``representations.<name>``) is judged, said beside it
+#: in ``why``: the grid's on blocks its fit did not see, the others' on the samples they were
+#: fitted to (few parameters: the optimism is about their number over the samples').
+HOW_JUDGED = {"hem": "held-out blocks, from the full fit", "preisach": "held out",
+              "bouc-wen": "in sample"}
+
+
 class Grid:
     """The Preisach grid and Bouc-Wen as identify's alternatives: each fitted at most once, then
     compared."""
@@ -144,8 +151,9 @@ class Grid:
                                      DECISIVE * float(np.max(self.fit.heldout_rms_um / self.noise)))
         return self.bw
 
-    def _bouc_wen(self, starts: Sequence[str], x_hem: FloatArray,
-                  give_up: float | None) -> bf.BoucWenFit | None:
+    def _bouc_wen(self, starts: Sequence[str], x_hem: FloatArray, give_up: float | None,
+                  why: str = "where another representation is far below"
+                  ) -> bf.BoucWenFit | None:
         rod0 = ((self.fit.model.rod.natural_hz, self.fit.model.rod.damping_ratio)
                 if self.fit is not None else rod_of(x_hem))
         chained = [(first,) + ("previous",) * (len(starts) - 1)
@@ -153,7 +161,8 @@ class Grid:
         try:
             return bf.fit(self.data(), [tuple(starts), *chained], rod0, self.thickness,
                           self.settings.mass_kg, self.settings.p_r, say=self.say,
-                          give_up=give_up, field_step=self.settings.field_step)
+                          give_up=give_up, field_step=self.settings.field_step,
+                          give_up_why=why)
         except ValueError as exc:
             self.say(f"  no Bouc-Wen fit: {exc}")
             return None
@@ -175,7 +184,8 @@ class Grid:
             return False
         self.say("a measured minor loop stays open: a Bouc-Wen model first (kept if within the "
                  "noise floor) ...")
-        bw = self._bouc_wen(starts, x_hem, FIRST_GIVE_UP)
+        bw = self._bouc_wen(starts, x_hem, FIRST_GIVE_UP,
+                            "not expected to reach the noise floor from there")
         worst = np.inf if bw is None else float(np.max(bw.heldout_rms_um / self.noise))
         if worst > idf.FLOOR:
             self.first_worst = worst
@@ -227,8 +237,8 @@ class Grid:
             worst, key=lambda k: worst[k] / (1.0 if k == "hem" else MARGIN))
         why = ("asked for (--profile [identify] representation)" if chosen == want else
                ("no Bouc-Wen fit (asked for); " if want == "bouc-wen" else "")
-               + "held-out worst " + ", ".join(f"{k} {v:.2f}x" for k, v in worst.items())
-               + " the noise")
+               + "worst error over the noise " + ", ".join(
+                   f"{k} {v:.2f}x ({HOW_JUDGED[k]})" for k, v in worst.items()))
         figures: dict[str, Any] = {
             "chosen": chosen, "why": why,
             "hem": {"worst_over_noise": worst["hem"], "heldout_note": "error on the held-out "

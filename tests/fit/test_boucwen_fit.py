@@ -147,12 +147,13 @@ def test_a_fit_on_thinned_rows_reports_the_full_rate(monkeypatch: pytest.MonkeyP
 def test_a_fit_told_to_give_up_stops_after_its_first_start(stage_and_set: tuple,
                                                           fitted: bf.BoucWenFit) -> None:
     """``give_up`` below what any start reaches: the fit ends on its first start, without its
-    creep solve, and says so."""
+    creep solve, and says so, and why (the caller's reason: before any other representation
+    is fitted there is none "far below" to name)."""
     data, chained = _data(stage_and_set)
     said: list[str] = []
     stopped = bf.fit(data, chained, (1000.0, 0.1), THICKNESS_UM, 0.05, 0.3, say=said.append,
-                     give_up=0.5)
-    assert "stopped: above 0.5x" in said[-1]
+                     give_up=0.5, give_up_why="not expected to reach the floor")
+    assert said[-1].endswith("(stopped: above 0.5x, not expected to reach the floor)")
     assert stopped.model.creep is None and stopped.parameters["creep"] == 0.0
     assert np.all(stopped.heldout_rms_um >= 0.99 * fitted.heldout_rms_um)
 
@@ -304,7 +305,9 @@ def test_identify_chooses_bouc_wen_through_the_cli(stage_and_set: tuple, tmp_pat
     doc = json.loads(res.stdout)
     figures = doc["representations"]
     assert doc["representation"] == figures["chosen"] == "bouc-wen", figures["why"]
-    assert figures["bouc_wen"]["worst_heldout_over_noise"] < 2.0
+    bw = figures["bouc_wen"]["worst_heldout_over_noise"]
+    assert bw < 2.0
+    assert f"bouc-wen {bw:.2f}x (in sample)" in figures["why"]  # not called held out
     assert figures["hem"]["worst_over_noise"] > 3 * figures["bouc_wen"]["worst_heldout_over_noise"]
     assert doc["minor_loops"]["close"] is False
     assert "minor loop stays open" in figures["preisach"]["skipped"]
