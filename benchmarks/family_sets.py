@@ -196,6 +196,11 @@ class Probe:
     def now_s(self) -> float:
         return self.stage.now_s()
 
+    @property
+    def run_started_s(self) -> float | None:
+        """When the last run started (s, the device's clock)."""
+        return self.stage.run_started_s
+
     def play(self, waveform_v: np.ndarray, on_block: Any = None, **kw: Any) -> Any:
         rec = self.stage.play(waveform_v, on_block, **kw)
         dev = self.stage.emulator

@@ -292,16 +292,36 @@ class Step:
 
 
 def next_reference(done: list[Iteration], step: Step, desired: track.Desired, law: ilc.Law,
-                   tuning: ilc.Tuning, region: NDArray[np.bool_] | None) -> FloatArray:
+                   tuning: ilc.Tuning, region: NDArray[np.bool_] | None, pred: float
+                   ) -> FloatArray:
     """``r_{j+1}``: the law's step (scaled by ``step``) from ``step.start``'s reference and
-    learned error, shifted from the slow offset predicted for that run to the one predicted for
-    the next (:func:`afmctl.planning.ilc.predicted_offset`)."""
+    learned error, shifted from the slow offset predicted for that run to ``pred``, the one
+    predicted for the next (um, :func:`predicted`)."""
     src = done[step.start]
     assert src.reference_um is not None and src.learned_um is not None
-    pred = ilc.predicted_offset(np.array([x.offset_um for x in done]))
     ref = ilc.next_reference(src.reference_um, src.learned_um, desired,
                              dc.replace(law, gain=law.gain * step.scale), tuning, region)
     return ref - (pred - src.predicted_offset_um)
+
+
+def predicted(done: list[Iteration], drift_um_per_s: float, since_first_s: float) -> float:
+    """The next run's slow offset (um, :func:`afmctl.planning.ilc.predicted_offset`): after the
+    first run alone, the frame's drift (um/s, read before it: :class:`afmctl.model.frame.Frame`)
+    times ``since_first_s``, the time from that run's start to the next's (s, :func:`_since`).
+    A fourth tester's drifting stage (14 nm/s read before learning)
+    had moved +0.065 um by iteration 1, planned for no move: 2.9x the noise."""
+    return ilc.predicted_offset(np.array([x.offset_um for x in done]),
+                                drift_um_per_s * since_first_s)
+
+
+def _since(stage: experiment.PlayingStage, started_s: float | None) -> float:
+    """Seconds from ``started_s`` (the stage's clock) to the next run's start (now, plus the
+    delay a start takes: :data:`afmctl.experiment.runner.LEAD_S`); 0 where the stage keeps no
+    clock."""
+    now = getattr(stage, "now_s", None)
+    if started_s is None or now is None:
+        return 0.0
+    return max(0.0, float(now()) + experiment.LEAD_S - started_s)
 
 
 def retuned(done: list[Iteration], taken: tuple[int, float] | None, tuning: ilc.Tuning,
@@ -373,11 +393,14 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
     noise, best, stop, sigma, step = float("nan"), 0, "iterations done", 0.0, Step()
     region = ilc.imaging_mask(desired, first_period=True) if law.region == "imaging" else None
     taken: tuple[int, float] | None = None  # the last step: where it started, its scale
+    started: float | None = None  # when the first run started (s, the stage's clock)
+    pred = 0.0  # the slow offset the run is planned for (um)
     for j in range(iterations + 1):
         if j:
             t0 = time.perf_counter()
             tuning = retuned(done, taken, tuning, desired, law, noise, region)
-            ref = next_reference(done, step, desired, law, tuning, region)
+            pred = predicted(done, frame.um_per_s, _since(stage, started))
+            ref = next_reference(done, step, desired, law, tuning, region, pred)
             taken = (step.start, step.scale)
             try:
                 wf = plan_reference(p, desired, ref)
@@ -394,6 +417,7 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
         t_plan = time.perf_counter() - t0
         path = out / f"run_{wf.filter}.csv"
         measured = experiment.stream(stage, wf, path, meta, progress)
+        started = started if j else getattr(stage, "run_started_s", None)
         between = between_error(wf, desired, truth)  # reporting only: not part of the compute
         t1 = time.perf_counter()
         it = judge(wf, desired, j, measured, path, model.effects, between)
@@ -401,7 +425,6 @@ def run(stage: experiment.PlayingStage, model: tr.Transducer, desired: track.Des
             noise = ilc.noise_estimate(it.error_um[ilc.steady_part(desired)])
             if resume is None or resume.tuning is None:
                 tuning = ilc.tune(ref, desired.u_um - it.error_um, desired, law, noise)
-        pred = ilc.predicted_offset(np.array([x.offset_um for x in done])) if j else 0.0
         it = dc.replace(it, reference_um=ref, predicted_offset_um=pred)
         first = (resume.readings_um if resume is not None and resume.readings_um is not None
                  else done[0].outcome.displacement_um if done else None)

@@ -512,16 +512,17 @@ def gain_and_offset(x: FloatArray, s: FloatArray, ramp_s: FloatArray | None = No
     return float(c[0]), float(c[1]), float(np.sqrt(np.mean((x[k] - a @ c) ** 2)))
 
 
-def predicted_offset(offsets: FloatArray) -> float:
+def predicted_offset(offsets: FloatArray, first_step_um: float = 0.0) -> float:
     """The next run's slow offset (um) from the runs' offsets so far (creep, drift: measured on
     the conditioning, :func:`gain_and_offset`; runs follow one another at a steady pace): the
     last offset plus its last step times the ratio of the last two steps (clipped to 0..1:
     a steady drift keeps its step, ratio 1; creep relaxing in log-time after a rest takes
     steps that shrink, ratio ~0.5-0.6), :data:`FIRST_RATIO` of the step while there are only
-    two runs, and the last offset itself while there is one."""
+    two runs, and the last offset plus ``first_step_um`` (um: a drift read before the first
+    run, times the runs' pace) while there is one."""
     o = np.asarray(offsets, dtype=float)
     if o.size < 2:
-        return float(o[-1]) if o.size else 0.0
+        return float(o[-1]) + first_step_um if o.size else 0.0
     step = o[-1] - o[-2]
     ratio = FIRST_RATIO
     if o.size > 2:

@@ -23,6 +23,8 @@ import pytest
 
 from afmctl.experiment import learn
 from afmctl.files import modelfile
+from afmctl.model import frame as fr
+from afmctl.model import transducer as tr
 from afmctl.planning import ilc, track
 from benchmarks import family_sets, learn_judge
 
@@ -96,6 +98,25 @@ def test_a_drifting_stage_replayed_a_minute_later_is_relearned_in_two_iterations
     assert again[0] > 20 * noise  # the stage had moved on: the replay as it was is far off
     assert rep.iterations[0].offset_um == pytest.approx(moved, rel=0.05)
     assert len(again) <= 3 and again[rep.best] <= 2 * noise, again
+
+
+def test_a_drift_read_before_learning_is_followed_from_iteration_1(tmp_path: Path) -> None:
+    """The drifting stage (18.5 nm/s) learning in a frame that knows the drift rate (as the
+    twin's read before learning gives it): iteration 1 is planned for the drift over the
+    device time between the two runs' starts (before this change for none: one run's drift,
+    whatever the frame said), and learning still ends at the noise."""
+    model = modelfile.read(DATA / "family-preisach-u-drift.toml")
+    amp, centre = TRIANGLE["preisach-u-drift"]
+    with family_sets.session(family_sets.cases_named("preisach-u-drift")[0]) as s:
+        probe = Timed(s.probe, s.clock)
+        desired = track.triangle(27.9, amp, centre, 3, 1 / s.profile.sample_rate_hz)
+        rate = s.truth.drift_um_per_s
+        res = learn.run(probe, model, desired, s.profile.limits, tmp_path, {}, 3, ilc.Law(),
+                        start=(tr.initial(model), fr.Frame(0.0, rate, "test")))
+        learned = true_rms(probe, 0, res, desired)
+    between = probe.starts[1] - probe.starts[0]
+    assert res.iterations[1].predicted_offset_um == pytest.approx(rate * between, rel=0.1)
+    assert min(learned) <= s.noise_um, learned
 
 
 def test_a_stage_that_does_not_forget_has_its_offset_measured_on_the_tracking_part(
