@@ -39,7 +39,7 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
     (``afmctl play --relearn N``) iteration 0 replays a learned waveform and says how far the
     stage has moved since it was learned."""
     from afmctl import plots
-    from afmctl.experiment import learn
+    from afmctl.experiment import learn, learnfiles
     from afmctl.experiment import runner as experiment
     from afmctl.files import modelfile
     from afmctl.model import effects as fx
@@ -54,7 +54,7 @@ def learn_track(desired: Any, prof: Any, model: Any, model_name: str, stage: Any
         meta["model_fit"] = cal.fit.to_dict()
 
     def write(result: learn.Result) -> dict[str, Any]:
-        data = learn.write_outputs(result, desired, law, meta, out)
+        data = learnfiles.write_outputs(result, desired, law, meta, out)
         plots.save_figure(plots.learn_figure(result, desired), out / "learn.png", 100)
         return data
 

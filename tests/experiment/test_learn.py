@@ -16,7 +16,7 @@ from scipy import signal
 from afmctl import plots
 from afmctl.cli import main
 from afmctl.drivers.inprocess import InProcessStage, accelerated
-from afmctl.experiment import learn, replay
+from afmctl.experiment import learn, learnfiles, replay
 from afmctl.files import modelfile, runfile
 from afmctl.files.profile import Profile
 from afmctl.model import effects as fx
@@ -517,7 +517,7 @@ def test_ctrl_c_keeps_every_finished_iteration(profile: Profile, nominal: Transd
             raise KeyboardInterrupt
 
     def each(res: learn.Result) -> None:  # what the CLI writes after every iteration
-        learn.write_outputs(res, desired, ilc.Law(), {"profile": "emulated"}, tmp_path)
+        learnfiles.write_outputs(res, desired, ilc.Law(), {"profile": "emulated"}, tmp_path)
         plots.save_figure(plots.learn_figure(res, desired), tmp_path / "learn.png")
 
     with InProcessStage(profile, clock=accelerated(8.0)) as stage:
