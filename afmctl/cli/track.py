@@ -32,6 +32,10 @@ MAX_DURATION_S = 600.0
 MAX_UM = 1000.0
 #: ``--offset centre``: the middle of the model's reach on the profile.
 CENTRE = "centre"
+#: A trajectory this long (s) or longer is planned from a reading of the stage just before
+#: each of its runs, long enough to tell the drift rate (:data:`afmctl.model.frame.RATE_READ_S`):
+#: over seconds a drift the twin's recordings lag behind moves the whole run.
+LONG_RUN_S = 2.0
 
 
 class Offset(Finite):
@@ -398,6 +402,7 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
     in progress too, scored on what it got, if the run is interrupted)."""
     from afmctl.experiment import runner as experiment
     from afmctl.experiment import twin
+    from afmctl.model import frame as fr
     start_v = stage.voltage()
     # every model: a creeping stage's past, a Bouc-Wen stage's memory (no conditioning wipes
     # it), a drifting frame (read from the readings the twin followed)
@@ -415,16 +420,22 @@ def _run(prof: Any, stage: Any, cal: Any, desired: Any, wanted: tuple[str, ...],
         return
     say(cal.describe())
     make_dir(out, "--out")
-    tw = _read_if_idle(stage, tw, out, meta)
+    long = desired.u_um.size * desired.dt_s >= LONG_RUN_S
+    tw = tw if long else _read_if_idle(stage, tw, out, meta)
 
     def plan_for(name: str, state: Any, frame: Any) -> Any:
         _say_frame(name, frame)
         return _plan(prof, cal, desired, stage.voltage(), tuple(dict.fromkeys(("inverse", name))),
                      how, state, frame)[name]
 
+    def read(name: str, now: Any) -> Any:
+        return _read(stage, now, out, meta, f"run_read_{name}.csv", fr.RATE_READ_S,
+                     f"the {name} run lasts {desired.u_um.size * desired.dt_s:.1f} s and the "
+                     f"stage holds {now.held_v:g} V")
+
     after = experiment.run_following(stage, tw, plan_for, wanted, desired, out, meta, truth,
                                      progress_printer(False), sensor=cal.model.effects,
-                                     done=outcomes)
+                                     done=outcomes, read=read if long else None)
     if after is not None:
         twin.save(after, cal.path)
 
@@ -462,23 +473,37 @@ def _say_frame(name: str, frame: Any) -> None:
 
 def _read_if_idle(stage: Any, tw: Any, out: Path, meta: dict[str, Any],
                   longer_than_s: float | None = None) -> Any:
-    """The twin, after reading the stage where it holds (:func:`afmctl.experiment.runner.
-    read_held`, into ``out``) if it has idled more than ``longer_than_s`` (s; None:
-    :data:`~afmctl.experiment.runner.IDLE_S`) since the twin's last recording; what it read is
-    said and recorded in ``meta`` (the runs' headers, summary.json)."""
+    """The twin, after reading the stage where it holds (:func:`_read`, into ``out``) if it has
+    idled more than ``longer_than_s`` (s; None: :data:`~afmctl.experiment.runner.IDLE_S`) since
+    the twin's last recording."""
     from afmctl.experiment import runner as experiment
     limit = experiment.IDLE_S if longer_than_s is None else longer_than_s
     idle_s = stage.now_s() - tw.ended_s
     if idle_s <= limit:
         return tw
-    say(f"the stage has held {tw.held_v:g} V for {idle_s:.0f} s since the twin's last "
-        f"recording: reading it there for {experiment.READ_S:g} s ({experiment.READ_FILE}), to "
-        f"see how far its readings have moved from the model (a drifting mount, creep)")
-    tw = experiment.read_held(stage, tw, out / experiment.READ_FILE, meta)
+    return _read(stage, tw, out, meta, experiment.READ_FILE, experiment.READ_S,
+                 f"the stage has held {tw.held_v:g} V for {idle_s:.0f} s since the twin's last "
+                 f"recording", idle_s)
+
+
+def _read(stage: Any, tw: Any, out: Path, meta: dict[str, Any], file: str, seconds: float,
+          why: str, idle_s: float | None = None) -> Any:
+    """The twin after reading the stage where it holds for ``seconds``
+    (:func:`afmctl.experiment.runner.read_held`, into ``out / file``), ``why`` said first; what
+    it read is said and recorded in ``meta`` (the runs' headers, summary.json)."""
+    from afmctl.experiment import runner as experiment
+    from afmctl.model import frame as fr
+    say(f"{why}: reading it there for {seconds:g} s ({file}), to see how far its readings have "
+        f"moved from the model (a drifting mount, creep)"
+        + (" and how fast" if seconds >= fr.RATE_READ_S else ""))
+    tw = experiment.read_held(stage, tw, out / file, meta, seconds)
     if tw.read is not None:
-        say(f"read: the readings sit {tw.read.offset_um:+.4f} um from the model's")
-        meta.update({"read_after_idle_s": round(idle_s, 3),
-                     "read_offset_um": tw.read.offset_um, "read_file": experiment.READ_FILE})
+        rate = tw.read.um_per_s
+        say(f"read: the readings sit {tw.read.offset_um:+.4f} um from the model's"
+            + ("" if rate is None else f", moving {1e3 * rate:+.2f} nm/s"))
+        meta.update({"read_offset_um": tw.read.offset_um, "read_file": file,
+                     **({} if idle_s is None else {"read_after_idle_s": round(idle_s, 3)}),
+                     **({} if rate is None else {"read_drift_um_per_s": rate})})
     return tw
 
 

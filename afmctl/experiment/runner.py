@@ -177,9 +177,11 @@ READ_S = 0.2
 READ_FILE = "run_read.csv"
 
 
-def read_held(stage: PlayingStage, tw: Twin, path: Path, meta: Mapping[str, object]) -> Twin:
+def read_held(stage: PlayingStage, tw: Twin, path: Path, meta: Mapping[str, object],
+              seconds: float = READ_S) -> Twin:
     """The twin after reading the stage at the output it holds (``tw.held_v``) for
-    :data:`READ_S`: a run that moves nothing, streamed to ``path`` like any run, whose readings
+    ``seconds`` (:data:`READ_S`; from :data:`afmctl.model.frame.RATE_READ_S` on the reading
+    tells its own drift rate too): a run that moves nothing, streamed to ``path`` like any run, whose readings
     against the model are the twin's ``read`` (:meth:`Twin.planning_frame` anchors the next
     run's frame on it). The sweeps' own observations span a minute and the fit after them
     takes minutes: a frame drifting 2 nm/s (an independent tester's stage) had moved 0.55 um
@@ -195,7 +197,7 @@ def read_held(stage: PlayingStage, tw: Twin, path: Path, meta: Mapping[str, obje
     now_v = stage.voltage()
     if abs(now_v - tw.held_v) > 1e-3:
         raise ValueError(f"the stage holds {now_v:.4f} V, not the twin's {tw.held_v:.4f} V")
-    n = max(2, int(round(READ_S / tw.dt_s)))
+    n = max(2, int(round(seconds / tw.dt_s)))
     wf = track.Waveform("read", tw.dt_s, np.full(n, tw.held_v), np.full(n, np.nan), slice(0, 0))
     u, _, _ = stream(stage, wf, path, meta)
     return _followed(stage, tw, wf.voltage_v, u, read=True) or tw
@@ -216,15 +218,18 @@ def run_following(stage: PlayingStage, tw: Twin,
                   names: tuple[str, ...], desired: track.Desired, out: Path,
                   meta: Mapping[str, object], between_model: tr.Transducer | None,
                   progress: Progress | None = None, sensor: fx.Effects | None = None,
-                  done: dict[str, Outcome] | None = None) -> Twin | None:
+                  done: dict[str, Outcome] | None = None,
+                  read: Callable[[str, Twin], Twin] | None = None) -> Twin | None:
     """:func:`run_all` with each filter planned just before it plays (``plan_for(name, state,
     frame)``) from the twin's state when it is due to start (the stage's clock now, plus the last
     start's delay) and the frame its readings will be in (:meth:`Twin.planning_frame`), and the
     twin carried through it, readings and all: a creeping stage's run starts where the one
-    before left it, not at rest, and a drifting one is followed. Returns the twin after the last
-    run (None if the stage does not say when its runs start)."""
+    before left it, not at rest, and a drifting one is followed. ``read(name, twin)``, if
+    given, reads the stage before each filter is planned (the twin after it). Returns the twin
+    after the last run (None if the stage does not say when its runs start)."""
     lead = LEAD_S
     for name in names:
+        tw = tw if read is None else read(name, tw)
         asked = stage.now_s() + lead  # type: ignore[attr-defined]
         wf = plan_for(name, tw.at(asked), tw.planning_frame(asked))
         outcome = run_all(stage, {name: wf}, desired, out, meta, between_model, progress,

@@ -91,7 +91,7 @@ class Twin:
         u, _, state = tr.simulate(tr.compile_model(self.model, self.dt_s), v, self.at(started_s))
         seen, last = self.observations, self.read
         if readings_um is not None:
-            ob = self._observe(u, np.asarray(readings_um, dtype=float), started_s)
+            ob = self._observe(u, np.asarray(readings_um, dtype=float), started_s, read)
             if ob is not None and read:
                 last = ob
             elif ob is not None:
@@ -116,15 +116,17 @@ class Twin:
         seen = self.frame(when_s)
         return seen if seen.um_per_s != 0.0 else fr.Frame()
 
-    def _observe(self, rod_um: np.ndarray, readings_um: np.ndarray, started_s: float
-                 ) -> fr.Observation | None:
+    def _observe(self, rod_um: np.ndarray, readings_um: np.ndarray, started_s: float,
+                 read: bool = False) -> fr.Observation | None:
         """Readings against the model's own (its rod and second mode; the readings corrected
-        for its sensor effects)."""
+        for its sensor effects); a reading at the held output (``read``) of
+        :data:`afmctl.model.frame.RATE_READ_S` or longer with its own drift rate
+        (:func:`afmctl.model.frame.read_line`)."""
         n = min(rod_um.size, readings_um.size)
         chain = fx.compile_chain(self.model.effects, self.dt_s)
         where = fx.sensor_correct(chain, readings_um[:n])
-        return fr.observe(started_s + self.dt_s * np.arange(n), where,
-                          fx.position(chain, rod_um[:n]))
+        how = fr.read_line if read and (n + 0.5) * self.dt_s >= fr.RATE_READ_S else fr.observe
+        return how(started_s + self.dt_s * np.arange(n), where, fx.position(chain, rod_um[:n]))
 
 
 def from_sweeps(model: tr.Transducer, sweeps: Sequence[Sweep]) -> Twin | None:

@@ -225,3 +225,32 @@ def test_a_learned_waveform_is_replayed_conditioning_first_and_moved(nominal: Tr
     assert moved["replay_moved_um"] == pytest.approx(-0.2, abs=0.01)
     assert moved["mean_error_um"] == pytest.approx(0.2, abs=0.02)
     assert moved["rms_between_um"] == pytest.approx(as_learned["rms_between_um"], abs=0.2)
+
+
+def test_a_long_run_is_planned_from_a_reading_that_tells_the_drift(nominal: Transducer,
+                                                                  tmp_path: Path) -> None:
+    """A trajectory of 3.6 s (over :data:`afmctl.cli.track.LONG_RUN_S`) on a stage whose twin
+    saw it 2 s ago (no idle reading for a short run then): the stage is read for
+    :data:`afmctl.model.frame.RATE_READ_S` where it holds before the run is planned, in a run
+    file of the filter's own, and the drift rate it tells (none here: the emulated stage does
+    not drift) is said, planned in and recorded in summary.json."""
+    from afmctl.cli.track import LONG_RUN_S
+    from afmctl.model import frame as fr
+
+    model = tmp_path / "model.toml"
+    modelfile.write(nominal, model)
+    assert twin.keep_beside(nominal, timed_sweeps(nominal, (-1, 0), 2.0, 0.0), model) is not None
+    res = CliRunner().invoke(main, ["track", "triangle", "--freq", "0.279", "--amplitude",
+                                    "27.04", "--periods", "1", "--model", str(model),
+                                    "--filter", "inverse", "--json", "--out", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    assert 1 / 0.279 >= LONG_RUN_S
+    said = [ln for ln in res.stderr.splitlines() if "reading it there" in ln]
+    assert len(said) == 1 and said[0].startswith("the inverse run lasts 3.6 s"), res.stderr
+    assert f"for {fr.RATE_READ_S:g} s (run_read_inverse.csv)" in said[0]
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["read_file"] == "run_read_inverse.csv"
+    assert summary["read_drift_um_per_s"] == 0.0 and "read_after_idle_s" not in summary
+    assert "no drift told over the reading); planned in that frame" in res.stderr
+    read = (tmp_path / "a" / "run_read_inverse.csv").read_text().splitlines()
+    assert sum(1 for ln in read if ln[:1].isdigit()) == round(fr.RATE_READ_S * RATE)

@@ -84,3 +84,32 @@ def test_a_reading_moves_on_at_a_drift_the_observations_before_it_show() -> None
     assert f.offset_um == pytest.approx(0.75 + 2 * f.um_per_s)
     assert f.basis.startswith("read at the held output 2.0 s before, drift +") \
         and f.basis.endswith(" nm/s over 6 recordings")
+
+
+def test_a_long_reading_tells_its_own_drift_rate_where_the_line_lags() -> None:
+    """Recordings over two minutes of a drift that has risen from 5 to 15 nm/s (the line through
+    them: about 9 nm/s), then a 1 s reading at the held output, 20 nm of noise at 10 kHz: the
+    reading's own line gives the rate now (within 1 nm/s) and its value at its end, and the
+    frame carries them to the run's start; a stage that does not drift reads no rate (0, said),
+    not the recordings' line."""
+    rng = np.random.default_rng(7)
+    times = np.linspace(0.0, 120.0, 8)
+    drift = 0.005 * times + 0.5 * (0.010 / 120.0) * times**2  # um: 5 -> 15 nm/s
+    obs = [fr.Observation(float(t), float(y)) for t, y in zip(times, drift, strict=True)]
+    assert fr.estimate(obs, 121.0).um_per_s < 0.0105  # the line lags the rate now (15 nm/s)
+    t = 125.0 + np.arange(10_000) * 1e-4
+    now = 0.005 * t + 0.5 * (0.010 / 120.0) * t**2
+    read = fr.read_line(t, now + 0.02 * rng.standard_normal(t.size), np.zeros(t.size))
+    assert read is not None and read.at_s == pytest.approx(t[-1])
+    rate_now = 0.005 + (0.010 / 120.0) * t[-1]
+    assert read.um_per_s == pytest.approx(rate_now, abs=1e-3)
+    assert read.offset_um == pytest.approx(now[-1], abs=2e-3)
+    f = fr.anchored(obs, read, t[-1] + 2.0)
+    assert f.um_per_s == read.um_per_s and f.offset_um == pytest.approx(now[-1] + 2 * rate_now,
+                                                                        abs=4e-3)
+    assert f.basis.endswith("nm/s over the reading")
+    still = fr.read_line(t, 0.3 + 0.02 * rng.standard_normal(t.size), np.zeros(t.size))
+    assert still is not None and still.um_per_s == 0.0
+    held = fr.anchored(obs, still, t[-1] + 2.0)
+    assert held.um_per_s == 0.0 and held.offset_um == pytest.approx(0.3, abs=2e-3)
+    assert held.basis.endswith(", no drift told over the reading")
