@@ -225,21 +225,48 @@ def run_following(stage: PlayingStage, tw: Twin,
     start's delay) and the frame its readings will be in (:meth:`Twin.planning_frame`), and the
     twin carried through it, readings and all: a creeping stage's run starts where the one
     before left it, not at rest, and a drifting one is followed. ``read(name, twin)``, if
-    given, reads the stage before each filter is planned (the twin after it). Returns the twin
-    after the last run (None if the stage does not say when its runs start)."""
-    lead = LEAD_S
+    given, reads the stage before each filter is planned (the twin after it). A plan that took
+    longer than the last (the first: :data:`LEAD_S` was all it was given) in a frame that moves
+    far enough meanwhile (:data:`REPLAN_UM`) is made again for a start that long after it.
+    Returns the twin after the last run (None if the stage does not say when its runs start)."""
+    took, delay = 0.0, LEAD_S  # the last plan's duration, and a start's delay after it (s)
     for name in names:
         tw = tw if read is None else read(name, tw)
-        asked = stage.now_s() + lead  # type: ignore[attr-defined]
-        wf = plan_for(name, tw.at(asked), tw.planning_frame(asked))
+        wf, took = _planned(stage, tw, plan_for, name, took, delay)
+        planned = stage.now_s()  # type: ignore[attr-defined]
         outcome = run_all(stage, {name: wf}, desired, out, meta, between_model, progress,
                           sensor, done)[name]
         followed = _followed(stage, tw, wf.voltage_v, outcome.displacement_um)
         if followed is None:
             return None
-        lead = max(0.0, stage.run_started_s - asked + lead)  # type: ignore[attr-defined]
+        delay = max(0.0, stage.run_started_s - planned)  # type: ignore[attr-defined]
         tw = followed
     return tw
+
+
+#: A plan is made again (:func:`run_following`) when its frame moves this far (um) over the time
+#: by which its planning outlasted the time it was given: a 10.8 s trajectory takes seconds to
+#: plan, and at 10 nm/s an independent tester's first run started 0.015 um off.
+REPLAN_UM = 0.005
+
+
+def _planned(stage: PlayingStage, tw: Twin,
+             plan_for: Callable[[str, tr.StageState, fr.Frame], track.Waveform], name: str,
+             took: float, delay: float) -> tuple[track.Waveform, float]:
+    """Filter ``name``'s waveform planned for a start ``took + delay`` s from now (the stage's
+    clock), from the twin's state and frame then, and how long the plan kept (s); again for a
+    start that much later if this one took longer by more than the frame moves
+    :data:`REPLAN_UM` in."""
+    begun = stage.now_s()  # type: ignore[attr-defined]
+    frame = tw.planning_frame(begun + took + delay)
+    wf = plan_for(name, tw.at(begun + took + delay), frame)
+    spent = stage.now_s() - begun  # type: ignore[attr-defined]
+    if abs(frame.um_per_s * (spent - took)) <= REPLAN_UM:
+        return wf, spent
+    again = stage.now_s()  # type: ignore[attr-defined]
+    asked = again + spent + delay
+    wf = plan_for(name, tw.at(asked), tw.planning_frame(asked))
+    return wf, stage.now_s() - again  # type: ignore[attr-defined]
 
 
 def scored(wf: track.Waveform, desired: track.Desired, measured: tuple[Any, ...], path: Path,

@@ -181,3 +181,47 @@ def test_a_held_stage_is_read_where_it_holds(tmp_path: Path) -> None:
     assert ob.offset_um == pytest.approx(-0.5, abs=5 * noise / np.sqrt(1000))
     assert read.planning_frame(ob.at_s + 0.2).offset_um == pytest.approx(ob.offset_um, abs=1e-3)
     assert read.held_v == 20.0 and read.ended_s > ob.at_s
+
+
+class _Clock:
+    """A stage's clock that planning moves on (s)."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def now_s(self) -> float:
+        return self.t
+
+
+class _Moving:
+    """A twin whose frame drifts ``rate`` um/s: what each plan was given is kept."""
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate
+
+    def at(self, when_s: float) -> float:
+        return when_s
+
+    def planning_frame(self, when_s: float) -> fr.Frame:
+        return fr.Frame(self.rate * when_s, self.rate, "test")
+
+
+@pytest.mark.parametrize(("rate", "plans"), [(0.01, 2), (0.0, 1), (0.001, 1)])
+def test_a_plan_that_outlasts_its_time_in_a_moving_frame_is_made_again(rate: float,
+                                                                        plans: int) -> None:
+    """The first plan of a run is given :data:`runner.LEAD_S` and takes 2 s: in a frame moving
+    10 nm/s it would start 0.019 um off, and is made again for a start 2 s after its own
+    beginning (plus the start's delay), its duration then what it took; in a frame that does not
+    move, or moves under :data:`runner.REPLAN_UM` meanwhile (1 nm/s), the first plan stands."""
+    clock, asked = _Clock(), []
+
+    def plan_for(name: str, state: float, frame: fr.Frame) -> str:
+        asked.append((state, frame.offset_um))
+        clock.t += 2.0
+        return name
+
+    wf, took = runner._planned(clock, _Moving(rate), plan_for, "inverse", 0.0, 0.3)
+    assert wf == "inverse" and len(asked) == plans and took == pytest.approx(2.0)
+    assert asked[0][0] == pytest.approx(100.3)
+    if plans == 2:  # begun at 102 s, for a start 2 s + 0.3 s after: where the run will be
+        assert asked[1] == (pytest.approx(104.3), pytest.approx(rate * 104.3))
