@@ -495,7 +495,7 @@ def _read(stage: Any, tw: Any, out: Path, meta: dict[str, Any], file: str, secon
     from afmctl.model import frame as fr
     say(f"{why}: reading it there for {seconds:g} s ({file}), to see how far its readings have "
         f"moved from the model (a drifting mount, creep)"
-        + (" and how fast" if seconds >= fr.RATE_READ_S else ""))
+        + (" and how fast" if fr.tells_rate(round(seconds / tw.dt_s), tw.dt_s) else ""))
     tw = experiment.read_held(stage, tw, out / file, meta, seconds)
     if tw.read is not None:
         rate = tw.read.um_per_s

@@ -257,16 +257,18 @@ def _planned(stage: PlayingStage, tw: Twin,
     clock), from the twin's state and frame then, and how long the plan kept (s); again for a
     start that much later if this one took longer by more than the frame moves
     :data:`REPLAN_UM` in."""
-    begun = stage.now_s()  # type: ignore[attr-defined]
-    frame = tw.planning_frame(begun + took + delay)
-    wf = plan_for(name, tw.at(begun + took + delay), frame)
-    spent = stage.now_s() - begun  # type: ignore[attr-defined]
-    if abs(frame.um_per_s * (spent - took)) <= REPLAN_UM:
+    def planned_for(ahead: float) -> tuple[track.Waveform, float, float]:
+        """The plan for a start ``ahead`` s from now, how long it took (s), its frame's rate."""
+        begun = stage.now_s()  # type: ignore[attr-defined]
+        frame = tw.planning_frame(begun + ahead)
+        wf = plan_for(name, tw.at(begun + ahead), frame)
+        return wf, stage.now_s() - begun, frame.um_per_s  # type: ignore[attr-defined]
+
+    wf, spent, rate = planned_for(took + delay)
+    if abs(rate * (spent - took)) <= REPLAN_UM:
         return wf, spent
-    again = stage.now_s()  # type: ignore[attr-defined]
-    asked = again + spent + delay
-    wf = plan_for(name, tw.at(asked), tw.planning_frame(asked))
-    return wf, stage.now_s() - again  # type: ignore[attr-defined]
+    wf, again, _ = planned_for(spent + delay)
+    return wf, again
 
 
 def scored(wf: track.Waveform, desired: track.Desired, measured: tuple[Any, ...], path: Path,

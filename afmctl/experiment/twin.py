@@ -119,13 +119,12 @@ class Twin:
     def _observe(self, rod_um: np.ndarray, readings_um: np.ndarray, started_s: float,
                  read: bool = False) -> fr.Observation | None:
         """Readings against the model's own (its rod and second mode; the readings corrected
-        for its sensor effects); a reading at the held output (``read``) of
-        :data:`afmctl.model.frame.RATE_READ_S` or longer with its own drift rate
-        (:func:`afmctl.model.frame.read_line`)."""
+        for its sensor effects); a reading at the held output (``read``) long enough with its
+        own drift rate (:func:`afmctl.model.frame.tells_rate`, :func:`~afmctl.model.frame.read_line`)."""
         n = min(rod_um.size, readings_um.size)
         chain = fx.compile_chain(self.model.effects, self.dt_s)
         where = fx.sensor_correct(chain, readings_um[:n])
-        how = fr.read_line if read and (n + 0.5) * self.dt_s >= fr.RATE_READ_S else fr.observe
+        how = fr.read_line if read and fr.tells_rate(n, self.dt_s) else fr.observe
         return how(started_s + self.dt_s * np.arange(n), where, fx.position(chain, rod_um[:n]))
 
 

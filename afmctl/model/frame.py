@@ -88,13 +88,19 @@ def observe(at_s: FloatArray, readings_um: FloatArray, model_um: FloatArray
     return Observation(float(np.mean(t[ok])), float(np.mean(diff[ok])))
 
 
+def tells_rate(samples: int, dt_s: float) -> bool:
+    """Whether a reading of ``samples`` samples ``dt_s`` s apart lasts :data:`RATE_READ_S` (to
+    half a sample): long enough to tell its own drift rate (:func:`read_line`)."""
+    return (samples + 0.5) * dt_s >= RATE_READ_S
+
+
 def read_line(at_s: FloatArray, readings_um: FloatArray, model_um: FloatArray
               ) -> Observation | None:
-    """A reading at the held output long enough to tell a drift (:data:`RATE_READ_S`) as an :class:`Observation` with its own
-    drift rate: the straight line through readings less the model (um) at the times ``at_s``
-    (s), its value at the last sample and its slope, or where the slope is not
-    :data:`SIGNIFICANT` standard errors from zero (over the scatter about it) the mean and 0;
-    None if fewer than three samples were read."""
+    """A reading at the held output long enough to tell a drift (:func:`tells_rate`) as an
+    :class:`Observation` with its own drift rate: the straight line through readings less the
+    model (um) at the times ``at_s`` (s), its value at the last sample and its slope, or where
+    the slope is not :data:`SIGNIFICANT` standard errors from zero (over the scatter about it)
+    the mean and 0; None if fewer than three samples were read."""
     diff = readings_um - model_um
     ok = np.isfinite(diff)
     line = _line(at_s[ok], diff[ok])
